@@ -1,0 +1,149 @@
+"""Constant-curvature kinematics from Clarke features (DESIGN.md §2).
+
+Per segment, with u = (ρ_re, ρ_im)/d, φ² = ‖u‖², s = sin φ/φ, f = (1 − cos φ)/φ²:
+R = I + s·K + f·K² (rotation about (−u_y, u_x, 0) by φ), p = β·(u_x f, u_y f, s),
+and a twisting segment is first rolled by α about its base z axis: T = Rz(α)·T_cc.
+s and f are evaluated as functions of φ² with a Taylor branch near 0 (double-``where``), so
+values and gradients are finite at the straight configuration. No atan2, no division by φ.
+
+Shapes: features (..., m, 4) with columns (ρ_re [m], ρ_im [m], β [m], α [rad]); poses are
+homogeneous (..., 4, 4) [m]. Columns a segment does not actuate are ignored (β = l, α = 0).
+"""
+from __future__ import annotations
+
+import functools
+
+import torch
+from torch import Tensor
+
+from .checks import check_tensor
+from .robot import RobotSpec
+
+_TAYLOR_BELOW = 1e-2  # φ² threshold; 4 Taylor terms are exact to ~3e-14 there
+
+
+def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
+    """s = sin φ/φ and f = (1 − cos φ)/φ² as functions of φ² (..., ), finite with finite gradients at 0."""
+    small = phi_sq < _TAYLOR_BELOW
+    x = torch.where(small, torch.ones_like(phi_sq), phi_sq)
+    phi = torch.sqrt(x)
+    s_big, f_big = torch.sin(phi) / phi, (1 - torch.cos(phi)) / x
+    y = torch.where(small, phi_sq, torch.zeros_like(phi_sq))
+    s_small = 1 - y / 6 * (1 - y / 20 * (1 - y / 42 * (1 - y / 72)))
+    f_small = 0.5 * (1 - y / 12 * (1 - y / 30 * (1 - y / 56 * (1 - y / 90))))
+    return torch.where(small, s_small, s_big), torch.where(small, f_small, f_big)
+
+
+@functools.lru_cache(maxsize=64)
+def _segment_constants(spec: RobotSpec, dtype: torch.dtype, device: torch.device):
+    t = lambda v: torch.tensor(v, dtype=dtype, device=device)  # noqa: E731
+    segs = spec.segments
+    return (t([s.radius for s in segs]), t([s.length for s in segs]),
+            torch.tensor([s.extends for s in segs], device=device),
+            torch.tensor([s.twists for s in segs], device=device))
+
+
+def effective_features(spec: RobotSpec, features: Tensor) -> Tensor:
+    """Replace non-actuated columns by their fixed values (β = l, α = 0). (..., m, 4) → (..., m, 4)."""
+    check_tensor(features, "features", (spec.num_segments, 4))
+    _, length, extends, twists = _segment_constants(spec, features.dtype, features.device)
+    beta = torch.where(extends, features[..., 2], length.expand_as(features[..., 2]))
+    alpha = torch.where(twists, features[..., 3], torch.zeros_like(features[..., 3]))
+    return torch.cat([features[..., :2], beta.unsqueeze(-1), alpha.unsqueeze(-1)], dim=-1)
+
+
+def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor) -> Tensor:
+    """Rz(α)·T_cc for bending vector u (..., 2) [rad], length β (...) [m], roll α (...) [rad] → (..., 4, 4)."""
+    ux, uy = u[..., 0], u[..., 1]
+    s, f = bending_coefficients(ux * ux + uy * uy)
+    zero, one = torch.zeros_like(ux), torch.ones_like(ux)
+    rot = torch.stack([1 - f * ux * ux, -f * ux * uy, s * ux,
+                       -f * ux * uy, 1 - f * uy * uy, s * uy,
+                       -s * ux, -s * uy, 1 - f * (ux * ux + uy * uy)], dim=-1).unflatten(-1, (3, 3))
+    pos = beta.unsqueeze(-1) * torch.stack([f * ux, f * uy, s], dim=-1)
+    ca, sa = torch.cos(alpha), torch.sin(alpha)
+    rz = torch.stack([ca, -sa, zero, sa, ca, zero, zero, zero, one], dim=-1).unflatten(-1, (3, 3))
+    rot, pos = rz @ rot, (rz @ pos.unsqueeze(-1)).squeeze(-1)
+    top = torch.cat([rot, pos.unsqueeze(-1)], dim=-1)
+    bottom = torch.stack([zero, zero, zero, one], dim=-1).unsqueeze(-2)
+    return torch.cat([top, bottom], dim=-2)
+
+
+def segment_poses(spec: RobotSpec, features: Tensor) -> Tensor:
+    """Pose of each segment's tip relative to its own base: (..., m, 4) → (..., m, 4, 4)."""
+    feat = effective_features(spec, features)
+    radius = _segment_constants(spec, features.dtype, features.device)[0]
+    return cc_transform(feat[..., :2] / radius.unsqueeze(-1), feat[..., 2], feat[..., 3])
+
+
+def _chain(poses: Tensor) -> Tensor:
+    """Cumulative products T⁽¹⁾, T⁽¹⁾T⁽²⁾, …: (..., m, 4, 4) → (..., m, 4, 4)."""
+    out = [poses[..., 0, :, :]]
+    for j in range(1, poses.shape[-3]):
+        out.append(out[-1] @ poses[..., j, :, :])
+    return torch.stack(out, dim=-3)
+
+
+def segment_tip_poses(spec: RobotSpec, features: Tensor) -> Tensor:
+    """Pose of each segment's tip in the robot base frame: (..., m, 4) → (..., m, 4, 4)."""
+    return _chain(segment_poses(spec, features))
+
+
+def forward_kinematics(spec: RobotSpec, features: Tensor) -> Tensor:
+    """Tip pose T⁽¹⁾T⁽²⁾…T⁽ᵐ⁾ in the base frame: features (..., m, 4) → (..., 4, 4) [m]."""
+    poses = segment_poses(spec, features)
+    tip = poses[..., 0, :, :]
+    for j in range(1, spec.num_segments):
+        tip = tip @ poses[..., j, :, :]
+    return tip
+
+
+def backbone_points(spec: RobotSpec, features: Tensor, points_per_segment: int = 16) -> Tensor:
+    """Backbone points for drawing: (..., m, 4) → (..., 1 + m·points_per_segment, 3) [m].
+
+    The first point is the base origin; then, per segment, the arc at s = β·k/K, k = 1..K.
+    """
+    if points_per_segment < 1:
+        raise ValueError(f"points_per_segment: expected >= 1, got {points_per_segment}")
+    feat = effective_features(spec, features)
+    radius = _segment_constants(spec, features.dtype, features.device)[0]
+    frac = torch.arange(1, points_per_segment + 1, dtype=feat.dtype, device=feat.device) / points_per_segment
+    frac_u = frac[:, None, None]                                                    # (K, 1, 1)
+    u = (feat[..., :2] / radius.unsqueeze(-1)).unsqueeze(-3) * frac_u              # (..., K, m, 2)
+    partial = cc_transform(u, feat[..., 2].unsqueeze(-2) * frac[:, None], feat[..., 3].unsqueeze(-2).expand_as(u[..., 0]))
+    bases = _chain(segment_poses(spec, features))                                  # (..., m, 4, 4)
+    eye = torch.eye(4, dtype=feat.dtype, device=feat.device).expand(*bases.shape[:-3], 1, 4, 4)
+    bases = torch.cat([eye, bases[..., :-1, :, :]], dim=-3)                        # base of each segment
+    world = bases.unsqueeze(-4) @ partial                                          # (..., K, m, 4, 4)
+    pts = world[..., :3, 3].transpose(-2, -3).flatten(-3, -2)                      # (..., m·K, 3)
+    origin = torch.zeros_like(pts[..., :1, :])
+    return torch.cat([origin, pts], dim=-2)
+
+
+def analytic_inverse_kinematics(spec: RobotSpec, position: Tensor) -> Tensor:
+    """Closed-form IK of one type-0 or type-I segment: tip position (..., 3) [m] → features (..., 1, 4).
+
+    θ = atan2(y, x), φ = 2·atan2(r, z), ρ = d·φ·(cos θ, sin θ) = d·(φ/r)·(x, y); for type I
+    β = ‖p‖·φ / (2 sin(φ/2)); for type 0 β = l (the position must be reachable). Finite at r = 0.
+    """
+    if spec.num_segments != 1 or spec.segments[0].type not in ("0", "I"):
+        raise ValueError(f"spec: analytic IK needs one segment of type 0 or I, got "
+                         f"{[s.type for s in spec.segments]}")
+    check_tensor(position, "position", (3,))
+    seg = spec.segments[0]
+    x, y, z = position.unbind(-1)
+    r_sq = x * x + y * y
+    small = r_sq < 1e-12 * seg.length**2
+    r = torch.sqrt(torch.where(small, torch.ones_like(r_sq), r_sq))
+    ratio_big = 2 * torch.atan2(r, z) / r
+    z_safe = torch.where(small, z, torch.ones_like(z))
+    ratio_small = 2 / z_safe * (1 - r_sq / (3 * z_safe**2))                     # 2 atan(r/z)/r, z > 0
+    phi_over_r = torch.where(small, ratio_small, ratio_big)
+    phi = phi_over_r * torch.sqrt(r_sq + torch.finfo(position.dtype).tiny)
+    if seg.extends:
+        norm = torch.linalg.vector_norm(position, dim=-1)
+        beta = norm / torch.sinc(phi / (2 * torch.pi))                           # ‖p‖·φ/(2 sin(φ/2))
+    else:
+        beta = torch.full_like(x, seg.length)
+    feat = torch.stack([seg.radius * phi_over_r * x, seg.radius * phi_over_r * y, beta, torch.zeros_like(x)], -1)
+    return feat.unsqueeze(-2)

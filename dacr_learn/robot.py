@@ -1,0 +1,280 @@
+"""Robot description: a frozen, validated :class:`RobotSpec` and its YAML/dict I/O.
+
+Schema (DESIGN.md §4)::
+
+    name: tdcr-3seg
+    routing: coupled            # or independent
+    segments:
+      - type: "I"               # "0" | "I" | "II" | "III"
+        length: 0.10            # nominal length l [m]; the fixed length of types 0 and II
+        radius: 0.008           # reference radius d of the Clarke coordinates [m]
+        joints: 4               # n symmetric joints ...
+        offset: 0.0             #   ... starting at this angle [rad]
+        # or: joint_angles: [...] [rad] and optional joint_radii: [...] [m]
+        limits: {bend: 1.57, length: [0.08, 0.12], twist: [-1.0, 1.0]}
+
+Default sampling limits (used when ``limits`` or one of its keys is absent):
+``bend = pi/2`` rad (maximum bending angle), ``length = [0.8 l, 1.2 l]`` m for extending
+types I/III, ``twist = [-pi/2, pi/2]`` rad for twisting types II/III.
+
+This module does not depend on ``torch.nn``; all geometry is kept in plain floats.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+SEGMENT_TYPES = ("0", "I", "II", "III")
+EXTENDING_TYPES = ("I", "III")
+TWISTING_TYPES = ("II", "III")
+ROUTINGS = ("independent", "coupled")
+DEFAULT_BEND = math.pi / 2
+DEFAULT_LENGTH_RATIO = (0.8, 1.2)
+DEFAULT_TWIST = (-math.pi / 2, math.pi / 2)
+
+_ROBOT_KEYS = {"name", "routing", "segments"}
+_SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles", "joint_radii", "limits"}
+_LIMIT_KEYS = {"bend", "length", "twist"}
+
+
+def _fail(field: str, value: Any, expected: str) -> None:
+    raise ValueError(f"{field}: got {value!r}, expected {expected}")
+
+
+def _positive_float(field: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        _fail(field, value, "a number")
+    if not math.isfinite(value) or value <= 0:
+        _fail(field, value, "a finite number > 0")
+    return float(value)
+
+
+def _float_list(field: str, value: Any) -> tuple[float, ...]:
+    if not isinstance(value, (list, tuple)):
+        _fail(field, value, "a list of numbers")
+    out = []
+    for i, v in enumerate(value):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            _fail(f"{field}[{i}]", v, "a finite number")
+        out.append(float(v))
+    return tuple(out)
+
+
+def _range(field: str, value: Any, positive: bool) -> tuple[float, float]:
+    lo_hi = _float_list(field, value)
+    if len(lo_hi) != 2 or not lo_hi[0] < lo_hi[1] or (positive and lo_hi[0] <= 0):
+        _fail(field, value, "[low, high] with low < high" + (" and low > 0" if positive else ""))
+    return lo_hi
+
+
+@dataclass(frozen=True)
+class SegmentSpec:
+    """One segment: type, nominal length l [m], reference radius d [m] and joint layout.
+
+    ``joint_angles`` ψ_i [rad] and ``joint_radii`` d_i [m] are always explicit here; the
+    ``symmetric`` flag (with ``offset``) remembers whether the YAML used ``joints/offset``.
+    ``bend`` [rad], ``length_range`` [m] and ``twist_range`` [rad] are sampling limits.
+    """
+
+    type: str
+    length: float
+    radius: float
+    joint_angles: tuple[float, ...]
+    joint_radii: tuple[float, ...]
+    bend: float
+    length_range: tuple[float, float] | None
+    twist_range: tuple[float, float] | None
+    symmetric: bool
+    offset: float = 0.0
+
+    @property
+    def num_joints(self) -> int:
+        """n: number of displacement joints of this segment (twist not counted)."""
+        return len(self.joint_angles)
+
+    @property
+    def extends(self) -> bool:
+        """True when the segment length β is actuated (types I, III)."""
+        return self.type in EXTENDING_TYPES
+
+    @property
+    def twists(self) -> bool:
+        """True when the twist α is actuated (types II, III)."""
+        return self.type in TWISTING_TYPES
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str) -> "SegmentSpec":
+        if not isinstance(d, Mapping):
+            _fail(where, d, "a mapping with keys " + ", ".join(sorted(_SEGMENT_KEYS)))
+        unknown = set(d) - _SEGMENT_KEYS
+        if unknown:
+            _fail(f"{where}", sorted(unknown), "only keys " + ", ".join(sorted(_SEGMENT_KEYS)))
+        seg_type = str(d.get("type", ""))
+        if seg_type not in SEGMENT_TYPES:
+            _fail(f"{where}.type", d.get("type"), 'one of "0", "I", "II", "III"')
+        length = _positive_float(f"{where}.length", d.get("length"))
+        radius = _positive_float(f"{where}.radius", d.get("radius"))
+        angles, radii, symmetric, offset = _joint_layout(d, where, radius)
+        bend, length_range, twist_range = _limits(d.get("limits", {}), where, seg_type, length)
+        seg = cls(seg_type, length, radius, angles, radii, bend, length_range, twist_range, symmetric, offset)
+        _check_rank(seg, where)
+        return seg
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"type": self.type, "length": self.length, "radius": self.radius}
+        if self.symmetric:
+            d["joints"] = self.num_joints
+            d["offset"] = self.offset
+        else:
+            d["joint_angles"] = list(self.joint_angles)
+            d["joint_radii"] = list(self.joint_radii)
+        limits: dict[str, Any] = {"bend": self.bend}
+        if self.length_range is not None:
+            limits["length"] = list(self.length_range)
+        if self.twist_range is not None:
+            limits["twist"] = list(self.twist_range)
+        d["limits"] = limits
+        return d
+
+
+def _joint_layout(d: Mapping[str, Any], where: str, radius: float):
+    """Return (angles, radii, symmetric, offset) from either joints/offset or joint_angles."""
+    if "joint_angles" in d:
+        if "joints" in d or "offset" in d:
+            _fail(where, sorted(set(d) & {"joints", "offset"}), "either joints/offset or joint_angles, not both")
+        angles = _float_list(f"{where}.joint_angles", d["joint_angles"])
+        if len(angles) < 3:
+            _fail(f"{where}.joint_angles", list(angles), "at least 3 joints")
+        if "joint_radii" in d:
+            radii = _float_list(f"{where}.joint_radii", d["joint_radii"])
+            if len(radii) != len(angles):
+                _fail(f"{where}.joint_radii", list(radii), f"{len(angles)} radii, one per joint angle")
+            for i, r in enumerate(radii):
+                _positive_float(f"{where}.joint_radii[{i}]", r)
+        else:
+            radii = (radius,) * len(angles)
+        return angles, radii, False, 0.0
+    if "joint_radii" in d:
+        _fail(f"{where}.joint_radii", d["joint_radii"], "joint_radii only together with joint_angles")
+    n = d.get("joints")
+    if isinstance(n, bool) or not isinstance(n, int):
+        _fail(f"{where}.joints", n, "an integer number of joints >= 3 (or joint_angles)")
+    if n < 3:
+        _fail(f"{where}.joints", n, "at least 3 joints")
+    offset = d.get("offset", 0.0)
+    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not math.isfinite(offset):
+        _fail(f"{where}.offset", offset, "a finite angle in radians")
+    angles = tuple(float(offset) + 2 * math.pi * i / n for i in range(n))
+    return angles, (radius,) * n, True, float(offset)
+
+
+def _limits(lim: Any, where: str, seg_type: str, length: float):
+    if not isinstance(lim, Mapping):
+        _fail(f"{where}.limits", lim, "a mapping with keys bend, length, twist")
+    allowed = {"bend"} | ({"length"} if seg_type in EXTENDING_TYPES else set()) | (
+        {"twist"} if seg_type in TWISTING_TYPES else set())
+    extra = set(lim) - allowed
+    if extra:
+        _fail(f"{where}.limits", sorted(extra), f"only keys {sorted(allowed)} for a type-{seg_type} segment")
+    bend = lim.get("bend", DEFAULT_BEND)
+    if isinstance(bend, bool) or not isinstance(bend, (int, float)) or not 0 < bend <= math.pi:
+        _fail(f"{where}.limits.bend", bend, "a bending angle in (0, pi] rad")
+    length_range = twist_range = None
+    if seg_type in EXTENDING_TYPES:
+        default = [length * DEFAULT_LENGTH_RATIO[0], length * DEFAULT_LENGTH_RATIO[1]]
+        length_range = _range(f"{where}.limits.length", lim.get("length", default), positive=True)
+    if seg_type in TWISTING_TYPES:
+        twist_range = _range(f"{where}.limits.twist", lim.get("twist", list(DEFAULT_TWIST)), positive=False)
+    return float(bend), length_range, twist_range
+
+
+def _check_rank(seg: SegmentSpec, where: str) -> None:
+    """The n×2 matrix A (and [A, 1] for extending segments) must have full column rank."""
+    psi, r = np.array(seg.joint_angles), np.array(seg.joint_radii)
+    a = (r / seg.radius)[:, None] * np.stack([np.cos(psi), np.sin(psi)], axis=1)
+    if seg.extends:
+        a = np.concatenate([a, np.ones((len(psi), 1))], axis=1)
+    if np.linalg.matrix_rank(a, tol=1e-9 * max(1.0, np.abs(a).max())) < a.shape[1]:
+        field = f"{where}.joint_angles" if not seg.symmetric else f"{where}.joints"
+        what = "[A, 1]" if seg.extends else "A"
+        _fail(field, list(seg.joint_angles), f"a joint layout whose matrix {what} has full column rank "
+              "(joints spread around the backbone, not all on one line)")
+    if seg.twists and len(set(seg.joint_radii)) > 1:
+        _fail(f"{where}.joint_radii", list(seg.joint_radii), "equal radii for a twisting segment (type II/III)")
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """A chain of segments with a routing mode. Construct with :meth:`from_dict`/:meth:`from_yaml`."""
+
+    name: str
+    routing: str
+    segments: tuple[SegmentSpec, ...]
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "RobotSpec":
+        if not isinstance(d, Mapping):
+            _fail("robot", d, "a mapping with keys name, routing, segments")
+        unknown = set(d) - _ROBOT_KEYS
+        if unknown:
+            _fail("robot", sorted(unknown), "only keys name, routing, segments")
+        name = d.get("name", "robot")
+        if not isinstance(name, str) or not name:
+            _fail("name", name, "a non-empty string")
+        routing = d.get("routing", "independent")
+        if routing not in ROUTINGS:
+            _fail("routing", routing, "'independent' or 'coupled'")
+        segs = d.get("segments")
+        if not isinstance(segs, (list, tuple)) or not segs:
+            _fail("segments", segs, "a non-empty list of segments")
+        segments = tuple(SegmentSpec.from_dict(s, f"segments[{j}]") for j, s in enumerate(segs))
+        if routing == "coupled":
+            for j, seg in enumerate(segments[:-1]):
+                if seg.twists:
+                    _fail(f"segments[{j}].type", seg.type, "a non-twisting segment: coupled routing through a "
+                          "twisting segment (type II/III) is not modelled")
+        return cls(name, routing, segments)
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "RobotSpec":
+        import yaml
+
+        with open(path) as f:
+            return cls.from_dict(yaml.safe_load(f))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "routing": self.routing, "segments": [s.to_dict() for s in self.segments]}
+
+    def to_yaml(self, path: str | Path) -> None:
+        import yaml
+
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+    @property
+    def num_segments(self) -> int:
+        """m: number of segments."""
+        return len(self.segments)
+
+    @property
+    def num_length_joints(self) -> int:
+        """Number of joint lengths in the joint vector (all segments' joints)."""
+        return sum(s.num_joints for s in self.segments)
+
+    @property
+    def num_joints(self) -> int:
+        """Length of the joint vector: joint lengths, then one α per twisting segment."""
+        return self.num_length_joints + sum(s.twists for s in self.segments)
+
+    @property
+    def total_length(self) -> float:
+        """Sum of nominal segment lengths l [m] (the scale of error percentages)."""
+        return sum(s.length for s in self.segments)
+
+    @property
+    def num_actuated_features(self) -> int:
+        """Number of free feature columns: 2 per segment + β and α where actuated."""
+        return sum(2 + s.extends + s.twists for s in self.segments)
