@@ -40,7 +40,10 @@ class _ClarkeBase(nn.Module):
         self.register_buffer("path", maps.path)
         self.register_buffer("actuated_pinv", maps.actuated_pinv)
         self.register_buffer("nominal_length", torch.tensor([s.length for s in segs], **f64))
-        self.register_buffer("radius", torch.tensor([s.radius for s in segs], **f64))
+        # Helix radius of the twist term h = sqrt((α d_i)² + β²): the joints' own radius d_i (equal
+        # within a twisting segment), which may differ from the reference radius d of the Clarke
+        # coordinates. Irrelevant for non-twisting segments (α = 0).
+        self.register_buffer("helix_radius", torch.tensor([s.joint_radii[0] for s in segs], **f64))
         self.register_buffer("extends", torch.tensor([s.extends for s in segs]))
         self.register_buffer("twists_ext", torch.tensor([segs[k].twists for k in ext], dtype=torch.bool))
         self.register_buffer("select_ext", _selection(ext, m))
@@ -62,7 +65,7 @@ class ClarkeEncoder(_ClarkeBase):
         c = lambda name: self._c(name, q)  # noqa: E731
         lengths, twist = q[..., :self.num_lengths], q[..., self.num_lengths:]
         alpha = twist @ c("select_tw").mT                                   # (..., m)
-        ad2 = (alpha * c("radius")) ** 2
+        ad2 = (alpha * c("helix_radius")) ** 2
         fixed = ~self.extends
         h_fixed = torch.where(fixed, torch.sqrt(ad2 + c("nominal_length") ** 2), torch.zeros_like(ad2))
         w = (lengths - h_fixed @ c("path").mT) @ c("actuated_pinv").mT      # (..., 2m + e)
@@ -78,7 +81,7 @@ class ClarkeEncoder(_ClarkeBase):
 
 
 class ClarkeDecoder(_ClarkeBase):
-    """Features (..., m, 4) → joint vector (..., num_joints): q = B_ρ·ρ + C·h, h = sqrt((αd)² + β²).
+    """Features (..., m, 4) → joint vector (..., num_joints): q = B_ρ·ρ + C·h, h = sqrt((αd_i)² + β²).
 
     Non-actuated columns are ignored (β = l for types 0/II, α = 0 for types 0/I).
     """
@@ -90,7 +93,7 @@ class ClarkeDecoder(_ClarkeBase):
         twisting = c("select_tw").sum(-1) > 0
         alpha = torch.where(twisting, features[..., 3], torch.zeros_like(features[..., 3]))
         beta = torch.where(self.extends, features[..., 2], c("nominal_length").expand_as(alpha))
-        h = torch.sqrt((alpha * c("radius")) ** 2 + beta**2)
+        h = torch.sqrt((alpha * c("helix_radius")) ** 2 + beta**2)
         lengths = rho @ c("displacement").mT + h @ c("path").mT
         twist = features[..., 3] @ c("select_tw")
         return torch.cat([lengths, twist], dim=-1)
