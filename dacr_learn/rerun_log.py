@@ -202,7 +202,9 @@ class RerunLogger(Logger):
     ``save_dir=None`` writes no file. Metrics go to ``metrics/<name>`` on the ``step`` timeline.
     Only rank 0 logs; ``.experiment`` / ``.recording`` is the :class:`rerun.RecordingStream`.
 
-    ``finalize`` flushes and closes all sinks, so the file is complete. If the logger is used
+    ``finalize`` flushes and closes all sinks, so the file is complete — unless
+    ``close_on_finalize=False`` and the run succeeded: then the recording stays open (one file
+    across ``fit`` and a following ``test``) until :meth:`close` is called. If the logger is used
     again afterwards (``trainer.fit`` then ``trainer.test``) the next part goes to
     ``rerun_1.rrd``, ``rerun_2.rrd``, … with the same recording id: open them together and
     the viewer merges them into one recording.
@@ -211,7 +213,7 @@ class RerunLogger(Logger):
     def __init__(
         self, save_dir: str | os.PathLike | None = "runs", name: str = "default",
         version: int | str | None = None, spawn: bool = False, connect: str | None = None,
-        application_id: str = "dacr_learn", flush_timeout: float = 10.0,
+        application_id: str = "dacr_learn", flush_timeout: float = 10.0, close_on_finalize: bool = True,
     ) -> None:
         super().__init__()
         if save_dir is None and not spawn and not connect:
@@ -223,6 +225,7 @@ class RerunLogger(Logger):
         self._connect = connect
         self._application_id = application_id
         self._flush_timeout = flush_timeout
+        self._close_on_finalize = close_on_finalize
         self._recording_id = str(uuid.uuid4())
         self._rec: rr.RecordingStream | None = None
         self._part = -1  # index of the .rrd part being (or last) written
@@ -314,7 +317,20 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def finalize(self, status: str) -> None:
-        """Flush and close every sink so the ``.rrd`` file is complete and readable."""
+        """Flush and close every sink so the ``.rrd`` file is complete and readable.
+
+        With ``close_on_finalize=False`` a successful stage only flushes; call :meth:`close`.
+        """
+        if self._rec is None:
+            return
+        if status == "success" and not self._close_on_finalize:
+            self._flush(self._rec, self._flush_timeout)
+            return
+        self.close(status)
+
+    @rank_zero_only
+    def close(self, status: str = "success") -> None:
+        """Write the run status, flush and disconnect: the ``.rrd`` file is complete after this."""
         if self._rec is None:
             return
         rec, self._rec = self._rec, None

@@ -1,0 +1,144 @@
+"""Synthetic constant-curvature datasets: sampling, dataset files, batching.
+
+Sampling (per segment, from the robot's limits): the bending vector u = φ·(cos θ, sin θ) is
+uniform in area over the disk φ ≤ bend (φ = bend·√U₁, θ = 2πU₂), ρ = d·u; β and α are
+uniform in their ranges. Joint vectors come from :class:`ClarkeDecoder`, tip poses from
+:func:`forward_kinematics`. Generation is deterministic for a seed (a private generator).
+
+Tensors of a dataset (all in SI units):
+  q (N, num_joints) [m, rad] — measured joint vector (after noise and common-mode offset),
+  q_clean (N, num_joints) — noise-free joint vector, features (N, m, 4) — sampled features,
+  pose (N, 4, 4) — measured tip pose (after pose noise), pose_clean (N, 4, 4).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from .kinematics import forward_kinematics
+from .layers import ClarkeDecoder
+from .robot import RobotSpec
+
+TENSOR_FILE, META_FILE = "tensors.pt", "meta.json"
+
+
+@dataclass(frozen=True)
+class SamplerOptions:
+    """Noise model of a synthetic dataset (SI units, standard deviations unless noted).
+
+    joint_noise [m]: Gaussian noise on every joint length; pose_noise_pos [m]: on each tip
+    coordinate; pose_noise_rot [rad]: rotation by a random axis-angle vector with this std per
+    component; common_offset [m]: the same constant added to every joint length (drift).
+    """
+
+    joint_noise: float = 0.0
+    pose_noise_pos: float = 0.0
+    pose_noise_rot: float = 0.0
+    common_offset: float = 0.0
+
+    def __post_init__(self):
+        for k, v in asdict(self).items():
+            if not isinstance(v, (int, float)) or v != v or (k != "common_offset" and v < 0):
+                raise ValueError(f"{k}: expected a finite number" + (" >= 0" if k != "common_offset" else "")
+                                 + f", got {v!r}")
+
+
+def sample_features(spec: RobotSpec, n: int, generator: torch.Generator, dtype=torch.float32) -> Tensor:
+    """n feature tensors (n, m, 4) uniform over the robot's limits (see module docstring)."""
+    if n < 1:
+        raise ValueError(f"n: expected a positive number of samples, got {n}")
+    cols = []
+    for seg in spec.segments:
+        u = torch.rand(n, 4, generator=generator, dtype=dtype)
+        phi, theta = seg.bend * torch.sqrt(u[:, 0]), 2 * torch.pi * u[:, 1]
+        lo, hi = seg.length_range or (seg.length, seg.length)
+        tlo, thi = seg.twist_range or (0.0, 0.0)
+        cols.append(torch.stack([seg.radius * phi * torch.cos(theta), seg.radius * phi * torch.sin(theta),
+                                 lo + (hi - lo) * u[:, 2], tlo + (thi - tlo) * u[:, 3]], dim=-1))
+    return torch.stack(cols, dim=1)
+
+
+def _rotation_noise(n: int, std: float, generator: torch.Generator, dtype) -> Tensor:
+    from pytorch_kinematics.transforms import axis_angle_to_matrix
+
+    return axis_angle_to_matrix(std * torch.randn(n, 3, generator=generator, dtype=dtype))
+
+
+def generate(spec: RobotSpec, n: int, seed: int, options: SamplerOptions = SamplerOptions(),
+             dtype=torch.float32) -> dict[str, Tensor]:
+    """Generate n samples (see module docstring for the tensors). Bit-identical for a seed."""
+    g = torch.Generator().manual_seed(int(seed))
+    features = sample_features(spec, n, g, dtype)
+    q_clean = ClarkeDecoder(spec)(features)
+    pose_clean = forward_kinematics(spec, features)
+    q = q_clean.clone()
+    nl = spec.num_length_joints
+    if options.joint_noise:
+        q[:, :nl] += options.joint_noise * torch.randn(n, nl, generator=g, dtype=dtype)
+    q[:, :nl] += options.common_offset
+    pose = pose_clean.clone()
+    if options.pose_noise_pos:
+        pose[:, :3, 3] += options.pose_noise_pos * torch.randn(n, 3, generator=g, dtype=dtype)
+    if options.pose_noise_rot:
+        pose[:, :3, :3] = pose[:, :3, :3] @ _rotation_noise(n, options.pose_noise_rot, g, dtype)
+    return {"q": q, "q_clean": q_clean, "features": features, "pose": pose, "pose_clean": pose_clean}
+
+
+def tensors_sha256(tensors: dict[str, Tensor]) -> str:
+    """sha256 over the names, dtypes, shapes and raw bytes of the tensors, in name order."""
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def save_dataset(directory: str | Path, spec: RobotSpec, tensors: dict[str, Tensor], seed: int,
+                 options: SamplerOptions) -> Path:
+    """Write ``tensors.pt`` + ``meta.json`` (spec, options, seed, sha256) to ``directory``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    meta = {"robot": spec.to_dict(), "options": asdict(options), "seed": int(seed),
+            "num_samples": int(next(iter(tensors.values())).shape[0]), "sha256": tensors_sha256(tensors)}
+    tmp = directory / (TENSOR_FILE + ".tmp")
+    torch.save(tensors, tmp)
+    tmp.replace(directory / TENSOR_FILE)                      # atomic: never a half-written file
+    (directory / META_FILE).write_text(json.dumps(meta, indent=2))
+    return directory
+
+
+def load_dataset(directory: str | Path, spec: RobotSpec | None = None) -> tuple[dict[str, Tensor], dict]:
+    """Read a dataset written by :func:`save_dataset`; refuse a checksum or robot-spec mismatch."""
+    directory = Path(directory)
+    for f in (TENSOR_FILE, META_FILE):
+        if not (directory / f).is_file():
+            raise ValueError(f"dataset {directory}: missing {f}")
+    meta = json.loads((directory / META_FILE).read_text())
+    tensors = torch.load(directory / TENSOR_FILE, weights_only=True)
+    digest = tensors_sha256(tensors)
+    if digest != meta.get("sha256"):
+        raise ValueError(f"dataset {directory}: checksum mismatch (meta.json says {meta.get('sha256')}, "
+                         f"the tensors hash to {digest}); the file was modified or truncated")
+    if spec is not None and RobotSpec.from_dict(meta["robot"]) != spec:
+        raise ValueError(f"dataset {directory}: robot spec mismatch: the dataset was generated for "
+                         f"{meta['robot']['name']!r} ({meta['robot']}), expected {spec.to_dict()}")
+    return tensors, meta
+
+
+def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
+                     options: SamplerOptions = SamplerOptions()) -> dict[str, Tensor]:
+    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, options), else generate and save it."""
+    directory = Path(directory)
+    if (directory / META_FILE).is_file():
+        meta = json.loads((directory / META_FILE).read_text())
+        if (meta.get("seed"), meta.get("num_samples"), meta.get("options")) == (seed, n, asdict(options)):
+            return load_dataset(directory, spec)[0]
+    tensors = generate(spec, n, seed, options)
+    save_dataset(directory, spec, tensors, seed, options)
+    return tensors

@@ -1,0 +1,112 @@
+"""LightningDataModule serving synthetic CC datasets as in-memory tensor batches.
+
+Batches are dicts {"q": (B, num_joints), "pose": (B, 4, 4), "valid": (B,) bool} drawn by
+index from tensors held in memory: no per-sample ``__getitem__``, no worker processes. Under
+DDP each rank takes a disjoint shard (padded to equal length so every rank runs the same
+number of steps; padding rows carry ``valid = False`` and are ignored by the metrics).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lightning.pytorch as pl
+import torch
+from torch import Tensor
+
+from .data import SamplerOptions, generate, generate_or_load
+from .robot import RobotSpec
+
+BATCH_KEYS = ("q", "pose")
+
+
+def _rank_world() -> tuple[int, int]:
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        return torch.distributed.get_rank(), torch.distributed.get_world_size()
+    return 0, 1
+
+
+class TensorBatches:
+    """Iterable of index batches over a dict of equally long tensors (reshuffled every epoch)."""
+
+    def __init__(self, tensors: dict[str, Tensor], batch_size: int, shuffle: bool, seed: int = 0):
+        if batch_size < 1:
+            raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
+        self.tensors = {k: tensors[k] for k in BATCH_KEYS}
+        self.n = self.tensors["q"].shape[0]
+        self.batch_size, self.shuffle, self.seed, self.epoch = batch_size, shuffle, seed, 0
+
+    def _shard(self) -> tuple[Tensor, Tensor]:
+        rank, world = _rank_world()
+        if self.shuffle:
+            order = torch.randperm(self.n, generator=torch.Generator().manual_seed(self.seed + self.epoch))
+            self.epoch += 1
+        else:
+            order = torch.arange(self.n)
+        per_rank = math.ceil(self.n / world)
+        pad = per_rank * world - self.n
+        valid = torch.cat([torch.ones(self.n, dtype=torch.bool), torch.zeros(pad, dtype=torch.bool)])
+        order = torch.cat([order, order[:pad]])
+        return order[rank::world], valid[rank::world]
+
+    def __iter__(self):
+        order, valid = self._shard()
+        for i in range(0, len(order), self.batch_size):
+            idx = order[i:i + self.batch_size]
+            batch = {k: v[idx] for k, v in self.tensors.items()}
+            batch["valid"] = valid[i:i + self.batch_size]
+            yield batch
+
+    def __len__(self) -> int:
+        return math.ceil(math.ceil(self.n / _rank_world()[1]) / self.batch_size)
+
+
+class KinematicsDataModule(pl.LightningDataModule):
+    """Synthetic dataset of a robot, split into train / val / test.
+
+    Args:
+        robot: path of a robot YAML (configs/robots/*.yaml) or a RobotSpec dict.
+        n_train, n_val, n_test: split sizes. batch_size: training batch size (eval uses 4×).
+        seed: sampling seed (the splits are consecutive slices of one seeded dataset).
+        joint_noise, pose_noise_pos, pose_noise_rot, common_offset: see SamplerOptions [m, rad].
+        cache_dir: if set, the dataset is written there (tensors.pt + meta.json) and re-used.
+    """
+
+    def __init__(self, robot: str | dict = "configs/robots/default.yaml", n_train: int = 100_000,
+                 n_val: int = 5_000, n_test: int = 10_000, batch_size: int = 1024, seed: int = 0,
+                 joint_noise: float = 0.0, pose_noise_pos: float = 0.0, pose_noise_rot: float = 0.0,
+                 common_offset: float = 0.0, cache_dir: str | None = None):
+        super().__init__()
+        self.spec = RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot)
+        for name, v in (("n_train", n_train), ("n_val", n_val), ("n_test", n_test)):
+            if v < 1:
+                raise ValueError(f"{name}: expected >= 1 samples, got {v}")
+        self.sizes = (n_train, n_val, n_test)
+        self.batch_size, self.seed, self.cache_dir = batch_size, seed, cache_dir
+        self.options = SamplerOptions(joint_noise, pose_noise_pos, pose_noise_rot, common_offset)
+        self.splits: dict[str, dict[str, Tensor]] = {}
+
+    def prepare_data(self) -> None:
+        if self.cache_dir is not None:
+            generate_or_load(Path(self.cache_dir), self.spec, sum(self.sizes), self.seed, self.options)
+
+    def setup(self, stage: str | None = None) -> None:
+        if self.splits:
+            return
+        n = sum(self.sizes)
+        if self.cache_dir is not None:
+            data = generate_or_load(Path(self.cache_dir), self.spec, n, self.seed, self.options)
+        else:
+            data = generate(self.spec, n, self.seed, self.options)
+        bounds = [0, self.sizes[0], self.sizes[0] + self.sizes[1], n]
+        for name, lo, hi in zip(("train", "val", "test"), bounds[:-1], bounds[1:]):
+            self.splits[name] = {k: v[lo:hi] for k, v in data.items()}
+
+    def train_dataloader(self):
+        return TensorBatches(self.splits["train"], self.batch_size, shuffle=True, seed=self.seed)
+
+    def val_dataloader(self):
+        return TensorBatches(self.splits["val"], 4 * self.batch_size, shuffle=False)
+
+    def test_dataloader(self):
+        return TensorBatches(self.splits["test"], 4 * self.batch_size, shuffle=False)

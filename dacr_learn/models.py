@@ -1,0 +1,178 @@
+"""Neural FK / IK models with a feature front-end chosen by name (DESIGN.md §5).
+
+Front-ends ("clarke" | "raw"):
+- clarke: ClarkeEncoder → only the actuated columns (ρ_re, ρ_im per segment, β and α where
+  actuated), standardised with training-set statistics;
+- raw: the joint vector itself, standardised with training-set statistics.
+
+FKModel: joint vector (..., num_joints) → tip pose (..., 4, 4) [m]; the network predicts the
+position divided by the total robot length and the rotation as 6D (Zhou et al., the first two
+rows of R) or as a quaternion (w, x, y, z); conversions via pytorch_kinematics.transforms.
+IKModel: tip pose (..., 4, 4) → joint vector. With "clarke" it predicts the actuated features
+and decodes them with ClarkeDecoder, so every output satisfies the displacement constraint by
+construction; with "raw" it predicts the joint vector directly (the ablation's baseline).
+"""
+from __future__ import annotations
+
+import torch
+from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_matrix
+from torch import Tensor, nn
+
+from .checks import check_tensor
+from .layers import ClarkeDecoder, ClarkeEncoder
+from .robot import RobotSpec
+
+FEATURE_MODES = ("clarke", "raw")
+ROTATIONS = {"6d": (6, rotation_6d_to_matrix), "quaternion": (4, quaternion_to_matrix)}
+ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU, "gelu": nn.GELU, "tanh": nn.Tanh}
+
+
+def mlp(in_dim: int, out_dim: int, width: int, depth: int, activation: str) -> nn.Sequential:
+    """``depth`` hidden layers of ``width`` units with ``activation``, then a linear output layer."""
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation: expected one of {sorted(ACTIVATIONS)}, got {activation!r}")
+    if width < 1 or depth < 1:
+        raise ValueError(f"width/depth: expected >= 1, got width={width}, depth={depth}")
+    layers, d = [], in_dim
+    for _ in range(depth):
+        layers += [nn.Linear(d, width), ACTIVATIONS[activation]()]
+        d = width
+    return nn.Sequential(*layers, nn.Linear(d, out_dim))
+
+
+class Standardizer(nn.Module):
+    """x ↦ (x − mean)/std with buffers fitted on training data; ``inverse`` undoes it. (..., D)."""
+
+    def __init__(self, dim: int):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+
+    def fit(self, x: Tensor) -> None:
+        x = x.reshape(-1, x.shape[-1]).double()
+        self.mean.copy_(x.mean(0))
+        self.std.copy_(x.std(0).clamp_min(1e-12 + 1e-6 * x.std(0).max().item()))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return (x - self.mean) / self.std
+
+    def inverse(self, z: Tensor) -> Tensor:
+        return z * self.std + self.mean
+
+
+def actuated_selection(spec: RobotSpec) -> Tensor:
+    """(D, 4m) 0/1 matrix picking the actuated columns out of a flattened feature tensor."""
+    cols = []
+    for j, seg in enumerate(spec.segments):
+        cols += [4 * j, 4 * j + 1] + ([4 * j + 2] if seg.extends else []) + ([4 * j + 3] if seg.twists else [])
+    sel = torch.zeros(len(cols), 4 * spec.num_segments)
+    sel[torch.arange(len(cols)), cols] = 1.0
+    return sel
+
+
+class FeatureFrontEnd(nn.Module):
+    """Joint vector (..., num_joints) → standardised input features (..., D) for a network."""
+
+    def __init__(self, spec: RobotSpec, mode: str = "clarke"):
+        super().__init__()
+        if mode not in FEATURE_MODES:
+            raise ValueError(f"features: expected one of {FEATURE_MODES}, got {mode!r}")
+        self.spec, self.mode = spec, mode
+        self.encoder = ClarkeEncoder(spec) if mode == "clarke" else None
+        if mode == "clarke":
+            self.register_buffer("selection", actuated_selection(spec))
+        self.dim = spec.num_actuated_features if mode == "clarke" else spec.num_joints
+        self.norm = Standardizer(self.dim)
+
+    def raw_features(self, q: Tensor) -> Tensor:
+        """Unstandardised features (..., D): actuated Clarke columns [m, rad] or the joint vector."""
+        check_tensor(q, "joint vector", (self.spec.num_joints,))
+        if self.encoder is None:
+            return q
+        return self.encoder(q).flatten(-2) @ self.selection.to(q.dtype).mT
+
+    def fit(self, q: Tensor) -> None:
+        self.norm.fit(self.raw_features(q))
+
+    def forward(self, q: Tensor) -> Tensor:
+        return self.norm(self.raw_features(q))
+
+
+def pose_from_parts(rotation: Tensor, position: Tensor) -> Tensor:
+    """Homogeneous pose (..., 4, 4) from rotation (..., 3, 3) and position (..., 3)."""
+    top = torch.cat([rotation, position.unsqueeze(-1)], dim=-1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], dim=-2)
+
+
+def pose_to_vector(pose: Tensor, length: float) -> Tensor:
+    """Pose (..., 4, 4) → (..., 9): position / total length and the 6D rotation (first two rows)."""
+    return torch.cat([pose[..., :3, 3] / length, pose[..., :2, :3].flatten(-2)], dim=-1)
+
+
+class FKModel(nn.Module):
+    """Learned forward kinematics: joint vector (..., num_joints) → tip pose (..., 4, 4) [m]."""
+
+    def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
+                 activation: str = "silu", rotation: str = "6d"):
+        super().__init__()
+        if rotation not in ROTATIONS:
+            raise ValueError(f"rotation: expected one of {sorted(ROTATIONS)}, got {rotation!r}")
+        self.spec, self.rotation = spec, rotation
+        self.front = FeatureFrontEnd(spec, features)
+        self.net = mlp(self.front.dim, 3 + ROTATIONS[rotation][0], width, depth, activation)
+        self.length = spec.total_length
+
+    def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:
+        self.front.fit(q)
+
+    def forward(self, q: Tensor) -> Tensor:
+        out = self.net(self.front(q))
+        rot = ROTATIONS[self.rotation][1](out[..., 3:])
+        return pose_from_parts(rot, out[..., :3] * self.length)
+
+
+class IKModel(nn.Module):
+    """Learned inverse kinematics: tip pose (..., 4, 4) → joint vector (..., num_joints)."""
+
+    def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
+                 activation: str = "silu"):
+        super().__init__()
+        if features not in FEATURE_MODES:
+            raise ValueError(f"features: expected one of {FEATURE_MODES}, got {features!r}")
+        self.spec, self.features, self.length = spec, features, spec.total_length
+        self.in_norm = Standardizer(9)
+        self.encoder, self.decoder = ClarkeEncoder(spec), ClarkeDecoder(spec)
+        if features == "clarke":
+            self.register_buffer("selection", actuated_selection(spec))
+            base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments])
+            self.register_buffer("base_features", base)
+        out_dim = spec.num_actuated_features if features == "clarke" else spec.num_joints
+        self.out_norm = Standardizer(out_dim)
+        self.net = mlp(9, out_dim, width, depth, activation)
+
+    def target(self, q: Tensor) -> Tensor:
+        """Unstandardised regression target (..., D) of a joint vector: actuated features or q."""
+        if self.features == "raw":
+            return q
+        return self.encoder(q).flatten(-2) @ self.selection.to(q.dtype).mT
+
+    def fit_normalization(self, q: Tensor, pose: Tensor) -> None:
+        self.in_norm.fit(pose_to_vector(pose, self.length))
+        self.out_norm.fit(self.target(q))
+
+    def forward_normalized(self, pose: Tensor) -> Tensor:
+        check_tensor(pose, "pose", (4, 4))
+        return self.net(self.in_norm(pose_to_vector(pose, self.length)))
+
+    def decode(self, z: Tensor) -> Tensor:
+        """Standardised network output (..., D) → joint vector (..., num_joints)."""
+        y = self.out_norm.inverse(z)
+        if self.features == "raw":
+            return y
+        flat = self.base_features.to(y.dtype).flatten() + y @ self.selection.to(y.dtype)
+        return self.decoder(flat.unflatten(-1, (self.spec.num_segments, 4)))
+
+    def forward(self, pose: Tensor) -> Tensor:
+        return self.decode(self.forward_normalized(pose))

@@ -1,0 +1,167 @@
+"""LightningModules for learned FK and IK, with one shared step and rank-safe metrics.
+
+Loss: FK — mean squared error of the position divided by the total robot length plus
+``rot_weight`` × the squared Frobenius distance ‖R̂ − R‖²_F = 8 sin²(θ/2) of the rotations
+(smooth, and ≈ 2θ² for small geodesic errors θ). IK — mean squared error of the
+standardised network output (actuated Clarke features, or the joint vector for "raw").
+
+Validation/test metrics are computed on all ranks' samples together (per-sample errors are
+all-gathered), so the same config runs unchanged with ``--trainer.strategy ddp``.
+"""
+from __future__ import annotations
+
+import torch
+import lightning.pytorch as pl
+from torch import Tensor
+
+from .kinematics import backbone_points, forward_kinematics
+from .metrics import pose_errors, summarize
+from .models import FKModel, IKModel
+from .robot import RobotSpec
+
+
+def load_spec(robot: str | dict) -> RobotSpec:
+    """A RobotSpec from a YAML path or a dict."""
+    return RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot)
+
+
+class KinematicsModule(pl.LightningModule):
+    """Shared training logic. Subclasses build ``self.model`` and define ``loss`` and ``errors``.
+
+    Args:
+        robot: robot YAML path or RobotSpec dict (stored as a dict in the checkpoint).
+        features: "clarke" | "raw". width, depth, activation: MLP shape.
+        lr: peak learning rate of the one-cycle schedule; weight_decay: AdamW decay.
+        visual_samples: number of validation samples drawn in the Rerun 3D scene.
+    """
+
+    def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
+                 width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
+                 weight_decay: float = 0.0, visual_samples: int = 8):
+        super().__init__()
+        self.spec = load_spec(robot)
+        self.save_hyperparameters()
+        self.hparams["robot"] = self.spec.to_dict()       # the checkpoint carries the full spec
+        self.model = self.build_model()
+        self._outputs: list[dict[str, Tensor]] = []
+        self.test_summary: dict[str, float] = {}
+
+    def build_model(self) -> torch.nn.Module:
+        raise NotImplementedError
+
+    def setup(self, stage: str) -> None:
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if stage == "fit" and dm is not None and hasattr(dm, "splits"):
+            train = dm.splits["train"]
+            self.model.fit_normalization(train["q"], train["pose"])
+
+    def configure_optimizers(self):
+        opt = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
+        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=self.hparams.lr, pct_start=0.05,
+                                                    total_steps=self.trainer.estimated_stepping_batches)
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
+        loss = self.loss(batch)
+        self.log("train/loss", loss, prog_bar=True, batch_size=batch["q"].shape[0])
+        return loss
+
+    def _eval_step(self, batch: dict[str, Tensor]) -> None:
+        errors = self.errors(batch)
+        errors["valid"] = batch["valid"]
+        self._outputs.append({k: v.detach() for k, v in errors.items()})
+
+    def validation_step(self, batch, batch_idx):
+        self._eval_step(batch)
+
+    def test_step(self, batch, batch_idx):
+        self._eval_step(batch)
+
+    def _gathered_summary(self) -> dict[str, float]:
+        """Summary over every rank's samples (padding rows dropped)."""
+        if not self._outputs:
+            return {}
+        local = {k: torch.cat([o[k] for o in self._outputs]) for k in self._outputs[0]}
+        self._outputs.clear()
+        every = {k: v.reshape(-1) for k, v in self.all_gather(local).items()}
+        valid = every.pop("valid").bool()
+        return summarize({k: v[valid] for k, v in every.items()}, self.spec.total_length)
+
+    def on_validation_epoch_end(self) -> None:
+        summary = self._gathered_summary()
+        for k, v in summary.items():
+            self.log(f"val/{k}", v, prog_bar=k in ("pos_err_mean_mm", "rot_err_mean_deg"), rank_zero_only=True)
+
+    def on_test_epoch_end(self) -> None:
+        self.test_summary = self._gathered_summary()
+        for k, v in self.test_summary.items():
+            self.log(f"test/{k}", v, rank_zero_only=True)
+
+    def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    @torch.no_grad()
+    def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
+        """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres)."""
+        val = self.trainer.datamodule.splits["val"]
+        k, n = min(self.hparams.visual_samples, len(val["q"])), min(num_workspace, len(val["q"]))
+        q, pose = val["q"][:n].to(self.device), val["pose"][:n].to(self.device)
+        pred = self.predicted_pose(q, pose)
+        return {"backbone": backbone_points(self.spec, val["features"][:k]).cpu(),
+                "pose_true": pose[:k].cpu(), "pose_pred": pred[:k].cpu(),
+                "workspace_points": pose[:, :3, 3].cpu(), "workspace_error": pose_errors(pred, pose)["pos_err"].cpu()}
+
+
+class FKModule(KinematicsModule):
+    """Learned forward kinematics (joint vector → tip pose). ``rotation``: "6d" | "quaternion"."""
+
+    def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
+                 width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
+                 weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0):
+        self._rotation = rotation
+        super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
+
+    def build_model(self) -> FKModel:
+        h = self.hparams
+        return FKModel(self.spec, h.features, h.width, h.depth, h.activation, self._rotation)
+
+    def forward(self, q: Tensor) -> Tensor:
+        return self.model(q)
+
+    def loss(self, batch: dict[str, Tensor]) -> Tensor:
+        pred, target = self.model(batch["q"]), batch["pose"]
+        pos = ((pred[..., :3, 3] - target[..., :3, 3]) / self.spec.total_length).square().sum(-1).mean()
+        rot = (pred[..., :3, :3] - target[..., :3, :3]).square().sum((-1, -2)).mean()
+        return pos + self.hparams.rot_weight * rot
+
+    def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        return pose_errors(self.model(batch["q"]), batch["pose"])
+
+    def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:
+        return self.model(q)
+
+
+class IKModule(KinematicsModule):
+    """Learned inverse kinematics (tip pose → joint vector satisfying the constraint for "clarke")."""
+
+    def build_model(self) -> IKModel:
+        h = self.hparams
+        return IKModel(self.spec, h.features, h.width, h.depth, h.activation)
+
+    def forward(self, pose: Tensor) -> Tensor:
+        return self.model(pose)
+
+    def loss(self, batch: dict[str, Tensor]) -> Tensor:
+        target = self.model.out_norm(self.model.target(batch["q"]))
+        return (self.model.forward_normalized(batch["pose"]) - target).square().mean()
+
+    def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:
+        """Analytic CC forward kinematics of the predicted joint vector."""
+        return forward_kinematics(self.spec, self.model.encoder(self.model(pose)))
+
+    def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        q_pred = self.model(batch["pose"])
+        task = pose_errors(forward_kinematics(self.spec, self.model.encoder(q_pred)), batch["pose"])
+        residual = torch.linalg.vector_norm(q_pred - self.model.decoder(self.model.encoder(q_pred)), dim=-1)
+        joint = torch.linalg.vector_norm(q_pred - batch["q"], dim=-1)
+        return {**task, "joint_err": joint, "constraint_residual": residual}
