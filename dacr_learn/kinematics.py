@@ -35,12 +35,22 @@ def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
 
 
 @functools.lru_cache(maxsize=64)
-def _segment_constants(spec: RobotSpec, dtype: torch.dtype, device: torch.device):
-    t = lambda v: torch.tensor(v, dtype=dtype, device=device)  # noqa: E731
+def _segment_values(spec: RobotSpec) -> tuple[tuple, tuple, tuple, tuple]:
     segs = spec.segments
-    return (t([s.radius for s in segs]), t([s.length for s in segs]),
-            torch.tensor([s.extends for s in segs], device=device),
-            torch.tensor([s.twists for s in segs], device=device))
+    return (tuple(s.radius for s in segs), tuple(s.length for s in segs),
+            tuple(s.extends for s in segs), tuple(s.twists for s in segs))
+
+
+def _segment_constants(spec: RobotSpec, dtype: torch.dtype, device: torch.device):
+    """(radius, length, extends, twists) per segment as tensors, (m,) each.
+
+    Built on every call (only the Python values are cached): a tensor cache would keep the fake
+    tensors created while torch.export / torch.compile trace a call and return them to later
+    eager calls.
+    """
+    radius, length, extends, twists = _segment_values(spec)
+    return (torch.tensor(radius, dtype=dtype, device=device), torch.tensor(length, dtype=dtype, device=device),
+            torch.tensor(extends, device=device), torch.tensor(twists, device=device))
 
 
 def effective_features(spec: RobotSpec, features: Tensor) -> Tensor:
