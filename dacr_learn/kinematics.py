@@ -23,11 +23,15 @@ _TAYLOR_BELOW = 1e-2  # φ² threshold; 4 Taylor terms are exact to ~3e-14 there
 
 
 def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
-    """s = sin φ/φ and f = (1 − cos φ)/φ² as functions of φ² (..., ), finite with finite gradients at 0."""
+    """s = sin φ/φ and f = (1 − cos φ)/φ² as functions of φ² (..., ), finite with finite gradients at 0.
+
+    f is evaluated as 2·(sin(φ/2)/φ)², which has no cancellation (accurate in float32 too).
+    """
     small = phi_sq < _TAYLOR_BELOW
     x = torch.where(small, torch.ones_like(phi_sq), phi_sq)
     phi = torch.sqrt(x)
-    s_big, f_big = torch.sin(phi) / phi, (1 - torch.cos(phi)) / x
+    half = torch.sin(0.5 * phi) / phi
+    s_big, f_big = torch.sin(phi) / phi, 2 * half * half
     y = torch.where(small, phi_sq, torch.zeros_like(phi_sq))
     s_small = 1 - y / 6 * (1 - y / 20 * (1 - y / 42 * (1 - y / 72)))
     f_small = 0.5 * (1 - y / 12 * (1 - y / 30 * (1 - y / 56 * (1 - y / 90))))
@@ -62,28 +66,47 @@ def effective_features(spec: RobotSpec, features: Tensor) -> Tensor:
     return torch.cat([features[..., :2], beta.unsqueeze(-1), alpha.unsqueeze(-1)], dim=-1)
 
 
-def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor) -> Tensor:
-    """Rz(α)·T_cc for bending vector u (..., 2) [rad], length β (...) [m], roll α (...) [rad] → (..., 4, 4)."""
+def _segment_parameters(spec: RobotSpec, features: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Bending vector u = ρ/d (..., m, 2), length β (..., m), roll α (..., m) or None if nothing twists."""
+    check_tensor(features, "features", (spec.num_segments, 4))
+    radius, length, extends, twists = _segment_constants(spec, features.dtype, features.device)
+    u = features[..., :2] / radius.unsqueeze(-1)
+    beta = torch.where(extends, features[..., 2], length)
+    alpha = torch.where(twists, features[..., 3], 0.0) if any(s.twists for s in spec.segments) else None
+    return u, beta, alpha
+
+
+def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor:
+    """Rz(α)·T_cc for bending vector u (..., 2) [rad], length β (...) [m], roll α (...) [rad] → (..., 4, 4).
+
+    ``alpha=None`` means no roll. Written entry by entry into one output tensor: small batched
+    matmuls and last-dim stacking would dominate the run time on CPU for large batches.
+    """
     ux, uy = u[..., 0], u[..., 1]
-    s, f = bending_coefficients(ux * ux + uy * uy)
-    zero, one = torch.zeros_like(ux), torch.ones_like(ux)
-    rot = torch.stack([1 - f * ux * ux, -f * ux * uy, s * ux,
-                       -f * ux * uy, 1 - f * uy * uy, s * uy,
-                       -s * ux, -s * uy, 1 - f * (ux * ux + uy * uy)], dim=-1).unflatten(-1, (3, 3))
-    pos = beta.unsqueeze(-1) * torch.stack([f * ux, f * uy, s], dim=-1)
-    ca, sa = torch.cos(alpha), torch.sin(alpha)
-    rz = torch.stack([ca, -sa, zero, sa, ca, zero, zero, zero, one], dim=-1).unflatten(-1, (3, 3))
-    rot, pos = rz @ rot, (rz @ pos.unsqueeze(-1)).squeeze(-1)
-    top = torch.cat([rot, pos.unsqueeze(-1)], dim=-1)
-    bottom = torch.stack([zero, zero, zero, one], dim=-1).unsqueeze(-2)
-    return torch.cat([top, bottom], dim=-2)
+    phi_sq = ux * ux + uy * uy
+    s, f = bending_coefficients(phi_sq)
+    fx, fy, sx, sy = f * ux, f * uy, s * ux, s * uy
+    r01 = -fx * uy
+    rows = [[1 - fx * ux, r01, sx, beta * fx],
+            [r01, 1 - fy * uy, sy, beta * fy],
+            [-sx, -sy, 1 - f * phi_sq, beta * s]]
+    if alpha is not None:
+        ca, sa = torch.cos(alpha), torch.sin(alpha)
+        rows[0], rows[1] = ([ca * a - sa * b for a, b in zip(rows[0], rows[1])],
+                            [sa * a + ca * b for a, b in zip(rows[0], rows[1])])
+    shape = torch.broadcast_shapes(phi_sq.shape, beta.shape, *(() if alpha is None else (alpha.shape,)))
+    out = torch.empty(*shape, 4, 4, dtype=phi_sq.dtype, device=phi_sq.device)
+    for i, row in enumerate(rows):
+        for j, value in enumerate(row):
+            out[..., i, j] = value
+    out[..., 3, :3] = 0.0
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def segment_poses(spec: RobotSpec, features: Tensor) -> Tensor:
     """Pose of each segment's tip relative to its own base: (..., m, 4) → (..., m, 4, 4)."""
-    feat = effective_features(spec, features)
-    radius = _segment_constants(spec, features.dtype, features.device)[0]
-    return cc_transform(feat[..., :2] / radius.unsqueeze(-1), feat[..., 2], feat[..., 3])
+    return cc_transform(*_segment_parameters(spec, features))
 
 
 def _chain(poses: Tensor) -> Tensor:
@@ -115,14 +138,13 @@ def backbone_points(spec: RobotSpec, features: Tensor, points_per_segment: int =
     """
     if points_per_segment < 1:
         raise ValueError(f"points_per_segment: expected >= 1, got {points_per_segment}")
-    feat = effective_features(spec, features)
-    radius = _segment_constants(spec, features.dtype, features.device)[0]
-    frac = torch.arange(1, points_per_segment + 1, dtype=feat.dtype, device=feat.device) / points_per_segment
-    frac_u = frac[:, None, None]                                                    # (K, 1, 1)
-    u = (feat[..., :2] / radius.unsqueeze(-1)).unsqueeze(-3) * frac_u              # (..., K, m, 2)
-    partial = cc_transform(u, feat[..., 2].unsqueeze(-2) * frac[:, None], feat[..., 3].unsqueeze(-2).expand_as(u[..., 0]))
-    bases = _chain(segment_poses(spec, features))                                  # (..., m, 4, 4)
-    eye = torch.eye(4, dtype=feat.dtype, device=feat.device).expand(*bases.shape[:-3], 1, 4, 4)
+    u, beta, alpha = _segment_parameters(spec, features)
+    frac = torch.arange(1, points_per_segment + 1, dtype=u.dtype, device=u.device) / points_per_segment
+    u_partial = u.unsqueeze(-3) * frac[:, None, None]                              # (..., K, m, 2)
+    alpha_partial = None if alpha is None else alpha.unsqueeze(-2)                # (..., 1, m)
+    partial = cc_transform(u_partial, beta.unsqueeze(-2) * frac[:, None], alpha_partial)
+    bases = _chain(cc_transform(u, beta, alpha))                                   # (..., m, 4, 4)
+    eye = torch.eye(4, dtype=u.dtype, device=u.device).expand(*bases.shape[:-3], 1, 4, 4)
     bases = torch.cat([eye, bases[..., :-1, :, :]], dim=-3)                        # base of each segment
     world = bases.unsqueeze(-4) @ partial                                          # (..., K, m, 4, 4)
     pts = world[..., :3, 3].transpose(-2, -3).flatten(-3, -2)                      # (..., m·K, 3)
