@@ -1,0 +1,227 @@
+"""Shared helpers for the DACR core tests: hypothesis strategies and independent references.
+
+The reference implementations here deliberately do NOT call dacr_learn: they are written
+from the formulas of DESIGN.md §1/§2 in numpy / plain Python (joint lengths from the
+constant-curvature geometry, the classic Rz(θ)Ry(φ)Rz(−θ) arc, a rigid-link URDF chain for
+pytorch_kinematics), so that a test compares our code against something that was derived
+separately. Test modules import them with ``from conftest import ...``.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+
+from dacr_learn.robot import RobotSpec
+
+ROOT = Path(__file__).resolve().parents[1]
+ROBOT_CONFIGS = sorted((ROOT / "configs" / "robots").glob("*.yaml"))
+
+# Modest, deterministic-per-run hypothesis budget: the whole core suite must stay fast on 2 cores.
+FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+# --------------------------------------------------------------------------------------------
+# Strategies: robot description dicts (valid by construction, well conditioned)
+# --------------------------------------------------------------------------------------------
+
+
+@st.composite
+def segment_dicts(draw, seg_type: str | None = None, layout: str | None = None, unequal: bool | None = None):
+    """A valid, well-conditioned segment dict of the YAML schema (DESIGN.md §4)."""
+    seg_type = seg_type or draw(st.sampled_from(["0", "I", "II", "III"]))
+    length = draw(st.floats(0.05, 0.2))
+    radius = draw(st.floats(0.004, 0.015))
+    n = draw(st.integers(3, 7))
+    layout = layout or draw(st.sampled_from(["symmetric", "arbitrary"]))
+    d: dict = {"type": seg_type, "length": length, "radius": radius}
+    if layout == "symmetric":
+        d["joints"] = n
+        d["offset"] = draw(st.floats(-math.pi, math.pi))
+    else:
+        # Spread around the backbone (jitter ≤ 35 % of the spacing): full rank, well conditioned.
+        offset = draw(st.floats(-math.pi, math.pi))
+        jitter = draw(st.lists(st.floats(-0.35, 0.35), min_size=n, max_size=n))
+        d["joint_angles"] = [offset + 2 * math.pi * (i + jitter[i]) / n for i in range(n)]
+        twists = seg_type in ("II", "III")
+        if unequal is None:
+            unequal = draw(st.booleans())
+        if twists:
+            # Twisting segments need equal joint radii, but they may differ from the reference radius.
+            d["joint_radii"] = [radius * draw(st.floats(0.7, 1.3))] * n
+        elif unequal:
+            d["joint_radii"] = [radius * draw(st.floats(0.6, 1.4)) for _ in range(n)]
+    limits: dict = {"bend": draw(st.floats(0.3, 2.5))}
+    if seg_type in ("I", "III"):
+        limits["length"] = [0.8 * length, 1.2 * length]
+    if seg_type in ("II", "III"):
+        limits["twist"] = [-1.2, 1.2]
+    d["limits"] = limits
+    return d
+
+
+@st.composite
+def robot_dicts(draw, max_segments: int = 3, types=("0", "I", "II", "III"), routing: str | None = None):
+    """A valid robot dict; coupled robots only twist in their last segment (DESIGN.md §1)."""
+    m = draw(st.integers(1, max_segments))
+    routing = routing or draw(st.sampled_from(["independent", "coupled"]))
+    segs = []
+    for j in range(m):
+        allowed = [t for t in types if routing == "independent" or j == m - 1 or t in ("0", "I")]
+        segs.append(draw(segment_dicts(seg_type=draw(st.sampled_from(allowed)))))
+    return {"name": "hyp-robot", "routing": routing, "segments": segs}
+
+
+def robots(**kw):
+    """Strategy of RobotSpec built from :func:`robot_dicts`."""
+    return robot_dicts(**kw).map(RobotSpec.from_dict)
+
+
+# --------------------------------------------------------------------------------------------
+# Random features within the robot's limits
+# --------------------------------------------------------------------------------------------
+
+
+def random_features(spec: RobotSpec, batch: tuple[int, ...], seed: int, dtype=torch.float64,
+                    bend_scale: float = 1.0, straight: bool = False) -> torch.Tensor:
+    """Features (*batch, m, 4) with |u| ≤ bend, β and α uniform in their ranges.
+
+    Non-actuated columns already hold their fixed values (β = l, α = 0), so the encoder must
+    return exactly this tensor. ``straight=True`` sets ρ = 0.
+    """
+    g = torch.Generator().manual_seed(seed)
+    cols = []
+    for seg in spec.segments:
+        r = torch.rand(*batch, 4, generator=g, dtype=torch.float64)
+        phi = 0.0 if straight else bend_scale * seg.bend * torch.sqrt(r[..., 0])
+        theta = 2 * math.pi * r[..., 1]
+        lo, hi = seg.length_range or (seg.length, seg.length)
+        tlo, thi = seg.twist_range or (0.0, 0.0)
+        cols.append(torch.stack([seg.radius * phi * torch.cos(theta), seg.radius * phi * torch.sin(theta),
+                                 lo + (hi - lo) * r[..., 2], tlo + (thi - tlo) * r[..., 3]], dim=-1))
+    return torch.stack(cols, dim=-2).to(dtype)
+
+
+# --------------------------------------------------------------------------------------------
+# Independent references (numpy, from the geometry; no dacr_learn code)
+# --------------------------------------------------------------------------------------------
+
+
+def reference_joint_vector(spec: RobotSpec, features: np.ndarray) -> np.ndarray:
+    """Joint vector from the geometry of DESIGN.md §1, one sample: features (m, 4) → (num_joints,).
+
+    Joint i of segment j at (d_i, ψ_i) runs along every segment k it passes (k = j for
+    independent routing, k ≤ j for coupled). Along segment k it has the helix length
+    sqrt((α_k d_i)² + β_k²) minus its bending displacement, which for a constant-curvature arc
+    with bending angle φ_k = ‖ρ⁽ᵏ⁾‖/d_k in direction θ_k is d_i·φ_k·cos(θ_k − ψ_i).
+    """
+    q = []
+    for j, seg in enumerate(spec.segments):
+        passed = range(j + 1) if spec.routing == "coupled" else (j,)
+        for psi, di in zip(seg.joint_angles, seg.joint_radii):
+            total = 0.0
+            for k in passed:
+                sk = spec.segments[k]
+                rho_re, rho_im, beta, alpha = features[k]
+                beta = beta if sk.extends else sk.length
+                alpha = alpha if sk.twists else 0.0
+                phi, theta = math.hypot(rho_re, rho_im) / sk.radius, math.atan2(rho_im, rho_re)
+                total += math.sqrt((alpha * di) ** 2 + beta**2) - di * phi * math.cos(theta - psi)
+            q.append(total)
+    q += [features[k][3] for k, s in enumerate(spec.segments) if s.twists]
+    return np.array(q)
+
+
+def reference_actuated_matrix(spec: RobotSpec) -> np.ndarray:
+    """W with q_lengths = W·w + q₀ for w = (ρ_re¹, ρ_im¹, …, ρ_reᵐ, ρ_imᵐ, h of each extending segment)."""
+    rows = []
+    ext = [k for k, s in enumerate(spec.segments) if s.extends]
+    for j, seg in enumerate(spec.segments):
+        passed = set(range(j + 1)) if spec.routing == "coupled" else {j}
+        for psi, di in zip(seg.joint_angles, seg.joint_radii):
+            row = np.zeros(2 * spec.num_segments + len(ext))
+            for k in passed:
+                dk = spec.segments[k].radius
+                row[2 * k:2 * k + 2] = [-di / dk * math.cos(psi), -di / dk * math.sin(psi)]
+            for c, k in enumerate(ext):
+                row[2 * spec.num_segments + c] = 1.0 if k in passed else 0.0
+            rows.append(row)
+    return np.array(rows)
+
+
+def rot_z(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def rot_y(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def classic_arc(theta: float, phi: float, beta: float) -> np.ndarray:
+    """Webster & Jones arc: R = Rz(θ)Ry(φ)Rz(−θ), p = (β/φ)(cosθ(1−cosφ), sinθ(1−cosφ), sinφ). (4, 4)."""
+    t = np.eye(4)
+    t[:3, :3] = rot_z(theta) @ rot_y(phi) @ rot_z(-theta)
+    if phi == 0.0:
+        t[:3, 3] = [0.0, 0.0, beta]
+    else:
+        one_minus_cos = 2 * math.sin(phi / 2) ** 2       # = 1 − cos φ without cancellation near φ = 0
+        t[:3, 3] = beta / phi * np.array([math.cos(theta) * one_minus_cos,
+                                          math.sin(theta) * one_minus_cos, math.sin(phi)])
+    return t
+
+
+def arc_parameters(spec: RobotSpec, features: np.ndarray, k: int) -> tuple[float, float, float, float]:
+    """(θ, φ, β, α) of segment k from one sample's features (m, 4), non-actuated values fixed."""
+    seg = spec.segments[k]
+    rho_re, rho_im, beta, alpha = features[k]
+    return (math.atan2(rho_im, rho_re), math.hypot(rho_re, rho_im) / seg.radius,
+            beta if seg.extends else seg.length, alpha if seg.twists else 0.0)
+
+
+def classic_forward_kinematics(spec: RobotSpec, features: np.ndarray) -> np.ndarray:
+    """Tip pose T⁽¹⁾…T⁽ᵐ⁾ with T⁽ʲ⁾ = Rz(α)·arc, one sample: (m, 4) → (4, 4)."""
+    tip = np.eye(4)
+    for k in range(spec.num_segments):
+        theta, phi, beta, alpha = arc_parameters(spec, features, k)
+        roll = np.eye(4)
+        roll[:3, :3] = rot_z(alpha)
+        tip = tip @ roll @ classic_arc(theta, phi, beta)
+    return tip
+
+
+# --------------------------------------------------------------------------------------------
+# Rigid-link chain equivalent to the CC robot, for pytorch_kinematics
+# --------------------------------------------------------------------------------------------
+
+_LIMIT = '<limit lower="-100" upper="100" effort="1" velocity="1"/>'
+
+
+def urdf_chain_string(twists: list[bool]) -> str:
+    """URDF of m rigid-link blocks; block k: [rz α], rz θ, ry φ/2, prismatic z chord, ry φ/2, rz −θ."""
+    axes = {"rz": ("revolute", "0 0 1"), "ry": ("revolute", "0 1 0"), "pz": ("prismatic", "0 0 1")}
+    kinds = []
+    for tw in twists:
+        kinds += (["rz"] if tw else []) + ["rz", "ry", "pz", "ry", "rz"]
+    links = "".join(f'<link name="link{i}"/>' for i in range(len(kinds) + 1))
+    joints = "".join(
+        f'<joint name="j{i}" type="{axes[k][0]}"><parent link="link{i}"/><child link="link{i + 1}"/>'
+        f'<origin xyz="0 0 0" rpy="0 0 0"/><axis xyz="{axes[k][1]}"/>{_LIMIT}</joint>'
+        for i, k in enumerate(kinds))
+    return f'<robot name="cc_equivalent">{links}{joints}</robot>'
+
+
+def urdf_end_link(twists: list[bool]) -> str:
+    return f"link{sum(5 + tw for tw in twists)}"
+
+
+def chain_joint_values(theta, phi, beta, alpha, twist: bool):
+    """Joint values of one block (torch or numpy arrays, broadcast): list of 5 or 6 arrays."""
+    lib = torch if isinstance(phi, torch.Tensor) else np
+    chord = beta * lib.sinc(phi / (2 * math.pi))          # 2β·sin(φ/2)/φ, = β at φ = 0
+    vals = [theta, phi / 2, chord, phi / 2, -theta]
+    return ([alpha] if twist else []) + vals
