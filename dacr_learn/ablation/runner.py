@@ -1,0 +1,291 @@
+"""Grid runner of the ablation "Clarke features vs raw joint lengths": config, jobs, one run, resume.
+
+One *job* = one training (robot, task, features, n_train, seed) through the LightningModules of
+``train.py`` (:class:`~dacr_learn.training.FKModule` / :class:`~dacr_learn.training.IKModule`)
+for a fixed number of optimisation steps, followed by evaluation on fixed test sets, one per
+test-time *condition*; every condition gives one CSV row:
+
+- fk: ``clean``; ``joint_noise`` (Gaussian noise on every joint length); ``offset`` (the same
+  constant added to every joint length — a common-mode drift);
+- ik: ``clean``; ``pose_noise`` (noise on the input tip pose; errors against the clean pose);
+- both, for the robot named ``transfer.from``: ``transfer_n6`` — the trained network evaluated on
+  the robot ``transfer.to`` of the same geometry with a different number of joints, through that
+  robot's Clarke layers. Raw models cannot take that input: their row has NaN metrics and a note.
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import logging
+import math
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import lightning.pytorch as pl
+import torch
+import yaml
+from torch import Tensor
+
+from ..data import SamplerOptions, generate
+from ..kinematics import forward_kinematics
+from ..metrics import pose_errors, summarize
+from ..robot import RobotSpec
+from ..training import FKModule, IKModule
+
+ROOT = Path(__file__).resolve().parents[2]
+COLUMNS = ["robot", "task", "features", "n_train", "condition", "seed", "pos_err_mean_mm", "pos_err_mean_pct",
+           "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m", "train_seconds", "steps",
+           "n_test", "note"]
+KEY = ("robot", "task", "features", "n_train", "seed")
+METRICS = ("pos_err_mean_mm", "pos_err_mean_pct", "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m")
+MODULES = {"fk": FKModule, "ik": IKModule}
+# Settings that change the numbers of a finished row: resuming with different values is refused.
+FROZEN_KEYS = ("model", "train", "test", "conditions", "transfer")
+
+
+@dataclass(frozen=True)
+class Job:
+    robot: str
+    task: str
+    features: str
+    n_train: int
+    seed: int
+
+    @property
+    def key(self) -> tuple[str, ...]:
+        return tuple(str(getattr(self, k)) for k in KEY)
+
+
+def resolve_path(path: str | Path) -> Path:
+    """A config path as given if it exists (relative to the cwd), else relative to the repository root."""
+    p = Path(path)
+    return p if p.exists() or p.is_absolute() else ROOT / p
+
+
+def load_config(path: str | Path, quick: bool = False) -> dict:
+    """The ablation config (YAML); with ``quick`` the keys of its ``quick:`` section replace the others."""
+    cfg = yaml.safe_load(resolve_path(path).read_text())
+    overrides = cfg.pop("quick", None) or {}
+    if quick:
+        cfg.update(overrides)
+    for key in ("robots", "tasks", "features", "n_train", "seeds", "model", "train", "test", "conditions"):
+        if key not in cfg:
+            raise ValueError(f"ablation config {path}: missing key {key!r}")
+    bad = set(cfg["tasks"]) - set(MODULES)
+    if bad:
+        raise ValueError(f"ablation config {path}: tasks: unknown {sorted(bad)}, expected a subset of {sorted(MODULES)}")
+    return cfg
+
+
+def make_jobs(cfg: dict) -> list[Job]:
+    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds."""
+    return [Job(r, t, f, int(n), int(s)) for s in cfg["seeds"] for n in cfg["n_train"] for r in cfg["robots"]
+            for t in cfg["tasks"] for f in cfg["features"]]
+
+
+def conditions(cfg: dict, job: Job) -> list[str]:
+    """Names of the test-time conditions (CSV rows) of a job."""
+    names = ["clean", "joint_noise", "offset"] if job.task == "fk" else ["clean", "pose_noise"]
+    transfer = cfg.get("transfer")
+    if transfer and job.robot == transfer["from"]:
+        names.append(transfer.get("name", "transfer"))
+    return names
+
+
+# ------------------------------------------------------------------------------------------
+# Data: training stream with a fixed number of steps, fixed test sets
+# ------------------------------------------------------------------------------------------
+
+
+class StepBatches:
+    """Exactly ``steps`` training batches, drawn epoch by epoch from reshuffled permutations."""
+
+    def __init__(self, data: dict[str, Tensor], steps: int, batch_size: int, seed: int):
+        self.q, self.pose = data["q"], data["pose"]
+        self.steps, self.batch_size, self.seed = steps, min(batch_size, len(data["q"])), seed
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __iter__(self):
+        g, n, order, i = torch.Generator().manual_seed(self.seed), len(self.q), None, 0
+        for _ in range(self.steps):
+            if order is None or i + self.batch_size > n:
+                order, i = torch.randperm(n, generator=g), 0
+            idx, i = order[i:i + self.batch_size], i + self.batch_size
+            yield {"q": self.q[idx], "pose": self.pose[idx], "valid": torch.ones(len(idx), dtype=torch.bool)}
+
+
+class StepDataModule(pl.LightningDataModule):
+    """In-memory training data with ``splits["train"]`` (the modules fit their normalisation on it)."""
+
+    def __init__(self, data: dict[str, Tensor], steps: int, batch_size: int, seed: int):
+        super().__init__()
+        self.splits = {"train": data}
+        self.steps, self.batch_size, self.seed = steps, batch_size, seed
+
+    def train_dataloader(self):
+        return StepBatches(self.splits["train"], self.steps, self.batch_size, self.seed)
+
+
+def test_options(cfg: dict, condition: str) -> SamplerOptions:
+    c = cfg["conditions"]
+    return {"joint_noise": SamplerOptions(joint_noise=c["joint_noise"]),
+            "offset": SamplerOptions(common_offset=c["offset"]),
+            "pose_noise": SamplerOptions(pose_noise_pos=c["pose_noise_pos"], pose_noise_rot=c["pose_noise_rot"]),
+            }.get(condition, SamplerOptions())
+
+
+def test_set(cfg: dict, spec: RobotSpec, condition: str) -> dict[str, Tensor]:
+    """The fixed test set of a robot and condition: the same samples for every run (and seed)."""
+    return generate(spec, int(cfg["test"]["n"]), int(cfg["test"]["seed"]), test_options(cfg, condition))
+
+
+# ------------------------------------------------------------------------------------------
+# One job
+# ------------------------------------------------------------------------------------------
+
+
+def build_module(cfg: dict, task: str, robot: str | dict, features: str) -> pl.LightningModule:
+    return MODULES[task](robot=robot, features=features, **cfg["model"])
+
+
+@torch.no_grad()
+def evaluate(module: pl.LightningModule, task: str, data: dict[str, Tensor]) -> dict[str, float]:
+    """Summary metrics of a trained module on a test set; errors against the clean targets.
+
+    FK: predicted pose of the measured joint vector ``q`` vs ``pose_clean``. IK: the predicted joint
+    vector of the measured pose ``pose``, through the analytic CC kinematics (as
+    ``IKModule.errors``), vs ``pose_clean``; joint error vs ``q_clean``.
+    """
+    module.eval()
+    model, spec = module.model, module.spec
+    if task == "fk":
+        errors = pose_errors(model(data["q"]), data["pose_clean"])
+    else:
+        q_pred = model(data["pose"])
+        errors = pose_errors(forward_kinematics(spec, model.encoder(q_pred)), data["pose_clean"])
+        errors["joint_err"] = torch.linalg.vector_norm(q_pred - data["q_clean"], dim=-1)
+        errors["constraint_residual"] = torch.linalg.vector_norm(q_pred - model.decoder(model.encoder(q_pred)), dim=-1)
+    return summarize(errors, spec.total_length)
+
+
+def transferred(cfg: dict, module: pl.LightningModule, task: str, features: str, target: RobotSpec):
+    """The trained network and normalisation of ``module`` behind the Clarke layers of ``target``."""
+    new = build_module(cfg, task, target.to_dict(), features)
+    state = {k: v for k, v in module.state_dict().items() if ".encoder." not in k and ".decoder." not in k}
+    missing, unexpected = new.load_state_dict(state, strict=False)
+    if unexpected or any(".encoder." not in k and ".decoder." not in k for k in missing):
+        raise RuntimeError(f"transfer: unexpected state-dict mismatch: missing {missing}, unexpected {unexpected}")
+    return new
+
+
+def quiet_lightning() -> None:
+    for name in ("lightning.pytorch", "lightning.fabric", "lightning"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore", message=".*(val_dataloader|LeafSpec|does not have many workers).*")
+
+
+def fit(cfg: dict, job: Job, spec: RobotSpec) -> tuple[pl.LightningModule, float]:
+    """Train one module for ``cfg.train.steps`` steps; returns it and the fit time [s]."""
+    quiet_lightning()
+    steps, bs = int(cfg["train"]["steps"]), int(cfg["train"]["batch_size"])
+    data = generate(spec, job.n_train, seed=1 + job.seed)
+    pl.seed_everything(job.seed, verbose=False)
+    module = build_module(cfg, job.task, spec.to_dict(), job.features)
+    trainer = pl.Trainer(max_steps=steps, max_epochs=1, accelerator="cpu", devices=1, logger=False,
+                         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
+                         limit_val_batches=0, num_sanity_val_steps=0)
+    start = time.perf_counter()
+    trainer.fit(module, datamodule=StepDataModule(data, steps, bs, seed=job.seed))
+    return module, time.perf_counter() - start
+
+
+def run_job(cfg: dict, job: Job) -> list[dict]:
+    """Train one job and evaluate every condition: the job's CSV rows."""
+    spec = RobotSpec.from_yaml(resolve_path(cfg["robots"][job.robot]))
+    module, seconds = fit(cfg, job, spec)
+    rows = []
+    for cond in conditions(cfg, job):
+        row = {**{k: getattr(job, k) for k in KEY}, "condition": cond, "train_seconds": round(seconds, 3),
+               "steps": cfg["train"]["steps"], "n_test": cfg["test"]["n"], "note": ""}
+        transfer = cfg.get("transfer") or {}
+        if cond == transfer.get("name", "transfer") and job.robot == transfer.get("from"):
+            target = RobotSpec.from_yaml(resolve_path(transfer["to"]))
+            if job.features != "clarke":
+                row["note"] = (f"raw model takes {spec.num_joints} joint lengths; the {target.num_joints}-joint "
+                               f"robot {target.name} cannot be fed (nor, for IK, produced)")
+                summary = {}
+            else:
+                summary = evaluate(transferred(cfg, module, job.task, job.features, target), job.task,
+                                   test_set(cfg, target, "clean"))
+                row["note"] = f"trained on {spec.name}, evaluated on {target.name} through its Clarke layers"
+        else:
+            summary = evaluate(module, job.task, test_set(cfg, spec, cond))
+        row.update({k: summary.get(k, math.nan) for k in METRICS})
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------------------------
+# Results file: append-and-flush, resume
+# ------------------------------------------------------------------------------------------
+
+
+def read_rows(csv_path: Path) -> list[dict]:
+    """Rows of a results CSV (a truncated last line, e.g. after a kill, is dropped)."""
+    if not csv_path.is_file():
+        return []
+    with csv_path.open(newline="") as f:
+        return [r for r in csv.DictReader(f) if None not in r.values() and None not in r]
+
+
+def finished_rows(cfg: dict, csv_path: Path) -> tuple[list[dict], set[tuple[str, ...]]]:
+    """Rows of jobs whose every condition row is present, and the keys of those jobs."""
+    rows = read_rows(csv_path)
+    by_key: dict[tuple[str, ...], list[dict]] = {}
+    for r in rows:
+        by_key.setdefault(tuple(r[k] for k in KEY), []).append(r)
+    done = set()
+    for job in make_jobs(cfg):
+        got = {r["condition"] for r in by_key.get(job.key, [])}
+        if set(conditions(cfg, job)) <= got:
+            done.add(job.key)
+    grid = {j.key for j in make_jobs(cfg)}
+    keep = [r for r in rows if tuple(r[k] for k in KEY) in done or tuple(r[k] for k in KEY) not in grid]
+    return keep, done
+
+
+def rewrite(csv_path: Path, rows: list[dict]) -> None:
+    """Atomically replace the CSV with ``rows`` (drops partial jobs before a resume)."""
+    tmp = csv_path.with_suffix(".csv.tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(csv_path)
+
+
+def append_rows(csv_path: Path, rows: list[dict]) -> None:
+    """Append the rows of one finished job and flush them to disk at once."""
+    with csv_path.open("a", newline="") as f:
+        csv.DictWriter(f, fieldnames=COLUMNS, extrasaction="ignore").writerows(rows)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def check_frozen(cfg: dict, out: Path) -> None:
+    """Write ``config.json``; refuse to resume into a directory produced with other settings."""
+    path = out / "config.json"
+    frozen = {k: cfg.get(k) for k in FROZEN_KEYS}
+    if path.is_file():
+        old = json.loads(path.read_text())
+        old_frozen = {k: old.get(k) for k in FROZEN_KEYS}
+        if json.loads(json.dumps(frozen)) != old_frozen:
+            raise SystemExit(f"{out} holds results of different settings ({path}); use another --out. "
+                             f"Was {old_frozen}, now {frozen}")
+    path.write_text(json.dumps(copy.deepcopy(cfg), indent=2))
