@@ -66,6 +66,7 @@ class DacrCLI(LightningCLI):
 
     def before_fit(self) -> None:
         self._fit_started = time.perf_counter()
+        self.model.run_config = self.parser.dump(self.config, skip_none=False)   # carried by checkpoints
 
     def after_fit(self) -> None:
         seconds = time.perf_counter() - self._fit_started
@@ -92,9 +93,10 @@ class DacrCLI(LightningCLI):
         print(f"  Rerun recording: {self.run_dir / 'rerun.rrd'}  (open with: .venv/bin/rerun {self.run_dir / 'rerun.rrd'})")
 
 
-def main(args=None) -> DacrCLI:
+def main(args=None, run: bool = True) -> DacrCLI:
+    """Run the CLI on ``args`` (default: sys.argv); ``run=False`` only instantiates (no subcommand)."""
     return DacrCLI(KinematicsModule, KinematicsDataModule, subclass_mode_model=True,
-                   save_config_kwargs={"overwrite": True}, args=args)
+                   save_config_kwargs={"overwrite": True}, args=args, run=run)
 
 
 if __name__ == "__main__":

@@ -64,9 +64,9 @@ def sample_features(spec: RobotSpec, n: int, generator: torch.Generator, dtype=t
 
 
 def _rotation_noise(n: int, std: float, generator: torch.Generator, dtype) -> Tensor:
-    from pytorch_kinematics.transforms import axis_angle_to_matrix
+    from pytorch_kinematics.transforms import so3_exp_map
 
-    return axis_angle_to_matrix(std * torch.randn(n, 3, generator=generator, dtype=dtype))
+    return so3_exp_map(std * torch.randn(n, 3, generator=generator, dtype=dtype))
 
 
 def generate(spec: RobotSpec, n: int, seed: int, options: SamplerOptions = SamplerOptions(),

@@ -45,6 +45,14 @@ class KinematicsModule(pl.LightningModule):
         self.model = self.build_model()
         self._outputs: list[dict[str, Tensor]] = []
         self.test_summary: dict[str, float] = {}
+        self.run_config: str | None = None     # the CLI's YAML config, stored in checkpoints
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        if self.run_config is not None:
+            checkpoint["dacr_config"] = self.run_config
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        self.run_config = checkpoint.get("dacr_config", self.run_config)
 
     def build_model(self) -> torch.nn.Module:
         raise NotImplementedError
