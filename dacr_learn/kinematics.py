@@ -28,13 +28,14 @@ def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
     f is evaluated as 2·(sin(φ/2)/φ)², which has no cancellation (accurate in float32 too).
     """
     small = phi_sq < _TAYLOR_BELOW
-    x = torch.where(small, torch.ones_like(phi_sq), phi_sq)
-    phi = torch.sqrt(x)
-    half = torch.sin(0.5 * phi) / phi
-    s_big, f_big = torch.sin(phi) / phi, 2 * half * half
-    y = torch.where(small, phi_sq, torch.zeros_like(phi_sq))
-    s_small = 1 - y / 6 * (1 - y / 20 * (1 - y / 42 * (1 - y / 72)))
-    f_small = 0.5 * (1 - y / 12 * (1 - y / 30 * (1 - y / 56 * (1 - y / 90))))
+    phi = torch.sqrt(torch.where(small, 1.0, phi_sq))
+    inv_phi = 1 / phi
+    half = torch.sin(0.5 * phi) * inv_phi
+    s_big, f_big = torch.sin(phi) * inv_phi, 2 * half * half
+    y = torch.where(small, phi_sq, 0.0)
+    # Horner forms of s = 1 − y/6 + y²/120 − y³/5040 + y⁴/362880, f = 1/2 − y/24 + y²/720 − y³/40320 + y⁴/3628800
+    s_small = (((y / 362880 - 1 / 5040) * y + 1 / 120) * y - 1 / 6) * y + 1
+    f_small = (((y / 3628800 - 1 / 40320) * y + 1 / 720) * y - 1 / 24) * y + 0.5
     return torch.where(small, s_small, s_big), torch.where(small, f_small, f_big)
 
 
