@@ -29,6 +29,7 @@ class _ClarkeBase(nn.Module):
     def __init__(self, spec: RobotSpec):
         super().__init__()
         self.spec = spec
+        self._cast_cache: dict = {}
         segs, m = spec.segments, spec.num_segments
         maps = joint_space_maps(spec)
         self.num_joints, self.num_segments = spec.num_joints, m
@@ -50,7 +51,22 @@ class _ClarkeBase(nn.Module):
         self.register_buffer("select_tw", _selection(tw, m))
 
     def _c(self, name: str, like: Tensor) -> Tensor:
-        return getattr(self, name).to(dtype=like.dtype)
+        """Buffer ``name`` in ``like``'s dtype and device, cast once and cached (not while tracing)."""
+        buf = getattr(self, name)
+        if torch.compiler.is_compiling():
+            return buf.to(dtype=like.dtype, device=like.device)
+        key = (name, like.dtype, like.device)
+        if key not in self._cast_cache:
+            self._cast_cache[key] = buf.to(dtype=like.dtype, device=like.device)
+        return self._cast_cache[key]
+
+    def _apply(self, fn, recurse=True):
+        self._cast_cache = {}                     # buffers may have moved or changed dtype
+        return super()._apply(fn, recurse)
+
+    def _load_from_state_dict(self, *args, **kwargs):
+        self._cast_cache = {}
+        return super()._load_from_state_dict(*args, **kwargs)
 
 
 class ClarkeEncoder(_ClarkeBase):
