@@ -1,0 +1,318 @@
+"""Export trained FK / IK checkpoints as inference modules for controllers, and load them back.
+
+    python -m dacr_learn.export --ckpt runs/fk_type1/checkpoints/last.ckpt --out exports/fk_type1
+    python -m dacr_learn.export --ckpt <ik.ckpt> --out <dir> --no-aoti --dtype float64
+
+From an FK checkpoint: ``fk`` (joint vector (..., N) → pose (..., 4, 4)) and ``jacobian``
+(joint vector → pose, J_f (..., 6, D), J_q (..., 6, N)); from an IK checkpoint: ``ik``
+(pose (..., 4, 4) → joint vector (..., N)). See :mod:`dacr_learn.inference` for the modules
+(normalisation and Clarke layers folded in, SI units). Each is written as
+
+- ``<name>.pt2``: a ``torch.export`` program (portable; runs op by op, or re-compile it), and
+- ``<name>.aoti.pt2``: an AOTInductor package (compiled C++, the lowest latency; needs the same
+  torch version and a C++ compiler at export time), unless ``--no-aoti``,
+
+plus ``metadata.json`` next to them: robot spec, feature mode, units, dtype, the source
+checkpoint's sha256, each file's sha256, the max deviation from the Lightning model measured
+at export, and a checksum of the metadata itself. :func:`load` refuses files whose checksums
+do not match (modified, truncated or from another export) and, if asked, a different robot,
+feature mode or source checkpoint. These checksums detect accidents, not attacks.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .inference import InferenceFK, InferenceIK, InferenceJacobian
+from .robot import RobotSpec
+
+FORMAT = "dacr_learn.export/1"
+METADATA_FILE = "metadata.json"
+MAX_BATCH = 1 << 16
+VERIFY_TOLERANCE = 1e-5      # export fails if an exported module deviates more from the Lightning model
+UNITS = {"joint_lengths": "m", "twist": "rad", "position": "m", "rotation": "3x3 matrix in pose[..., :3, :3]",
+         "jacobian_rows": "tip linear velocity [m] (rows 0-2) and angular velocity [rad] (rows 3-5), base frame",
+         "clarke_features": "rho_re, rho_im [m] per segment, beta [m] and alpha [rad] where actuated"}
+_DTYPES = {"float32": torch.float32, "float64": torch.float64}
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _metadata_digest(meta: dict) -> str:
+    body = {k: v for k, v in meta.items() if k != "metadata_sha256"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+
+
+def load_lightning_checkpoint(ckpt: str | Path):
+    """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer."""
+    from .training import FKModule, IKModule       # Lightning is needed to export, not to run
+
+    keys = torch.load(ckpt, map_location="cpu", weights_only=True).get("state_dict", {})
+    if "model.front.norm.mean" in keys:
+        return "fk", FKModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    if "model.in_norm.mean" in keys:
+        return "ik", IKModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    raise ValueError(f"ckpt {ckpt}: not an FKModule/IKModule checkpoint (no model.front.norm / model.in_norm weights)")
+
+
+def inference_modules(task: str, model: nn.Module, dtype: torch.dtype = torch.float32) -> dict[str, nn.Module]:
+    """The plain nn.Modules of a trained models.FKModel ("fk") or models.IKModel ("ik"), in eval mode."""
+    if task == "fk":
+        return {"fk": InferenceFK(model, dtype).eval(), "jacobian": InferenceJacobian(model, dtype).eval()}
+    if task == "ik":
+        return {"ik": InferenceIK(model, dtype).eval()}
+    raise ValueError(f"task: expected 'fk' or 'ik', got {task!r}")
+
+
+def signatures(spec: RobotSpec) -> dict[str, dict[str, list]]:
+    """Trailing shapes of each module's input and outputs (every tensor has leading batch dims)."""
+    n, d = spec.num_joints, spec.num_actuated_features
+    return {"fk": {"inputs": [["q", [n]]], "outputs": [["pose", [4, 4]]]},
+            "jacobian": {"inputs": [["q", [n]]], "outputs": [["pose", [4, 4]], ["J_f", [6, d]], ["J_q", [6, n]]]},
+            "ik": {"inputs": [["pose", [4, 4]]], "outputs": [["q", [n]]]}}
+
+
+def _examples(spec: RobotSpec, n: int, dtype: torch.dtype) -> dict[str, Tensor]:
+    from .data import generate
+
+    data = generate(spec, n, seed=12345, dtype=torch.float64)
+    return {"q": data["q"].to(dtype), "pose": data["pose"].to(dtype)}
+
+
+def export_program(module: nn.Module, example: Tensor) -> torch.export.ExportedProgram:
+    """torch.export a module with one batched input; the batch dim is dynamic (1 … MAX_BATCH)."""
+    batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
+    with torch.no_grad():
+        return torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
+
+
+def _write_module(name: str, module: nn.Module, example: Tensor, out: Path, aoti: bool) -> dict[str, str]:
+    program = export_program(module, example)
+    files = {"export": f"{name}.pt2"}
+    torch.export.save(program, out / files["export"])
+    if aoti:
+        files["aoti"] = f"{name}.aoti.pt2"
+        torch._inductor.aoti_compile_and_package(program, package_path=str(out / files["aoti"]))
+    return files
+
+
+def _deviation(reference, loaded, x: Tensor) -> float:
+    """Max abs difference between the reference's outputs and a loaded module's (first outputs)."""
+    with torch.no_grad():
+        ref, got = reference(x), loaded(x)
+    ref, got = (ref,) if isinstance(ref, Tensor) else ref, (got,) if isinstance(got, Tensor) else got
+    return max((r.double() - g.double()).abs().max().item() for r, g in zip(ref, got))
+
+
+def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
+                      aoti: bool = True) -> dict[str, Any]:
+    """Export a checkpoint's inference modules to ``out`` (see the module docstring); returns the metadata.
+
+    The exported files are loaded back and compared with the Lightning model on 256 samples;
+    deviations are recorded (``max_abs_deviation``) and above VERIFY_TOLERANCE the export fails.
+    """
+    ckpt, out = Path(ckpt), Path(out)
+    task, lit = load_lightning_checkpoint(ckpt)
+    lit = lit.to(dtype)
+    out.mkdir(parents=True, exist_ok=True)
+    spec, examples = lit.spec, _examples(lit.spec, 256, dtype)
+    sig = signatures(spec)
+    meta: dict[str, Any] = {
+        "format": FORMAT, "task": task, "robot": spec.to_dict(), "features": lit.hparams.features,
+        "rotation": lit.hparams.get("rotation"), "dtype": str(dtype).removeprefix("torch."),
+        "units": UNITS, "torch_version": torch.__version__, "max_batch": MAX_BATCH,
+        "source_checkpoint": {"path": str(ckpt), "sha256": file_sha256(ckpt)}, "modules": {}}
+    for name, module in inference_modules(task, lit.model, dtype).items():
+        example = examples[sig[name]["inputs"][0][0]]
+        files = _write_module(name, module, example[:2], out, aoti)
+        meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": file_sha256(out / f)}
+                                                        for k, f in files.items()}}
+    meta["metadata_sha256"] = _metadata_digest(meta)
+    (out / METADATA_FILE).write_text(json.dumps(meta, indent=2))
+    _verify(out, meta, lit.model, examples)
+    return meta
+
+
+def _verify(out: Path, meta: dict, model: nn.Module, examples: dict[str, Tensor]) -> None:
+    """Load every exported file, record its max deviation from ``model`` and fail above tolerance."""
+    worst = {}
+    for name, info in meta["modules"].items():
+        x = examples[info["inputs"][0][0]]
+        for kind, entry in info["files"].items():
+            loaded = load(out / entry["file"])
+            worst[entry["file"]] = _deviation(model, loaded if name != "jacobian" else (lambda q: loaded(q)[0]), x)
+    meta["max_abs_deviation"] = worst
+    meta["metadata_sha256"] = _metadata_digest(meta)
+    (out / METADATA_FILE).write_text(json.dumps(meta, indent=2))
+    bad = {f: e for f, e in worst.items() if not e <= VERIFY_TOLERANCE}
+    if bad:
+        raise RuntimeError(f"export {out}: modules deviate from the Lightning model by more than "
+                           f"{VERIFY_TOLERANCE}: {bad}")
+
+
+def read_metadata(directory: str | Path) -> dict[str, Any]:
+    """Read and check ``metadata.json`` of an export directory (format and self-checksum)."""
+    path = Path(directory) / METADATA_FILE
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no export metadata next to the module; export with "
+                                f"`python -m dacr_learn.export --ckpt <ckpt> --out {directory}`")
+    meta = json.loads(path.read_text())
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{path}: format {meta.get('format')!r} is not {FORMAT!r}; re-export the checkpoint")
+    if meta.get("metadata_sha256") != _metadata_digest(meta):
+        raise ValueError(f"{path}: checksum mismatch: the metadata was modified after export")
+    return meta
+
+
+def _find_module(meta: dict, file_name: str) -> tuple[str, str, str]:
+    for name, info in meta["modules"].items():
+        for kind, entry in info["files"].items():
+            if entry["file"] == file_name:
+                return name, kind, entry["sha256"]
+    raise ValueError(f"{file_name}: not a file of this export (metadata lists "
+                     f"{[e['file'] for i in meta['modules'].values() for e in i['files'].values()]})")
+
+
+def _check_expectations(meta: dict, path: Path, robot, features, checkpoint) -> None:
+    if robot is not None:
+        want = robot if isinstance(robot, RobotSpec) else (
+            RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot))
+        if RobotSpec.from_dict(meta["robot"]) != want:
+            raise ValueError(f"{path}: robot spec mismatch: exported for {meta['robot']['name']!r} "
+                             f"({meta['robot']}), expected {want.to_dict()}")
+    if features is not None and meta["features"] != features:
+        raise ValueError(f"{path}: feature mode mismatch: exported with {meta['features']!r}, expected {features!r}")
+    if checkpoint is not None:
+        digest = file_sha256(checkpoint)
+        if digest != meta["source_checkpoint"]["sha256"]:
+            raise ValueError(f"{path}: exported from a different checkpoint ({meta['source_checkpoint']['path']}, "
+                             f"sha256 {meta['source_checkpoint']['sha256'][:12]}…), not {checkpoint} "
+                             f"(sha256 {digest[:12]}…)")
+
+
+def _runner(path: Path, kind: str, meta: dict):
+    """A callable list[Tensor] → list[Tensor] for an AOTInductor package or a torch.export program."""
+    if kind == "aoti":
+        if meta["torch_version"] != torch.__version__:
+            raise ValueError(f"{path}: AOTInductor package built with torch {meta['torch_version']}, "
+                             f"this is torch {torch.__version__}; load the .pt2 program or re-export")
+        compiled = torch._inductor.aoti_load_package(str(path))
+        loader = getattr(compiled, "loader", None)
+        return loader.run if loader is not None else (lambda xs: list(compiled(*xs)))
+    module = torch.export.load(path).module()
+
+    def run(xs: list[Tensor]) -> list[Tensor]:
+        out = module(*xs)
+        return [out] if isinstance(out, Tensor) else list(out)
+    return run
+
+
+def load(path: str | Path, name: str | None = None, *, robot=None, features: str | None = None,
+         checkpoint: str | Path | None = None) -> "ExportedModule":
+    """Load an exported module as a callable nn.Module (no Lightning needed).
+
+    Args:
+        path: an exported file (``fk.pt2``, ``fk.aoti.pt2``, …) or an export directory with ``name``
+            ("fk" | "jacobian" | "ik"), which picks the AOTInductor package when there is one.
+        robot, features, checkpoint: optional expectations (RobotSpec / dict / YAML path, feature
+            mode, source checkpoint path); a mismatch is a ValueError.
+    Raises FileNotFoundError without ``metadata.json``; ValueError for a modified file or metadata.
+    """
+    path = Path(path)
+    if path.is_dir():
+        meta = read_metadata(path)
+        if name not in meta["modules"]:
+            raise ValueError(f"name: expected one of {sorted(meta['modules'])} for {path}, got {name!r}")
+        files = meta["modules"][name]["files"]
+        path = path / files["aoti" if "aoti" in files and meta["torch_version"] == torch.__version__ else "export"]["file"]
+    meta = read_metadata(path.parent)
+    name, kind, digest = _find_module(meta, path.name)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: listed in {METADATA_FILE} but missing")
+    actual = file_sha256(path)
+    if actual != digest:
+        raise ValueError(f"{path}: checksum mismatch (sha256 {actual[:12]}…, {METADATA_FILE} records {digest[:12]}…): "
+                         "the file was modified, truncated or comes from another export")
+    _check_expectations(meta, path, robot, features, checkpoint)
+    return ExportedModule(_runner(path, kind, meta), meta, name, kind)
+
+
+class ExportedModule(nn.Module):
+    """A loaded export: validates the input (shape, floating dtype, finite values) and handles
+    leading batch dims (..., *input_shape) and dtype (computed in the export's dtype, returned in
+    the input's). Returns one tensor or a tuple (``jacobian``: pose, J_f, J_q).
+
+    Attributes: ``metadata`` (dict of metadata.json), ``name``, ``kind`` ("aoti" | "export").
+    """
+
+    def __init__(self, runner, metadata: dict, name: str, kind: str):
+        super().__init__()
+        self.runner, self.metadata, self.name, self.kind = runner, metadata, name, kind
+        info = metadata["modules"][name]
+        (self.input_name, shape), = info["inputs"]
+        self.input_shape = tuple(shape)
+        self.output_shapes = [tuple(s) for _, s in info["outputs"]]
+        self.dtype = _DTYPES[metadata["dtype"]]
+
+    def extra_repr(self) -> str:
+        return f"name={self.name!r}, kind={self.kind!r}, robot={self.metadata['robot']['name']!r}"
+
+    def _check(self, x: Tensor) -> None:
+        k = len(self.input_shape)
+        if not isinstance(x, Tensor) or x.dim() < k or tuple(x.shape[x.dim() - k:]) != self.input_shape:
+            got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+            raise ValueError(f"{self.name}: expected {self.input_name} of shape (..., "
+                             f"{', '.join(map(str, self.input_shape))}), got {got}")
+        if not x.is_floating_point():
+            raise ValueError(f"{self.name}: expected a floating-point {self.input_name}, got {x.dtype}")
+        if x.numel() == 0:
+            raise ValueError(f"{self.name}: expected a non-empty batch, got shape {tuple(x.shape)}")
+        if not math.isfinite(x.sum().item()) and not bool(torch.isfinite(x).all()):
+            bad = int((~torch.isfinite(x)).sum())
+            raise ValueError(f"{self.name}: expected finite values, got {bad} NaN/inf entries in "
+                             f"{self.input_name} of shape {tuple(x.shape)}")
+
+    def forward(self, x: Tensor):
+        self._check(x)
+        lead = x.shape[:x.dim() - len(self.input_shape)]
+        flat = x if len(lead) == 1 else x.reshape(-1, *self.input_shape)
+        flat = flat.to(self.dtype).contiguous()
+        outs = self.runner([flat])
+        if len(lead) != 1 or x.dtype != self.dtype:
+            outs = [o.reshape(*lead, *s).to(x.dtype) for o, s in zip(outs, self.output_shapes)]
+        return outs[0] if len(outs) == 1 else tuple(outs)
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """CLI: export a checkpoint; prints the written files and the verified deviations."""
+    p = argparse.ArgumentParser(prog="python -m dacr_learn.export", description=__doc__.split("\n\n")[0])
+    p.add_argument("--ckpt", required=True, help="FKModule / IKModule checkpoint (e.g. runs/<name>/checkpoints/last.ckpt)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--dtype", choices=sorted(_DTYPES), default="float32")
+    p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor packages (faster export)")
+    args = p.parse_args(argv)
+    meta = export_checkpoint(args.ckpt, args.out, dtype=_DTYPES[args.dtype], aoti=not args.no_aoti)
+    print(f"exported {meta['task'].upper()} of robot {meta['robot']['name']!r} ({meta['features']} features, "
+          f"{meta['dtype']}) from {args.ckpt} to {args.out}/")
+    for f, dev in meta["max_abs_deviation"].items():
+        print(f"  {f:<22} max |exported − Lightning| = {dev:.2e}")
+    print(f"  load with: dacr_learn.export.load('{args.out}', '{next(iter(meta['modules']))}')")
+    return meta
+
+
+if __name__ == "__main__":
+    main()

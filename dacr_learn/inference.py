@@ -1,0 +1,387 @@
+"""Inference modules for controllers: learned FK, its Jacobian and learned IK as plain nn.Modules.
+
+Built from a trained :class:`~dacr_learn.models.FKModel` / :class:`~dacr_learn.models.IKModel`
+(no Lightning at run time). SI units throughout; inputs carry one batch dim:
+
+- :class:`InferenceFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
+- :class:`InferenceJacobian`: joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D), J_q (B, 6, N)):
+  the Jacobian of the tip twist (v_x, v_y, v_z [m], ω_x, ω_y, ω_z [rad], base frame, v of the
+  tip point) w.r.t. the D actuated Clarke features (ρ_re, ρ_im per segment, β, α where actuated,
+  in ``models.actuated_selection`` order) and w.r.t. the joint vector. J_f is the derivative of
+  f ↦ FK(dec(f)), J_q of q ↦ FK(q); on the displacement constraint J_q = J_f·∂enc/∂q.
+- :class:`InferenceIK`: tip pose (B, 4, 4) → joint vector (B, N); for "clarke" models through the
+  Clarke decoder, so every output satisfies the displacement constraint.
+
+Folding (DESIGN.md §1): the Clarke encoder, the actuated-column selection and the input
+standardisation are affine in u = [q − q_ref, g], so they are folded into the first layer:
+a₁ = K·u + k₀. q_ref is the nominal (straight) joint vector, subtracted first so that float32
+keeps the small displacements exact. g_k = sqrt((α_k r_k)² + l_k²) − l_k is the helix term of a
+fixed-length twisting segment (type II), the only non-linearity before the least-squares solve.
+For type III the folded map yields the helix length h in the β column; the exact
+β = sqrt(h² − (α r)²) enters as a correction a₁ += K₃·(β − h). Position scale (total length)
+and the IK output de-standardisation are folded into the last layer. All folding is in float64.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_matrix
+from torch import Tensor, nn
+
+from .layers import ClarkeDecoder, ClarkeEncoder
+from .models import ACTIVATIONS, FKModel, IKModel, actuated_selection
+from .robot import RobotSpec
+
+_F64 = torch.float64
+
+
+def _activation_name(net: nn.Sequential) -> str:
+    kinds = {type(m) for m in net if not isinstance(m, nn.Linear)}
+    names = [k for k, cls in ACTIVATIONS.items() if {cls} == kinds]
+    if len(names) != 1:
+        raise ValueError(f"net: expected one activation of {sorted(ACTIVATIONS)}, got {kinds}")
+    return names[0]
+
+
+def activation(name: str, a: Tensor) -> Tensor:
+    """The MLP's activation (as in models.ACTIVATIONS) applied to pre-activations ``a``."""
+    return {"silu": F.silu, "relu": F.relu, "gelu": F.gelu, "tanh": torch.tanh}[name](a)
+
+
+def activation_and_derivative(name: str, a: Tensor) -> tuple[Tensor, Tensor]:
+    """(σ(a), σ'(a)) for the activations of models.ACTIVATIONS (GELU: exact erf form)."""
+    if name == "silu":
+        sg = torch.sigmoid(a)
+        return a * sg, sg * (1 + a * (1 - sg))
+    if name == "relu":
+        return F.relu(a), (a > 0).to(a.dtype)
+    if name == "gelu":
+        cdf = 0.5 * (1 + torch.erf(a * (1 / math.sqrt(2))))
+        return a * cdf, cdf + a * torch.exp(-0.5 * a * a) * (1 / math.sqrt(2 * math.pi))
+    s = torch.tanh(a)
+    return s, 1 - s * s
+
+
+def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Affine part of the actuated features, f_lin = E·u + e₀, u = [q − q_ref, g] (float64).
+
+    Returns E (D, N + n_g), e₀ (D,), q_ref (N,). For a type-III segment the β column of f_lin
+    holds the helix length h. Found by probing the affine map with unit vectors (exact).
+    """
+    enc = enc.to(_F64)
+    n, nl, m = enc.num_joints, enc.num_lengths, enc.num_segments
+    l, ext = enc.nominal_length, enc.extends.to(_F64)
+    g_select = torch.eye(m, dtype=_F64)[:, has_g]                         # (m, n_g)
+
+    def f_lin(u: Tensor) -> Tensor:
+        dl, tw, g = u[:, :nl], u[:, nl:n], u[:, n:] @ g_select.mT
+        w = (dl + (l * ext - g) @ enc.path.mT) @ enc.actuated_pinv.mT
+        rho = w[:, :2 * m].unflatten(-1, (m, 2))
+        beta = l + (w[:, 2 * m:] - l @ enc.select_ext) @ enc.select_ext.mT
+        alpha = tw @ enc.select_tw.mT
+        return torch.cat([rho, beta.unsqueeze(-1), alpha.unsqueeze(-1)], -1).flatten(-2) @ sel.mT
+
+    width = n + g_select.shape[1]
+    out = f_lin(torch.cat([torch.zeros(1, width, dtype=_F64), torch.eye(width, dtype=_F64)]))
+    q_ref = torch.cat([l @ enc.path.mT, torch.zeros(n - nl, dtype=_F64)])
+    return (out[1:] - out[0]).mT.contiguous(), out[0].clone(), q_ref
+
+
+def _columns(spec: RobotSpec, kind: str, segs: list[int]) -> list[int]:
+    """Indices of the actuated feature columns of ``kind`` ("beta" | "alpha") of segments ``segs``."""
+    cols, i = {}, 0
+    for k, s in enumerate(spec.segments):
+        i += 2
+        if s.extends:
+            cols[("beta", k)], i = i, i + 1
+        if s.twists:
+            cols[("alpha", k)], i = i, i + 1
+    return [cols[(kind, k)] for k in segs]
+
+
+class ClarkeFold(nn.Module):
+    """Joint vector → folded inputs u, actuated features f and ∂f/∂q (see the module docstring)."""
+
+    def __init__(self, spec: RobotSpec):
+        super().__init__()
+        enc, segs = ClarkeEncoder(spec), spec.segments
+        self.num_joints, self.num_lengths = spec.num_joints, spec.num_length_joints
+        type2 = [k for k, s in enumerate(segs) if s.twists and not s.extends]
+        type3 = [k for k, s in enumerate(segs) if s.twists and s.extends]
+        twist_index = {k: i for i, k in enumerate(k for k, s in enumerate(segs) if s.twists)}
+        sel = actuated_selection(spec).to(_F64)
+        e, e0, q_ref = _affine_features(enc, sel, torch.tensor([k in type2 for k in range(len(segs))]))
+        self.has_g, self.has_type3 = bool(type2), bool(type3)
+        self.register_buffer("E", e)
+        self.register_buffer("e0", e0)
+        self.register_buffer("q_ref", q_ref)
+        g_index = [self.num_lengths + twist_index[k] for k in type2]
+        for name, values, dtype in (("g_index", g_index, torch.long),
+                                    ("g_radius", [segs[k].joint_radii[0] for k in type2], _F64),
+                                    ("g_length", [segs[k].length for k in type2], _F64),
+                                    ("beta3", _columns(spec, "beta", type3), torch.long),
+                                    ("alpha3", _columns(spec, "alpha", type3), torch.long),
+                                    ("radius3", [segs[k].joint_radii[0] for k in type3], _F64)):
+            # Empty index buffers are left out (None): torch.export would store them as broken groups.
+            self.register_buffer(name, torch.tensor(values, dtype=dtype) if values else None)
+
+    def inputs(self, q: Tensor) -> Tensor:
+        """u = [q − q_ref, g] (B, N + n_g)."""
+        dq = q - self.q_ref
+        if not self.has_g:
+            return dq
+        ad2 = (q[:, self.g_index] * self.g_radius) ** 2
+        return torch.cat([dq, ad2 / (torch.sqrt(ad2 + self.g_length**2) + self.g_length)], dim=-1)
+
+    def type3_beta(self, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(h, α, β) of the type-III segments (B, n₃): β = sqrt(h² − (α r)²)."""
+        h = u @ self.E[self.beta3].mT + self.e0[self.beta3]
+        alpha = u @ self.E[self.alpha3].mT + self.e0[self.alpha3]
+        ad2 = (alpha * self.radius3) ** 2
+        return h, alpha, torch.sqrt(torch.clamp(h * h - ad2, min=torch.finfo(u.dtype).tiny))
+
+    def features(self, u: Tensor) -> Tensor:
+        """Actuated Clarke features f (B, D) [m, rad], exactly as the encoder + selection."""
+        f = u @ self.E.mT + self.e0
+        if self.has_type3:
+            f = f.index_copy(-1, self.beta3, self.type3_beta(u)[2])
+        return f
+
+    def jacobian(self, q: Tensor, u: Tensor) -> Tensor:
+        """∂f/∂q (B, D, N) of the encoder (constant unless the robot twists)."""
+        n = self.num_joints
+        jac = self.E[:, :n].expand(q.shape[0], -1, -1)
+        if self.has_g:
+            h = u[:, n:] + self.g_length
+            coef = q[:, self.g_index] * self.g_radius**2 / h                # ∂g/∂α
+            jac = jac.index_add(-1, self.g_index, self.E[:, n:] * coef.unsqueeze(-2))
+        if self.has_type3:
+            h, alpha, beta = self.type3_beta(u)
+            rows = (h / beta).unsqueeze(-1) * jac[:, self.beta3] \
+                - (alpha * self.radius3**2 / beta).unsqueeze(-1) * jac[:, self.alpha3]
+            jac = jac.index_copy(-2, self.beta3, rows)
+        return jac
+
+
+class DecoderJacobian(nn.Module):
+    """∂q/∂f (B, N, D) of the Clarke decoder at actuated features f (B, D)."""
+
+    def __init__(self, spec: RobotSpec):
+        super().__init__()
+        dec, sel = ClarkeDecoder(spec).to(_F64), actuated_selection(spec).to(_F64)
+        segs, m = spec.segments, spec.num_segments
+        ext, tw = [k for k, s in enumerate(segs) if s.extends], [k for k, s in enumerate(segs) if s.twists]
+        d = sel.shape[0]
+        pick_beta, pick_alpha = torch.zeros(d, m, dtype=_F64), torch.zeros(d, m, dtype=_F64)
+        pick_beta[_columns(spec, "beta", ext), ext] = 1.0
+        pick_alpha[_columns(spec, "alpha", tw), tw] = 1.0
+        const = torch.zeros(spec.num_joints, d, dtype=_F64)
+        rho_cols = [c for c in range(d) if not (pick_beta[c].any() or pick_alpha[c].any())]
+        const[:spec.num_length_joints, rho_cols] = dec.displacement
+        const[spec.num_length_joints:] = pick_alpha.mT[tw]
+        path = torch.zeros(spec.num_joints, d, dtype=_F64)
+        path[:spec.num_length_joints] = dec.path @ (pick_beta + pick_alpha).mT
+        self.register_buffer("pick_beta", pick_beta)
+        self.register_buffer("pick_alpha", pick_alpha)
+        self.register_buffer("fixed_length", dec.nominal_length * (~dec.extends))
+        self.register_buffer("radius", dec.helix_radius)
+        self.register_buffer("const", const)
+        self.register_buffer("path", path)
+
+    def forward(self, f: Tensor) -> Tensor:
+        beta, alpha = f @ self.pick_beta + self.fixed_length, f @ self.pick_alpha
+        h = torch.sqrt((alpha * self.radius) ** 2 + beta**2)
+        coef = (beta / h) @ self.pick_beta.mT + (alpha * self.radius**2 / h) @ self.pick_alpha.mT
+        return self.const + self.path * coef.unsqueeze(-2)
+
+
+def _linears(net: nn.Sequential) -> list[nn.Linear]:
+    return [m for m in net if isinstance(m, nn.Linear)]
+
+
+def _frozen_linear(weight: Tensor, bias: Tensor, dtype: torch.dtype) -> nn.Linear:
+    layer = nn.Linear(weight.shape[1], weight.shape[0], dtype=dtype)
+    layer.weight.data.copy_(weight)
+    layer.bias.data.copy_(bias)
+    return layer.requires_grad_(False)
+
+
+class _FoldedMLP(nn.Module):
+    """The MLP after the (folded) first affine map: hidden layers and a (scaled) output layer."""
+
+    def __init__(self, net: nn.Sequential, first: tuple[Tensor, Tensor], out_scale: Tensor,
+                 out_shift: Tensor, dtype: torch.dtype):
+        super().__init__()
+        self.act = _activation_name(net)
+        lin = _linears(net)
+        last = lin[-1]
+        w_last = out_scale[:, None] * last.weight.detach().to(_F64)
+        b_last = out_scale * last.bias.detach().to(_F64) + out_shift
+        self.first = _frozen_linear(*first, dtype)
+        self.hidden = nn.ModuleList(_frozen_linear(m.weight.detach(), m.bias.detach(), dtype) for m in lin[1:-1])
+        self.last = _frozen_linear(w_last, b_last, dtype)
+
+    def forward(self, a: Tensor) -> Tensor:
+        """First-layer pre-activations (B, W) → network output (B, out)."""
+        for layer in self.hidden:
+            a = layer(activation(self.act, a))
+        return self.last(activation(self.act, a))
+
+    def forward_with_tangents(self, a: Tensor, tangent: Tensor) -> tuple[Tensor, Tensor]:
+        """Forward-mode derivative: pre-activations (B, W) with tangents (B, k, W) → (out, dout (B, k, out))."""
+        for layer in self.hidden:
+            s, ds = activation_and_derivative(self.act, a)
+            a, tangent = layer(s), F.linear(ds.unsqueeze(-2) * tangent, layer.weight)
+        s, ds = activation_and_derivative(self.act, a)
+        return self.last(s), F.linear(ds.unsqueeze(-2) * tangent, self.last.weight)
+
+
+def _first_layer(net: nn.Sequential, mean: Tensor, std: Tensor) -> tuple[Tensor, Tensor]:
+    """(W₁/std, b₁ − W₁·mean/std) in float64: the first layer acting on unstandardised inputs."""
+    first = _linears(net)[0]
+    w = first.weight.detach().to(_F64) / std.to(_F64)
+    return w, first.bias.detach().to(_F64) - w @ mean.to(_F64)
+
+
+def pose_from_rotation(rotation: Tensor, position: Tensor, bottom: Tensor) -> Tensor:
+    """(B, 3, 3), (B, 3) and the row (0, 0, 0, 1) → homogeneous pose (B, 4, 4)."""
+    top = torch.cat([rotation, position.unsqueeze(-1)], dim=-1)
+    return torch.cat([top, bottom.expand(top.shape[0], 1, 4)], dim=-2)
+
+
+def _rotation_tangent_6d(d6: Tensor, dd6: Tensor) -> tuple[Tensor, Tensor]:
+    """Gram–Schmidt of the 6D rotation with tangents: (B, 6), (B, k, 6) → R (B, 3, 3), ω (B, k, 3).
+
+    R has rows b₁, b₂, b₃ (as pytorch_kinematics' rotation_6d_to_matrix); ω = vee(dR·Rᵀ) in the base frame.
+    """
+    a1, a2, da1, da2 = d6[:, :3], d6[:, 3:], dd6[..., :3], dd6[..., 3:]
+    n1 = torch.linalg.vector_norm(a1, dim=-1, keepdim=True).clamp_min(1e-12)
+    b1 = a1 / n1
+    db1 = (da1 - b1.unsqueeze(1) * (b1.unsqueeze(1) * da1).sum(-1, keepdim=True)) / n1.unsqueeze(1)
+    c = (b1 * a2).sum(-1, keepdim=True)
+    dc = (db1 * a2.unsqueeze(1)).sum(-1, keepdim=True) + (b1.unsqueeze(1) * da2).sum(-1, keepdim=True)
+    e = a2 - c * b1
+    de = da2 - dc * b1.unsqueeze(1) - c.unsqueeze(1) * db1
+    n2 = torch.linalg.vector_norm(e, dim=-1, keepdim=True).clamp_min(1e-12)
+    b2 = e / n2
+    db2 = (de - b2.unsqueeze(1) * (b2.unsqueeze(1) * de).sum(-1, keepdim=True)) / n2.unsqueeze(1)
+    b3 = torch.cross(b1, b2, dim=-1)
+    db3 = torch.cross(db1, b2.unsqueeze(1).expand_as(db1), dim=-1) + torch.cross(b1.unsqueeze(1).expand_as(db2), db2, dim=-1)
+    omega = torch.stack([(db3 * b2.unsqueeze(1)).sum(-1), (db1 * b3.unsqueeze(1)).sum(-1),
+                         (db2 * b1.unsqueeze(1)).sum(-1)], dim=-1)
+    return torch.stack([b1, b2, b3], dim=-2), omega
+
+
+def _rotation_tangent_quaternion(quat: Tensor, dquat: Tensor) -> tuple[Tensor, Tensor]:
+    """Quaternion (w, x, y, z) with tangents: (B, 4), (B, k, 4) → R (B, 3, 3), ω (B, k, 3) [base frame].
+
+    With q̂ = q/‖q‖ = (w, v): ω = 2(w·dv − dw·v + v × dv).
+    """
+    n = torch.linalg.vector_norm(quat, dim=-1, keepdim=True)
+    unit = quat / n
+    dunit = (dquat - unit.unsqueeze(1) * (unit.unsqueeze(1) * dquat).sum(-1, keepdim=True)) / n.unsqueeze(1)
+    w, v, dw, dv = unit[:, None, :1], unit[:, None, 1:], dunit[..., :1], dunit[..., 1:]
+    omega = 2 * (w * dv - dw * v + torch.cross(v.expand_as(dv), dv, dim=-1))
+    return quaternion_to_matrix(quat), omega
+
+
+class InferenceFK(nn.Module):
+    """Learned FK with the front-end folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m]."""
+
+    def __init__(self, model: FKModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        self.rotation, self.features_mode = model.rotation, model.front.mode
+        self.num_joints = model.spec.num_joints
+        net, norm = model.net, model.front.norm
+        w, b = _first_layer(net, norm.mean, norm.std)                     # acts on raw features x
+        self.fold = ClarkeFold(model.spec) if self.features_mode == "clarke" else None
+        if self.fold is not None:                                         # x = E·u + e₀
+            k, k0 = w @ self.fold.E, b + w @ self.fold.e0
+            k3 = w[:, self.fold.beta3].to(dtype) if self.fold.has_type3 else None
+            self.register_buffer("k3", k3)                                # type III: β − h correction
+            self.fold.to(dtype)
+        else:                                                             # x = q = u + q_ref
+            q_ref = ClarkeFold(model.spec).q_ref
+            k, k0 = w, b + w @ q_ref
+            self.register_buffer("q_ref", q_ref.to(dtype))
+        self.register_buffer("seed", w.mT.contiguous().to(dtype))       # ∂a₁/∂x, (k, W)
+        self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
+        scale = torch.ones(net[-1].out_features, dtype=_F64)
+        scale[:3] = model.length                                          # position × total length
+        self.mlp = _FoldedMLP(net, (k, k0), scale, torch.zeros_like(scale), dtype)
+
+    def inputs(self, q: Tensor) -> Tensor:
+        return q - self.q_ref if self.fold is None else self.fold.inputs(q)
+
+    def first_layer(self, u: Tensor) -> Tensor:
+        """a₁ = K·u + k₀ (+ K₃·(β − h) for type III): (B, N + n_g) → (B, W)."""
+        a = self.mlp.first(u)
+        if self.fold is not None and self.fold.has_type3:
+            h, _, beta = self.fold.type3_beta(u)
+            a = a + (beta - h) @ self.k3.mT
+        return a
+
+    def pose(self, out: Tensor) -> Tensor:
+        rot = (rotation_6d_to_matrix if self.rotation == "6d" else quaternion_to_matrix)(out[:, 3:])
+        return pose_from_rotation(rot, out[:, :3], self.bottom)
+
+    def forward(self, q: Tensor) -> Tensor:
+        return self.pose(self.mlp(self.first_layer(self.inputs(q))))
+
+
+class InferenceJacobian(nn.Module):
+    """Learned FK and its Jacobians: q (B, N) → (pose (B, 4, 4), J_f (B, 6, D), J_q (B, 6, N)).
+
+    Rows of J: tip linear velocity [m] and angular velocity [rad] in the base frame, per unit of
+    feature or joint (see the module docstring); computed in forward mode through the MLP.
+    """
+
+    def __init__(self, model: FKModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        self.fk = InferenceFK(model, dtype)
+        self.fold = self.fk.fold if self.fk.fold is not None else ClarkeFold(model.spec).to(dtype)
+        self.decoder_jacobian = DecoderJacobian(model.spec).to(dtype) if self.fk.fold is None else None
+
+    def forward(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        fk = self.fk
+        u = fk.inputs(q)
+        seed = fk.seed.expand(q.shape[0], -1, -1)
+        out, dout = fk.mlp.forward_with_tangents(fk.first_layer(u), seed)
+        if fk.rotation == "6d":
+            rot, omega = _rotation_tangent_6d(out[:, 3:], dout[..., 3:])
+        else:
+            rot, omega = _rotation_tangent_quaternion(out[:, 3:], dout[..., 3:])
+        jac = torch.cat([dout[..., :3], omega], dim=-1).mT                # (B, 6, k)
+        pose = pose_from_rotation(rot, out[:, :3], fk.bottom)
+        if self.decoder_jacobian is None:                                 # clarke: k = D
+            return pose, jac, jac @ self.fold.jacobian(q, u)
+        features = self.fold.features(self.fold.inputs(q))                # raw: k = N
+        return pose, jac @ self.decoder_jacobian(features), jac
+
+
+class InferenceIK(nn.Module):
+    """Learned IK with the normalisations folded in: tip pose (B, 4, 4) [m] → joint vector (B, N)."""
+
+    def __init__(self, model: IKModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        self.features_mode, self.num_joints = model.features, model.spec.num_joints
+        scale = torch.ones(9, dtype=_F64)
+        scale[:3] = 1 / model.length                                      # v = [p / L, first two rows of R]
+        w, b = _first_layer(model.net, model.in_norm.mean, model.in_norm.std)
+        out_std, out_mean = model.out_norm.std.to(_F64), model.out_norm.mean.to(_F64)
+        self.mlp = _FoldedMLP(model.net, (w * scale, b), out_std, out_mean, dtype)
+        if self.features_mode == "clarke":
+            self.register_buffer("selection", model.selection.to(dtype))
+            self.register_buffer("base", model.base_features.flatten().to(dtype))
+            self.decoder = ClarkeDecoder(model.spec).to(dtype)
+            self.num_segments = model.spec.num_segments
+
+    def forward(self, pose: Tensor) -> Tensor:
+        v = torch.cat([pose[:, :3, 3], pose[:, :2, :3].flatten(1)], dim=-1)
+        y = self.mlp(self.mlp.first(v))
+        if self.features_mode == "raw":
+            return y
+        flat = self.base + y @ self.selection
+        return self.decoder(flat.unflatten(-1, (self.num_segments, 4)))
