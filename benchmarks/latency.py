@@ -1,0 +1,175 @@
+"""Latency of the controller-facing inference modules: one thread, batch 1, many calls.
+
+Builds the default FK model (the shape of configs/default.yaml; an IK model of the same shape;
+weights are random, normalisation fitted on sampled data — latency does not depend on them),
+writes them as checkpoints, exports them with ``dacr_learn.export`` (torch.export programs and
+AOTInductor packages) and times, interleaved round by round on one CPU thread:
+
+- ``fk_eager_lightning``: the Lightning model's FKModel (front-end + MLP + 6D head), eager;
+- ``fk_eager_folded``: dacr_learn.inference.InferenceFK (folded front-end), eager;
+- ``fk_export_program``: the ``fk.pt2`` torch.export program as loaded by ``export.load``;
+- ``fk_aoti``: the ``fk.aoti.pt2`` AOTInductor package via ``export.load`` (input checks included);
+- ``fk_aoti_runner``: the same package's C++ runner called directly (no checks, no reshapes);
+- ``jacobian_eager`` / ``jacobian_aoti``, ``ik_eager_lightning`` / ``ik_aoti``;
+- ``cc_fk_analytic``: dacr_learn.kinematics.forward_kinematics on a (1, m, 4) feature tensor;
+- ``fk_torch_compile`` (with ``--compile``): torch.compile(InferenceFK, mode="max-autotune-no-cudagraphs").
+
+Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs].
+The machine may be shared and noisy: compare medians, run it twice.
+
+    .venv/bin/python benchmarks/latency.py            # table
+    .venv/bin/python benchmarks/latency.py --json     # one JSON line on stdout (table on stderr)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import lightning
+import numpy as np
+import torch
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from dacr_learn import export as dexport  # noqa: E402
+from dacr_learn.data import generate  # noqa: E402
+from dacr_learn.inference import InferenceFK, InferenceJacobian  # noqa: E402
+from dacr_learn.kinematics import forward_kinematics  # noqa: E402
+from dacr_learn.layers import ClarkeEncoder  # noqa: E402
+from dacr_learn.training import FKModule, IKModule  # noqa: E402
+
+DEFAULT_CONFIG = ROOT / "configs" / "default.yaml"
+TARGETS_US = {"fk_aoti": 25.0, "jacobian_aoti": 80.0}
+
+
+def default_modules(config: Path) -> tuple[FKModule, IKModule]:
+    """FK and IK LightningModules of the config's shape, normalisation fitted on 4096 samples."""
+    cfg = yaml.safe_load(config.read_text())
+    args, robot = dict(cfg["model"]["init_args"]), str(ROOT / cfg["data"]["robot"])
+    torch.manual_seed(0)
+    fk = FKModule(robot=robot, **args)
+    ik = IKModule(robot=robot, **{k: v for k, v in args.items() if k not in ("rotation", "rot_weight")})
+    data = generate(fk.spec, 4096, seed=0)
+    fk.model.fit_normalization(data["q"], data["pose"])
+    ik.model.fit_normalization(data["q"], data["pose"])
+    return fk.eval(), ik.eval()
+
+
+def save_checkpoint(module: lightning.LightningModule, path: Path) -> Path:
+    """A minimal Lightning checkpoint (weights + hyper-parameters) that load_from_checkpoint accepts."""
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": lightning.__version__}, path)
+    return path
+
+
+def export_all(fk: FKModule, ik: IKModule, out: Path, aoti: bool) -> dict[str, float]:
+    """Export both checkpoints into out/fk and out/ik; returns seconds spent per export."""
+    seconds = {}
+    for name, module in (("fk", fk), ("ik", ik)):
+        t0 = time.perf_counter()
+        dexport.export_checkpoint(save_checkpoint(module, out / f"{name}.ckpt"), out / name, aoti=aoti)
+        seconds[name] = time.perf_counter() - t0
+    return seconds
+
+
+def candidates(fk: FKModule, ik: IKModule, out: Path, aoti: bool, compile_fk: bool) -> dict:
+    """name → zero-argument callable doing one batch-1 call."""
+    spec = fk.spec
+    data = generate(spec, 1, seed=7)
+    q, pose = data["q"], data["pose"]
+    features = ClarkeEncoder(spec)(q)
+    folded, jac = InferenceFK(fk.model).eval(), InferenceJacobian(fk.model).eval()
+    fns = {"cc_fk_analytic": lambda: forward_kinematics(spec, features),
+           "fk_eager_lightning": lambda: fk.model(q), "fk_eager_folded": lambda: folded(q),
+           "fk_export_program": _bound(dexport.load(out / "fk" / "fk.pt2"), q),
+           "jacobian_eager": lambda: jac(q), "ik_eager_lightning": lambda: ik.model(pose)}
+    if aoti:
+        loaded = dexport.load(out / "fk", "fk")
+        fns.update(fk_aoti=_bound(loaded, q), fk_aoti_runner=_bound(loaded.runner, [q.contiguous()]),
+                   jacobian_aoti=_bound(dexport.load(out / "fk", "jacobian"), q),
+                   ik_aoti=_bound(dexport.load(out / "ik", "ik"), pose))
+    if compile_fk:
+        compiled = torch.compile(folded, mode="max-autotune-no-cudagraphs", dynamic=False)
+        fns["fk_torch_compile"] = _bound(compiled, q)
+    return fns
+
+
+def _bound(fn, x):
+    return lambda: fn(x)
+
+
+def time_interleaved(fns: dict, rounds: int, calls: int, warmup: int = 200) -> dict[str, np.ndarray]:
+    """Per-call times [µs]: ``rounds`` rounds, each running ``calls`` calls of every candidate in turn."""
+    with torch.inference_mode():
+        for fn in fns.values():
+            for _ in range(warmup):
+                fn()
+        samples: dict[str, list[int]] = {k: [] for k in fns}
+        clock = time.perf_counter_ns
+        for r in range(rounds):
+            order = list(fns.items()) if r % 2 == 0 else list(fns.items())[::-1]
+            for name, fn in order:
+                ts = samples[name]
+                for _ in range(calls):
+                    t0 = clock()
+                    fn()
+                    ts.append(clock() - t0)
+    return {k: np.asarray(v, dtype=np.float64) / 1e3 for k, v in samples.items()}
+
+
+def summarize(times: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
+    return {k: {"p50_us": round(float(np.percentile(v, 50)), 2), "p99_us": round(float(np.percentile(v, 99)), 2),
+                "calls": int(v.size)} for k, v in times.items()}
+
+
+def table(results: dict, targets: dict) -> str:
+    lines = [f"{'module (batch 1, 1 thread)':<24} {'p50 µs':>9} {'p99 µs':>9}   target p50"]
+    for k, r in results.items():
+        tgt = f"≤ {targets[k]:.0f} µs {'met' if r['p50_us'] <= targets[k] else 'MISSED'}" if k in targets else ""
+        lines.append(f"{k:<24} {r['p50_us']:>9.1f} {r['p99_us']:>9.1f}   {tgt}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--json", action="store_true", help="print one JSON line on stdout (the table goes to stderr)")
+    p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="model shape (model.init_args, data.robot)")
+    p.add_argument("--rounds", type=int, default=20)
+    p.add_argument("--calls", type=int, default=500, help="calls per candidate per round")
+    p.add_argument("--no-aoti", action="store_true", help="skip AOTInductor (no C++ compiler needed)")
+    p.add_argument("--compile", action="store_true", help="also time torch.compile of the folded FK")
+    p.add_argument("--out", type=Path, default=None, help="keep the exports here (default: a temp dir)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    warnings.filterwarnings("ignore")
+    fk, ik = default_modules(args.config)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = args.out or Path(tmp)
+        out.mkdir(parents=True, exist_ok=True)
+        export_seconds = export_all(fk, ik, out, aoti=not args.no_aoti)
+        fns = candidates(fk, ik, out, aoti=not args.no_aoti, compile_fk=args.compile)
+        results = summarize(time_interleaved(fns, args.rounds, args.calls))
+        deviation = json.loads((out / "fk" / dexport.METADATA_FILE).read_text())["max_abs_deviation"]
+    report = {"benchmark": "latency", "batch": 1, "threads": torch.get_num_threads(),
+              "config": str(args.config.relative_to(ROOT) if args.config.is_relative_to(ROOT) else args.config),
+              "model": {k: fk.hparams[k] for k in ("features", "width", "depth", "activation", "rotation")},
+              "robot": fk.spec.name, "torch": torch.__version__, "cpu": platform.processor() or platform.machine(),
+              "export_seconds": {k: round(v, 1) for k, v in export_seconds.items()},
+              "max_abs_deviation_fk": deviation, "results": results,
+              "targets_p50_us": {k: {"target": v, "met": k in results and results[k]["p50_us"] <= v}
+                                 for k, v in TARGETS_US.items()}}
+    print(table(results, TARGETS_US), file=sys.stderr if args.json else sys.stdout)
+    if args.json:
+        print(json.dumps(report))
+    return report
+
+
+if __name__ == "__main__":
+    main()

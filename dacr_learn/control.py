@@ -1,0 +1,201 @@
+"""Resolved-rate (damped least-squares) task-space position control in Clarke space.
+
+One control step, with the commanded joint vector q (..., N) [m, rad] and a tip target p* [m]:
+
+1. (pose, J_f, J_q) = jacobian(q): the learned FK's tip pose and the Jacobian of the tip twist
+   w.r.t. the D actuated Clarke features f (an export from :mod:`dacr_learn.export`, or
+   :func:`analytic_jacobian` as the model-based reference);
+2. task step Δx = feedforward + gain·(p* − p), with p the measured tip position when the caller
+   has one (closed loop), else the learned FK's;
+3. Clarke-space step by damped least squares in scaled features z = f / s (s: each feature's
+   range, so ρ [m], β [m] and α [rad] weigh alike): Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx with J̃ = J_v·diag(s),
+   limited to ‖Δz‖ ≤ max_step;
+4. f' = sat(f + s·Δz): bending angle ‖ρ‖/d ≤ bend (radially), β in length_range, α in twist_range;
+5. q' = dec(f'): the Clarke decoder, so every command satisfies the displacement constraint.
+
+Everything runs in float64. Pure torch; no Lightning, no Rerun.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from .kinematics import forward_kinematics
+from .layers import ClarkeDecoder, ClarkeEncoder
+from .models import actuated_selection
+from .robot import RobotSpec
+
+JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
+_F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """gain: fraction of the position error corrected per step, in (0, 1]; damping: λ [m] of the
+    damped least squares (None: 1 % of the robot length); max_step: largest scaled feature step
+    ‖Δz‖ per control step (1 = a feature's whole half-range)."""
+
+    gain: float = 0.5
+    damping: float | None = None
+    max_step: float = 0.05
+
+    def __post_init__(self):
+        if not 0 < self.gain <= 1:
+            raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
+        if self.damping is not None and not self.damping >= 0:
+            raise ValueError(f"damping: expected >= 0 [m], got {self.damping}")
+        if not self.max_step > 0:
+            raise ValueError(f"max_step: expected > 0, got {self.max_step}")
+
+
+def _feature_columns(spec: RobotSpec) -> dict[str, list]:
+    """Actuated feature columns (models.actuated_selection order) with their limits and scales."""
+    cols: dict[str, list] = {"rho": [], "rho_max": [], "beta": [], "beta_range": [], "alpha": [],
+                             "alpha_range": [], "scale": []}
+    i = 0
+    for seg in spec.segments:
+        rho_max = seg.bend * seg.radius                       # ‖ρ‖ = d·φ ≤ d·bend
+        cols["rho"].append([i, i + 1])
+        cols["rho_max"].append(rho_max)
+        cols["scale"] += [rho_max, rho_max]
+        i += 2
+        for kind, actuated, lim in (("beta", seg.extends, seg.length_range), ("alpha", seg.twists, seg.twist_range)):
+            if actuated:
+                cols[kind].append(i)
+                cols[f"{kind}_range"].append(lim)
+                cols["scale"].append((lim[1] - lim[0]) / 2)
+                i += 1
+    return cols
+
+
+class ClarkeSpace:
+    """Actuated Clarke features f (..., D) ↔ joint vectors q (..., N) of a robot, and saturation (float64)."""
+
+    def __init__(self, spec: RobotSpec):
+        self.spec = spec
+        self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
+        self.selection = actuated_selection(spec).to(_F64)
+        self.base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments],
+                                 dtype=_F64).flatten()
+        c = _feature_columns(spec)
+        self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=_F64)
+        self.beta_cols, self.alpha_cols = torch.tensor(c["beta"], dtype=torch.long), torch.tensor(c["alpha"], dtype=torch.long)
+        self.beta_range = torch.tensor(c["beta_range"], dtype=_F64).reshape(-1, 2)
+        self.alpha_range = torch.tensor(c["alpha_range"], dtype=_F64).reshape(-1, 2)
+        self.scale = torch.tensor(c["scale"], dtype=_F64)
+
+    def features(self, q: Tensor) -> Tensor:
+        """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
+        return self.encoder(q.to(_F64)).flatten(-2) @ self.selection.mT
+
+    def joints(self, f: Tensor) -> Tensor:
+        """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
+        full = self.base + f.to(_F64) @ self.selection
+        return self.decoder(full.unflatten(-1, (self.spec.num_segments, 4)))
+
+    def saturate(self, f: Tensor) -> Tensor:
+        """Clip features to the limits: ‖ρ‖ ≤ d·bend per segment (radially), β and α into their ranges."""
+        f = f.clone()
+        rho = f[..., self.rho_cols]                                          # (..., m, 2)
+        norm = torch.linalg.vector_norm(rho, dim=-1, keepdim=True)
+        factor = torch.clamp(self.rho_max.unsqueeze(-1) / norm.clamp_min(1e-300), max=1.0)
+        f[..., self.rho_cols] = rho * factor
+        if len(self.beta_cols):
+            f[..., self.beta_cols] = torch.clamp(f[..., self.beta_cols], self.beta_range[:, 0], self.beta_range[:, 1])
+        if len(self.alpha_cols):
+            f[..., self.alpha_cols] = torch.clamp(f[..., self.alpha_cols], self.alpha_range[:, 0], self.alpha_range[:, 1])
+        return f
+
+    def within_limits(self, f: Tensor, tol: float = 1e-9) -> Tensor:
+        """(...) bool: features inside the limits up to ``tol`` (relative for ρ, absolute [m, rad] otherwise)."""
+        ok = (torch.linalg.vector_norm(f[..., self.rho_cols], dim=-1) <= self.rho_max * (1 + tol)).all(-1)
+        for cols, rng in ((self.beta_cols, self.beta_range), (self.alpha_cols, self.alpha_range)):
+            if len(cols):
+                ok = ok & ((f[..., cols] >= rng[:, 0] - tol) & (f[..., cols] <= rng[:, 1] + tol)).all(-1)
+        return ok
+
+
+class ResolvedRateController:
+    """Damped least-squares position controller in Clarke space (see the module docstring).
+
+    Args:
+        spec: the robot. jacobian: callable q (..., N) → (pose (..., 4, 4), J_f (..., 6, D), J_q)
+            — e.g. ``dacr_learn.export.load(export_dir, "jacobian")`` or :func:`analytic_jacobian`.
+        config: gains and limits (:class:`ControllerConfig`).
+    """
+
+    def __init__(self, spec: RobotSpec, jacobian: JacobianFn, config: ControllerConfig = ControllerConfig()):
+        self.spec, self.jacobian, self.config = spec, jacobian, config
+        self.space = ClarkeSpace(spec)
+        self.damping = 0.01 * spec.total_length if config.damping is None else config.damping
+
+    def clarke_step(self, jac_v: Tensor, task_step: Tensor) -> Tensor:
+        """Scaled DLS step: J_v (..., 3, D), Δx (..., 3) [m] → feature step Δf (..., D) [m, rad]."""
+        s = self.space.scale
+        j = jac_v.to(_F64) * s                                               # J̃ = J_v·diag(s)
+        a = j @ j.mT + self.damping**2 * torch.eye(3, dtype=_F64)
+        dz = (j.mT @ torch.linalg.solve(a, task_step.to(_F64).unsqueeze(-1))).squeeze(-1)
+        norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
+        dz = dz * torch.clamp(self.config.max_step / norm.clamp_min(1e-300), max=1.0)
+        return dz * s
+
+    def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None,
+             measured: Tensor | None = None) -> Tensor:
+        """One control step: commanded q (..., N), target (..., 3) [m] → next command q' (..., N), float64.
+
+        ``feedforward`` (..., 3) [m]: the target's displacement over this step (velocity × dt);
+        ``measured`` (..., 3) [m]: the measured tip position (else the learned FK's is used).
+        """
+        q = q.to(_F64)
+        pose, jac_f, _ = self.jacobian(q)
+        position = pose[..., :3, 3].to(_F64) if measured is None else measured.to(_F64)
+        task = self.config.gain * (target.to(_F64) - position)
+        if feedforward is not None:
+            task = task + feedforward.to(_F64)
+        f = self.space.features(q) + self.clarke_step(jac_f[..., :3, :], task)
+        return self.space.joints(self.space.saturate(f))
+
+
+def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
+    """Tip-twist Jacobian from a pose (..., 4, 4) and its derivative (..., 4, 4, k) → (..., 6, k).
+
+    Rows: dp (the tip point's linear velocity) and ω = vee(dR·Rᵀ), both in the base frame.
+    """
+    skew = torch.einsum("...ijk,...lj->...ilk", dpose[..., :3, :3, :], pose[..., :3, :3])
+    omega = torch.stack([skew[..., 2, 1, :], skew[..., 0, 2, :], skew[..., 1, 0, :]], dim=-2)
+    return torch.cat([dpose[..., :3, 3, :], omega], dim=-2)
+
+
+def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
+    """Jacobian of a batched, per-sample map by reverse mode, one output entry at a time: x (B, k) → (B, *out, k)."""
+    x = x.detach().requires_grad_(True)
+    with torch.enable_grad():
+        y = fn(x)
+        flat = y.reshape(y.shape[0], -1)
+        rows = [torch.autograd.grad(flat[:, i].sum(), x, retain_graph=True, allow_unused=True)[0]
+                for i in range(flat.shape[1])]
+    rows = [torch.zeros_like(x) if r is None else r for r in rows]
+    return torch.stack(rows, dim=1).reshape(*y.shape, x.shape[-1]).detach()
+
+
+def analytic_jacobian(spec: RobotSpec) -> JacobianFn:
+    """Model-based reference for the controller: q (..., N) → (pose, J_f, J_q) of the analytic
+    constant-curvature FK (float64, reverse-mode autograd; for comparisons and tests, not for kHz loops)."""
+    space = ClarkeSpace(spec)
+
+    def pose_of(f: Tensor) -> Tensor:
+        return forward_kinematics(spec, (space.base + f @ space.selection).unflatten(-1, (spec.num_segments, 4)))
+
+    def jacobian(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        lead = q.shape[:-1]
+        q2 = q.to(_F64).reshape(-1, spec.num_joints)
+        f = space.features(q2)
+        pose = pose_of(f)
+        jac_f = twist_jacobian(pose, _jacobian_rows(pose_of, f))
+        jac_q = jac_f @ _jacobian_rows(space.features, q2)
+        return (pose.reshape(*lead, 4, 4), jac_f.reshape(*lead, *jac_f.shape[-2:]),
+                jac_q.reshape(*lead, *jac_q.shape[-2:]))
+    return jacobian
