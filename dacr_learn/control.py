@@ -23,6 +23,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from .inference import ClarkeFold, DecoderJacobian
 from .kinematics import forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import actuated_selection
@@ -30,6 +31,10 @@ from .robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
 _F64 = torch.float64
+
+
+def _f64(x: Tensor) -> Tensor:
+    return x if x.dtype == _F64 else x.to(_F64)
 
 
 @dataclass(frozen=True)
@@ -77,9 +82,15 @@ class ClarkeSpace:
     def __init__(self, spec: RobotSpec):
         self.spec = spec
         self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
+        self.fold = ClarkeFold(spec)                       # the encoder as one affine map (+ helix terms)
         self.selection = actuated_selection(spec).to(_F64)
         self.base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments],
                                  dtype=_F64).flatten()
+        self.linear = not any(s.twists for s in spec.segments)   # then the decoder is affine: q = A·f + c
+        if self.linear:
+            straight = self.fold.e0                               # features of the nominal straight robot
+            self.dec_matrix = DecoderJacobian(spec)(straight)
+            self.dec_offset = self._decode(straight) - self.dec_matrix @ straight
         c = _feature_columns(spec)
         self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=_F64)
         self.beta_cols, self.alpha_cols = torch.tensor(c["beta"], dtype=torch.long), torch.tensor(c["alpha"], dtype=torch.long)
@@ -89,12 +100,17 @@ class ClarkeSpace:
 
     def features(self, q: Tensor) -> Tensor:
         """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
-        return self.encoder(q.to(_F64)).flatten(-2) @ self.selection.mT
+        return self.fold.features(self.fold.inputs(_f64(q)))
+
+    def _decode(self, f: Tensor) -> Tensor:
+        full = self.base + f @ self.selection
+        return self.decoder(full.unflatten(-1, (self.spec.num_segments, 4)))
 
     def joints(self, f: Tensor) -> Tensor:
         """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
-        full = self.base + f.to(_F64) @ self.selection
-        return self.decoder(full.unflatten(-1, (self.spec.num_segments, 4)))
+        f = _f64(f)
+        return torch.addmm(self.dec_offset, f, self.dec_matrix.mT) if self.linear and f.dim() == 2 else (
+            self.dec_offset + f @ self.dec_matrix.mT if self.linear else self._decode(f))
 
     def saturate(self, f: Tensor) -> Tensor:
         """Clip features to the limits: ‖ρ‖ ≤ d·bend per segment (radially), β and α into their ranges."""
@@ -131,13 +147,14 @@ class ResolvedRateController:
         self.spec, self.jacobian, self.config = spec, jacobian, config
         self.space = ClarkeSpace(spec)
         self.damping = 0.01 * spec.total_length if config.damping is None else config.damping
+        self._damping_matrix = self.damping**2 * torch.eye(3, dtype=_F64)
 
     def clarke_step(self, jac_v: Tensor, task_step: Tensor) -> Tensor:
         """Scaled DLS step: J_v (..., 3, D), Δx (..., 3) [m] → feature step Δf (..., D) [m, rad]."""
         s = self.space.scale
-        j = jac_v.to(_F64) * s                                               # J̃ = J_v·diag(s)
-        a = j @ j.mT + self.damping**2 * torch.eye(3, dtype=_F64)
-        dz = (j.mT @ torch.linalg.solve(a, task_step.to(_F64).unsqueeze(-1))).squeeze(-1)
+        j = _f64(jac_v) * s                                                  # J̃ = J_v·diag(s)
+        a = j @ j.mT + self._damping_matrix
+        dz = (j.mT @ torch.linalg.solve(a, _f64(task_step).unsqueeze(-1))).squeeze(-1)
         norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
         dz = dz * torch.clamp(self.config.max_step / norm.clamp_min(1e-300), max=1.0)
         return dz * s
@@ -149,12 +166,12 @@ class ResolvedRateController:
         ``feedforward`` (..., 3) [m]: the target's displacement over this step (velocity × dt);
         ``measured`` (..., 3) [m]: the measured tip position (else the learned FK's is used).
         """
-        q = q.to(_F64)
+        q = _f64(q)
         pose, jac_f, _ = self.jacobian(q)
-        position = pose[..., :3, 3].to(_F64) if measured is None else measured.to(_F64)
-        task = self.config.gain * (target.to(_F64) - position)
+        position = _f64(pose[..., :3, 3] if measured is None else measured)
+        task = self.config.gain * (_f64(target) - position)
         if feedforward is not None:
-            task = task + feedforward.to(_F64)
+            task = task + _f64(feedforward)
         f = self.space.features(q) + self.clarke_step(jac_f[..., :3, :], task)
         return self.space.joints(self.space.saturate(f))
 

@@ -119,8 +119,10 @@ def _deviation(reference, loaded, x: Tensor) -> float:
 
 
 def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
-                      aoti: bool = True) -> dict[str, Any]:
+                      aoti: bool | tuple[str, ...] = True) -> dict[str, Any]:
     """Export a checkpoint's inference modules to ``out`` (see the module docstring); returns the metadata.
+
+    ``aoti``: build AOTInductor packages for every module (True), none (False) or the named ones.
 
     The exported files are loaded back and compared with the Lightning model on 256 samples;
     deviations are recorded (``max_abs_deviation``) and above VERIFY_TOLERANCE the export fails.
@@ -138,7 +140,7 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
         "source_checkpoint": {"path": str(ckpt), "sha256": file_sha256(ckpt)}, "modules": {}}
     for name, module in inference_modules(task, lit.model, dtype).items():
         example = examples[sig[name]["inputs"][0][0]]
-        files = _write_module(name, module, example[:2], out, aoti)
+        files = _write_module(name, module, example[:2], out, aoti if isinstance(aoti, bool) else name in aoti)
         meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": file_sha256(out / f)}
                                                         for k, f in files.items()}}
     meta["metadata_sha256"] = _metadata_digest(meta)

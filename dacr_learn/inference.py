@@ -128,11 +128,11 @@ class ClarkeFold(nn.Module):
             self.register_buffer(name, torch.tensor(values, dtype=dtype) if values else None)
 
     def inputs(self, q: Tensor) -> Tensor:
-        """u = [q − q_ref, g] (B, N + n_g)."""
+        """u = [q − q_ref, g] (..., N + n_g)."""
         dq = q - self.q_ref
         if not self.has_g:
             return dq
-        ad2 = (q[:, self.g_index] * self.g_radius) ** 2
+        ad2 = (q[..., self.g_index] * self.g_radius) ** 2
         return torch.cat([dq, ad2 / (torch.sqrt(ad2 + self.g_length**2) + self.g_length)], dim=-1)
 
     def type3_beta(self, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -143,7 +143,7 @@ class ClarkeFold(nn.Module):
         return h, alpha, torch.sqrt(torch.clamp(h * h - ad2, min=torch.finfo(u.dtype).tiny))
 
     def features(self, u: Tensor) -> Tensor:
-        """Actuated Clarke features f (B, D) [m, rad], exactly as the encoder + selection."""
+        """Actuated Clarke features f (..., D) [m, rad] from u, exactly as the encoder + selection."""
         f = u @ self.E.mT + self.e0
         if self.has_type3:
             f = f.index_copy(-1, self.beta3, self.type3_beta(u)[2])
