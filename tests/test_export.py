@@ -35,6 +35,15 @@ TYPE2_AND_3 = {"name": "twisting", "routing": "independent", "segments": [
 ROBOTS = [*(p.stem for p in sorted((ROOT / "configs" / "robots").glob("*.yaml"))), "twisting"]
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_thread():
+    """Batch-1 calls: intra-op threads only add contention on a busy machine (restored afterwards)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def robot_spec(name: str) -> RobotSpec:
     return RobotSpec.from_dict(TYPE2_AND_3) if name == "twisting" else RobotSpec.from_yaml(
         ROOT / "configs" / "robots" / f"{name}.yaml")
