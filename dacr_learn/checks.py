@@ -15,14 +15,14 @@ def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool =
     if not isinstance(x, Tensor):
         raise ValueError(f"{name}: expected a torch.Tensor of shape (..., {', '.join(map(str, trailing))}), "
                          f"got {type(x).__name__}")
-    k = len(trailing)
+    k, expected = len(trailing), f"(..., {', '.join(map(str, trailing))})"
     if x.dim() < k or tuple(x.shape[x.dim() - k:]) != tuple(trailing):
-        raise ValueError(f"{name}: expected shape (..., {', '.join(map(str, trailing))}), got {tuple(x.shape)}")
+        raise ValueError(f"{name}: expected shape {expected}, got {tuple(x.shape)}")
     if not x.is_floating_point():
         raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
     # A NaN/inf anywhere makes the sum non-finite; the sum is one cheap reduction, the exact
     # elementwise test only runs when it fails (or a huge finite sum overflowed).
     if finite and not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         bad = (~torch.isfinite(x)).sum().item()
-        raise ValueError(f"{name}: expected finite values, got {bad} NaN/inf entries in a tensor of shape "
-                         f"{tuple(x.shape)}")
+        raise ValueError(f"{name}: expected finite values of shape {expected}, got {bad} NaN/inf entries "
+                         f"in a tensor of shape {tuple(x.shape)}")
