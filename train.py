@@ -19,7 +19,7 @@ from typing import Optional
 
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint
-from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
@@ -33,6 +33,20 @@ class InterruptCheckpoint(OnExceptionCheckpoint):
 
     def teardown(self, trainer, *args, **kwargs) -> None:
         pass
+
+
+class SaveConfigToRunDir(SaveConfigCallback):
+    """Writes config.yaml into the run's own directory (trainer.default_root_dir = runs/<run_name>);
+    Lightning's default uses the logger's save_dir, which every run shares."""
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        if self.already_saved:
+            return
+        if trainer.is_global_zero:
+            path = Path(trainer.default_root_dir) / self.config_filename
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.parser.save(self.config, path, skip_none=False, overwrite=True, multifile=self.multifile)
+        self.already_saved = trainer.strategy.broadcast(True)
 
 
 class DacrCLI(LightningCLI):
@@ -102,7 +116,7 @@ class DacrCLI(LightningCLI):
 def main(args=None, run: bool = True) -> DacrCLI:
     """Run the CLI on ``args`` (default: sys.argv); ``run=False`` only instantiates (no subcommand)."""
     return DacrCLI(KinematicsModule, KinematicsDataModule, subclass_mode_model=True,
-                   save_config_kwargs={"overwrite": True}, args=args, run=run)
+                   save_config_callback=SaveConfigToRunDir, args=args, run=run)
 
 
 if __name__ == "__main__":

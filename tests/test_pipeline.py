@@ -39,6 +39,7 @@ def test_fit_writes_summary_recording_and_checkpoint_and_loss_goes_down(tmp_path
     for key in ("pos_err_mean_mm", "pos_err_p95_mm", "pos_err_mean_pct", "rot_err_mean_deg", "train_seconds"):
         assert key in summary and summary[key] == summary[key]
     assert summary["n_test"] == 300 and summary["features"] == "clarke"
+    assert yaml.safe_load((run / "config.yaml").read_text())["data"]["n_train"] == 2000   # saved per run
     # the loss went down: trained model vs a freshly initialised one with the same normalisation
     val = cli.datamodule.splits["val"]
     fresh = FKModule(robot=cli.model.spec.to_dict(), width=32, depth=2)
