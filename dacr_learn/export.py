@@ -24,6 +24,7 @@ import argparse
 import hashlib
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -101,12 +102,17 @@ def export_program(module: nn.Module, example: Tensor) -> torch.export.ExportedP
 
 
 def _write_module(name: str, module: nn.Module, example: Tensor, out: Path, aoti: bool) -> dict[str, str]:
+    """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2``."""
     program = export_program(module, example)
     files = {"export": f"{name}.pt2"}
     torch.export.save(program, out / files["export"])
     if aoti:
-        files["aoti"] = f"{name}.aoti.pt2"
-        torch._inductor.aoti_compile_and_package(program, package_path=str(out / files["aoti"]))
+        try:
+            torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"))
+            files["aoti"] = f"{name}.aoti.pt2"
+        except Exception as err:  # noqa: BLE001 — no compiler, unsupported platform, …: keep the program
+            warnings.warn(f"export {name}: the AOTInductor package did not build ({type(err).__name__}: "
+                          f"{str(err)[:200]}); only {files['export']} is written")
     return files
 
 
@@ -290,11 +296,11 @@ class ExportedModule(nn.Module):
 
     def forward(self, x: Tensor):
         self._check(x)
-        lead = x.shape[:x.dim() - len(self.input_shape)]
-        flat = x if len(lead) == 1 else x.reshape(-1, *self.input_shape)
-        flat = flat.to(self.dtype).contiguous()
-        outs = self.runner([flat])
-        if len(lead) != 1 or x.dtype != self.dtype:
+        if x.dim() == len(self.input_shape) + 1 and x.dtype == self.dtype:     # fast path: (B, ...) as exported
+            outs = self.runner([x if x.is_contiguous() else x.contiguous()])
+        else:
+            lead = x.shape[:x.dim() - len(self.input_shape)]
+            outs = self.runner([x.reshape(-1, *self.input_shape).to(self.dtype).contiguous()])
             outs = [o.reshape(*lead, *s).to(x.dtype) for o, s in zip(outs, self.output_shapes)]
         return outs[0] if len(outs) == 1 else tuple(outs)
 

@@ -229,7 +229,7 @@ def print_summary(summary: dict, spec: RobotSpec, out: Path) -> None:
           f"{1e6 * summary['joint_noise_m']:.0f} µm, radius ×{summary['radius_scale']}, length ×{summary['length_scale']}")
     print(f"  {'trajectory':<10} {'RMS mm':>8} {'max mm':>8} {'RMS %L':>7} {'max %L':>7} {'step p50 µs':>12}")
     for kind, r in summary["results"].items():
-        print(f"  {kind:<10} {r['rms_mm']:>8.3f} {r['max_mm']:>8.3f} {r['rms_pct']:>7.3f} {r['max_pct']:>7.3f} "
+        print(f"  {kind:<10} {r['rms_mm']:>8.4f} {r['max_mm']:>8.4f} {r['rms_pct']:>7.4f} {r['max_pct']:>7.4f} "
               f"{r['step_p50_us']:>12.0f}")
     print(f"  Rerun: .venv/bin/rerun {out / 'track.rrd'}   summary: {out / 'summary.json'}")
 
