@@ -196,10 +196,12 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(1)
     ckpt = resolve_checkpoint(args.ckpt, args.no_train)
-    meta = dexport.load_lightning_checkpoint(ckpt)[1].spec if args.jacobian == "analytic" else None
-    jac = (learned_jacobian(ckpt, args.out / "export", args.aoti) if args.jacobian == "learned"
-           else analytic_jacobian(meta))
-    spec = RobotSpec.from_dict(jac.metadata["robot"]) if args.jacobian == "learned" else meta
+    if args.jacobian == "learned":
+        jac = learned_jacobian(ckpt, args.out / "export", args.aoti)
+        spec = RobotSpec.from_dict(jac.metadata["robot"])
+    else:
+        spec = dexport.load_lightning_checkpoint(ckpt)[1].spec
+        jac = analytic_jacobian(spec)
     ctrl = ResolvedRateController(spec, jac, ControllerConfig(gain=args.gain))
     robot = SimulatedRobot(spec, args.radius_scale, args.length_scale, args.joint_noise)
     period, settle = round(args.period * args.rate), round(0.5 * args.rate)

@@ -2,6 +2,7 @@
 commands joints outside the limits or off the displacement constraint, saturates correctly."""
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import lightning.pytorch as pl
@@ -153,7 +154,9 @@ def learned_jacobian(tmp_path_factory):
     trainer.fit(module, datamodule=dm)
     trainer.save_checkpoint(d / "fk.ckpt")
     dexport.export_checkpoint(d / "fk.ckpt", d / "export", aoti=False)
-    return dexport.load(d / "export", "jacobian")
+    jacobian = dexport.load(d / "export", "jacobian")
+    jacobian.run_dir = d                    # for the example test: checkpoint and export live here
+    return jacobian
 
 
 def test_converges_with_learned_jacobian(learned_jacobian):
@@ -167,3 +170,16 @@ def test_converges_with_learned_jacobian(learned_jacobian):
     q, _ = run_closed_loop(ctrl, straight(space), target, steps=80, measured=False)  # the model's own FK
     model_tip = learned_jacobian(q)[0][:3, 3]
     assert torch.linalg.vector_norm(model_tip - target).item() <= 1e-5           # float32 model
+
+
+def test_tracking_example_runs_and_logs(learned_jacobian):
+    """examples/track_trajectory.py end to end (coarse: 50 Hz, one 1-s lap) with the small model."""
+    spec = importlib.util.spec_from_file_location("track_trajectory", ROOT / "examples" / "track_trajectory.py")
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    d = learned_jacobian.run_dir
+    summary = example.main(["--ckpt", str(d / "fk.ckpt"), "--out", str(d), "--rate", "50", "--period", "2",
+                            "--laps", "1", "--joint-noise", "1e-5", "--radius-scale", "1.03"])
+    for kind in ("circle", "figure8"):
+        assert summary["results"][kind]["rms_pct"] <= 1.0
+    assert (d / "track.rrd").stat().st_size > 0 and (d / "summary.json").is_file()
