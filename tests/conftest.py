@@ -12,6 +12,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
@@ -225,3 +226,25 @@ def chain_joint_values(theta, phi, beta, alpha, twist: bool):
     chord = beta * lib.sinc(phi / (2 * math.pi))          # 2β·sin(φ/2)/φ, = β at φ = 0
     vals = [theta, phi / 2, chord, phi / 2, -theta]
     return ([alpha] if twist else []) + vals
+
+
+# A robot with both twisting types (II then III), used by the export and control tests.
+TWISTING = {"name": "twisting", "routing": "independent", "segments": [
+    {"type": "II", "length": 0.1, "radius": 0.008, "joints": 4, "limits": {"bend": 1.2, "twist": [-1.0, 1.0]}},
+    {"type": "III", "length": 0.08, "radius": 0.007, "joints": 3, "offset": 0.3,
+     "limits": {"bend": 1.0, "length": [0.07, 0.09], "twist": [-0.5, 0.5]}}]}
+
+
+def spec_by_name(name: str) -> RobotSpec:
+    """configs/robots/<name>.yaml, or the TWISTING robot for name == "twisting"."""
+    return RobotSpec.from_dict(TWISTING) if name == "twisting" else RobotSpec.from_yaml(
+        ROOT / "configs" / "robots" / f"{name}.yaml")
+
+
+@pytest.fixture()
+def one_thread():
+    """Batch-1 calls: intra-op threads only add contention on a busy machine (restored afterwards)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)

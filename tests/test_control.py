@@ -8,6 +8,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
+from conftest import spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.control import ClarkeSpace, ControllerConfig, ResolvedRateController, analytic_jacobian
@@ -18,25 +19,12 @@ from dacr_learn.training import FKModule
 
 ROOT = Path(__file__).resolve().parents[1]
 TYPE1 = ROOT / "configs" / "robots" / "type1.yaml"
-TWISTING = {"name": "twisting", "routing": "independent", "segments": [
-    {"type": "II", "length": 0.1, "radius": 0.008, "joints": 4, "limits": {"bend": 1.2, "twist": [-1.0, 1.0]}},
-    {"type": "III", "length": 0.08, "radius": 0.007, "joints": 3, "offset": 0.3,
-     "limits": {"bend": 1.0, "length": [0.07, 0.09], "twist": [-0.5, 0.5]}}]}
 F64 = torch.float64
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Batch-1 calls: intra-op threads only add contention on a busy machine (restored afterwards)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def spec_of(name: str) -> RobotSpec:
-    return RobotSpec.from_dict(TWISTING) if name == "twisting" else RobotSpec.from_yaml(
-        ROOT / "configs" / "robots" / f"{name}.yaml")
 
 
 def straight(space: ClarkeSpace) -> torch.Tensor:
@@ -66,7 +54,7 @@ def tip(spec: RobotSpec, q: torch.Tensor) -> torch.Tensor:
 
 @pytest.mark.parametrize("robot", ["type1", "type3"])
 def test_converges_on_static_target_with_analytic_jacobian(robot):
-    spec = spec_of(robot)
+    spec = spec_by_name(robot)
     space = ClarkeSpace(spec)
     target_q = space.joints(torch.tensor([0.006, -0.004, 0.105] + ([0.3] if robot == "type3" else []), dtype=F64))
     target = tip(spec, target_q)
@@ -77,7 +65,7 @@ def test_converges_on_static_target_with_analytic_jacobian(robot):
 
 
 def test_batched_step_matches_single_steps():
-    spec = spec_of("type1")
+    spec = spec_by_name("type1")
     ctrl = ResolvedRateController(spec, analytic_jacobian(spec))
     q = straight(ctrl.space).expand(3, -1)
     targets = torch.tensor([[0.02, 0.0, 0.09], [0.0, -0.03, 0.085], [0.01, 0.01, 0.11]], dtype=F64)
@@ -89,7 +77,7 @@ def test_batched_step_matches_single_steps():
 @pytest.mark.parametrize("robot", ["type1", "type3", "tdcr_3seg_coupled", "twisting"])
 def test_commands_stay_within_limits_and_on_the_constraint(robot):
     """Unreachable targets and a wrong (random) Jacobian with big steps: saturation must hold."""
-    spec = spec_of(robot)
+    spec = spec_by_name(robot)
     space = ClarkeSpace(spec)
     g = torch.Generator().manual_seed(0)
     d = space.scale.numel()
@@ -109,7 +97,7 @@ def test_commands_stay_within_limits_and_on_the_constraint(robot):
 
 
 def test_saturate_clips_bend_length_and_twist():
-    spec = spec_of("type3")                                            # bend 1.57, β ∈ [0.08, 0.12], α ∈ [-1, 1]
+    spec = spec_by_name("type3")                                            # bend 1.57, β ∈ [0.08, 0.12], α ∈ [-1, 1]
     space = ClarkeSpace(spec)
     f = torch.tensor([[0.03, 0.04, 0.2, -3.0], [0.001, 0.002, 0.1, 0.5]], dtype=F64)
     out = space.saturate(f)
@@ -122,7 +110,7 @@ def test_saturate_clips_bend_length_and_twist():
 
 
 def test_analytic_jacobian_matches_finite_differences():
-    spec = spec_of("tdcr_3seg_coupled")
+    spec = spec_by_name("tdcr_3seg_coupled")
     space = ClarkeSpace(spec)
     f = space.fold.e0 + torch.tensor([0.002, -0.001, 0.001] * 3, dtype=F64)
     q = space.joints(f)

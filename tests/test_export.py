@@ -15,6 +15,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
+from conftest import spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.control import twist_jacobian
@@ -28,25 +29,12 @@ from dacr_learn.training import FKModule, IKModule
 
 ROOT = Path(__file__).resolve().parents[1]
 TYPE1 = ROOT / "configs" / "robots" / "type1.yaml"
-TYPE2_AND_3 = {"name": "twisting", "routing": "independent", "segments": [
-    {"type": "II", "length": 0.1, "radius": 0.008, "joints": 4, "limits": {"bend": 1.2, "twist": [-1.0, 1.0]}},
-    {"type": "III", "length": 0.08, "radius": 0.007, "joints": 3, "offset": 0.3,
-     "limits": {"bend": 1.0, "twist": [-1.0, 1.0]}}]}
 ROBOTS = [*(p.stem for p in sorted((ROOT / "configs" / "robots").glob("*.yaml"))), "twisting"]
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Batch-1 calls: intra-op threads only add contention on a busy machine (restored afterwards)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def robot_spec(name: str) -> RobotSpec:
-    return RobotSpec.from_dict(TYPE2_AND_3) if name == "twisting" else RobotSpec.from_yaml(
-        ROOT / "configs" / "robots" / f"{name}.yaml")
 
 
 def _train_checkpoint(module: pl.LightningModule, path: Path) -> Path:
@@ -125,7 +113,8 @@ def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
     assert out64.dtype == torch.float64 and _max_diff(out64, batched) <= 1e-6
 
 
-@pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") != "1", reason="AOTInductor build takes ~1 min; DACR_TEST_AOTI=1")
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0", reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
 def test_aoti_package_equals_lightning(ckpts, samples, tmp_path):
     meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",))
     fk = dexport.load(tmp_path, "fk")
@@ -150,7 +139,7 @@ def _fk_model(spec: RobotSpec, features: str, rotation: str = "6d", activation: 
 @pytest.mark.parametrize("robot", ROBOTS)
 @pytest.mark.parametrize("features", ["clarke", "raw"])
 def test_folded_fk_and_ik_equal_models_float64(robot, features):
-    spec = robot_spec(robot)
+    spec = spec_by_name(robot)
     data = generate(spec, 32, seed=2, dtype=torch.float64)
     model = _fk_model(spec, features)
     with torch.no_grad():
@@ -182,7 +171,7 @@ def _autograd_jacobians(model: FKModel, spec: RobotSpec, q: torch.Tensor) -> tup
 @pytest.mark.parametrize("features,rotation,activation", [("clarke", "6d", "silu"), ("raw", "6d", "tanh"),
                                                           ("clarke", "quaternion", "gelu"), ("raw", "quaternion", "relu")])
 def test_jacobian_module_equals_jacrev(robot, features, rotation, activation):
-    spec = robot_spec(robot)
+    spec = spec_by_name(robot)
     model = _fk_model(spec, features, rotation, activation)
     q = generate(spec, 3, seed=4, dtype=torch.float64)["q"]
     pose, jac_f, jac_q = InferenceJacobian(model, torch.float64)(q)
