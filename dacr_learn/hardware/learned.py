@@ -1,0 +1,221 @@
+"""Tip models for hardware recordings: baselines, Clarke-feature networks and CC residuals.
+
+Every model maps a :class:`Split` (one recording, with inputs precomputed by the fitted
+:class:`~dacr_learn.hardware.ccmodel.CalibratedCC`) to tip positions (n, 3) [m]:
+
+=====================  ==============================================================
+``linear_raw``         least squares, tip = W·servo + b (raw servo values)
+``mlp_raw``            MLP on the raw servo values
+``mlp_clarke``         MLP on the calibrated Clarke features (ρ_re, ρ_im per segment)
+``cc``                 the calibrated constant-curvature model alone
+``cc_tip_residual``    CC tip + MLP(Clarke features) correction in tip space
+``cc_clarke_residual`` CC with a learned per-segment correction Δρ⁽ᵏ⁾ = f(ρ⁽ᵏ⁾, k) in Clarke
+                       space, before the forward kinematics (one network shared by segments)
+``pretrained_clarke``  ``mlp_clarke`` pre-trained on synthetic data of the calibrated CC
+                       robot (all segments bending at once), fine-tuned on the recording
+                       with the synthetic set kept in the loss (rehearsal)
+``pretrained_raw``     the same for raw servo values (synthetic commands via the servo map)
+=====================  ==============================================================
+
+Networks are 2×128 SiLU MLPs trained full batch with Adam and a cosine schedule (float32).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..layers import ClarkeDecoder
+from ..robot import RobotSpec
+from .ccmodel import CalibratedCC
+from .recording import Recording
+from .servo_map import ServoMap
+
+HIDDEN, DEPTH, STEPS, LR = 128, 2, 1500, 3e-3
+PRETRAIN_SAMPLES, FINETUNE_STEPS, REHEARSAL = 4000, 500, 0.3
+RESIDUAL_TIP_SCALE, RESIDUAL_RHO_SCALE = 5e-3, 5e-4  # [m]: output units of the residual networks
+
+
+@dataclass
+class Split:
+    """Inputs and targets of one recording (float64, SI): servo (n, S), x (n, N) displacements,
+    features (n, m, 4) from the fitted CC encoder, cc_tip (n, 3) and tip (n, 3)."""
+
+    servo: Tensor
+    x: Tensor
+    features: Tensor
+    cc_tip: Tensor
+    tip: Tensor
+
+    @property
+    def clarke(self) -> Tensor:
+        """(n, 2m) float32 network input: (ρ_re, ρ_im) of every segment."""
+        return self.features[..., :2].flatten(-2).float()
+
+
+def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC) -> Split:
+    x = smap.displacements(spec, rec)
+    with torch.no_grad():
+        features = cc.encoder(x)
+        return Split(rec.servo, x, features, cc.tip_from_features(features), rec.tip)
+
+
+def mlp(n_in: int, n_out: int) -> nn.Sequential:
+    layers, width = [], n_in
+    for _ in range(DEPTH):
+        layers += [nn.Linear(width, HIDDEN), nn.SiLU()]
+        width = HIDDEN
+    return nn.Sequential(*layers, nn.Linear(width, n_out))
+
+
+def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> None:
+    opt = torch.optim.Adam(params, lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss_fn().backward()
+        opt.step()
+        sched.step()
+
+
+class Standardize(nn.Module):
+    """(x − mean)/std with statistics from the training inputs (buffers)."""
+
+    def __init__(self, data: Tensor):
+        super().__init__()
+        self.register_buffer("mean", data.mean(0))
+        self.register_buffer("std", data.std(0).clamp_min(1e-6 * float(data.std(0).max()) + 1e-12))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return (x - self.mean) / self.std
+
+
+class TipMLP(nn.Module):
+    """MLP from raw servo values or Clarke features to the tip; inputs and outputs standardised."""
+
+    def __init__(self, inputs: str, train: Split):
+        super().__init__()
+        self.inputs = inputs
+        data = self._input(train)
+        self.norm = Standardize(data)
+        self.net = mlp(data.shape[-1], 3)
+        self.register_buffer("tip_mean", train.tip.float().mean(0))
+        self.register_buffer("tip_std", train.tip.float().std(0))
+
+    def _input(self, split: Split) -> Tensor:
+        return split.servo.float() if self.inputs == "raw" else split.clarke
+
+    def from_input(self, inp: Tensor) -> Tensor:
+        return self.net(self.norm(inp)) * self.tip_std + self.tip_mean
+
+    def forward(self, split: Split) -> Tensor:
+        return self.from_input(self._input(split)).double()
+
+    def fit(self, train: Split) -> None:
+        inp, tip = self._input(train), train.tip.float()
+        train_full_batch(self.net.parameters(), lambda: self._loss(self.from_input(inp), tip))
+
+    def _loss(self, pred: Tensor, tip: Tensor) -> Tensor:
+        return ((pred - tip) / self.tip_std).pow(2).mean()
+
+
+class LinearRaw(nn.Module):
+    """tip = W·servo + b, least squares."""
+
+    def fit(self, train: Split) -> None:
+        a = torch.cat([train.servo, torch.ones_like(train.servo[:, :1])], 1)
+        self.register_buffer("coef", torch.linalg.lstsq(a, train.tip).solution)
+
+    def forward(self, split: Split) -> Tensor:
+        return torch.cat([split.servo, torch.ones_like(split.servo[:, :1])], 1) @ self.coef
+
+
+class CCOnly(nn.Module):
+    """The calibrated CC model (already fitted); its predictions are precomputed in the split."""
+
+    def fit(self, train: Split) -> None:
+        pass
+
+    def forward(self, split: Split) -> Tensor:
+        return split.cc_tip
+
+
+class CCTipResidual(nn.Module):
+    """tip = CC(x) + MLP(Clarke features)·5 mm."""
+
+    def __init__(self, train: Split):
+        super().__init__()
+        self.norm = Standardize(train.clarke)
+        self.net = mlp(train.clarke.shape[-1], 3)
+
+    def forward(self, split: Split) -> Tensor:
+        return split.cc_tip + (self.net(self.norm(split.clarke)) * RESIDUAL_TIP_SCALE).double()
+
+    def fit(self, train: Split) -> None:
+        train_full_batch(self.net.parameters(), lambda: (self(train) - train.tip).pow(2).mean() / 1e-6)
+
+
+class CCClarkeResidual(nn.Module):
+    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics."""
+
+    def __init__(self, train: Split, cc: CalibratedCC):
+        super().__init__()
+        self.cc = cc
+        m = train.features.shape[-2]
+        self.register_buffer("rho_std", train.features[..., :2].float().std())
+        self.register_buffer("onehot", torch.eye(m))
+        self.net = mlp(2 + m, 2)
+
+    def corrected_features(self, features: Tensor) -> Tensor:
+        rho = features[..., :2].float()
+        onehot = self.onehot.expand(*rho.shape[:-1], -1)
+        delta = self.net(torch.cat([rho / self.rho_std, onehot], -1)) * RESIDUAL_RHO_SCALE
+        return torch.cat([features[..., :2] + delta.double(), features[..., 2:]], -1)
+
+    def forward(self, split: Split) -> Tensor:
+        return self.cc.tip_from_features(self.corrected_features(split.features))
+
+    def fit(self, train: Split) -> None:
+        for p in self.cc.parameters():
+            p.requires_grad_(False)
+        train_full_batch(self.net.parameters(), lambda: (self(train) - train.tip).pow(2).mean() / 1e-6)
+
+
+def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], n: int, seed: int) -> Split:
+    """Synthetic recording of the calibrated CC robot: Clarke features drawn uniformly in each
+    segment's bending disc (|ρ| ≤ bend·d, the YAML's limits), joint lengths from the
+    ClarkeDecoder, displacements x = path length − q, then the same pipeline as real data."""
+    spec = cc.spec
+    g = torch.Generator().manual_seed(seed)
+    m = spec.num_segments
+    reach = torch.tensor([s.bend * s.radius for s in spec.segments], dtype=torch.float64)
+    r = reach * torch.rand(n, m, generator=g, dtype=torch.float64).sqrt()
+    angle = 2 * math.pi * torch.rand(n, m, generator=g, dtype=torch.float64)
+    beta = torch.tensor([s.length for s in spec.segments], dtype=torch.float64).expand(n, m)
+    feat = torch.stack([r * angle.cos(), r * angle.sin(), beta, torch.zeros_like(beta)], -1)
+    decoder = ClarkeDecoder(spec)
+    x = decoder(torch.cat([torch.zeros_like(feat[..., :2]), feat[..., 2:]], -1)) - decoder(feat)
+    with torch.no_grad():
+        features = cc.encoder(x)
+        tip = cc.tip_from_features(features)
+    servo = smap.servo_values(spec, servo_ids, x)
+    return Split(servo, x, features, tip, tip)
+
+
+class Pretrained(TipMLP):
+    """TipMLP pre-trained on a synthetic CC split, fine-tuned on the recording with rehearsal."""
+
+    def __init__(self, inputs: str, train: Split, synthetic: Split):
+        super().__init__(inputs, train)
+        self.synthetic = synthetic
+
+    def fit(self, train: Split) -> None:
+        s_inp, s_tip = self._input(self.synthetic), self.synthetic.tip.float()
+        r_inp, r_tip = self._input(train), train.tip.float()
+        train_full_batch(self.net.parameters(), lambda: self._loss(self.from_input(s_inp), s_tip))
+        train_full_batch(self.net.parameters(),
+                         lambda: self._loss(self.from_input(r_inp), r_tip)
+                         + REHEARSAL * self._loss(self.from_input(s_inp), s_tip),
+                         steps=FINETUNE_STEPS, lr=LR / 3)

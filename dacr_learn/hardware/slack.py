@@ -1,0 +1,139 @@
+"""Slack-aware Clarke encoder for tendon robots (type-0 segments).
+
+The plain :class:`~dacr_learn.layers.ClarkeEncoder` is the least-squares projection
+w = B⁺(q − q₀). On hardware, released tendons go slack (commands of −10 mm while the path
+only needs −2 mm): such a joint no longer constrains the shape, and least squares lets it
+pull the estimate towards a configuration that bends away from it.
+
+Here tendons are one-sided springs and the backbone is an elastic rod. With Clarke
+coordinates ρ (..., 2m) (DESIGN §1, coupled or independent routing), the path shortening
+of joint i is (G ρ)_i with G = −B_ρ, and the configuration minimises
+
+    E(ρ) = ½ c Σ_k ‖ρ⁽ᵏ⁾‖² / (l_k d_k²)  +  ½ Σ_i max(0, x_i + p − (G ρ)_i)² / L_i
+
+- x_i [m]: commanded displacement of joint i (positive = pulled), p [m]: pretension stretch;
+- first term: bending energy of segment k (curvature ‖ρ⁽ᵏ⁾‖/(d_k l_k)) over the tendon
+  stiffness, c = EI/EA [m²] the *compliance* (c → 0: inextensible tendons);
+- second term: elastic energy of the tendons that are stretched (x_i + p > (Gρ)_i) — a
+  tendon whose command is shorter than its path demand is slack and contributes nothing.
+  L_i [m] is the path length of joint i (the segments it passes).
+
+Properties: for commands that satisfy the displacement constraint (x = Gρ*, e.g. the output
+of a :class:`~dacr_learn.layers.ClarkeDecoder`) and c → 0, ρ = ρ* exactly; a single pulled
+tendon with all others slack bends the segments it passes towards it with equal curvature
+(coupled routing) or only its own segment (independent routing).
+
+E is a convex piecewise quadratic. It is minimised by a semi-smooth Newton (active-set)
+iteration: guess the stretched tendons, solve the linear system, update the set, repeat.
+Batched over leading dims; gradients flow through the final linear solve (the active set
+is piecewise constant), so c, p, the radii and the joint-angle rotations can be fitted.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..checks import check_tensor
+from ..clarke import joint_space_maps
+from ..robot import RobotSpec
+
+MIN_LOG_COMPLIANCE = -30.0  # c >= 1e-13 m²: keeps the linear systems regular when no tendon is taut
+
+
+def check_type0(spec: RobotSpec) -> None:
+    """ValueError unless every segment is type 0 (bending only)."""
+    bad = [j for j, s in enumerate(spec.segments) if s.type != "0"]
+    if bad:
+        raise ValueError(f"segments{bad}.type: the slack-aware tendon encoder models bending-only (type 0) "
+                         f"segments; got types {[spec.segments[j].type for j in bad]}")
+
+
+def _rotations(angle: Tensor) -> Tensor:
+    """(m,) angles → (m, 2, 2) rotation matrices."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
+
+
+def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iters: int = 30) -> Tensor:
+    """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched.
+
+    Args:
+        x: (B, N) commanded displacements (pretension included) [m].
+        g: (N, D) displacement map G; bend_w: (D,) and tendon_w: (N,) positive weights.
+    Returns:
+        ρ (B, D). Starts from the set of pulled tendons (x > 0); stops when the set of
+        stretched tendons repeats (usually 2–5 iterations).
+    """
+    active = x > 0
+    eye_w = torch.diag_embed(bend_w)
+    rho = x.new_zeros(x.shape[0], g.shape[1])
+    for _ in range(iters):
+        wa = tendon_w * active
+        mat = eye_w + (g.mT * wa.unsqueeze(-2)) @ g
+        rho = torch.linalg.solve(mat, ((wa * x) @ g).unsqueeze(-1)).squeeze(-1)
+        new = (x - rho @ g.mT) > 0
+        if torch.equal(new, active):
+            break
+        active = new
+    return rho
+
+
+class SlackAwareEncoder(nn.Module):
+    """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4).
+
+    Learnable physical parameters (nn.Parameters, float64):
+    ``log_radius_scale`` (m,): effective radius d_k = d_k,nominal·exp(·);
+    ``rotation`` (m,) [rad]: rotation of each segment's joint angles (refines the offsets);
+    ``log_compliance``: log c, c = EI/EA [m²]; ``pretension`` p [m].
+
+    Output features follow DESIGN §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
+    d_nominal/d_effective, β = l, α = 0, so that ``forward_kinematics(spec, features)`` gives
+    the shape with the effective radius.
+    """
+
+    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, pretension: float = 0.0):
+        super().__init__()
+        check_type0(spec)
+        self.spec = spec
+        m = spec.num_segments
+        maps = joint_space_maps(spec)
+        f64 = dict(dtype=torch.float64)
+        self.register_buffer("g_nominal", -maps.displacement)                       # (N, 2m)
+        lengths = torch.tensor([s.length for s in spec.segments], **f64)
+        self.register_buffer("lengths", lengths)
+        self.register_buffer("radius", torch.tensor([s.radius for s in spec.segments], **f64))
+        self.register_buffer("path_length", maps.path @ lengths)                     # (N,)
+        self.register_buffer("segment_of_joint", maps.path.flip(-1).argmax(-1).neg() + m - 1)
+        self.log_radius_scale = nn.Parameter(torch.zeros(m, **f64))
+        self.rotation = nn.Parameter(torch.zeros(m, **f64))
+        self.log_compliance = nn.Parameter(torch.tensor(float(compliance), **f64).log())
+        self.pretension = nn.Parameter(torch.tensor(float(pretension), **f64))
+
+    def effective_radius(self) -> Tensor:
+        """(m,) effective radii d_k [m]."""
+        return self.radius * self.log_radius_scale.exp()
+
+    def displacement_map(self) -> Tensor:
+        """G (N, 2m) with each segment's joint angles rotated by ``rotation``."""
+        rot = _rotations(self.rotation)[self.segment_of_joint]                          # (N, 2, 2)
+        m = self.spec.num_segments
+        g = self.g_nominal.unflatten(-1, (m, 2))                                         # (N, m, 2)
+        return (g.unsqueeze(-2) @ rot.mT.unsqueeze(1)).squeeze(-2).flatten(-2)
+
+    def clarke(self, x: Tensor) -> Tensor:
+        """Displacements (..., N) [m] → Clarke coordinates ρ (..., m, 2) [m] (at the effective radii)."""
+        check_tensor(x, "displacements", (self.g_nominal.shape[0],))
+        flat = x.reshape(-1, x.shape[-1]).to(torch.float64)
+        d = self.effective_radius()
+        compliance = self.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
+        bend_w = (compliance / (self.lengths * d**2)).repeat_interleave(2)
+        tendon_w = 1.0 / self.path_length
+        rho = solve_tendon_qp(flat + self.pretension, self.displacement_map(), bend_w, tendon_w)
+        return rho.reshape(*x.shape[:-1], -1, 2).to(x.dtype)
+
+    def forward(self, x: Tensor) -> Tensor:
+        rho = self.clarke(x)
+        scale = (self.radius / self.effective_radius()).to(x.dtype).unsqueeze(-1)
+        rho = rho * scale
+        beta = self.lengths.to(x.dtype).expand(rho.shape[:-1])
+        return torch.cat([rho, beta.unsqueeze(-1), torch.zeros_like(beta).unsqueeze(-1)], dim=-1)
