@@ -128,12 +128,12 @@ class FKModule(KinematicsModule):
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0):
-        self._rotation = rotation
+        # save_hyperparameters() in the base class also records rotation and rot_weight
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
     def build_model(self) -> FKModel:
         h = self.hparams
-        return FKModel(self.spec, h.features, h.width, h.depth, h.activation, self._rotation)
+        return FKModel(self.spec, h.features, h.width, h.depth, h.activation, h.rotation)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.model(q)
