@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from .benchmark import CLARKE_MODELS, MODELS, load_setup, markdown_table, run_benchmark
+from .benchmark import CLARKE_MODELS, MODELS, STATIC_MODELS, load_setup, markdown_table, run_benchmark
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -36,6 +36,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
+def best_model(results: dict, candidates: tuple[str, ...]) -> str | None:
+    """The candidate with the lowest mean val RMSE, or None."""
+    names = [k for k in results if k in candidates]
+    return min(names, key=lambda k: results[k]["val"]["rmse_mm"]["mean"]) if names else None
+
+
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -46,24 +52,24 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
     results, preds = run_benchmark(setup, tuple(args.models), tuple(args.seeds))
-    clarke = {k: v for k, v in results.items() if k in CLARKE_MODELS}
-    best = min(clarke, key=lambda k: clarke[k]["val"]["rmse_mm"]["mean"]) if clarke else None
+    best = best_model(results, CLARKE_MODELS)
+    best_static = best_model(results, tuple(m for m in CLARKE_MODELS if m in STATIC_MODELS))
     report = {"command": "python -m dacr_learn.hardware " + " ".join(sys.argv[1:] if argv is None else argv),
               "robot": setup.spec.to_dict(), "train": str(args.data / args.train), "val": str(args.data / args.val),
               "rows": {"train": len(setup.train_rec), "val": len(setup.val_rec)},
               "calibration": setup.calibration, "cc_fit": setup.cc_fit, "models": results,
-              "best_clarke_model": best, "seconds_total": time.perf_counter() - start,
+              "best_clarke_model": best, "best_static_clarke_model": best_static, "seconds_total": time.perf_counter() - start,
               "environment": {"torch": torch.__version__, "threads": args.threads, "python": platform.python_version()}}
     (args.out / "results.json").write_text(json.dumps(report, indent=1))
     (args.out / "results.md").write_text(markdown_table(results) + "\n")
     if not args.no_visuals:
         from .visual import log_rerun, plot_paths
 
-        shown = [m for m in ("cc", best) if m in preds]
+        shown = [m for m in ("cc", best_static, best) if m in preds]
         plot_paths(setup, {m: preds[m] for m in dict.fromkeys(shown)}, args.out / "val_tip_paths.png")
         log_rerun(setup, preds, args.out / "val_tip_paths.rrd")
     print(markdown_table(results))
-    print(f"best Clarke-space model: {best}; wrote {args.out}/results.json ({report['seconds_total']:.0f} s)")
+    print(f"best Clarke-space model: {best} (static: {best_static}); wrote {args.out}/results.json ({report['seconds_total']:.0f} s)")
     return report
 
 

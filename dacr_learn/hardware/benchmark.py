@@ -21,18 +21,21 @@ import torch
 from ..robot import RobotSpec
 from .calibration import calibrate, default_map_path, write_calibration
 from .ccmodel import CalibratedCC, fit_cc
-from .learned import (CCClarkeResidual, CCOnly, CCTipResidual, LinearRaw, Pretrained, Split, TipMLP,
+from .learned import (CCClarkeResidual, CCClarkeResidualHistory, CCOnly, CCTipResidual, LinearRaw, Pretrained, Split, TipMLP,
                       PRETRAIN_SAMPLES, make_split, synthetic_split)
 from .metrics import tip_metrics
 from .recording import Recording, load_recording
 from .servo_map import ServoMap
 
 MODELS = ("linear_raw", "mlp_raw", "mlp_clarke", "cc", "cc_tip_residual", "cc_clarke_residual",
-          "pretrained_clarke", "pretrained_raw")
+          "pretrained_clarke", "pretrained_raw", "cc_clarke_residual_history")
 DETERMINISTIC = ("linear_raw", "cc")
-CLARKE_MODELS = ("mlp_clarke", "cc", "cc_tip_residual", "cc_clarke_residual", "pretrained_clarke")
+CLARKE_MODELS = ("mlp_clarke", "cc", "cc_tip_residual", "cc_clarke_residual", "pretrained_clarke",
+                 "cc_clarke_residual_history")
+STATIC_MODELS = MODELS[:-1]  # all but the history model map one command to one tip
 LETTERS = {"linear_raw": "a", "mlp_raw": "b", "mlp_clarke": "c", "cc": "d", "cc_tip_residual": "e",
-           "cc_clarke_residual": "e", "pretrained_clarke": "f", "pretrained_raw": "f"}
+           "cc_clarke_residual": "e", "pretrained_clarke": "f", "pretrained_raw": "f",
+           "cc_clarke_residual_history": "g"}
 
 
 @dataclass
@@ -94,6 +97,8 @@ def build(name: str, s: Setup, seed: int) -> torch.nn.Module:
         return CCTipResidual(s.train)
     if name == "cc_clarke_residual":
         return CCClarkeResidual(s.train, s.cc)
+    if name == "cc_clarke_residual_history":
+        return CCClarkeResidualHistory(s.train, s.cc)
     if name in ("pretrained_clarke", "pretrained_raw"):
         synth = synthetic_split(s.cc, s.smap, s.train_rec.servo_ids, PRETRAIN_SAMPLES, seed=1000 + seed)
         return Pretrained(name.split("_")[1], s.train, synth)
@@ -118,7 +123,7 @@ def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor
         runs.append({"val": tip_metrics(pred_val, s.val.tip), "train": tip_metrics(pred_train, s.train.tip),
                      "seconds": time.perf_counter() - start})
         first_pred = pred_val if first_pred is None else first_pred
-    summary = {"letter": LETTERS[name], "clarke_space": name in CLARKE_MODELS,
+    summary = {"letter": LETTERS[name], "clarke_space": name in CLARKE_MODELS, "static": name in STATIC_MODELS,
                "seeds": seeds[:len(runs)], "seconds_per_run": float(np.mean([r["seconds"] for r in runs]))}
     for split in ("val", "train"):
         summary[split] = {k: _summary([r[split][k] for r in runs]) for k in runs[0][split]}
@@ -140,11 +145,12 @@ def run_benchmark(s: Setup, models: tuple[str, ...] = MODELS, seeds: tuple[int, 
 
 def markdown_table(results: dict) -> str:
     """Results table (val metrics, mean ± std over seeds) in Markdown."""
-    lines = ["| | model | val RMSE, offset removed [mm] | val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| | model | inputs | val RMSE, offset removed [mm] | val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, r in results.items():
         v, t = r["val"], r["train"]
         pm = lambda d: f"{d['mean']:.2f} ± {d['std']:.2f}" if len(d["per_seed"]) > 1 else f"{d['mean']:.2f}"  # noqa: E731
-        lines.append(f"| {r['letter']} | `{name}` | {pm(v['rmse_mm'])} | {pm(v['mean_mm'])} | {pm(v['p95_mm'])} | "
+        inputs = ("Clarke" if r["clarke_space"] else "raw servo") + ("" if r["static"] else " + history")
+        lines.append(f"| {r['letter']} | `{name}` | {inputs} | {pm(v['rmse_mm'])} | {pm(v['mean_mm'])} | {pm(v['p95_mm'])} | "
                      f"{pm(t['rmse_mm'])} | {len(r['seeds'])} |")
     return "\n".join(lines)

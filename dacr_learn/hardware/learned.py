@@ -15,6 +15,10 @@ Every model maps a :class:`Split` (one recording, with inputs precomputed by the
                        robot (all segments bending at once), fine-tuned on the recording
                        with the synthetic set kept in the loss (rehearsal)
 ``pretrained_raw``     the same for raw servo values (synthetic commands via the servo map)
+``cc_clarke_residual_history``  ``cc_clarke_residual`` whose correction also sees the
+                       recent motion direction of each segment (a play operator on the
+                       Clarke coordinates, :func:`play_operator`): a hysteresis model that
+                       uses the command history (rows in time order), not a static map
 =====================  ==============================================================
 
 Networks are 2×128 SiLU MLPs trained full batch with Adam and a cosine schedule (float32).
@@ -36,18 +40,38 @@ from .servo_map import ServoMap
 HIDDEN, DEPTH, STEPS, LR = 128, 2, 1500, 3e-3
 PRETRAIN_SAMPLES, FINETUNE_STEPS, REHEARSAL = 4000, 500, 0.3
 RESIDUAL_TIP_SCALE, RESIDUAL_RHO_SCALE = 5e-3, 5e-4  # [m]: output units of the residual networks
+PLAY_WIDTH = 2e-4  # [m] width of the Clarke-space play operator (hysteresis memory)
+
+
+def play_operator(values: Tensor, width: float) -> Tensor:
+    """Vector play (backlash) operator along the rows (time order) of values (n, ..., 2).
+
+    The state starts at the first row and is dragged along whenever the input moves more
+    than ``width`` away from it: state_t = v_t + (s_{t−1} − v_t)·min(1, width/‖s_{t−1} − v_t‖).
+    (values − state)/width lies in the unit disc and encodes the recent direction of motion.
+    """
+    out = torch.empty_like(values)
+    state = values[0].clone()
+    for t in range(values.shape[0]):
+        diff = state - values[t]
+        norm = diff.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        state = values[t] + diff * (width / norm).clamp(max=1.0)
+        out[t] = state
+    return out
 
 
 @dataclass
 class Split:
     """Inputs and targets of one recording (float64, SI): servo (n, S), x (n, N) displacements,
-    features (n, m, 4) from the fitted CC encoder, cc_tip (n, 3) and tip (n, 3)."""
+    features (n, m, 4) from the fitted CC encoder, cc_tip (n, 3), tip (n, 3) and the motion
+    memory (n, m, 2) = (ρ − play(ρ))/PLAY_WIDTH (zeros for synthetic data)."""
 
     servo: Tensor
     x: Tensor
     features: Tensor
     cc_tip: Tensor
     tip: Tensor
+    memory: Tensor
 
     @property
     def clarke(self) -> Tensor:
@@ -59,7 +83,9 @@ def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC
     x = smap.displacements(spec, rec)
     with torch.no_grad():
         features = cc.encoder(x)
-        return Split(rec.servo, x, features, cc.tip_from_features(features), rec.tip)
+        rho = features[..., :2]
+        memory = (rho - play_operator(rho, PLAY_WIDTH)) / PLAY_WIDTH
+        return Split(rec.servo, x, features, cc.tip_from_features(features), rec.tip, memory)
 
 
 def mlp(n_in: int, n_out: int) -> nn.Sequential:
@@ -160,27 +186,36 @@ class CCTipResidual(nn.Module):
 class CCClarkeResidual(nn.Module):
     """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics."""
 
+    history = False
+
     def __init__(self, train: Split, cc: CalibratedCC):
         super().__init__()
         self.cc = cc
         m = train.features.shape[-2]
         self.register_buffer("rho_std", train.features[..., :2].float().std())
         self.register_buffer("onehot", torch.eye(m))
-        self.net = mlp(2 + m, 2)
+        self.net = mlp(2 + 2 * self.history + m, 2)
 
-    def corrected_features(self, features: Tensor) -> Tensor:
-        rho = features[..., :2].float()
-        onehot = self.onehot.expand(*rho.shape[:-1], -1)
-        delta = self.net(torch.cat([rho / self.rho_std, onehot], -1)) * RESIDUAL_RHO_SCALE
-        return torch.cat([features[..., :2] + delta.double(), features[..., 2:]], -1)
+    def corrected_features(self, split: Split) -> Tensor:
+        rho = split.features[..., :2].float()
+        parts = [rho / self.rho_std] + ([split.memory.float()] if self.history else [])
+        inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
+        delta = self.net(inp) * RESIDUAL_RHO_SCALE
+        return torch.cat([split.features[..., :2] + delta.double(), split.features[..., 2:]], -1)
 
     def forward(self, split: Split) -> Tensor:
-        return self.cc.tip_from_features(self.corrected_features(split.features))
+        return self.cc.tip_from_features(self.corrected_features(split))
 
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
             p.requires_grad_(False)
         train_full_batch(self.net.parameters(), lambda: (self(train) - train.tip).pow(2).mean() / 1e-6)
+
+
+class CCClarkeResidualHistory(CCClarkeResidual):
+    """:class:`CCClarkeResidual` with the motion memory of each segment as extra input."""
+
+    history = True
 
 
 def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], n: int, seed: int) -> Split:
@@ -201,7 +236,7 @@ def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...]
         features = cc.encoder(x)
         tip = cc.tip_from_features(features)
     servo = smap.servo_values(spec, servo_ids, x)
-    return Split(servo, x, features, tip, tip)
+    return Split(servo, x, features, tip, tip, torch.zeros_like(features[..., :2]))
 
 
 class Pretrained(TipMLP):
