@@ -21,7 +21,8 @@ Every model maps a :class:`Split` (one recording, with inputs precomputed by the
                        uses the command history (rows in time order), not a static map
 =====================  ==============================================================
 
-Networks are 2×128 SiLU MLPs trained full batch with Adam and a cosine schedule (float32).
+Networks are 2×128 SiLU MLPs (2×64 for the per-segment Clarke corrections) trained full batch
+with Adam and a cosine schedule (float32).
 """
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ from .servo_map import ServoMap
 HIDDEN, DEPTH, STEPS, LR = 128, 2, 1500, 3e-3
 PRETRAIN_SAMPLES, FINETUNE_STEPS, REHEARSAL = 4000, 500, 0.3
 RESIDUAL_TIP_SCALE, RESIDUAL_RHO_SCALE = 5e-3, 5e-4  # [m]: output units of the residual networks
+RESIDUAL_HIDDEN = 64  # the per-segment correction network sees m rows per sample
 PLAY_WIDTH = 2e-4  # [m] width of the Clarke-space play operator (hysteresis memory)
 
 
@@ -88,11 +90,11 @@ def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC
         return Split(rec.servo, x, features, cc.tip_from_features(features), rec.tip, memory)
 
 
-def mlp(n_in: int, n_out: int) -> nn.Sequential:
+def mlp(n_in: int, n_out: int, hidden: int = HIDDEN) -> nn.Sequential:
     layers, width = [], n_in
     for _ in range(DEPTH):
-        layers += [nn.Linear(width, HIDDEN), nn.SiLU()]
-        width = HIDDEN
+        layers += [nn.Linear(width, hidden), nn.SiLU()]
+        width = hidden
     return nn.Sequential(*layers, nn.Linear(width, n_out))
 
 
@@ -194,17 +196,19 @@ class CCClarkeResidual(nn.Module):
         m = train.features.shape[-2]
         self.register_buffer("rho_std", train.features[..., :2].float().std())
         self.register_buffer("onehot", torch.eye(m))
-        self.net = mlp(2 + 2 * self.history + m, 2)
+        self.net = mlp(2 + 2 * self.history + m, 2, hidden=RESIDUAL_HIDDEN)
 
     def corrected_features(self, split: Split) -> Tensor:
         rho = split.features[..., :2].float()
         parts = [rho / self.rho_std] + ([split.memory.float()] if self.history else [])
         inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
         delta = self.net(inp) * RESIDUAL_RHO_SCALE
-        return torch.cat([split.features[..., :2] + delta.double(), split.features[..., 2:]], -1)
+        features = split.features.float()
+        return torch.cat([features[..., :2] + delta, features[..., 2:]], -1)
 
     def forward(self, split: Split) -> Tensor:
-        return self.cc.tip_from_features(self.corrected_features(split))
+        """Tip (n, 3) [m], float64; the kinematics run in float32 (3× faster training)."""
+        return self.cc.tip_from_features(self.corrected_features(split)).double()
 
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
