@@ -2,7 +2,8 @@
 
 Calibrates (when the robot YAML has no servo map), fits the CC model, trains and evaluates all
 tip models on ``DIR/<train>`` / ``DIR/<val>``, and writes into ``--out``: results.json,
-results.md (table), val_tip_paths.png and val_tip_paths.rrd (Rerun).
+results.md (table), val_predictions.csv (first seed, mm), val_tip_paths.png and
+val_tip_paths.rrd (Rerun).
 """
 from __future__ import annotations
 
@@ -36,6 +37,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return ap.parse_args(argv)
 
 
+def write_predictions(path: Path, rec, preds: dict) -> None:
+    """CSV: label, measured tip and each model's prediction (first seed) on val, in mm."""
+    names = list(preds)
+    cols = ["pattern_label", "tip_x", "tip_y", "tip_z"] + [f"{n}_{a}" for n in names for a in "xyz"]
+    rows = [",".join(cols)]
+    for i, label in enumerate(rec.labels):
+        values = rec.tip[i].tolist() + [v for n in names for v in preds[n][i].tolist()]
+        rows.append(",".join([label] + [f"{v * 1e3:.4f}" for v in values]))
+    path.write_text("\n".join(rows) + "\n")
+
+
 def best_model(results: dict, candidates: tuple[str, ...]) -> str | None:
     """The candidate with the lowest mean val RMSE, or None."""
     names = [k for k in results if k in candidates]
@@ -62,6 +74,7 @@ def main(argv: list[str] | None = None) -> dict:
               "environment": {"torch": torch.__version__, "threads": args.threads, "python": platform.python_version()}}
     (args.out / "results.json").write_text(json.dumps(report, indent=1))
     (args.out / "results.md").write_text(markdown_table(results) + "\n")
+    write_predictions(args.out / "val_predictions.csv", setup.val_rec, preds)
     if not args.no_visuals:
         from .visual import log_rerun, plot_paths
 
