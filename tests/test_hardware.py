@@ -13,12 +13,11 @@ import math
 import re
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 from dacr_learn.hardware.calibration import calibrate
-from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
+from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.learned import play_operator
 from dacr_learn.hardware.metrics import offset_removed_rmse, tip_metrics
 from dacr_learn.hardware.recording import load_recording

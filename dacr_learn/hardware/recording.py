@@ -18,7 +18,6 @@ the other way round).
 from __future__ import annotations
 
 import csv
-import math
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -191,8 +190,3 @@ def concatenate(recordings: list[Recording]) -> Recording:
     cat = lambda name: torch.cat([getattr(r, name) for r in recordings])  # noqa: E731
     return Recording(ids, cat("servo"), cat("tip"), tuple(l for r in recordings for l in r.labels),
                      cat("timestamp"), "+".join(r.source for r in recordings))
-
-
-def deg(rad: float) -> float:
-    """Radians → degrees, for reports."""
-    return rad * 180.0 / math.pi
