@@ -231,7 +231,7 @@ def test_calibration_recovers_the_servo_map_of_ftdcr_v4(spec, pulls):
         assert seg["angle_rms_deg"] < 8.0
     # the committed calibrated YAML and servo map are exactly this result
     assert RobotSpec.from_yaml(CALIBRATED) == cal_spec
-    committed = ServoMap.from_yaml(CALIBRATED.with_name("ftdcr_v4_calibrated_servos.yaml"))
+    committed = ServoMap.from_yaml(CALIBRATED.parent / "servo_maps" / CALIBRATED.name)
     assert committed.servos == smap.servos
 
 
@@ -322,7 +322,7 @@ def test_second_robot_runs_through_the_same_command(tmp_path):
     out = tmp_path / "run"
     report = main(["--data", str(data), "--robot", str(robot_yaml), "--out", str(out),
                    "--models", "linear_raw", "cc", "--seeds", "0", "--no-visuals"])
-    smap = ServoMap.from_yaml(out / "calibrated_robot_servos.yaml")
+    smap = ServoMap.from_yaml(out / "servo_maps" / "calibrated_robot.yaml")
     cal = RobotSpec.from_yaml(out / "calibrated_robot.yaml")
     # Symmetric joints are only defined up to a cyclic relabelling: compare segment and angle.
     for a in smap.servos:

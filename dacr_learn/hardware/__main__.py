@@ -22,13 +22,13 @@ from .benchmark import CLARKE_MODELS, MODELS, STATIC_MODELS, load_setup, markdow
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m dacr_learn.hardware", description=__doc__.split("\n\n")[1])
     ap.add_argument("--data", type=Path, required=True, help="folder with the recordings")
-    ap.add_argument("--robot", type=Path, required=True, help="robot YAML (with <stem>_servos.yaml, or nominal)")
+    ap.add_argument("--robot", type=Path, required=True, help="robot YAML (with servo_maps/<name> next to it, or nominal)")
     ap.add_argument("--out", type=Path, required=True, help="run folder to write")
     ap.add_argument("--train", default="train.csv", help="training recording, relative to --data")
     ap.add_argument("--val", default="val.csv", help="validation recording, relative to --data")
     ap.add_argument("--pulls", default="tendon_pull.csv",
                     help="single-pull recording for calibration when the robot has no servo map")
-    ap.add_argument("--servo-map", type=Path, help="servo map YAML (default: <robot stem>_servos.yaml)")
+    ap.add_argument("--servo-map", type=Path, help="servo map YAML (default: servo_maps/<robot file name> next to the robot)")
     ap.add_argument("--units", default="mm", choices=["mm", "m"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)

@@ -2,9 +2,9 @@
 
 Steps (all generic: file names come from arguments, servo ids from the CSV header):
 
-1. Robot + servo map: the robot YAML's servo map (``<robot>_servos.yaml`` next to it, or
-   ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls`` and
-   write ``calibrated_robot.yaml`` / ``calibrated_robot_servos.yaml`` into the run folder.
+1. Robot + servo map: the robot YAML's servo map (``servo_maps/<robot file name>`` next to
+   it, or ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls``
+   and write ``calibrated_robot.yaml`` / ``servo_maps/calibrated_robot.yaml`` into the run folder.
 2. Fit the calibrated CC model's physical parameters on the training recording.
 3. Train every model of :mod:`dacr_learn.hardware.learned` (learned ones once per seed) and
    evaluate on the validation recording: offset-removed RMSE, mean and p95 Euclidean error.
@@ -65,7 +65,8 @@ def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: 
         raise ValueError(f"no servo map for {robot} (looked for {path}) and no single-pull recording "
                          f"to calibrate from (--pulls {pulls})")
     spec, smap, report = calibrate(load_recording(pulls, spec, units), spec)
-    robot_out, map_out = out / "calibrated_robot.yaml", out / "calibrated_robot_servos.yaml"
+    robot_out = out / "calibrated_robot.yaml"
+    map_out = default_map_path(robot_out)
     write_calibration(spec, smap, robot_out, map_out)
     return spec, smap, {"servo_map": str(map_out), "robot": str(robot_out), **report}
 

@@ -1,7 +1,7 @@
 """``python -m dacr_learn.hardware.calibrate --pulls CSV --robot NOMINAL.yaml --out CALIBRATED.yaml``
 
 Calibrates a robot from single-tendon pulls (method: :mod:`dacr_learn.hardware.calibration`)
-and writes the calibrated robot YAML plus its servo map (``<out stem>_servos.yaml``). The
+and writes the calibrated robot YAML plus its servo map (``servo_maps/<out file name>``). The
 servo map's ``calibration`` block records the fit quality, including the tip error of the
 calibrated CC model fitted to the pull rows.
 """
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--pulls", required=True, help="single-tendon pull recording (CSV)")
     ap.add_argument("--robot", required=True, help="nominal robot YAML")
     ap.add_argument("--out", required=True, help="calibrated robot YAML to write")
-    ap.add_argument("--servo-map", help="servo map YAML to write (default: <out>_servos.yaml)")
+    ap.add_argument("--servo-map", help="servo map YAML to write (default: servo_maps/<out name> next to --out)")
     ap.add_argument("--units", default="mm")
     args = ap.parse_args(argv)
     spec = RobotSpec.from_yaml(args.robot)

@@ -252,13 +252,17 @@ def write_calibration(spec: RobotSpec, smap: ServoMap, robot_path: str | Path, m
     import yaml
 
     header = (f"# Calibrated from single-tendon pulls ({smap.calibration.get('source', '?')}) by\n"
-              f"# dacr_learn.hardware.calibration; servo map: {Path(map_path).name}\n")
+              f"# dacr_learn.hardware.calibrate; servo map: {Path(map_path).parent.name}/{Path(map_path).name}\n")
     Path(robot_path).parent.mkdir(parents=True, exist_ok=True)
+    Path(map_path).parent.mkdir(parents=True, exist_ok=True)
     Path(robot_path).write_text(header + yaml.safe_dump(spec.to_dict(), sort_keys=False))
     smap.to_yaml(map_path)
 
 
 def default_map_path(robot_path: str | Path) -> Path:
-    """<robot>_servos.yaml next to the robot YAML."""
+    """servo_maps/<robot file name> in the robot YAML's folder.
+
+    A sub-folder, so that a glob for robot YAMLs (``configs/robots/*.yaml``) never meets a map.
+    """
     p = Path(robot_path)
-    return p.with_name(p.stem + "_servos.yaml")
+    return p.parent / "servo_maps" / p.name
