@@ -1,4 +1,4 @@
-"""Rerun logging: a Lightning logger, a 3D visual callback and scene helpers.
+"""Rerun logging for Lightning: a logger and a 3D visual callback (scene helpers: rerun_scene).
 
 Everything goes to a dedicated :class:`rerun.RecordingStream` (never the global one), so
 several loggers, tests or scripts can log side by side. The scene is in metres.
@@ -30,7 +30,6 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 import torch
@@ -40,6 +39,8 @@ from lightning.pytorch import Callback, LightningModule, Trainer
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.rank_zero import rank_zero_only, rank_zero_warn
 from matplotlib import colormaps
+
+from .rerun_scene import log_frames, log_path, log_scene, log_workspace  # noqa: E402,F401  (re-exported)
 
 __all__ = [
     "RerunLogger", "RerunVisualCallback", "default_blueprint", "find_rerun_logger",
@@ -51,29 +52,7 @@ METRICS_ROOT = "metrics"
 HPARAMS_ENTITY = "hparams"
 SCENE_ROOT = "scene"
 STATUS_ENTITY = "run/status"
-VISUAL_KEYS = ("backbone", "pose_true", "pose_pred", "workspace_points", "workspace_error")
-
-AXIS_COLORS = np.array([[230, 40, 40], [40, 180, 40], [40, 90, 230]], dtype=np.uint8)
-AXIS_COLORS_LIGHT = np.array([[255, 165, 165], [165, 235, 165], [165, 190, 255]], dtype=np.uint8)
-BACKBONE_COLOR = (90, 90, 90)
-TIP_ERROR_COLOR = (255, 120, 0)
 DEFAULT_GRPC_URL = "rerun+http://127.0.0.1:9876/proxy"
-
-
-def _to_numpy(x: Any) -> np.ndarray:
-    """Tensor / array-like -> float32 numpy array on the CPU (no gradient)."""
-    if isinstance(x, torch.Tensor):
-        x = x.detach().to("cpu", torch.float32).numpy()
-    return np.asarray(x, dtype=np.float32)
-
-
-def _checked(name: str, x: Any, tail: tuple[int, ...], ndim: int) -> np.ndarray:
-    """Convert ``x`` and check it has ``ndim`` dims ending in ``tail``; ValueError otherwise."""
-    arr = _to_numpy(x)
-    if arr.ndim != ndim or arr.shape[arr.ndim - len(tail):] != tail:
-        want = ", ".join(["…"] * (ndim - len(tail)) + [str(t) for t in tail])
-        raise ValueError(f"{name} must have shape ({want}), got {tuple(arr.shape)}")
-    return arr
 
 
 def _rerun_executable() -> str | None:
@@ -101,95 +80,6 @@ def default_blueprint(metric_names: Iterable[str] = ()) -> rrb.Blueprint:
     hparams = rrb.TextDocumentView(origin=HPARAMS_ENTITY, name="hparams")
     side = rrb.Tabs(rrb.Grid(*plots, name="metrics"), hparams)
     return rrb.Blueprint(rrb.Horizontal(scene, side, column_shares=[3, 2]))
-
-
-def log_path(
-    recording: rr.RecordingStream, entity: str, points: Any, color: Any = BACKBONE_COLOR,
-    radius: float = 0.001,
-) -> None:
-    """Log one curve ``(N, 3)`` or a batch of curves ``(k, N, 3)`` [m] as rr.LineStrips3D.
-
-    ``color`` is one RGB(A) colour (0-255) for all curves; ``radius`` is in metres.
-    """
-    pts = _to_numpy(points)
-    if pts.ndim not in (2, 3) or pts.shape[-1] != 3:
-        raise ValueError(f"points must have shape (N, 3) or (k, N, 3), got {tuple(pts.shape)}")
-    strips = pts.reshape(-1, pts.shape[-2], 3)
-    recording.log(entity, rr.LineStrips3D(strips, colors=color, radii=radius))
-
-
-def log_frames(
-    recording: rr.RecordingStream, entity: str, poses: Any, *, axis_length: float = 0.01,
-    colors: np.ndarray = AXIS_COLORS, radius: float | None = None,
-) -> None:
-    """Log frames ``(k, 4, 4)`` (homogeneous, metres) as three arrows each (x, y, z axes).
-
-    ``colors`` is a ``(3, 3)`` uint8 array with the x/y/z colours; arrows are ``axis_length``
-    [m] long and ``radius`` thick (default ``axis_length / 15``).
-    """
-    T = _checked(f"poses of {entity!r}", poses, (4, 4), 3)
-    axes = T[:, :3, :3].transpose(0, 2, 1).reshape(-1, 3)  # rows: x, y, z axis of each frame
-    origins = np.repeat(T[:, :3, 3], 3, axis=0)
-    colors = np.tile(colors, (T.shape[0], 1))
-    radii = axis_length / 15 if radius is None else radius
-    arrows = rr.Arrows3D(vectors=axes * axis_length, origins=origins, colors=colors, radii=radii)
-    recording.log(entity, arrows)
-
-
-def log_workspace(
-    recording: rr.RecordingStream, entity: str, points: Any, error: Any, *,
-    cmap: str = "viridis", radius: float = 0.0015,
-) -> float:
-    """Log workspace points ``(N, 3)`` [m] coloured by ``error`` ``(N,)`` [m]; return max error [m].
-
-    Colours run through matplotlib colormap ``cmap`` from 0 to the max error; a rr.TextLog on
-    the same entity states the max and mean error in mm.
-    """
-    pts = _checked("workspace_points", points, (3,), 2)
-    err = _checked("workspace_error", error, (pts.shape[0],), 1)
-    max_err = float(err.max()) if err.size else 0.0
-    scaled = err / max_err if max_err > 0 else np.zeros_like(err)
-    colors = (colormaps[cmap](scaled)[:, :3] * 255).astype(np.uint8)
-    recording.log(entity, rr.Points3D(pts, colors=colors, radii=radius))
-    mean_mm = 1e3 * float(err.mean()) if err.size else 0.0
-    text = f"workspace: max tip error {1e3 * max_err:.3f} mm, mean {mean_mm:.3f} mm over "
-    text += f"{err.size} samples (colour: {cmap}, 0 -> max)"
-    recording.log(entity, rr.TextLog(text, level="INFO"))
-    return max_err
-
-
-def log_scene(
-    recording: rr.RecordingStream, prefix: str, visual: Mapping[str, Any], *,
-    axis_length: float = 0.01, cmap: str = "viridis",
-) -> None:
-    """Log a visual batch under ``prefix`` at the recording's current time.
-
-    ``visual`` may hold any subset of (tensors or arrays, metres):
-    ``backbone`` (k, P, 3), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
-    ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,).
-    Unknown keys are a ValueError. Set the time first, e.g.
-    ``recording.set_time("step", sequence=step)``.
-    """
-    unknown = sorted(set(visual) - set(VISUAL_KEYS))
-    if unknown:
-        raise ValueError(f"unknown visual keys {unknown}; expected a subset of {list(VISUAL_KEYS)}")
-    shapes = {"backbone": ((3,), 3), "pose_true": ((4, 4), 3), "pose_pred": ((4, 4), 3)}
-    arrays = {k: _checked(f"visual[{k!r}]", visual[k], *shapes[k]) for k in shapes if k in visual}
-    if "backbone" in arrays:
-        log_path(recording, f"{prefix}/backbone", arrays["backbone"])
-    for key, colors in (("pose_true", AXIS_COLORS), ("pose_pred", AXIS_COLORS_LIGHT)):
-        if key in arrays:
-            entity = f"{prefix}/tip_{key.removeprefix('pose_')}"
-            log_frames(recording, entity, arrays[key], axis_length=axis_length, colors=colors)
-    if "pose_true" in arrays and "pose_pred" in arrays:
-        tips = np.stack([arrays[k][:, :3, 3] for k in ("pose_true", "pose_pred")], 1)
-        log_path(recording, f"{prefix}/tip_error", tips, color=TIP_ERROR_COLOR, radius=0.0004)
-    if "workspace_points" in visual:
-        points = _checked("visual['workspace_points']", visual["workspace_points"], (3,), 2)
-        error = visual.get("workspace_error", np.zeros(len(points)))
-        log_workspace(recording, f"{prefix}/workspace", points, error, cmap=cmap)
-    elif "workspace_error" in visual:
-        raise ValueError("visual['workspace_error'] needs visual['workspace_points']")
 
 
 class RerunLogger(Logger):

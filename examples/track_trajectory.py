@@ -39,7 +39,7 @@ from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
 from dacr_learn.kinematics import backbone_points, forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
-from dacr_learn.rerun_log import log_path, log_scene  # noqa: E402
+from dacr_learn.rerun_scene import log_path, log_scene  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 DEFAULT_CKPT = ROOT / "runs" / "fk_type1" / "checkpoints" / "last.ckpt"
