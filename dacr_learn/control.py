@@ -26,7 +26,7 @@ from torch import Tensor
 from .inference import ClarkeFold, DecoderJacobian
 from .kinematics import forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import actuated_selection
+from .models import actuated_columns, actuated_selection, fixed_features
 from .robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
@@ -57,22 +57,22 @@ class ControllerConfig:
 
 
 def _feature_columns(spec: RobotSpec) -> dict[str, list]:
-    """Actuated feature columns (models.actuated_selection order) with their limits and scales."""
+    """Actuated feature columns (models.actuated_columns order) with their limits and scales."""
     cols: dict[str, list] = {"rho": [], "rho_max": [], "beta": [], "beta_range": [], "alpha": [],
                              "alpha_range": [], "scale": []}
-    i = 0
-    for seg in spec.segments:
-        rho_max = seg.bend * seg.radius                       # ‖ρ‖ = d·φ ≤ d·bend
-        cols["rho"].append([i, i + 1])
-        cols["rho_max"].append(rho_max)
-        cols["scale"] += [rho_max, rho_max]
-        i += 2
-        for kind, actuated, lim in (("beta", seg.extends, seg.length_range), ("alpha", seg.twists, seg.twist_range)):
-            if actuated:
-                cols[kind].append(i)
-                cols[f"{kind}_range"].append(lim)
-                cols["scale"].append((lim[1] - lim[0]) / 2)
-                i += 1
+    for i, (k, name) in enumerate(actuated_columns(spec)):
+        seg = spec.segments[k]
+        if name.startswith("rho"):
+            rho_max = seg.bend * seg.radius                   # ‖ρ‖ = d·φ ≤ d·bend
+            cols["scale"].append(rho_max)
+            if name == "rho_re":
+                cols["rho"].append([i, i + 1])
+                cols["rho_max"].append(rho_max)
+            continue
+        lim = seg.length_range if name == "beta" else seg.twist_range
+        cols[name].append(i)
+        cols[f"{name}_range"].append(lim)
+        cols["scale"].append((lim[1] - lim[0]) / 2)
     return cols
 
 
@@ -84,8 +84,7 @@ class ClarkeSpace:
         self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
         self.fold = ClarkeFold(spec)                       # the encoder as one affine map (+ helix terms)
         self.selection = actuated_selection(spec).to(_F64)
-        self.base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments],
-                                 dtype=_F64).flatten()
+        self.base = fixed_features(spec, _F64).flatten()
         self.linear = not any(s.twists for s in spec.segments)   # then the decoder is affine: q = A·f + c
         if self.linear:
             straight = self.fold.e0                               # features of the nominal straight robot

@@ -31,7 +31,7 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import ACTIVATIONS, FKModel, IKModel, actuated_selection
+from .models import ACTIVATIONS, FKModel, IKModel, actuated_columns, actuated_selection
 from .robot import RobotSpec
 
 _F64 = torch.float64
@@ -43,11 +43,6 @@ def _activation_name(net: nn.Sequential) -> str:
     if len(names) != 1:
         raise ValueError(f"net: expected one activation of {sorted(ACTIVATIONS)}, got {kinds}")
     return names[0]
-
-
-def activation(name: str, a: Tensor) -> Tensor:
-    """The MLP's activation (as in models.ACTIVATIONS) applied to pre-activations ``a``."""
-    return {"silu": F.silu, "relu": F.relu, "gelu": F.gelu, "tanh": torch.tanh}[name](a)
 
 
 def activation_and_derivative(name: str, a: Tensor) -> tuple[Tensor, Tensor]:
@@ -91,14 +86,8 @@ def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Te
 
 def _columns(spec: RobotSpec, kind: str, segs: list[int]) -> list[int]:
     """Indices of the actuated feature columns of ``kind`` ("beta" | "alpha") of segments ``segs``."""
-    cols, i = {}, 0
-    for k, s in enumerate(spec.segments):
-        i += 2
-        if s.extends:
-            cols[("beta", k)], i = i, i + 1
-        if s.twists:
-            cols[("alpha", k)], i = i, i + 1
-    return [cols[(kind, k)] for k in segs]
+    index = {col: i for i, col in enumerate(actuated_columns(spec))}
+    return [index[(k, kind)] for k in segs]
 
 
 class ClarkeFold(nn.Module):
@@ -215,6 +204,7 @@ class _FoldedMLP(nn.Module):
                  out_shift: Tensor, dtype: torch.dtype):
         super().__init__()
         self.act = _activation_name(net)
+        self.activation = next(m for m in net if not isinstance(m, nn.Linear))   # the model's own module
         lin = _linears(net)
         last = lin[-1]
         w_last = out_scale[:, None] * last.weight.detach().to(_F64)
@@ -226,8 +216,8 @@ class _FoldedMLP(nn.Module):
     def forward(self, a: Tensor) -> Tensor:
         """First-layer pre-activations (B, W) → network output (B, out)."""
         for layer in self.hidden:
-            a = layer(activation(self.act, a))
-        return self.last(activation(self.act, a))
+            a = layer(self.activation(a))
+        return self.last(self.activation(a))
 
     def forward_with_tangents(self, a: Tensor, tangent: Tensor) -> tuple[Tensor, Tensor]:
         """Forward-mode derivative: pre-activations (B, W) with tangents (B, k, W) → (out, dout (B, k, out))."""

@@ -60,14 +60,30 @@ class Standardizer(nn.Module):
         return z * self.std + self.mean
 
 
+FEATURE_COLUMNS = ("rho_re", "rho_im", "beta", "alpha")
+
+
+def actuated_columns(spec: RobotSpec) -> list[tuple[int, str]]:
+    """(segment, column name) of each actuated feature, in the order used everywhere (length D):
+    per segment ρ_re, ρ_im, then β if it extends and α if it twists."""
+    cols = []
+    for k, seg in enumerate(spec.segments):
+        cols += [(k, "rho_re"), (k, "rho_im")] + [(k, "beta")] * seg.extends + [(k, "alpha")] * seg.twists
+    return cols
+
+
 def actuated_selection(spec: RobotSpec) -> Tensor:
     """(D, 4m) 0/1 matrix picking the actuated columns out of a flattened feature tensor."""
-    cols = []
-    for j, seg in enumerate(spec.segments):
-        cols += [4 * j, 4 * j + 1] + ([4 * j + 2] if seg.extends else []) + ([4 * j + 3] if seg.twists else [])
-    sel = torch.zeros(len(cols), 4 * spec.num_segments)
-    sel[torch.arange(len(cols)), cols] = 1.0
+    flat = [4 * k + FEATURE_COLUMNS.index(name) for k, name in actuated_columns(spec)]
+    sel = torch.zeros(len(flat), 4 * spec.num_segments)
+    sel[torch.arange(len(flat)), flat] = 1.0
     return sel
+
+
+def fixed_features(spec: RobotSpec, dtype: torch.dtype = torch.float32) -> Tensor:
+    """(m, 4) feature tensor holding only the fixed values (β = l where β is not actuated), zero
+    in every actuated column: fixed_features + actuated @ actuated_selection is a full feature tensor."""
+    return torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments], dtype=dtype)
 
 
 class FeatureFrontEnd(nn.Module):
@@ -146,8 +162,7 @@ class IKModel(nn.Module):
         self.encoder, self.decoder = ClarkeEncoder(spec), ClarkeDecoder(spec)
         if features == "clarke":
             self.register_buffer("selection", actuated_selection(spec))
-            base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments])
-            self.register_buffer("base_features", base)
+            self.register_buffer("base_features", fixed_features(spec))
         out_dim = spec.num_actuated_features if features == "clarke" else spec.num_joints
         self.out_norm = Standardizer(out_dim)
         self.net = mlp(9, out_dim, width, depth, activation)
