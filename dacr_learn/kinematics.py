@@ -58,23 +58,22 @@ def _segment_constants(spec: RobotSpec, dtype: torch.dtype, device: torch.device
             torch.tensor(extends, device=device), torch.tensor(twists, device=device))
 
 
-def effective_features(spec: RobotSpec, features: Tensor) -> Tensor:
-    """Replace non-actuated columns by their fixed values (β = l, α = 0). (..., m, 4) → (..., m, 4)."""
-    check_tensor(features, "features", (spec.num_segments, 4))
-    _, length, extends, twists = _segment_constants(spec, features.dtype, features.device)
-    beta = torch.where(extends, features[..., 2], length.expand_as(features[..., 2]))
-    alpha = torch.where(twists, features[..., 3], torch.zeros_like(features[..., 3]))
-    return torch.cat([features[..., :2], beta.unsqueeze(-1), alpha.unsqueeze(-1)], dim=-1)
-
-
 def _segment_parameters(spec: RobotSpec, features: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
-    """Bending vector u = ρ/d (..., m, 2), length β (..., m), roll α (..., m) or None if nothing twists."""
+    """Bending vector u = ρ/d (..., m, 2), length β (..., m) with β = l where not actuated, and
+    roll α (..., m) with α = 0 where not actuated, or None if no segment twists."""
     check_tensor(features, "features", (spec.num_segments, 4))
     radius, length, extends, twists = _segment_constants(spec, features.dtype, features.device)
     u = features[..., :2] / radius.unsqueeze(-1)
     beta = torch.where(extends, features[..., 2], length)
     alpha = torch.where(twists, features[..., 3], 0.0) if any(s.twists for s in spec.segments) else None
     return u, beta, alpha
+
+
+def effective_features(spec: RobotSpec, features: Tensor) -> Tensor:
+    """Replace non-actuated columns by their fixed values (β = l, α = 0). (..., m, 4) → (..., m, 4)."""
+    _, beta, alpha = _segment_parameters(spec, features)
+    alpha = torch.zeros_like(beta) if alpha is None else alpha
+    return torch.cat([features[..., :2], beta.unsqueeze(-1), alpha.unsqueeze(-1)], dim=-1)
 
 
 def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor:
