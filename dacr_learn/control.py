@@ -26,7 +26,7 @@ from torch import Tensor
 from .inference import ClarkeFold, DecoderJacobian
 from .kinematics import forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import actuated_columns, actuated_selection, fixed_features
+from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
 from .robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
@@ -84,7 +84,7 @@ class ClarkeSpace:
         self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
         self.fold = ClarkeFold(spec)                       # the encoder as one affine map (+ helix terms)
         self.selection = actuated_selection(spec).to(_F64)
-        self.base = fixed_features(spec, _F64).flatten()
+        self.base = fixed_features(spec, _F64)
         self.linear = not any(s.twists for s in spec.segments)   # then the decoder is affine: q = A·f + c
         if self.linear:
             straight = self.fold.e0                               # features of the nominal straight robot
@@ -102,8 +102,7 @@ class ClarkeSpace:
         return self.fold.features(self.fold.inputs(_f64(q)))
 
     def _decode(self, f: Tensor) -> Tensor:
-        full = self.base + f @ self.selection
-        return self.decoder(full.unflatten(-1, (self.spec.num_segments, 4)))
+        return self.decoder(actuated_to_features(f, self.selection, self.base))
 
     def joints(self, f: Tensor) -> Tensor:
         """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
@@ -203,7 +202,7 @@ def analytic_jacobian(spec: RobotSpec) -> JacobianFn:
     space = ClarkeSpace(spec)
 
     def pose_of(f: Tensor) -> Tensor:
-        return forward_kinematics(spec, (space.base + f @ space.selection).unflatten(-1, (spec.num_segments, 4)))
+        return forward_kinematics(spec, actuated_to_features(f, space.selection, space.base))
 
     def jacobian(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         lead = q.shape[:-1]

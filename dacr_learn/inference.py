@@ -31,7 +31,7 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import ACTIVATIONS, FKModel, IKModel, actuated_columns, actuated_selection
+from .models import ACTIVATIONS, FKModel, IKModel, actuated_columns, actuated_selection, actuated_to_features
 from .robot import RobotSpec
 
 _F64 = torch.float64
@@ -364,14 +364,12 @@ class InferenceIK(nn.Module):
         self.mlp = _FoldedMLP(model.net, (w * scale, b), out_std, out_mean, dtype)
         if self.features_mode == "clarke":
             self.register_buffer("selection", model.selection.to(dtype))
-            self.register_buffer("base", model.base_features.flatten().to(dtype))
+            self.register_buffer("base", model.base_features.to(dtype))
             self.decoder = ClarkeDecoder(model.spec).to(dtype)
-            self.num_segments = model.spec.num_segments
 
     def forward(self, pose: Tensor) -> Tensor:
         v = torch.cat([pose[:, :3, 3], pose[:, :2, :3].flatten(1)], dim=-1)
         y = self.mlp(self.mlp.first(v))
         if self.features_mode == "raw":
             return y
-        flat = self.base + y @ self.selection
-        return self.decoder(flat.unflatten(-1, (self.num_segments, 4)))
+        return self.decoder(actuated_to_features(y, self.selection, self.base))

@@ -86,6 +86,13 @@ def fixed_features(spec: RobotSpec, dtype: torch.dtype = torch.float32) -> Tenso
     return torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments], dtype=dtype)
 
 
+def actuated_to_features(actuated: Tensor, selection: Tensor, fixed: Tensor) -> Tensor:
+    """Actuated features (..., D) → full feature tensor (..., m, 4): the ``fixed`` values (m, 4)
+    plus the actuated values scattered by ``selection`` (D, 4m) (see :func:`actuated_selection`)."""
+    flat = fixed.flatten().to(actuated.dtype) + actuated @ selection.to(actuated.dtype)
+    return flat.unflatten(-1, tuple(fixed.shape))
+
+
 class FeatureFrontEnd(nn.Module):
     """Joint vector (..., num_joints) → standardised input features (..., D) for a network."""
 
@@ -186,8 +193,7 @@ class IKModel(nn.Module):
         y = self.out_norm.inverse(z)
         if self.features == "raw":
             return y
-        flat = self.base_features.to(y.dtype).flatten() + y @ self.selection.to(y.dtype)
-        return self.decoder(flat.unflatten(-1, (self.spec.num_segments, 4)))
+        return self.decoder(actuated_to_features(y, self.selection, self.base_features))
 
     def forward(self, pose: Tensor) -> Tensor:
         return self.decode(self.forward_normalized(pose))
