@@ -25,6 +25,17 @@ def load_spec(robot: str | dict) -> RobotSpec:
     return RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot)
 
 
+def ik_errors(model: IKModel, spec: RobotSpec, pose: Tensor, pose_target: Tensor, q_target: Tensor) -> dict[str, Tensor]:
+    """Per-sample IK errors of ``model`` on input poses (B, 4, 4): the task error of the analytic CC
+    FK of the predicted joints vs ``pose_target`` (pos_err [m], rot_err [rad]), the joint error
+    ‖q̂ − q_target‖ [m] and the constraint residual ‖q̂ − dec(enc(q̂))‖ [m]."""
+    q_pred = model(pose)
+    task = pose_errors(forward_kinematics(spec, model.encoder(q_pred)), pose_target)
+    residual = torch.linalg.vector_norm(q_pred - model.decoder(model.encoder(q_pred)), dim=-1)
+    joint = torch.linalg.vector_norm(q_pred - q_target, dim=-1)
+    return {**task, "joint_err": joint, "constraint_residual": residual}
+
+
 class KinematicsModule(pl.LightningModule):
     """Shared training logic. Subclasses build ``self.model`` and define ``loss`` and ``errors``.
 
@@ -170,8 +181,4 @@ class IKModule(KinematicsModule):
         return forward_kinematics(self.spec, self.model.encoder(self.model(pose)))
 
     def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        q_pred = self.model(batch["pose"])
-        task = pose_errors(forward_kinematics(self.spec, self.model.encoder(q_pred)), batch["pose"])
-        residual = torch.linalg.vector_norm(q_pred - self.model.decoder(self.model.encoder(q_pred)), dim=-1)
-        joint = torch.linalg.vector_norm(q_pred - batch["q"], dim=-1)
-        return {**task, "joint_err": joint, "constraint_residual": residual}
+        return ik_errors(self.model, self.spec, batch["pose"], batch["pose"], batch["q"])

@@ -31,10 +31,9 @@ import yaml
 from torch import Tensor
 
 from ..data import SamplerOptions, generate
-from ..kinematics import forward_kinematics
 from ..metrics import pose_errors, summarize
 from ..robot import RobotSpec
-from ..training import FKModule, IKModule
+from ..training import FKModule, IKModule, ik_errors
 
 ROOT = Path(__file__).resolve().parents[2]
 COLUMNS = ["robot", "task", "features", "n_train", "condition", "seed", "pos_err_mean_mm", "pos_err_mean_pct",
@@ -167,10 +166,7 @@ def evaluate(module: pl.LightningModule, task: str, data: dict[str, Tensor]) -> 
     if task == "fk":
         errors = pose_errors(model(data["q"]), data["pose_clean"])
     else:
-        q_pred = model(data["pose"])
-        errors = pose_errors(forward_kinematics(spec, model.encoder(q_pred)), data["pose_clean"])
-        errors["joint_err"] = torch.linalg.vector_norm(q_pred - data["q_clean"], dim=-1)
-        errors["constraint_residual"] = torch.linalg.vector_norm(q_pred - model.decoder(model.encoder(q_pred)), dim=-1)
+        errors = ik_errors(model, spec, data["pose"], data["pose_clean"], data["q_clean"])
     return summarize(errors, spec.total_length)
 
 
