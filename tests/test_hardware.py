@@ -204,6 +204,42 @@ def test_slack_encoder_gradients_match_finite_differences(spec):
         lambda *p: torch.func.functional_call(enc, dict(zip(names, p)), (x,))[..., :2], inputs, eps=1e-7, atol=1e-7)
 
 
+def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec):
+    """At the solution, each segment's bending energy gradient equals the force of the taut
+    tendons through it (KKT stationarity of E), slack tendons carry nothing, and so each ρ⁽ᵏ⁾ is
+    parallel to the total tendon force through segment k — the moment of straight-routed tendons
+    about the backbone, cross(ρ⁽ᵏ⁾, F), vanishes (docs/hardware.md: the model predicts no twist).
+    The tendon directions are rebuilt here from the spec's joint angles, not from the encoder."""
+    enc = SlackAwareEncoder(spec, compliance=2e-6, pretension=5e-5)
+    with torch.no_grad():
+        enc.rotation.copy_(torch.tensor([0.1, -0.2, 0.3]))
+        enc.log_radius_scale.copy_(torch.tensor([0.05, -0.1, 0.0]))
+    g = torch.Generator().manual_seed(3)
+    x = (torch.rand(200, 9, generator=g, dtype=torch.float64) - 0.6) * 8e-3   # mixes taut and slack tendons
+    x[:50, 3:] = -0.01                                                        # parked slack, as in the pulls
+    with torch.no_grad():
+        rho = enc.clarke(x)                                                   # (n, 3, 2) at the effective radii
+        gmap = enc.displacement_map()
+        stretch = x + enc.pretension - rho.flatten(-2) @ gmap.mT
+        tension = stretch.clamp_min(0) / enc.path_length                      # slack tendons: 0
+        d = enc.effective_radius()
+        bend_w = enc.log_compliance.exp() / (enc.lengths * d**2)
+    lhs = bend_w[:, None] * rho
+    rhs = (tension @ gmap).unflatten(-1, (3, 2))
+    assert torch.allclose(lhs, rhs, atol=1e-12 * float(rhs.abs().max()))     # stationarity
+    assert (stretch > 0).any() and (stretch < 0).any()
+    psi = torch.tensor([a for s in spec.segments for a in s.joint_angles], dtype=torch.float64)
+    segment = torch.arange(3).repeat_interleave(3)
+    psi = psi + enc.rotation.detach()[segment]
+    force = torch.zeros(200, 3, 2, dtype=torch.float64)
+    force.index_add_(1, segment, tension.unsqueeze(-1) * torch.stack([psi.cos(), psi.sin()], -1))
+    through = force.flip(1).cumsum(1).flip(1)                                 # Σ over segments j ≥ k
+    torque = rho[..., 0] * through[..., 1] - rho[..., 1] * through[..., 0]
+    scale = rho.norm(dim=-1) * through.norm(dim=-1)
+    assert float(scale.max()) > 0
+    assert float((torque.abs() / scale.clamp_min(1e-30)).max()) < 1e-9
+
+
 # ---------------------------------------------------------------------------------- calibration
 
 

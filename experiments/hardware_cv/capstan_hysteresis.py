@@ -1,0 +1,115 @@
+"""Direction-dependent capstan friction inside the slack-aware tendon model (research script).
+
+Each tendon i loses tension along its path by Coulomb friction at the spacer discs: at segment k
+the tension is T_i·(1 − σ_i·μ·W_ik), with W_ik the wrap angle from the base to the middle of
+segment k (bends of the proximal segments + half of segment k's own bend, from the frictionless
+solution) and σ_i ∈ [−1, 1] the direction the tendon was last moved in (+1 pulled in: friction
+opposes the pull and the distal segments see less tension; −1 paid out: more), from a play
+operator of width ``--sigma-width`` on its command. The moment balance uses the reduced
+tensions, the tendon stretch the plain path (a non-symmetric linear system per active set).
+One extra parameter, μ, fitted with the CC parameters on the training rows.
+Usage: python experiments/hardware_cv/capstan_hysteresis.py [--sigma-width 1e-4 ...] [--val]
+"""
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tendon_play, tip_tr, val_data, x_tr
+from dacr_learn.hardware import ccmodel
+from dacr_learn.hardware.ccmodel import fit_cc
+from dacr_learn.hardware.slack import MIN_LOG_COMPLIANCE, solve_tendon_qp
+
+ccmodel._FIT_SCALES["mu"] = 0.05
+
+
+class CapstanCC(CalibratedCC):
+    def __init__(self, mu0=0.0):
+        super().__init__(spec)
+        self.mu = nn.Parameter(torch.tensor(float(mu0), dtype=torch.float64))
+        self.sigma = None   # (n, N) set before calling
+
+    def clarke_with_friction(self, x):
+        enc = self.encoder
+        d = enc.effective_radius()
+        compliance = enc.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
+        bend_w = (compliance / (enc.lengths * d**2)).repeat_interleave(2)
+        tendon_w = 1.0 / enc.path_length
+        g = enc.displacement_map()                                              # (N, 2m)
+        xp = x + enc.pretension
+        with torch.no_grad():                                                   # wrap angles from the frictionless shape
+            rho0 = solve_tendon_qp(xp, g, bend_w, tendon_w).unflatten(-1, (m, 2))
+            th = rho0.norm(dim=-1) / d                                          # (n, m)
+            wrap = torch.cat([torch.zeros_like(th[:, :1]), th.cumsum(-1)[:, :-1]], -1) + th / 2
+        factor = 1 - self.mu * self.sigma.unsqueeze(-1) * wrap.unsqueeze(-2)    # (n, N, m)
+        gf = g * factor.repeat_interleave(2, dim=-1)                            # (n, N, 2m) force map
+        active = xp > 0
+        eye = torch.diag_embed(bend_w)
+        for _ in range(30):
+            wa = tendon_w * active                                              # (n, N)
+            mat = eye + (gf.mT * wa.unsqueeze(-2)) @ g                          # (n, 2m, 2m)
+            rho = torch.linalg.solve(mat, (gf.mT @ (wa * xp).unsqueeze(-1))).squeeze(-1)
+            new = (xp - rho @ g.mT) > 0
+            if torch.equal(new, active):
+                break
+            active = new
+        return rho.unflatten(-1, (m, 2))
+
+    def forward(self, x):
+        rho = self.clarke_with_friction(x)
+        enc = self.encoder
+        rho = rho * (enc.radius / enc.effective_radius()).unsqueeze(-1)
+        beta = enc.lengths.expand(rho.shape[:-1])
+        f = torch.cat([rho, beta.unsqueeze(-1), torch.zeros_like(beta).unsqueeze(-1)], -1)
+        return self.tip_from_features(f)
+
+
+def direction(x, width):
+    return (x - tendon_play(x, width)) / width
+
+
+def fit_capstan(x, tip, sigma, mu0=0.05):
+    base = CalibratedCC(spec)
+    fit_cc(base, x, tip)                      # start from the frictionless fit
+    cc = CapstanCC(mu0)
+    cc.load_state_dict({**base.state_dict(), "mu": cc.mu.detach()})
+    cc.sigma = sigma
+    info = fit_cc(cc, x, tip)
+    for p in cc.parameters():
+        p.requires_grad_(False)
+    return cc, info
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--sigma-width", type=float, nargs="+", default=[2e-5, 5e-5, 1e-4, 2e-4, 4e-4])
+    ap.add_argument("--val", action="store_true")
+    args = ap.parse_args()
+    for w in args.sigma_width:
+        t0 = time.time()
+        sig = direction(x_tr, w)
+        cc, info = fit_capstan(x_tr, tip_tr, sig)
+        cc.sigma = sig
+        with torch.no_grad():
+            train = rmse(cc(x_tr), tip_tr)
+        out = {"sigma_width_mm": w * 1e3, "mu": round(float(cc.mu), 4), "train": round(train, 3)}
+        if args.val:
+            x_va, tip_va = val_data()
+            x_all = torch.cat([x_tr, x_va]); sig_all = direction(x_all, w)   # causal: history runs on
+            cc.sigma = sig_all[len(x_tr):]
+            with torch.no_grad():
+                out["VAL"] = round(rmse(cc(x_va), tip_va), 3)
+        else:
+            folds = {}
+            for f in FOLDS:
+                tr = torch.from_numpy(fam != f)
+                c, _ = fit_capstan(x_tr[tr], tip_tr[tr], sig[tr])
+                c.sigma = sig[~tr]
+                with torch.no_grad():
+                    folds[f] = (rmse(c(x_tr[~tr]), tip_tr[~tr]), round(float(c.mu), 3))
+            out.update(cv=round(float(np.mean([v[0] for v in folds.values()])), 3), folds=folds)
+        out["s"] = round(time.time() - t0, 1)
+        print(json.dumps(out), flush=True)

@@ -1,0 +1,65 @@
+"""Coulomb friction at the spacer discs as a play on each segment's Clarke coordinates whose width
+follows the linearised capstan law, w_k = mu * wrap_k * |rho_k| + w0 (wrap_k = bend of the proximal
+segments + half of segment k's own bend), in the CC model (refitted twice with the correction
+from the previous fit). Usage: python experiments/hardware_cv/clarke_friction.py '[[mu, w0_m], ...]'"""
+import json
+import sys
+
+import numpy as np
+import torch
+
+from common import FOLDS, CalibratedCC, fam, fit_cc, radius, rmse, spec, tip_tr, x_tr
+
+
+def vector_play(v, w):
+    """Play along the rows of v (n, m, 2) with widths w (n, m)."""
+    out, state = torch.empty_like(v), v[0].clone()
+    for t in range(v.shape[0]):
+        diff = state - v[t]
+        norm = diff.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+        state = v[t] + diff * (w[t].unsqueeze(-1) / norm).clamp(max=1.0)
+        out[t] = state
+    return out
+
+
+def friction_delta(rho, mu, w0):
+    th = rho.norm(dim=-1) / radius
+    wrap = torch.cat([torch.zeros_like(th[:, :1]), th.cumsum(-1)[:, :-1]], -1) + th / 2
+    return vector_play(rho, (mu * wrap * rho.norm(dim=-1) + w0).clamp_min(1e-12)) - rho
+
+
+class FrictionCC(CalibratedCC):
+    delta = None
+
+    def forward(self, x):
+        f = self.encoder(x)
+        if self.delta is not None:
+            f = torch.cat([f[..., :2] + self.delta, f[..., 2:]], -1)
+        return self.tip_from_features(f)
+
+
+def fit_friction(tr, mu, w0, rounds=2):
+    cc = FrictionCC(spec)
+    fit_cc(cc, x_tr[tr], tip_tr[tr])
+    for _ in range(rounds):
+        with torch.no_grad():
+            cc.delta = None
+            d = friction_delta(cc.encoder(x_tr)[..., :2], mu, w0)   # along the whole recording (causal)
+        cc.delta = d[tr]
+        fit_cc(cc, x_tr[tr], tip_tr[tr])
+    with torch.no_grad():
+        cc.delta = None
+        cc.delta = friction_delta(cc.encoder(x_tr)[..., :2], mu, w0)
+        return cc(x_tr)
+
+
+grid = json.loads(sys.argv[1]) if len(sys.argv) > 1 else [[0, 0], [0.05, 0], [0.1, 0], [0.2, 0], [0, 5e-5], [0.1, 5e-5]]
+for mu, w0 in grid:
+    pred = fit_friction(torch.ones(len(x_tr), dtype=torch.bool), mu, w0)
+    folds = {}
+    for f in FOLDS:
+        tr = torch.from_numpy(fam != f)
+        folds[f] = rmse(fit_friction(tr, mu, w0)[~tr], tip_tr[~tr])
+    print(json.dumps({"mu": mu, "w0_mm": w0 * 1e3, "train": round(rmse(pred, tip_tr), 3),
+                      "cv": round(float(np.mean(list(folds.values()))), 3),
+                      "folds": {k: round(v, 2) for k, v in folds.items()}}), flush=True)
