@@ -2,7 +2,7 @@
 docs/hardware.md) and optional linear hysteresis terms whose gain grows with the bends of the
 other segments (features 'own', 'prox', 'dist', 'own*prox', 'total').
 Usage: python experiments/hardware_cv/residual_memory.py '{"name": {"width": 1e-4, "mem_in": true,
-"lin": ["total"], "c0": true}}' 0,1 [VAL|CV] [tendon_play=5e-5]"""
+"lin": ["total"], "c0": true}}' 0,1 [CV|EXTRAP|VAL] [tendon_play=5e-5]"""
 import json
 import sys
 import time
@@ -71,7 +71,7 @@ if __name__ == '__main__':
     tendon_w = float(dict(a.split('=') for a in sys.argv[4:] if '=' in a).get('tendon_play', 0))
     if tendon_w:   # commands through a tendon-space play first (the whole recording, causal)
         x_tr = tendon_play(x_tr, tendon_w)
-    ccs = {f: fit(x_tr[torch.from_numpy(fam != f)], tip_tr[torch.from_numpy(fam != f)]) for f in FOLDS} if not do_val else {}
+    ccs = {f: fit(x_tr[torch.from_numpy(fam != f)], tip_tr[torch.from_numpy(fam != f)]) for f in FOLDS} if sys.argv[3:4] in ([], ['CV']) else {}
     for name, cfg in cfgs.items():
         t0 = time.time()
         if do_val:
@@ -83,6 +83,13 @@ if __name__ == '__main__':
             tr = torch.arange(len(x_all)) < len(x_tr)
             res = [run(cfg, cc, x_all, tip_all, tr, ~tr, s) for s in seeds]
             print(json.dumps({'name': name, 'VAL': [round(r[0], 3) for r in res], 'val_mean': round(float(np.mean([r[0] for r in res])), 3), 'coef': [round(c, 3) for c in res[-1][1]], 's': round(time.time() - t0, 1)}), flush=True)
+            continue
+        if len(sys.argv) > 3 and sys.argv[3] == 'EXTRAP':   # singles → pairs: an extrapolation in the number of segments
+            tr = torch.from_numpy(fam == 'single')
+            cc = fit(x_tr[tr], tip_tr[tr])
+            res = [run(cfg, cc, x_tr, tip_tr, tr, ~tr, s) for s in seeds]
+            print(json.dumps({'name': name, 'singles_to_pairs': round(float(np.mean([r[0] for r in res])), 3),
+                              'per_seed': [round(r[0], 3) for r in res], 's': round(time.time() - t0, 1)}), flush=True)
             continue
         scores = []
         for f in FOLDS:
