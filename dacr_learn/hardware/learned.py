@@ -48,19 +48,31 @@ RESIDUAL_HIDDEN = 64  # the per-segment correction network sees m rows per sampl
 PLAY_WIDTH = 1e-4
 
 
-def play_operator(values: Tensor, width: float) -> Tensor:
-    """Vector play (backlash) operator along the rows (time order) of values (n, ..., 2).
+def play_operator(values: Tensor, width: float | Tensor) -> Tensor:
+    """Vector play (backlash) operator along the rows (time order) of values (n, ..., k).
 
     The state starts at the first row and is dragged along whenever the input moves more
-    than ``width`` away from it: state_t = v_t + (s_{t−1} − v_t)·min(1, width/‖s_{t−1} − v_t‖).
-    (values − state)/width lies in the unit disc and encodes the recent direction of motion.
+    than the width away from it: state_t = v_t + (s_{t−1} − v_t)·min(1, w_t/‖s_{t−1} − v_t‖).
+    ``width`` [same unit as values] is a constant or per-row widths broadcastable to
+    values.shape[:-1] (a width that changes with the state). With k = 1 it is the scalar
+    play, state_t = clamp(s_{t−1}, v_t − w_t, v_t + w_t). (values − state)/width lies in the
+    unit disc and encodes the recent direction of motion.
     """
+    w = torch.as_tensor(width, dtype=values.dtype, device=values.device)
+    rows = tuple(values.shape[:-1])
+    try:
+        w = w.expand(rows).unsqueeze(-1)
+    except RuntimeError:
+        raise ValueError(f"width: expected a number or widths broadcastable to {rows}, got shape "
+                         f"{tuple(w.shape)}") from None
+    if not bool((w >= 0).all()):
+        raise ValueError(f"width: expected widths >= 0, got a minimum of {float(w.min())}")
     out = torch.empty_like(values)
     state = values[0].clone()
     for t in range(values.shape[0]):
         diff = state - values[t]
         norm = diff.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-        state = values[t] + diff * (width / norm).clamp(max=1.0)
+        state = values[t] + diff * (w[t] / norm).clamp(max=1.0)
         out[t] = state
     return out
 

@@ -8,24 +8,13 @@ import sys
 import numpy as np
 import torch
 
-from common import FOLDS, CalibratedCC, fam, fit_cc, radius, rmse, spec, tip_tr, x_tr
-
-
-def vector_play(v, w):
-    """Play along the rows of v (n, m, 2) with widths w (n, m)."""
-    out, state = torch.empty_like(v), v[0].clone()
-    for t in range(v.shape[0]):
-        diff = state - v[t]
-        norm = diff.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-        state = v[t] + diff * (w[t].unsqueeze(-1) / norm).clamp(max=1.0)
-        out[t] = state
-    return out
+from common import FOLDS, CalibratedCC, fam, fit_cc, play_operator, radius, rmse, spec, tip_tr, x_tr
 
 
 def friction_delta(rho, mu, w0):
     th = rho.norm(dim=-1) / radius
     wrap = torch.cat([torch.zeros_like(th[:, :1]), th.cumsum(-1)[:, :-1]], -1) + th / 2
-    return vector_play(rho, (mu * wrap * rho.norm(dim=-1) + w0).clamp_min(1e-12)) - rho
+    return play_operator(rho, (mu * wrap * rho.norm(dim=-1) + w0).clamp_min(1e-12)) - rho
 
 
 class FrictionCC(CalibratedCC):

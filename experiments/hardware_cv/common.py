@@ -20,6 +20,7 @@ torch.set_num_threads(1)
 
 from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
+from dacr_learn.hardware.learned import play_operator  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402,F401
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
 
@@ -70,12 +71,7 @@ def bend_angles(cc, x):
 
 def tendon_play(x, w):
     """Scalar play (backlash) per column along the rows of x (n, N) with width w (n, N) or scalar."""
-    w = torch.as_tensor(w, dtype=x.dtype).expand_as(x)
-    out, state = torch.empty_like(x), x[0].clone()
-    for t in range(x.shape[0]):
-        state = torch.minimum(torch.maximum(state, x[t] - w[t]), x[t] + w[t])
-        out[t] = state
-    return out
+    return play_operator(x.unsqueeze(-1), w).squeeze(-1)
 
 
 def cv_static_cc(transform) -> dict:
