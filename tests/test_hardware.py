@@ -22,7 +22,7 @@ from dacr_learn.hardware.learned import play_operator
 from dacr_learn.hardware.metrics import offset_removed_rmse, tip_metrics
 from dacr_learn.hardware.recording import load_recording
 from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
-from dacr_learn.hardware.slack import SlackAwareEncoder
+from dacr_learn.hardware.slack import SlackAwareEncoder, solve_tendon_qp
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.robot import RobotSpec
 
@@ -238,6 +238,16 @@ def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec
     scale = rho.norm(dim=-1) * through.norm(dim=-1)
     assert float(scale.max()) > 0
     assert float((torque.abs() / scale.clamp_min(1e-30)).max()) < 1e-9
+    # an explicit force map equal to G gives the same solution; a reduced one, its own balance
+    flat = x + enc.pretension
+    same = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length,
+                           force_map=gmap.expand(200, -1, -1))
+    assert torch.allclose(same, rho.flatten(-2), atol=1e-15)
+    reduced = gmap * torch.linspace(0.6, 1.0, 9, dtype=torch.float64)[:, None]
+    rho_f = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length, force_map=reduced.expand(200, -1, -1))
+    tension_f = (flat - rho_f @ gmap.mT).clamp_min(0) / enc.path_length
+    assert torch.allclose(bend_w.repeat_interleave(2) * rho_f, tension_f @ reduced, atol=1e-12 * float(rhs.abs().max()))
+    assert not torch.allclose(rho_f, rho.flatten(-2), atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------- calibration

@@ -54,23 +54,28 @@ def _rotations(angle: Tensor) -> Tensor:
     return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
 
 
-def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iters: int = 30) -> Tensor:
+def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iters: int = 30,
+                    force_map: Tensor | None = None) -> Tensor:
     """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched.
 
     Args:
         x: (B, N) commanded displacements (pretension included) [m].
         g: (N, D) displacement map G; bend_w: (D,) and tendon_w: (N,) positive weights.
+        force_map: optional (B, N, D) map F of the tendon forces into the bending equations.
+            The solution then satisfies the force balance bend_w·ρ = Fᵀ(tendon_w·max(0, x − Gρ))
+            instead of the energy minimum (F = G), e.g. with tensions reduced by friction.
     Returns:
         ρ (B, D). Starts from the set of pulled tendons (x > 0); stops when the set of
         stretched tendons repeats (usually 2–5 iterations).
     """
+    f = g if force_map is None else force_map
     active = x > 0
     eye_w = torch.diag_embed(bend_w)
     rho = x.new_zeros(x.shape[0], g.shape[1])
     for _ in range(iters):
         wa = tendon_w * active
-        mat = eye_w + (g.mT * wa.unsqueeze(-2)) @ g
-        rho = torch.linalg.solve(mat, ((wa * x) @ g).unsqueeze(-1)).squeeze(-1)
+        mat = eye_w + (f.mT * wa.unsqueeze(-2)) @ g
+        rho = torch.linalg.solve(mat, f.mT @ (wa * x).unsqueeze(-1)).squeeze(-1)
         new = (x - rho @ g.mT) > 0
         if torch.equal(new, active):
             break

@@ -6,7 +6,7 @@ segment k (bends of the proximal segments + half of segment k's own bend, from t
 solution) and σ_i ∈ [−1, 1] the direction the tendon was last moved in (+1 pulled in: friction
 opposes the pull and the distal segments see less tension; −1 paid out: more), from a play
 operator of width ``--sigma-width`` on its command. The moment balance uses the reduced
-tensions, the tendon stretch the plain path (a non-symmetric linear system per active set).
+tensions, the tendon stretch the plain path (``solve_tendon_qp`` with a force map).
 One extra parameter, μ, fitted with the CC parameters on the training rows.
 Usage: python experiments/hardware_cv/capstan_hysteresis.py [--sigma-width 1e-4 ...] [--val]
 """
@@ -46,16 +46,7 @@ class CapstanCC(CalibratedCC):
             wrap = torch.cat([torch.zeros_like(th[:, :1]), th.cumsum(-1)[:, :-1]], -1) + th / 2
         factor = 1 - self.mu * self.sigma.unsqueeze(-1) * wrap.unsqueeze(-2)    # (n, N, m)
         gf = g * factor.repeat_interleave(2, dim=-1)                            # (n, N, 2m) force map
-        active = xp > 0
-        eye = torch.diag_embed(bend_w)
-        for _ in range(30):
-            wa = tendon_w * active                                              # (n, N)
-            mat = eye + (gf.mT * wa.unsqueeze(-2)) @ g                          # (n, 2m, 2m)
-            rho = torch.linalg.solve(mat, (gf.mT @ (wa * xp).unsqueeze(-1))).squeeze(-1)
-            new = (xp - rho @ g.mT) > 0
-            if torch.equal(new, active):
-                break
-            active = new
+        rho = solve_tendon_qp(xp, g, bend_w, tendon_w, force_map=gf)
         return rho.unflatten(-1, (m, 2))
 
     def forward(self, x):
