@@ -1,0 +1,125 @@
+"""Extra physical parameters of the static calibrated CC model (research script).
+
+Two physical freedoms the calibrated CC model lacks, both identifiable from train (pairs and the
+distal tendon pulls bend several segments at once):
+- ``pass``: the moment arm of a tendon that only passes a segment (it drives a more distal one)
+  differs from that of the segment's own tendons by a factor exp(a_k) (one per passed segment, or
+  one shared: ``pass1``); the displacement map G and the force balance use it alike.
+- ``stiff``: per-segment bending stiffness, EI_k = EI·exp(s_k) with s_0 = 0 (m − 1 parameters).
+- ``marker3``: the marker offset as a 3-vector in the tip frame (2 more parameters than the axial
+  offset of the package model).
+Static CC only (no residual network). Reports in-sample train RMSE, leave-one-family-out CV RMSE,
+the singles → pairs extrapolation RMSE (fit on the single-segment family, test on all pairs) and
+the radial bias of loading rows by family (positive = over-bends).
+Usage: python experiments/hardware_cv/coupling.py VARIANT[,VARIANT...] [--val]
+  VARIANT: base | pass1 | pass | stiff | marker3, or several joined by '+'
+"""
+import argparse
+import json
+import time
+
+import numpy as np
+import torch
+from torch import nn
+
+from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, train_rec, val_data, x_tr
+from dacr_learn.hardware import ccmodel
+from dacr_learn.hardware.ccmodel import fit_cc
+from dacr_learn.hardware.slack import MIN_LOG_COMPLIANCE, SlackAwareEncoder, solve_tendon_qp
+
+ccmodel._FIT_SCALES.update({"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1, "marker_lateral": 1e-3})
+
+
+class CoupledEncoder(SlackAwareEncoder):
+    def __init__(self, variant: str):
+        super().__init__(spec, compliance=1e-6)
+        self.variant = variant
+        owner = self.segment_of_joint
+        self.register_buffer("passing", (torch.arange(m)[None, :] < owner[:, None]).double())   # (N, m)
+        n_pass = 1 if "pass1" in variant else m
+        self.pass_log_scale = nn.Parameter(torch.zeros(n_pass, dtype=torch.float64))
+        self.log_stiffness = nn.Parameter(torch.zeros(m - 1, dtype=torch.float64))
+
+    def displacement_map(self):
+        g = super().displacement_map()
+        if "pass" not in self.variant:
+            return g
+        scale = self.pass_log_scale.expand(m).exp()                                # (m,)
+        factor = 1 + self.passing * (scale - 1)                                    # (N, m)
+        return g * factor.repeat_interleave(2, dim=-1)
+
+    def clarke(self, x):
+        flat = x.reshape(-1, x.shape[-1]).to(torch.float64)
+        d = self.effective_radius()
+        compliance = self.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
+        stiff = torch.cat([torch.zeros(1, dtype=torch.float64), self.log_stiffness]).exp() if "stiff" in self.variant else 1.0
+        bend_w = (stiff * compliance / (self.lengths * d**2)).repeat_interleave(2)
+        rho = solve_tendon_qp(flat + self.pretension, self.displacement_map(), bend_w, 1.0 / self.path_length)
+        return rho.reshape(*x.shape[:-1], -1, 2).to(x.dtype)
+
+
+class VariantCC(CalibratedCC):
+    def __init__(self, variant: str):
+        super().__init__(spec)
+        self.variant = variant
+        self.encoder = CoupledEncoder(variant)
+        if "marker3" in variant:
+            self.marker_lateral = nn.Parameter(torch.zeros(2, dtype=torch.float64))
+
+    def tip_from_features(self, features):
+        pose = ccmodel.forward_kinematics(self.spec, features)
+        offset = self.tip_offset.to(features.dtype).reshape(1)
+        if "marker3" in self.variant:
+            offset = torch.cat([self.marker_lateral.to(features.dtype), offset])
+        else:
+            offset = torch.cat([offset.new_zeros(2), offset])
+        return self.to_world(pose[..., :3, 3] + (pose[..., :3, :3] @ offset.unsqueeze(-1)).squeeze(-1))
+
+
+def make(variant):
+    return VariantCC(variant)
+
+
+def fitted(variant, x, tip):
+    cc = make(variant)
+    fit_cc(cc, x, tip)
+    return cc
+
+
+labels = np.array(train_rec.labels)
+kind = np.array(["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp") for s in labels])
+
+
+def loading_bias(cc, x, tip, kinds):
+    with torch.no_grad():
+        pred, straight = cc(x), cc(torch.zeros(1, x.shape[1]))[0]
+        th = (cc.encoder.clarke(x).norm(dim=-1) / cc.encoder.effective_radius()).sum(-1)
+    r = ((pred[:, :2] - straight[:2]).norm(dim=-1) - (tip[:, :2] - straight[:2]).norm(dim=-1)) * 1e3
+    load = torch.cat([torch.zeros(1, dtype=torch.bool), th[1:] > th[:-1] + 1e-4])
+    return {k: round(r[load & torch.from_numpy(kinds == k)].mean().item(), 2) for k in sorted(set(kinds))}
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("variants")
+    ap.add_argument("--val", action="store_true")
+    a = ap.parse_args()
+    for v in a.variants.split(","):
+        t0 = time.time()
+        cc = fitted(v, x_tr, tip_tr)
+        out = {"name": v, "train": round(rmse(cc(x_tr).detach(), tip_tr), 3)}
+        folds = {}
+        for f in FOLDS:
+            tr = torch.from_numpy(fam != f)
+            folds[f] = rmse(fitted(v, x_tr[tr], tip_tr[tr])(x_tr[~tr]).detach(), tip_tr[~tr])
+        single = torch.from_numpy(fam == "single")
+        extrap = rmse(fitted(v, x_tr[single], tip_tr[single])(x_tr[~single]).detach(), tip_tr[~single])
+        out.update(cv=round(float(np.mean(list(folds.values()))), 3), singles_to_pairs=round(extrap, 3), folds={k: round(s, 2) for k, s in folds.items()},
+                   load_bias_train=loading_bias(cc, x_tr, tip_tr, kind),
+                   params={n: [round(t, 4) for t in p.detach().flatten().tolist()] for n, p in cc.named_parameters()
+                           if "pass" in n or "stiff" in n or "marker" in n or "tip_offset" in n})
+        if a.val:
+            x_va, tip_va = val_data()
+            out["VAL"] = round(rmse(cc(x_va).detach(), tip_va), 3)
+        out["s"] = round(time.time() - t0, 1)
+        print(json.dumps(out), flush=True)
