@@ -31,7 +31,8 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import ACTIVATIONS, FKModel, IKModel, actuated_columns, actuated_selection, actuated_to_features
+from .models import (ACTIVATIONS, FKModel, IKModel, actuated_columns, actuated_selection, actuated_to_features,
+                     pose_from_parts)
 from .robot import RobotSpec
 
 _F64 = torch.float64
@@ -235,12 +236,6 @@ def _first_layer(net: nn.Sequential, mean: Tensor, std: Tensor) -> tuple[Tensor,
     return w, first.bias.detach().to(_F64) - w @ mean.to(_F64)
 
 
-def pose_from_rotation(rotation: Tensor, position: Tensor, bottom: Tensor) -> Tensor:
-    """(B, 3, 3), (B, 3) and the row (0, 0, 0, 1) → homogeneous pose (B, 4, 4)."""
-    top = torch.cat([rotation, position.unsqueeze(-1)], dim=-1)
-    return torch.cat([top, bottom.expand(top.shape[0], 1, 4)], dim=-2)
-
-
 def _rotation_tangent_6d(d6: Tensor, dd6: Tensor) -> tuple[Tensor, Tensor]:
     """Gram–Schmidt of the 6D rotation with tangents: (B, 6), (B, k, 6) → R (B, 3, 3), ω (B, k, 3).
 
@@ -315,7 +310,7 @@ class InferenceFK(nn.Module):
 
     def pose(self, out: Tensor) -> Tensor:
         rot = (rotation_6d_to_matrix if self.rotation == "6d" else quaternion_to_matrix)(out[:, 3:])
-        return pose_from_rotation(rot, out[:, :3], self.bottom)
+        return pose_from_parts(rot, out[:, :3], self.bottom)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.pose(self.mlp(self.first_layer(self.inputs(q))))
@@ -344,7 +339,7 @@ class InferenceJacobian(nn.Module):
         else:
             rot, omega = _rotation_tangent_quaternion(out[:, 3:], dout[..., 3:])
         jac = torch.cat([dout[..., :3], omega], dim=-1).mT                # (B, 6, k)
-        pose = pose_from_rotation(rot, out[:, :3], fk.bottom)
+        pose = pose_from_parts(rot, out[:, :3], fk.bottom)
         if self.decoder_jacobian is None:                                 # clarke: k = D
             return pose, jac, jac @ self.fold.jacobian(q, u)
         features = self.fold.features(self.fold.inputs(q))                # raw: k = N
