@@ -8,7 +8,8 @@ opposes the pull and the distal segments see less tension; −1 paid out: more),
 operator of width ``--sigma-width`` on its command. The moment balance uses the reduced
 tensions, the tendon stretch the plain path (``solve_tendon_qp`` with a force map).
 One extra parameter, μ, fitted with the CC parameters on the training rows.
-Usage: python experiments/hardware_cv/capstan_hysteresis.py [--sigma-width 1e-4 ...] [--val]
+Usage: python experiments/hardware_cv/capstan_hysteresis.py [--sigma-width 1e-4 ...] [--val | --extrap]
+(--extrap: fit on the single-segment family, test on all pairs)
 """
 import argparse
 import json
@@ -78,6 +79,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--sigma-width", type=float, nargs="+", default=[2e-5, 5e-5, 1e-4, 2e-4, 4e-4])
     ap.add_argument("--val", action="store_true")
+    ap.add_argument("--extrap", action="store_true")
     args = ap.parse_args()
     for w in args.sigma_width:
         t0 = time.time()
@@ -93,6 +95,12 @@ if __name__ == "__main__":
             cc.sigma = sig_all[len(x_tr):]
             with torch.no_grad():
                 out["VAL"] = round(rmse(cc(x_va), tip_va), 3)
+        elif args.extrap:
+            single = torch.from_numpy(fam == "single")
+            c, _ = fit_capstan(x_tr[single], tip_tr[single], sig[single])
+            c.sigma = sig[~single]
+            with torch.no_grad():
+                out.update(singles_to_pairs=round(rmse(c(x_tr[~single]), tip_tr[~single]), 3), mu_singles=round(float(c.mu), 4))
         else:
             folds = {}
             for f in FOLDS:
