@@ -1,6 +1,8 @@
 """CC + per-segment Clarke residual network with a play-operator memory input (model (g) of
 docs/hardware.md) and optional linear hysteresis terms whose gain grows with the bends of the
-other segments (features 'own', 'prox', 'dist', 'own*prox', 'total').
+other segments (features 'own', 'prox', 'dist', 'own*prox', 'total'). With "equivariant": true the
+network sees ρ and the memory in each segment's bending-direction frame (radial, tangential) and
+outputs the correction in it: a correction that is the same for every bending direction.
 Usage: python experiments/hardware_cv/residual_memory.py '{"name": {"width": 1e-4, "mem_in": true,
 "lin": ["total"], "c0": true}}' 0,1 [CV|EXTRAP|VAL] [tendon_play=5e-5]"""
 import json
@@ -14,6 +16,8 @@ from torch import nn
 from common import FOLDS, fam, fit, m, radius, rmse, tendon_play, tip_tr, val_data, x_tr
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
 
+EQUI_EPS = 1e-4   # [m] below this bend (in ρ units) the bending-direction frame fades out
+
 class Model(nn.Module):
     def __init__(self, cc, feats_tr, cfg):
         super().__init__()
@@ -25,9 +29,18 @@ class Model(nn.Module):
         self.cs = nn.Parameter(torch.zeros(m, len(cfg.get('lin_static', []))))
     def forward(self, feats, mem, amp):
         rho = feats[..., :2].float()
-        parts = [rho / self.rho_std] + ([mem.float()] if self.cfg['mem_in'] else [])
-        inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
-        delta = self.net(inp) * RESIDUAL_RHO_SCALE
+        if self.cfg.get('equivariant'):   # inputs and output in each segment's bending-direction frame
+            e1 = rho / (rho.pow(2).sum(-1, keepdim=True) + EQUI_EPS**2).sqrt()          # ≈ unit bend direction
+            e2 = torch.stack([-e1[..., 1], e1[..., 0]], -1)
+            local = lambda v: torch.stack([(v * e1).sum(-1), (v * e2).sum(-1)], -1)
+            parts = [local(rho) / self.rho_std] + ([local(mem.float())] if self.cfg['mem_in'] else [])
+            inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
+            out = self.net(inp) * RESIDUAL_RHO_SCALE
+            delta = out[..., :1] * e1 + out[..., 1:] * e2
+        else:
+            parts = [rho / self.rho_std] + ([mem.float()] if self.cfg['mem_in'] else [])
+            inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
+            delta = self.net(inp) * RESIDUAL_RHO_SCALE
         if self.cfg['lin']:
             a = amp[..., :len(self.cfg['lin'])].float()
             gain = self.c0 + (a * self.c).sum(-1) if self.cfg['c0'] else (a * self.c).sum(-1)  # (n, m)
