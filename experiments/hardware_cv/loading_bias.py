@@ -1,0 +1,72 @@
+"""Radial bias of the tip while loading / unloading, binned by the total bend (research script).
+
+Radial error = |predicted tip − straight tip|_xy − |measured tip − straight tip|_xy [mm]
+(positive: the model over-bends). Rows count as loading when the summed bend of the static CC
+encoder grows. Families: single segments, tendon pulls, pairs bending the same / opposite way.
+- static CC fitted on all of train (in-sample), and on single segments only (tested on pairs);
+- model (g) fitted on single segments only (2 seeds, prediction averaged), tested on pairs;
+- with --val: the static CC fitted on train, on val's all3_same / scurve / spiral (a diagnosis
+  after the fact; used for no choice).
+Usage: python experiments/hardware_cv/loading_bias.py [--val]
+"""
+import argparse
+
+import numpy as np
+import torch
+
+from common import DATA, bend_angles, fam, fit, load_recording, spec, tip_tr, train_rec, val_data, x_tr
+from dacr_learn.hardware.learned import train_full_batch
+from residual_memory import Model, prep
+
+BINS = [(0, .5), (.5, 1), (1, 1.5), (1.5, 2), (2, 3)]
+train_kind = np.array(["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp")
+                       for s in train_rec.labels])
+
+
+def table(title, cc, x, tip, kinds, pred):
+    with torch.no_grad():
+        straight = cc(torch.zeros(1, x.shape[1]))[0]
+    r = ((pred[:, :2] - straight[:2]).norm(dim=-1) - (tip[:, :2] - straight[:2]).norm(dim=-1)) * 1e3
+    th = bend_angles(cc, x).sum(-1)
+    dt = torch.cat([torch.zeros(1, dtype=th.dtype), th[1:] - th[:-1]])
+    print(f"{title}  (bins of total bend: " + ", ".join(f"{a}-{b}" for a, b in BINS) + " rad; mean radial error mm (rows))")
+    for k in sorted(set(kinds)):
+        mk = torch.from_numpy(kinds == k)
+        for name, dm in (("load", dt > 1e-4), ("unload", dt < -1e-4)):
+            cells = []
+            for lo, hi in BINS:
+                s = mk & dm & (th >= lo) & (th < hi)
+                cells.append(f"{r[s].mean().item():5.1f} ({int(s.sum()):3d})" if s.sum() > 3 else "     -     ")
+            print(f"  {k:7s} {name:6s} " + "  ".join(cells))
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--val", action="store_true")
+    a = ap.parse_args()
+    cc = fit(x_tr, tip_tr)
+    with torch.no_grad():
+        table("static CC fitted on train, in-sample", cc, x_tr, tip_tr, train_kind, cc(x_tr))
+    single = torch.from_numpy(fam == "single")
+    pairs = ~single
+    cc1 = fit(x_tr[single], tip_tr[single])
+    with torch.no_grad():
+        table("static CC fitted on single segments, on the pairs", cc1, x_tr[pairs], tip_tr[pairs], train_kind[~single.numpy()], cc1(x_tr[pairs]))
+    cfg = {"width": 1e-4, "mem_in": True, "lin": [], "c0": False}
+    feats, mem, amp = prep(cc1, x_tr, cfg)
+    preds = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        model = Model(cc1, feats[single], cfg)
+        inputs, target = (feats[single], mem[single], amp[single]), tip_tr[single]
+        train_full_batch(list(model.parameters()), lambda: (model(*inputs) - target).pow(2).mean() / 1e-6)
+        with torch.no_grad():
+            preds.append(model(feats[pairs], mem[pairs], amp[pairs]))
+    table("(g) fitted on single segments (2 seeds averaged), on the pairs", cc1, x_tr[pairs], tip_tr[pairs],
+          train_kind[~single.numpy()], torch.stack(preds).mean(0))
+    if a.val:
+        x_va, tip_va = val_data()
+        labels = load_recording(DATA / "val.csv", spec).labels
+        kinds = np.array(["all3_same" if "same" in s else "scurve" if "scurve" in s else "spiral" for s in labels])
+        with torch.no_grad():
+            table("VAL (diagnosis only): static CC fitted on train", cc, x_va, tip_va, kinds, cc(x_va))
