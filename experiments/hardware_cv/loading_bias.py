@@ -2,7 +2,8 @@
 
 Radial error = |predicted tip − straight tip|_xy − |measured tip − straight tip|_xy [mm]
 (positive: the model over-bends). Rows count as loading when the summed bend of the static CC
-encoder grows. Families: single segments, tendon pulls, pairs bending the same / opposite way.
+encoder grows. Families: single segments, tendon pulls (of segments 1–2 / of the distal segment 3, which bend all
+three segments), pairs bending the same / opposite way.
 - static CC fitted on all of train (in-sample), and on single segments only (tested on pairs);
 - model (g) fitted on single segments only (2 seeds, prediction averaged), tested on pairs;
 - with --val: the static CC fitted on train, on val's all3_same / scurve / spiral (a diagnosis
@@ -10,6 +11,7 @@ encoder grows. Families: single segments, tendon pulls, pairs bending the same /
 Usage: python experiments/hardware_cv/loading_bias.py [--val]
 """
 import argparse
+import re
 
 import numpy as np
 import torch
@@ -19,8 +21,8 @@ from dacr_learn.hardware.learned import train_full_batch
 from residual_memory import Model, prep
 
 BINS = [(0, .5), (.5, 1), (1, 1.5), (1.5, 2), (2, 3)]
-train_kind = np.array(["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp")
-                       for s in train_rec.labels])
+train_kind = np.array(["pull_distal" if re.search(r"tendon[678]_", s) else "pull" if "tendon" in s else "single" if "_seg" in s
+                       else ("same" if "same" in s else "opp") for s in train_rec.labels])   # tendons 6-8: segment 3
 
 
 def table(title, cc, x, tip, kinds, pred):
@@ -37,7 +39,7 @@ def table(title, cc, x, tip, kinds, pred):
             for lo, hi in BINS:
                 s = mk & dm & (th >= lo) & (th < hi)
                 cells.append(f"{r[s].mean().item():5.1f} ({int(s.sum()):3d})" if s.sum() > 3 else "     -     ")
-            print(f"  {k:7s} {name:6s} " + "  ".join(cells))
+            print(f"  {k:11s} {name:6s} " + "  ".join(cells))
 
 
 if __name__ == "__main__":
