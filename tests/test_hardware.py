@@ -248,6 +248,13 @@ def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec
     tension_f = (flat - rho_f @ gmap.mT).clamp_min(0) / enc.path_length
     assert torch.allclose(bend_w.repeat_interleave(2) * rho_f, tension_f @ reduced, atol=1e-12 * float(rhs.abs().max()))
     assert not torch.allclose(rho_f, rho.flatten(-2), atol=1e-6)
+    # an external load (e.g. gravity) enters the same balance: bend_w·ρ = Gᵀ·tension + load
+    assert torch.allclose(enc.bend_weights(), bend_w.repeat_interleave(2), rtol=1e-14)
+    load = (torch.rand(200, 6, generator=g, dtype=torch.float64) - 0.5) * 2e-3
+    rho_l = solve_tendon_qp(flat, gmap, enc.bend_weights(), 1 / enc.path_length, load=load)
+    tension_l = (flat - rho_l @ gmap.mT).clamp_min(0) / enc.path_length
+    assert torch.allclose(bend_w.repeat_interleave(2) * rho_l, tension_l @ gmap + load, atol=1e-12 * float(rhs.abs().max()))
+    assert not torch.allclose(rho_l, rho.flatten(-2), atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------- calibration

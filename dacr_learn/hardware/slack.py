@@ -55,7 +55,7 @@ def _rotations(angle: Tensor) -> Tensor:
 
 
 def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iters: int = 30,
-                    force_map: Tensor | None = None) -> Tensor:
+                    force_map: Tensor | None = None, load: Tensor | None = None) -> Tensor:
     """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched.
 
     Args:
@@ -64,6 +64,8 @@ def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iter
         force_map: optional (B, N, D) map F of the tendon forces into the bending equations.
             The solution then satisfies the force balance bend_w·ρ = Fᵀ(tendon_w·max(0, x − Gρ))
             instead of the energy minimum (F = G), e.g. with tensions reduced by friction.
+        load: optional (B, D) external generalised force added to that balance (in the units of
+            bend_w·ρ [m], i.e. force/EA), e.g. gravity: bend_w·ρ = Fᵀ(…) + load.
     Returns:
         ρ (B, D). Starts from the set of pulled tendons (x > 0); stops when the set of
         stretched tendons repeats (usually 2–5 iterations).
@@ -75,7 +77,8 @@ def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iter
     for _ in range(iters):
         wa = tendon_w * active
         mat = eye_w + (f.mT * wa.unsqueeze(-2)) @ g
-        rho = torch.linalg.solve(mat, f.mT @ (wa * x).unsqueeze(-1)).squeeze(-1)
+        rhs = (f.mT @ (wa * x).unsqueeze(-1)).squeeze(-1)
+        rho = torch.linalg.solve(mat, rhs if load is None else rhs + load)
         new = (x - rho @ g.mT) > 0
         if torch.equal(new, active):
             break
@@ -125,20 +128,25 @@ class SlackAwareEncoder(nn.Module):
         g = self.g_nominal.unflatten(-1, (m, 2))                                         # (N, m, 2)
         return (g.unsqueeze(-2) @ rot.mT.unsqueeze(1)).squeeze(-2).flatten(-2)
 
+    def bend_weights(self) -> Tensor:
+        """(2m,) weights c/(l_k d_k²) [1/m] of the bending energy, one per Clarke coordinate."""
+        compliance = self.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
+        return (compliance / (self.lengths * self.effective_radius()**2)).repeat_interleave(2)
+
     def clarke(self, x: Tensor) -> Tensor:
         """Displacements (..., N) [m] → Clarke coordinates ρ (..., m, 2) [m] (at the effective radii)."""
         check_tensor(x, "displacements", (self.g_nominal.shape[0],))
         flat = x.reshape(-1, x.shape[-1]).to(torch.float64)
-        d = self.effective_radius()
-        compliance = self.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
-        bend_w = (compliance / (self.lengths * d**2)).repeat_interleave(2)
         tendon_w = 1.0 / self.path_length
-        rho = solve_tendon_qp(flat + self.pretension, self.displacement_map(), bend_w, tendon_w)
+        rho = solve_tendon_qp(flat + self.pretension, self.displacement_map(), self.bend_weights(), tendon_w)
         return rho.reshape(*x.shape[:-1], -1, 2).to(x.dtype)
 
-    def forward(self, x: Tensor) -> Tensor:
-        rho = self.clarke(x)
-        scale = (self.radius / self.effective_radius()).to(x.dtype).unsqueeze(-1)
-        rho = rho * scale
-        beta = self.lengths.to(x.dtype).expand(rho.shape[:-1])
+    def features_from_clarke(self, rho: Tensor) -> Tensor:
+        """Clarke coordinates ρ (..., m, 2) [m] at the effective radii → features (..., m, 4) in the
+        nominal-spec convention (ρ·d_nominal/d_effective, β = l, α = 0)."""
+        rho = rho * (self.radius / self.effective_radius()).to(rho.dtype).unsqueeze(-1)
+        beta = self.lengths.to(rho.dtype).expand(rho.shape[:-1])
         return torch.cat([rho, beta.unsqueeze(-1), torch.zeros_like(beta).unsqueeze(-1)], dim=-1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.features_from_clarke(self.clarke(x))

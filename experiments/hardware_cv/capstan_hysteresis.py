@@ -22,7 +22,7 @@ from torch import nn
 from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tendon_play, tip_tr, val_data, x_tr
 from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
-from dacr_learn.hardware.slack import MIN_LOG_COMPLIANCE, solve_tendon_qp
+from dacr_learn.hardware.slack import solve_tendon_qp
 
 ccmodel._FIT_SCALES["mu"] = 0.05
 
@@ -36,9 +36,7 @@ class CapstanCC(CalibratedCC):
     def clarke_with_friction(self, x):
         enc = self.encoder
         d = enc.effective_radius()
-        compliance = enc.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
-        bend_w = (compliance / (enc.lengths * d**2)).repeat_interleave(2)
-        tendon_w = 1.0 / enc.path_length
+        bend_w, tendon_w = enc.bend_weights(), 1.0 / enc.path_length
         g = enc.displacement_map()                                              # (N, 2m)
         xp = x + enc.pretension
         with torch.no_grad():                                                   # wrap angles from the frictionless shape
@@ -51,12 +49,7 @@ class CapstanCC(CalibratedCC):
         return rho.unflatten(-1, (m, 2))
 
     def forward(self, x):
-        rho = self.clarke_with_friction(x)
-        enc = self.encoder
-        rho = rho * (enc.radius / enc.effective_radius()).unsqueeze(-1)
-        beta = enc.lengths.expand(rho.shape[:-1])
-        f = torch.cat([rho, beta.unsqueeze(-1), torch.zeros_like(beta).unsqueeze(-1)], -1)
-        return self.tip_from_features(f)
+        return self.tip_from_features(self.encoder.features_from_clarke(self.clarke_with_friction(x)))
 
 
 def direction(x, width):

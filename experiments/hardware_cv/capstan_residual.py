@@ -32,10 +32,7 @@ class CapstanView(nn.Module):
 
     def encoder(self, x):
         self.cap.sigma = self.sigma
-        enc = self.cap.encoder
-        rho = self.cap.clarke_with_friction(x) * (enc.radius / enc.effective_radius()).unsqueeze(-1)
-        beta = enc.lengths.expand(rho.shape[:-1])
-        return torch.cat([rho, beta.unsqueeze(-1), torch.zeros_like(beta).unsqueeze(-1)], -1)
+        return self.cap.encoder.features_from_clarke(self.cap.clarke_with_friction(x))
 
     def tip_from_features(self, f):
         return self.cap.tip_from_features(f)

@@ -5,7 +5,7 @@ f = −γ ∂Z/∂ρ with Z = Σ_s z_s the summed height (mocap z, after the fit
 backbone points spread evenly along the robot (plus ``--tip-mass`` times the tip point), is
 evaluated at the gravity-free solution ρ₀ and added to the force balance (one step):
 
-    bend_w ρ = Gᵀ W_a (x − Gρ) + f(ρ₀)
+    bend_w ρ = Gᵀ W_a (x − Gρ) + f(ρ₀)     (``solve_tendon_qp(..., load=f)``)
 
 γ [m, same units as the encoder's energy, divided by EA] is fitted with the CC parameters; γ > 0
 lowers the points along mocap −z, γ < 0 along +z (the sign is not assumed: it is fitted).
@@ -24,26 +24,11 @@ from torch import nn
 from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, val_data, x_tr
 from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
-from dacr_learn.hardware.slack import MIN_LOG_COMPLIANCE, solve_tendon_qp
+from dacr_learn.hardware.slack import solve_tendon_qp
 from dacr_learn.kinematics import backbone_points
 
 ccmodel._FIT_SCALES["gravity"] = 1e-5
 POINTS = 8   # backbone points per segment
-
-
-def solve_with_load(x, g, bend_w, tendon_w, load, iters=30):
-    """solve_tendon_qp with an external generalised force ``load`` (B, D) in the balance."""
-    active = x > 0
-    rho = x.new_zeros(x.shape[0], g.shape[1])
-    for _ in range(iters):
-        wa = tendon_w * active
-        mat = torch.diag_embed(bend_w) + (g.mT * wa.unsqueeze(-2)) @ g
-        rho = torch.linalg.solve(mat, (g.mT @ (wa * x).unsqueeze(-1)).squeeze(-1) + load)
-        new = (x - rho @ g.mT) > 0
-        if torch.equal(new, active):
-            break
-        active = new
-    return rho
 
 
 class GravityCC(CalibratedCC):
@@ -52,32 +37,23 @@ class GravityCC(CalibratedCC):
         self.tip_mass = tip_mass
         self.gravity = nn.Parameter(torch.zeros((), dtype=torch.float64))
 
-    def features_from_rho(self, rho):
-        enc = self.encoder
-        rho = rho.unflatten(-1, (m, 2)) * (enc.radius / enc.effective_radius()).unsqueeze(-1)
-        beta = enc.lengths.expand(rho.shape[:-1])
-        return torch.cat([rho, beta.unsqueeze(-1), torch.zeros_like(beta).unsqueeze(-1)], -1)
-
     def height(self, rho):
         """(B,) summed mocap-z of the backbone points (+ tip_mass × tip) for ρ (B, 2m)."""
-        pts = self.to_world(backbone_points(self.spec, self.features_from_rho(rho), POINTS))[..., 1:, :]
+        pts = self.to_world(backbone_points(self.spec, self.encoder.features_from_clarke(rho.unflatten(-1, (m, 2))), POINTS))[..., 1:, :]
         return pts[..., 2].sum(-1) / pts.shape[-2] + self.tip_mass * pts[..., -1, 2]
 
     def encode(self, x):
         enc = self.encoder
-        d = enc.effective_radius()
-        bend_w = (enc.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp() / (enc.lengths * d**2)).repeat_interleave(2)
-        tendon_w, g, xp = 1.0 / enc.path_length, enc.displacement_map(), x + enc.pretension
+        bend_w, tendon_w, g, xp = enc.bend_weights(), 1.0 / enc.path_length, enc.displacement_map(), x + enc.pretension
         rho0 = solve_tendon_qp(xp, g, bend_w, tendon_w)
         with torch.enable_grad():
             r = rho0.detach().requires_grad_(True)
             dz = torch.autograd.grad(self.height(r).sum(), r)[0]       # ∂Z/∂ρ at ρ₀ (B, 2m)
-        return self.features_from_rho(solve_with_load(xp, g, bend_w, tendon_w, -self.gravity * dz))
+        rho = solve_tendon_qp(xp, g, bend_w, tendon_w, load=-self.gravity * dz)
+        return self.encoder.features_from_clarke(rho.unflatten(-1, (m, 2)))
 
     def forward(self, x):
         return self.tip_from_features(self.encode(x))
-
-
 
 
 def fitted(tip_mass, x, tip):

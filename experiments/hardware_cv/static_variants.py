@@ -25,7 +25,7 @@ from torch import nn
 from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, train_rec, val_data, x_tr
 from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
-from dacr_learn.hardware.slack import MIN_LOG_COMPLIANCE, SlackAwareEncoder, solve_tendon_qp
+from dacr_learn.hardware.slack import SlackAwareEncoder
 
 ccmodel._FIT_SCALES.update({"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1, "marker_lateral": 1e-3})
 
@@ -48,14 +48,11 @@ class CoupledEncoder(SlackAwareEncoder):
         factor = 1 + self.passing * (scale - 1)                                    # (N, m)
         return g * factor.repeat_interleave(2, dim=-1)
 
-    def clarke(self, x):
-        flat = x.reshape(-1, x.shape[-1]).to(torch.float64)
-        d = self.effective_radius()
-        compliance = self.log_compliance.clamp(min=MIN_LOG_COMPLIANCE).exp()
-        stiff = torch.cat([torch.zeros(1, dtype=torch.float64), self.log_stiffness]).exp() if "stiff" in self.variant else 1.0
-        bend_w = (stiff * compliance / (self.lengths * d**2)).repeat_interleave(2)
-        rho = solve_tendon_qp(flat + self.pretension, self.displacement_map(), bend_w, 1.0 / self.path_length)
-        return rho.reshape(*x.shape[:-1], -1, 2).to(x.dtype)
+    def bend_weights(self):
+        if "stiff" not in self.variant:
+            return super().bend_weights()
+        stiff = torch.cat([torch.zeros(1, dtype=torch.float64), self.log_stiffness]).exp()
+        return super().bend_weights() * stiff.repeat_interleave(2)
 
 
 class VariantCC(CalibratedCC):
