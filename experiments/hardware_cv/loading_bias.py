@@ -17,8 +17,7 @@ import numpy as np
 import torch
 
 from common import DATA, bend_angles, fam, fit, load_recording, spec, tip_tr, train_rec, val_data, x_tr
-from dacr_learn.hardware.learned import train_full_batch
-from residual_memory import Model, prep
+from residual_memory import fit_predict
 
 BINS = [(0, .5), (.5, 1), (1, 1.5), (1.5, 2), (2, 3)]
 train_kind = np.array(["pull_distal" if re.search(r"tendon[678]_", s) else "pull" if "tendon" in s else "single" if "_seg" in s
@@ -55,15 +54,7 @@ if __name__ == "__main__":
     with torch.no_grad():
         table("static CC fitted on single segments, on the pairs", cc1, x_tr[pairs], tip_tr[pairs], train_kind[~single.numpy()], cc1(x_tr[pairs]))
     cfg = {"width": 1e-4, "mem_in": True, "lin": [], "c0": False}
-    feats, mem, amp = prep(cc1, x_tr, cfg)
-    preds = []
-    for seed in (0, 1):
-        torch.manual_seed(seed)
-        model = Model(cc1, feats[single], cfg)
-        inputs, target = (feats[single], mem[single], amp[single]), tip_tr[single]
-        train_full_batch(list(model.parameters()), lambda: (model(*inputs) - target).pow(2).mean() / 1e-6)
-        with torch.no_grad():
-            preds.append(model(feats[pairs], mem[pairs], amp[pairs]))
+    preds = [fit_predict(cfg, cc1, x_tr, tip_tr, single, pairs, seed)[1] for seed in (0, 1)]
     table("(g) fitted on single segments (2 seeds averaged), on the pairs", cc1, x_tr[pairs], tip_tr[pairs],
           train_kind[~single.numpy()], torch.stack(preds).mean(0))
     if a.val:

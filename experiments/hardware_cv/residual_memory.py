@@ -67,14 +67,19 @@ def prep(cc, x, cfg):
         amp = torch.stack([names[k] for k in keys], -1) if keys else th.new_zeros(*th.shape, 0)
     return feats, mem, amp
 
-def run(cfg, cc, x_all, tip_all, tr, te, seed, steps=1500):
+def fit_predict(cfg, cc, x_all, tip_all, tr, te, seed, steps=1500):
+    """Train the model on rows ``tr`` of a recording (history runs along all rows); returns the
+    model and its tip predictions (float64, m) on rows ``te``."""
     feats, mem, amp = prep(cc, x_all, cfg)
     torch.manual_seed(seed)
     model = Model(cc, feats[tr], cfg)
     a = (feats[tr], mem[tr], amp[tr]); ttr = tip_all[tr]
     train_full_batch(list(model.parameters()), lambda: (model(*a) - ttr).pow(2).mean() / 1e-6, steps=steps)
     with torch.no_grad():
-        pred = model(feats[te], mem[te], amp[te])
+        return model, model(feats[te], mem[te], amp[te])
+
+def run(cfg, cc, x_all, tip_all, tr, te, seed, steps=1500):
+    model, pred = fit_predict(cfg, cc, x_all, tip_all, tr, te, seed, steps)
     return rmse(pred, tip_all[te]), model.c0.tolist() + model.c.tolist() + model.cs.flatten().tolist()
 
 if __name__ == '__main__':
