@@ -1,4 +1,4 @@
-"""Clarke transform and the linear joint-space maps of the DACR abstraction (DESIGN.md §1).
+"""Clarke transform and the linear joint-space maps of the DACR abstraction (docs/design.md §1).
 
 Pure, batched, differentiable functions. Notation:
 
@@ -82,7 +82,7 @@ class JointSpaceMaps(NamedTuple):
 
 
 def joint_space_maps(spec: RobotSpec) -> JointSpaceMaps:
-    """Build the linear maps of DESIGN.md §1 for independent or coupled routing.
+    """Build the linear maps of docs/design.md §1 for independent or coupled routing.
 
     Coupled routing: q_i⁽ʲ⁾ = Σ_{k≤j} [h⁽ᵏ⁾ − (d_i⁽ʲ⁾/d⁽ᵏ⁾)(ρ_re⁽ᵏ⁾ cos ψ_i⁽ʲ⁾ + ρ_im⁽ᵏ⁾ sin ψ_i⁽ʲ⁾)].
     """

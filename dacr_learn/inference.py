@@ -12,7 +12,7 @@ Built from a trained :class:`~dacr_learn.models.FKModel` / :class:`~dacr_learn.m
 - :class:`InferenceIK`: tip pose (B, 4, 4) → joint vector (B, N); for "clarke" models through the
   Clarke decoder, so every output satisfies the displacement constraint.
 
-Folding (DESIGN.md §1): the Clarke encoder, the actuated-column selection and the input
+Folding (docs/design.md §1): the Clarke encoder, the actuated-column selection and the input
 standardisation are affine in u = [q − q_ref, g], so they are folded into the first layer:
 a₁ = K·u + k₀. q_ref is the nominal (straight) joint vector, subtracted first so that float32
 keeps the small displacements exact. g_k = sqrt((α_k r_k)² + l_k²) − l_k is the helix term of a

@@ -1,4 +1,4 @@
-"""Constant-curvature kinematics from Clarke features (DESIGN.md §2).
+"""Constant-curvature kinematics from Clarke features (docs/design.md §2).
 
 Per segment, with u = (ρ_re, ρ_im)/d, φ² = ‖u‖², s = sin φ/φ, f = (1 − cos φ)/φ²:
 R = I + s·K + f·K² (rotation about (−u_y, u_x, 0) by φ), p = β·(u_x f, u_y f, s),

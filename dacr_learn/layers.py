@@ -1,4 +1,4 @@
-"""Differentiable Clarke layers: joint vector ↔ feature tensor (DESIGN.md §1, §3).
+"""Differentiable Clarke layers: joint vector ↔ feature tensor (docs/design.md §1, §3).
 
 - Joint vector, shape (..., num_joints): the joint lengths of segment 1, 2, …, m [m], then the
   twist α [rad] of each twisting segment in segment order.

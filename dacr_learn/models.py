@@ -1,4 +1,4 @@
-"""Neural FK / IK models with a feature front-end chosen by name (DESIGN.md §5).
+"""Neural FK / IK models with a feature front-end chosen by name (docs/design.md §5).
 
 Front-ends ("clarke" | "raw"):
 - clarke: ClarkeEncoder → only the actuated columns (ρ_re, ρ_im per segment, β and α where

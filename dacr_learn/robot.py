@@ -1,6 +1,6 @@
 """Robot description: a frozen, validated :class:`RobotSpec` and its YAML/dict I/O.
 
-Schema (DESIGN.md §4)::
+Schema (docs/design.md §4)::
 
     name: tdcr-3seg
     routing: coupled            # or independent

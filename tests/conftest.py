@@ -1,7 +1,7 @@
 """Shared helpers for the DACR core tests: hypothesis strategies and independent references.
 
 The reference implementations here deliberately do NOT call dacr_learn: they are written
-from the formulas of DESIGN.md §1/§2 in numpy / plain Python (joint lengths from the
+from the formulas of docs/design.md §1/§2 in numpy / plain Python (joint lengths from the
 constant-curvature geometry, the classic Rz(θ)Ry(φ)Rz(−θ) arc, a rigid-link URDF chain for
 pytorch_kinematics), so that a test compares our code against something that was derived
 separately. Test modules import them with ``from conftest import ...``.
@@ -32,7 +32,7 @@ FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthChe
 
 @st.composite
 def segment_dicts(draw, seg_type: str | None = None, layout: str | None = None, unequal: bool | None = None):
-    """A valid, well-conditioned segment dict of the YAML schema (DESIGN.md §4)."""
+    """A valid, well-conditioned segment dict of the YAML schema (docs/design.md §4)."""
     seg_type = seg_type or draw(st.sampled_from(["0", "I", "II", "III"]))
     length = draw(st.floats(0.05, 0.2))
     radius = draw(st.floats(0.004, 0.015))
@@ -66,7 +66,7 @@ def segment_dicts(draw, seg_type: str | None = None, layout: str | None = None, 
 
 @st.composite
 def robot_dicts(draw, max_segments: int = 3, types=("0", "I", "II", "III"), routing: str | None = None):
-    """A valid robot dict; coupled robots only twist in their last segment (DESIGN.md §1)."""
+    """A valid robot dict; coupled robots only twist in their last segment (docs/design.md §1)."""
     m = draw(st.integers(1, max_segments))
     routing = routing or draw(st.sampled_from(["independent", "coupled"]))
     segs = []
@@ -112,7 +112,7 @@ def random_features(spec: RobotSpec, batch: tuple[int, ...], seed: int, dtype=to
 
 
 def reference_joint_vector(spec: RobotSpec, features: np.ndarray) -> np.ndarray:
-    """Joint vector from the geometry of DESIGN.md §1, one sample: features (m, 4) → (num_joints,).
+    """Joint vector from the geometry of docs/design.md §1, one sample: features (m, 4) → (num_joints,).
 
     Joint i of segment j at (d_i, ψ_i) runs along every segment k it passes (k = j for
     independent routing, k ≤ j for coupled). Along segment k it has the helix length

@@ -1,4 +1,4 @@
-"""Clarke matrices: the paper's properties (symmetric joints) and the errata of DESIGN.md §7.
+"""Clarke matrices: the paper's properties (symmetric joints) and the errata of docs/design.md §7.
 
 The paper's formulas are re-implemented here in numpy exactly as printed (with M_P⁻¹ from
 its Eq. MP_inverse, i.e. rows (cos ψ_i, sin ψ_i) without d_i/d), so each erratum test shows
