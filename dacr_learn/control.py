@@ -17,8 +17,8 @@ Everything runs in float64. Pure torch; no Lightning, no Rerun.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor

@@ -60,7 +60,7 @@ def _metadata_digest(meta: dict) -> str:
 
 def load_lightning_checkpoint(ckpt: str | Path):
     """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer."""
-    from .training import FKModule, IKModule       # Lightning is needed to export, not to run
+    from .training import FKModule, IKModule  # Lightning is needed to export, not to run
 
     keys = torch.load(ckpt, map_location="cpu", weights_only=True).get("state_dict", {})
     if "model.front.norm.mean" in keys:
@@ -230,7 +230,7 @@ def _runner(path: Path, kind: str, meta: dict):
 
 
 def load(path: str | Path, name: str | None = None, *, robot=None, features: str | None = None,
-         checkpoint: str | Path | None = None) -> "ExportedModule":
+         checkpoint: str | Path | None = None) -> ExportedModule:
     """Load an exported module as a callable nn.Module (no Lightning needed).
 
     Args:

@@ -31,8 +31,15 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import (ACTIVATIONS, FKModel, IKModel, actuated_columns, actuated_selection, actuated_to_features,
-                     pose_from_parts)
+from .models import (
+    ACTIVATIONS,
+    FKModel,
+    IKModel,
+    actuated_columns,
+    actuated_selection,
+    actuated_to_features,
+    pose_from_parts,
+)
 from .robot import RobotSpec
 
 _F64 = torch.float64

@@ -22,9 +22,10 @@ This module does not depend on ``torch.nn``; all geometry is kept in plain float
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -107,7 +108,7 @@ class SegmentSpec:
         return self.type in TWISTING_TYPES
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], where: str) -> "SegmentSpec":
+    def from_dict(cls, d: Mapping[str, Any], where: str) -> SegmentSpec:
         if not isinstance(d, Mapping):
             _fail(where, d, "a mapping with keys " + ", ".join(sorted(_SEGMENT_KEYS)))
         unknown = set(d) - _SEGMENT_KEYS
@@ -216,7 +217,7 @@ class RobotSpec:
     segments: tuple[SegmentSpec, ...]
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "RobotSpec":
+    def from_dict(cls, d: Mapping[str, Any]) -> RobotSpec:
         if not isinstance(d, Mapping):
             _fail("robot", d, "a mapping with keys name, routing, segments")
         unknown = set(d) - _ROBOT_KEYS
@@ -240,7 +241,7 @@ class RobotSpec:
         return cls(name, routing, segments)
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "RobotSpec":
+    def from_yaml(cls, path: str | Path) -> RobotSpec:
         import yaml
 
         with open(path) as f:

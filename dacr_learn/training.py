@@ -10,8 +10,8 @@ all-gathered), so the same config runs unchanged with ``--trainer.strategy ddp``
 """
 from __future__ import annotations
 
-import torch
 import lightning.pytorch as pl
+import torch
 from torch import Tensor
 
 from .kinematics import backbone_points, forward_kinematics

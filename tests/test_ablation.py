@@ -8,8 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dacr_learn.ablation import COLUMNS, load_config, main, make_jobs
-from dacr_learn.ablation import runner
+from dacr_learn.ablation import COLUMNS, load_config, main, make_jobs, runner
 from dacr_learn.data import SamplerOptions, generate
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule

@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import FAST, ROOT
 from hypothesis import given
 from hypothesis import strategies as st
 
-from conftest import FAST, ROOT
 from dacr_learn.clarke import clarke_matrix, clarke_matrix_inverse, joint_space_maps
 from dacr_learn.layers import ClarkeEncoder
 from dacr_learn.robot import RobotSpec

@@ -12,13 +12,30 @@ import numpy as np
 import pytest
 import pytorch_kinematics as pk
 import torch
+from conftest import (
+    FAST,
+    ROBOT_CONFIGS,
+    arc_parameters,
+    chain_joint_values,
+    classic_arc,
+    classic_forward_kinematics,
+    random_features,
+    robots,
+    rot_z,
+    urdf_chain_string,
+    urdf_end_link,
+)
 from hypothesis import given
 from hypothesis import strategies as st
 
-from conftest import (FAST, ROBOT_CONFIGS, arc_parameters, chain_joint_values, classic_arc,
-                      classic_forward_kinematics, random_features, robots, rot_z, urdf_chain_string, urdf_end_link)
-from dacr_learn.kinematics import (analytic_inverse_kinematics, backbone_points, bending_coefficients,
-                                   forward_kinematics, segment_poses, segment_tip_poses)
+from dacr_learn.kinematics import (
+    analytic_inverse_kinematics,
+    backbone_points,
+    bending_coefficients,
+    forward_kinematics,
+    segment_poses,
+    segment_tip_poses,
+)
 from dacr_learn.robot import RobotSpec
 
 seeds = st.integers(0, 2**31 - 1)

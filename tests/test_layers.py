@@ -6,11 +6,18 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import (
+    FAST,
+    ROBOT_CONFIGS,
+    random_features,
+    reference_actuated_matrix,
+    reference_joint_vector,
+    robot_dicts,
+    robots,
+)
 from hypothesis import given
 from hypothesis import strategies as st
 
-from conftest import (FAST, ROBOT_CONFIGS, random_features, reference_actuated_matrix, reference_joint_vector,
-                      robot_dicts, robots)
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.robot import RobotSpec
 

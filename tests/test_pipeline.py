@@ -11,7 +11,7 @@ import torch
 import yaml
 
 import train
-from dacr_learn.training import FKModule, IKModule
+from dacr_learn.training import FKModule
 
 RERUN = Path(sys.executable).parent / "rerun"
 

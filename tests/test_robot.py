@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 import yaml
+from conftest import FAST, ROBOT_CONFIGS, robot_dicts
 from hypothesis import given
 
-from conftest import FAST, ROBOT_CONFIGS, robot_dicts
 from dacr_learn.robot import DEFAULT_BEND, RobotSpec
 
 

@@ -21,8 +21,19 @@ import torch
 from ..robot import RobotSpec
 from .calibration import calibrate, default_map_path, write_calibration
 from .ccmodel import CalibratedCC, fit_cc
-from .learned import (CCClarkeResidual, CCClarkeResidualHistory, CCOnly, CCTipResidual, LinearRaw, Pretrained, Split, TipMLP,
-                      PRETRAIN_SAMPLES, make_split, synthetic_split)
+from .learned import (
+    PRETRAIN_SAMPLES,
+    CCClarkeResidual,
+    CCClarkeResidualHistory,
+    CCOnly,
+    CCTipResidual,
+    LinearRaw,
+    Pretrained,
+    Split,
+    TipMLP,
+    make_split,
+    synthetic_split,
+)
 from .metrics import tip_metrics
 from .recording import Recording, load_recording
 from .servo_map import ServoMap

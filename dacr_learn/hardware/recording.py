@@ -57,7 +57,7 @@ class Recording:
     def servo_columns(self) -> tuple[str, ...]:
         return tuple(f"servo_{i}" for i in self.servo_ids)
 
-    def select(self, mask: Tensor) -> "Recording":
+    def select(self, mask: Tensor) -> Recording:
         """Rows where the boolean ``mask`` (N,) is true, in their original order."""
         idx = torch.nonzero(mask, as_tuple=False).flatten().tolist()
         return Recording(self.servo_ids, self.servo[mask], self.tip[mask],

@@ -14,9 +14,10 @@ Joint displacement (the DACR ρ_i of that joint, positive = tendon shortened):
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -49,7 +50,7 @@ class ServoMap:
     calibration: dict[str, Any] = field(default_factory=dict, compare=False)
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "ServoMap":
+    def from_dict(cls, d: Mapping[str, Any]) -> ServoMap:
         if not isinstance(d, Mapping) or set(d) - _KEYS:
             raise ValueError(f"servo map: expected a mapping with keys {sorted(_KEYS)}, got {d!r:.200}")
         entries = d.get("servos")
@@ -68,7 +69,7 @@ class ServoMap:
                    dict(d.get("calibration", {}) or {}))
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "ServoMap":
+    def from_yaml(cls, path: str | Path) -> ServoMap:
         import yaml
 
         with open(path) as f:

@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 import torch
+from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tendon_play, tip_tr, val_data, x_tr
 from torch import nn
 
-from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tendon_play, tip_tr, val_data, x_tr
 from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
 from dacr_learn.hardware.slack import solve_tendon_qp

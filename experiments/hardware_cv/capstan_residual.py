@@ -12,11 +12,10 @@ import time
 
 import numpy as np
 import torch
-from torch import nn
-
 from capstan_hysteresis import direction, fit_capstan
 from common import FOLDS, fam, tip_tr, val_data, x_tr
 from residual_memory import run
+from torch import nn
 
 SIGMA_WIDTH = 2e-5
 CFG = {"width": 1e-4, "mem_in": True, "lin": [], "c0": False}

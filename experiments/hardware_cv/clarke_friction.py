@@ -7,7 +7,6 @@ import sys
 
 import numpy as np
 import torch
-
 from common import FOLDS, CalibratedCC, fam, fit_cc, play_operator, radius, rmse, spec, tip_tr, x_tr
 
 

@@ -15,7 +15,6 @@ import re
 
 import numpy as np
 import torch
-
 from common import DATA, bend_angles, fam, fit, load_recording, spec, tip_tr, train_rec, val_data, x_tr
 from residual_memory import fit_predict
 

@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import torch
-
 from common import FOLDS, CalibratedCC, fam, fit_cc, rmse, spec, tip_tr, x_tr
 
 

@@ -10,9 +10,10 @@ import time
 
 import numpy as np
 import torch
+from common import FOLDS, fam, offset_removed_rmse, smap, spec, train_rec
+from common import fit as cc_for
 from torch import nn
 
-from common import FOLDS, fam, fit as cc_for, offset_removed_rmse, smap, spec, train_rec
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
 
 

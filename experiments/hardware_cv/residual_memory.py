@@ -11,9 +11,9 @@ import time
 
 import numpy as np
 import torch
+from common import FOLDS, fam, fit, m, radius, rmse, tendon_play, tip_tr, val_data, x_tr
 from torch import nn
 
-from common import FOLDS, fam, fit, m, radius, rmse, tendon_play, tip_tr, val_data, x_tr
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
 
 EQUI_EPS = 1e-4   # [m] below this bend (in ρ units) the bending-direction frame fades out

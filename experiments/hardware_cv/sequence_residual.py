@@ -10,9 +10,9 @@ import time
 
 import numpy as np
 import torch
+from common import FOLDS, fam, fit, m, rmse, tip_tr, val_data, x_tr
 from torch import nn
 
-from common import FOLDS, fam, fit, m, rmse, tip_tr, val_data, x_tr
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp
 
 WARMUP, WINDOW, STEPS, LR = 32, 64, 1500, 3e-3

@@ -4,7 +4,6 @@ import json
 import math
 
 import torch
-
 from common import cv_static_cc, train_rec
 
 stamps = torch.as_tensor(train_rec.timestamp, dtype=torch.float64)

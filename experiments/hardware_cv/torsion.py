@@ -4,7 +4,6 @@ force vector of segment j. At the encoder's equilibrium each segment bends along
 force through it, so the cross product vanishes: the model predicts no twist. This script checks
 that numerically (max |moment| relative to its scale). Usage: python experiments/hardware_cv/torsion.py"""
 import torch
-
 from common import fit, m, tip_tr, val_data, x_tr
 
 
