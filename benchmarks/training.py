@@ -87,7 +87,7 @@ def main() -> None:
         plain.append(plain_run(dm, args.steps))
     result = {"lightning_step_ms": statistics.median(light) * 1e3, "plain_step_ms": statistics.median(plain) * 1e3,
               "ratio": statistics.median(light) / statistics.median(plain),
-              "ratio_of_medians_per_pair": statistics.median([a / b for a, b in zip(light, plain)]),
+              "ratio_of_medians_per_pair": statistics.median([a / b for a, b in zip(light, plain, strict=True)]),
               "generation_samples_per_s": generation_rate(1_000_000, args.repeats), "threads": args.threads}
     if args.json:
         print(json.dumps(result))

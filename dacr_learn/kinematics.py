@@ -92,8 +92,8 @@ def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor
             [-sx, -sy, 1 - f * phi_sq, beta * s]]
     if alpha is not None:
         ca, sa = torch.cos(alpha), torch.sin(alpha)
-        rows[0], rows[1] = ([ca * a - sa * b for a, b in zip(rows[0], rows[1])],
-                            [sa * a + ca * b for a, b in zip(rows[0], rows[1])])
+        rows[0], rows[1] = ([ca * a - sa * b for a, b in zip(rows[0], rows[1], strict=True)],
+                            [sa * a + ca * b for a, b in zip(rows[0], rows[1], strict=True)])
     shape = torch.broadcast_shapes(phi_sq.shape, beta.shape, *(() if alpha is None else (alpha.shape,)))
     out = torch.empty(*shape, 4, 4, dtype=phi_sq.dtype, device=phi_sq.device)
     for i, row in enumerate(rows):

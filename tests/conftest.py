@@ -122,7 +122,7 @@ def reference_joint_vector(spec: RobotSpec, features: np.ndarray) -> np.ndarray:
     q = []
     for j, seg in enumerate(spec.segments):
         passed = range(j + 1) if spec.routing == "coupled" else (j,)
-        for psi, di in zip(seg.joint_angles, seg.joint_radii):
+        for psi, di in zip(seg.joint_angles, seg.joint_radii, strict=True):
             total = 0.0
             for k in passed:
                 sk = spec.segments[k]
@@ -142,7 +142,7 @@ def reference_actuated_matrix(spec: RobotSpec) -> np.ndarray:
     ext = [k for k, s in enumerate(spec.segments) if s.extends]
     for j, seg in enumerate(spec.segments):
         passed = set(range(j + 1)) if spec.routing == "coupled" else {j}
-        for psi, di in zip(seg.joint_angles, seg.joint_radii):
+        for psi, di in zip(seg.joint_angles, seg.joint_radii, strict=True):
             row = np.zeros(2 * spec.num_segments + len(ext))
             for k in passed:
                 dk = spec.segments[k].radius

@@ -201,7 +201,7 @@ def test_slack_encoder_gradients_match_finite_differences(spec):
     names = ["log_radius_scale", "rotation", "log_compliance", "pretension"]
     inputs = tuple(enc.get_parameter(n).detach().clone().requires_grad_(True) for n in names)
     assert torch.autograd.gradcheck(
-        lambda *p: torch.func.functional_call(enc, dict(zip(names, p)), (x,))[..., :2], inputs, eps=1e-7, atol=1e-7)
+        lambda *p: torch.func.functional_call(enc, dict(zip(names, p, strict=True)), (x,))[..., :2], inputs, eps=1e-7, atol=1e-7)
 
 
 def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec):
@@ -279,7 +279,7 @@ def test_calibration_recovers_the_servo_map_of_ftdcr_v4(spec, pulls):
     assert got == truth
     assert all(a.sign == 1 for a in smap.servos)
     assert report["slack_level_mm"] == pytest.approx(-9.99, abs=0.02)
-    for seg, expected in zip(report["segments"], (-174.0, -145.0, -115.0)):
+    for seg, expected in zip(report["segments"], (-174.0, -145.0, -115.0), strict=True):
         assert seg["offset_deg"] == pytest.approx(expected, abs=3.0)
         assert seg["angle_rms_deg"] < 8.0
     # the committed calibrated YAML and servo map are exactly this result
@@ -345,7 +345,7 @@ def _second_robot(tmp_path: Path) -> tuple[Path, RobotSpec]:
         {"type": "0", "length": 0.07, "radius": 0.005, "joints": 4, "offset": 0.0, "limits": {"bend": 0.8}}]}
     path = tmp_path / "synthetic_2seg.yaml"
     RobotSpec.from_dict(nominal).to_yaml(path)
-    true = {**nominal, "segments": [s | {"offset": o} for s, o in zip(nominal["segments"], TRUE_OFFSETS)]}
+    true = {**nominal, "segments": [s | {"offset": o} for s, o in zip(nominal["segments"], TRUE_OFFSETS, strict=True)]}
     return path, RobotSpec.from_dict(true)
 
 

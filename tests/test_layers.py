@@ -146,7 +146,7 @@ def test_common_mode_offsets_vanish_symmetric_type0(d, seed):
     g = torch.Generator().manual_seed(seed)
     q = dec(random_features(spec, (5,), seed))
     offsets = torch.cat([torch.full((s.num_joints,), float(c)) for s, c in
-                         zip(spec.segments, 0.01 * torch.randn(spec.num_segments, generator=g))]).to(F64)
+                         zip(spec.segments, 0.01 * torch.randn(spec.num_segments, generator=g), strict=True)]).to(F64)
     shifted = enc(q + offsets + 0.003)
     assert (shifted[..., :2] - enc(q)[..., :2]).abs().max() <= 1e-12
 

@@ -174,7 +174,7 @@ def test_every_robot_config_loads(path):
     spec = RobotSpec.from_yaml(path)
     assert spec.name == raw["name"] and spec.routing == raw.get("routing", "independent")
     assert spec.num_segments == len(raw["segments"])
-    for seg, seg_raw in zip(spec.segments, raw["segments"]):
+    for seg, seg_raw in zip(spec.segments, raw["segments"], strict=True):
         assert seg.type == seg_raw["type"] and seg.length == seg_raw["length"]
         n = seg_raw.get("joints", len(seg_raw.get("joint_angles", [])))
         assert seg.num_joints == n

@@ -23,7 +23,7 @@ import torch
 from ..robot import RobotSpec
 from .calibration import default_map_path
 from .ccmodel import CalibratedCC, fit_cc
-from .metrics import tip_metrics
+from .metrics import offset_removed_errors, tip_metrics
 from .recording import load_recording
 from .servo_map import ServoMap
 from .visual import label_runs
@@ -59,12 +59,12 @@ def family_rmse(path: Path) -> dict[str, dict[str, float]]:
     data = np.array([[float(v) for v in r[1:]] for r in rows])
     meas, models = data[:, :3], [h[:-2] for h in header[4::3]]
     out = {}
+    fams = sorted(set(map(family, labels)))
+    masks = {f: np.array([family(lab) == f for lab in labels]) for f in fams}
     for k, name in enumerate(models):
-        e = data[:, 3 + 3 * k:6 + 3 * k] - meas
-        e = e - e.mean(0)                                    # offset removed over the whole file
-        fams = sorted(set(map(family, labels)))
-        out[name] = {f: float(np.sqrt((np.linalg.norm(e[[family(lab) == f for lab in labels]], axis=1) ** 2)
-                                      .mean())) for f in fams}
+        # offset removed over the whole file, then the RMSE within each family
+        err = offset_removed_errors(torch.from_numpy(data[:, 3 + 3 * k:6 + 3 * k]), torch.from_numpy(meas)).numpy()
+        out[name] = {f: float(np.sqrt((err[m] ** 2).mean())) for f, m in masks.items()}
     return out
 
 

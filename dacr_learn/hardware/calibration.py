@@ -144,7 +144,7 @@ def _layouts(spec: RobotSpec) -> list[np.ndarray]:
 def partition_score(groups, psi, log_gain, layouts, log_pred) -> float:
     """Objective of step 4 for labelled groups (lists of servo columns, one per segment)."""
     score, means = 0.0, []
-    for g, phi in zip(groups, layouts):
+    for g, phi in zip(groups, layouts, strict=True):
         res = fit_layout(psi[g], phi)[2]
         score += float((res**2).sum()) / SIGMA_ANGLE**2
         lg = log_gain[g]
@@ -199,7 +199,7 @@ def _segment_joints(seg, group: list[int], psi: np.ndarray) -> tuple[float, dict
     """(δ, {column: joint}, residuals) for one segment, cyclic labels fixed for symmetric layouts."""
     phi = np.asarray(seg.joint_angles) - seg.joint_angles[0]
     delta, slots, res = fit_layout(psi[group], phi)
-    joint = dict(zip(group, slots))
+    joint = dict(zip(group, slots, strict=True))
     if seg.symmetric:
         first = joint[min(group)]
         delta += float(phi[first])
@@ -220,14 +220,14 @@ def calibrate(rec: Recording, spec: RobotSpec) -> tuple[RobotSpec, ServoMap, dic
     groups = assign_segments(spec, fits)
     d = spec.to_dict()
     servos, per_servo, per_segment = [], {}, []
-    for j, (seg, group) in enumerate(zip(spec.segments, groups)):
+    for j, (seg, group) in enumerate(zip(spec.segments, groups, strict=True)):
         delta, joint, res = _segment_joints(seg, group, psi)
         phi = np.asarray(seg.joint_angles) - seg.joint_angles[0]
         if seg.symmetric:
             d["segments"][j]["offset"] = delta
         else:
             d["segments"][j]["joint_angles"] = [float(wrap(a + delta)) for a in phi]
-        for c, r in zip(group, res):
+        for c, r in zip(group, res, strict=True):
             f = fits[c]
             servos.append(ServoAssignment(f.servo, j, joint[c], f.sign, 0.0))
             per_servo[f.servo] = {"segment": j, "joint": joint[c], "sign": f.sign, "rows": f.rows,

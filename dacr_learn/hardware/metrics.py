@@ -13,15 +13,23 @@ from torch import Tensor
 from ..checks import check_tensor
 
 
-def offset_removed_rmse(pred: Tensor, meas: Tensor) -> Tensor:
-    """sqrt(mean ‖e − ē‖²) over rows of e = pred − meas, shapes (n, 3) → scalar (same unit)."""
+def offset_removed_errors(pred: Tensor, meas: Tensor) -> Tensor:
+    """‖e_k − ē‖ per row of e = pred − meas, shapes (n, 3) → (n,) (same unit, pred's dtype).
+
+    The terms of the offset-removed RMSE; ē is the mean over all n rows.
+    """
     check_tensor(pred, "pred", (3,))
     check_tensor(meas, "meas", (3,))
     if pred.shape != meas.shape or pred.dim() != 2 or pred.shape[0] == 0:
         raise ValueError(f"pred/meas: expected equal shapes (n, 3) with n > 0, got {tuple(pred.shape)} "
                          f"and {tuple(meas.shape)}")
     e = pred - meas
-    return (e - e.mean(0)).pow(2).sum(-1).mean().sqrt()
+    return (e - e.mean(0)).norm(dim=-1)
+
+
+def offset_removed_rmse(pred: Tensor, meas: Tensor) -> Tensor:
+    """sqrt(mean ‖e − ē‖²) over rows of e = pred − meas, shapes (n, 3) → scalar (same unit)."""
+    return offset_removed_errors(pred, meas).pow(2).mean().sqrt()
 
 
 def tip_metrics(pred: Tensor, meas: Tensor) -> dict[str, float]:

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from .benchmark import Setup
+from .metrics import offset_removed_errors
 
 COLORS = {"measured": (20, 20, 20), "cc": (31, 119, 180)}
 PALETTE = [(214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (140, 86, 75),
@@ -30,8 +31,7 @@ def label_runs(labels: tuple[str, ...]) -> list[slice]:
 
 def centered_errors_mm(pred: torch.Tensor, meas: torch.Tensor) -> np.ndarray:
     """‖e_k − ē‖ per row [mm] (the terms of the offset-removed RMSE)."""
-    e = (pred - meas).double()
-    return ((e - e.mean(0)).norm(dim=-1) * 1e3).numpy()
+    return (offset_removed_errors(pred.double(), meas.double()) * 1e3).numpy()
 
 
 def plot_paths(setup: Setup, preds: dict[str, torch.Tensor], path: Path) -> None:
@@ -52,7 +52,7 @@ def plot_paths(setup: Setup, preds: dict[str, torch.Tensor], path: Path) -> None
                       label=name if r_i == 0 else None, ls="-" if name == "measured" else "--")
             axes[0].plot(pts[r, 0], pts[r, 1], **kw)
             axes[1].plot(pts[r, 0], pts[r, 2], **kw)
-    for ax, (a, b) in zip(axes[:2], [("x", "y"), ("x", "z")]):
+    for ax, (a, b) in zip(axes[:2], [("x", "y"), ("x", "z")], strict=True):
         ax.set_xlabel(f"{a} [mm]"), ax.set_ylabel(f"{b} [mm]"), ax.set_aspect("equal"), ax.grid(alpha=0.3)
     axes[0].set_title("top view"), axes[1].set_title("side view"), axes[0].legend(loc="best", fontsize=8)
     for k, (name, pred) in enumerate(preds.items(), start=1):
