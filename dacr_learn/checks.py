@@ -1,28 +1,103 @@
-"""Input validation shared by the public tensor functions: clear ValueErrors, never silent broadcasting."""
+"""Input validation: tensors given to the public functions, and the files a user hands in.
+
+Every failure is a ValueError naming the tensor or file, what was expected and what was found
+(a missing file stays a FileNotFoundError naming its path); the original error is chained.
+"""
 from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
 
 
-def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool = True) -> None:
-    """Raise ValueError unless ``x`` is a floating tensor of shape (..., *trailing) with finite values.
+def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool = True, nonempty: bool = False) -> None:
+    """Raise ValueError unless ``x`` is a floating tensor of shape (..., *trailing) with finite values
+    (and, with ``nonempty``, at least one element).
 
     Skipped while tracing for torch.export / torch.compile (the checks are data dependent).
     """
     if torch.compiler.is_compiling():
         return
-    if not isinstance(x, Tensor):
-        raise ValueError(f"{name}: expected a torch.Tensor of shape (..., {', '.join(map(str, trailing))}), "
-                         f"got {type(x).__name__}")
     k, expected = len(trailing), f"(..., {', '.join(map(str, trailing))})"
+    if not isinstance(x, Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor of shape {expected}, got {type(x).__name__}")
     if x.dim() < k or tuple(x.shape[x.dim() - k:]) != tuple(trailing):
-        raise ValueError(f"{name}: expected shape {expected}, got {tuple(x.shape)}")
+        raise ValueError(f"{name}: expected shape {expected}, got a tensor of shape {tuple(x.shape)}")
     if not x.is_floating_point():
         raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    if nonempty and x.numel() == 0:
+        raise ValueError(f"{name}: expected a non-empty batch, got shape {tuple(x.shape)}")
     # A NaN/inf anywhere makes the sum non-finite; the sum is one cheap reduction, the exact
     # elementwise test only runs when it fails (or a huge finite sum overflowed).
     if finite and not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
         bad = (~torch.isfinite(x)).sum().item()
         raise ValueError(f"{name}: expected finite values of shape {expected}, got {bad} NaN/inf entries "
                          f"in a tensor of shape {tuple(x.shape)}")
+
+
+def short_error(err: BaseException) -> str:
+    """One line of an exception: its type and the first 160 characters of its message."""
+    text = " ".join(str(err).split())
+    return f"{type(err).__name__}: {text[:160]}{'…' if len(text) > 160 else ''}" if text else type(err).__name__
+
+
+def read_text(path: str | Path, expected: str) -> str:
+    """The text of a user's file; ValueError ``"<path>: expected <expected>, found …"`` when it is
+    a directory, unreadable or not UTF-8. A missing file raises FileNotFoundError naming the path."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file; expected {expected}")
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: expected {expected}, found a file that cannot be read as UTF-8 text "
+                         f"({short_error(err)})") from err
+
+
+def read_yaml(path: str | Path, expected: str) -> Any:
+    """The parsed content of a user's YAML file (ValueError naming the file and the line of a syntax error)."""
+    import yaml
+
+    text = read_text(path, expected)
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        found = f"{getattr(err, 'problem', None) or short_error(err)}{where}"
+        raise ValueError(f"{path}: expected {expected}, found invalid YAML ({found})") from err
+
+
+def read_json_object(path: str | Path, expected: str) -> dict[str, Any]:
+    """The JSON object (dict) in a user's file; ValueError naming the file for invalid JSON or another type."""
+    text = read_text(path, expected)
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: expected {expected}, found invalid JSON ({short_error(err)})") from err
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: expected {expected} (a JSON object), found a JSON {type(obj).__name__}")
+    return obj
+
+
+def load_torch_file(path: str | Path, expected: str) -> Any:
+    """``torch.load(path, weights_only=True)`` on the CPU of a user's file; ValueError naming the file
+    when it is not a (complete) torch.save archive. A missing file raises FileNotFoundError."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file; expected {expected}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as err:  # torch.load raises RuntimeError, OSError, EOFError, UnpicklingError, …
+        if path.is_file() and not zipfile.is_zipfile(path):      # torch.save writes a zip archive
+            found = (f"a file of {path.stat().st_size} bytes that is not a complete torch.save archive "
+                     "(truncated, or not a torch file)")
+        else:
+            found = f"a file that torch.load cannot read ({short_error(err)})"
+        raise ValueError(f"{path}: expected {expected}, found {found}") from err

@@ -40,6 +40,13 @@ DEFAULT_TWIST = (-math.pi / 2, math.pi / 2)
 _ROBOT_KEYS = {"name", "routing", "segments"}
 _SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles", "joint_radii", "limits"}
 _LIMIT_KEYS = {"bend", "length", "twist"}
+# Largest accepted condition number of a segment's joint layout A ([A, 1] when it extends). The Clarke
+# encoder solves q → features by least squares in the training/export dtype float32, whose relative
+# error grows like cond·eps(float32) = cond·1.2e-7; at 1e4 that is ≈ 1e-3 (three significant digits
+# left, ≈ 10 µm on a 10 mm Clarke coordinate), and joint-length noise is amplified as much. Real layouts
+# (joints spread around the backbone) have cond ≈ 1.4–10, and a layout that is singular up to rounding,
+# e.g. joint_angles (0, π, 0) with sin π ≈ 1e-16, has cond ≈ 1e16.
+MAX_LAYOUT_CONDITION = 1e4
 
 
 def _fail(field: str, value: Any, expected: str) -> None:
@@ -193,17 +200,25 @@ def _limits(lim: Any, where: str, seg_type: str, length: float):
     return float(bend), length_range, twist_range
 
 
-def _check_rank(seg: SegmentSpec, where: str) -> None:
-    """The n×2 matrix A (and [A, 1] for extending segments) must have full column rank."""
+def layout_condition(seg: SegmentSpec) -> float:
+    """cond(A) = σ_max/σ_min of the n×2 matrix A (of [A, 1] for an extending segment); inf when rank deficient."""
     psi, r = np.array(seg.joint_angles), np.array(seg.joint_radii)
     a = (r / seg.radius)[:, None] * np.stack([np.cos(psi), np.sin(psi)], axis=1)
     if seg.extends:
         a = np.concatenate([a, np.ones((len(psi), 1))], axis=1)
-    if np.linalg.matrix_rank(a, tol=1e-9 * max(1.0, np.abs(a).max())) < a.shape[1]:
+    s = np.linalg.svd(a, compute_uv=False)
+    return float(s[0] / s[-1]) if s[-1] > 0 else math.inf
+
+
+def _check_rank(seg: SegmentSpec, where: str) -> None:
+    """A (and [A, 1] for extending segments) must have full column rank, numerically: cond ≤ MAX_LAYOUT_CONDITION."""
+    cond = layout_condition(seg)
+    if not cond <= MAX_LAYOUT_CONDITION:
         field = f"{where}.joint_angles" if not seg.symmetric else f"{where}.joints"
         what = "[A, 1]" if seg.extends else "A"
-        _fail(field, list(seg.joint_angles), f"a joint layout whose matrix {what} has full column rank "
-              "(joints spread around the backbone, not all on one line)")
+        raise ValueError(f"{field}: got {list(seg.joint_angles)}, expected a joint layout whose matrix {what} "
+                         f"has full column rank with condition number <= {MAX_LAYOUT_CONDITION:.0e} (joints "
+                         f"spread around the backbone, not all on one line), found cond({what}) = {cond:.3g}")
     if seg.twists and len(set(seg.joint_radii)) > 1:
         _fail(f"{where}.joint_radii", list(seg.joint_radii), "equal radii for a twisting segment (type II/III)")
 
@@ -242,10 +257,28 @@ class RobotSpec:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> RobotSpec:
-        import yaml
+        """Read a robot YAML file; every ValueError names the file (and the field, see :meth:`from_dict`)."""
+        from .checks import read_yaml  # imports torch, which the rest of this module does not need
 
-        with open(path) as f:
-            return cls.from_dict(yaml.safe_load(f))
+        d = read_yaml(path, "a robot description in YAML (see configs/robots/)")
+        if d is None:
+            raise ValueError(f"{path}: expected a robot description in YAML (see configs/robots/), "
+                             "found an empty file")
+        try:
+            return cls.from_dict(d)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from err
+
+    @classmethod
+    def coerce(cls, robot: str | Path | Mapping[str, Any] | RobotSpec) -> RobotSpec:
+        """A RobotSpec from a RobotSpec (returned as is), a description dict or the path of a robot YAML."""
+        if isinstance(robot, RobotSpec):
+            return robot
+        if isinstance(robot, Mapping):
+            return cls.from_dict(robot)
+        if isinstance(robot, (str, Path)):
+            return cls.from_yaml(robot)
+        _fail("robot", robot, "a RobotSpec, a robot description dict or the path of a robot YAML file")
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "routing": self.routing, "segments": [s.to_dict() for s in self.segments]}
