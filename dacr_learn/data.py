@@ -8,11 +8,17 @@ uniform in their ranges. Joint vectors come from :class:`ClarkeDecoder`, tip pos
 Tensors of a dataset (all in SI units):
   q (N, num_joints) [m, rad] — measured joint vector (after noise and common-mode offset),
   q_clean (N, num_joints) — noise-free joint vector, features (N, m, 4) — sampled features,
-  pose (N, 4, 4) — measured tip pose (after pose noise), pose_clean (N, 4, 4).
+  pose (N, 4, 4) — measured tip pose (after pose noise), pose_clean (N, 4, 4),
+  optional segment_frames (N, m, 4, 4) — noise-free pose of every segment's end in the base frame.
+
+Combination regimes (``max_bending``): each sample bends only a subset of at most ``max_bending``
+segments, drawn uniformly among all such subsets (the empty one included); the others are
+straight (ρ = 0), their β and α still sampled. ``None`` (default) bends every segment.
 """
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -20,7 +26,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .kinematics import forward_kinematics
+from .checks import load_torch_file, read_json_object
+from .kinematics import forward_kinematics, segment_tip_poses
 from .layers import ClarkeDecoder
 from .robot import RobotSpec
 
@@ -48,8 +55,19 @@ class SamplerOptions:
                                  + f", got {v!r}")
 
 
-def sample_features(spec: RobotSpec, n: int, generator: torch.Generator, dtype=torch.float32) -> Tensor:
-    """n feature tensors (n, m, 4) uniform over the robot's limits (see module docstring)."""
+def bending_subsets(num_segments: int, max_bending: int) -> Tensor:
+    """(S, m) 0/1 masks of every subset of at most ``max_bending`` of the m segments (empty one first)."""
+    if not 0 <= max_bending <= num_segments:
+        raise ValueError(f"max_bending: expected 0 … {num_segments} (the number of segments), got {max_bending}")
+    masks = [[float(k in c) for k in range(num_segments)]
+             for size in range(max_bending + 1) for c in itertools.combinations(range(num_segments), size)]
+    return torch.tensor(masks)
+
+
+def sample_features(spec: RobotSpec, n: int, generator: torch.Generator, dtype=torch.float32,
+                    max_bending: int | None = None) -> Tensor:
+    """n feature tensors (n, m, 4) uniform over the robot's limits (see module docstring); with
+    ``max_bending`` only a random subset of at most that many segments bends in each sample."""
     if n < 1:
         raise ValueError(f"n: expected a positive number of samples, got {n}")
     cols = []
@@ -60,7 +78,12 @@ def sample_features(spec: RobotSpec, n: int, generator: torch.Generator, dtype=t
         tlo, thi = seg.twist_range or (0.0, 0.0)
         cols.append(torch.stack([seg.radius * phi * torch.cos(theta), seg.radius * phi * torch.sin(theta),
                                  lo + (hi - lo) * u[:, 2], tlo + (thi - tlo) * u[:, 3]], dim=-1))
-    return torch.stack(cols, dim=1)
+    features = torch.stack(cols, dim=1)
+    if max_bending is not None:
+        masks = bending_subsets(spec.num_segments, max_bending).to(dtype)
+        bends = masks[torch.randint(len(masks), (n,), generator=generator)]
+        features = torch.cat([features[..., :2] * bends.unsqueeze(-1), features[..., 2:]], dim=-1)
+    return features
 
 
 def _rotation_noise(n: int, std: float, generator: torch.Generator, dtype) -> Tensor:
@@ -70,10 +93,13 @@ def _rotation_noise(n: int, std: float, generator: torch.Generator, dtype) -> Te
 
 
 def generate(spec: RobotSpec, n: int, seed: int, options: SamplerOptions = SamplerOptions(),
-             dtype=torch.float32) -> dict[str, Tensor]:
-    """Generate n samples (see module docstring for the tensors). Bit-identical for a seed."""
+             dtype=torch.float32, *, segment_frames: bool = False, max_bending: int | None = None) -> dict[str, Tensor]:
+    """Generate n samples (see module docstring for the tensors). Bit-identical for a seed.
+
+    ``segment_frames``: also return the per-segment end frames; ``max_bending``: see the module docstring.
+    """
     g = torch.Generator().manual_seed(int(seed))
-    features = sample_features(spec, n, g, dtype)
+    features = sample_features(spec, n, g, dtype, max_bending)
     q_clean = ClarkeDecoder(spec)(features)
     pose_clean = forward_kinematics(spec, features)
     q = q_clean.clone()
@@ -86,7 +112,14 @@ def generate(spec: RobotSpec, n: int, seed: int, options: SamplerOptions = Sampl
         pose[:, :3, 3] += options.pose_noise_pos * torch.randn(n, 3, generator=g, dtype=dtype)
     if options.pose_noise_rot:
         pose[:, :3, :3] = pose[:, :3, :3] @ _rotation_noise(n, options.pose_noise_rot, g, dtype)
-    return {"q": q, "q_clean": q_clean, "features": features, "pose": pose, "pose_clean": pose_clean}
+    out = {"q": q, "q_clean": q_clean, "features": features, "pose": pose, "pose_clean": pose_clean}
+    return with_segment_frames(spec, out) if segment_frames else out
+
+
+def with_segment_frames(spec: RobotSpec, tensors: dict[str, Tensor]) -> dict[str, Tensor]:
+    """``tensors`` plus ``segment_frames`` (N, m, 4, 4): the noise-free end frame of every segment in
+    the base frame, from the dataset's ``features`` (the last one is ``pose_clean``)."""
+    return {**tensors, "segment_frames": segment_tip_poses(spec, tensors["features"])}
 
 
 def tensors_sha256(tensors: dict[str, Tensor]) -> str:
@@ -113,22 +146,50 @@ def save_dataset(directory: str | Path, spec: RobotSpec, tensors: dict[str, Tens
     return directory
 
 
+def _read_meta(directory: Path) -> dict:
+    """meta.json of a dataset as a dict (ValueError naming the file when it is not a JSON object)."""
+    return read_json_object(directory / META_FILE, f"the {META_FILE} of a dataset written by save_dataset")
+
+
+def _read_tensors(directory: Path) -> dict[str, Tensor]:
+    """tensors.pt of a dataset: a dict of named tensors (ValueError naming the file otherwise)."""
+    path = directory / TENSOR_FILE
+    expected = f"the {TENSOR_FILE} of a dataset written by save_dataset (a dict of named tensors)"
+    tensors = load_torch_file(path, expected)
+    if not isinstance(tensors, dict):
+        raise ValueError(f"{path}: expected {expected}, found a {type(tensors).__name__}")
+    bad = {str(k): type(v).__name__ for k, v in tensors.items() if not (isinstance(k, str) and isinstance(v, Tensor))}
+    if bad:
+        raise ValueError(f"{path}: expected {expected}, found entries that are not named tensors: {bad}")
+    return tensors
+
+
 def load_dataset(directory: str | Path, spec: RobotSpec | None = None) -> tuple[dict[str, Tensor], dict]:
-    """Read a dataset written by :func:`save_dataset`; refuse a checksum or robot-spec mismatch."""
+    """Read a dataset written by :func:`save_dataset`; refuse a checksum or robot-spec mismatch.
+
+    Every refusal is a ValueError naming the directory or file (unreadable, truncated, modified,
+    generated for another robot).
+    """
     directory = Path(directory)
     for f in (TENSOR_FILE, META_FILE):
         if not (directory / f).is_file():
             raise ValueError(f"dataset {directory}: missing {f}")
-    meta = json.loads((directory / META_FILE).read_text())
-    tensors = torch.load(directory / TENSOR_FILE, weights_only=True)
+    meta, tensors = _read_meta(directory), _read_tensors(directory)
     digest = tensors_sha256(tensors)
     if digest != meta.get("sha256"):
         raise ValueError(f"dataset {directory}: checksum mismatch (meta.json says {meta.get('sha256')}, "
                          f"the tensors hash to {digest}); the file was modified or truncated")
-    if spec is not None and RobotSpec.from_dict(meta["robot"]) != spec:
+    if spec is not None and _saved_spec(directory, meta) != spec:
         raise ValueError(f"dataset {directory}: robot spec mismatch: the dataset was generated for "
                          f"{meta['robot']['name']!r} ({meta['robot']}), expected {spec.to_dict()}")
     return tensors, meta
+
+
+def _saved_spec(directory: Path, meta: dict) -> RobotSpec:
+    try:
+        return RobotSpec.from_dict(meta.get("robot"))
+    except ValueError as err:
+        raise ValueError(f"{directory / META_FILE}: {err}") from err
 
 
 def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
@@ -136,7 +197,7 @@ def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
     """Load ``directory`` if it holds exactly this dataset (spec, n, seed, options), else generate and save it."""
     directory = Path(directory)
     if (directory / META_FILE).is_file():
-        meta = json.loads((directory / META_FILE).read_text())
+        meta = _read_meta(directory)
         if (meta.get("seed"), meta.get("num_samples"), meta.get("options")) == (seed, n, asdict(options)):
             return load_dataset(directory, spec)[0]
     tensors = generate(spec, n, seed, options)

@@ -14,10 +14,11 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
-from .data import SamplerOptions, generate, generate_or_load
+from .data import SamplerOptions, generate, generate_or_load, with_segment_frames
 from .robot import RobotSpec
 
 BATCH_KEYS = ("q", "pose")
+OPTIONAL_BATCH_KEYS = ("segment_frames",)     # served when the dataset holds them
 
 
 def _rank_world() -> tuple[int, int]:
@@ -32,7 +33,7 @@ class TensorBatches:
     def __init__(self, tensors: dict[str, Tensor], batch_size: int, shuffle: bool, seed: int = 0):
         if batch_size < 1:
             raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
-        self.tensors = {k: tensors[k] for k in BATCH_KEYS}
+        self.tensors = {k: tensors[k] for k in BATCH_KEYS + OPTIONAL_BATCH_KEYS if k in tensors or k in BATCH_KEYS}
         self.n = self.tensors["q"].shape[0]
         self.batch_size, self.shuffle, self.seed, self.epoch = batch_size, shuffle, seed, 0
 
@@ -70,19 +71,21 @@ class KinematicsDataModule(pl.LightningDataModule):
         seed: sampling seed (the splits are consecutive slices of one seeded dataset).
         joint_noise, pose_noise_pos, pose_noise_rot, common_offset: see SamplerOptions [m, rad].
         cache_dir: if set, the dataset is written there (tensors.pt + meta.json) and re-used.
+        segment_frames: also serve every segment's end frame ("segment_frames", (B, m, 4, 4)) in batches.
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", n_train: int = 100_000,
                  n_val: int = 5_000, n_test: int = 10_000, batch_size: int = 1024, seed: int = 0,
                  joint_noise: float = 0.0, pose_noise_pos: float = 0.0, pose_noise_rot: float = 0.0,
-                 common_offset: float = 0.0, cache_dir: str | None = None):
+                 common_offset: float = 0.0, cache_dir: str | None = None, segment_frames: bool = False):
         super().__init__()
-        self.spec = RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot)
+        self.spec = RobotSpec.coerce(robot)
         for name, v in (("n_train", n_train), ("n_val", n_val), ("n_test", n_test)):
             if v < 1:
                 raise ValueError(f"{name}: expected >= 1 samples, got {v}")
         self.sizes = (n_train, n_val, n_test)
         self.batch_size, self.seed, self.cache_dir = batch_size, seed, cache_dir
+        self.segment_frames = segment_frames
         self.options = SamplerOptions(joint_noise, pose_noise_pos, pose_noise_rot, common_offset)
         self.splits: dict[str, dict[str, Tensor]] = {}
 
@@ -98,8 +101,10 @@ class KinematicsDataModule(pl.LightningDataModule):
             data = generate_or_load(Path(self.cache_dir), self.spec, n, self.seed, self.options)
         else:
             data = generate(self.spec, n, self.seed, self.options)
+        if self.segment_frames:
+            data = with_segment_frames(self.spec, data)
         bounds = [0, self.sizes[0], self.sizes[0] + self.sizes[1], n]
-        for name, lo, hi in zip(("train", "val", "test"), bounds[:-1], bounds[1:]):
+        for name, lo, hi in zip(("train", "val", "test"), bounds[:-1], bounds[1:], strict=True):
             self.splits[name] = {k: v[lo:hi] for k, v in data.items()}
 
     def train_dataloader(self):

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import math
 import warnings
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from .checks import check_tensor, load_torch_file, read_json_object, short_error
 from .inference import InferenceFK, InferenceIK, InferenceJacobian
 from .robot import RobotSpec
 
@@ -42,6 +42,7 @@ UNITS = {"joint_lengths": "m", "twist": "rad", "position": "m", "rotation": "3x3
          "jacobian_rows": "tip linear velocity [m] (rows 0-2) and angular velocity [rad] (rows 3-5), base frame",
          "clarke_features": "rho_re, rho_im [m] per segment, beta [m] and alpha [rad] where actuated"}
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
+CHECKPOINT = "an FKModule/IKModule checkpoint written by train.py or a Lightning Trainer"
 
 
 def file_sha256(path: str | Path) -> str:
@@ -58,16 +59,47 @@ def _metadata_digest(meta: dict) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
 
+def checkpoint_task(ckpt: Path, raw: Any) -> str:
+    """"fk" | "ik" of a loaded checkpoint dict; ValueError naming the file and the missing or wrong entry."""
+    def bad(found: str) -> ValueError:
+        return ValueError(f"{ckpt}: expected {CHECKPOINT}, found {found}")
+
+    if not isinstance(raw, dict):
+        raise bad(f"a torch file holding a {type(raw).__name__}, not a checkpoint dict")
+    missing = [k for k in ("state_dict", "hyper_parameters", "pytorch-lightning_version") if k not in raw]
+    if missing:
+        raise bad(f"a dict without {missing} (keys: {sorted(map(str, raw))[:8]})")
+    hparams, weights = raw["hyper_parameters"], raw["state_dict"]
+    if not isinstance(hparams, dict) or "robot" not in hparams:
+        raise bad(f"hyper_parameters without a robot spec: {str(hparams)[:200]}")
+    try:
+        RobotSpec.coerce(hparams["robot"])
+    except (ValueError, OSError) as err:
+        raise ValueError(f"{ckpt}: hyper_parameters.robot: {err}") from err
+    if isinstance(weights, dict) and "model.front.norm.mean" in weights:
+        return "fk"
+    if isinstance(weights, dict) and "model.in_norm.mean" in weights:
+        return "ik"
+    raise bad("a state_dict without model.front.norm / model.in_norm weights "
+              f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
+
+
 def load_lightning_checkpoint(ckpt: str | Path):
-    """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer."""
+    """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
+
+    Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
+    (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
+    """
     from .training import FKModule, IKModule  # Lightning is needed to export, not to run
 
-    keys = torch.load(ckpt, map_location="cpu", weights_only=True).get("state_dict", {})
-    if "model.front.norm.mean" in keys:
-        return "fk", FKModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
-    if "model.in_norm.mean" in keys:
-        return "ik", IKModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
-    raise ValueError(f"ckpt {ckpt}: not an FKModule/IKModule checkpoint (no model.front.norm / model.in_norm weights)")
+    ckpt = Path(ckpt)
+    task = checkpoint_task(ckpt, load_torch_file(ckpt, CHECKPOINT))
+    cls = FKModule if task == "fk" else IKModule
+    try:
+        return task, cls.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        raise ValueError(f"{ckpt}: expected {CHECKPOINT}, found one that {cls.__name__} cannot load "
+                         f"({short_error(err)})") from err
 
 
 def inference_modules(task: str, model: nn.Module, dtype: torch.dtype = torch.float32) -> dict[str, nn.Module]:
@@ -110,9 +142,9 @@ def _write_module(name: str, module: nn.Module, example: Tensor, out: Path, aoti
         try:
             torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"))
             files["aoti"] = f"{name}.aoti.pt2"
-        except Exception as err:  # noqa: BLE001 — no compiler, unsupported platform, …: keep the program
-            warnings.warn(f"export {name}: the AOTInductor package did not build ({type(err).__name__}: "
-                          f"{str(err)[:200]}); only {files['export']} is written")
+        except Exception as err:  # no compiler, unsupported platform, …: keep the program
+            warnings.warn(f"export {name}: the AOTInductor package did not build ({short_error(err)}); "
+                          f"only {files['export']} is written", stacklevel=2)
     return files
 
 
@@ -121,7 +153,7 @@ def _deviation(reference, loaded, x: Tensor) -> float:
     with torch.no_grad():
         ref, got = reference(x), loaded(x)
     ref, got = (ref,) if isinstance(ref, Tensor) else ref, (got,) if isinstance(got, Tensor) else got
-    return max((r.double() - g.double()).abs().max().item() for r, g in zip(ref, got))
+    return max((r.double() - g.double()).abs().max().item() for r, g in zip(ref, got, strict=True))
 
 
 def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
@@ -160,9 +192,10 @@ def _verify(out: Path, meta: dict, model: nn.Module, examples: dict[str, Tensor]
     worst = {}
     for name, info in meta["modules"].items():
         x = examples[info["inputs"][0][0]]
-        for kind, entry in info["files"].items():
+        for entry in info["files"].values():
             loaded = load(out / entry["file"])
-            worst[entry["file"]] = _deviation(model, loaded if name != "jacobian" else (lambda q: loaded(q)[0]), x)
+            first = loaded if name != "jacobian" else (lambda q, m=loaded: m(q)[0])
+            worst[entry["file"]] = _deviation(model, first, x)
     meta["max_abs_deviation"] = worst
     meta["metadata_sha256"] = _metadata_digest(meta)
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2))
@@ -178,7 +211,7 @@ def read_metadata(directory: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no export metadata next to the module; export with "
                                 f"`python -m dacr_learn.export --ckpt <ckpt> --out {directory}`")
-    meta = json.loads(path.read_text())
+    meta = read_json_object(path, f"the {METADATA_FILE} of an export")
     if meta.get("format") != FORMAT:
         raise ValueError(f"{path}: format {meta.get('format')!r} is not {FORMAT!r}; re-export the checkpoint")
     if meta.get("metadata_sha256") != _metadata_digest(meta):
@@ -197,8 +230,7 @@ def _find_module(meta: dict, file_name: str) -> tuple[str, str, str]:
 
 def _check_expectations(meta: dict, path: Path, robot, features, checkpoint) -> None:
     if robot is not None:
-        want = robot if isinstance(robot, RobotSpec) else (
-            RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot))
+        want = RobotSpec.coerce(robot)
         if RobotSpec.from_dict(meta["robot"]) != want:
             raise ValueError(f"{path}: robot spec mismatch: exported for {meta['robot']['name']!r} "
                              f"({meta['robot']}), expected {want.to_dict()}")
@@ -246,7 +278,8 @@ def load(path: str | Path, name: str | None = None, *, robot=None, features: str
         if name not in meta["modules"]:
             raise ValueError(f"name: expected one of {sorted(meta['modules'])} for {path}, got {name!r}")
         files = meta["modules"][name]["files"]
-        path = path / files["aoti" if "aoti" in files and meta["torch_version"] == torch.__version__ else "export"]["file"]
+        aoti = "aoti" in files and meta["torch_version"] == torch.__version__
+        path = path / files["aoti" if aoti else "export"]["file"]
     meta = read_metadata(path.parent)
     name, kind, digest = _find_module(meta, path.name)
     if not path.is_file():
@@ -279,36 +312,22 @@ class ExportedModule(nn.Module):
     def extra_repr(self) -> str:
         return f"name={self.name!r}, kind={self.kind!r}, robot={self.metadata['robot']['name']!r}"
 
-    def _check(self, x: Tensor) -> None:
-        k = len(self.input_shape)
-        if not isinstance(x, Tensor) or x.dim() < k or tuple(x.shape[x.dim() - k:]) != self.input_shape:
-            got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
-            raise ValueError(f"{self.name}: expected {self.input_name} of shape (..., "
-                             f"{', '.join(map(str, self.input_shape))}), got {got}")
-        if not x.is_floating_point():
-            raise ValueError(f"{self.name}: expected a floating-point {self.input_name}, got {x.dtype}")
-        if x.numel() == 0:
-            raise ValueError(f"{self.name}: expected a non-empty batch, got shape {tuple(x.shape)}")
-        if not math.isfinite(x.sum().item()) and not bool(torch.isfinite(x).all()):
-            bad = int((~torch.isfinite(x)).sum())
-            raise ValueError(f"{self.name}: expected finite values, got {bad} NaN/inf entries in "
-                             f"{self.input_name} of shape {tuple(x.shape)}")
-
     def forward(self, x: Tensor):
-        self._check(x)
+        check_tensor(x, f"{self.name} input {self.input_name}", self.input_shape, nonempty=True)
         if x.dim() == len(self.input_shape) + 1 and x.dtype == self.dtype:     # fast path: (B, ...) as exported
             outs = self.runner([x if x.is_contiguous() else x.contiguous()])
         else:
             lead = x.shape[:x.dim() - len(self.input_shape)]
             outs = self.runner([x.reshape(-1, *self.input_shape).to(self.dtype).contiguous()])
-            outs = [o.reshape(*lead, *s).to(x.dtype) for o, s in zip(outs, self.output_shapes)]
+            outs = [o.reshape(*lead, *s).to(x.dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
         return outs[0] if len(outs) == 1 else tuple(outs)
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     """CLI: export a checkpoint; prints the written files and the verified deviations."""
     p = argparse.ArgumentParser(prog="python -m dacr_learn.export", description=__doc__.split("\n\n")[0])
-    p.add_argument("--ckpt", required=True, help="FKModule / IKModule checkpoint (e.g. runs/<name>/checkpoints/last.ckpt)")
+    p.add_argument("--ckpt", required=True,
+                   help="FKModule / IKModule checkpoint (e.g. runs/<name>/checkpoints/last.ckpt)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--dtype", choices=sorted(_DTYPES), default="float32")
     p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor packages (faster export)")
@@ -323,4 +342,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except (ValueError, FileNotFoundError) as err:    # a bad --ckpt: its message, not a traceback
+        raise SystemExit(f"python -m dacr_learn.export: error: {err}") from err

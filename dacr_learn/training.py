@@ -14,15 +14,11 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
+from .compositional import CompositionalFK, build_fk_model
 from .kinematics import backbone_points, forward_kinematics
 from .metrics import pose_errors, summarize
-from .models import FKModel, IKModel
+from .models import IKModel
 from .robot import RobotSpec
-
-
-def load_spec(robot: str | dict) -> RobotSpec:
-    """A RobotSpec from a YAML path or a dict."""
-    return RobotSpec.from_dict(robot) if isinstance(robot, dict) else RobotSpec.from_yaml(robot)
 
 
 def ik_errors(model: IKModel, spec: RobotSpec, pose: Tensor, pose_target: Tensor, q_target: Tensor) -> dict[str, Tensor]:
@@ -50,7 +46,7 @@ class KinematicsModule(pl.LightningModule):
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8):
         super().__init__()
-        self.spec = load_spec(robot)
+        self.spec = RobotSpec.coerce(robot)
         self.save_hyperparameters()
         self.hparams["robot"] = self.spec.to_dict()       # the checkpoint carries the full spec
         self.model = self.build_model()
@@ -134,26 +130,44 @@ class KinematicsModule(pl.LightningModule):
 
 
 class FKModule(KinematicsModule):
-    """Learned forward kinematics (joint vector → tip pose). ``rotation``: "6d" | "quaternion"."""
+    """Learned forward kinematics (joint vector → tip pose).
+
+    ``structure``: "monolithic" (one network maps all features to the tip; ``rotation`` "6d" |
+    "quaternion") or "compositional" (one network per segment transform, composed by products:
+    :mod:`dacr_learn.compositional`; ``rotation`` "twist" | "6d", ``context`` "none" | "segment" |
+    "distal"). ``segment_weight``: weight of the loss on the end frames of the segments before the
+    tip when batches carry ``segment_frames`` (compositional only; the datamodule's ``segment_frames``).
+    """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
-                 weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0):
-        # save_hyperparameters() in the base class also records rotation and rot_weight
+                 weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0,
+                 structure: str = "monolithic", context: str = "none", segment_weight: float = 0.0):
+        # save_hyperparameters() in the base class also records the FK-only arguments
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
-    def build_model(self) -> FKModel:
+    def build_model(self) -> torch.nn.Module:
         h = self.hparams
-        return FKModel(self.spec, h.features, h.width, h.depth, h.activation, h.rotation)
+        return build_fk_model(self.spec, h.get("structure", "monolithic"), h.get("context", "none"),
+                              features=h.features, width=h.width, depth=h.depth, activation=h.activation,
+                              rotation=h.rotation)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.model(q)
 
-    def loss(self, batch: dict[str, Tensor]) -> Tensor:
-        pred, target = self.model(batch["q"]), batch["pose"]
+    def pose_loss(self, pred: Tensor, target: Tensor) -> Tensor:
+        """Mean of ‖Δp‖²/L² + rot_weight·‖R̂ − R‖²_F over poses (..., 4, 4)."""
         pos = ((pred[..., :3, 3] - target[..., :3, 3]) / self.spec.total_length).square().sum(-1).mean()
         rot = (pred[..., :3, :3] - target[..., :3, :3]).square().sum((-1, -2)).mean()
         return pos + self.hparams.rot_weight * rot
+
+    def loss(self, batch: dict[str, Tensor]) -> Tensor:
+        weight = self.hparams.get("segment_weight", 0.0)
+        if not (weight and "segment_frames" in batch and isinstance(self.model, CompositionalFK)):
+            return self.pose_loss(self.model(batch["q"]), batch["pose"])
+        ends = self.model.segment_ends(batch["q"])
+        inner = self.pose_loss(ends[..., :-1, :, :], batch["segment_frames"][..., :-1, :, :])
+        return self.pose_loss(ends[..., -1, :, :], batch["pose"]) + weight * inner
 
     def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         return pose_errors(self.model(batch["q"]), batch["pose"])
