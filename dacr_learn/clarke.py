@@ -4,7 +4,7 @@ Pure, batched, differentiable functions. Notation:
 
 - ψ_i [rad], d_i [m]: polar location of joint i; d [m]: the segment's reference radius.
 - A = M_P⁻¹ (n×2), rows a_i = (d_i/d)(cos ψ_i, sin ψ_i): Clarke coordinates → displacements.
-- M_P = (AᵀA)⁻¹Aᵀ (2×n): the Clarke matrix, the exact left inverse of A (DESIGN erratum 4:
+- M_P = (AᵀA)⁻¹Aᵀ (2×n): the Clarke matrix, the exact left inverse of A (docs/design.md, erratum 4:
   the rows carry d_i/d; for symmetric joints M_P = (2/n)[cos ψ; sin ψ]).
 - Joint lengths of a robot: q = B·w + q₀ (see :func:`joint_space_maps`).
 """

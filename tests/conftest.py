@@ -9,6 +9,7 @@ separately. Test modules import them with ``from conftest import ...``.
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,48 @@ from hypothesis import strategies as st
 from dacr_learn.robot import RobotSpec
 
 ROOT = Path(__file__).resolve().parents[1]
+
+# Intra-op threads for the whole suite. `make test` runs the suite twice, with 1 and then 2 threads
+# (DACR_TEST_THREADS=2): another float reduction order, so a test that only passes bit for bit on
+# one machine fails here first.
+TEST_THREADS = int(os.environ.get("DACR_TEST_THREADS", "1"))
+torch.set_num_threads(TEST_THREADS)
+
+# Hypothesis: derandomised under CI (CI=true) or DACR_HYPOTHESIS_PROFILE=ci, so a CI run is
+# reproducible; the default profile draws new examples each run and prints a failure's blob.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.register_profile("dev", print_blob=True)
+settings.load_profile(os.environ.get("DACR_HYPOTHESIS_PROFILE", "ci" if os.environ.get("CI") else "dev"))
+
+
+def assert_tree_close(actual, expected, *, atol: float, rtol: float = 0.0, path: str = "") -> None:
+    """Assert two nested dicts/lists/tuples are equal in structure, keys, strings, ints and bools, and
+    their floats agree within ``atol + rtol·|expected|``; the message names the first differing path."""
+    where = path or "<root>"
+    if isinstance(expected, dict):
+        assert isinstance(actual, dict) and actual.keys() == expected.keys(), f"{where}: keys differ"
+        for k in expected:
+            assert_tree_close(actual[k], expected[k], atol=atol, rtol=rtol, path=f"{path}.{k}")
+    elif isinstance(expected, (list, tuple)):
+        assert isinstance(actual, (list, tuple)) and len(actual) == len(expected), f"{where}: lengths differ"
+        for i, (a, e) in enumerate(zip(actual, expected, strict=True)):
+            assert_tree_close(a, e, atol=atol, rtol=rtol, path=f"{path}[{i}]")
+    elif isinstance(expected, float) or isinstance(actual, float):
+        assert isinstance(actual, (int, float)) and not isinstance(actual, bool), f"{where}: {actual!r} is no number"
+        assert abs(actual - expected) <= atol + rtol * abs(expected), f"{where}: {actual!r} vs {expected!r}"
+    else:
+        assert actual == expected, f"{where}: {actual!r} != {expected!r}"
+
+
+def roundoff_tol(dtype: torch.dtype, scale: float = 1.0, ulps: float = 64.0) -> float:
+    """Absolute tolerance for two results that differ only by rounding: ``ulps`` machine epsilons of
+    ``dtype`` at magnitude ``scale``.
+
+    Mathematically equal computations done in another order (batched vs per sample, another BLAS
+    kernel, CPU or thread count) differ by about one rounding per operation; the default 64 covers the
+    short operation chains compared with it here (a linear solve is given more, ``ulps=1024``).
+    """
+    return float(ulps * torch.finfo(dtype).eps * scale)
 ROBOT_CONFIGS = sorted((ROOT / "configs" / "robots").glob("*.yaml"))
 
 # Modest, deterministic-per-run hypothesis budget: the whole core suite must stay fast on 2 cores.
@@ -243,8 +286,15 @@ def spec_by_name(name: str) -> RobotSpec:
 
 @pytest.fixture()
 def one_thread():
-    """Batch-1 calls: intra-op threads only add contention on a busy machine (restored afterwards)."""
+    """The suite's thread count (``DACR_TEST_THREADS``, default 1), restored after the test."""
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(TEST_THREADS)
     yield
     torch.set_num_threads(threads)
+
+
+def pytest_report_header(config):
+    from hypothesis import settings as current
+
+    return (f"dacr_learn tests: torch threads {TEST_THREADS} (DACR_TEST_THREADS), hypothesis profile "
+            f"{current._current_profile!r} (derandomize={current.default.derandomize})")

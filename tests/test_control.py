@@ -8,7 +8,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
-from conftest import spec_by_name
+from conftest import roundoff_tol, spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.control import ClarkeSpace, ControllerConfig, ResolvedRateController, analytic_jacobian
@@ -71,7 +71,9 @@ def test_batched_step_matches_single_steps():
     targets = torch.tensor([[0.02, 0.0, 0.09], [0.0, -0.03, 0.085], [0.01, 0.01, 0.11]], dtype=F64)
     batched = ctrl.step(q, targets)
     single = torch.stack([ctrl.step(q[i], targets[i]) for i in range(3)])
-    assert batched.shape == (3, 4) and torch.allclose(batched, single, rtol=0, atol=1e-15)
+    assert batched.shape == (3, 4)
+    # a damped least-squares solve per sample vs batched: rounding differences only
+    assert torch.allclose(batched, single, rtol=0, atol=roundoff_tol(F64, float(single.abs().max()), ulps=1024))
 
 
 @pytest.mark.parametrize("robot", ["type1", "type3", "tdcr_3seg_coupled", "twisting"])

@@ -15,7 +15,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
-from conftest import spec_by_name
+from conftest import roundoff_tol, spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.control import twist_jacobian
@@ -33,6 +33,11 @@ ROBOTS = [*(p.stem for p in sorted((ROOT / "configs" / "robots").glob("*.yaml"))
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
+
+# Float32 outputs of one network through other kernels (eager vs torch.export / AOTInductor, GEMV vs
+# GEMM, another CPU): rounding differences only. 64 float32 ulps at the O(1) scale of poses and joint
+# values ≈ 7.6e-6 (3e-7 measured here), below the export's own VERIFY_TOLERANCE of 1e-5.
+F32_TOL = roundoff_tol(torch.float32, 1.0)
 
 
 
@@ -82,9 +87,9 @@ def test_exported_fk_and_jacobian_equal_lightning(ckpts, exports, samples):
     q = samples["q"]
     with torch.no_grad():
         ref = lit(q)
-    assert _max_diff(fk(q), ref) <= 1e-6
+    assert _max_diff(fk(q), ref) <= F32_TOL
     pose, jac_f, jac_q = jac(q)
-    assert _max_diff(pose, ref) <= 1e-6
+    assert _max_diff(pose, ref) <= F32_TOL
     assert jac_f.shape == (64, 6, 3) and jac_q.shape == (64, 6, 4)
     assert fk.kind == "export" and fk.metadata["robot"]["name"] == "type1"
 
@@ -95,22 +100,22 @@ def test_exported_ik_equals_lightning_and_satisfies_constraint(ckpts, exports, s
     with torch.no_grad():
         ref = lit(samples["pose"])
     q = ik(samples["pose"])
-    assert _max_diff(q, ref) <= 1e-6
+    assert _max_diff(q, ref) <= F32_TOL
     spec = RobotSpec.from_yaml(TYPE1)
     q64 = q.double()
     residual = (q64 - ClarkeDecoder(spec).double()(ClarkeEncoder(spec).double()(q64))).abs().max().item()
-    assert residual <= 1e-6                                  # float32 outputs: the decoder made them
+    assert residual <= 1e-6                                  # the IK target: joints on the constraint to 1 µm
 
 
 def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
     fk = dexport.load(exports["fk"], "fk")
     q = samples["q"][:6]
     batched = fk(q)
-    assert fk(q[0]).shape == (4, 4) and _max_diff(fk(q[0]), batched[0]) <= 1e-6   # GEMV vs GEMM rounding
+    assert fk(q[0]).shape == (4, 4) and _max_diff(fk(q[0]), batched[0]) <= F32_TOL # GEMV vs GEMM rounding
     assert fk(q.reshape(2, 3, 4)).shape == (2, 3, 4, 4)
-    assert _max_diff(fk(q.reshape(2, 3, 4)).reshape(6, 4, 4), batched) <= 1e-6
+    assert _max_diff(fk(q.reshape(2, 3, 4)).reshape(6, 4, 4), batched) <= F32_TOL
     out64 = fk(q.double())
-    assert out64.dtype == torch.float64 and _max_diff(out64, batched) <= 1e-6
+    assert out64.dtype == torch.float64 and _max_diff(out64, batched) <= F32_TOL
 
 
 @pytest.mark.slow
@@ -120,8 +125,8 @@ def test_aoti_package_equals_lightning(ckpts, samples, tmp_path):
     fk = dexport.load(tmp_path, "fk")
     lit = FKModule.load_from_checkpoint(ckpts["fk"], map_location="cpu").eval()
     with torch.no_grad():
-        assert fk.kind == "aoti" and _max_diff(fk(samples["q"]), lit(samples["q"])) <= 1e-6
-    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= 1e-6
+        assert fk.kind == "aoti" and _max_diff(fk(samples["q"]), lit(samples["q"])) <= F32_TOL
+    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL
 
 
 # ------------------------------------------------------------------------------------------
@@ -208,7 +213,7 @@ def test_metadata_records_spec_units_and_checkpoint(ckpts, exports):
     assert meta["robot"] == RobotSpec.from_yaml(TYPE1).to_dict() and meta["features"] == "clarke"
     assert meta["source_checkpoint"]["sha256"] == dexport.file_sha256(ckpts["fk"])
     assert meta["units"]["joint_lengths"] == "m" and meta["dtype"] == "float32"
-    assert all(v <= 1e-6 for v in meta["max_abs_deviation"].values())
+    assert all(v <= F32_TOL for v in meta["max_abs_deviation"].values())
 
 
 def test_tampered_module_file_is_refused(fk_copy):

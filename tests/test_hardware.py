@@ -8,6 +8,7 @@ order, joint count and routing) checks that nothing depends on this robot's file
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import re
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import assert_tree_close, roundoff_tol
 
 from dacr_learn.hardware.calibration import calibrate
 from dacr_learn.hardware.ccmodel import CalibratedCC
@@ -242,7 +244,7 @@ def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec
     flat = x + enc.pretension
     same = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length,
                            force_map=gmap.expand(200, -1, -1))
-    assert torch.allclose(same, rho.flatten(-2), atol=1e-15)
+    assert torch.allclose(same, rho.flatten(-2), rtol=0, atol=roundoff_tol(torch.float64, float(rho.abs().max()), ulps=1024))
     reduced = gmap * torch.linspace(0.6, 1.0, 9, dtype=torch.float64)[:, None]
     rho_f = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length, force_map=reduced.expand(200, -1, -1))
     tension_f = (flat - rho_f @ gmap.mT).clamp_min(0) / enc.path_length
@@ -271,6 +273,12 @@ def label_truth(rec) -> dict[str, tuple[int, int]]:
     return truth
 
 
+# The calibration ends in least-squares fits whose last digits follow the CPU's float kernels (one
+# ulp of an angle on another CPU was seen); sqrt(eps) ≈ 1.5e-8 (rad or m) is the precision such a
+# fitted value can be asked for, and 1e4 times finer than any physical meaning of these numbers.
+CALIBRATION_TOL = float(torch.finfo(torch.float64).eps) ** 0.5
+
+
 def test_calibration_recovers_the_servo_map_of_ftdcr_v4(spec, pulls):
     truth = label_truth(pulls)
     assert len(truth) == 9
@@ -282,10 +290,13 @@ def test_calibration_recovers_the_servo_map_of_ftdcr_v4(spec, pulls):
     for seg, expected in zip(report["segments"], (-174.0, -145.0, -115.0), strict=True):
         assert seg["offset_deg"] == pytest.approx(expected, abs=3.0)
         assert seg["angle_rms_deg"] < 8.0
-    # the committed calibrated YAML and servo map are exactly this result
-    assert RobotSpec.from_yaml(CALIBRATED) == cal_spec
+    # the committed calibrated YAML and servo map are this result: the same structure and servo ids,
+    # floats equal up to the rounding of another CPU's BLAS/LAPACK kernels (angles [rad], lengths [m])
+    assert_tree_close(cal_spec.to_dict(), RobotSpec.from_yaml(CALIBRATED).to_dict(), atol=CALIBRATION_TOL)
     committed = ServoMap.from_yaml(CALIBRATED.parent / "servo_maps" / CALIBRATED.name)
-    assert committed.servos == smap.servos
+    assert_tree_close([dataclasses.asdict(a) for a in smap.servos], [dataclasses.asdict(a) for a in committed.servos],
+                      atol=CALIBRATION_TOL)
+    assert smap.slack_level == pytest.approx(committed.slack_level, rel=0, abs=CALIBRATION_TOL)
 
 
 def test_calibration_ignores_column_order_and_ids(spec, pulls):

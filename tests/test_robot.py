@@ -6,8 +6,9 @@ import math
 
 import numpy as np
 import pytest
+import torch
 import yaml
-from conftest import FAST, ROBOT_CONFIGS, robot_dicts
+from conftest import FAST, ROBOT_CONFIGS, robot_dicts, roundoff_tol
 from hypothesis import given
 
 from dacr_learn.robot import DEFAULT_BEND, RobotSpec
@@ -144,7 +145,7 @@ def test_defaults_and_explicit_layout():
     assert seg.length_range == pytest.approx((0.08, 0.12))
     assert seg.twist_range == pytest.approx((-math.pi / 2, math.pi / 2))
     expected = 0.3 + 2 * math.pi * np.arange(5) / 5
-    assert np.allclose(seg.joint_angles, expected, atol=1e-15, rtol=0)
+    assert np.allclose(seg.joint_angles, expected, atol=roundoff_tol(torch.float64, 2 * math.pi), rtol=0)
     assert seg.joint_radii == (0.01,) * 5
 
 

@@ -11,7 +11,7 @@ labels are *not* used. Method:
 3. Per servo: sign = sign of the correlation between its value and the tip's distance from
    rest (the tip moves away only while the tendon is pulled). With u = sign·value, a line
    tip_xy = c + k·u through the rows deflected by more than a quarter of the maximum gives
-   the bending direction ψ = atan2(k) (the segment bends towards the pulled tendon, DESIGN §1),
+   the bending direction ψ = atan2(k) (the segment bends towards the pulled tendon, docs/design.md §1),
    the gain ‖k‖ (tip mm per tendon mm) and the taut onset: the value where the line passes
    the rest. The onset is reported, not applied: it mixes slack with the hysteresis of the
    previous pull, and using it as the servo zero made the CC model worse on held-out data

@@ -6,7 +6,7 @@ only needs −2 mm): such a joint no longer constrains the shape, and least squa
 pull the estimate towards a configuration that bends away from it.
 
 Here tendons are one-sided springs and the backbone is an elastic rod. With Clarke
-coordinates ρ (..., 2m) (DESIGN §1, coupled or independent routing), the path shortening
+coordinates ρ (..., 2m) (docs/design.md §1, coupled or independent routing), the path shortening
 of joint i is (G ρ)_i with G = −B_ρ, and the configuration minimises
 
     E(ρ) = ½ c Σ_k ‖ρ⁽ᵏ⁾‖² / (l_k d_k²)  +  ½ Σ_i max(0, x_i + p − (G ρ)_i)² / L_i
@@ -94,7 +94,7 @@ class SlackAwareEncoder(nn.Module):
     ``rotation`` (m,) [rad]: rotation of each segment's joint angles (refines the offsets);
     ``log_compliance``: log c, c = EI/EA [m²]; ``pretension`` p [m].
 
-    Output features follow DESIGN §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
+    Output features follow docs/design.md §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
     d_nominal/d_effective, β = l, α = 0, so that ``forward_kinematics(spec, features)`` gives
     the shape with the effective radius.
     """
