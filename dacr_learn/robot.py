@@ -263,7 +263,7 @@ class RobotSpec:
         d = read_yaml(path, "a robot description in YAML (see configs/robots/)")
         if d is None:
             raise ValueError(f"{path}: expected a robot description in YAML (see configs/robots/), "
-                             "found an empty file")
+                             "found an empty file (no YAML content)")
         try:
             return cls.from_dict(d)
         except ValueError as err:
