@@ -1,8 +1,10 @@
 """``python -m dacr_learn.hardware --data DIR --robot YAML --out runs/NAME``
 
-Calibrates (when the robot YAML has no servo map), fits the CC model, trains and evaluates all
-tip models on ``DIR/<train>`` / ``DIR/<val>``, and writes into ``--out``: results.json,
-results.md (table), val_predictions.csv (first seed, mm), val_tip_paths.png and
+Calibrates (when the robot YAML has no servo map), fits the CC model, scores every tip model
+with the train-only selection proxies and chooses the default model, trains all models on
+``DIR/<train>`` and, when ``DIR/<val>`` exists, evaluates them on it. Writes into ``--out``:
+results.json (proxies, ``default_model``, val metrics), results.md (table) and, with a
+validation recording, val_predictions.csv (first seed, mm), val_tip_paths.png and
 val_tip_paths.rrd (Rerun).
 """
 from __future__ import annotations
@@ -16,21 +18,37 @@ from pathlib import Path
 
 import torch
 
-from .benchmark import CLARKE_MODELS, MODELS, STATIC_MODELS, load_setup, markdown_table, run_benchmark
+from .benchmark import (
+    Setup,
+    default_candidates,
+    load_setup,
+    markdown_table,
+    run_benchmark,
+    run_selection,
+    select_default,
+)
+from .registry import MODELS, model_info
+from .selection import SELECTION_PROXY
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="python -m dacr_learn.hardware", description=__doc__.split("\n\n")[1])
     ap.add_argument("--data", type=Path, required=True, help="folder with the recordings")
-    ap.add_argument("--robot", type=Path, required=True, help="robot YAML (with servo_maps/<name> next to it, or nominal)")
+    ap.add_argument("--robot", type=Path, required=True,
+                    help="robot YAML (with servo_maps/<name> next to it, or nominal)")
     ap.add_argument("--out", type=Path, required=True, help="run folder to write")
     ap.add_argument("--train", default="train.csv", help="training recording, relative to --data")
-    ap.add_argument("--val", default="val.csv", help="validation recording, relative to --data")
+    ap.add_argument("--val", default="val.csv", help="validation recording, relative to --data (optional: "
+                    "without it the models are scored with the train-only proxies alone)")
     ap.add_argument("--pulls", default="tendon_pull.csv",
                     help="single-pull recording for calibration when the robot has no servo map")
-    ap.add_argument("--servo-map", type=Path, help="servo map YAML (default: servo_maps/<robot file name> next to the robot)")
+    ap.add_argument("--servo-map", type=Path,
+                    help="servo map YAML (default: servo_maps/<robot file name> next to the robot)")
     ap.add_argument("--units", default="mm", choices=["mm", "m"])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds of the final training runs")
+    ap.add_argument("--proxy-seeds", type=int, nargs="+", default=[0], help="seeds of the selection proxies")
+    ap.add_argument("--no-proxies", action="store_true",
+                    help="skip the selection proxies (no default model; needs pattern labels otherwise)")
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest for these sizes)")
     ap.add_argument("--no-visuals", action="store_true", help="skip the PNG and the Rerun recording")
@@ -49,41 +67,73 @@ def write_predictions(path: Path, rec, preds: dict) -> None:
 
 
 def best_model(results: dict, candidates: tuple[str, ...]) -> str | None:
-    """The candidate with the lowest mean val RMSE, or None."""
-    names = [k for k in results if k in candidates]
+    """The candidate with the lowest mean val RMSE, or None (also without val)."""
+    names = [k for k in results if k in candidates and "val" in results[k]]
     return min(names, key=lambda k: results[k]["val"]["rmse_mm"]["mean"]) if names else None
 
 
-def main(argv: list[str] | None = None) -> dict:
-    args = parse_args(argv)
+def _val_path(args: argparse.Namespace) -> Path | None:
+    path = args.data / args.val
+    if path.exists():
+        return path
+    print(f"no validation recording {path}: scoring with the train-only selection proxies only")
+    return None
+
+
+def _selection(setup: Setup, args: argparse.Namespace) -> dict:
+    """Proxy scores of every model, or {} (with the reason printed) when the labels name no pattern families."""
+    try:
+        return run_selection(setup, args.models, args.proxy_seeds)
+    except ValueError as err:
+        print(f"no selection proxies, so no default model: {err}")
+        return {}
+
+
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup]:
+    """The benchmark of ``args``; returns (the results.json report, the setup). The default model is
+    ``report["default_model"]``; :func:`.benchmark.fit_model` trains it for saving."""
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
-    setup = load_setup(args.robot, args.data / args.train, args.data / args.val, args.out,
+    setup = load_setup(args.robot, args.data / args.train, _val_path(args), args.out,
                        args.servo_map, args.data / args.pulls, args.units)
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
+    scores = {} if args.no_proxies else _selection(setup, args)
+    default = select_default(scores) if default_candidates(list(scores)) else None
     results, preds = run_benchmark(setup, tuple(args.models), tuple(args.seeds))
-    best = best_model(results, CLARKE_MODELS)
-    best_static = best_model(results, tuple(m for m in CLARKE_MODELS if m in STATIC_MODELS))
+    clarke = tuple(m for m in results if model_info(m).clarke_space)
     report = {"command": "python -m dacr_learn.hardware " + " ".join(sys.argv[1:] if argv is None else argv),
-              "robot": setup.spec.to_dict(), "train": str(args.data / args.train), "val": str(args.data / args.val),
-              "rows": {"train": len(setup.train_rec), "val": len(setup.val_rec)},
-              "calibration": setup.calibration, "cc_fit": setup.cc_fit, "models": results,
-              "best_clarke_model": best, "best_static_clarke_model": best_static, "seconds_total": time.perf_counter() - start,
+              "robot": setup.spec.to_dict(), "train": str(args.data / args.train),
+              "val": str(setup.val_rec.source) if setup.val_rec is not None else None,
+              "rows": {"train": len(setup.train_rec), "val": len(setup.val_rec) if setup.val_rec is not None else 0},
+              "calibration": setup.calibration, "cc_fit": setup.cc_fit,
+              "default_model": default,
+              "selection": {"proxy": SELECTION_PROXY, "candidates": list(default_candidates(list(scores))),
+                            "proxy_seeds": args.proxy_seeds, "scores": scores},
+              "models": results, "best_clarke_model": best_model(results, clarke),
+              "best_static_clarke_model": best_model(results, tuple(m for m in clarke if model_info(m).static)),
               "environment": {"torch": torch.__version__, "threads": args.threads, "python": platform.python_version()}}
+    report["seconds_total"] = time.perf_counter() - start
     (args.out / "results.json").write_text(json.dumps(report, indent=1))
-    (args.out / "results.md").write_text(markdown_table(results) + "\n")
-    write_predictions(args.out / "val_predictions.csv", setup.val_rec, preds)
-    if not args.no_visuals:
+    (args.out / "results.md").write_text(markdown_table(results, scores, default) + "\n")
+    if preds:
+        write_predictions(args.out / "val_predictions.csv", setup.val_rec, preds)
+    if preds and not args.no_visuals:
         from .visual import log_rerun, plot_paths
 
-        shown = [m for m in ("cc", best_static, best) if m in preds]
+        shown = [m for m in ("cc", report["best_static_clarke_model"], default) if m in preds]
         plot_paths(setup, {m: preds[m] for m in dict.fromkeys(shown)}, args.out / "val_tip_paths.png")
         log_rerun(setup, preds, args.out / "val_tip_paths.rrd")
-    print(markdown_table(results))
-    print(f"best Clarke-space model: {best} (static: {best_static}); wrote {args.out}/results.json ({report['seconds_total']:.0f} s)")
-    return report
+    print(markdown_table(results, scores, default))
+    print(f"default model (lowest {SELECTION_PROXY} proxy of the Clarke-space models, train only): {default}; "
+          f"best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
+          f"({report['seconds_total']:.0f} s)")
+    return report, setup
+
+
+def main(argv: list[str] | None = None) -> dict:
+    return run(parse_args(argv), argv)[0]
 
 
 if __name__ == "__main__":

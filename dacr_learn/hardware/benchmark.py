@@ -1,4 +1,4 @@
-"""Benchmark of tip models on hardware recordings: calibrate, fit, train, evaluate, report.
+"""Benchmark of tip models on hardware recordings: calibrate, fit, select, train, evaluate, report.
 
 Steps (all generic: file names come from arguments, servo ids from the CSV header):
 
@@ -6,62 +6,50 @@ Steps (all generic: file names come from arguments, servo ids from the CSV heade
    it, or ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls``
    and write ``calibrated_robot.yaml`` / ``servo_maps/calibrated_robot.yaml`` into the run folder.
 2. Fit the calibrated CC model's physical parameters on the training recording.
-3. Train every model of :mod:`dacr_learn.hardware.learned` (learned ones once per seed) and
-   evaluate on the validation recording: offset-removed RMSE, mean and p95 Euclidean error.
+3. Score every model with the train-only selection proxies (:mod:`.selection`) and choose the
+   default model among the Clarke-space candidates.
+4. Train every model of :mod:`.registry` (learned ones once per seed) on the whole training
+   recording and, when there is a validation recording, evaluate on it: offset-removed RMSE,
+   mean and p95 Euclidean error.
 """
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from ..robot import RobotSpec
 from .calibration import calibrate, default_map_path, write_calibration
 from .ccmodel import CalibratedCC, fit_cc
-from .learned import (
-    PRETRAIN_SAMPLES,
-    CCClarkeResidual,
-    CCClarkeResidualHistory,
-    CCOnly,
-    CCTipResidual,
-    LinearRaw,
-    Pretrained,
-    Split,
-    TipMLP,
-    make_split,
-    synthetic_split,
-)
+from .learned import Split, make_split
 from .metrics import tip_metrics
 from .recording import Recording, load_recording
+from .registry import MODELS, FitContext, build_model, model_info
+from .selection import SELECTION_PROXY, choose_default, make_folds, proxy_masks, proxy_scores
 from .servo_map import ServoMap
-
-MODELS = ("linear_raw", "mlp_raw", "mlp_clarke", "cc", "cc_tip_residual", "cc_clarke_residual",
-          "pretrained_clarke", "pretrained_raw", "cc_clarke_residual_history")
-DETERMINISTIC = ("linear_raw", "cc")
-CLARKE_MODELS = ("mlp_clarke", "cc", "cc_tip_residual", "cc_clarke_residual", "pretrained_clarke",
-                 "cc_clarke_residual_history")
-STATIC_MODELS = MODELS[:-1]  # all but the history model map one command to one tip
-LETTERS = {"linear_raw": "a", "mlp_raw": "b", "mlp_clarke": "c", "cc": "d", "cc_tip_residual": "e",
-           "cc_clarke_residual": "e", "pretrained_clarke": "f", "pretrained_raw": "f",
-           "cc_clarke_residual_history": "g"}
 
 
 @dataclass
 class Setup:
-    """Everything the models need: robot, servo map, fitted CC model and the two splits."""
+    """Everything the models need: robot, servo map, fitted CC model and the splits (val optional)."""
 
     spec: RobotSpec
     smap: ServoMap
     cc: CalibratedCC
     train_rec: Recording
-    val_rec: Recording
+    val_rec: Recording | None
     train: Split
-    val: Split
+    val: Split | None
     calibration: dict
     cc_fit: dict
+
+    def context(self) -> FitContext:
+        return FitContext(self.cc, self.smap, self.train_rec.servo_ids, self.train)
 
 
 def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: Path,
@@ -82,39 +70,27 @@ def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: 
     return spec, smap, {"servo_map": str(map_out), "robot": str(robot_out), **report}
 
 
-def load_setup(robot: Path, train: Path, val: Path, out: Path, servo_map: Path | None = None,
+def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map: Path | None = None,
                pulls: Path | None = None, units: str = "mm") -> Setup:
+    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None."""
     spec, smap, cal = resolve_robot(robot, servo_map, pulls, out, units)
-    train_rec, val_rec = load_recording(train, spec, units), load_recording(val, spec, units)
+    train_rec = load_recording(train, spec, units)
+    val_rec = load_recording(val, spec, units) if val is not None else None
     smap.check(spec, train_rec.servo_ids)
     cc = CalibratedCC(spec)
-    x_train = smap.displacements(spec, train_rec)
-    fit = fit_cc(cc, x_train, train_rec.tip)
+    fit = fit_cc(cc, smap.displacements(spec, train_rec), train_rec.tip)
     fit["parameters"] = cc.report()
     for p in cc.parameters():
         p.requires_grad_(False)
-    return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc),
-                 make_split(val_rec, spec, smap, cc), cal, fit)
+    val_split = make_split(val_rec, spec, smap, cc) if val_rec is not None else None
+    return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc), val_split, cal, fit)
 
 
-def build(name: str, s: Setup, seed: int) -> torch.nn.Module:
-    torch.manual_seed(seed)
-    if name == "linear_raw":
-        return LinearRaw()
-    if name == "cc":
-        return CCOnly()
-    if name in ("mlp_raw", "mlp_clarke"):
-        return TipMLP(name.split("_")[1], s.train)
-    if name == "cc_tip_residual":
-        return CCTipResidual(s.train)
-    if name == "cc_clarke_residual":
-        return CCClarkeResidual(s.train, s.cc)
-    if name == "cc_clarke_residual_history":
-        return CCClarkeResidualHistory(s.train, s.cc)
-    if name in ("pretrained_clarke", "pretrained_raw"):
-        synth = synthetic_split(s.cc, s.smap, s.train_rec.servo_ids, PRETRAIN_SAMPLES, seed=1000 + seed)
-        return Pretrained(name.split("_")[1], s.train, synth)
-    raise ValueError(f"model: got {name!r}, expected one of {MODELS}")
+def fit_model(name: str, s: Setup, seed: int = 0) -> nn.Module:
+    """Model ``name`` trained on the whole training recording (e.g. the default model, to save)."""
+    model = build_model(name, s.context(), seed)
+    model.fit(s.train)
+    return model
 
 
 def _summary(values: list[float]) -> dict:
@@ -123,46 +99,83 @@ def _summary(values: list[float]) -> dict:
             "per_seed": [round(float(v), 4) for v in a]}
 
 
-def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor]:
-    """Train/evaluate one model over seeds; returns (summary, val predictions of the first seed)."""
+def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
+    """Train/evaluate one model over seeds; returns (summary, val predictions of the first seed or None)."""
+    info = model_info(name)
     runs, first_pred = [], None
-    for seed in (seeds[:1] if name in DETERMINISTIC else seeds):
+    for seed in (seeds[:1] if info.deterministic else seeds):
         start = time.perf_counter()
-        model = build(name, s, seed)
-        model.fit(s.train)
+        model = fit_model(name, s, seed)
         with torch.no_grad():
-            pred_val, pred_train = model(s.val), model(s.train)
-        runs.append({"val": tip_metrics(pred_val, s.val.tip), "train": tip_metrics(pred_train, s.train.tip),
-                     "seconds": time.perf_counter() - start})
-        first_pred = pred_val if first_pred is None else first_pred
-    summary = {"letter": LETTERS[name], "clarke_space": name in CLARKE_MODELS, "static": name in STATIC_MODELS,
+            run = {"train": tip_metrics(model(s.train), s.train.tip)}
+            if s.val is not None:
+                pred_val = model(s.val)
+                run["val"] = tip_metrics(pred_val, s.val.tip)
+                first_pred = pred_val if first_pred is None else first_pred
+        runs.append(run | {"seconds": time.perf_counter() - start})
+    summary = {"letter": info.letter, "clarke_space": info.clarke_space, "static": info.static,
                "seeds": seeds[:len(runs)], "seconds_per_run": float(np.mean([r["seconds"] for r in runs]))}
     for split in ("val", "train"):
-        summary[split] = {k: _summary([r[split][k] for r in runs]) for k in runs[0][split]}
+        if split in runs[0]:
+            summary[split] = {k: _summary([r[split][k] for r in runs]) for k in runs[0][split]}
     return summary, first_pred
 
 
-def run_benchmark(s: Setup, models: tuple[str, ...] = MODELS, seeds: tuple[int, ...] = (0, 1, 2),
-                  log=print) -> tuple[dict, dict[str, torch.Tensor]]:
-    """All models → ({model: summary}, {model: val predictions (first seed)})."""
+def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = print) -> dict:
+    """{model: train-only proxy scores} (:func:`.selection.proxy_scores`), folds built once."""
+    masks = proxy_masks(s.train_rec.labels)
+    folds = {proxy: make_folds(s.train_rec, s.spec, s.smap, m) for proxy, m in masks.items()}
+    scores = {}
+    for name in models:
+        scores[name] = proxy_scores(name, folds, seeds)
+        p = scores[name]
+        log(f"{name:28s} proxies: family CV {p['cv']:6.2f} mm, singles→pairs {p['extrap']:6.2f} mm "
+            f"({p['seconds']:.0f} s)")
+    return scores
+
+
+def default_candidates(models: Sequence[str]) -> tuple[str, ...]:
+    """The models the default is chosen from: the Clarke-space ones."""
+    return tuple(m for m in models if model_info(m).clarke_space)
+
+
+def select_default(scores: dict) -> str:
+    return choose_default(scores, default_candidates(list(scores)), SELECTION_PROXY)
+
+
+def run_benchmark(s: Setup, models: Sequence[str] = MODELS, seeds: Sequence[int] = (0, 1, 2),
+                  log: Callable = print) -> tuple[dict, dict[str, torch.Tensor]]:
+    """All models → ({model: summary}, {model: val predictions (first seed)}; empty without val)."""
     results, preds = {}, {}
     for name in models:
-        results[name], preds[name] = run_model(name, s, list(seeds))
-        v = results[name]["val"]
-        log(f"{name:20s} val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "
-            f"mean {v['mean_mm']['mean']:6.2f}  p95 {v['p95_mm']['mean']:6.2f}  "
-            f"(train {results[name]['train']['rmse_mm']['mean']:.2f}, {results[name]['seconds_per_run']:.1f} s/run)")
+        results[name], pred = run_model(name, s, list(seeds))
+        if pred is not None:
+            preds[name] = pred
+        r = results[name]
+        v = r.get("val")
+        shown = (f"val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "
+                 f"mean {v['mean_mm']['mean']:6.2f}  p95 {v['p95_mm']['mean']:6.2f}  " if v else "")
+        log(f"{name:28s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, {r['seconds_per_run']:.1f} s/run)")
     return results, preds
 
 
-def markdown_table(results: dict) -> str:
-    """Results table (val metrics, mean ± std over seeds) in Markdown."""
-    lines = ["| | model | inputs | val RMSE, offset removed [mm] | val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
-             "|---|---|---|---|---|---|---|---|"]
+def _pm(d: dict | None) -> str:
+    if d is None:
+        return "–"
+    return f"{d['mean']:.2f} ± {d['std']:.2f}" if len(d["per_seed"]) > 1 else f"{d['mean']:.2f}"
+
+
+def markdown_table(results: dict, scores: dict | None = None, default: str | None = None) -> str:
+    """Results table in Markdown: proxies (train only), val metrics when present (mean ± std over seeds)."""
+    scores = scores or {}
+    lines = ["| | model | inputs | family CV [mm] | singles→pairs [mm] | val RMSE, offset removed [mm] | "
+             "val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in results.items():
-        v, t = r["val"], r["train"]
-        pm = lambda d: f"{d['mean']:.2f} ± {d['std']:.2f}" if len(d["per_seed"]) > 1 else f"{d['mean']:.2f}"  # noqa: E731
+        v, t, p = r.get("val", {}), r["train"], scores.get(name, {})
         inputs = ("Clarke" if r["clarke_space"] else "raw servo") + ("" if r["static"] else " + history")
-        lines.append(f"| {r['letter']} | `{name}` | {inputs} | {pm(v['rmse_mm'])} | {pm(v['mean_mm'])} | {pm(v['p95_mm'])} | "
-                     f"{pm(t['rmse_mm'])} | {len(r['seeds'])} |")
+        proxy = [f"{p[k]:.2f}" if k in p else "–" for k in ("cv", "extrap")]
+        shown = f"**`{name}`** (default)" if name == default else f"`{name}`"
+        lines.append(f"| {r['letter']} | {shown} | {inputs} | {proxy[0]} | {proxy[1]} | {_pm(v.get('rmse_mm'))} | "
+                     f"{_pm(v.get('mean_mm'))} | {_pm(v.get('p95_mm'))} | {_pm(t['rmse_mm'])} | {len(r['seeds'])} |")
     return "\n".join(lines)

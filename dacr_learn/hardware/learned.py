@@ -27,7 +27,7 @@ with Adam and a cosine schedule (float32).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor, nn
@@ -89,6 +89,13 @@ class Split:
     cc_tip: Tensor
     tip: Tensor
     memory: Tensor
+
+    def __len__(self) -> int:
+        return self.tip.shape[0]
+
+    def rows(self, index: Tensor) -> Split:
+        """The split restricted to rows ``index`` (a boolean mask (n,) or row indices)."""
+        return Split(*(getattr(self, f.name)[index] for f in fields(self)))
 
     @property
     def clarke(self) -> Tensor:
@@ -201,21 +208,39 @@ class CCTipResidual(nn.Module):
 
 
 class CCClarkeResidual(nn.Module):
-    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics."""
+    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics.
+
+    Options for carrying over to commands outside the training support (docs/hardware.md):
+
+    - ``support``: the network sees ρ⁽ᵏ⁾ radially clamped to the largest bend of segment k in
+      the training split, ρ⁽ᵏ⁾·min(1, r_k/‖ρ⁽ᵏ⁾‖): beyond the training range the correction stays
+      at its value on the boundary instead of extrapolating the network; the CC kinematics
+      carry the rest.
+    - ``rehearsal`` (a synthetic split of the calibrated CC robot, all segments at once) with
+      weight ``rehearsal_weight``: the loss also asks the corrected model to reproduce the CC
+      model's tips there, so the correction fades where the recording has no data.
+    """
 
     history = False
 
-    def __init__(self, train: Split, cc: CalibratedCC):
+    def __init__(self, train: Split, cc: CalibratedCC, support: bool = False, rehearsal: Split | None = None,
+                 rehearsal_weight: float = 0.0):
         super().__init__()
-        self.cc = cc
+        self.cc, self.support = cc, support
+        self.rehearsal, self.rehearsal_weight = rehearsal, rehearsal_weight
         m = train.features.shape[-2]
-        self.register_buffer("rho_std", train.features[..., :2].float().std())
+        rho = train.features[..., :2].float()
+        self.register_buffer("rho_std", rho.std())
+        self.register_buffer("rho_max", rho.norm(dim=-1).amax(0))                  # (m,) [m]
         self.register_buffer("onehot", torch.eye(m))
         self.net = mlp(2 + 2 * self.history + m, 2, hidden=RESIDUAL_HIDDEN)
 
     def corrected_features(self, split: Split) -> Tensor:
         rho = split.features[..., :2].float()
-        parts = [rho / self.rho_std] + ([split.memory.float()] if self.history else [])
+        rho_in = rho
+        if self.support:
+            rho_in = rho * (self.rho_max.unsqueeze(-1) / rho.norm(dim=-1, keepdim=True).clamp_min(1e-12)).clamp(max=1.0)
+        parts = [rho_in / self.rho_std] + ([split.memory.float()] if self.history else [])
         inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
         delta = self.net(inp) * RESIDUAL_RHO_SCALE
         features = split.features.float()
@@ -228,7 +253,14 @@ class CCClarkeResidual(nn.Module):
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
             p.requires_grad_(False)
-        train_full_batch(self.net.parameters(), lambda: (self(train) - train.tip).pow(2).mean() / 1e-6)
+
+        def loss() -> Tensor:
+            data = (self(train) - train.tip).pow(2).mean() / 1e-6
+            if self.rehearsal is None or self.rehearsal_weight == 0:
+                return data
+            return data + self.rehearsal_weight * (self(self.rehearsal) - self.rehearsal.tip).pow(2).mean() / 1e-6
+
+        train_full_batch(self.net.parameters(), loss)
 
 
 class CCClarkeResidualHistory(CCClarkeResidual):

@@ -1,0 +1,94 @@
+"""The registry of hardware tip models: name → builder, letter and flags (one place, unique letters).
+
+Every model is built from a :class:`FitContext` (the fitted CC model, the servo map and the
+training split) and a seed, then trained with ``model.fit(train)`` and evaluated with
+``model(split)`` → tip (n, 3) [m] (:mod:`dacr_learn.hardware.learned`). The benchmark, the
+train-only selection proxies (:mod:`.selection`) and research scripts all build models here.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from .ccmodel import CalibratedCC
+from .learned import (
+    PRETRAIN_SAMPLES,
+    CCClarkeResidual,
+    CCClarkeResidualHistory,
+    CCOnly,
+    CCTipResidual,
+    LinearRaw,
+    Pretrained,
+    Split,
+    TipMLP,
+    synthetic_split,
+)
+from .servo_map import ServoMap
+
+
+@dataclass(frozen=True)
+class FitContext:
+    """What a model is built from: the CC model fitted on ``train``, the servo map and the servo ids."""
+
+    cc: CalibratedCC
+    smap: ServoMap
+    servo_ids: tuple[str, ...]
+    train: Split
+
+    def synthetic(self, seed: int, n: int = PRETRAIN_SAMPLES) -> Split:
+        """Synthetic all-segment data of the calibrated CC robot (:func:`~.learned.synthetic_split`)."""
+        return synthetic_split(self.cc, self.smap, self.servo_ids, n, seed=1000 + seed)
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """One registered model. ``inputs``: "raw" (servo values) or "clarke" (calibrated Clarke features);
+    ``static``: maps one command to one tip (False: also uses the command history);
+    ``deterministic``: the same for every seed (trained once)."""
+
+    name: str
+    letter: str
+    build: Callable[[FitContext, int], nn.Module]
+    inputs: str
+    static: bool = True
+    deterministic: bool = False
+
+    @property
+    def clarke_space(self) -> bool:
+        return self.inputs == "clarke"
+
+
+_MODELS = (
+    ModelInfo("linear_raw", "a", lambda c, s: LinearRaw(), "raw", deterministic=True),
+    ModelInfo("mlp_raw", "b", lambda c, s: TipMLP("raw", c.train), "raw"),
+    ModelInfo("mlp_clarke", "c", lambda c, s: TipMLP("clarke", c.train), "clarke"),
+    ModelInfo("cc", "d", lambda c, s: CCOnly(), "clarke", deterministic=True),
+    ModelInfo("cc_clarke_residual", "e", lambda c, s: CCClarkeResidual(c.train, c.cc), "clarke"),
+    ModelInfo("pretrained_clarke", "f", lambda c, s: Pretrained("clarke", c.train, c.synthetic(s)), "clarke"),
+    ModelInfo("cc_clarke_residual_history", "g", lambda c, s: CCClarkeResidualHistory(c.train, c.cc), "clarke",
+              static=False),
+    ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.train), "clarke"),
+    ModelInfo("pretrained_raw", "i", lambda c, s: Pretrained("raw", c.train, c.synthetic(s)), "raw"),
+)
+REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
+MODELS: tuple[str, ...] = tuple(REGISTRY)
+assert len({m.letter for m in _MODELS}) == len(_MODELS), "model letters must be unique"
+
+
+def model_info(model: str | ModelInfo) -> ModelInfo:
+    """The registry entry of a model name (a :class:`ModelInfo` is returned as it is: research variants)."""
+    if isinstance(model, ModelInfo):
+        return model
+    if model not in REGISTRY:
+        raise ValueError(f"model: got {model!r}, expected one of {MODELS}")
+    return REGISTRY[model]
+
+
+def build_model(model: str | ModelInfo, ctx: FitContext, seed: int) -> nn.Module:
+    """A fresh, untrained model (a registered name or a :class:`ModelInfo`), torch seeded with ``seed`` first."""
+    info = model_info(model)
+    torch.manual_seed(seed)
+    return info.build(ctx, seed)

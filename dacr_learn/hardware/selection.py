@@ -1,0 +1,123 @@
+"""Choosing a model on the training recording alone: two selection proxies and the default model.
+
+Real validation patterns (all segments loaded at once) are absent from training recordings
+(single segments and pairs), so a model must be chosen without them. Two train-only proxies,
+both offset-removed tip RMSE [mm] on held-out rows of the training recording:
+
+- ``cv``: leave-one-pattern-family-out cross-validation. Families (from the pattern labels):
+  ``single`` (one segment or one tendon moved: ``seg<k>…``, ``tendon<k>…``) and one per pair of
+  segments (``pair<jk>…``). Each fold holds one family out; the score is the mean over folds.
+- ``extrap``: singles → pairs. Fit on the single-segment family, test on every pair family: a
+  shift in the number of moving segments, like the one from training to validation.
+
+In every fold the calibrated CC model is refitted on the fold's training rows, history inputs
+run along the whole recording (causal), and each learned model is trained on the training rows
+only. Labels without a family raise (there is no proxy without families).
+
+:func:`choose_default` picks the candidate with the lowest ``extrap`` (the proxy of the regime
+shift; docs/hardware.md shows on FTDCR v4 how each proxy's ranking compares with val's).
+"""
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..robot import RobotSpec
+from .ccmodel import CalibratedCC, fit_cc
+from .learned import Split, make_split
+from .metrics import offset_removed_rmse
+from .recording import Recording
+from .registry import FitContext, ModelInfo, build_model, model_info
+from .servo_map import ServoMap
+
+PROXIES = ("cv", "extrap")
+SELECTION_PROXY = "extrap"
+_PAIR = re.compile(r"pair(\d\d)")
+_SINGLE = re.compile(r"(^|_)(seg\d+|tendon\d+)")
+
+
+def pattern_family(label: str) -> str:
+    """``single`` or ``pair<jk>`` from a pattern label (``rep1_seg2_dir90``, ``rep1_pair13_opp_dir0``…)."""
+    pair = _PAIR.search(label)
+    if pair:
+        return "pair" + pair.group(1)
+    if _SINGLE.search(label):
+        return "single"
+    raise ValueError(f"pattern label {label!r}: expected one naming a single segment or tendon "
+                     f"('seg<k>', 'tendon<k>') or a pair of segments ('pair<jk>')")
+
+
+def proxy_masks(labels: Sequence[str]) -> dict[str, list[tuple[str, np.ndarray, np.ndarray]]]:
+    """{proxy: [(fold name, train rows (n,) bool, test rows (n,) bool), …]} from pattern labels."""
+    fam = np.array([pattern_family(label) for label in labels])
+    names = sorted(set(fam), key=lambda f: (f != "single", f))
+    if "single" not in names or len(names) < 2:
+        raise ValueError(f"pattern families: expected 'single' and at least one pair family, got {names}")
+    pairs = fam != "single"
+    return {"cv": [(str(f), fam != f, fam == f) for f in names],
+            "extrap": [("singles_to_pairs", ~pairs, pairs)]}
+
+
+@dataclass
+class Fold:
+    """One proxy fold: the context (CC refitted on the training rows) and the held-out test rows."""
+
+    name: str
+    ctx: FitContext
+    test: Split
+
+
+def make_folds(rec: Recording, spec: RobotSpec, smap: ServoMap,
+               masks: list[tuple[str, np.ndarray, np.ndarray]]) -> list[Fold]:
+    """Refit the calibrated CC model on each fold's training rows and split the recording."""
+    x = smap.displacements(spec, rec)
+    folds = []
+    for name, tr, te in masks:
+        tr, te = torch.from_numpy(tr), torch.from_numpy(te)
+        cc = CalibratedCC(spec)
+        fit_cc(cc, x[tr], rec.tip[tr])
+        for p in cc.parameters():
+            p.requires_grad_(False)
+        split = make_split(rec, spec, smap, cc)
+        folds.append(Fold(name, FitContext(cc, smap, rec.servo_ids, split.rows(tr)), split.rows(te)))
+    return folds
+
+
+def fold_rmse(model_name: str | ModelInfo, fold: Fold, seed: int) -> float:
+    """Offset-removed RMSE [mm] of a model trained on the fold's rows, on its test rows."""
+    model = build_model(model_name, fold.ctx, seed)
+    model.fit(fold.ctx.train)
+    with torch.no_grad():
+        return float(offset_removed_rmse(model(fold.test), fold.test.tip)) * 1e3
+
+
+def proxy_scores(name: str | ModelInfo, folds: dict[str, list[Fold]], seeds: Sequence[int]) -> dict:
+    """{proxy: mean RMSE [mm], proxy + "_folds": {fold: RMSE averaged over seeds}, "seconds"}."""
+    start = time.perf_counter()
+    seeds = list(seeds)[:1] if model_info(name).deterministic else list(seeds)
+    out: dict = {}
+    for proxy, fs in folds.items():
+        per = {f.name: float(np.mean([fold_rmse(name, f, s) for s in seeds])) for f in fs}
+        out[proxy] = round(float(np.mean(list(per.values()))), 4)
+        out[proxy + "_folds"] = {k: round(v, 4) for k, v in per.items()}
+    out["seeds"] = seeds
+    out["seconds"] = round(time.perf_counter() - start, 2)
+    return out
+
+
+def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY) -> str:
+    """The candidate with the lowest ``proxy`` score (ties: the earlier candidate)."""
+    scored = [c for c in candidates if c in scores and proxy in scores[c]]
+    if not scored:
+        raise ValueError(f"choose_default: none of the candidates {list(candidates)} has a {proxy!r} score")
+    return min(scored, key=lambda c: scores[c][proxy])
+
+
+def rank(values: dict[str, float]) -> list[str]:
+    """Names sorted by value (lowest first)."""
+    return sorted(values, key=values.get)

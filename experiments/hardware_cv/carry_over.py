@@ -1,0 +1,62 @@
+"""Clarke-space models that carry over between robots: support clamp and CC rehearsal (issue 12, item 3).
+
+Scores variants of (e) ``cc_clarke_residual`` and (g) ``cc_clarke_residual_history`` with the
+library's train-only selection proxies (:mod:`dacr_learn.hardware.selection`) on the training
+recording of one robot. Variants are passed as constructor arguments, no library global is patched.
+Usage (from the repository root):
+
+    python experiments/hardware_cv/carry_over.py ROBOT VARIANTS SEEDS [PROXIES]
+
+ROBOT: v4 | v6 (configs/robots/ftdcr_<robot>_calibrated.yaml, data/ftdcr_<robot>/train.csv);
+VARIANTS: comma-separated names of ``VARIANTS`` below or registered model names; SEEDS: 0,1;
+PROXIES: extrap,cv (default both). One JSON line per variant on stdout.
+"""
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+torch.set_num_threads(1)
+
+from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory  # noqa: E402
+from dacr_learn.hardware.recording import load_recording  # noqa: E402
+from dacr_learn.hardware.registry import ModelInfo, model_info  # noqa: E402
+from dacr_learn.hardware.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
+from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
+from dacr_learn.robot import RobotSpec  # noqa: E402
+
+REHEARSAL_SAMPLES = 1000
+
+
+def variant(name: str, history: bool, support: bool, weight: float) -> ModelInfo:
+    cls = CCClarkeResidualHistory if history else CCClarkeResidual
+
+    def build(ctx, seed):
+        synth = ctx.synthetic(seed, REHEARSAL_SAMPLES) if weight else None
+        return cls(ctx.train, ctx.cc, support=support, rehearsal=synth, rehearsal_weight=weight)
+    return ModelInfo(name, "?", build, "clarke", static=not history)
+
+
+VARIANTS = {f"{base}{'_support' if s else ''}{f'_reh{w:g}' if w else ''}": variant(
+    f"{base}{'_support' if s else ''}{f'_reh{w:g}' if w else ''}", base == "g", s, w)
+    for base in ("e", "g") for s in (False, True) for w in (0.0, 0.1, 1.0)}
+
+
+def main() -> None:
+    robot, names, seeds = sys.argv[1], sys.argv[2].split(","), [int(s) for s in sys.argv[3].split(",")]
+    proxies = sys.argv[4].split(",") if len(sys.argv) > 4 else ["extrap", "cv"]
+    spec = RobotSpec.from_yaml(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml")
+    smap = ServoMap.from_yaml(ROOT / f"configs/robots/servo_maps/ftdcr_{robot}_calibrated.yaml")
+    rec = load_recording(ROOT / f"data/ftdcr_{robot}/train.csv", spec)
+    masks = proxy_masks(rec.labels)
+    folds = {p: make_folds(rec, spec, smap, masks[p]) for p in proxies}
+    for name in names:
+        info = VARIANTS.get(name) or model_info(name)
+        print(json.dumps({"robot": robot, "model": name, **proxy_scores(info, folds, seeds)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

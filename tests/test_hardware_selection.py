@@ -1,0 +1,180 @@
+"""Model registry, train-only selection proxies, the default model and the carry-over options.
+
+A small synthetic two-segment robot (the calibrated CC model is its ground truth, 0.1 mm noise)
+with labelled single-segment and pair patterns stands in for a hardware recording; its folder has
+no val.csv, like data/ftdcr_v6.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from test_hardware import write_csv
+
+from dacr_learn.hardware.ccmodel import CalibratedCC
+from dacr_learn.hardware.learned import CCClarkeResidual, make_split
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.registry import MODELS, REGISTRY, FitContext, model_info
+from dacr_learn.hardware.selection import choose_default, make_folds, pattern_family, proxy_masks, proxy_scores
+from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
+from dacr_learn.layers import ClarkeDecoder
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+ROBOT = {"name": "synthetic-2seg", "routing": "coupled", "segments": [
+    {"type": "0", "length": 0.08, "radius": 0.005, "joints": 3, "offset": 0.3, "limits": {"bend": 0.8}},
+    {"type": "0", "length": 0.07, "radius": 0.005, "joints": 3, "offset": -0.5, "limits": {"bend": 0.8}}]}
+IDS = ["s4", "s1", "s6", "s2", "s5", "s3"]
+
+
+def _rows(g: torch.Generator, n: int, moving: tuple[int, ...], reach: float) -> torch.Tensor:
+    """(n, 2, 4) features with only the segments in ``moving`` bent (|ρ| ≤ reach [m])."""
+    feat = torch.zeros(n, 2, 4, dtype=torch.float64)
+    for k in moving:
+        r = reach * torch.rand(n, generator=g, dtype=torch.float64).sqrt()
+        a = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
+        feat[:, k, 0], feat[:, k, 1] = r * a.cos(), r * a.sin()
+    feat[..., 2] = torch.tensor([0.08, 0.07], dtype=torch.float64)
+    return feat
+
+
+@pytest.fixture(scope="module")
+def robot_dir(tmp_path_factory) -> tuple[Path, Path]:
+    """(data folder with train.csv only, robot YAML with its servo map next to it)."""
+    root = tmp_path_factory.mktemp("synthetic")
+    spec = RobotSpec.from_dict(ROBOT)
+    robot = root / "robot.yaml"
+    spec.to_yaml(robot)
+    (root / "servo_maps").mkdir()
+    smap = ServoMap(spec.name, tuple(ServoAssignment(s, j // 3, j % 3) for j, s in enumerate(IDS)), -8e-3)
+    smap.to_yaml(root / "servo_maps" / "robot.yaml")
+    g = torch.Generator().manual_seed(3)
+    parts = [("rep1_seg1_dir0", (0,)), ("rep1_seg2_dir0", (1,)), ("rep1_pair12_same_dir0", (0, 1))]
+    feat = torch.cat([_rows(g, 40, moving, 0.004) for _, moving in parts])
+    labels = [label for label, _ in parts for _ in range(40)]
+    dec = ClarkeDecoder(spec)
+    x = dec(torch.cat([torch.zeros_like(feat[..., :2]), feat[..., 2:]], -1)) - dec(feat)
+    with torch.no_grad():
+        tip = CalibratedCC(spec, compliance=1e-7)(x) + 1e-4 * torch.randn(len(x), 3, generator=g, dtype=torch.float64)
+    data = root / "data"
+    data.mkdir()
+    rows = [[1000.0 + 0.5 * k, labels[k]] + [f"{v * 1e3:.5f}" for v in x[k].tolist() + tip[k].tolist()]
+            for k in range(len(x))]
+    header = ["timestamp", "pattern_label"] + [f"servo_{i}_mm" for i in IDS] + ["tip_x", "tip_y", "tip_z"]
+    write_csv(data / "train.csv", header, rows)
+    return data, robot
+
+
+def test_registry_has_unique_letters_and_flags():
+    letters = [REGISTRY[m].letter for m in MODELS]
+    assert len(set(letters)) == len(letters) == len(MODELS)
+    assert {m for m in MODELS if REGISTRY[m].deterministic} == {"linear_raw", "cc"}
+    assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history"]
+    assert not model_info("mlp_raw").clarke_space and model_info("pretrained_clarke").clarke_space
+    with pytest.raises(ValueError, match="expected one of"):
+        model_info("mlp")
+
+
+def test_pattern_families_and_proxy_masks():
+    labels = ["rep1_tendon3_id9_pull", "rep1_seg2_circle", "rep2_pair13_opp_dir90_hold", "rep1_pair12_same_dir0",
+              "rep1_seg1_dir0_hold"]
+    assert [pattern_family(label) for label in labels] == ["single", "single", "pair13", "pair12", "single"]
+    masks = proxy_masks(labels)
+    assert [name for name, _, _ in masks["cv"]] == ["single", "pair12", "pair13"]
+    for _, tr, te in masks["cv"]:                       # each fold holds out exactly one family
+        assert not (tr & te).any() and (tr | te).all()
+    (_, tr, te), = masks["extrap"]
+    assert tr.tolist() == [True, True, False, False, True] and te.tolist() == [not t for t in tr.tolist()]
+    with pytest.raises(ValueError, match="'pair<jk>'"):
+        pattern_family("random")
+    with pytest.raises(ValueError, match="expected 'single' and at least one pair family"):
+        proxy_masks(["rep1_pair12_same", "rep1_pair13_opp"])
+
+
+def test_choose_default_takes_the_lowest_proxy():
+    scores = {"cc": {"extrap": 6.3, "cv": 5.9}, "mlp_clarke": {"extrap": 9.0, "cv": 5.0}, "mlp_raw": {"extrap": 1.0}}
+    assert choose_default(scores, ["cc", "mlp_clarke"]) == "cc"
+    assert choose_default(scores, ["cc", "mlp_clarke"], "cv") == "mlp_clarke"
+    with pytest.raises(ValueError, match="has a 'extrap' score"):
+        choose_default(scores, ["pretrained_clarke"])
+
+
+def test_proxies_score_the_true_model_at_the_noise(robot_dir):
+    data, robot = robot_dir
+    spec = RobotSpec.from_yaml(robot)
+    smap = ServoMap.from_yaml(robot.parent / "servo_maps" / robot.name)
+    rec = load_recording(data / "train.csv", spec)
+    masks = proxy_masks(rec.labels)
+    folds = {p: make_folds(rec, spec, smap, m) for p, m in masks.items()}
+    assert [len(f.test) for f in folds["cv"]] == [80, 40] and len(folds["extrap"][0].test) == 40
+    cc, lin = proxy_scores("cc", folds, [0, 1]), proxy_scores("linear_raw", folds, [0])
+    assert cc["seeds"] == [0]                            # deterministic: one run
+    assert cc["extrap"] < 0.3 and cc["cv"] < 0.3         # the CC model is the truth (0.17 mm noise RMS)
+    assert lin["extrap"] > 3 * cc["extrap"] and set(lin["cv_folds"]) == {"single", "pair12"}
+
+
+def test_cli_without_val_records_the_default_model(robot_dir, tmp_path):
+    from dacr_learn.hardware.__main__ import main
+
+    data, robot = robot_dir
+    out = tmp_path / "run"
+    report = main(["--data", str(data), "--robot", str(robot), "--out", str(out),
+                   "--models", "linear_raw", "cc", "--seeds", "0"])
+    results = json.loads((out / "results.json").read_text())
+    assert results["default_model"] == report["default_model"] == "cc"
+    assert results["selection"]["candidates"] == ["cc"] and results["val"] is None
+    assert set(results["selection"]["scores"]) == {"linear_raw", "cc"}
+    assert "val" not in results["models"]["cc"] and results["models"]["cc"]["train"]["rmse_mm"]["mean"] < 0.3
+    assert not (out / "val_predictions.csv").exists()
+    assert "**`cc`** (default)" in (out / "results.md").read_text()
+
+
+def _context(robot_dir) -> FitContext:
+    data, robot = robot_dir
+    spec = RobotSpec.from_yaml(robot)
+    smap = ServoMap.from_yaml(robot.parent / "servo_maps" / robot.name)
+    rec = load_recording(data / "train.csv", spec)
+    cc = CalibratedCC(spec)
+    for p in cc.parameters():
+        p.requires_grad_(False)
+    return FitContext(cc, smap, rec.servo_ids, make_split(rec, spec, smap, cc))
+
+
+def test_support_clamp_holds_the_correction_beyond_the_training_range(robot_dir):
+    ctx = _context(robot_dir)
+    torch.manual_seed(0)
+    model = CCClarkeResidual(ctx.train, ctx.cc, support=True)
+    rows = ctx.train.rows(torch.arange(5))
+    far = ctx.train.rows(torch.arange(5))
+    scale = 3 * model.rho_max.max() / far.features[..., :2].norm(dim=-1).clamp_min(1e-9)   # every segment outside
+    far.features = torch.cat([far.features[..., :2] * scale.unsqueeze(-1), far.features[..., 2:]], -1)
+    edge = ctx.train.rows(torch.arange(5))
+    unit = far.features[..., :2] / far.features[..., :2].norm(dim=-1, keepdim=True)
+    edge.features = torch.cat([unit * model.rho_max.unsqueeze(-1).double(), far.features[..., 2:]], -1)
+    with torch.no_grad():
+        delta = lambda s: model.corrected_features(s)[..., :2] - s.features[..., :2].float()  # noqa: E731
+        assert torch.allclose(delta(far), delta(edge), atol=1e-6 * float(model.rho_max.max()))
+        assert not torch.allclose(delta(rows), delta(edge), atol=1e-9)
+    free = CCClarkeResidual(ctx.train, ctx.cc)
+    free.net.load_state_dict(model.net.state_dict())
+    with torch.no_grad():
+        assert not torch.allclose(free.corrected_features(far), model.corrected_features(far), atol=1e-7)
+
+
+def test_rehearsal_pulls_the_correction_towards_the_cc_model(robot_dir):
+    ctx = _context(robot_dir)
+    synth = ctx.synthetic(0, 200)
+    target = ctx.train.tip + 2e-3 * torch.tanh(ctx.train.features[..., 0, :1] / 2e-3)  # a bias the CC model lacks
+    train = ctx.train.rows(torch.arange(len(ctx.train)))
+    train.tip = target
+    gaps = []
+    for weight in (0.0, 10.0):
+        torch.manual_seed(0)
+        model = CCClarkeResidual(train, ctx.cc, rehearsal=synth, rehearsal_weight=weight)
+        model.fit(train)
+        with torch.no_grad():
+            gaps.append(float((model(synth) - synth.tip).norm(dim=-1).mean()))
+    assert gaps[1] < 0.5 * gaps[0]
