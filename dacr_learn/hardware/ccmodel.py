@@ -11,6 +11,7 @@ Segment lengths stay nominal (they trade off against the radii and made the fit 
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 
 import torch
 from pytorch_kinematics.transforms import euler_angles_to_matrix
@@ -72,17 +73,25 @@ class CalibratedCC(nn.Module):
 
 # Typical magnitude of each parameter: the fit works on parameter / scale, so that the
 # L-BFGS steps are well conditioned across metres, millimetre pretensions and log-radii.
-_FIT_SCALES = {"encoder.log_radius_scale": 0.1, "encoder.rotation": 0.05, "encoder.log_compliance": 1.0,
+FIT_SCALES = {"encoder.log_radius_scale": 0.1, "encoder.rotation": 0.05, "encoder.log_compliance": 1.0,
                "encoder.pretension": 1e-4, "base_tilt": 0.02, "base_translation": 1e-3, "tip_offset": 1e-3}
 
 
-def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, frozen: tuple[str, ...] = ()) -> dict:
+def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, frozen: tuple[str, ...] = (),
+           scales: Mapping[str, float] | None = None) -> dict:
     """Least-squares fit of the physical parameters to (x (n, N), tip (n, 3)) [m] with L-BFGS.
 
-    Parameters named in ``frozen`` keep their values. The base translation starts at the
-    mean residual. Returns the time taken and the root-mean-square tip error [m].
+    Parameters named in ``frozen`` keep their values. ``scales`` adds or overrides the typical
+    magnitude of parameters (:data:`FIT_SCALES`), e.g. for a subclass with extra physics.
+    The base translation starts at the mean residual. Returns the time taken and the
+    root-mean-square tip error [m].
     """
     start = time.perf_counter()
+    scale = {**FIT_SCALES, **(scales or {})}
+    unscaled = [n for n, _ in model.named_parameters() if n not in scale and n not in frozen]
+    if unscaled:
+        raise ValueError(f"fit_cc: parameters {unscaled} have no fit scale; expected them in scales= "
+                         f"(known: {sorted(scale)})")
     with torch.no_grad():
         model.base_translation += (tip - model(x)).mean(0)
     base = {n: p.detach().clone() for n, p in model.named_parameters()}
@@ -92,7 +101,7 @@ def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, fro
                             tolerance_grad=1e-10, tolerance_change=1e-14)
 
     def params() -> dict:
-        return {n: base[n] + _FIT_SCALES[n] * z[n] if n in z else base[n] for n in base}
+        return {n: base[n] + scale[n] * z[n] if n in z else base[n] for n in base}
 
     def closure():
         opt.zero_grad()

@@ -20,11 +20,10 @@ import torch
 from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tendon_play, tip_tr, val_data, x_tr
 from torch import nn
 
-from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
 from dacr_learn.hardware.slack import solve_tendon_qp
 
-ccmodel._FIT_SCALES["mu"] = 0.05
+SCALES = {"mu": 0.05}  # extra fit_cc scale of the friction coefficient
 
 
 class CapstanCC(CalibratedCC):
@@ -58,11 +57,11 @@ def direction(x, width):
 
 def fit_capstan(x, tip, sigma, mu0=0.05):
     base = CalibratedCC(spec)
-    fit_cc(base, x, tip)                      # start from the frictionless fit
+    fit_cc(base, x, tip, scales=SCALES)                      # start from the frictionless fit
     cc = CapstanCC(mu0)
     cc.load_state_dict({**base.state_dict(), "mu": cc.mu.detach()})
     cc.sigma = sigma
-    info = fit_cc(cc, x, tip)
+    info = fit_cc(cc, x, tip, scales=SCALES)
     for p in cc.parameters():
         p.requires_grad_(False)
     return cc, info

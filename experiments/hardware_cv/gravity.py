@@ -22,12 +22,11 @@ import torch
 from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, val_data, x_tr
 from torch import nn
 
-from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
 from dacr_learn.hardware.slack import solve_tendon_qp
 from dacr_learn.kinematics import backbone_points
 
-ccmodel._FIT_SCALES["gravity"] = 1e-5
+SCALES = {"gravity": 1e-5}  # extra fit_cc scale of the gravity load
 POINTS = 8   # backbone points per segment
 
 
@@ -58,7 +57,7 @@ class GravityCC(CalibratedCC):
 
 def fitted(tip_mass, x, tip):
     cc = GravityCC(tip_mass)
-    fit_cc(cc, x, tip)
+    fit_cc(cc, x, tip, scales=SCALES)
     return cc
 
 

@@ -27,7 +27,7 @@ from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
 from dacr_learn.hardware.slack import SlackAwareEncoder
 
-ccmodel._FIT_SCALES.update({"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1, "marker_lateral": 1e-3})
+SCALES = {"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1, "marker_lateral": 1e-3}  # extra fit_cc scales
 
 
 class CoupledEncoder(SlackAwareEncoder):
@@ -79,7 +79,7 @@ def make(variant):
 
 def fitted(variant, x, tip):
     cc = make(variant)
-    fit_cc(cc, x, tip)
+    fit_cc(cc, x, tip, scales=SCALES)
     return cc
 
 
