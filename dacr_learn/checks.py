@@ -45,12 +45,18 @@ def short_error(err: BaseException) -> str:
     return f"{type(err).__name__}: {text[:160]}{'…' if len(text) > 160 else ''}" if text else type(err).__name__
 
 
-def read_text(path: str | Path, expected: str) -> str:
-    """The text of a user's file; ValueError ``"<path>: expected <expected>, found …"`` when it is
-    a directory, unreadable or not UTF-8. A missing file raises FileNotFoundError naming the path."""
+def existing(path: str | Path, expected: str) -> Path:
+    """``path`` as a Path; FileNotFoundError ``"<path>: no such file; expected <expected>"`` when it does not exist."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file; expected {expected}")
+    return path
+
+
+def read_text(path: str | Path, expected: str) -> str:
+    """The text of a user's file; ValueError ``"<path>: expected <expected>, found …"`` when it is
+    a directory, unreadable or not UTF-8. A missing file raises FileNotFoundError naming the path."""
+    path = existing(path, expected)
     try:
         return path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as err:
@@ -87,9 +93,7 @@ def read_json_object(path: str | Path, expected: str) -> dict[str, Any]:
 def load_torch_file(path: str | Path, expected: str) -> Any:
     """``torch.load(path, weights_only=True)`` on the CPU of a user's file; ValueError naming the file
     when it is not a (complete) torch.save archive. A missing file raises FileNotFoundError."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such file; expected {expected}")
+    path = existing(path, expected)
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
