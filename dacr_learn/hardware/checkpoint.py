@@ -1,0 +1,143 @@
+"""Save and load a fitted hardware tip model: calibration, servo map, CC parameters, ensemble members.
+
+A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, so it
+loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
+
+    format: "dacr_learn.hardware_model/1"
+    model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m]
+    robot: the calibrated RobotSpec as a dict; servo_map: ServoMap.to_dict(); servo_ids: column order
+    units: "mm" (unit of the servo commands a user passes in; tips are metres)
+    cc: CalibratedCC state dict (fitted physical parameters)
+    members: [state dict of each ensemble member's residual network (cc.* keys left out)]
+    sigma_calibration: {"scale", "floor" [m]} or None; support: SupportModel state dict or None
+    info: free-form dict (metrics, command line, …)
+
+Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
+history variant :class:`~.learned.CCClarkeResidualHistory`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from ..robot import RobotSpec
+from .ccmodel import CalibratedCC
+from .learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split
+from .servo_map import ServoMap
+from .uncertainty import SigmaCalibration, SupportModel
+
+FORMAT = "dacr_learn.hardware_model/1"
+_KEYS = ("format", "model", "history", "play_width", "robot", "servo_map", "servo_ids", "units", "cc", "members")
+
+
+@dataclass
+class HardwareModel:
+    """A loaded (or freshly fitted) hardware model: everything needed to predict from servo commands."""
+
+    name: str
+    spec: RobotSpec
+    smap: ServoMap
+    servo_ids: tuple[str, ...]
+    cc: CalibratedCC
+    members: list[CCClarkeResidual]
+    play_width: float = PLAY_WIDTH
+    sigma: SigmaCalibration | None = None
+    support: SupportModel | None = None
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def history(self) -> bool:
+        return bool(self.members[0].history)
+
+
+def _member_state(member: nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in member.state_dict().items() if not k.startswith("cc.")}
+
+
+def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
+    """Write ``model`` as a weights-only checkpoint (format of the module docstring); returns the path."""
+    if not model.members or not all(isinstance(m, CCClarkeResidual) for m in model.members):
+        raise ValueError(f"members: expected CCClarkeResidual models (the CC Clarke-residual family), got "
+                         f"{[type(m).__name__ for m in model.members]}")
+    blob = {"format": FORMAT, "model": model.name, "history": model.history, "play_width": float(model.play_width),
+            "robot": model.spec.to_dict(), "servo_map": model.smap.to_dict(), "servo_ids": list(model.servo_ids),
+            "units": "mm", "cc": {k: v.detach().clone() for k, v in model.cc.state_dict().items()},
+            "members": [_member_state(m) for m in model.members],
+            "sigma_calibration": None if model.sigma is None else
+            {"scale": float(model.sigma.scale), "floor": float(model.sigma.floor)},
+            "support": None if model.support is None else dict(model.support.state_dict()),
+            "info": model.info}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(blob, path)
+    return path
+
+
+def _placeholder_split(m: int) -> Split:
+    """The smallest Split a residual model can be constructed from (its buffers are then loaded)."""
+    z = torch.zeros(2, m, 4, dtype=torch.float64)
+    return Split(z[:, 0, :0], z[:, 0, :0], z, z[:, 0, :3], z[:, 0, :3], z[..., :2])
+
+
+def _support_from_state(state: dict, m: int) -> SupportModel:
+    support = SupportModel.__new__(SupportModel)
+    nn.Module.__init__(support)
+    support.num_segments = m
+    for k, v in state.items():
+        support.register_buffer(k, v)
+    return support
+
+
+def load_hardware_model(path: str | Path) -> HardwareModel:
+    """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``).
+
+    Raises ValueError naming the file for anything that is not such a checkpoint (another file
+    type, another format version, missing entries, weights that do not fit the robot).
+    """
+    path = Path(path)
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise
+    except Exception as err:
+        raise ValueError(f"{path}: not a weights-only hardware model checkpoint ({type(err).__name__}: "
+                         f"{str(err)[:200]})") from None
+    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+        got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
+        raise ValueError(f"{path}: expected a hardware model checkpoint of format {FORMAT!r}, got {got!r}")
+    missing = [k for k in _KEYS if k not in blob]
+    if missing:
+        raise ValueError(f"{path}: hardware model checkpoint lacks the entries {missing}")
+    try:
+        return _build(blob)
+    except (RuntimeError, KeyError, TypeError, IndexError) as err:
+        raise ValueError(f"{path}: the stored weights do not fit the stored robot ({type(err).__name__}: "
+                         f"{str(err)[:300]})") from None
+
+
+def _build(blob: dict) -> HardwareModel:
+    spec = RobotSpec.from_dict(blob["robot"])
+    smap = ServoMap.from_dict(blob["servo_map"])
+    ids = tuple(blob["servo_ids"])
+    smap.check(spec, ids)
+    cc = CalibratedCC(spec)
+    cc.load_state_dict(blob["cc"])
+    cc.requires_grad_(False)
+    cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
+    members = []
+    for state in blob["members"]:
+        member = cls(_placeholder_split(spec.num_segments), cc)
+        member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})
+        members.append(member.eval())
+    if not members:
+        raise ValueError("members: the checkpoint holds no ensemble member")
+    cal = blob.get("sigma_calibration")
+    support = blob.get("support")
+    return HardwareModel(blob["model"], spec, smap, ids, cc, members, float(blob["play_width"]),
+                         None if cal is None else SigmaCalibration(cal["scale"], cal["floor"]),
+                         None if support is None else _support_from_state(support, spec.num_segments),
+                         dict(blob.get("info") or {}))

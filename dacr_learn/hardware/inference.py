@@ -1,0 +1,257 @@
+"""Inference modules of a fitted hardware model for controllers: servo commands [mm] → tip [m], Jacobian.
+
+Built from a :class:`~.checkpoint.HardwareModel` (the CC Clarke-residual family, an ensemble of
+K members); plain nn.Modules with every constant folded into buffers, exportable with torch.export:
+
+- :class:`HardwareFK`: servo (B, S) [mm, checkpoint column order] (+ state (B, m, 2) [m] for a
+  history model) → tip (B, 3) [m, motion-capture frame] = the ensemble mean, tip_std (B, 3) [m]
+  (the members' spread, calibrated when the checkpoint has a σ calibration) (+ the new state).
+- :class:`HardwareJacobian`: the same inputs → tip (B, 3), J (B, 3, S) [m/mm] = ∂tip/∂servo
+  (+ the new state). For a history model the state is held fixed: J is the effect of the
+  *current* command given the history, what a controller's next step needs.
+
+Pipeline (float32 by default): servo → joint displacements x (affine: sign, zero, mm → m) → the
+slack-aware Clarke encoder's active-set QP with a fixed number of iterations (the early stop of
+:func:`~.slack.solve_tendon_qp` is data dependent; after convergence an iteration repeats the
+same solve, so the result is the same) → ρ per segment → [play operator step] → per-member
+correction Δρ (the residual MLPs, batched over members) → CC kinematics → tip.
+
+History models run causally: ``state`` is the play operator's state (the previous call's output);
+start a sequence with :meth:`HardwareFK.initial_state` of the first command (the batch training
+code starts the play at the first row the same way). Running a recording row by row this way
+gives the model's batch predictions.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..kinematics import forward_kinematics
+from .checkpoint import HardwareModel
+from .learned import RESIDUAL_RHO_SCALE
+from .uncertainty import SigmaCalibration
+
+_F64 = torch.float64
+QP_ITERATIONS = 8  # the active set repeats after 2–5 iterations on the recordings (checked at export)
+
+
+def _bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """s = sin φ/φ, f = (1 − cos φ)/φ² and their derivatives w.r.t. φ² (Taylor branch near 0)."""
+    small = phi_sq < 1e-2
+    phi_sq_big = torch.where(small, 1.0, phi_sq)
+    phi = torch.sqrt(phi_sq_big)
+    s_big, half = torch.sin(phi) / phi, torch.sin(0.5 * phi) / phi
+    f_big = 2 * half * half
+    y = torch.where(small, phi_sq, 0.0)
+    s_small = (((y / 362880 - 1 / 5040) * y + 1 / 120) * y - 1 / 6) * y + 1
+    f_small = (((y / 3628800 - 1 / 40320) * y + 1 / 720) * y - 1 / 24) * y + 0.5
+    ds_small = ((4 * y / 362880 - 3 / 5040) * y + 2 / 120) * y - 1 / 6
+    df_small = ((4 * y / 3628800 - 3 / 40320) * y + 2 / 720) * y - 1 / 24
+    ds_big = (torch.cos(phi) - s_big) / (2 * phi_sq_big)
+    df_big = (s_big - 2 * f_big) / (2 * phi_sq_big)
+    pick = lambda a, b: torch.where(small, a, b)  # noqa: E731
+    return pick(s_small, s_big), pick(f_small, f_big), pick(ds_small, ds_big), pick(df_small, df_big)
+
+
+def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One CC segment per (…) entry: bending vector u (..., 2) [rad], length β (...) [m] →
+    R (..., 3, 3), p (..., 3), ∂R/∂u (..., 2, 3, 3), ∂p/∂u (..., 2, 3) (docs/design.md §2)."""
+    ux, uy = u[..., 0], u[..., 1]
+    s, f, ds, df = _bending_coefficients_and_derivatives(ux * ux + uy * uy)
+
+    def rotation(a, b):   # R and ∂R/∂a for (a, b) = (ux, uy); the uy case swaps rows/columns 0 and 1
+        r = [[1 - f * a * a, -f * a * b, s * a], [-f * a * b, 1 - f * b * b, s * b],
+             [-s * a, -s * b, 1 - f * (a * a + b * b)]]
+        d = [[-2 * a * (f + df * a * a), -b * (f + 2 * df * a * a), s + 2 * ds * a * a],
+             [-b * (f + 2 * df * a * a), -2 * a * df * b * b, 2 * ds * a * b],
+             [-(s + 2 * ds * a * a), -2 * ds * a * b, -2 * a * (f + df * (a * a + b * b))]]
+        return r, d
+
+    r, dx = rotation(ux, uy)
+    _, dy = rotation(uy, ux)
+    perm = [1, 0, 2]
+    dy = [[dy[perm[i]][perm[j]] for j in range(3)] for i in range(3)]
+    stack = lambda rows: torch.stack([torch.stack(row, -1) for row in rows], -2)  # noqa: E731
+    p = beta.unsqueeze(-1) * torch.stack([f * ux, f * uy, s], -1)
+    dpx = beta.unsqueeze(-1) * torch.stack([f + 2 * df * ux * ux, 2 * df * ux * uy, 2 * ds * ux], -1)
+    dpy = beta.unsqueeze(-1) * torch.stack([2 * df * ux * uy, f + 2 * df * uy * uy, 2 * ds * uy], -1)
+    return stack(r), p, torch.stack([stack(dx), stack(dy)], -3), torch.stack([dpx, dpy], -2)
+
+
+def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
+    """CC tip point p_tip + offset·z_tip (robot base frame) and ∂/∂ρ: ρ (..., m, 2) [m] → (..., 3), (..., 3, m, 2)."""
+    r, p, dr, dp = cc_segment_and_derivative(rho / radius.unsqueeze(-1), length.expand(rho.shape[:-1]))
+    m = rho.shape[-2]
+    point = offset * r[..., m - 1, :, 2] + p[..., m - 1, :]          # tip point in the last segment's base frame
+    jac = [None] * m
+    jac[m - 1] = (dr[..., m - 1, :, :, 2] * offset + dp[..., m - 1, :, :]).mT
+    for k in range(m - 2, -1, -1):                                    # point_k = p_k + R_k·point_{k+1}
+        local = (dr[..., k, :, :, :] @ point.unsqueeze(-3).unsqueeze(-1)).squeeze(-1) + dp[..., k, :, :]
+        jac = [None if j is None else r[..., k, :, :] @ j for j in jac]
+        jac[k] = local.mT
+        point = p[..., k, :] + (r[..., k, :, :] @ point.unsqueeze(-1)).squeeze(-1)
+    return point, torch.stack(jac, -2) / radius.unsqueeze(-1)
+
+
+class HardwareFK(nn.Module):
+    """Servo commands (B, S) [mm] (+ play state (B, m, 2)) → (tip (B, 3) [m], tip_std (B, 3) [m] (+ state))."""
+
+    def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        spec, cc, enc = model.spec, model.cc, model.cc.encoder
+        self.history, self.num_segments, self.num_servos = model.history, spec.num_segments, len(model.servo_ids)
+        with torch.no_grad():
+            eye = torch.eye(self.num_servos, dtype=_F64)              # x = servo·A + a₀ (+ pretension)
+            a0 = model.smap.displacements(spec, _Rows(model.servo_ids, torch.zeros(1, self.num_servos, dtype=_F64)))[0]
+            a = model.smap.displacements(spec, _Rows(model.servo_ids, 1e-3 * eye)) - a0
+            buffers = {"servo_map": a, "servo_offset": a0 + enc.pretension, "g": enc.displacement_map(),
+                       "bend_w": enc.bend_weights(), "tendon_w": 1.0 / enc.path_length,
+                       "rho_scale": (enc.radius / enc.effective_radius()).unsqueeze(-1),
+                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
+                       "length": torch.tensor([s.length for s in spec.segments], dtype=_F64),
+                       "base_rotation": cc.base_rotation(), "base_translation": cc.base_translation,
+                       "offset": cc.tip_offset, "play_width": torch.tensor(model.play_width, dtype=_F64)}
+            buffers.update(_stacked_members(model.members))
+            self.clamp = bool(getattr(model.members[0], "support", False))   # CCClarkeResidual(support=True)
+            if self.clamp:
+                buffers["rho_max"] = model.members[0].rho_max.unsqueeze(-1)
+        for name, value in buffers.items():
+            self.register_buffer(name, value.detach().to(dtype))
+        sigma = model.sigma or SigmaCalibration()
+        self.sigma = SigmaCalibration(float(sigma.scale), float(sigma.floor)).to(dtype)
+        self.spec = spec
+
+    def clarke(self, servo: Tensor) -> tuple[Tensor, Tensor]:
+        """ρ (B, m, 2) [m, nominal-radius convention] of the commands and ∂ρ/∂servo (B, m, 2, S) [m/mm]."""
+        b = servo @ self.servo_map + self.servo_offset                        # (B, N) [m]
+        eye_w = torch.diag_embed(self.bend_w)
+        active = b > 0
+        for _ in range(QP_ITERATIONS - 1):
+            mat = eye_w + (self.g.mT * (self.tendon_w * active).unsqueeze(-2)) @ self.g
+            rho = torch.linalg.solve(mat, ((self.tendon_w * active * b) @ self.g).unsqueeze(-1)).squeeze(-1)
+            active = (b - rho @ self.g.mT) > 0
+        wa = self.tendon_w * active                                           # last solve's set (converged)
+        mat = eye_w + (self.g.mT * wa.unsqueeze(-2)) @ self.g
+        rhs = torch.cat([((wa * b) @ self.g).unsqueeze(-1), self.g.mT @ (wa.unsqueeze(-1) * self.servo_map.mT)], -1)
+        sol = torch.linalg.solve(mat, rhs)                                    # (B, D, 1 + S)
+        m = self.num_segments
+        sol = sol.unflatten(-2, (m, 2)) * self.rho_scale.unsqueeze(-1)
+        return sol[..., 0], sol[..., 1:]
+
+    def initial_state(self, servo: Tensor) -> Tensor:
+        """Play state to start a sequence at command ``servo`` (B, S): its own ρ (B, m, 2) [m]."""
+        return self.clarke(servo)[0]
+
+    def play(self, rho: Tensor, state: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """One play-operator step: (memory (B, m, 2), new state, ∂memory/∂ρ (B, m, 2, 2))."""
+        diff = state - rho
+        norm = torch.linalg.vector_norm(diff, dim=-1, keepdim=True).clamp_min(1e-30)
+        inside = norm <= self.play_width
+        new = torch.where(inside, state, rho + diff * (self.play_width / norm))
+        memory = (rho - new) / self.play_width
+        unit = diff / norm
+        eye = torch.eye(2, dtype=rho.dtype)
+        drag = (eye - unit.unsqueeze(-1) * unit.unsqueeze(-2)) / norm.unsqueeze(-1)
+        return memory, new, torch.where(inside.unsqueeze(-1), eye / self.play_width, drag)
+
+    def network_input(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
+        """ρ as the networks see it: radially clamped to the training range when the model was fitted
+        with ``support=True`` (ρ·min(1, r/‖ρ‖)), and its tangents."""
+        if not self.clamp:
+            return rho, drho
+        norm = torch.linalg.vector_norm(rho, dim=-1, keepdim=True).clamp_min(1e-30)
+        inside = norm <= self.rho_max
+        out = torch.where(inside, rho, rho * (self.rho_max / norm))
+        if drho is None:
+            return out, None
+        unit = rho / norm
+        proj = torch.eye(2, dtype=rho.dtype) - unit.unsqueeze(-1) * unit.unsqueeze(-2)
+        proj = proj * (self.rho_max / norm).unsqueeze(-1)
+        return out, torch.where(inside.unsqueeze(-1), drho, proj @ drho)
+
+    def members(self, rho: Tensor, memory: Tensor | None, tangent: Tensor | None):
+        """Corrected ρ' (B, K, m, 2) of every member (and its tangents (B, K, m, 2, T) if given)."""
+        rho_in, drho_in = self.network_input(rho, None if tangent is None else tangent[0])
+        a = torch.einsum("bmi,khi->bkmh", rho_in, self.w_rho) + self.b_first
+        if memory is not None:
+            a = a + torch.einsum("bmi,khi->bkmh", memory, self.w_memory)
+        da = None if tangent is None else torch.einsum("bmit,khi->bkmth", drho_in, self.w_rho) + (
+            0 if memory is None else torch.einsum("bmit,khi->bkmth", tangent[1], self.w_memory))
+        for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
+            sg = torch.sigmoid(a)
+            h = a * sg
+            if da is not None:
+                da = torch.einsum("bkmth,kjh->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
+            a = torch.einsum("bkmh,kjh->bkmj", h, w) + bias.unsqueeze(-2)
+        return rho.unsqueeze(1) + a, None if da is None else tangent[0].unsqueeze(1) + da.mT
+
+    def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
+        """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., 3, m, 2) from ρ (..., m, 2)."""
+        p, jac = tip_and_jacobian(rho, self.radius, self.length, self.offset)
+        world = p @ self.base_rotation.mT + self.base_translation
+        return world, torch.einsum("ij,...jmk->...imk", self.base_rotation, jac)
+
+    def mean_std(self, tips: Tensor) -> tuple[Tensor, Tensor]:
+        k = tips.shape[1]
+        std = tips.std(1, correction=1) if k > 1 else torch.zeros_like(tips[:, 0])
+        return tips.mean(1), self.sigma(std)
+
+    def forward(self, servo: Tensor, state: Tensor | None = None):
+        rho, _ = self.clarke(servo)
+        memory, new_state = None, None
+        if self.history:
+            memory, new_state, _ = self.play(rho, state)
+        corrected, _ = self.members(rho, memory, None)
+        features = torch.cat([corrected, self.length.expand(corrected.shape[:-1]).unsqueeze(-1),
+                              torch.zeros_like(corrected[..., :1])], -1)
+        pose = forward_kinematics(self.spec, features)
+        tips = (pose[..., :3, 3] + pose[..., :3, 2] * self.offset) @ self.base_rotation.mT + self.base_translation
+        tip, std = self.mean_std(tips)
+        return (tip, std, new_state) if self.history else (tip, std)
+
+
+class HardwareJacobian(nn.Module):
+    """Servo (B, S) [mm] (+ state) → (tip (B, 3) [m], J = ∂tip/∂servo (B, 3, S) [m/mm] (+ new state))."""
+
+    def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        self.fk = HardwareFK(model, dtype)
+
+    def forward(self, servo: Tensor, state: Tensor | None = None):
+        fk = self.fk
+        rho, drho = fk.clarke(servo)                                          # (B, m, 2), (B, m, 2, S)
+        memory, new_state, tangent = None, None, (drho, None)
+        if fk.history:
+            memory, new_state, dmem = fk.play(rho, state)
+            tangent = (drho, dmem @ drho)
+        corrected, dcorr = fk.members(rho, memory, tangent)                   # (B, K, m, 2), (B, K, m, 2, S)
+        tips, dtip = fk.tip(corrected)                                        # (B, K, 3), (B, K, 3, m, 2)
+        jac = torch.einsum("bkimj,bkmjs->bis", dtip, dcorr) / corrected.shape[1]
+        tip = tips.mean(1)
+        return (tip, jac, new_state) if fk.history else (tip, jac)
+
+
+class _Rows:
+    """Duck-typed Recording (servo ids + servo rows [m]) for ServoMap.displacements."""
+
+    def __init__(self, servo_ids, servo):
+        self.servo_ids, self.servo = servo_ids, servo
+
+
+def _stacked_members(members) -> dict[str, Tensor]:
+    """Residual networks of the K members stacked (float64), first layer split into ρ / memory /
+    one-hot parts (the one-hot part folded into a per-segment bias), output scale folded in."""
+    nets = [[l for l in m.net if isinstance(l, nn.Linear)] for m in members]
+    if any(len(n) != 3 for n in nets):
+        raise ValueError(f"members: expected residual networks with 3 linear layers, got {[len(n) for n in nets]}")
+    w1 = torch.stack([n[0].weight for n in nets]).to(_F64)                  # (K, H, 2 [+2] + m)
+    std = torch.stack([m.rho_std for m in members]).to(_F64).reshape(-1, 1, 1)
+    m = members[0].onehot.shape[0]
+    hist = 2 if members[0].history else 0
+    out = {"w_rho": w1[..., :2] / std, "w_memory": w1[..., 2:2 + hist],
+           "b_first": (torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]),
+           "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64),
+           "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64),
+           "w_last": torch.stack([n[2].weight for n in nets]).to(_F64) * RESIDUAL_RHO_SCALE,
+           "b_last": torch.stack([n[2].bias for n in nets]).to(_F64) * RESIDUAL_RHO_SCALE}
+    return out

@@ -1,0 +1,131 @@
+"""Uncertainty of hardware tip models: deep-ensemble σ, its calibration, and out-of-support scores.
+
+- :func:`ensemble_predict`: K independently trained members (different seeds) → mean tip and the
+  members' standard deviation σ per axis (n, 3) [m] — the spread of the learned part only.
+- :class:`SigmaCalibration`: σ_cal = sqrt((s·σ)² + σ₀²), the scale s and floor σ₀ [m] fitted by
+  Gaussian maximum likelihood to *held-out* residuals (e.g. family cross-validation on the
+  training recording; never on the validation recording). A plain ensemble is over-confident:
+  its members share the calibrated CC model and the same data, so they agree where the
+  systematic (hysteresis, marker) error is largest.
+- :class:`SupportModel`: how far a command lies from the training commands, measured on its
+  Clarke coordinates ρ (n, m, 2) [m] (standardised per coordinate): the distance to the nearest
+  training row divided by a threshold chosen on the training recording alone — the 99th
+  percentile of each training row's distance to the nearest row of *another* pattern (label).
+  A score > 1 means "further from the training data than 99 % of the training patterns are from
+  each other": the prediction there is an extrapolation.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor, nn
+
+from ..checks import check_tensor
+
+SUPPORT_QUANTILE = 0.99
+
+
+def ensemble_predict(members: Sequence[Callable], x) -> tuple[Tensor, Tensor]:
+    """Mean and standard deviation over ensemble members: each ``member(x)`` → (n, 3) [m].
+
+    Returns (mean (n, 3), std (n, 3)) in the members' dtype; std uses K − 1 (zeros for K = 1).
+    """
+    if len(members) == 0:
+        raise ValueError("members: expected at least one model, got an empty sequence")
+    with torch.no_grad():
+        preds = torch.stack([m(x) for m in members])
+    std = preds.std(0, correction=1) if len(members) > 1 else torch.zeros_like(preds[0])
+    return preds.mean(0), std
+
+
+class SigmaCalibration(nn.Module):
+    """σ_cal = sqrt((s·σ)² + σ₀²) per axis; s and σ₀ fitted on held-out residuals (see the module doc)."""
+
+    def __init__(self, scale: float = 1.0, floor: float = 0.0):
+        super().__init__()
+        self.register_buffer("scale", torch.tensor(float(scale), dtype=torch.float64))
+        self.register_buffer("floor", torch.tensor(float(floor), dtype=torch.float64))
+
+    def forward(self, std: Tensor) -> Tensor:
+        """Ensemble std (..., 3) [m] → calibrated std (..., 3) [m]."""
+        return ((self.scale.to(std.dtype) * std) ** 2 + self.floor.to(std.dtype) ** 2).sqrt()
+
+    @classmethod
+    def fit(cls, residual: Tensor, std: Tensor, iters: int = 200) -> SigmaCalibration:
+        """Maximise Σ log N(residual; 0, σ_cal²) over (s, σ₀) ≥ 0; residual, std (n, 3) [m], held out.
+
+        Residuals should be offset-removed (the lab's metric forgives a constant offset).
+        """
+        check_tensor(residual, "residual", (3,))
+        check_tensor(std, "std", (3,))
+        if residual.shape != std.shape or residual.shape[0] < 2:
+            raise ValueError(f"residual/std: expected equal shapes (n, 3) with n >= 2, got "
+                             f"{tuple(residual.shape)} and {tuple(std.shape)}")
+        r2, s = residual.double().pow(2), std.double()
+        unit = float(r2.mean().sqrt())                              # optimise in units of the rms residual
+        log_p = torch.tensor([0.0, -1.0], dtype=torch.float64, requires_grad=True)
+        opt = torch.optim.LBFGS([log_p], max_iter=iters, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            var = (log_p[0].exp() * s / unit) ** 2 + log_p[1].exp() ** 2
+            loss = (torch.log(var) + r2 / unit**2 / var).mean()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        return cls(float(log_p[0].exp()), float(log_p[1].exp()) * unit)
+
+
+def _groups_from_labels(labels: Sequence[str]) -> Tensor:
+    index: dict[str, int] = {}
+    return torch.tensor([index.setdefault(label, len(index)) for label in labels])
+
+
+class SupportModel(nn.Module):
+    """Out-of-support score of commands from their Clarke coordinates (see the module docstring).
+
+    Args:
+        train_rho: (n, m, 2) Clarke coordinates of the training commands [m].
+        labels: the n pattern labels of the training rows (a row's own pattern is excluded when the
+            threshold is set); None: every row is its own pattern (plain leave-one-out).
+        quantile: the quantile of the training rows' cross-pattern distances used as threshold.
+    """
+
+    def __init__(self, train_rho: Tensor, labels: Sequence[str] | None = None, quantile: float = SUPPORT_QUANTILE):
+        super().__init__()
+        check_tensor(train_rho, "train_rho", (2,))
+        if train_rho.dim() != 3 or train_rho.shape[0] < 2:
+            raise ValueError(f"train_rho: expected shape (n, m, 2) with n >= 2, got {tuple(train_rho.shape)}")
+        self.num_segments = train_rho.shape[1]
+        points = train_rho.flatten(1).double()
+        if labels is not None and len(labels) != points.shape[0]:
+            raise ValueError(f"labels: expected {points.shape[0]} labels (one per row), got {len(labels)}")
+        self.register_buffer("mean", points.mean(0))
+        self.register_buffer("std", points.std(0).clamp_min(1e-12))
+        self.register_buffer("points", (points - self.mean) / self.std)
+        groups = torch.arange(points.shape[0]) if labels is None else _groups_from_labels(labels)
+        if int(groups.max()) == 0:                    # one pattern only: leave-one-out
+            groups = torch.arange(points.shape[0])
+        dist = torch.cdist(self.points, self.points)
+        dist[groups[:, None] == groups[None, :]] = float("inf")
+        self.register_buffer("threshold", torch.quantile(dist.min(1).values, quantile))
+
+    def _standardised(self, rho: Tensor) -> Tensor:
+        check_tensor(rho, "rho", (self.num_segments, 2))
+        return (rho.flatten(-2).double() - self.mean) / self.std
+
+    def distance(self, rho: Tensor) -> Tensor:
+        """Standardised distance of each command's ρ (..., m, 2) [m] to the nearest training row (...)."""
+        z = self._standardised(rho)
+        return torch.cdist(z.reshape(-1, z.shape[-1]), self.points).min(1).values.reshape(z.shape[:-1])
+
+    def forward(self, rho: Tensor) -> Tensor:
+        """Out-of-support score (...,): > 1 means outside the training support."""
+        return self.distance(rho) / self.threshold
+
+    def outside_box(self, rho: Tensor) -> Tensor:
+        """(...) bool: some Clarke coordinate beyond the training rows' range (min … max)."""
+        z = self._standardised(rho)
+        return ((z < self.points.min(0).values) | (z > self.points.max(0).values)).any(-1)
