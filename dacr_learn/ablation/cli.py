@@ -1,10 +1,11 @@
-"""Command line of the ablation runner: run the pending jobs of a grid (optionally in worker processes)."""
+"""Command line of the ablation runner: run the pending jobs of a grid (optionally in worker processes or on a
+Dask distributed cluster, ``--cluster ADDRESS``; see :mod:`dacr_learn.ablation.cluster`)."""
 from __future__ import annotations
 
 import argparse
 import multiprocessing as mp
 import sys
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, Executor, ProcessPoolExecutor, wait
 from pathlib import Path
 
 import torch
@@ -20,6 +21,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", required=True, help="output directory (results.csv, summary.md, *.png, ablation.rrd)")
     p.add_argument("--quick", action="store_true", help="the reduced grid of the config's quick: section")
     p.add_argument("--workers", type=int, default=1, help="worker processes (each uses one torch thread)")
+    p.add_argument("--cluster", metavar="ADDRESS", default=None,
+                   help="run the jobs on the Dask distributed scheduler at ADDRESS (e.g. tcp://host:8786) instead of "
+                        "local processes; needs the optional extra: pip install -e '.[cluster]'")
     p.add_argument("--report-only", action="store_true", help="only rebuild the reports from results.csv")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return p.parse_args(argv)
@@ -39,22 +43,41 @@ def _run_in_process(cfg, jobs, sink) -> None:
         torch.set_num_threads(threads)
 
 
+def _run_with_executor(executor: Executor, fn, cfg, jobs, sink, in_flight: int) -> None:
+    """Keep ``in_flight`` jobs submitted to ``executor``; rows are written by this process (``sink``)
+    exactly once per finished job, whichever worker ran it and however often it was retried."""
+    queue, running = list(jobs), set()
+    try:
+        while queue or running:
+            while queue and len(running) < in_flight:
+                running.add(executor.submit(fn, cfg, queue.pop(0)))
+            finished, running = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                sink(fut.result())
+    except BaseException:
+        for fut in running:
+            fut.cancel()
+        raise
+
+
 def _run_in_pool(cfg, jobs, sink, workers: int) -> None:
-    """Keep ``workers`` jobs in flight; rows are written by this process as each job finishes."""
+    """Local worker processes (spawned, one torch thread each)."""
     ctx = mp.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
-        queue, running = list(jobs), set()
-        try:
-            while queue or running:
-                while queue and len(running) < workers:
-                    running.add(pool.submit(run_job, cfg, queue.pop(0)))
-                finished, running = wait(running, return_when=FIRST_COMPLETED)
-                for fut in finished:
-                    sink(fut.result())
-        except BaseException:
-            for fut in running:
-                fut.cancel()
-            raise
+        _run_with_executor(pool, run_job, cfg, jobs, sink, workers)
+
+
+def _run_on_cluster(cfg, jobs, sink, address: str) -> None:
+    """Every pending job submitted at once to the Dask scheduler at ``address`` (it queues them, and
+    workers that join later take their share)."""
+    from .cluster import connect, portable_config, run_job_one_thread
+
+    client = connect(address)
+    try:
+        executor = client.get_executor(pure=False)
+        _run_with_executor(executor, run_job_one_thread, portable_config(cfg), jobs, sink, max(1, len(jobs)))
+    finally:
+        client.close()
 
 
 def main(argv=None) -> dict:
@@ -84,7 +107,9 @@ def main(argv=None) -> dict:
             bar.update(1)
 
         try:
-            if args.workers <= 1:
+            if args.cluster:
+                _run_on_cluster(cfg, pending, sink, args.cluster)
+            elif args.workers <= 1:
                 _run_in_process(cfg, pending, sink)
             else:
                 _run_in_pool(cfg, pending, sink, args.workers)

@@ -8,8 +8,8 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import rerun as rr  # noqa: E402
+import matplotlib.pyplot as plt
+import rerun as rr
 
 FEATURE_STYLE = {"clarke": dict(color="tab:blue", marker="o"), "raw": dict(color="tab:orange", marker="s")}
 
@@ -104,8 +104,8 @@ def plot_curves(rows: list[dict], out: Path, robots_order: list[str] | None = No
         fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 2.9 * nrows), squeeze=False)
         for ax, robot in zip(axes.flat, present, strict=True):
             for feat, style in FEATURE_STYLE.items():
-                pts = sorted((k[3], s["pos_err_mean_mm"]) for k, s in agg.items()
-                             if k[:3] == (robot, task, cond) and k[4] == feat and not math.isnan(s["pos_err_mean_mm"][0]))
+                pts = sorted((k[3], s["pos_err_mean_mm"]) for k, s in agg.items() if k[:3] == (robot, task, cond)
+                             and k[4] == feat and not math.isnan(s["pos_err_mean_mm"][0]))
                 if pts:
                     ax.errorbar([p[0] for p in pts], [p[1][0] for p in pts], yerr=[p[1][1] for p in pts],
                                 label=feat, capsize=3, **style)

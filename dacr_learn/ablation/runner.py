@@ -65,6 +65,11 @@ def resolve_path(path: str | Path) -> Path:
     return p if p.exists() or p.is_absolute() else ROOT / p
 
 
+def robot_spec(entry: str | dict) -> RobotSpec:
+    """A robot of the config: a YAML path (see :func:`resolve_path`) or a RobotSpec dict."""
+    return RobotSpec.from_dict(entry) if isinstance(entry, dict) else RobotSpec.from_yaml(resolve_path(entry))
+
+
 def load_config(path: str | Path, quick: bool = False) -> dict:
     """The ablation config (YAML); with ``quick`` the keys of its ``quick:`` section replace the others."""
     cfg = yaml.safe_load(resolve_path(path).read_text())
@@ -76,7 +81,8 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
             raise ValueError(f"ablation config {path}: missing key {key!r}")
     bad = set(cfg["tasks"]) - set(MODULES)
     if bad:
-        raise ValueError(f"ablation config {path}: tasks: unknown {sorted(bad)}, expected a subset of {sorted(MODULES)}")
+        raise ValueError(f"ablation config {path}: tasks: unknown {sorted(bad)}, "
+                         f"expected a subset of {sorted(MODULES)}")
     return cfg
 
 
@@ -203,7 +209,7 @@ def fit(cfg: dict, job: Job, spec: RobotSpec) -> tuple[pl.LightningModule, float
 
 def run_job(cfg: dict, job: Job) -> list[dict]:
     """Train one job and evaluate every condition: the job's CSV rows."""
-    spec = RobotSpec.from_yaml(resolve_path(cfg["robots"][job.robot]))
+    spec = robot_spec(cfg["robots"][job.robot])
     module, seconds = fit(cfg, job, spec)
     rows = []
     for cond in conditions(cfg, job):
@@ -211,7 +217,7 @@ def run_job(cfg: dict, job: Job) -> list[dict]:
                "steps": cfg["train"]["steps"], "n_test": cfg["test"]["n"], "note": ""}
         transfer = cfg.get("transfer") or {}
         if cond == transfer.get("name", "transfer") and job.robot == transfer.get("from"):
-            target = RobotSpec.from_yaml(resolve_path(transfer["to"]))
+            target = robot_spec(transfer["to"])
             if job.features != "clarke":
                 row["note"] = (f"raw model takes {spec.num_joints} joint lengths; the {target.num_joints}-joint "
                                f"robot {target.name} cannot be fed (nor, for IK, produced)")

@@ -1,0 +1,56 @@
+"""Run the ablation's jobs on a Dask distributed cluster (optional extra ``cluster``).
+
+    pip install -e ".[cluster]"
+    dask scheduler                                  # on one machine: prints tcp://HOST:8786
+    dask worker tcp://HOST:8786 --nthreads 1        # on every machine, as many as wanted
+    python -m dacr_learn.ablation --config ... --out ... --cluster tcp://HOST:8786
+
+The workers need the same ``dacr_learn`` installed (they import :func:`runner.run_job`); the
+robot YAMLs are read by the submitting process and shipped as spec dicts, so the workers need no
+checkout of ``configs/``. Jobs are submitted through ``Client.get_executor()`` — a
+``concurrent.futures.Executor`` — so the command line drives a cluster and the local process pool
+with one loop. A worker that dies mid-job loses only that job's attempt: the scheduler runs it
+again on another worker (up to ``distributed.scheduler.allowed-failures`` times, then the run
+fails with ``KilledWorker``), and rows are written by the submitting process once per finished
+job, so none is lost or written twice.
+"""
+from __future__ import annotations
+
+import copy
+
+import torch
+
+from .runner import Job, robot_spec, run_job
+
+INSTALL_HINT = 'pip install -e ".[cluster]"  (or: pip install "dask[distributed]")'
+
+
+def connect(address: str):
+    """A ``distributed.Client`` connected to the scheduler at ``address`` (e.g. ``tcp://host:8786``)."""
+    try:
+        from distributed import Client
+    except ImportError as err:
+        raise SystemExit(f"--cluster {address}: Dask distributed is not installed ({err}); "
+                         f"install the optional extra: {INSTALL_HINT}") from err
+    return Client(address)
+
+
+def cluster_threads(client) -> int:
+    """Total worker threads of the cluster now (≥ 1; it may grow or shrink while the grid runs)."""
+    return max(1, sum(client.nthreads().values()))
+
+
+def portable_config(cfg: dict) -> dict:
+    """A copy of ``cfg`` whose robot paths (``robots`` values, ``transfer.to``) are replaced by
+    RobotSpec dicts, so a worker on another machine needs no ``configs/`` directory."""
+    out = copy.deepcopy(cfg)
+    out["robots"] = {name: robot_spec(entry).to_dict() for name, entry in cfg["robots"].items()}
+    if out.get("transfer"):
+        out["transfer"]["to"] = robot_spec(out["transfer"]["to"]).to_dict()
+    return out
+
+
+def run_job_one_thread(cfg: dict, job: Job) -> list[dict]:
+    """:func:`runner.run_job` with one torch thread (a Dask worker thread runs one job at a time)."""
+    torch.set_num_threads(1)
+    return run_job(cfg, job)
