@@ -15,7 +15,6 @@ import atexit
 import json
 import time
 from pathlib import Path
-from typing import Optional
 
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint
@@ -54,7 +53,7 @@ class DacrCLI(LightningCLI):
         parser.add_argument("--run_name", type=str, default="default", help="outputs go to <runs_dir>/<run_name>/")
         parser.add_argument("--runs_dir", type=str, default="runs")
         parser.add_argument("--rerun_spawn", type=bool, default=False, help="also stream to a spawned Rerun viewer")
-        parser.add_argument("--rerun_connect", type=Optional[str], default=None, help="URL of a running Rerun viewer")
+        parser.add_argument("--rerun_connect", type=str | None, default=None, help="URL of a running Rerun viewer")
         parser.add_argument("--num_threads", type=int, default=1,
                             help="torch intra-op threads; 1 is fastest for these small MLPs on CPU")
         parser.link_arguments("data.robot", "model.init_args.robot")
@@ -110,7 +109,8 @@ class DacrCLI(LightningCLI):
         (self.run_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
         print(format_table(model.test_summary, f"\nTest metrics of {summary['task'].upper()} ({h.features} features, "
                                                f"robot {model.spec.name}) → {self.run_dir / 'metrics.json'}"))
-        print(f"  Rerun recording: {self.run_dir / 'rerun.rrd'}  (open with: .venv/bin/rerun {self.run_dir / 'rerun.rrd'})")
+        rrd = self.run_dir / "rerun.rrd"
+        print(f"  Rerun recording: {rrd}  (open with: .venv/bin/rerun {rrd})")
 
 
 def main(args=None, run: bool = True) -> DacrCLI:

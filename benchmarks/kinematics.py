@@ -120,7 +120,8 @@ def run(n: int, repeats: int, seed: int) -> dict:
 
 def print_table(r: dict) -> None:
     rows = [
-        ("forward kinematics, ours", f"{r['fk_ours_s'] * 1e3:9.2f} ms", f"{r['n'] / r['fk_ours_s'] / 1e6:8.2f} M poses/s"),
+        ("forward kinematics, ours", f"{r['fk_ours_s'] * 1e3:9.2f} ms",
+         f"{r['n'] / r['fk_ours_s'] / 1e6:8.2f} M poses/s"),
         ("forward kinematics, pytorch_kinematics", f"{r['fk_pk_s'] * 1e3:9.2f} ms",
          f"{r['n'] / r['fk_pk_s'] / 1e6:8.2f} M poses/s"),
         (f"Clarke encoder, {r['encoder_robot']}", f"{r['encoder_s'] * 1e3:9.2f} ms",

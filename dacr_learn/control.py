@@ -92,7 +92,8 @@ class ClarkeSpace:
             self.dec_offset = self._decode(straight) - self.dec_matrix @ straight
         c = _feature_columns(spec)
         self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=_F64)
-        self.beta_cols, self.alpha_cols = torch.tensor(c["beta"], dtype=torch.long), torch.tensor(c["alpha"], dtype=torch.long)
+        self.beta_cols = torch.tensor(c["beta"], dtype=torch.long)
+        self.alpha_cols = torch.tensor(c["alpha"], dtype=torch.long)
         self.beta_range = torch.tensor(c["beta_range"], dtype=_F64).reshape(-1, 2)
         self.alpha_range = torch.tensor(c["alpha_range"], dtype=_F64).reshape(-1, 2)
         self.scale = torch.tensor(c["scale"], dtype=_F64)
@@ -120,7 +121,8 @@ class ClarkeSpace:
         if len(self.beta_cols):
             f[..., self.beta_cols] = torch.clamp(f[..., self.beta_cols], self.beta_range[:, 0], self.beta_range[:, 1])
         if len(self.alpha_cols):
-            f[..., self.alpha_cols] = torch.clamp(f[..., self.alpha_cols], self.alpha_range[:, 0], self.alpha_range[:, 1])
+            lo, hi = self.alpha_range[:, 0], self.alpha_range[:, 1]
+            f[..., self.alpha_cols] = torch.clamp(f[..., self.alpha_cols], lo, hi)
         return f
 
     def within_limits(self, f: Tensor, tol: float = 1e-9) -> Tensor:

@@ -38,7 +38,8 @@ def summarize(errors: dict[str, Tensor], total_length: float) -> dict[str, float
         out.update(rot_err_mean_deg=deg.mean().item(), rot_err_p95_deg=torch.quantile(deg, 0.95).item(),
                    rot_err_max_deg=deg.max().item())
     if "joint_err" in e:
-        out.update(joint_err_mean_mm=e["joint_err"].mean().item() * 1e3, joint_err_max_mm=e["joint_err"].max().item() * 1e3)
+        out.update(joint_err_mean_mm=e["joint_err"].mean().item() * 1e3,
+                   joint_err_max_mm=e["joint_err"].max().item() * 1e3)
     if "constraint_residual" in e:
         out.update(constraint_residual_mean_m=e["constraint_residual"].mean().item(),
                    constraint_residual_max_m=e["constraint_residual"].max().item())

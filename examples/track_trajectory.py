@@ -138,7 +138,8 @@ def log_result(rec: rr.RecordingStream, name: str, offset: float, robot: Simulat
                                          "pose_true": pose[None]}, axis_length=0.01)
         rec.log(f"{root}/target", rr.Points3D(result["desired"][k:k + 1], colors=DESIRED_COLOR, radii=0.0015))
     err_mm = 1e3 * np.linalg.norm(result["actual"] - result["desired"], axis=-1)
-    rec.send_columns(f"metrics/{name}/tracking_error_mm", indexes=[rr.TimeColumn("step", sequence=np.arange(len(err_mm)))],
+    rec.send_columns(f"metrics/{name}/tracking_error_mm",
+                     indexes=[rr.TimeColumn("step", sequence=np.arange(len(err_mm)))],
                      columns=rr.Scalars.columns(scalars=err_mm))
 
 
@@ -150,7 +151,8 @@ def resolve_checkpoint(ckpt: str | None, no_train: bool) -> Path:
         print(f"using {DEFAULT_CKPT.relative_to(ROOT)}")
         return DEFAULT_CKPT
     if no_train:
-        sys.exit(f"no checkpoint: train one with `{' '.join(TRAIN_COMMAND)}` and pass --ckpt {DEFAULT_CKPT.relative_to(ROOT)}")
+        sys.exit(f"no checkpoint: train one with `{' '.join(TRAIN_COMMAND)}` "
+                 f"and pass --ckpt {DEFAULT_CKPT.relative_to(ROOT)}")
     quick = TRAIN_COMMAND + ["--run_name", "fk_type1_quick", "--trainer.max_epochs", "4", "--data.n_train", "10000"]
     print(f"no checkpoint given: training a quick small model ({' '.join(quick)}); "
           f"for the full one run `{' '.join(TRAIN_COMMAND)}`", flush=True)
@@ -187,7 +189,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--period", type=float, default=4.0, help="time for one lap [s]")
     p.add_argument("--laps", type=int, default=2)
     p.add_argument("--gain", type=float, default=0.5)
-    p.add_argument("--out", type=Path, default=ROOT / "runs" / "track", help="export, track.rrd and summary.json go here")
+    p.add_argument("--out", type=Path, default=ROOT / "runs" / "track",
+                   help="export, track.rrd and summary.json go here")
     p.add_argument("--json", action="store_true", help="also print the summary as one JSON line")
     return p.parse_args(argv)
 
@@ -228,7 +231,8 @@ def main(argv: list[str] | None = None) -> dict:
 def print_summary(summary: dict, spec: RobotSpec, out: Path) -> None:
     print(f"\ntracking with the {summary['jacobian']} Jacobian ({summary['kind']}), robot {spec.name} "
           f"(L = {1e3 * spec.total_length:.0f} mm), {summary['rate_hz']:.0f} Hz, joint noise "
-          f"{1e6 * summary['joint_noise_m']:.0f} µm, radius ×{summary['radius_scale']}, length ×{summary['length_scale']}")
+          f"{1e6 * summary['joint_noise_m']:.0f} µm, radius ×{summary['radius_scale']}, "
+          f"length ×{summary['length_scale']}")
     print(f"  {'trajectory':<10} {'RMS mm':>8} {'max mm':>8} {'RMS %L':>7} {'max %L':>7} {'step p50 µs':>12}")
     for kind, r in summary["results"].items():
         print(f"  {kind:<10} {r['rms_mm']:>8.4f} {r['max_mm']:>8.4f} {r['rms_pct']:>7.4f} {r['max_pct']:>7.4f} "

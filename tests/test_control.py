@@ -91,7 +91,7 @@ def test_commands_stay_within_limits_and_on_the_constraint(robot):
     for jacobian, max_step in ((analytic_jacobian(spec), 0.5), (wrong_jacobian, 2.0)):
         ctrl = ResolvedRateController(spec, jacobian, ControllerConfig(gain=1.0, max_step=max_step))
         q = straight(space)
-        for k in range(60):
+        for _ in range(60):
             target = 0.3 * torch.randn(3, generator=g, dtype=F64)       # mostly far outside the workspace
             q = ctrl.step(q, target, feedforward=0.05 * torch.randn(3, generator=g, dtype=F64))
             assert residual(space, q) <= 1e-9

@@ -119,7 +119,8 @@ def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0", reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
+@pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0",
+                    reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
 def test_aoti_package_equals_lightning(ckpts, samples, tmp_path):
     meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",))
     fk = dexport.load(tmp_path, "fk")
@@ -174,7 +175,8 @@ def _autograd_jacobians(model: FKModel, spec: RobotSpec, q: torch.Tensor) -> tup
 
 @pytest.mark.parametrize("robot", ["type1", "type3", "tdcr_3seg_coupled", "asymmetric", "twisting"])
 @pytest.mark.parametrize("features,rotation,activation", [("clarke", "6d", "silu"), ("raw", "6d", "tanh"),
-                                                          ("clarke", "quaternion", "gelu"), ("raw", "quaternion", "relu")])
+                                                          ("clarke", "quaternion", "gelu"),
+                                                          ("raw", "quaternion", "relu")])
 def test_jacobian_module_equals_jacrev(robot, features, rotation, activation):
     spec = spec_by_name(robot)
     model = _fk_model(spec, features, rotation, activation)

@@ -177,7 +177,8 @@ def test_backbone_points_on_the_arcs(spec, seed, per_segment):
                 assert np.allclose(pts[b, 1 + k * per_segment + i - 1].numpy(), ref, atol=1e-12, rtol=0)
             base = base @ roll @ classic_arc(theta, phi, beta)
     tips = segment_tip_poses(spec, feat)[..., :3, 3]
-    assert torch.allclose(pts[:, per_segment::per_segment], tips, atol=roundoff_tol(F64, float(tips.abs().max())), rtol=0)
+    tol = roundoff_tol(F64, float(tips.abs().max()))
+    assert torch.allclose(pts[:, per_segment::per_segment], tips, atol=tol, rtol=0)
 
 
 def test_backbone_points_rejects_bad_count():

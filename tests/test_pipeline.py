@@ -97,7 +97,8 @@ def test_interrupted_run_resumes_from_last_checkpoint(tmp_path):
 
 
 def test_ik_training_keeps_the_constraint_and_reports_ik_metrics(tmp_path):
-    train.main(["fit", "--config", str(write_config(tmp_path, task="IKModule", robot="configs/robots/tdcr_3seg_coupled.yaml"))])
+    config = write_config(tmp_path, task="IKModule", robot="configs/robots/tdcr_3seg_coupled.yaml")
+    train.main(["fit", "--config", str(config)])
     summary = json.loads((tmp_path / "runs" / "smoke" / "metrics.json").read_text())
     assert summary["task"] == "ik"
     assert summary["constraint_residual_max_m"] <= 1e-6
