@@ -21,11 +21,11 @@ import json
 import math
 import platform
 import statistics
-import time
 from pathlib import Path
 
 import pytorch_kinematics as pk
 import torch
+from timing import time_interleaved
 
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
@@ -63,20 +63,6 @@ def random_configurations(spec: RobotSpec, n: int, seed: int, dtype: torch.dtype
     chord = beta * torch.sinc(phi / (2 * math.pi))
     joints = torch.stack([theta, phi / 2, chord, phi / 2, -theta], dim=-1)
     return feat.to(dtype), joints.to(dtype)
-
-
-def time_interleaved(fns: dict, repeats: int, warmup: int = 2) -> dict[str, list[float]]:
-    """Run each function ``warmup`` times, then ``repeats`` rounds alternating between them."""
-    for fn in fns.values():
-        for _ in range(warmup):
-            fn()
-    times: dict[str, list[float]] = {k: [] for k in fns}
-    for _ in range(repeats):
-        for name, fn in fns.items():
-            t0 = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - t0)
-    return times
 
 
 def run(n: int, repeats: int, seed: int) -> dict:

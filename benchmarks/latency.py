@@ -38,6 +38,8 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from timing import time_interleaved  # noqa: E402
+
 from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.data import generate  # noqa: E402
 from dacr_learn.inference import InferenceFK, InferenceJacobian  # noqa: E402
@@ -105,25 +107,6 @@ def _bound(fn, x):
     return lambda: fn(x)
 
 
-def time_interleaved(fns: dict, rounds: int, calls: int, warmup: int = 200) -> dict[str, np.ndarray]:
-    """Per-call times [µs]: ``rounds`` rounds, each running ``calls`` calls of every candidate in turn."""
-    with torch.inference_mode():
-        for fn in fns.values():
-            for _ in range(warmup):
-                fn()
-        samples: dict[str, list[int]] = {k: [] for k in fns}
-        clock = time.perf_counter_ns
-        for r in range(rounds):
-            order = list(fns.items()) if r % 2 == 0 else list(fns.items())[::-1]
-            for name, fn in order:
-                ts = samples[name]
-                for _ in range(calls):
-                    t0 = clock()
-                    fn()
-                    ts.append(clock() - t0)
-    return {k: np.asarray(v, dtype=np.float64) / 1e3 for k, v in samples.items()}
-
-
 def summarize(times: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
     return {k: {"p50_us": round(float(np.percentile(v, 50)), 2), "p99_us": round(float(np.percentile(v, 99)), 2),
                 "calls": int(v.size)} for k, v in times.items()}
@@ -155,7 +138,9 @@ def main(argv: list[str] | None = None) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         export_seconds = export_all(fk, ik, out, aoti=not args.no_aoti)
         fns = candidates(fk, ik, out, aoti=not args.no_aoti, compile_fk=args.compile)
-        results = summarize(time_interleaved(fns, args.rounds, args.calls))
+        with torch.inference_mode():
+            seconds = time_interleaved(fns, args.rounds, args.calls, warmup=200)
+        results = summarize({k: v * 1e6 for k, v in seconds.items()})   # µs
         deviation = json.loads((out / "fk" / dexport.METADATA_FILE).read_text())["max_abs_deviation"]
     report = {"benchmark": "latency", "batch": 1, "threads": torch.get_num_threads(),
               "config": str(args.config.relative_to(ROOT) if args.config.is_relative_to(ROOT) else args.config),
