@@ -178,3 +178,27 @@ def test_rehearsal_pulls_the_correction_towards_the_cc_model(robot_dir):
         with torch.no_grad():
             gaps.append(float((model(synth) - synth.tip).norm(dim=-1).mean()))
     assert gaps[1] < 0.5 * gaps[0]
+
+
+def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(robot_dir):
+    ctx = _context(robot_dir)
+    torch.manual_seed(0)
+    model = CCClarkeResidual(ctx.train, ctx.cc)
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.fill_(0.5)                     # a constant correction (0.25 mm on every ρ)
+    rows = ctx.train.rows(torch.arange(6))
+    far = ctx.train.rows(torch.arange(6))
+    far.features = torch.cat([far.features[..., :2] + 3e-3, far.features[..., 2:]], -1)   # 3 mm off the rows
+    with torch.no_grad():
+        free = model.corrected_features(far)
+        model.gate_width = 1.0
+        assert torch.equal(model.support_distance(rows), torch.zeros(6))
+        assert torch.allclose(model.corrected_features(rows)[..., :2] - rows.features[..., :2].float(),
+                              torch.full((6, 2, 2), 0.5 * 5e-4), atol=1e-9)     # on the training rows: ungated
+        delta = model.corrected_features(far)[..., :2] - far.features[..., :2].float()
+        gate = model.support_gate(far)
+        assert (model.support_distance(far) > 1.0).all() and (gate < torch.exp(torch.tensor(-1.0))).all()
+        assert torch.allclose(delta, (free[..., :2] - far.features[..., :2].float()) * gate[:, None, None], atol=1e-9)
+        model.gate_width = 0.0                            # τ = 0: the calibrated CC model itself
+        assert torch.allclose(model(far), ctx.cc.tip_from_features(far.features.float()).double(), atol=1e-9)

@@ -9,12 +9,15 @@ Usage (from the repository root):
 
 ROBOT: v4 | v6 (configs/robots/ftdcr_<robot>_calibrated.yaml, data/ftdcr_<robot>/train.csv);
 VARIANTS: comma-separated names of ``VARIANTS`` below or registered model names; SEEDS: 0,1;
-PROXIES: extrap,cv (default both). One JSON line per variant on stdout.
+PROXIES: extrap,cv (default both). One JSON line per variant on stdout. A variant written
+``gate:NAME`` is trained once per fold and seed and scored at every support-gate width of
+``GATE_WIDTHS`` (the gate acts on predictions only; ``inf``: no gate, 0: the CC model).
 """
 import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -22,13 +25,15 @@ sys.path.insert(0, str(ROOT))
 torch.set_num_threads(1)
 
 from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory  # noqa: E402
+from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.registry import ModelInfo, model_info  # noqa: E402
+from dacr_learn.hardware.registry import ModelInfo, build_model, model_info  # noqa: E402
 from dacr_learn.hardware.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
 from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 REHEARSAL_SAMPLES = 1000
+GATE_WIDTHS = (float("inf"), 4.0, 2.0, 1.0, 0.5, 0.25, 0.0)   # [training std of the Clarke features]
 
 
 def variant(name: str, history: bool, support: bool, weight: float) -> ModelInfo:
@@ -45,6 +50,23 @@ VARIANTS = {f"{base}{'_support' if s else ''}{f'_reh{w:g}' if w else ''}": varia
     for base in ("e", "g") for s in (False, True) for w in (0.0, 0.1, 1.0)}
 
 
+def gate_scores(info: ModelInfo, folds: dict, seeds: list[int]) -> dict:
+    """{proxy: {width: mean RMSE [mm]}} of one trained model per fold and seed, gated at every width."""
+    out = {}
+    for proxy, fs in folds.items():
+        per = {w: [] for w in GATE_WIDTHS}
+        for fold in fs:
+            for seed in seeds:
+                model = build_model(info, fold.ctx, seed)
+                model.fit(fold.ctx.train)
+                for w in GATE_WIDTHS:
+                    model.gate_width = None if w == float("inf") else w
+                    with torch.no_grad():
+                        per[w].append(float(offset_removed_rmse(model(fold.test), fold.test.tip)) * 1e3)
+        out[proxy] = {str(w): round(float(np.mean(v)), 4) for w, v in per.items()}
+    return out
+
+
 def main() -> None:
     robot, names, seeds = sys.argv[1], sys.argv[2].split(","), [int(s) for s in sys.argv[3].split(",")]
     proxies = sys.argv[4].split(",") if len(sys.argv) > 4 else ["extrap", "cv"]
@@ -54,6 +76,11 @@ def main() -> None:
     masks = proxy_masks(rec.labels)
     folds = {p: make_folds(rec, spec, smap, masks[p]) for p in proxies}
     for name in names:
+        if name.startswith("gate:"):
+            info = VARIANTS.get(name[5:]) or model_info(name[5:])
+            scores = gate_scores(info, folds, seeds)
+            print(json.dumps({"robot": robot, "model": name, "seeds": seeds, **scores}), flush=True)
+            continue
         info = VARIANTS.get(name) or model_info(name)
         print(json.dumps({"robot": robot, "model": name, **proxy_scores(info, folds, seeds)}), flush=True)
 
