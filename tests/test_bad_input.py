@@ -275,3 +275,41 @@ def test_check_tensor_nonempty_and_messages():
         check_tensor(torch.zeros(0, 3), "x", (3,), nonempty=True)
     with pytest.raises(ValueError, match=r"^x: expected shape \(\.\.\., 3\), got a tensor of shape \(2, 2\)$"):
         check_tensor(torch.zeros(2, 2), "x", (3,))
+
+
+# ---------------------------------------------------------------- hardware files
+
+SERVO_MAP = "robot: r\nslack_level: -0.01\nservos:\n- {servo: '1', segment: 0, joint: 0}\n"
+
+
+@pytest.mark.parametrize("text,found", [
+    ("robot: [unclosed\n", "found invalid YAML"),
+    (SERVO_MAP.replace("segment: 0", "segment: x"), "servos[0].segment: expected an integer, got 'x'"),
+    (SERVO_MAP.replace("segment: 0", "segment: 0.5"), "servos[0].segment: expected an integer, got 0.5"),
+    (SERVO_MAP.replace("-0.01", "low"), "slack_level: expected a number, got 'low'"),
+    (SERVO_MAP + "calibration: [1]\n", "calibration: expected a mapping"),
+])
+def test_servo_map_yaml_errors_name_the_file_and_field(tmp_path, text, found):
+    from dacr_learn.hardware.servo_map import ServoMap
+
+    path = tmp_path / "map.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=names(path, found)):
+        ServoMap.from_yaml(path)
+    assert ServoMap.from_yaml(_written(tmp_path / "good.yaml", SERVO_MAP)).servos[0].servo == "1"
+
+
+def _written(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+def test_recording_that_is_not_utf8_or_missing(tmp_path):
+    from dacr_learn.hardware.recording import load_recording
+
+    path = tmp_path / "rec.csv"
+    path.write_bytes(b"timestamp,pattern_label\n\xff\xfe,\x00\n")
+    with pytest.raises(ValueError, match=names(path, "expected a recording CSV", "UTF-8")):
+        load_recording(path)
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path / "missing.csv"))):
+        load_recording(tmp_path / "missing.csv")

@@ -18,6 +18,7 @@ the other way round).
 from __future__ import annotations
 
 import csv
+import io
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..checks import read_text
 from ..robot import RobotSpec
 
 UNIT_SCALE = {"mm": 1e-3, "m": 1.0}
@@ -137,8 +139,8 @@ def _check_scale(servo: np.ndarray, tip: np.ndarray, spec: RobotSpec | None, uni
 def read_rows(path: str | Path) -> tuple[list[str], list[list[str]]]:
     """Header and data rows of a CSV file; ValueError when it is empty."""
     source = str(path)
-    with open(path, newline="") as f:
-        rows = [r for r in csv.reader(f) if r]
+    text = read_text(path, "a recording CSV (header row, then one row per sample)")
+    rows = [r for r in csv.reader(io.StringIO(text, newline="")) if r]
     if not rows:
         _fail(source, "empty file (no header)")
     if len(rows) < 2:

@@ -22,6 +22,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..checks import read_yaml
 from ..robot import RobotSpec
 from .recording import Recording
 
@@ -38,6 +39,17 @@ class ServoAssignment:
     joint: int
     sign: int = 1
     zero: float = 0.0
+
+
+def _number(value: Any, kind: type, field_name: str):
+    """``kind(value)`` for an int or float field; ValueError naming the field otherwise (bools refused)."""
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is int:
+        ok = ok and float(value).is_integer()
+    if not ok:
+        raise ValueError(f"servo map.{field_name}: expected {'an integer' if kind is int else 'a number'}, "
+                         f"got {value!r:.100}")
+    return kind(value)
 
 
 @dataclass(frozen=True)
@@ -60,20 +72,25 @@ class ServoMap:
         for k, e in enumerate(entries):
             if not isinstance(e, Mapping) or set(e) - _SERVO_KEYS or not {"servo", "segment", "joint"} <= set(e):
                 raise ValueError(f"servo map.servos[{k}]: expected keys servo, segment, joint[, sign, zero], got {e!r}")
-            sign = int(e.get("sign", 1))
+            sign = _number(e.get("sign", 1), int, f"servos[{k}].sign")
             if sign not in (1, -1):
                 raise ValueError(f"servo map.servos[{k}].sign: got {sign}, expected 1 or -1")
-            servos.append(ServoAssignment(str(e["servo"]), int(e["segment"]), int(e["joint"]), sign,
-                                          float(e.get("zero", 0.0))))
-        return cls(str(d.get("robot", "robot")), tuple(servos), float(d.get("slack_level", 0.0)),
-                   dict(d.get("calibration", {}) or {}))
+            servos.append(ServoAssignment(str(e["servo"]), _number(e["segment"], int, f"servos[{k}].segment"),
+                                          _number(e["joint"], int, f"servos[{k}].joint"), sign,
+                                          _number(e.get("zero", 0.0), float, f"servos[{k}].zero")))
+        calibration = d.get("calibration", {}) or {}
+        if not isinstance(calibration, Mapping):
+            raise ValueError(f"servo map.calibration: expected a mapping, got {calibration!r:.200}")
+        return cls(str(d.get("robot", "robot")), tuple(servos),
+                   _number(d.get("slack_level", 0.0), float, "slack_level"), dict(calibration))
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> ServoMap:
-        import yaml
-
-        with open(path) as f:
-            return cls.from_dict(yaml.safe_load(f))
+        d = read_yaml(path, "a servo map YAML (robot, slack_level, servos)")
+        try:
+            return cls.from_dict(d)
+        except ValueError as err:
+            raise ValueError(f"{path}: {err}") from err
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"robot": self.robot, "slack_level": self.slack_level,
