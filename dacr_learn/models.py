@@ -200,5 +200,15 @@ class IKModel(nn.Module):
             return y
         return self.decoder(actuated_to_features(y, self.selection, self.base_features))
 
+    def decode_features(self, z: Tensor) -> Tensor:
+        """Standardised network output (..., D) → full Clarke feature tensor (..., m, 4) of the predicted
+        joint vector: "clarke" scatters the actuated columns (= encoder(decode(z)) without the
+        round trip), "raw" encodes the predicted joint vector (its least-squares projection onto
+        the displacement constraint). Differentiable; the input of the analytic FK in pose losses."""
+        y = self.out_norm.inverse(z)
+        if self.features == "raw":
+            return self.encoder(y)
+        return actuated_to_features(y, self.selection, self.base_features)
+
     def forward(self, pose: Tensor) -> Tensor:
         return self.decode(self.forward_normalized(pose))

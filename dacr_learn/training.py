@@ -3,7 +3,8 @@
 Loss: FK — mean squared error of the position divided by the total robot length plus
 ``rot_weight`` × the squared Frobenius distance ‖R̂ − R‖²_F = 8 sin²(θ/2) of the rotations
 (smooth, and ≈ 2θ² for small geodesic errors θ). IK — mean squared error of the
-standardised network output (actuated Clarke features, or the joint vector for "raw").
+standardised network output (actuated Clarke features, or the joint vector for "raw"), optionally
+plus the same pose loss on the analytic FK of the predicted joints (:class:`IKModule`).
 
 Validation/test metrics are computed on all ranks' samples together (per-sample errors are
 all-gathered), so the same config runs unchanged with ``--trainer.strategy ddp``.
@@ -21,7 +22,8 @@ from .models import IKModel
 from .robot import RobotSpec
 
 
-def ik_errors(model: IKModel, spec: RobotSpec, pose: Tensor, pose_target: Tensor, q_target: Tensor) -> dict[str, Tensor]:
+def ik_errors(model: IKModel, spec: RobotSpec, pose: Tensor, pose_target: Tensor,
+              q_target: Tensor) -> dict[str, Tensor]:
     """Per-sample IK errors of ``model`` on input poses (B, 4, 4): the task error of the analytic CC
     FK of the predicted joints vs ``pose_target`` (pos_err [m], rot_err [rad]), the joint error
     ‖q̂ − q_target‖ [m] and the constraint residual ‖q̂ − dec(enc(q̂))‖ [m]."""
@@ -30,6 +32,13 @@ def ik_errors(model: IKModel, spec: RobotSpec, pose: Tensor, pose_target: Tensor
     residual = torch.linalg.vector_norm(q_pred - model.decoder(model.encoder(q_pred)), dim=-1)
     joint = torch.linalg.vector_norm(q_pred - q_target, dim=-1)
     return {**task, "joint_err": joint, "constraint_residual": residual}
+
+
+def pose_loss(pred: Tensor, target: Tensor, length: float, rot_weight: float = 1.0) -> Tensor:
+    """Mean over the batch of ‖p̂ − p‖²/length² + rot_weight·‖R̂ − R‖²_F for poses (..., 4, 4) → ()."""
+    pos = ((pred[..., :3, 3] - target[..., :3, 3]) / length).square().sum(-1).mean()
+    rot = (pred[..., :3, :3] - target[..., :3, :3]).square().sum((-1, -2)).mean()
+    return pos + rot_weight * rot
 
 
 class KinematicsModule(pl.LightningModule):
@@ -177,7 +186,28 @@ class FKModule(KinematicsModule):
 
 
 class IKModule(KinematicsModule):
-    """Learned inverse kinematics (tip pose → joint vector satisfying the constraint for "clarke")."""
+    """Learned inverse kinematics (tip pose → joint vector satisfying the constraint for "clarke").
+
+    Loss = ``feature_weight`` × MSE of the standardised network output against the sample's own
+    joint-space target (actuated Clarke features, or q for "raw") + ``pose_weight`` ×
+    :func:`pose_loss` of the analytic CC FK of the predicted joints against the input pose
+    (``rot_weight`` weighs its rotation term). A redundant robot (3 segments: 9 features for a 6-DOF
+    pose) has a manifold of joint solutions per pose; the feature term regresses to their
+    conditional mean, which is not a solution, while the pose term accepts any solution. A small
+    ``feature_weight`` beside the pose term picks the solution near that mean (a smooth branch).
+    """
+
+    def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
+                 width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
+                 weight_decay: float = 0.0, visual_samples: int = 8, feature_weight: float = 1.0,
+                 pose_weight: float = 0.0, rot_weight: float = 1.0):
+        for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight)):
+            if not w >= 0:
+                raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
+        if feature_weight == 0 and pose_weight == 0:
+            raise ValueError("feature_weight, pose_weight: expected at least one > 0, got both 0")
+        # save_hyperparameters() in the base class also records the loss weights
+        super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
     def build_model(self) -> IKModel:
         h = self.hparams
@@ -187,8 +217,14 @@ class IKModule(KinematicsModule):
         return self.model(pose)
 
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
-        target = self.model.out_norm(self.model.target(batch["q"]))
-        return (self.model.forward_normalized(batch["pose"]) - target).square().mean()
+        h, z = self.hparams, self.model.forward_normalized(batch["pose"])
+        loss = z.new_zeros(())
+        if h.feature_weight:
+            loss = loss + h.feature_weight * (z - self.model.out_norm(self.model.target(batch["q"]))).square().mean()
+        if h.pose_weight:
+            pred = forward_kinematics(self.spec, self.model.decode_features(z))
+            loss = loss + h.pose_weight * pose_loss(pred, batch["pose"], self.spec.total_length, h.rot_weight)
+        return loss
 
     def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:
         """Analytic CC forward kinematics of the predicted joint vector."""

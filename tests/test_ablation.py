@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from dacr_learn.ablation import COLUMNS, load_config, main, make_jobs, runner
+from dacr_learn.ablation import COLUMNS, load_config, main, make_jobs, report, runner
 from dacr_learn.data import SamplerOptions, generate
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule
@@ -127,3 +127,44 @@ def test_offset_condition_rows_match_clean_for_symmetric_clarke(quick_run):
             clean = next(c for c in rows if c["condition"] == "clean" and
                          all(c[k] == r[k] for k in ("features", "n_train", "seed")))
             assert float(r["pos_err_mean_mm"]) == pytest.approx(float(clean["pos_err_mean_mm"]), abs=1e-4)
+
+
+def test_structure_axis_applies_to_clarke_fk_only():
+    cfg = load_config(CONFIG, quick=True)
+    assert cfg["structures"] == ["monolithic"]                      # default: the grid is unchanged
+    plain = make_jobs(cfg)
+    cfg["structures"] = ["monolithic", "compositional"]
+    jobs = make_jobs(cfg)
+    extra = [j for j in jobs if j.structure == "compositional"]
+    assert [j for j in jobs if j.structure == "monolithic"] == plain
+    assert extra and all(j.task == "fk" and j.features == "clarke" for j in extra)
+    assert len(extra) == len(cfg["robots"]) * len(cfg["n_train"]) * len(cfg["seeds"])
+    assert len({j.key for j in jobs}) == len(jobs)
+
+
+def test_unknown_structure_is_refused(tmp_path):
+    text = CONFIG.read_text() + "\nstructures: [monolithic, tree]\n"
+    (tmp_path / "c.yaml").write_text(text)
+    with pytest.raises(ValueError, match=r"structures: unknown \['tree'\]"):
+        load_config(tmp_path / "c.yaml")
+
+
+def test_model_kwargs_merge_task_then_structure():
+    cfg = {"model": {"width": 8, "lr": 1.0}, "model_by_task": {"ik": {"pose_weight": 1.0}},
+           "model_by_structure": {"compositional": {"rotation": "twist", "width": 4}}}
+    assert runner.model_kwargs(cfg, "ik") == {"width": 8, "lr": 1.0, "pose_weight": 1.0}
+    assert runner.model_kwargs(cfg, "fk") == {"width": 8, "lr": 1.0}
+    assert runner.model_kwargs(cfg, "fk", "compositional") == {"width": 4, "lr": 1.0, "rotation": "twist",
+                                                                 "structure": "compositional"}
+
+
+def test_rows_before_the_structure_axis_are_monolithic_and_reported_as_their_features():
+    old = {"robot": "r", "task": "fk", "features": "clarke", "n_train": "10", "seed": "0", "condition": "clean",
+           "pos_err_mean_mm": "1.0", "rot_err_mean_deg": "0.5"}
+    assert runner.row_key(old) == ("r", "fk", "clarke", "10", "0", "monolithic")
+    comp = {**old, "structure": "compositional", "pos_err_mean_mm": "0.25"}
+    raw = {**old, "features": "raw", "structure": "monolithic", "pos_err_mean_mm": "2.0"}
+    summary = report.summary_markdown([old, raw, comp])
+    assert "clarke/compositional" in summary
+    assert "| r | clean | 10 | 1 | 1 ± 0 | 2 ± 0 | 2.00 | 0.5 ± 0 | 0.5 ± 0 | 0.25 ± 0 | 4.00 | 0.5 ± 0 |" in summary
+    assert "compositional" not in report.summary_markdown([old, raw]).split("\n", 2)[2]

@@ -21,7 +21,6 @@ from dacr_learn.ablation import load_config, main, make_jobs, runner  # noqa: E4
 from dacr_learn.ablation.cluster import connect, portable_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-ROW_KEY = ("robot", "task", "features", "n_train", "seed", "condition")
 
 
 def tiny_config(tmp_path: Path) -> Path:
@@ -94,7 +93,7 @@ def test_cluster_run_survives_a_killed_worker(tmp_path):
     assert result["ran"] == len(jobs) == 2
     with (tmp_path / "out" / "results.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
-    keys = [tuple(r[k] for k in ROW_KEY) for r in rows]
+    keys = [(*runner.row_key(r), r["condition"]) for r in rows]
     expected = {(*j.key, c) for j in jobs for c in runner.conditions(cfg, j)}
     assert len(keys) == len(set(keys))                # no row written twice ...
     assert set(keys) == expected                      # ... nor lost

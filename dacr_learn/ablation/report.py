@@ -11,7 +11,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import rerun as rr
 
-FEATURE_STYLE = {"clarke": dict(color="tab:blue", marker="o"), "raw": dict(color="tab:orange", marker="s")}
+FEATURE_STYLE = {"clarke": dict(color="tab:blue", marker="o"), "raw": dict(color="tab:orange", marker="s"),
+                 "compositional": dict(color="tab:green", marker="^")}
+
+
+def variant(row: dict) -> str:
+    """The model variant of a row: its feature mode, or its structure if not monolithic (a compositional
+    model has Clarke features). Rows written before the structure axis existed are monolithic."""
+    structure = row.get("structure") or "monolithic"
+    return row["features"] if structure == "monolithic" else structure
 
 
 def _num(x) -> float:
@@ -22,10 +30,10 @@ def _num(x) -> float:
 
 
 def aggregate(rows: list[dict]) -> dict[tuple, dict[str, tuple[float, float, int]]]:
-    """(robot, task, condition, n_train, features) → {metric: (mean, std, seeds)} over seeds (NaN skipped)."""
+    """(robot, task, condition, n_train, variant) → {metric: (mean, std, seeds)} over seeds (NaN skipped)."""
     groups: dict[tuple, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["robot"], r["task"], r["condition"], int(r["n_train"]), r["features"]), []).append(r)
+        groups.setdefault((r["robot"], r["task"], r["condition"], int(r["n_train"]), variant(r)), []).append(r)
     out = {}
     for key, rs in groups.items():
         stats = {}
@@ -57,34 +65,42 @@ def _order(values, preferred):
     return [v for v in preferred if v in values] + sorted(v for v in values if v not in preferred)
 
 
+def _cells(agg: dict, key: tuple, ik: bool, compositional: bool) -> list[str]:
+    """Table cells of one (robot, task, condition, n_train) row: Clarke, raw and (if present) compositional."""
+    c, r, m = (agg.get((*key, v)) for v in ("clarke", "raw", "compositional"))
+    seeds = max(s["seeds"] for s in (c, r, m) if s)
+    cells = [key[0], key[2], str(key[3]), str(seeds), _pm(c and c["pos_err_mean_mm"]), _pm(r and r["pos_err_mean_mm"]),
+             _ratio(c and c["pos_err_mean_mm"], r and r["pos_err_mean_mm"]),
+             _pm(c and c["rot_err_mean_deg"]), _pm(r and r["rot_err_mean_deg"])]
+    if compositional:
+        cells += [_pm(m and m["pos_err_mean_mm"]), _ratio(m and m["pos_err_mean_mm"], c and c["pos_err_mean_mm"]),
+                  _pm(m and m["rot_err_mean_deg"])]
+    if ik:
+        cells += [_pm(c and c["constraint_residual_max_m"], ".2g"), _pm(r and r["constraint_residual_max_m"], ".2g")]
+    return cells
+
+
 def summary_markdown(rows: list[dict], robots_order: list[str] | None = None) -> str:
-    """Markdown tables, one per task: Clarke vs raw per robot, condition and n_train (mean ± std over seeds)."""
+    """Markdown tables, one per task: Clarke vs raw (and compositional, where run) per robot, condition and
+    n_train (mean ± std over seeds)."""
     agg = aggregate(rows)
     robots = _order({k[0] for k in agg}, robots_order or [])
     cond_order = ["clean", "joint_noise", "offset", "pose_noise"]
     lines = [f"Results: {len(rows)} rows. Metrics are means over the fixed test set, then mean ± std over "
-             f"seeds; `raw/clarke` is the ratio of the mean position errors (> 1: Clarke is better).", ""]
+             f"seeds; `raw/clarke` is the ratio of the mean position errors (> 1: Clarke is better), "
+             f"`clarke/compositional` that of the monolithic and compositional Clarke models.", ""]
     for task in _order({k[1] for k in agg}, ["fk", "ik"]):
-        ik = task == "ik"
+        ik, comp = task == "ik", any(k[1] == task and k[4] == "compositional" for k in agg)
         head = ["robot", "condition", "n_train", "seeds", "pos err clarke [mm]", "pos err raw [mm]", "raw/clarke",
                 "rot err clarke [deg]", "rot err raw [deg]"]
+        head += ["pos err compositional [mm]", "clarke/compositional", "rot err compositional [deg]"] if comp else []
         head += ["constraint residual max clarke [m]", "constraint residual max raw [m]"] if ik else []
         lines += [f"### {task.upper()}", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
         keys = {(k[0], k[2], k[3]) for k in agg if k[1] == task}
         for robot in robots:
-            conds = _order({c for r, c, _ in keys if r == robot}, cond_order)
-            for cond in conds:
+            for cond in _order({c for r, c, _ in keys if r == robot}, cond_order):
                 for n in sorted({n for r, c, n in keys if r == robot and c == cond}):
-                    c, r = agg.get((robot, task, cond, n, "clarke")), agg.get((robot, task, cond, n, "raw"))
-                    seeds = max(s["seeds"] for s in (c, r) if s)
-                    cells = [robot, cond, str(n), str(seeds),
-                             _pm(c and c["pos_err_mean_mm"]), _pm(r and r["pos_err_mean_mm"]),
-                             _ratio(c and c["pos_err_mean_mm"], r and r["pos_err_mean_mm"]),
-                             _pm(c and c["rot_err_mean_deg"]), _pm(r and r["rot_err_mean_deg"])]
-                    if ik:
-                        cells += [_pm(c and c["constraint_residual_max_m"], ".2g"),
-                                  _pm(r and r["constraint_residual_max_m"], ".2g")]
-                    lines.append("| " + " | ".join(cells) + " |")
+                    lines.append("| " + " | ".join(_cells(agg, (robot, task, cond, n), ik, comp)) + " |")
         lines.append("")
     notes = sorted({s["note"] for k, s in agg.items() if s["note"]})
     if notes:
@@ -93,7 +109,7 @@ def summary_markdown(rows: list[dict], robots_order: list[str] | None = None) ->
 
 
 def plot_curves(rows: list[dict], out: Path, robots_order: list[str] | None = None) -> list[Path]:
-    """One PNG per (task, condition): mean position error vs n_train per robot, one line per feature mode."""
+    """One PNG per (task, condition): mean position error vs n_train per robot, one line per model variant."""
     agg = aggregate(rows)
     robots = _order({k[0] for k in agg}, robots_order or [])
     paths = []

@@ -36,14 +36,15 @@ from ..robot import RobotSpec
 from ..training import FKModule, IKModule, ik_errors
 
 ROOT = Path(__file__).resolve().parents[2]
-COLUMNS = ["robot", "task", "features", "n_train", "condition", "seed", "pos_err_mean_mm", "pos_err_mean_pct",
-           "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m", "train_seconds", "steps",
-           "n_test", "note"]
-KEY = ("robot", "task", "features", "n_train", "seed")
+COLUMNS = ["robot", "task", "features", "structure", "n_train", "condition", "seed", "pos_err_mean_mm",
+           "pos_err_mean_pct", "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m", "train_seconds",
+           "steps", "n_test", "note"]
+KEY = ("robot", "task", "features", "n_train", "seed", "structure")
+STRUCTURES = ("monolithic", "compositional")
 METRICS = ("pos_err_mean_mm", "pos_err_mean_pct", "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m")
 MODULES = {"fk": FKModule, "ik": IKModule}
 # Settings that change the numbers of a finished row: resuming with different values is refused.
-FROZEN_KEYS = ("model", "train", "test", "conditions", "transfer")
+FROZEN_KEYS = ("model", "model_by_task", "model_by_structure", "train", "test", "conditions", "transfer")
 
 
 @dataclass(frozen=True)
@@ -53,10 +54,16 @@ class Job:
     features: str
     n_train: int
     seed: int
+    structure: str = "monolithic"
 
     @property
     def key(self) -> tuple[str, ...]:
         return tuple(str(getattr(self, k)) for k in KEY)
+
+
+def row_key(row: dict) -> tuple[str, ...]:
+    """The job key of a CSV row (rows written before the structure axis existed are monolithic)."""
+    return tuple(row.get(k) or ("monolithic" if k == "structure" else "") for k in KEY)
 
 
 def resolve_path(path: str | Path) -> Path:
@@ -79,6 +86,11 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
     for key in ("robots", "tasks", "features", "n_train", "seeds", "model", "train", "test", "conditions"):
         if key not in cfg:
             raise ValueError(f"ablation config {path}: missing key {key!r}")
+    cfg.setdefault("structures", ["monolithic"])
+    bad_structures = set(cfg["structures"]) - set(STRUCTURES)
+    if bad_structures:
+        raise ValueError(f"ablation config {path}: structures: unknown {sorted(bad_structures)}, "
+                         f"expected a subset of {list(STRUCTURES)}")
     bad = set(cfg["tasks"]) - set(MODULES)
     if bad:
         raise ValueError(f"ablation config {path}: tasks: unknown {sorted(bad)}, "
@@ -87,9 +99,15 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
 
 
 def make_jobs(cfg: dict) -> list[Job]:
-    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds."""
-    return [Job(r, t, f, int(n), int(s)) for s in cfg["seeds"] for n in cfg["n_train"] for r in cfg["robots"]
-            for t in cfg["tasks"] for f in cfg["features"]]
+    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds.
+
+    The ``structures`` axis (default ``[monolithic]``) applies to FK with Clarke features only: a
+    compositional model needs the per-segment features that raw joint lengths do not give, and
+    there is no compositional IK.
+    """
+    return [Job(r, t, f, int(n), int(s), st) for s in cfg["seeds"] for n in cfg["n_train"] for r in cfg["robots"]
+            for t in cfg["tasks"] for f in cfg["features"] for st in cfg.get("structures", ["monolithic"])
+            if st == "monolithic" or (t == "fk" and f == "clarke")]
 
 
 def conditions(cfg: dict, job: Job) -> list[str]:
@@ -155,8 +173,18 @@ def test_set(cfg: dict, spec: RobotSpec, condition: str) -> dict[str, Tensor]:
 # ------------------------------------------------------------------------------------------
 
 
-def build_module(cfg: dict, task: str, robot: str | dict, features: str) -> pl.LightningModule:
-    return MODULES[task](robot=robot, features=features, **cfg["model"])
+def model_kwargs(cfg: dict, task: str, structure: str = "monolithic") -> dict:
+    """Keyword arguments of a job's module: ``model``, then ``model_by_task[task]``, then (for a
+    structure other than monolithic) ``model_by_structure[structure]`` and ``structure`` itself."""
+    kwargs = {**cfg["model"], **(cfg.get("model_by_task") or {}).get(task, {})}
+    if structure != "monolithic":
+        kwargs.update({**(cfg.get("model_by_structure") or {}).get(structure, {}), "structure": structure})
+    return kwargs
+
+
+def build_module(cfg: dict, task: str, robot: str | dict, features: str,
+                 structure: str = "monolithic") -> pl.LightningModule:
+    return MODULES[task](robot=robot, features=features, **model_kwargs(cfg, task, structure))
 
 
 @torch.no_grad()
@@ -176,9 +204,9 @@ def evaluate(module: pl.LightningModule, task: str, data: dict[str, Tensor]) -> 
     return summarize(errors, spec.total_length)
 
 
-def transferred(cfg: dict, module: pl.LightningModule, task: str, features: str, target: RobotSpec):
+def transferred(cfg: dict, module: pl.LightningModule, job: Job, target: RobotSpec):
     """The trained network and normalisation of ``module`` behind the Clarke layers of ``target``."""
-    new = build_module(cfg, task, target.to_dict(), features)
+    new = build_module(cfg, job.task, target.to_dict(), job.features, job.structure)
     state = {k: v for k, v in module.state_dict().items() if ".encoder." not in k and ".decoder." not in k}
     missing, unexpected = new.load_state_dict(state, strict=False)
     if unexpected or any(".encoder." not in k and ".decoder." not in k for k in missing):
@@ -198,7 +226,7 @@ def fit(cfg: dict, job: Job, spec: RobotSpec) -> tuple[pl.LightningModule, float
     steps, bs = int(cfg["train"]["steps"]), int(cfg["train"]["batch_size"])
     data = generate(spec, job.n_train, seed=1 + job.seed)
     pl.seed_everything(job.seed, verbose=False)
-    module = build_module(cfg, job.task, spec.to_dict(), job.features)
+    module = build_module(cfg, job.task, spec.to_dict(), job.features, job.structure)
     trainer = pl.Trainer(max_steps=steps, max_epochs=1, accelerator="cpu", devices=1, logger=False,
                          enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
                          limit_val_batches=0, num_sanity_val_steps=0)
@@ -223,7 +251,7 @@ def run_job(cfg: dict, job: Job) -> list[dict]:
                                f"robot {target.name} cannot be fed (nor, for IK, produced)")
                 summary = {}
             else:
-                summary = evaluate(transferred(cfg, module, job.task, job.features, target), job.task,
+                summary = evaluate(transferred(cfg, module, job, target), job.task,
                                    test_set(cfg, target, "clean"))
                 row["note"] = f"trained on {spec.name}, evaluated on {target.name} through its Clarke layers"
         else:
@@ -251,14 +279,14 @@ def finished_rows(cfg: dict, csv_path: Path) -> tuple[list[dict], set[tuple[str,
     rows = read_rows(csv_path)
     by_key: dict[tuple[str, ...], list[dict]] = {}
     for r in rows:
-        by_key.setdefault(tuple(r[k] for k in KEY), []).append(r)
+        by_key.setdefault(row_key(r), []).append(r)
     done = set()
     for job in make_jobs(cfg):
         got = {r["condition"] for r in by_key.get(job.key, [])}
         if set(conditions(cfg, job)) <= got:
             done.add(job.key)
     grid = {j.key for j in make_jobs(cfg)}
-    keep = [r for r in rows if tuple(r[k] for k in KEY) in done or tuple(r[k] for k in KEY) not in grid]
+    keep = [r for r in rows if row_key(r) in done or row_key(r) not in grid]
     return keep, done
 
 

@@ -1,0 +1,86 @@
+"""IK with a pose-space loss (IKModule feature_weight / pose_weight): the decoded features, the loss at a
+true solution, gradients in float64, and bad weights."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from dacr_learn.data import generate
+from dacr_learn.kinematics import forward_kinematics
+from dacr_learn.robot import RobotSpec
+from dacr_learn.training import IKModule, pose_loss
+
+ROOT = Path(__file__).resolve().parents[1]
+TDCR3 = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
+
+
+def ik_module(features: str, dtype=torch.float64, **kwargs) -> tuple[IKModule, dict]:
+    spec = RobotSpec.from_yaml(TDCR3)
+    data = generate(spec, 64, seed=7, dtype=dtype)
+    torch.manual_seed(0)
+    module = IKModule(robot=spec.to_dict(), features=features, width=16, depth=2, **kwargs).to(dtype)
+    module.model.fit_normalization(data["q"], data["pose"])
+    return module, data
+
+
+@pytest.mark.parametrize("features", ["clarke", "raw"])
+def test_decoded_features_are_those_of_the_decoded_joints(features):
+    """decode_features(z) = encoder(decode(z)) (Clarke: without the round trip; raw: the projection)."""
+    module, data = ik_module(features)
+    model = module.model
+    z = model.forward_normalized(data["pose"])
+    expected = model.encoder(model.decode(z))
+    scale = expected.abs().max().item()
+    assert torch.allclose(model.decode_features(z), expected, atol=1e3 * torch.finfo(z.dtype).eps * scale, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("features", ["clarke", "raw"])
+def test_pose_loss_vanishes_at_the_true_joints(features, dtype):
+    """A network output equal to the standardised true target has zero pose loss (to round-off of the
+    standardisation and the FK; the loss is a squared relative error, so ~ (1e3·eps)²)."""
+    module, data = ik_module(features, dtype)
+    model = module.model
+    z = model.out_norm(model.target(data["q"]))
+    pred = forward_kinematics(module.spec, model.decode_features(z))
+    assert torch.allclose(pred, data["pose"], atol=1e3 * torch.finfo(dtype).eps * module.spec.total_length)
+    assert pose_loss(pred, data["pose"], module.spec.total_length) < (1e3 * torch.finfo(dtype).eps) ** 2
+    shifted = forward_kinematics(module.spec, model.decode_features(z + 0.1))
+    assert pose_loss(shifted, data["pose"], module.spec.total_length) > 1e-6      # and it does see an error
+
+
+@pytest.mark.parametrize("features", ["clarke", "raw"])
+def test_pose_loss_gradient_through_decoder_and_fk(features):
+    """gradcheck (float64) of z ↦ pose loss of the analytic FK of the decoded prediction."""
+    module, data = ik_module(features)
+    model, pose = module.model, data["pose"][:6]
+    z0 = model.forward_normalized(pose).detach().requires_grad_(True)
+
+    def loss(z):
+        pred = forward_kinematics(module.spec, model.decode_features(z))
+        return pose_loss(pred, pose, module.spec.total_length, rot_weight=0.5)
+
+    assert torch.autograd.gradcheck(loss, (z0,), eps=1e-6, atol=1e-8)
+
+
+def test_training_loss_combines_feature_and_pose_terms():
+    """loss = feature_weight·(feature MSE) + pose_weight·(pose loss), each term checked on its own."""
+    batch = {}
+    losses = {}
+    for fw, pw in ((1.0, 0.0), (0.0, 1.0), (0.3, 2.0)):
+        module, data = ik_module("clarke", feature_weight=fw, pose_weight=pw, rot_weight=0.5)
+        batch = {"q": data["q"], "pose": data["pose"]}
+        losses[fw, pw] = module.loss(batch)
+    combined = 0.3 * losses[1.0, 0.0] + 2.0 * losses[0.0, 1.0]
+    assert torch.allclose(losses[0.3, 2.0], combined, rtol=1e3 * torch.finfo(torch.float64).eps)
+    assert losses[0.0, 1.0] > 0 and losses[1.0, 0.0] > 0
+
+
+@pytest.mark.parametrize("kwargs,match", [({"feature_weight": 0.0, "pose_weight": 0.0}, "at least one"),
+                                          ({"pose_weight": -1.0}, "pose_weight: expected a number >= 0"),
+                                          ({"rot_weight": float("nan")}, "rot_weight")])
+def test_bad_loss_weights_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        IKModule(robot=str(TDCR3), **kwargs)
