@@ -35,9 +35,11 @@ from .models import (
     ACTIVATIONS,
     FKModel,
     IKModel,
+    Standardizer,
     actuated_columns,
     actuated_selection,
     actuated_to_features,
+    fixed_features,
     pose_from_parts,
 )
 from .robot import RobotSpec
@@ -260,7 +262,8 @@ def _rotation_tangent_6d(d6: Tensor, dd6: Tensor) -> tuple[Tensor, Tensor]:
     b2 = e / n2
     db2 = (de - b2.unsqueeze(1) * (b2.unsqueeze(1) * de).sum(-1, keepdim=True)) / n2.unsqueeze(1)
     b3 = torch.cross(b1, b2, dim=-1)
-    db3 = torch.cross(db1, b2.unsqueeze(1).expand_as(db1), dim=-1) + torch.cross(b1.unsqueeze(1).expand_as(db2), db2, dim=-1)
+    db3 = (torch.cross(db1, b2.unsqueeze(1).expand_as(db1), dim=-1)
+           + torch.cross(b1.unsqueeze(1).expand_as(db2), db2, dim=-1))
     omega = torch.stack([(db3 * b2.unsqueeze(1)).sum(-1), (db1 * b3.unsqueeze(1)).sum(-1),
                          (db2 * b1.unsqueeze(1)).sum(-1)], dim=-1)
     return torch.stack([b1, b2, b3], dim=-2), omega
@@ -375,3 +378,79 @@ class InferenceIK(nn.Module):
         if self.features_mode == "raw":
             return y
         return self.decoder(actuated_to_features(y, self.selection, self.base))
+
+
+class InferenceCompositionalFK(nn.Module):
+    """Compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`) with the front-end
+    folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
+
+    Encoder, per-segment standardisation, context ("segment": a constant, "distal": a sum of
+    standardised features) and the first layer together with the learned linear skip are affine in
+    u = [q − q_ref, g], so one matrix gives every segment's pre-activations at once,
+    (B, m·(W + O)); for type-III segments it acts on the exact features f instead (β = sqrt(h² − (αr)²)).
+    The translation scale L_s is folded into the output rows. Then the shared MLP runs on (B, m, W),
+    the head gives T_k and the products compose the tip.
+    """
+
+    def __init__(self, model, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        from .compositional import HEADS
+        self.rotation, self.num_segments = model.rotation, model.spec.num_segments
+        self.num_joints, self.features_mode = model.spec.num_joints, "clarke"
+        self.width, self.out = _linears(model.net)[0].out_features, HEADS[model.rotation]
+        self.fold = ClarkeFold(model.spec)
+        scale = torch.ones(self.out, dtype=_F64)
+        scale[:3] = model.length_scale.to(_F64)
+        k, k0 = _compositional_first(model, scale)                        # acts on actuated features f
+        self.on_features = self.fold.has_type3
+        if not self.on_features:
+            k, k0 = k @ self.fold.E, k0 + k @ self.fold.e0
+        self.fold.to(dtype)
+        self.mlp = _FoldedMLP(model.net, (k, k0), scale, torch.zeros_like(scale), dtype)
+        self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
+
+    def segment_transforms(self, q: Tensor) -> Tensor:
+        """T_k (B, m, 4, 4) of every segment."""
+        from .compositional import twist_exp
+
+        u = self.fold.inputs(q)
+        pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
+        pre = pre.unflatten(-1, (self.num_segments, self.width + self.out))
+        out = self.mlp(pre[..., :self.width]) + pre[..., self.width:]
+        if self.rotation == "twist":
+            return twist_exp(out)
+        return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
+
+    def forward(self, q: Tensor) -> Tensor:
+        t = self.segment_transforms(q)
+        tip = t[:, 0]
+        for k in range(1, self.num_segments):
+            tip = tip @ t[:, k]
+        return tip
+
+
+def _compositional_first(model, scale: Tensor) -> tuple[Tensor, Tensor]:
+    """(K, k₀) float64 with [a₁ | scale·skip] of every segment = K·f + k₀, f the actuated features (D,).
+
+    Found by probing the (affine) map with unit vectors, through the model's own modules.
+    """
+    spec, front = model.spec, model.front
+    sel, fixed = actuated_selection(spec).to(_F64), fixed_features(spec, _F64)
+    first, skip = _linears(model.net)[0], model.skip
+    w = torch.cat([first.weight, scale[:, None] * skip.weight]).detach().to(_F64)
+    b = torch.cat([first.bias.detach().to(_F64), torch.zeros(skip.out_features, dtype=_F64)])
+    norm = Standardizer(4).to(_F64)
+    norm.load_state_dict({k: v.to(_F64) for k, v in front.norm.state_dict().items()})
+    context = front.context_matrix.to(_F64)
+
+    def affine(f: Tensor) -> Tensor:
+        x = norm(actuated_to_features(f, sel, fixed))                    # (P, m, 4)
+        if front.context == "segment":
+            x = torch.cat([x, context.expand(x.shape[0], -1, -1)], dim=-1)
+        elif front.context == "distal":
+            x = torch.cat([x, context @ x], dim=-1)
+        return (x @ w.mT + b).flatten(-2)                                 # (P, m·(W + O))
+
+    d = sel.shape[0]
+    probe = affine(torch.cat([torch.zeros(1, d, dtype=_F64), torch.eye(d, dtype=_F64)]))
+    return (probe[1:] - probe[0]).mT.contiguous(), probe[0].clone()

@@ -142,6 +142,8 @@ def pose_to_vector(pose: Tensor, length: float) -> Tensor:
 class FKModel(nn.Module):
     """Learned forward kinematics: joint vector (..., num_joints) → tip pose (..., 4, 4) [m]."""
 
+    structure = "monolithic"     # one network for the whole robot (vs compositional.CompositionalFK)
+
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
                  activation: str = "silu", rotation: str = "6d"):
         super().__init__()

@@ -1,0 +1,206 @@
+"""Compositional learned FK: one network learns a segment's transform, products compose the robot.
+
+The Clarke encoder removes the routing coupling, so its features are per segment: x_k =
+(ρ_re, ρ_im, β, α) of segment k (non-actuated columns at their fixed values, β = l, α = 0).
+A network f_θ, shared by all segments, maps the standardised x_k and a context c_k to the
+segment's transform T_k ∈ SE(3) (base of segment k → its end); the robot is the product
+
+    T_tip = T_1 · T_2 · … · T_m,   end of segment k = T_1 ⋯ T_k      (kinematics._chain).
+
+Output heads ("rotation"):
+- "twist": f_θ outputs an se(3) twist ξ = (v · L_s, ω) (v: translation part scaled by the mean
+  segment length L_s of the training robot [m], ω [rad]) and T_k = exp(ξ^) (closed form,
+  :func:`twist_exp`). A constant-curvature arc is exactly exp of a twist that is linear in
+  (ρ, β) (v = (0, 0, β), ω = (−ρ_im, ρ_re, 0)/d), so on CC data the map the network must learn is
+  smooth and close to linear; the network is not told this map (nor d, the axes or the signs) and
+  learns it from tip poses. On a real segment ξ(x) is non-linear and the same head represents any SE(3).
+- "6d": position (· L_s) and a 6D rotation (models.pose_from_parts, rotation_6d_to_matrix).
+
+Context c_k ("context"): "none" (CC data: a segment's shape depends on its own features only;
+the network then runs on any number of segments, see :func:`transfer`), "segment" (a one-hot
+segment index: per-segment first-layer bias, not transferable), "distal" (the sum of the
+standardised features of the segments beyond k, whose tendons pass through segment k and load it:
+the context for real tendon robots; transferable).
+"""
+from __future__ import annotations
+
+import torch
+from pytorch_kinematics.transforms import rotation_6d_to_matrix
+from torch import Tensor, nn
+
+from .checks import check_tensor
+from .kinematics import _chain, bending_coefficients, effective_features
+from .layers import ClarkeEncoder
+from .models import FKModel, Standardizer, mlp, pose_from_parts
+from .robot import RobotSpec
+
+STRUCTURES = ("monolithic", "compositional")
+CONTEXTS = ("none", "segment", "distal")
+HEADS = {"twist": 6, "6d": 9}
+
+
+_TAYLOR_BELOW = 1e-2   # φ² below which g = (φ − sin φ)/φ³ is a Taylor polynomial (exact to ~1e-14 there)
+
+
+def _third_coefficient(phi_sq: Tensor, s: Tensor) -> Tensor:
+    """g = (φ − sin φ)/φ³ = (1 − s)/φ² as a function of φ² (..., ), finite with finite gradients at 0."""
+    small = phi_sq < _TAYLOR_BELOW
+    y = torch.where(small, phi_sq, 0.0)
+    g_small = (((-y / 39916800 + 1 / 362880) * y - 1 / 5040) * y + 1 / 120) * -y + 1 / 6
+    return torch.where(small, g_small, (1 - s) / torch.where(small, 1.0, phi_sq))
+
+
+def twist_exp(xi: Tensor) -> Tensor:
+    """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4).
+
+    Closed form: R = I + s·ω^ + f·ω^², p = (I + f·ω^ + g·ω^²)·v with s = sin φ/φ, f = (1 − cos φ)/φ²
+    (kinematics.bending_coefficients), g = (φ − sin φ)/φ³, φ = ‖ω‖; equals torch.linalg.matrix_exp of
+    [[ω^, v], [0, 0]] (tested) at a fraction of its cost.
+    """
+    v, w = xi[..., :3], xi[..., 3:]
+    phi_sq = (w * w).sum(-1)
+    s, f = bending_coefficients(phi_sq)
+    g = _third_coefficient(phi_sq, s)
+    wv = torch.linalg.cross(w, v)
+    p = v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * torch.linalg.cross(w, wv)
+    zero = torch.zeros_like(phi_sq)
+    hat = torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0],
+                       -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
+    rot = eye + s[..., None, None] * hat + f[..., None, None] * (hat @ hat)
+    return pose_from_parts(rot, p)
+
+
+class SegmentFrontEnd(nn.Module):
+    """Joint vector (..., N) → per-segment network inputs (..., m, C): standardised x_k (4) and context."""
+
+    def __init__(self, spec: RobotSpec, context: str = "none"):
+        super().__init__()
+        if context not in CONTEXTS:
+            raise ValueError(f"context: expected one of {CONTEXTS}, got {context!r}")
+        self.spec, self.context, m = spec, context, spec.num_segments
+        self.encoder = ClarkeEncoder(spec)
+        self.norm = Standardizer(4)                       # shared by all segments (pooled statistics)
+        self.dim = 4 + {"none": 0, "segment": m, "distal": 4}[context]
+        self.register_buffer("context_matrix", self.context_operator(m, context))
+
+    @staticmethod
+    def context_operator(m: int, context: str) -> Tensor:
+        """(m, m): one-hot rows ("segment") or the strictly-upper ones summing the distal segments ("distal")."""
+        return torch.eye(m) if context == "segment" else torch.ones(m, m).triu(1)
+
+    def segment_features(self, q: Tensor) -> Tensor:
+        """Unstandardised per-segment features (..., m, 4) [m, rad] (fixed columns at β = l, α = 0)."""
+        check_tensor(q, "joint vector", (self.spec.num_joints,))
+        return effective_features(self.spec, self.encoder(q))
+
+    def fit(self, q: Tensor) -> None:
+        self.norm.fit(self.segment_features(q))
+
+    def with_context(self, x: Tensor) -> Tensor:
+        """Standardised features (..., m, 4) → network inputs (..., m, C)."""
+        if self.context == "none":
+            return x
+        ctx = self.context_matrix.to(x.dtype)
+        extra = ctx.expand(*x.shape[:-2], -1, -1) if self.context == "segment" else ctx @ x
+        return torch.cat([x, extra], dim=-1)
+
+    def forward(self, q: Tensor) -> Tensor:
+        return self.with_context(self.norm(self.segment_features(q)))
+
+
+class CompositionalFK(nn.Module):
+    """Learned FK composed of per-segment transforms: joint vector (..., N) → tip pose (..., 4, 4) [m].
+
+    ``segment_transforms`` gives T_k (..., m, 4, 4), ``segment_ends`` the end frame of every segment
+    in the base frame (..., m, 4, 4). Clarke features only (raw joints do not split per segment).
+    """
+
+    structure = "compositional"
+
+    def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 64, depth: int = 3,
+                 activation: str = "silu", rotation: str = "twist", context: str = "none"):
+        super().__init__()
+        if features != "clarke":
+            raise ValueError(f"features: the compositional structure needs 'clarke' features (a raw joint "
+                             f"vector of a coupled robot does not split per segment), got {features!r}")
+        if rotation not in HEADS:
+            raise ValueError(f"rotation: expected one of {sorted(HEADS)} for the compositional structure, "
+                             f"got {rotation!r}")
+        self.spec, self.rotation, self.length = spec, rotation, spec.total_length
+        self.front = SegmentFrontEnd(spec, context)
+        self.net = mlp(self.front.dim, HEADS[rotation], width, depth, activation)
+        self.skip = nn.Linear(self.front.dim, HEADS[rotation], bias=False)   # learned linear part of f_θ
+        self.register_buffer("length_scale", torch.tensor(spec.total_length / spec.num_segments))
+
+    def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:
+        self.front.fit(q)
+
+    def head(self, out: Tensor) -> Tensor:
+        """Network outputs (..., 6 | 9) → segment transforms (..., 4, 4)."""
+        scale = self.length_scale.to(out.dtype)
+        if self.rotation == "twist":
+            return twist_exp(torch.cat([out[..., :3] * scale, out[..., 3:]], dim=-1))
+        return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3] * scale)
+
+    def segment_transforms(self, q: Tensor) -> Tensor:
+        """T_k, base of segment k → its end: (..., N) → (..., m, 4, 4)."""
+        z = self.front(q)
+        return self.head(self.net(z) + self.skip(z))
+
+    def segment_ends(self, q: Tensor) -> Tensor:
+        """End frame of every segment in the robot base frame: (..., N) → (..., m, 4, 4); [..., -1] is the tip."""
+        return _chain(self.segment_transforms(q))
+
+    def forward(self, q: Tensor) -> Tensor:
+        return self.segment_ends(q)[..., -1, :, :]
+
+
+def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str = "none",
+                   **kwargs) -> FKModel | CompositionalFK:
+    """An FK model of the given ``structure`` ("monolithic" | "compositional"); ``kwargs`` are the shared
+    model arguments (features, width, depth, activation, rotation)."""
+    if structure not in STRUCTURES:
+        raise ValueError(f"structure: expected one of {STRUCTURES}, got {structure!r}")
+    if structure == "compositional":
+        return CompositionalFK(spec, context=context, **kwargs)
+    if context != "none":
+        raise ValueError(f"context: only the compositional structure takes a context, got {context!r}")
+    return FKModel(spec, **kwargs)
+
+
+def _geometry(seg) -> tuple:
+    return seg.type, seg.length, seg.radius, seg.bend, seg.length_range, seg.twist_range
+
+
+def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
+    """The trained per-segment network of ``model``, unchanged, composed over the segments of ``target``.
+
+    Each target segment must have the geometry (type, length, radius, limits) of some segment of the
+    source robot; the number of segments and of joints may differ. Context "segment" cannot transfer.
+    """
+    if model.front.context == "segment":
+        raise ValueError("transfer: a model with context 'segment' has one input per source segment index; "
+                         "train with context 'none' or 'distal' to transfer to another number of segments")
+    known = {_geometry(s) for s in model.spec.segments}
+    unknown = [k for k, s in enumerate(target.segments) if _geometry(s) not in known]
+    if unknown:
+        raise ValueError(f"transfer: segments {unknown} of {target.name!r} have a geometry none of the "
+                         f"training robot {model.spec.name!r} has (type, length, radius, limits); "
+                         f"expected one of {sorted(known, key=str)}")
+    net = model.net
+    new = CompositionalFK(target, "clarke", net[0].out_features, len(net) // 2, _activation(net),
+                          model.rotation, model.front.context).to(next(model.parameters()).dtype)
+    state = {k: v for k, v in model.state_dict().items()
+             if not k.startswith("front.encoder.") and k != "front.context_matrix"}
+    missing, unexpected = new.load_state_dict(state, strict=False)
+    if unexpected or any(not k.startswith("front.encoder.") and k != "front.context_matrix" for k in missing):
+        raise RuntimeError(f"transfer: state-dict mismatch: missing {missing}, unexpected {unexpected}")
+    return new
+
+
+def _activation(net: nn.Sequential) -> str:
+    from .models import ACTIVATIONS
+
+    kind = type(net[1])
+    return next(name for name, cls in ACTIVATIONS.items() if cls is kind)
