@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from .checks import check_tensor, load_torch_file, read_json_object, short_error
-from .inference import InferenceFK, InferenceIK, InferenceJacobian
+from .inference import InferenceCompositionalFK, InferenceFK, InferenceIK, InferenceJacobian
 from .robot import RobotSpec
 
 FORMAT = "dacr_learn.export/1"
@@ -103,7 +103,10 @@ def load_lightning_checkpoint(ckpt: str | Path):
 
 
 def inference_modules(task: str, model: nn.Module, dtype: torch.dtype = torch.float32) -> dict[str, nn.Module]:
-    """The plain nn.Modules of a trained models.FKModel ("fk") or models.IKModel ("ik"), in eval mode."""
+    """The plain nn.Modules of a trained models.FKModel ("fk") or models.IKModel ("ik"), in eval mode.
+    A compositional FK model (compositional.CompositionalFK) gives ``fk`` only (no Jacobian module yet)."""
+    if task == "fk" and getattr(model, "structure", "monolithic") == "compositional":
+        return {"fk": InferenceCompositionalFK(model, dtype).eval()}
     if task == "fk":
         return {"fk": InferenceFK(model, dtype).eval(), "jacobian": InferenceJacobian(model, dtype).eval()}
     if task == "ik":
@@ -173,7 +176,8 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
     sig = signatures(spec)
     meta: dict[str, Any] = {
         "format": FORMAT, "task": task, "robot": spec.to_dict(), "features": lit.hparams.features,
-        "rotation": lit.hparams.get("rotation"), "dtype": str(dtype).removeprefix("torch."),
+        "rotation": lit.hparams.get("rotation"), "structure": getattr(lit.model, "structure", "monolithic"),
+        "dtype": str(dtype).removeprefix("torch."),
         "units": UNITS, "torch_version": torch.__version__, "max_batch": MAX_BATCH,
         "source_checkpoint": {"path": str(ckpt), "sha256": file_sha256(ckpt)}, "modules": {}}
     for name, module in inference_modules(task, lit.model, dtype).items():
