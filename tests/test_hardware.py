@@ -415,9 +415,9 @@ def test_cli_on_ftdcr_v4_writes_results_and_visuals(tmp_path):
 
     out = tmp_path / "run"
     report = main(["--data", str(DATA), "--robot", str(CALIBRATED), "--out", str(out),
-                   "--models", "linear_raw", "cc", "--seeds", "0"])
+                   "--models", "linear_raw", "cc", "--seeds", "0", "--no-proxies"])
     results = json.loads((out / "results.json").read_text())
-    assert set(results["models"]) == {"linear_raw", "cc"}
+    assert set(results["models"]) == {"linear_raw", "cc"} and results["default_model"] is None
     # README reference: linear least squares reaches 41 mm on val.csv
     assert results["models"]["linear_raw"]["val"]["rmse_mm"]["mean"] == pytest.approx(41.0, abs=1.0)
     assert results["models"]["cc"]["val"]["rmse_mm"]["mean"] < 9.0
