@@ -1,37 +1,46 @@
-"""Rerun logging for Lightning: a logger and a 3D visual callback (scene helpers: rerun_scene).
+"""Rerun logging for Lightning: a logger and a 3D visual callback (layout: rerun_layout, scene: rerun_scene).
 
 Everything goes to a dedicated :class:`rerun.RecordingStream` (never the global one), so
 several loggers, tests or scripts can log side by side. The scene is in metres.
 
 Layout of a recording (entity paths)::
 
-    metrics/<name>           rr.Scalars on the "step" sequence timeline
-    hparams                  rr.TextDocument (static, JSON)
+    metrics/<name>           rr.Scalars on the "step" sequence timeline (+ static rr.SeriesLines name, colour)
+    metrics_log10/<name>     log10 of each train/val metric (Rerun plots have no log axis)
+    summary                  rr.TextDocument: table of the latest train/val/test value of every metric
+    hparams                  rr.TextDocument (static, JSON): model hparams, data, trainer, seed
+    config                   rr.TextDocument (static): the CLI's YAML config, when the module carries one
     scene                    static rr.ViewCoordinates (right-handed, z up)
     scene/backbone           rr.LineStrips3D, ground-truth backbone curves
     scene/tip_true           rr.Arrows3D, ground-truth tip frames (saturated x/y/z colours)
     scene/tip_pred           rr.Arrows3D, predicted tip frames (lighter colours)
     scene/tip_error          rr.LineStrips3D, segments true tip -> predicted tip
-    scene/workspace          rr.Points3D coloured by position error + rr.TextLog summary
+    scene/workspace          rr.Points3D coloured by position error (fixed log scale) + rr.TextLog summary
+    scene/workspace/colour_scale  static labelled points: the colour bar
     run/status               rr.TextLog written by ``finalize``
 
-Open a run with ``.venv/bin/rerun runs/<name>/rerun.rrd``. Written for rerun-sdk 0.41
-(``rr.set_time(..., sequence=)``, ``rr.Scalars``, sinks via ``set_sinks``).
+The default blueprint (:func:`dacr_learn.rerun_layout.default_blueprint`) shows full-range curves,
+the 3D views and the metrics table, and opens at the last step. Rows are batched by the
+recording's chunk batcher and written when it is flushed (at ``finalize``; every
+``live_flush_s`` when streaming to a viewer), so a run is a few chunks per entity, not one per row.
+Open a run with ``.venv/bin/rerun runs/<name>/rerun.rrd``. Written for rerun-sdk 0.41.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import os
 import sys
 import uuid
 from argparse import Namespace
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import rerun as rr
-import rerun.blueprint as rrb
 import torch
 from lightning.fabric.loggers.logger import rank_zero_experiment
 from lightning.fabric.utilities.logger import _convert_params
@@ -40,46 +49,43 @@ from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.rank_zero import rank_zero_only, rank_zero_warn
 from matplotlib import colormaps
 
-from .rerun_scene import log_frames, log_path, log_scene, log_workspace  # noqa: E402,F401  (re-exported)
+from .rerun_layout import (
+    CONFIG_ENTITY,
+    HPARAMS_ENTITY,
+    SCENE_ROOT,
+    STEP_TIMELINE,
+    SUMMARY_ENTITY,
+    default_blueprint,
+    is_plotted,
+    log10_entity,
+    metric_entity,
+    metric_groups,
+    series_style,
+    summary_markdown,
+)
+from .rerun_scene import (
+    DEFAULT_ERROR_RANGE,
+    colour_note,
+    log_frames,
+    log_path,
+    log_scene,
+    log_workspace,
+)
 
 __all__ = [
-    "RerunLogger", "RerunVisualCallback", "default_blueprint", "find_rerun_logger",
+    "RerunLogger", "RerunVisualCallback", "default_blueprint", "find_rerun_logger", "run_info",
     "log_frames", "log_path", "log_scene", "log_workspace", "metric_entity",
 ]
 
-STEP_TIMELINE = "step"
-METRICS_ROOT = "metrics"
-HPARAMS_ENTITY = "hparams"
-SCENE_ROOT = "scene"
 STATUS_ENTITY = "run/status"
 DEFAULT_GRPC_URL = "rerun+http://127.0.0.1:9876/proxy"
+FILE_ONLY_FLUSH = timedelta(hours=1)   # file only: rows accumulate into large chunks until finalize
 
 
 def _rerun_executable() -> str | None:
     """The ``rerun`` CLI installed next to the running Python, if any (else PATH is searched)."""
     candidate = Path(sys.executable).parent / ("rerun.exe" if os.name == "nt" else "rerun")
     return str(candidate) if candidate.exists() else None
-
-
-def metric_entity(name: str) -> str:
-    """Entity path of a metric: ``"val/pos_err"`` -> ``"metrics/val/pos_err"`` (parts escaped)."""
-    parts = [rr.escape_entity_path_part(p) for p in str(name).split("/") if p]
-    return "/".join([METRICS_ROOT, *parts])
-
-
-def default_blueprint(metric_names: Iterable[str] = ()) -> rrb.Blueprint:
-    """Default layout: the 3D scene and a text log beside a grid of one plot per metric.
-
-    With no ``metric_names`` the grid holds a single plot of everything under ``metrics/``.
-    """
-    names = sorted(set(metric_names))
-    plots = [rrb.TimeSeriesView(origin=metric_entity(n), name=n) for n in names]
-    plots = plots or [rrb.TimeSeriesView(origin=METRICS_ROOT, name="metrics")]
-    scene_3d = rrb.Spatial3DView(origin=SCENE_ROOT, name="scene")
-    scene = rrb.Vertical(scene_3d, rrb.TextLogView(origin="/", name="log"), row_shares=[4, 1])
-    hparams = rrb.TextDocumentView(origin=HPARAMS_ENTITY, name="hparams")
-    side = rrb.Tabs(rrb.Grid(*plots, name="metrics"), hparams)
-    return rrb.Blueprint(rrb.Horizontal(scene, side, column_shares=[3, 2]))
 
 
 class RerunLogger(Logger):
@@ -98,12 +104,17 @@ class RerunLogger(Logger):
     again afterwards (``trainer.fit`` then ``trainer.test``) the next part goes to
     ``rerun_1.rrd``, ``rerun_2.rrd``, … with the same recording id: open them together and
     the viewer merges them into one recording.
+
+    ``live_flush_s``: how often rows are sent when streaming to a viewer (``spawn``/``connect``);
+    writing only a file, rows are batched until :meth:`finalize` (a run is then one chunk per
+    entity and component set, instead of one per logged row).
     """
 
     def __init__(
         self, save_dir: str | os.PathLike | None = "runs", name: str = "default",
         version: int | str | None = None, spawn: bool = False, connect: str | None = None,
         application_id: str = "dacr_learn", flush_timeout: float = 10.0, close_on_finalize: bool = True,
+        live_flush_s: float = 1.0,
     ) -> None:
         super().__init__()
         if save_dir is None and not spawn and not connect:
@@ -119,9 +130,11 @@ class RerunLogger(Logger):
         self._recording_id = str(uuid.uuid4())
         self._rec: rr.RecordingStream | None = None
         self._part = -1  # index of the .rrd part being (or last) written
+        self._live_flush = timedelta(seconds=live_flush_s)
         self._metric_names: set[str] = set()
+        self._latest: dict[str, tuple[int, float]] = {}  # metric -> (step, value), for the summary table
         self._hparams: dict[str, Any] = {}
-
+        self._config: str | None = None
 
     @property
     def name(self) -> str:
@@ -184,14 +197,24 @@ class RerunLogger(Logger):
 
     def _open(self) -> rr.RecordingStream:
         self._part += 1
-        rec = rr.RecordingStream(self._application_id, recording_id=self._recording_id)
-        rec.set_sinks(*self._sinks(rec), default_blueprint=default_blueprint(self._metric_names))
+        live = self._spawn or bool(self._connect)
+        batching = rr.ChunkBatcherConfig(flush_tick=self._live_flush if live else FILE_ONLY_FLUSH,
+                                         flush_num_bytes=8 << 20, flush_num_rows=1 << 20)
+        rec = rr.RecordingStream(self._application_id, recording_id=self._recording_id, batcher_config=batching)
+        rec.set_sinks(*self._sinks(rec), default_blueprint=self._blueprint())
         run = self._name if self._version is None else f"{self._name}/{self._version}"
         rec.send_recording_name(run)
         rec.log(SCENE_ROOT, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        for name in self._metric_names:
+            self._log_series_style(rec, name)
         if self._hparams:
             self._log_hparams(rec)
+        if self._config is not None:
+            self._log_config(rec)
         return rec
+
+    def _blueprint(self):
+        return default_blueprint(self._metric_names, colour_note=colour_note(DEFAULT_ERROR_RANGE))
 
     def _flush(self, rec: rr.RecordingStream, timeout: float) -> None:
         try:
@@ -201,9 +224,8 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def save(self) -> None:
-        """Start flushing buffered data (does not wait)."""
-        if self._rec is not None:
-            self._flush(self._rec, 0.0)
+        """Nothing: Lightning calls this after every ``log_metrics``, and flushing there wrote one
+        chunk per row. The batcher sends rows on its own tick when streaming; files at finalize."""
 
     @rank_zero_only
     def finalize(self, status: str) -> None:
@@ -231,23 +253,54 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
-        """Log each metric as rr.Scalars under ``metrics/<name>`` at ``step``."""
+        """Log each metric as rr.Scalars under ``metrics/<name>`` at ``step``.
+
+        Train/val metrics also get ``log10(value)`` under ``metrics_log10/<name>`` (non-positive
+        values are skipped there); test metrics and others update the summary table only.
+        """
         rec = self.experiment
         new = set(metrics) - self._metric_names
-        if new:  # one plot per metric: refresh the layout when new names appear
+        if new:  # plots are grouped by quantity: refresh the layout when new names appear
+            groups = metric_groups(self._metric_names)
             self._metric_names |= new
-            rec.send_blueprint(default_blueprint(self._metric_names))
+            for name in new:
+                self._log_series_style(rec, name)
+            if metric_groups(self._metric_names) != groups:
+                rec.send_blueprint(self._blueprint())
         if step is not None:
             rec.set_time(STEP_TIMELINE, sequence=int(step))
+        at = int(step) if step is not None else max((s for s, _ in self._latest.values()), default=0)
         for name, value in metrics.items():
-            value = value.item() if isinstance(value, torch.Tensor) else value
-            rec.log(metric_entity(name), rr.Scalars(float(value)))
+            value = float(value.item() if isinstance(value, torch.Tensor) else value)
+            rec.log(metric_entity(name), rr.Scalars(value))
+            if is_plotted(name) and value > 0 and math.isfinite(value):
+                rec.log(log10_entity(name), rr.Scalars(math.log10(value)))
+            self._latest[name] = (at, value)
+        if any(not name.startswith("train/") for name in metrics):  # eval/test results: refresh the table
+            rec.log(SUMMARY_ENTITY, rr.TextDocument(summary_markdown(self._latest), media_type="text/markdown"))
+
+    def _log_series_style(self, rec: rr.RecordingStream, name: str) -> None:
+        label, color = series_style(name)
+        style = rr.SeriesLines(names=[label], colors=[color], widths=[1.5])
+        rec.log(metric_entity(name), style, static=True)
+        if is_plotted(name):
+            rec.log(log10_entity(name), rr.SeriesLines(names=[label], colors=[color], widths=[1.5]), static=True)
 
     @rank_zero_only
     def log_hyperparams(self, params: dict[str, Any] | Namespace, *args: Any, **kw: Any) -> None:
         """Record hyper-parameters (merged over calls) as a static JSON rr.TextDocument."""
         self._hparams.update(_convert_params(params) or {})
         self._log_hparams(self.experiment)
+
+    @rank_zero_only
+    def log_config(self, text: str) -> None:
+        """Record the run's full configuration (e.g. the CLI's YAML) as a static rr.TextDocument."""
+        self._config = text
+        self._log_config(self.experiment)
+
+    def _log_config(self, rec: rr.RecordingStream) -> None:
+        doc = rr.TextDocument(f"```yaml\n{self._config}\n```", media_type="text/markdown")
+        rec.log(CONFIG_ENTITY, doc, static=True)
 
     def _log_hparams(self, rec: rr.RecordingStream) -> None:
         try:
@@ -263,23 +316,60 @@ class RerunLogger(Logger):
         return state
 
 
+def _plain(value: Any) -> Any:
+    """``value`` if it is JSON-like (numbers, strings, dataclasses, lists of those), else ``None``."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    if isinstance(value, list | tuple):
+        items = [_plain(v) for v in value]
+        return items if all(i is not None or v is None for i, v in zip(items, value, strict=True)) else None
+    return None
+
+
+def run_info(trainer: Trainer) -> dict[str, Any]:
+    """What a run's hparams miss: the global seed, the trainer's settings and the datamodule's.
+
+    ``data`` holds the datamodule's ``hparams`` if it saved any, else its public plain attributes
+    (numbers, strings, dataclasses such as the robot spec, tuples of those).
+    """
+    seed = os.environ.get("PL_GLOBAL_SEED")
+    settings = {"max_epochs": trainer.max_epochs, "max_steps": trainer.max_steps, "precision": trainer.precision,
+                "accumulate_grad_batches": trainer.accumulate_grad_batches, "world_size": trainer.world_size,
+                "gradient_clip_val": trainer.gradient_clip_val, "log_every_n_steps": trainer.log_every_n_steps,
+                "strategy": type(trainer.strategy).__name__, "accelerator": type(trainer.accelerator).__name__}
+    info: dict[str, Any] = {"seed": None if seed is None else int(seed), "trainer": settings}
+    dm = getattr(trainer, "datamodule", None)
+    if dm is not None:
+        data = dict(dm.hparams) if getattr(dm, "hparams", None) else {
+            k: v for k, v in ((k, _plain(v)) for k, v in vars(dm).items() if not k.startswith("_")) if v is not None}
+        info["data"] = {"class": type(dm).__name__, **data}
+    return info
+
+
 def find_rerun_logger(trainer: Trainer) -> RerunLogger | None:
     """The first :class:`RerunLogger` among ``trainer.loggers``, or ``None``."""
     return next((lg for lg in trainer.loggers if isinstance(lg, RerunLogger)), None)
 
 
 class RerunVisualCallback(Callback):
-    """At the end of every ``every_n_epochs``-th validation, log ``pl_module.visual_batch()``.
+    """The run's context and 3D scenes for a :class:`RerunLogger`.
 
-    ``visual_batch()`` returns the dict described in :func:`log_scene` (CPU tensors, metres);
-    it is logged under ``prefix`` at the trainer's global step. Skipped during the sanity
-    check, on ranks other than 0, without a :class:`RerunLogger` among the trainer's loggers,
-    and (with one warning) when the module has no ``visual_batch``.
+    At fit start it records :func:`run_info` (seed, trainer, data) with the hparams and, when the
+    module carries the CLI config (``pl_module.run_config``), that YAML. At the end of every
+    ``every_n_epochs``-th validation it logs ``pl_module.visual_batch()`` — the dict described in
+    :func:`log_scene` (CPU tensors, metres) — under ``prefix`` at the trainer's global step, with
+    at most ``max_workspace_points`` workspace points coloured on the fixed log scale
+    ``error_range`` [m]. Skipped during the sanity check, on ranks other than 0, without a
+    :class:`RerunLogger` among the trainer's loggers, and (with one warning) when the module has
+    no ``visual_batch``.
     """
 
     def __init__(
         self, every_n_epochs: int = 1, prefix: str = SCENE_ROOT, axis_length: float = 0.01,
-        cmap: str = "viridis",
+        cmap: str = "viridis", error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
+        max_workspace_points: int = 1000,
     ) -> None:
         if every_n_epochs < 1:
             raise ValueError(f"every_n_epochs must be >= 1, got {every_n_epochs}")
@@ -289,7 +379,18 @@ class RerunVisualCallback(Callback):
         self.prefix = prefix
         self.axis_length = axis_length
         self.cmap = cmap
+        self.error_range = error_range
+        self.max_workspace_points = max_workspace_points
         self._warned = False
+
+    def on_fit_start(self, trainer: Trainer, pl_module: LightningModule) -> None:
+        logger = find_rerun_logger(trainer)
+        if logger is None or not trainer.is_global_zero:
+            return
+        logger.log_hyperparams(run_info(trainer))
+        config = getattr(pl_module, "run_config", None)
+        if isinstance(config, str):
+            logger.log_config(config)
 
     def _due(self, trainer: Trainer) -> bool:
         if trainer.sanity_checking or not trainer.is_global_zero:
@@ -311,4 +412,5 @@ class RerunVisualCallback(Callback):
             visual = visual_batch()
         rec = logger.experiment
         rec.set_time(STEP_TIMELINE, sequence=trainer.global_step)
-        log_scene(rec, self.prefix, visual, axis_length=self.axis_length, cmap=self.cmap)
+        log_scene(rec, self.prefix, visual, axis_length=self.axis_length, cmap=self.cmap,
+                  error_range=self.error_range, max_points=self.max_workspace_points)

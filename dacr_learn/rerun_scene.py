@@ -14,7 +14,8 @@ import rerun as rr
 import torch
 from matplotlib import colormaps
 
-__all__ = ["log_frames", "log_path", "log_scene", "log_workspace", "VISUAL_KEYS"]
+__all__ = ["DEFAULT_ERROR_RANGE", "VISUAL_KEYS", "colour_note", "error_colours", "log_colour_scale", "log_frames",
+           "log_path", "log_scene", "log_workspace"]
 
 VISUAL_KEYS = ("backbone", "pose_true", "pose_pred", "workspace_points", "workspace_error")
 
@@ -22,6 +23,7 @@ AXIS_COLORS = np.array([[230, 40, 40], [40, 180, 40], [40, 90, 230]], dtype=np.u
 AXIS_COLORS_LIGHT = np.array([[255, 165, 165], [165, 235, 165], [165, 190, 255]], dtype=np.uint8)
 BACKBONE_COLOR = (90, 90, 90)
 TIP_ERROR_COLOR = (255, 120, 0)
+DEFAULT_ERROR_RANGE = (1e-6, 1e-2)  # [m]: workspace colours run over log10(error) from 1 µm to 10 mm
 
 def _to_numpy(x: Any) -> np.ndarray:
     """Tensor / array-like -> float32 numpy array on the CPU (no gradient)."""
@@ -72,37 +74,84 @@ def log_frames(
     recording.log(entity, arrows)
 
 
+def _length_label(metres: float) -> str:
+    """1e-6 -> "1 µm", 1e-4 -> "0.1 mm", 0.01 -> "10 mm"."""
+    return f"{metres * 1e6:g} µm" if metres < 1e-5 else f"{metres * 1e3:g} mm"
+
+
+def colour_note(error_range: tuple[float, float] = DEFAULT_ERROR_RANGE, cmap: str = "viridis") -> str:
+    """One line naming the fixed colour scale, e.g. ``"log colours 1 µm → 10 mm"`` (viridis: dark → bright)."""
+    lo, hi = error_range
+    return f"log colours {_length_label(lo)} → {_length_label(hi)}" + ("" if cmap == "viridis" else f", {cmap}")
+
+
+def error_colours(error: np.ndarray, error_range: tuple[float, float], cmap: str = "viridis") -> np.ndarray:
+    """RGB uint8 colours ``(N, 3)`` of errors [m] on a fixed log scale (clipped to ``error_range``).
+
+    The scale is the same at every step and in every run, so colours compare across epochs.
+    """
+    lo, hi = error_range
+    if not 0 < lo < hi:
+        raise ValueError(f"error_range must be (low, high) with 0 < low < high [m], got {error_range}")
+    t = (np.log10(np.clip(error, lo, hi)) - np.log10(lo)) / (np.log10(hi) - np.log10(lo))
+    return (colormaps[cmap](t)[:, :3] * 255).astype(np.uint8)
+
+
+def log_colour_scale(
+    recording: rr.RecordingStream, entity: str, points: np.ndarray, *,
+    error_range: tuple[float, float] = DEFAULT_ERROR_RANGE, cmap: str = "viridis",
+) -> None:
+    """A colour bar in 3D (static): one labelled point per decade of ``error_range``, in a column
+    beside the bounding box of ``points`` ``(N, 3)`` [m] (Rerun has no colour-bar widget)."""
+    lo, hi = error_range
+    decades = np.logspace(np.log10(lo), np.log10(hi), int(round(np.log10(hi / lo))) + 1)
+    low, high = points.min(0), points.max(0)
+    size = float(np.max(high - low)) or 0.01
+    column = np.zeros((len(decades), 3), dtype=np.float32)
+    column[:, 0] = high[0] + 0.25 * size
+    column[:, 1] = 0.5 * (low[1] + high[1])
+    column[:, 2] = np.linspace(low[2], low[2] + size, len(decades))
+    recording.log(entity, rr.Points3D(column, colors=error_colours(decades, error_range, cmap), radii=0.03 * size,
+                                      labels=[_length_label(d) for d in decades], show_labels=True), static=True)
+
+
 def log_workspace(
     recording: rr.RecordingStream, entity: str, points: Any, error: Any, *,
-    cmap: str = "viridis", radius: float = 0.0015,
+    cmap: str = "viridis", radius: float = 0.0006, error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
+    max_points: int | None = None,
 ) -> float:
     """Log workspace points ``(N, 3)`` [m] coloured by ``error`` ``(N,)`` [m]; return max error [m].
 
-    Colours run through matplotlib colormap ``cmap`` from 0 to the max error; a rr.TextLog on
-    the same entity states the max and mean error in mm.
+    Colours use the fixed log scale ``error_range`` (:func:`error_colours`); at most
+    ``max_points`` evenly strided points are drawn (all by default), the statistics use all.
+    A rr.TextLog on the same entity states the max and mean error in mm and the colour scale.
     """
     pts = _checked("workspace_points", points, (3,), 2)
     err = _checked("workspace_error", error, (pts.shape[0],), 1)
+    stride = 1 if max_points is None or len(pts) <= max_points else -(-len(pts) // max_points)
+    shown = slice(None, None, stride)
+    colours = error_colours(err[shown], error_range, cmap)
+    recording.log(entity, rr.Points3D(pts[shown], colors=colours, radii=radius))
     max_err = float(err.max()) if err.size else 0.0
-    scaled = err / max_err if max_err > 0 else np.zeros_like(err)
-    colors = (colormaps[cmap](scaled)[:, :3] * 255).astype(np.uint8)
-    recording.log(entity, rr.Points3D(pts, colors=colors, radii=radius))
     mean_mm = 1e3 * float(err.mean()) if err.size else 0.0
     text = f"workspace: max tip error {1e3 * max_err:.3f} mm, mean {mean_mm:.3f} mm over "
-    text += f"{err.size} samples (colour: {cmap}, 0 -> max)"
+    text += f"{err.size} samples ({colour_note(error_range, cmap)})"
     recording.log(entity, rr.TextLog(text, level="INFO"))
     return max_err
 
 
 def log_scene(
     recording: rr.RecordingStream, prefix: str, visual: Mapping[str, Any], *,
-    axis_length: float = 0.01, cmap: str = "viridis",
+    axis_length: float = 0.01, cmap: str = "viridis", error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
+    max_points: int | None = None,
 ) -> None:
     """Log a visual batch under ``prefix`` at the recording's current time.
 
     ``visual`` may hold any subset of (tensors or arrays, metres):
     ``backbone`` (k, P, 3), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
     ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,).
+    The workspace cloud uses :func:`log_workspace` (``error_range``, ``max_points``) and gets a
+    static colour bar at ``<prefix>/workspace/colour_scale`` the first time.
     Unknown keys are a ValueError. Set the time first, e.g.
     ``recording.set_time("step", sequence=step)``.
     """
@@ -123,6 +172,8 @@ def log_scene(
     if "workspace_points" in visual:
         points = _checked("visual['workspace_points']", visual["workspace_points"], (3,), 2)
         error = visual.get("workspace_error", np.zeros(len(points)))
-        log_workspace(recording, f"{prefix}/workspace", points, error, cmap=cmap)
+        log_workspace(recording, f"{prefix}/workspace", points, error, cmap=cmap, error_range=error_range,
+                      max_points=max_points)
+        log_colour_scale(recording, f"{prefix}/workspace/colour_scale", points, error_range=error_range, cmap=cmap)
     elif "workspace_error" in visual:
         raise ValueError("visual['workspace_error'] needs visual['workspace_points']")

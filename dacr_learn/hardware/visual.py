@@ -69,33 +69,121 @@ def plot_paths(setup: Setup, preds: dict[str, torch.Tensor], path: Path) -> None
     plt.close(fig)
 
 
-def _log_static_paths(rr, setup: Setup, preds: dict[str, torch.Tensor]) -> None:
+RERUN_MEASURED = (235, 235, 235)   # the viewer's background is dark: measured path in white there
+SAMPLE_TIMELINE = "sample"
+
+
+def _rerun_color(name: str, k: int) -> tuple[int, int, int]:
+    return RERUN_MEASURED if name == "measured" else _color(name, k)
+
+
+def hardware_blueprint(names: list[str], with_std: bool):
+    """Layout: a large 3D view (paths, tips, backbone, ±2σ bands) beside one error plot with every
+    model overlaid (one y-scale, legend), the predicted-2σ plot when given, and the RMSE table;
+    opens at the last sample."""
+    import rerun.blueprint as rrb
+    from rerun.blueprint.components import LinkAxis, PlayState
+
+    whole = rrb.VisibleTimeRange(SAMPLE_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+                                 end=rrb.TimeRangeBoundary.infinite())
+    common = dict(time_ranges=[whole], axis_x=rrb.TimeAxis(link=LinkAxis.LinkToGlobal),
+                  plot_legend=rrb.PlotLegend(rrb.Corner2D.LeftTop, visible=True))
+    plots = [rrb.TimeSeriesView(origin="errors", name=f"offset-removed tip error [mm], {len(names)} models", **common)]
+    if with_std:
+        plots.append(rrb.TimeSeriesView(origin="sigma", name="predicted 2σ [mm] (uncertainty)", **common))
+    side = rrb.Vertical(*plots, rrb.TextDocumentView(origin="summary", name="val RMSE"),
+                        row_shares=[3] * len(plots) + [2])
+    scene = rrb.Spatial3DView(origin="world", name="val tip paths: measured (white) vs predicted; CC backbone")
+    time_panel = rrb.TimePanel(timeline=SAMPLE_TIMELINE, play_state=PlayState.Following)
+    return rrb.Blueprint(rrb.Horizontal(scene, side, column_shares=[3, 2]), time_panel, collapse_panels=True)
+
+
+def _check_std(std: dict[str, torch.Tensor] | None, preds: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """σ per model as ``(N, 3)`` metres (an ``(N,)`` σ is isotropic); ValueError on unknown models or shapes."""
+    out = {}
+    for name, sd in (std or {}).items():
+        if name not in preds:
+            raise ValueError(f"std given for {name!r}, which has no predictions (models: {sorted(preds)})")
+        arr = np.asarray(sd.detach().cpu() if isinstance(sd, torch.Tensor) else sd, dtype=np.float32)
+        n = preds[name].shape[0]
+        if arr.shape == (n,):
+            arr = np.repeat(arr[:, None], 3, axis=1)
+        if arr.shape != (n, 3) or not np.isfinite(arr).all() or (arr < 0).any():
+            raise ValueError(f"std[{name!r}] must be finite, >= 0, shape ({n},) or ({n}, 3) [m]; got {arr.shape}")
+        out[name] = arr
+    return out
+
+
+def _log_paths(rec, setup: Setup, preds: dict[str, torch.Tensor], sigma: dict[str, np.ndarray]) -> None:
+    """Static: every path as line strips (one per pattern run) and the ±2σ band around predicted ones."""
+    import rerun as rr
+
     runs = label_runs(setup.val_rec.labels)
     series = {"measured": setup.val.tip} | preds
     for k, (name, pts) in enumerate(series.items()):
         strips = [pts[r].numpy() for r in runs]
-        rr.log(f"world/paths/{name}", rr.LineStrips3D(strips, colors=[_color(name, k)], radii=0.0004), static=True)
+        width = 0.0007 if name == "measured" else 0.0004
+        paths = rr.LineStrips3D(strips, colors=[_rerun_color(name, k)], radii=width)
+        rec.log(f"world/paths/{name}", paths, static=True)
+        if name in sigma:
+            band = rr.Ellipsoids3D(centers=pts.numpy(), half_sizes=2 * sigma[name], colors=[(*_color(name, k), 30)],
+                                   fill_mode=rr.components.FillMode.Solid)
+            rec.log(f"world/band_2sigma/{name}", band, static=True)
 
 
-def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path) -> None:
-    """Rerun .rrd: static val paths; per sample (timeline "sample") the measured and predicted
-    tips, the CC model's backbone, and each model's offset-removed error [mm]."""
+def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], sigma: dict[str, np.ndarray]) -> dict[str, float]:
+    """Per sample (batched columns): tips, CC backbone, each model's error and 2σ [mm]; returns RMSEs [mm]."""
     import rerun as rr
 
-    rr.init("dacr_learn_hardware", spawn=False)
-    rr.save(str(path))
-    rr.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    _log_static_paths(rr, setup, preds)
+    n = len(setup.val.tip)
+    index = [rr.TimeColumn(SAMPLE_TIMELINE, sequence=np.arange(n))]
+    labels = list(setup.val_rec.labels)
+    rec.log("world/tip/measured", rr.Points3D.from_fields(colors=[RERUN_MEASURED], radii=0.002), static=True)
+    rec.send_columns("world/tip/measured", index, rr.Points3D.columns(positions=setup.val.tip.numpy(), labels=labels))
     with torch.no_grad():
         backbone = setup.cc.backbone(setup.val.x).numpy()
-    errors = {name: centered_errors_mm(p, setup.val.tip) for name, p in preds.items()}
-    meas = setup.val.tip.numpy()
-    for i in range(len(meas)):
-        rr.set_time("sample", sequence=i)
-        rr.log("world/tip/measured", rr.Points3D(meas[i:i + 1], colors=[COLORS["measured"]], radii=0.002,
-                                                 labels=[setup.val_rec.labels[i]]))
-        for k, (name, pred) in enumerate(preds.items(), start=1):
-            rr.log(f"world/tip/{name}", rr.Points3D(pred[i:i + 1].numpy(), colors=[_color(name, k)], radii=0.0015))
-            rr.log(f"errors/{name}", rr.Scalars(float(errors[name][i])))
-        rr.log("world/robot/cc_backbone", rr.LineStrips3D([backbone[i]], colors=[COLORS["cc"]], radii=0.001))
-    rr.disconnect()
+    rec.log("world/robot/cc_backbone", rr.LineStrips3D.from_fields(colors=[COLORS["cc"]], radii=0.001), static=True)
+    rec.send_columns("world/robot/cc_backbone", index, rr.LineStrips3D.columns(strips=backbone))
+    rmse = {}
+    for k, (name, pred) in enumerate(preds.items(), start=1):
+        color, err = _color(name, k), centered_errors_mm(pred, setup.val.tip)
+        rmse[name] = float(np.sqrt((err**2).mean()))
+        rec.log(f"world/tip/{name}", rr.Points3D.from_fields(colors=[color], radii=0.0015), static=True)
+        rec.send_columns(f"world/tip/{name}", index, rr.Points3D.columns(positions=pred.numpy()))
+        rec.log(f"errors/{name}", rr.SeriesLines(names=[f"{name} ({rmse[name]:.2f} mm)"], colors=[color]), static=True)
+        rec.send_columns(f"errors/{name}", index, rr.Scalars.columns(scalars=err))
+        if name in sigma:
+            two_sigma_mm = 2e3 * np.linalg.norm(sigma[name], axis=1)
+            rec.log(f"sigma/{name}", rr.SeriesLines(names=[f"{name} 2σ"], colors=[color]), static=True)
+            rec.send_columns(f"sigma/{name}", index, rr.Scalars.columns(scalars=two_sigma_mm))
+    return rmse
+
+
+def _summary(setup: Setup, rmse: dict[str, float]) -> str:
+    rows = "\n".join(f"| {name} | {value:.2f} |" for name, value in sorted(rmse.items(), key=lambda kv: kv[1]))
+    return (f"**{setup.spec.name}**, {len(setup.val.tip)} val samples of `{Path(setup.val_rec.source).name}`.\n\n"
+            "Offset-removed tip RMSE (the mean tip offset of each model is removed, as in results.json):\n\n"
+            f"| model | RMSE [mm] |\n|---|---|\n{rows}\n")
+
+
+def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
+              std: dict[str, torch.Tensor] | None = None) -> None:
+    """Rerun .rrd of the val recording, with its own blueprint (:func:`hardware_blueprint`).
+
+    Static: the measured and predicted val paths [m] and, for models in ``std`` (σ per sample
+    [m], shape (N,) or (N, 3)), a ±2σ band of ellipsoids. On the timeline ``sample``: the
+    measured and predicted tips, the CC model's backbone, each model's offset-removed error
+    [mm] (all in one plot, colours as in 3D, RMSE in the legend) and its predicted 2σ [mm].
+    """
+    import rerun as rr
+
+    sigma = _check_std(std, preds)
+    rec = rr.RecordingStream("dacr_learn_hardware", recording_id=f"{setup.spec.name}-{Path(path).stem}")
+    rec.set_sinks(rr.FileSink(str(path)), default_blueprint=hardware_blueprint(list(preds), bool(sigma)))
+    rec.send_recording_name(f"{setup.spec.name}: val tip paths ({Path(setup.val_rec.source).name})")
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    _log_paths(rec, setup, preds, sigma)
+    rmse = _log_samples(rec, setup, preds, sigma)
+    rec.log("summary", rr.TextDocument(_summary(setup, rmse), media_type="text/markdown"), static=True)
+    rec.flush()
+    rec.disconnect()

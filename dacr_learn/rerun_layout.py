@@ -1,0 +1,155 @@
+"""What a training recording shows: metric naming, plot grouping and the blueprint (no Lightning).
+
+Rerun 0.41 plots have no logarithmic axis, so every plotted metric is logged twice: its value at
+``metrics/<name>`` and ``log10(value)`` at ``metrics_log10/<name>``. The blueprint groups metrics
+into one plot per quantity and unit ("tip position error [mm]": train and val, mean / p95 / max
+together), shows the whole step range (not a window around the cursor), puts test metrics (one
+point each) in a table instead of plots, gives the 3D robot view and the workspace error cloud
+their own views, and opens at the last step.
+"""
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterable, Mapping
+
+import rerun as rr
+import rerun.blueprint as rrb
+from rerun.blueprint.components import LinkAxis, PlayState
+
+__all__ = [
+    "HPARAMS_ENTITY", "CONFIG_ENTITY", "LOG10_ROOT", "METRICS_ROOT", "SCENE_ROOT", "STEP_TIMELINE",
+    "SUMMARY_ENTITY", "WORKSPACE_ENTITY", "default_blueprint", "log10_entity", "metric_entity",
+    "metric_groups", "series_style", "summary_markdown",
+]
+
+STEP_TIMELINE = "step"
+METRICS_ROOT = "metrics"
+LOG10_ROOT = "metrics_log10"
+HPARAMS_ENTITY = "hparams"
+CONFIG_ENTITY = "config"
+SUMMARY_ENTITY = "summary"
+SCENE_ROOT = "scene"
+WORKSPACE_ENTITY = f"{SCENE_ROOT}/workspace"
+
+SPLITS = ("train", "val", "test")
+NOT_PLOTTED = ("epoch",)
+QUANTITY_TITLES = {"pos_err": "tip position error", "rot_err": "tip rotation error", "joint_err": "joint error",
+                   "constraint_residual": "constraint residual", "loss": "loss"}
+UNIT_TITLES = {"mm": "mm", "deg": "°", "m": "m", "pct": "% of robot length", "": ""}
+UNIT_PREFERENCE = ("mm", "deg", "m", "", "pct")  # a quantity logged in several units is plotted in the first
+STAT_COLORS = {"": (255, 127, 14), "mean": (255, 127, 14), "p95": (214, 39, 40), "max": (148, 103, 189)}
+TRAIN_COLORS = {"": (31, 119, 180), "mean": (23, 190, 207), "p95": (44, 160, 44), "max": (140, 86, 75)}
+_KEY = re.compile(r"^(?P<quantity>.+?)(?:_(?P<stat>mean|p95|max))?(?:_(?P<unit>mm|deg|pct|m))?$")
+
+
+def metric_entity(name: str, root: str = METRICS_ROOT) -> str:
+    """Entity path of a metric: ``"val/pos_err"`` -> ``"metrics/val/pos_err"`` (parts escaped)."""
+    parts = [rr.escape_entity_path_part(p) for p in str(name).split("/") if p]
+    return "/".join([root, *parts])
+
+
+def log10_entity(name: str) -> str:
+    """Entity path of the log10 copy of a metric: ``"metrics_log10/<name>"``."""
+    return metric_entity(name, LOG10_ROOT)
+
+
+def _split_key(name: str) -> tuple[str, str]:
+    """``"val/pos_err_mean_mm"`` -> ("val", "pos_err_mean_mm"); ``"train_loss"`` -> ("train", "loss")."""
+    split, _, key = name.rpartition("/")
+    if not split:
+        split = next((s for s in SPLITS if name.startswith(f"{s}_")), "")
+        key = name[len(split) + 1:] if split else name
+    return split, key
+
+
+def _parse(key: str) -> tuple[str, str, str]:
+    """``"pos_err_p95_mm"`` -> ("pos_err", "p95", "mm"); ``"loss"`` -> ("loss", "", "")."""
+    m = _KEY.match(key)
+    return (m["quantity"], m["stat"] or "", m["unit"] or "") if m else (key, "", "")
+
+
+def is_plotted(name: str) -> bool:
+    """Train/val metrics are curves; test metrics (one point) and ``epoch`` go to the summary table only."""
+    return _split_key(name)[0] != "test" and name not in NOT_PLOTTED
+
+
+def series_style(name: str) -> tuple[str, tuple[int, int, int]]:
+    """Legend label and colour of a metric's series: ``"val/pos_err_p95_mm"`` -> ("val p95", red)."""
+    split, key = _split_key(name)
+    quantity, stat, _ = _parse(key)
+    colors = TRAIN_COLORS if split == "train" else STAT_COLORS
+    label = " ".join(p for p in (split, stat or ("" if quantity in QUANTITY_TITLES else key)) if p)
+    return label or name, colors.get(stat, colors[""])
+
+
+def metric_groups(names: Iterable[str]) -> dict[str, list[str]]:
+    """Plot title -> plotted metric names (train and val of one quantity in one unit, sorted).
+
+    A quantity logged in several units (``pos_err_mean_mm`` and ``pos_err_mean_pct``) is plotted
+    once, in the first unit of ``UNIT_PREFERENCE``; the others stay in the summary table.
+    """
+    by_quantity: dict[str, dict[str, list[str]]] = {}
+    for name in sorted(n for n in set(names) if is_plotted(n)):
+        quantity, _, unit = _parse(_split_key(name)[1])
+        by_quantity.setdefault(quantity, {}).setdefault(unit, []).append(name)
+    groups: dict[str, list[str]] = {}
+    for quantity in sorted(by_quantity, key=lambda q: (q != "loss", q)):
+        units = by_quantity[quantity]
+        unit = min(units, key=lambda u: UNIT_PREFERENCE.index(u) if u in UNIT_PREFERENCE else len(UNIT_PREFERENCE))
+        title = QUANTITY_TITLES.get(quantity, quantity)
+        groups[f"{title} [{UNIT_TITLES.get(unit, unit)}]" if unit else title] = units[unit]
+    return groups
+
+
+def summary_markdown(latest: Mapping[str, tuple[int, float]]) -> str:
+    """Markdown table of the latest value of every metric: one row per key, columns train/val/test."""
+    cells = {_split_key(name): value for name, (_, value) in latest.items()}
+    splits = sorted({s for s, _ in cells}, key=lambda s: (s not in SPLITS, SPLITS.index(s) if s in SPLITS else 0, s))
+    lines = ["| metric | " + " | ".join(s or "—" for s in splits) + " |", "|---" * (len(splits) + 1) + "|"]
+    for key in sorted({k for _, k in cells}):
+        row = [_fmt(cells[s, key]) if (s, key) in cells else "" for s in splits]
+        lines.append(f"| {key} | " + " | ".join(row) + " |")
+    step = max((s for s, _ in latest.values()), default=0)
+    return f"Latest value of every metric (at or before step {step}).\n\n" + "\n".join(lines)
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.4g}" if math.isfinite(value) else str(value)
+
+
+def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesView]:
+    whole = rrb.VisibleTimeRange(STEP_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+                                 end=rrb.TimeRangeBoundary.infinite())
+    entity = log10_entity if log10 else metric_entity
+    linked = rrb.TimeAxis(link=LinkAxis.LinkToGlobal)  # every plot shows the same step range
+    return [rrb.TimeSeriesView(origin="/", contents=[entity(n) for n in names], time_ranges=[whole], axis_x=linked,
+                               name=f"{title}, log10" if log10 else title,
+                               plot_legend=rrb.PlotLegend(rrb.Corner2D.RightTop, visible=True))
+            for title, names in groups.items()]
+
+
+def default_blueprint(metric_names: Iterable[str] = (), colour_note: str = "") -> rrb.Blueprint:
+    """Layout of a training recording.
+
+    Left: one full-range plot per quantity (train and val together, log10 values; a second tab
+    has the linear values). Right: the validation samples in 3D (backbones, true and predicted
+    tip frames), below it the workspace error cloud (``colour_note`` names its fixed colour
+    scale) beside a tab of the metrics table (latest train/val/test values), hparams, CLI
+    config and the text log. The time panel opens on ``step`` at the last step, paused.
+    """
+    groups = metric_groups(metric_names)
+    log_plots = _plots(groups, log10=True) or [rrb.TimeSeriesView(origin=LOG10_ROOT, name="metrics, log10")]
+    lin_plots = _plots(groups, log10=False) or [rrb.TimeSeriesView(origin=METRICS_ROOT, name="metrics")]
+    curves = rrb.Tabs(rrb.Vertical(*log_plots, name="curves (log10)"), rrb.Vertical(*lin_plots, name="curves (linear)"))
+    robot = rrb.Spatial3DView(origin=SCENE_ROOT, contents=["+ $origin/**", f"- {WORKSPACE_ENTITY}/**"],
+                              name="val samples: backbones, tip frames (true dark, predicted light), errors")
+    workspace = rrb.Spatial3DView(origin=SCENE_ROOT, contents=[f"+ {WORKSPACE_ENTITY}/**"],
+                                  name=f"workspace tip error{' (' + colour_note + ')' if colour_note else ''}")
+    info = rrb.Tabs(rrb.TextDocumentView(origin=SUMMARY_ENTITY, name="metrics table"),
+                    rrb.TextDocumentView(origin=HPARAMS_ENTITY, name="hparams"),
+                    rrb.TextDocumentView(origin=CONFIG_ENTITY, name="config"),
+                    rrb.TextLogView(origin="/", name="log"))
+    right = rrb.Vertical(robot, rrb.Horizontal(workspace, info), row_shares=[3, 2])
+    time_panel = rrb.TimePanel(timeline=STEP_TIMELINE, play_state=PlayState.Following, state="collapsed")
+    return rrb.Blueprint(rrb.Horizontal(curves, right, column_shares=[1, 1]), time_panel, collapse_panels=True)
