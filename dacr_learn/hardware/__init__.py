@@ -6,8 +6,10 @@
 - :mod:`.calibration` servo map and joint offsets from single-tendon pulls (also a CLI)
 - :mod:`.ccmodel`     calibrated constant-curvature model with a handful of physical parameters
 - :mod:`.learned`     baselines, Clarke-feature networks, CC residuals, synthetic pre-training
+- :mod:`.registry`    the model registry: name → builder, letter, flags
+- :mod:`.selection`   train-only selection proxies (family CV, singles → pairs) and the default model
 - :mod:`.metrics`     offset-removed tip RMSE (the lab's metric), mean and p95 error
-- :mod:`.benchmark`   all of the above on a train/val pair; ``python -m dacr_learn.hardware``
+- :mod:`.benchmark`   all of the above on a train (+ optional val) recording; ``python -m dacr_learn.hardware``
 - :mod:`.visual`      PNG and Rerun recording of predicted vs measured tip paths
 """
 from .calibration import calibrate
