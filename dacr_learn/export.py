@@ -129,14 +129,17 @@ def _examples(spec: RobotSpec, n: int, dtype: torch.dtype) -> dict[str, Tensor]:
     return {"q": data["q"].to(dtype), "pose": data["pose"].to(dtype)}
 
 
-def export_program(module: nn.Module, example: Tensor) -> torch.export.ExportedProgram:
-    """torch.export a module with one batched input; the batch dim is dynamic (1 … MAX_BATCH)."""
+def export_program(module: nn.Module, example: Tensor | tuple[Tensor, ...]) -> torch.export.ExportedProgram:
+    """torch.export a module with one batched input (or a tuple of inputs sharing the batch dim);
+    the batch dim is dynamic (1 … MAX_BATCH)."""
     batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
+    examples = example if isinstance(example, tuple) else (example,)
     with torch.no_grad():
-        return torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
+        return torch.export.export(module, examples, dynamic_shapes=tuple({0: batch} for _ in examples))
 
 
-def _write_module(name: str, module: nn.Module, example: Tensor, out: Path, aoti: bool) -> dict[str, str]:
+def _write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
+                  aoti: bool) -> dict[str, str]:
     """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2``."""
     program = export_program(module, example)
     files = {"export": f"{name}.pt2"}
@@ -169,6 +172,10 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
     deviations are recorded (``max_abs_deviation``) and above VERIFY_TOLERANCE the export fails.
     """
     ckpt, out = Path(ckpt), Path(out)
+    from .hardware.export import export_hardware, is_hardware_checkpoint
+
+    if ckpt.is_file() and is_hardware_checkpoint(ckpt):       # a saved hardware model (hardware/checkpoint.py)
+        return export_hardware(ckpt, out, dtype=dtype, aoti=aoti)
     task, lit = load_lightning_checkpoint(ckpt)
     lit = lit.to(dtype)
     out.mkdir(parents=True, exist_ok=True)
@@ -293,6 +300,10 @@ def load(path: str | Path, name: str | None = None, *, robot=None, features: str
         raise ValueError(f"{path}: checksum mismatch (sha256 {actual[:12]}…, {METADATA_FILE} records {digest[:12]}…): "
                          "the file was modified, truncated or comes from another export")
     _check_expectations(meta, path, robot, features, checkpoint)
+    if meta["task"] == "hardware_fk":                          # servo commands → tip (dacr_learn.hardware.export)
+        from .hardware.export import HardwareExportedModule
+
+        return HardwareExportedModule(_runner(path, kind, meta), meta, name, kind)
     return ExportedModule(_runner(path, kind, meta), meta, name, kind)
 
 

@@ -4,12 +4,15 @@ A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings 
 loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
 
     format: "dacr_learn.hardware_model/1"
-    model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m]
+    model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m];
+    clamp: the members were fitted with ``support=True`` (network input clamped to the training range);
+    gate_width: the members' fallback gate width τ (``gate_width``) or None
     robot: the calibrated RobotSpec as a dict; servo_map: ServoMap.to_dict(); servo_ids: column order
     units: "mm" (unit of the servo commands a user passes in; tips are metres)
     cc: CalibratedCC state dict (fitted physical parameters)
     members: [state dict of each ensemble member's residual network (cc.* keys left out)]
     sigma_calibration: {"scale", "floor" [m]} or None; support: SupportModel state dict or None
+    examples: (n, S) training commands [mm] in time order (to verify exports), or None
     info: free-form dict (metrics, command line, …)
 
 Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
@@ -47,6 +50,7 @@ class HardwareModel:
     play_width: float = PLAY_WIDTH
     sigma: SigmaCalibration | None = None
     support: SupportModel | None = None
+    examples: torch.Tensor | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -70,6 +74,9 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
             "sigma_calibration": None if model.sigma is None else
             {"scale": float(model.sigma.scale), "floor": float(model.sigma.floor)},
             "support": None if model.support is None else dict(model.support.state_dict()),
+            "clamp": bool(getattr(model.members[0], "support", False)),
+            "gate_width": getattr(model.members[0], "gate_width", None),
+            "examples": None if model.examples is None else model.examples.detach().double().clone(),
             "info": model.info}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -77,9 +84,9 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
     return path
 
 
-def _placeholder_split(m: int) -> Split:
-    """The smallest Split a residual model can be constructed from (its buffers are then loaded)."""
-    z = torch.zeros(2, m, 4, dtype=torch.float64)
+def _placeholder_split(m: int, n: int = 2) -> Split:
+    """A Split of n rows a residual model can be constructed from (its buffers are then loaded)."""
+    z = torch.zeros(n, m, 4, dtype=torch.float64)
     return Split(z[:, 0, :0], z[:, 0, :0], z, z[:, 0, :3], z[:, 0, :3], z[..., :2])
 
 
@@ -130,7 +137,11 @@ def _build(blob: dict) -> HardwareModel:
     cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
     members = []
     for state in blob["members"]:
-        member = cls(_placeholder_split(spec.num_segments), cc)
+        rows = state["train_clarke"].shape[0] if "train_clarke" in state else 2
+        options = {"support": bool(blob.get("clamp", False))}
+        if blob.get("gate_width") is not None:
+            options["gate_width"] = float(blob["gate_width"])
+        member = cls(_placeholder_split(spec.num_segments, rows), cc, **options)
         member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})
         members.append(member.eval())
     if not members:
@@ -140,4 +151,4 @@ def _build(blob: dict) -> HardwareModel:
     return HardwareModel(blob["model"], spec, smap, ids, cc, members, float(blob["play_width"]),
                          None if cal is None else SigmaCalibration(cal["scale"], cal["floor"]),
                          None if support is None else _support_from_state(support, spec.num_segments),
-                         dict(blob.get("info") or {}))
+                         blob.get("examples"), dict(blob.get("info") or {}))

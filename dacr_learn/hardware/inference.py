@@ -86,7 +86,7 @@ def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor
     jac = [None] * m
     jac[m - 1] = (dr[..., m - 1, :, :, 2] * offset + dp[..., m - 1, :, :]).mT
     for k in range(m - 2, -1, -1):                                    # point_k = p_k + R_k·point_{k+1}
-        local = (dr[..., k, :, :, :] @ point.unsqueeze(-3).unsqueeze(-1)).squeeze(-1) + dp[..., k, :, :]
+        local = (dr[..., k, :, :, :] @ point[..., None, :, None]).squeeze(-1) + dp[..., k, :, :]
         jac = [None if j is None else r[..., k, :, :] @ j for j in jac]
         jac[k] = local.mT
         point = p[..., k, :] + (r[..., k, :, :] @ point.unsqueeze(-1)).squeeze(-1)
@@ -115,6 +115,10 @@ class HardwareFK(nn.Module):
             self.clamp = bool(getattr(model.members[0], "support", False))   # CCClarkeResidual(support=True)
             if self.clamp:
                 buffers["rho_max"] = model.members[0].rho_max.unsqueeze(-1)
+            self.gate_width = getattr(model.members[0], "gate_width", None)   # CCClarkeResidual(gate_width=τ)
+            if self.gate_width is not None:
+                buffers["gate_points"] = model.members[0].train_clarke * model.members[0].rho_std
+                buffers["rho_std"] = model.members[0].rho_std
         for name, value in buffers.items():
             self.register_buffer(name, value.detach().to(dtype))
         sigma = model.sigma or SigmaCalibration()
@@ -183,7 +187,29 @@ class HardwareFK(nn.Module):
             if da is not None:
                 da = torch.einsum("bkmth,kjh->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
             a = torch.einsum("bkmh,kjh->bkmj", h, w) + bias.unsqueeze(-2)
+        if self.gate_width is not None:
+            gate, dgate = self.gate(rho, None if tangent is None else tangent[0])
+            if da is not None:
+                da = da * gate[:, None, None, None, None] + a.unsqueeze(-2) * dgate[:, None, None, :, None]
+            a = a * gate[:, None, None, None]
         return rho.unsqueeze(1) + a, None if da is None else tangent[0].unsqueeze(1) + da.mT
+
+    def gate(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
+        """Fallback weight exp(−(δ/τ)²) of the correction (B,), δ the distance of ρ to the nearest training
+        row in units of the training std (learned.CCClarkeResidual.support_gate), and ∂/∂servo (B, T)."""
+        z = rho.flatten(-2)
+        diff = z.unsqueeze(-2) - self.gate_points                             # (B, n, 2m)
+        dist2 = (diff * diff).sum(-1)
+        nearest = dist2.argmin(-1)
+        d = diff[torch.arange(z.shape[0]), nearest]                           # (B, 2m) [m]
+        delta2 = (d * d).sum(-1) / self.rho_std**2
+        if self.gate_width == 0:
+            return torch.zeros_like(delta2), None if drho is None else torch.zeros_like(drho[:, 0, 0])
+        gate = torch.exp(-delta2 / self.gate_width**2)
+        if drho is None:
+            return gate, None
+        ddelta2 = 2 * torch.einsum("bi,bit->bt", d, drho.flatten(1, 2)) / self.rho_std**2
+        return gate, -gate.unsqueeze(-1) * ddelta2 / self.gate_width**2
 
     def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., 3, m, 2) from ρ (..., m, 2)."""

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from ..checks import check_tensor
 
 SUPPORT_QUANTILE = 0.99
+_EXACT = "donot_use_mm_for_euclid_dist"  # no cancellation: a training row is at distance 0 from itself
 
 
 def ensemble_predict(members: Sequence[Callable], x) -> tuple[Tensor, Tensor]:
@@ -75,7 +76,8 @@ class SigmaCalibration(nn.Module):
             return loss
 
         opt.step(closure)
-        return cls(float(log_p[0].exp()), float(log_p[1].exp()) * unit)
+        scale, floor = log_p.detach().exp().tolist()
+        return cls(scale, floor * unit)
 
 
 def _groups_from_labels(labels: Sequence[str]) -> Tensor:
@@ -108,7 +110,7 @@ class SupportModel(nn.Module):
         groups = torch.arange(points.shape[0]) if labels is None else _groups_from_labels(labels)
         if int(groups.max()) == 0:                    # one pattern only: leave-one-out
             groups = torch.arange(points.shape[0])
-        dist = torch.cdist(self.points, self.points)
+        dist = torch.cdist(self.points, self.points, compute_mode=_EXACT)
         dist[groups[:, None] == groups[None, :]] = float("inf")
         self.register_buffer("threshold", torch.quantile(dist.min(1).values, quantile))
 
@@ -119,7 +121,8 @@ class SupportModel(nn.Module):
     def distance(self, rho: Tensor) -> Tensor:
         """Standardised distance of each command's ρ (..., m, 2) [m] to the nearest training row (...)."""
         z = self._standardised(rho)
-        return torch.cdist(z.reshape(-1, z.shape[-1]), self.points).min(1).values.reshape(z.shape[:-1])
+        dist = torch.cdist(z.reshape(-1, z.shape[-1]), self.points, compute_mode=_EXACT)
+        return dist.min(1).values.reshape(z.shape[:-1])
 
     def forward(self, rho: Tensor) -> Tensor:
         """Out-of-support score (...,): > 1 means outside the training support."""

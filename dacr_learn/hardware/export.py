@@ -1,0 +1,166 @@
+"""Export of a saved hardware model (:mod:`.checkpoint`) with ``python -m dacr_learn.export``.
+
+The same kind of files as for the synthetic FK models (:mod:`dacr_learn.export`): per module a
+``torch.export`` program ``<name>.pt2`` (and an AOTInductor package unless ``--no-aoti``) plus
+``metadata.json`` (task ``"hardware_fk"``, robot, servo ids, units, dtype, checksums, the
+measured deviation from the in-memory model). Modules (:mod:`.inference`):
+
+- ``fk``: servo (B, S) [mm] [, state (B, m, 2) [m]] → tip (B, 3) [m], tip_std (B, 3) [m] [, state]
+- ``jacobian``: the same inputs → tip (B, 3), J (B, 3, S) [m/mm] [, state]
+- ``initial_state`` (history models): servo (B, S) → the play state to start a sequence with
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from .. import export as dexport
+from ..checks import check_tensor
+from .checkpoint import FORMAT as CHECKPOINT_FORMAT
+from .checkpoint import HardwareModel, load_hardware_model
+from .inference import HardwareFK, HardwareJacobian
+
+TASK = "hardware_fk"
+UNITS = {"servo": "mm (commanded tendon displacement, columns in servo_ids order)",
+         "tip": "m (motion-capture frame)", "tip_std": "m (ensemble spread, calibrated if the checkpoint says so)",
+         "jacobian": "m/mm, d tip / d servo (rows x, y, z; columns servo_ids)",
+         "state": "m (play operator state per segment, Clarke coordinates)"}
+
+
+def is_hardware_checkpoint(path: str | Path) -> bool:
+    """True for a file written by :func:`.checkpoint.save_hardware_model` (weights-only load)."""
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:
+        return False
+    return isinstance(blob, dict) and blob.get("format") == CHECKPOINT_FORMAT
+
+
+class InitialState(nn.Module):
+    """servo (B, S) [mm] → play state (B, m, 2) [m] to start a sequence with (history models)."""
+
+    def __init__(self, fk: HardwareFK):
+        super().__init__()
+        self.fk = fk
+
+    def forward(self, servo: Tensor) -> Tensor:
+        return self.fk.initial_state(servo)
+
+
+def modules(model: HardwareModel, dtype: torch.dtype) -> dict[str, nn.Module]:
+    fk = HardwareFK(model, dtype).eval()
+    out = {"fk": fk, "jacobian": HardwareJacobian(model, dtype).eval()}
+    if model.history:
+        out["initial_state"] = InitialState(fk).eval()
+    return out
+
+
+def signatures(model: HardwareModel) -> dict[str, dict[str, list]]:
+    s, m = len(model.servo_ids), model.spec.num_segments
+    state = [["state", [m, 2]]] if model.history else []
+    return {"fk": {"inputs": [["servo", [s]]] + state, "outputs": [["tip", [3]], ["tip_std", [3]]] + state},
+            "jacobian": {"inputs": [["servo", [s]]] + state, "outputs": [["tip", [3]], ["J", [3, s]]] + state},
+            "initial_state": {"inputs": [["servo", [s]]], "outputs": state}}
+
+
+def examples(model: HardwareModel, dtype: torch.dtype) -> tuple[Tensor, Tensor | None]:
+    """Commands (n, S) [mm] and, for history models, the play states before each (run causally)."""
+    servo = model.examples if model.examples is not None else torch.zeros(4, len(model.servo_ids))
+    servo = servo.to(torch.float64)
+    if not model.history:
+        return servo.to(dtype), None
+    ref = HardwareFK(model, torch.float64)
+    states, state = [], ref.initial_state(servo[:1])
+    with torch.no_grad():
+        for t in range(servo.shape[0]):
+            states.append(state)
+            state = ref(servo[t:t + 1], state)[2]
+    return servo.to(dtype), torch.cat(states).to(dtype)
+
+
+def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
+                    aoti: bool | tuple[str, ...] = True) -> dict[str, Any]:
+    """Export a hardware checkpoint's modules to ``out``; returns the metadata (also written)."""
+    ckpt, out = Path(ckpt), Path(out)
+    model = load_hardware_model(ckpt)
+    out.mkdir(parents=True, exist_ok=True)
+    servo, state = examples(model, dtype)
+    sig = signatures(model)
+    meta: dict[str, Any] = {
+        "format": dexport.FORMAT, "task": TASK, "model": model.name, "history": model.history,
+        "ensemble_members": len(model.members), "robot": model.spec.to_dict(), "features": "clarke",
+        "servo_ids": list(model.servo_ids), "servo_map": model.smap.to_dict(), "units": UNITS,
+        "dtype": str(dtype).removeprefix("torch."), "torch_version": torch.__version__,
+        "max_batch": dexport.MAX_BATCH, "modules": {},
+        "source_checkpoint": {"path": str(ckpt), "sha256": dexport.file_sha256(ckpt)}}
+    for name, module in modules(model, dtype).items():
+        inputs = (servo[:2],) if name == "initial_state" or state is None else (servo[:2], state[:2])
+        want_aoti = aoti if isinstance(aoti, bool) else name in aoti
+        files = dexport._write_module(name, module, inputs, out, want_aoti)
+        meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": dexport.file_sha256(out / f)}
+                                                        for k, f in files.items()}}
+    reference = modules(model, torch.float64)
+    worst = {}
+    for name, info in meta["modules"].items():
+        inputs = (servo,) if name == "initial_state" or state is None else (servo, state)
+        for entry in info["files"].values():
+            worst[entry["file"]] = _deviation(reference[name], load_exported(out / entry["file"], meta), inputs)
+    meta["max_abs_deviation"] = worst
+    meta["metadata_sha256"] = dexport._metadata_digest(meta)
+    (out / dexport.METADATA_FILE).write_text(json.dumps(meta, indent=2))
+    bad = {f: e for f, e in worst.items() if not e <= dexport.VERIFY_TOLERANCE}
+    if bad:
+        raise RuntimeError(f"export {out}: modules deviate from the hardware model by more than "
+                           f"{dexport.VERIFY_TOLERANCE}: {bad}")
+    return meta
+
+
+def _deviation(reference: nn.Module, loaded: nn.Module, inputs: tuple[Tensor, ...]) -> float:
+    with torch.no_grad():
+        ref, got = reference(*(x.double() for x in inputs)), loaded(*inputs)
+    ref, got = (ref,) if isinstance(ref, Tensor) else ref, (got,) if isinstance(got, Tensor) else got
+    return max((r.double() - g.double()).abs().max().item() for r, g in zip(ref, got, strict=True))
+
+
+def load_exported(path: Path, meta: dict) -> HardwareExportedModule:
+    """A file of an export being written (before its metadata is final), for verification."""
+    name, kind = next((n, k) for n, info in meta["modules"].items() for k, e in info["files"].items()
+                      if e["file"] == path.name)
+    return HardwareExportedModule(dexport._runner(path, kind, meta), meta, name, kind)
+
+
+class HardwareExportedModule(nn.Module):
+    """A loaded hardware export (returned by :func:`dacr_learn.export.load`): checks every input
+    (shape (..., *shape), floating, finite), accepts leading batch dims and float32/float64
+    (computed in the export's dtype, returned in the first input's). Returns a tuple of tensors
+    (or one tensor for ``initial_state``). Attributes: ``metadata``, ``name``, ``kind``."""
+
+    def __init__(self, runner, metadata: dict, name: str, kind: str):
+        super().__init__()
+        self.runner, self.metadata, self.name, self.kind = runner, metadata, name, kind
+        info = metadata["modules"][name]
+        self.inputs = [(n, tuple(s)) for n, s in info["inputs"]]
+        self.output_shapes = [tuple(s) for _, s in info["outputs"]]
+        self.dtype = dexport._DTYPES[metadata["dtype"]]
+
+    def extra_repr(self) -> str:
+        return f"name={self.name!r}, kind={self.kind!r}, robot={self.metadata['robot']['name']!r}"
+
+    def forward(self, *xs: Tensor):
+        if len(xs) != len(self.inputs):
+            raise ValueError(f"{self.name}: expected inputs {[n for n, _ in self.inputs]}, got {len(xs)} tensors")
+        lead = None
+        for x, (n, shape) in zip(xs, self.inputs, strict=True):
+            check_tensor(x, f"{self.name} input {n}", shape, nonempty=True)
+            here = tuple(x.shape[:x.dim() - len(shape)])
+            if lead is not None and here != lead:
+                raise ValueError(f"{self.name}: inputs must share their batch dims, got {lead} and {here}")
+            lead = here
+        flat = [x.reshape(-1, *s).to(self.dtype).contiguous() for x, (_, s) in zip(xs, self.inputs, strict=True)]
+        outs = self.runner(flat)
+        outs = [o.reshape(*lead, *s).to(xs[0].dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
+        return outs[0] if len(outs) == 1 else tuple(outs)
