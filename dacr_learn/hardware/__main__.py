@@ -52,6 +52,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest for these sizes)")
     ap.add_argument("--no-visuals", action="store_true", help="skip the PNG and the Rerun recording")
+    ap.add_argument("--save", type=Path, help="write the default model (one member per --seeds) as DIR/model.pt "
+                    "(dacr_learn.hardware.checkpoint; export with python -m dacr_learn.export --ckpt DIR/model.pt)")
     return ap.parse_args(argv)
 
 
@@ -133,7 +135,18 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return run(parse_args(argv), argv)[0]
+    args = parse_args(argv)
+    report, setup = run(args, argv)
+    if args.save and report["default_model"] is not None:
+        from .checkpoint import fit_hardware_model, save_hardware_model, support_warning
+
+        model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]})
+        path = save_hardware_model(model, args.save / "model.pt")
+        print(f"saved the default model {report['default_model']} ({len(args.seeds)} members) to {path}")
+        warning = support_warning(model, setup.val) if setup.val is not None else None
+        if warning:
+            print(warning)
+    return report
 
 
 if __name__ == "__main__":

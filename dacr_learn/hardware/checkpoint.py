@@ -152,3 +152,28 @@ def _build(blob: dict) -> HardwareModel:
                          None if cal is None else SigmaCalibration(cal["scale"], cal["floor"]),
                          None if support is None else _support_from_state(support, spec.num_segments),
                          blob.get("examples"), dict(blob.get("info") or {}))
+
+
+def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
+                       info: dict | None = None) -> HardwareModel:
+    """Train model ``name`` (a CC Clarke-residual model) once per seed on the whole training recording
+    of a :class:`~.benchmark.Setup` and bundle the ensemble with the support model of the training
+    commands (labels = pattern labels) and, if given, a σ calibration fitted on held-out residuals."""
+    from .benchmark import fit_model
+
+    members = [fit_model(name, setup, seed).eval() for seed in seeds]
+    support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
+    return HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, members,
+                         sigma=sigma, support=support, examples=1e3 * setup.train_rec.servo[:256],
+                         info=dict(info or {}))
+
+
+def support_warning(model: HardwareModel, setup_split: Split, what: str = "val") -> str | None:
+    """A warning line when commands of a split lie outside the training support (score > 1), else None."""
+    score = model.support(setup_split.features[..., :2])
+    out = int((score > 1).sum())
+    if out == 0:
+        return None
+    return (f"warning: {out} of {len(score)} {what} commands ({100 * out / len(score):.1f} %) lie outside the "
+            f"training support (out-of-support score > 1, max {float(score.max()):.1f}): predictions there "
+            "extrapolate")
