@@ -12,7 +12,10 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
 - ``fk_aoti_runner``: the same package's C++ runner called directly (no checks, no reshapes);
 - ``jacobian_eager`` / ``jacobian_aoti``, ``ik_eager_lightning`` / ``ik_aoti``;
 - ``cc_fk_analytic``: dacr_learn.kinematics.forward_kinematics on a (1, m, 4) feature tensor;
-- ``fk_torch_compile`` (with ``--compile``): torch.compile(InferenceFK, mode="max-autotune-no-cudagraphs").
+- ``fk_torch_compile`` (with ``--compile``): torch.compile(InferenceFK, mode="max-autotune-no-cudagraphs");
+- ``fk_compositional_{eager_lightning, eager_folded, export_program, aoti}``: the compositional FK of
+  configs/fk_tdcr3_compositional.yaml (3-segment robot: per-segment network, twist head, products),
+  exported the same way (``--no-compositional`` skips these rows).
 
 Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs].
 The machine may be shared and noisy: compare medians, run it twice.
@@ -42,12 +45,13 @@ from timing import time_interleaved  # noqa: E402
 
 from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.data import generate  # noqa: E402
-from dacr_learn.inference import InferenceFK, InferenceJacobian  # noqa: E402
+from dacr_learn.inference import InferenceCompositionalFK, InferenceFK, InferenceJacobian  # noqa: E402
 from dacr_learn.kinematics import forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.training import FKModule, IKModule  # noqa: E402
 
 DEFAULT_CONFIG = ROOT / "configs" / "default.yaml"
+COMPOSITIONAL_CONFIG = ROOT / "configs" / "fk_tdcr3_compositional.yaml"
 TARGETS_US = {"fk_aoti": 25.0, "jacobian_aoti": 80.0}
 
 
@@ -103,6 +107,24 @@ def candidates(fk: FKModule, ik: IKModule, out: Path, aoti: bool, compile_fk: bo
     return fns
 
 
+def compositional_candidates(config: Path, out: Path, aoti: bool) -> dict:
+    """Rows of the compositional FK (the config's shape, 3-segment robot; random weights): Lightning
+    model, folded module, export program and AOTInductor package (``fk_compositional_*``)."""
+    cfg = yaml.safe_load(config.read_text())
+    torch.manual_seed(0)
+    fk = FKModule(robot=str(ROOT / cfg["data"]["robot"]), **cfg["model"]["init_args"])
+    fk.model.fit_normalization(generate(fk.spec, 4096, seed=0)["q"])
+    fk.eval()
+    dexport.export_checkpoint(save_checkpoint(fk, out / "fk_compositional.ckpt"), out / "fk_compositional", aoti=aoti)
+    q = generate(fk.spec, 1, seed=7)["q"]
+    folded = InferenceCompositionalFK(fk.model).eval()
+    fns = {"fk_compositional_eager_lightning": _bound(fk.model, q), "fk_compositional_eager_folded": _bound(folded, q),
+           "fk_compositional_export_program": _bound(dexport.load(out / "fk_compositional" / "fk.pt2"), q)}
+    if aoti:
+        fns["fk_compositional_aoti"] = _bound(dexport.load(out / "fk_compositional", "fk"), q)
+    return fns
+
+
 def _bound(fn, x):
     return lambda: fn(x)
 
@@ -113,10 +135,10 @@ def summarize(times: dict[str, np.ndarray]) -> dict[str, dict[str, float]]:
 
 
 def table(results: dict, targets: dict) -> str:
-    lines = [f"{'module (batch 1, 1 thread)':<24} {'p50 µs':>9} {'p99 µs':>9}   target p50"]
+    lines = [f"{'module (batch 1, 1 thread)':<34} {'p50 µs':>9} {'p99 µs':>9}   target p50"]
     for k, r in results.items():
         tgt = f"≤ {targets[k]:.0f} µs {'met' if r['p50_us'] <= targets[k] else 'MISSED'}" if k in targets else ""
-        lines.append(f"{k:<24} {r['p50_us']:>9.1f} {r['p99_us']:>9.1f}   {tgt}")
+        lines.append(f"{k:<34} {r['p50_us']:>9.1f} {r['p99_us']:>9.1f}   {tgt}")
     return "\n".join(lines)
 
 
@@ -129,6 +151,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--no-aoti", action="store_true", help="skip AOTInductor (no C++ compiler needed)")
     p.add_argument("--compile", action="store_true", help="also time torch.compile of the folded FK")
     p.add_argument("--out", type=Path, default=None, help="keep the exports here (default: a temp dir)")
+    p.add_argument("--compositional-config", type=Path, default=COMPOSITIONAL_CONFIG,
+                   help="shape of the compositional FK rows (fk_compositional_*)")
+    p.add_argument("--no-compositional", action="store_true", help="skip the compositional FK rows")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
@@ -138,6 +163,8 @@ def main(argv: list[str] | None = None) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         export_seconds = export_all(fk, ik, out, aoti=not args.no_aoti)
         fns = candidates(fk, ik, out, aoti=not args.no_aoti, compile_fk=args.compile)
+        if not args.no_compositional:
+            fns.update(compositional_candidates(args.compositional_config, out, aoti=not args.no_aoti))
         with torch.inference_mode():
             seconds = time_interleaved(fns, args.rounds, args.calls, warmup=200)
         results = summarize({k: v * 1e6 for k, v in seconds.items()})   # µs
