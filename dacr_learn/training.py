@@ -193,17 +193,24 @@ class IKModule(KinematicsModule):
     :func:`pose_loss` of the analytic CC FK of the predicted joints against the input pose
     (``rot_weight`` weighs its rotation term). A redundant robot (3 segments: 9 features for a 6-DOF
     pose) has a manifold of joint solutions per pose; the feature term regresses to their
-    conditional mean, which is not a solution, while the pose term accepts any solution. A small
-    ``feature_weight`` beside the pose term picks the solution near that mean (a smooth branch).
+    conditional mean, which is not a solution, while the pose term accepts any solution.
+
+    ``pose_ramp`` (a fraction of the training steps) is a curriculum: the loss starts as the pure
+    feature term (weights 1, 0) and moves linearly to (``feature_weight``, ``pose_weight``) over
+    that fraction, then stays there. The network first learns the smooth conditional mean, and the
+    pose term then pulls it onto the nearest solution branch; a pose loss from a random start
+    converges much more slowly and leaves more predictions outside the joint limits.
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, feature_weight: float = 1.0,
-                 pose_weight: float = 0.0, rot_weight: float = 1.0):
+                 pose_weight: float = 0.0, rot_weight: float = 1.0, pose_ramp: float = 0.0):
         for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight)):
             if not w >= 0:
                 raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
+        if not 0 <= pose_ramp <= 1:
+            raise ValueError(f"pose_ramp: expected a fraction of the training steps in [0, 1], got {pose_ramp!r}")
         if feature_weight == 0 and pose_weight == 0:
             raise ValueError("feature_weight, pose_weight: expected at least one > 0, got both 0")
         # save_hyperparameters() in the base class also records the loss weights
@@ -216,14 +223,23 @@ class IKModule(KinematicsModule):
     def forward(self, pose: Tensor) -> Tensor:
         return self.model(pose)
 
+    def loss_weights(self) -> tuple[float, float]:
+        """(feature weight, pose weight) at the current step (see ``pose_ramp``); the final ones outside a fit."""
+        h = self.hparams
+        ramp = h.get("pose_ramp", 0.0)
+        if not ramp or self._trainer is None or not self.training:
+            return h.feature_weight, h.pose_weight
+        t = min(1.0, self.global_step / max(1.0, ramp * self.trainer.estimated_stepping_batches))
+        return (1 - t) + t * h.feature_weight, t * h.pose_weight
+
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
-        h, z = self.hparams, self.model.forward_normalized(batch["pose"])
+        (wf, wp), z = self.loss_weights(), self.model.forward_normalized(batch["pose"])
         loss = z.new_zeros(())
-        if h.feature_weight:
-            loss = loss + h.feature_weight * (z - self.model.out_norm(self.model.target(batch["q"]))).square().mean()
-        if h.pose_weight:
+        if wf:
+            loss = loss + wf * (z - self.model.out_norm(self.model.target(batch["q"]))).square().mean()
+        if wp:
             pred = forward_kinematics(self.spec, self.model.decode_features(z))
-            loss = loss + h.pose_weight * pose_loss(pred, batch["pose"], self.spec.total_length, h.rot_weight)
+            loss = loss + wp * pose_loss(pred, batch["pose"], self.spec.total_length, self.hparams.rot_weight)
         return loss
 
     def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:

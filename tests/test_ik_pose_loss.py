@@ -3,6 +3,7 @@ true solution, gradients in float64, and bad weights."""
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -80,7 +81,20 @@ def test_training_loss_combines_feature_and_pose_terms():
 
 @pytest.mark.parametrize("kwargs,match", [({"feature_weight": 0.0, "pose_weight": 0.0}, "at least one"),
                                           ({"pose_weight": -1.0}, "pose_weight: expected a number >= 0"),
-                                          ({"rot_weight": float("nan")}, "rot_weight")])
+                                          ({"rot_weight": float("nan")}, "rot_weight"),
+                                          ({"pose_ramp": 1.5}, "pose_ramp: expected a fraction")])
 def test_bad_loss_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         IKModule(robot=str(TDCR3), **kwargs)
+
+
+def test_pose_ramp_moves_from_the_feature_loss_to_the_final_weights():
+    """pose_ramp = 0.5 of 100 steps: (1, 0) at step 0, halfway at step 25, final weights from step 50 on."""
+    module, _ = ik_module("clarke", feature_weight=0.01, pose_weight=2.0, pose_ramp=0.5)
+    assert module.loss_weights() == (0.01, 2.0)                       # outside a fit: the final weights
+    module._trainer = SimpleNamespace(global_step=0, estimated_stepping_batches=100)
+    module.train()
+    expected = {0: (1.0, 0.0), 25: (0.505, 1.0), 50: (0.01, 2.0), 99: (0.01, 2.0)}
+    for step, (wf, wp) in expected.items():
+        module._trainer.global_step = step
+        assert module.loss_weights() == pytest.approx((wf, wp), rel=1e-12), step
