@@ -47,7 +47,7 @@ def variant(name: str, history: bool, support: bool, weight: float) -> ModelInfo
 
 VARIANTS = {f"{base}{'_support' if s else ''}{f'_reh{w:g}' if w else ''}": variant(
     f"{base}{'_support' if s else ''}{f'_reh{w:g}' if w else ''}", base == "g", s, w)
-    for base in ("e", "g") for s in (False, True) for w in (0.0, 0.1, 1.0)}
+    for base in ("e", "g") for s in (False, True) for w in (0.0, 0.1, 1.0, 10.0)}
 
 
 def gate_scores(info: ModelInfo, folds: dict, seeds: list[int]) -> dict:
