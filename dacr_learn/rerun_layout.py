@@ -15,7 +15,7 @@ from collections.abc import Iterable, Mapping
 
 import rerun as rr
 import rerun.blueprint as rrb
-from rerun.blueprint.components import LinkAxis, PlayState
+from rerun.blueprint.components import PlayState
 
 __all__ = [
     "HPARAMS_ENTITY", "CONFIG_ENTITY", "LOG10_ROOT", "METRICS_ROOT", "SCENE_ROOT", "STEP_TIMELINE",
@@ -122,7 +122,9 @@ def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesV
     whole = rrb.VisibleTimeRange(STEP_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.infinite())
     entity = log10_entity if log10 else metric_entity
-    linked = rrb.TimeAxis(link=LinkAxis.LinkToGlobal)  # every plot shows the same step range
+    everything = rrb.TimeRange(start=rrb.TimeRangeBoundary.absolute(seq=0), end=rrb.TimeRangeBoundary.infinite())
+    # every step from 0 in every plot (LinkAxis.LinkToGlobal would replace this by a window around the cursor)
+    linked = rrb.TimeAxis(view_range=everything)
     return [rrb.TimeSeriesView(origin="/", contents=[entity(n) for n in names], time_ranges=[whole], axis_x=linked,
                                name=f"{title}, log10" if log10 else title,
                                plot_legend=rrb.PlotLegend(rrb.Corner2D.RightTop, visible=True))

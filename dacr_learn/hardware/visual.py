@@ -82,11 +82,12 @@ def hardware_blueprint(names: list[str], with_std: bool):
     model overlaid (one y-scale, legend), the predicted-2σ plot when given, and the RMSE table;
     opens at the last sample."""
     import rerun.blueprint as rrb
-    from rerun.blueprint.components import LinkAxis, PlayState
+    from rerun.blueprint.components import PlayState
 
     whole = rrb.VisibleTimeRange(SAMPLE_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.infinite())
-    common = dict(time_ranges=[whole], axis_x=rrb.TimeAxis(link=LinkAxis.LinkToGlobal),
+    everything = rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
+    common = dict(time_ranges=[whole], axis_x=rrb.TimeAxis(view_range=everything),  # every sample, not a window
                   plot_legend=rrb.PlotLegend(rrb.Corner2D.LeftTop, visible=True))
     plots = [rrb.TimeSeriesView(origin="errors", name=f"offset-removed tip error [mm], {len(names)} models", **common)]
     if with_std:
