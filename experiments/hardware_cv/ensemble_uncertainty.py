@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, fam, spec, smap, train_rec, val_data  # noqa: F401
+from common import FOLDS, fam, smap, spec, train_rec
 
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
 from dacr_learn.hardware.learned import CCClarkeResidualHistory, make_split
