@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
 import torch
 from common import FOLDS, fam, smap, spec, train_rec
 
@@ -56,8 +55,9 @@ def spearman(a, b) -> float:
 def report(name, res, std):
     cover = float(((res.abs() <= 2 * std).double()).mean())
     rho = spearman(std.norm(dim=-1), res.norm(dim=-1))
+    rmse = float(res.pow(2).sum(-1).mean().sqrt()) * 1e3
     print(f"{name:34s} ±2σ coverage {cover * 100:5.1f} %   Spearman(‖σ‖, ‖e‖) {rho:+.3f}   "
-          f"median ‖σ‖ {float(std.norm(dim=-1).median()) * 1e3:.2f} mm  rmse {float(res.pow(2).sum(-1).mean().sqrt()) * 1e3:.2f} mm")
+          f"median ‖σ‖ {float(std.norm(dim=-1).median()) * 1e3:.2f} mm  rmse {rmse:.2f} mm")
     return cover, rho
 
 
@@ -94,7 +94,8 @@ def main():
     cv_res = torch.cat([f["residual"] for f in res["cv"]])
     cv_std = torch.cat([f["std"] for f in res["cv"]])
     cal = SigmaCalibration.fit(cv_res, cv_std)
-    print(f"K = {res['k']}; calibration on train family CV: scale {float(cal.scale):.2f}, floor {float(cal.floor) * 1e3:.2f} mm")
+    print(f"K = {res['k']}; calibration on train family CV: scale {float(cal.scale):.2f}, "
+          f"floor {float(cal.floor) * 1e3:.2f} mm")
     report("train family CV, raw σ", cv_res, cv_std)
     report("train family CV, calibrated σ", cv_res, cal(cv_std))
     report("v4 val, raw ensemble σ", res["val_residual"], res["val_std"])
