@@ -1,11 +1,13 @@
 """Shared set-up of the hardware cross-validation experiments (research scripts, not library code).
 
+FTDCR v4 by default, FTDCR v6 with the environment variable ``HW_ROBOT=v6``.
 Leave-one-pattern-family-out CV on ``train.csv`` only: the families are single segments (incl.
 the tendon pulls and circles), pair12, pair13 and pair23. ``val.csv`` is not read here unless a
 script is asked to (``--val``), so model choices can be made without looking at it.
 """
 from __future__ import annotations
 
+import os
 import re
 import sys
 import tempfile
@@ -21,11 +23,12 @@ torch.set_num_threads(1)
 from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
 from dacr_learn.hardware.learned import play_operator  # noqa: E402
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402,F401
+from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
 
-DATA = ROOT / "data" / "ftdcr_v4"
-ROBOT = ROOT / "configs" / "robots" / "ftdcr_v4_calibrated.yaml"
+ROBOT_NAME = os.environ.get("HW_ROBOT", "v4")   # HW_ROBOT=v6 runs a script on FTDCR v6's train.csv (it has no val)
+DATA = ROOT / "data" / f"ftdcr_{ROBOT_NAME}"
+ROBOT = ROOT / "configs" / "robots" / f"ftdcr_{ROBOT_NAME}_calibrated.yaml"
 spec, smap, _ = resolve_robot(ROBOT, None, None, Path(tempfile.mkdtemp()), "mm")
 train_rec = load_recording(DATA / "train.csv", spec)
 x_tr, tip_tr = smap.displacements(spec, train_rec), train_rec.tip
