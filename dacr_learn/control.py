@@ -147,17 +147,24 @@ class ResolvedRateController:
         self.spec, self.jacobian, self.config = spec, jacobian, config
         self.space = ClarkeSpace(spec)
         self.damping = 0.01 * spec.total_length if config.damping is None else config.damping
-        self._damping_matrix = self.damping**2 * torch.eye(3, dtype=_F64)
 
     def clarke_step(self, jac_v: Tensor, task_step: Tensor) -> Tensor:
         """Scaled DLS step: J_v (..., 3, D), Δx (..., 3) [m] → feature step Δf (..., D) [m, rad]."""
-        s = self.space.scale
-        j = _f64(jac_v) * s                                                  # J̃ = J_v·diag(s)
-        a = j @ j.mT + self._damping_matrix
-        dz = (j.mT @ torch.linalg.solve(a, _f64(task_step).unsqueeze(-1))).squeeze(-1)
-        norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
-        dz = dz * torch.clamp(self.config.max_step / norm.clamp_min(1e-300), max=1.0)
-        return dz * s
+        return scaled_dls_step(jac_v, task_step, self.space.scale, self.damping, self.config.max_step)
+
+
+def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: float, max_step: float) -> Tensor:
+    """Damped least-squares step in scaled coordinates z = u / s, for any actuation vector u (float64).
+
+    J (..., k, D) [task unit per u unit], Δx (..., k), s (D,) [u units], λ = damping [task unit] →
+    Δu = s·Δz, Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx with J̃ = J·diag(s), shortened to ‖Δz‖ ≤ max_step.
+    """
+    j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
+    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
+    dz = (j.mT @ torch.linalg.solve(a, _f64(task_step).unsqueeze(-1))).squeeze(-1)
+    norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
+    dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
+    return dz * _f64(scale)
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None,
              measured: Tensor | None = None) -> Tensor:
