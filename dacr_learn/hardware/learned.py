@@ -269,19 +269,19 @@ class CCClarkeResidual(nn.Module):
         """Tip (n, 3) [m], float64; the kinematics run in float32 (3× faster training)."""
         return self.cc.tip_from_features(self.corrected_features(split)).double()
 
+    def objective(self, train: Split) -> Tensor:
+        """Mean squared tip error [mm²] on ``train`` + rehearsal_weight × the same on the rehearsal split."""
+        loss = (self(train) - train.tip).pow(2).mean() / 1e-6
+        if self.rehearsal is not None and self.rehearsal_weight != 0:
+            loss = loss + self.rehearsal_weight * (self(self.rehearsal) - self.rehearsal.tip).pow(2).mean() / 1e-6
+        return loss
+
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
             p.requires_grad_(False)
-
-        def loss() -> Tensor:
-            data = (self(train) - train.tip).pow(2).mean() / 1e-6
-            if self.rehearsal is None or self.rehearsal_weight == 0:
-                return data
-            return data + self.rehearsal_weight * (self(self.rehearsal) - self.rehearsal.tip).pow(2).mean() / 1e-6
-
         self.training_fit = True
         try:
-            train_full_batch(self.net.parameters(), loss)
+            train_full_batch(self.net.parameters(), lambda: self.objective(train))
         finally:
             self.training_fit = False
 
