@@ -181,7 +181,6 @@ class RerunLogger(Logger):
         """Alias of :attr:`experiment`."""
         return self.experiment
 
-
     def _sinks(self, rec: rr.RecordingStream) -> list[Any]:
         sinks: list[Any] = []
         if self.rrd_path is not None:
@@ -276,7 +275,7 @@ class RerunLogger(Logger):
             if is_plotted(name) and value > 0 and math.isfinite(value):
                 rec.log(log10_entity(name), rr.Scalars(math.log10(value)))
             self._latest[name] = (at, value)
-        if any(not name.startswith("train/") for name in metrics):  # eval/test results: refresh the table
+        if any(not name.startswith("train") and name != "epoch" for name in metrics):  # eval/test: refresh the table
             rec.log(SUMMARY_ENTITY, rr.TextDocument(summary_markdown(self._latest), media_type="text/markdown"))
 
     def _log_series_style(self, rec: rr.RecordingStream, name: str) -> None:

@@ -470,6 +470,13 @@ def test_hardware_recording_has_one_plot_with_every_model_and_opens_at_the_end(t
     assert [v["origin"] for v in plots] == ["errors", "sigma"]
     assert any(v["class"] == "3D" and v["origin"] == "world" for v in views)
     assert _time_panel(path, store)["TimePanelBlueprint:play_state"] == [3]  # following: opens at the end
+    # the 3D view shows the 3 lowest-RMSE models (and cc): the other paths are hidden there, not dropped
+    hidden = set()
+    for chunk in RrdReader(path).stream(store=store):
+        rb = chunk.to_record_batch()
+        if "EntityBehavior:visible" in rb.schema.names and rb.column("EntityBehavior:visible").to_pylist() == [[False]]:
+            hidden.add(chunk.entity_path.split("/overrides/")[1].removesuffix("/visualizers"))
+    assert {f"world/paths/model_{k}" for k in range(3, 10)} == {h for h in hidden if h.startswith("world/paths/")}
     (recording,) = RrdReader(path).recordings()
     assert recording.application_id == "dacr_learn_hardware"
     with pytest.raises(ValueError, match="std"):

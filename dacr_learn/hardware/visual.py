@@ -77,10 +77,25 @@ def _rerun_color(name: str, k: int) -> tuple[int, int, int]:
     return RERUN_MEASURED if name == "measured" else _color(name, k)
 
 
-def hardware_blueprint(names: list[str], with_std: bool):
-    """Layout: a large 3D view (paths, tips, backbone, ±2σ bands) beside one error plot with every
-    model overlaid (one y-scale, legend), the predicted-2σ plot when given, and the RMSE table;
-    opens at the last sample."""
+def error_axis_max(errors: dict[str, np.ndarray]) -> float:
+    """Top of the error plot [mm]: 1.3 × the largest p95 error of the models within 2× of the best
+    RMSE, so that a poor model's spikes do not flatten the others (its RMSE stays in the legend)."""
+    rmse = {name: float(np.sqrt((e**2).mean())) for name, e in errors.items()}
+    p95 = {name: float(np.percentile(e, 95)) for name, e in errors.items()}
+    best = min(rmse.values())
+    top = 1.3 * max(p95[n] for n, r in rmse.items() if r <= 2 * best)
+    return top if top > 0 else 1.3 * max(p95.values()) or 1.0  # a perfect model must not collapse the axis
+
+
+def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown_3d: int = 3):
+    """Layout for :func:`log_rerun`; ``errors``: model -> offset-removed errors [mm].
+
+    A large 3D view (measured path, the CC model, the ``shown_3d`` lowest-RMSE models and their
+    ±2σ bands; the other models are hidden there, one click away in the blueprint panel) beside
+    one error plot with every model overlaid (one y-scale from 0 to :func:`error_axis_max`,
+    legend with RMSEs), the predicted-2σ plot when given, and the RMSE table. Opens at the
+    last sample, paused.
+    """
     import rerun.blueprint as rrb
     from rerun.blueprint.components import PlayState
 
@@ -88,14 +103,22 @@ def hardware_blueprint(names: list[str], with_std: bool):
                                  end=rrb.TimeRangeBoundary.infinite())
     everything = rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
     common = dict(time_ranges=[whole], axis_x=rrb.TimeAxis(view_range=everything),  # every sample, not a window
-                  plot_legend=rrb.PlotLegend(rrb.Corner2D.LeftTop, visible=True))
-    plots = [rrb.TimeSeriesView(origin="errors", name=f"offset-removed tip error [mm], {len(names)} models", **common)]
+                  plot_legend=rrb.PlotLegend(rrb.Corner2D.RightTop, visible=True))
+    top = error_axis_max(errors)
+    plots = [rrb.TimeSeriesView(origin="errors", axis_y=rrb.ScalarAxis(range=(0.0, top)), **common,
+                                name=f"offset-removed tip error [mm], all {len(errors)} models (y 0–{top:.0f} mm)")]
     if with_std:
         plots.append(rrb.TimeSeriesView(origin="sigma", name="predicted 2σ [mm] (uncertainty)", **common))
     side = rrb.Vertical(*plots, rrb.TextDocumentView(origin="summary", name="val RMSE"),
                         row_shares=[3] * len(plots) + [2])
-    scene = rrb.Spatial3DView(origin="world", name="val tip paths: measured (white) vs predicted; CC backbone")
-    time_panel = rrb.TimePanel(timeline=SAMPLE_TIMELINE, play_state=PlayState.Following)
+    ranked = sorted(errors, key=lambda n: float((errors[n] ** 2).mean()))
+    hidden = [n for n in ranked[shown_3d:] if n != "cc"]
+    behaviour = [rrb.EntityBehavior(visible=False)]
+    overrides = {f"world/{kind}/{n}": behaviour for n in hidden for kind in ("paths", "tip", "band_2sigma")}
+    shown = ", ".join(n for n in ranked if n not in hidden)
+    scene = rrb.Spatial3DView(origin="world", overrides=overrides,
+                              name=f"val tip paths: measured (white) and {shown}; CC backbone (blue)")
+    time_panel = rrb.TimePanel(timeline=SAMPLE_TIMELINE, play_state=PlayState.Following, state="collapsed")
     return rrb.Blueprint(rrb.Horizontal(scene, side, column_shares=[3, 2]), time_panel, collapse_panels=True)
 
 
@@ -132,7 +155,8 @@ def _log_paths(rec, setup: Setup, preds: dict[str, torch.Tensor], sigma: dict[st
             rec.log(f"world/band_2sigma/{name}", band, static=True)
 
 
-def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], sigma: dict[str, np.ndarray]) -> dict[str, float]:
+def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], errors: dict[str, np.ndarray],
+                 sigma: dict[str, np.ndarray]) -> dict[str, float]:
     """Per sample (batched columns): tips, CC backbone, each model's error and 2σ [mm]; returns RMSEs [mm]."""
     import rerun as rr
 
@@ -147,7 +171,7 @@ def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], sigma: dict[
     rec.send_columns("world/robot/cc_backbone", index, rr.LineStrips3D.columns(strips=backbone))
     rmse = {}
     for k, (name, pred) in enumerate(preds.items(), start=1):
-        color, err = _color(name, k), centered_errors_mm(pred, setup.val.tip)
+        color, err = _color(name, k), errors[name]
         rmse[name] = float(np.sqrt((err**2).mean()))
         rec.log(f"world/tip/{name}", rr.Points3D.from_fields(colors=[color], radii=0.0015), static=True)
         rec.send_columns(f"world/tip/{name}", index, rr.Points3D.columns(positions=pred.numpy()))
@@ -179,12 +203,14 @@ def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
     import rerun as rr
 
     sigma = _check_std(std, preds)
+    errors = {name: centered_errors_mm(p, setup.val.tip) for name, p in preds.items()}
     rec = rr.RecordingStream("dacr_learn_hardware", recording_id=f"{setup.spec.name}-{Path(path).stem}")
-    rec.set_sinks(rr.FileSink(str(path)), default_blueprint=hardware_blueprint(list(preds), bool(sigma)))
+    rec.set_sinks(rr.FileSink(str(path)))
+    rec.send_blueprint(hardware_blueprint(errors, bool(sigma)), make_active=True, make_default=True)
     rec.send_recording_name(f"{setup.spec.name}: val tip paths ({Path(setup.val_rec.source).name})")
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     _log_paths(rec, setup, preds, sigma)
-    rmse = _log_samples(rec, setup, preds, sigma)
+    rmse = _log_samples(rec, setup, preds, errors, sigma)
     rec.log("summary", rr.TextDocument(_summary(setup, rmse), media_type="text/markdown"), static=True)
     rec.flush()
     rec.disconnect()
