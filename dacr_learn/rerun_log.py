@@ -44,7 +44,7 @@ import rerun as rr
 import torch
 from lightning.fabric.loggers.logger import rank_zero_experiment
 from lightning.fabric.utilities.logger import _convert_params
-from lightning.pytorch import Callback, LightningModule, Trainer
+from lightning.pytorch import Callback, LightningDataModule, LightningModule, Trainer
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.rank_zero import rank_zero_only, rank_zero_warn
 from matplotlib import colormaps
@@ -341,8 +341,9 @@ def run_info(trainer: Trainer) -> dict[str, Any]:
     info: dict[str, Any] = {"seed": None if seed is None else int(seed), "trainer": settings}
     dm = getattr(trainer, "datamodule", None)
     if dm is not None:
-        data = dict(dm.hparams) if getattr(dm, "hparams", None) else {
-            k: v for k, v in ((k, _plain(v)) for k, v in vars(dm).items() if not k.startswith("_")) if v is not None}
+        own = set(vars(LightningDataModule()))  # prepare_data_per_node, …: Lightning's, not the data's settings
+        mine = {k: _plain(v) for k, v in vars(dm).items() if not k.startswith("_") and k not in own}
+        data = dict(dm.hparams) if getattr(dm, "hparams", None) else {k: v for k, v in mine.items() if v is not None}
         info["data"] = {"class": type(dm).__name__, **data}
     return info
 
