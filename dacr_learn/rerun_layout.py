@@ -138,7 +138,7 @@ def default_blueprint(metric_names: Iterable[str] = (), colour_note: str = "") -
     has the linear values). Right: the validation samples in 3D (backbones, true and predicted
     tip frames), below it the workspace error cloud (``colour_note`` names its fixed colour
     scale) beside a tab of the metrics table (latest train/val/test values), hparams, CLI
-    config and the text log. The time panel opens on ``step`` at the last step, paused.
+    config and the text log. The time panel opens on ``step`` at the last step (follow mode).
     """
     groups = metric_groups(metric_names)
     log_plots = _plots(groups, log10=True) or [rrb.TimeSeriesView(origin=LOG10_ROOT, name="metrics, log10")]

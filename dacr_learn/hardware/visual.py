@@ -94,7 +94,7 @@ def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown_3d: 
     ±2σ bands; the other models are hidden there, one click away in the blueprint panel) beside
     one error plot with every model overlaid (one y-scale from 0 to :func:`error_axis_max`,
     legend with RMSEs), the predicted-2σ plot when given, and the RMSE table. Opens at the
-    last sample, paused.
+    last sample (follow mode).
     """
     import rerun.blueprint as rrb
     from rerun.blueprint.components import PlayState
