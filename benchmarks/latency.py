@@ -16,6 +16,13 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
 - ``fk_compositional_{eager_lightning, eager_folded, export_program, aoti}``: the compositional FK of
   configs/fk_tdcr3_compositional.yaml (3-segment robot: per-segment network, twist head, products),
   exported the same way (``--no-compositional`` skips these rows).
+- ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti}``: a hardware model
+  (servo commands [mm] + play state → tip, tip_std, new state; dacr_learn.hardware.inference) of
+  FTDCR v4's shape — the registry's ``cc_clarke_residual_history``, ``--hardware-members`` ensemble
+  members, untrained (latency does not depend on the weights), or a saved model (``--hardware-ckpt``)
+  — exported with ``dacr_learn.export`` (AOTInductor for ``fk`` only). ``hardware_fk_vs_fk`` in
+  the JSON: the p50 ratio to the synthetic FK's row of the same kind, measured in the same run
+  (target ≤ 2). ``--no-hardware`` skips these rows.
 
 Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs].
 The machine may be shared and noisy: compare medians, run it twice.
@@ -51,6 +58,9 @@ from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.training import FKModule, IKModule  # noqa: E402
 
 DEFAULT_CONFIG = ROOT / "configs" / "default.yaml"
+HARDWARE_ROBOT = ROOT / "configs" / "robots" / "ftdcr_v4_calibrated.yaml"
+HARDWARE_TRAIN = ROOT / "data" / "ftdcr_v4" / "train.csv"
+HARDWARE_RATIO_TARGET = 2.0
 COMPOSITIONAL_CONFIG = ROOT / "configs" / "fk_tdcr3_compositional.yaml"
 TARGETS_US = {"fk_aoti": 25.0, "jacobian_aoti": 80.0}
 
@@ -125,6 +135,59 @@ def compositional_candidates(config: Path, out: Path, aoti: bool) -> dict:
     return fns
 
 
+def hardware_checkpoint(out: Path, members: int) -> Path:
+    """A saved hardware model of FTDCR v4's shape: the registry's cc_clarke_residual_history, ``members``
+    untrained members on an uncalibrated CC model (latency does not depend on the weights)."""
+    from dacr_learn.hardware.benchmark import resolve_robot
+    from dacr_learn.hardware.ccmodel import CalibratedCC
+    from dacr_learn.hardware.checkpoint import HardwareModel, save_hardware_model
+    from dacr_learn.hardware.learned import make_split
+    from dacr_learn.hardware.recording import load_recording
+    from dacr_learn.hardware.registry import FitContext, build_model
+
+    spec, smap, _ = resolve_robot(HARDWARE_ROBOT, None, None, out, "mm")
+    rec = load_recording(HARDWARE_TRAIN, spec, "mm")
+    cc = CalibratedCC(spec).requires_grad_(False)
+    ctx = FitContext(cc, smap, rec.servo_ids, make_split(rec, spec, smap, cc))
+    nets = [build_model("cc_clarke_residual_history", ctx, seed).eval() for seed in range(members)]
+    model = HardwareModel("cc_clarke_residual_history", spec, smap, rec.servo_ids, cc, nets,
+                          examples=1e3 * rec.servo[::25])
+    return save_hardware_model(model, out / "hardware.pt")
+
+
+def hardware_candidates(ckpt: Path, out: Path, aoti: bool) -> dict:
+    """Rows of a hardware model (``hardware_*``), batch 1: servo (1, S) [mm] and play state (1, m, 2)."""
+    from dacr_learn.hardware.checkpoint import load_hardware_model
+    from dacr_learn.hardware.inference import HardwareFK
+
+    dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk",) if aoti else False)
+    model = load_hardware_model(ckpt)
+    fk = HardwareFK(model).eval()
+    servo = (model.examples[len(model.examples) // 2:][:1] if model.examples is not None else
+             torch.zeros(1, len(model.servo_ids))).float()
+    args = (servo, fk.initial_state(servo)) if model.history else (servo,)
+    loaded = {n: dexport.load(out / "hardware" / f"{n}.pt2") for n in ("fk", "jacobian")}
+    fns = {"hardware_fk_eager": lambda: fk(*args), "hardware_fk_export_program": lambda: loaded["fk"](*args),
+           "hardware_jacobian_export_program": lambda: loaded["jacobian"](*args)}
+    if aoti:
+        package = dexport.load(out / "hardware", "fk")
+        fns["hardware_fk_aoti"] = lambda: package(*args)
+    return fns
+
+
+def hardware_ratios(results: dict) -> dict[str, dict]:
+    """p50 of each exported hardware FK row / the synthetic FK row of the same kind (same run)."""
+    pairs = {"export_program": ("hardware_fk_export_program", "fk_export_program"),
+             "aoti": ("hardware_fk_aoti", "fk_aoti")}
+    out = {}
+    for kind, (hw, fk) in pairs.items():
+        if hw in results and fk in results:
+            ratio = results[hw]["p50_us"] / results[fk]["p50_us"]
+            out[kind] = {"ratio": round(ratio, 2), "target": HARDWARE_RATIO_TARGET,
+                         "met": ratio <= HARDWARE_RATIO_TARGET}
+    return out
+
+
 def _bound(fn, x):
     return lambda: fn(x)
 
@@ -154,6 +217,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--compositional-config", type=Path, default=COMPOSITIONAL_CONFIG,
                    help="shape of the compositional FK rows (fk_compositional_*)")
     p.add_argument("--no-compositional", action="store_true", help="skip the compositional FK rows")
+    p.add_argument("--no-hardware", action="store_true", help="skip the hardware model rows (hardware_*)")
+    p.add_argument("--hardware-ckpt", type=Path, default=None,
+                   help="time this saved hardware model (python -m dacr_learn.hardware --save) instead of "
+                        "an untrained one of FTDCR v4's shape")
+    p.add_argument("--hardware-members", type=int, default=3, help="ensemble members of the untrained hardware model")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     warnings.filterwarnings("ignore")
@@ -165,6 +233,9 @@ def main(argv: list[str] | None = None) -> dict:
         fns = candidates(fk, ik, out, aoti=not args.no_aoti, compile_fk=args.compile)
         if not args.no_compositional:
             fns.update(compositional_candidates(args.compositional_config, out, aoti=not args.no_aoti))
+        if not args.no_hardware:
+            hw_ckpt = args.hardware_ckpt or hardware_checkpoint(out, args.hardware_members)
+            fns.update(hardware_candidates(hw_ckpt, out, aoti=not args.no_aoti))
         with torch.inference_mode():
             seconds = time_interleaved(fns, args.rounds, args.calls, warmup=200)
         results = summarize({k: v * 1e6 for k, v in seconds.items()})   # µs
@@ -174,10 +245,16 @@ def main(argv: list[str] | None = None) -> dict:
               "model": {k: fk.hparams[k] for k in ("features", "width", "depth", "activation", "rotation")},
               "robot": fk.spec.name, "torch": torch.__version__, "cpu": platform.processor() or platform.machine(),
               "export_seconds": {k: round(v, 1) for k, v in export_seconds.items()},
-              "max_abs_deviation_fk": deviation, "results": results,
+              "max_abs_deviation_fk": deviation, "results": results, "hardware_fk_vs_fk": hardware_ratios(results),
+              "hardware_model": None if args.no_hardware else str(args.hardware_ckpt or
+                                                                  f"untrained, {args.hardware_members} members"),
               "targets_p50_us": {k: {"target": v, "met": k in results and results[k]["p50_us"] <= v}
                                  for k, v in TARGETS_US.items()}}
     print(table(results, TARGETS_US), file=sys.stderr if args.json else sys.stdout)
+    for kind, r in report["hardware_fk_vs_fk"].items():
+        print(f"hardware FK / synthetic FK p50 ({kind}, same run): {r['ratio']:.2f} "
+              f"(target ≤ {r['target']:.0f}: {'met' if r['met'] else 'MISSED'})",
+              file=sys.stderr if args.json else sys.stdout)
     if args.json:
         print(json.dumps(report))
     return report

@@ -114,7 +114,8 @@ def circle(center: Tensor, radius: float, drop: float, steps: int) -> Tensor:
 
 def errors(result: dict[str, np.ndarray]) -> dict[str, float]:
     err = np.linalg.norm(result["actual"] - result["desired"], axis=-1)
-    return {"rms_mm": 1e3 * float(np.sqrt(np.mean(err**2))), "max_mm": 1e3 * float(err.max()),
+    return {"rms_mm": 1e3 * float(np.sqrt(np.mean(err**2))), "median_mm": 1e3 * float(np.median(err)),
+            "p95_mm": 1e3 * float(np.percentile(err, 95)), "max_mm": 1e3 * float(err.max()),
             "step_p50_us": float(np.median(result["step_us"])), "steps": int(err.size)}
 
 
@@ -138,7 +139,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--period", type=int, default=400, help="control steps per lap")
     p.add_argument("--laps", type=int, default=2)
     p.add_argument("--settle", type=int, default=100, help="steps on the first target before tracking")
-    p.add_argument("--hold", type=int, default=60, help="steps per static target")
+    p.add_argument("--hold", type=int, default=200, help="steps per static target")
     p.add_argument("--gain", type=float, default=0.5)
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "control_hardware")
     args = p.parse_args(argv)
@@ -189,7 +190,8 @@ def print_summary(summary: dict, out: Path) -> None:
           f"so this checks the controller and the deployed modules, not the real robot")
     c = summary["results"]["circle"]
     print(f"  circle r = {summary['circle']['radius_mm']:.0f} mm, {summary['circle']['laps']} laps of "
-          f"{summary['circle']['period_steps']} steps: RMS {c['rms_mm']:.3f} mm, max {c['max_mm']:.3f} mm, "
+          f"{summary['circle']['period_steps']} steps: RMS {c['rms_mm']:.3f} mm, median {c['median_mm']:.4f} mm, "
+          f"p95 {c['p95_mm']:.3f} mm, max {c['max_mm']:.3f} mm, "
           f"controller step p50 {c['step_p50_us']:.0f} µs")
     for name, r in summary["results"].items():
         if name.startswith("static"):
