@@ -153,19 +153,6 @@ class ResolvedRateController:
         return scaled_dls_step(jac_v, task_step, self.space.scale, self.damping, self.config.max_step)
 
 
-def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: float, max_step: float) -> Tensor:
-    """Damped least-squares step in scaled coordinates z = u / s, for any actuation vector u (float64).
-
-    J (..., k, D) [task unit per u unit], Δx (..., k), s (D,) [u units], λ = damping [task unit] →
-    Δu = s·Δz, Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx with J̃ = J·diag(s), shortened to ‖Δz‖ ≤ max_step.
-    """
-    j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
-    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
-    dz = (j.mT @ torch.linalg.solve(a, _f64(task_step).unsqueeze(-1))).squeeze(-1)
-    norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
-    dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
-    return dz * _f64(scale)
-
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None,
              measured: Tensor | None = None) -> Tensor:
         """One control step: commanded q (..., N), target (..., 3) [m] → next command q' (..., N), float64.
@@ -181,6 +168,20 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
             task = task + _f64(feedforward)
         f = self.space.features(q) + self.clarke_step(jac_f[..., :3, :], task)
         return self.space.joints(self.space.saturate(f))
+
+
+def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: float, max_step: float) -> Tensor:
+    """Damped least-squares step in scaled coordinates z = u / s, for any actuation vector u (float64).
+
+    J (..., k, D) [task unit per u unit], Δx (..., k), s (D,) [u units], λ = damping [task unit] →
+    Δu = s·Δz, Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx with J̃ = J·diag(s), shortened to ‖Δz‖ ≤ max_step.
+    """
+    j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
+    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
+    dz = (j.mT @ torch.linalg.solve(a, _f64(task_step).unsqueeze(-1))).squeeze(-1)
+    norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
+    dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
+    return dz * _f64(scale)
 
 
 def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
