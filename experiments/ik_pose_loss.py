@@ -36,6 +36,8 @@ VARIANTS = {   # name: (features, IKModule loss settings)
     "clarke_ramp0.3_rot0.1_anchor1e-3": ("clarke", {**RAMP, "feature_weight": 1e-3}),
     "clarke_ramp0.3_rot0.1_anchor1e-2": ("clarke", {**RAMP, "feature_weight": 1e-2}),
     "raw_ramp0.3_rot0.1_anchor1e-3": ("raw", {**RAMP, "feature_weight": 1e-3}),
+    "clarke_ramp0.05_rot0.1": ("clarke", {**RAMP, "pose_ramp": 0.05}),
+    "raw_ramp0.05_rot0.1": ("raw", {**RAMP, "pose_ramp": 0.05}),
 }
 
 
