@@ -194,7 +194,8 @@ def test_slack_encoder_single_pull_bends_towards_the_tendon_with_equal_curvature
     assert torch.allclose(rho[:, 0].sum(), torch.tensor(0.002, dtype=torch.float64), atol=1e-10)
     assert torch.allclose(rho[:, 0] / lengths, (rho[0, 0] / lengths[0]).expand(3), rtol=1e-8)
     with torch.no_grad():
-        assert torch.equal(enc(torch.full((9,), -0.01, dtype=torch.float64))[:, :2], torch.zeros(3, 2, dtype=torch.float64))
+        slack = enc(torch.full((9,), -0.01, dtype=torch.float64))
+        assert torch.equal(slack[:, :2], torch.zeros(3, 2, dtype=torch.float64))
 
 
 def test_slack_encoder_gradients_match_finite_differences(spec):
@@ -203,7 +204,8 @@ def test_slack_encoder_gradients_match_finite_differences(spec):
     names = ["log_radius_scale", "rotation", "log_compliance", "pretension"]
     inputs = tuple(enc.get_parameter(n).detach().clone().requires_grad_(True) for n in names)
     assert torch.autograd.gradcheck(
-        lambda *p: torch.func.functional_call(enc, dict(zip(names, p, strict=True)), (x,))[..., :2], inputs, eps=1e-7, atol=1e-7)
+        lambda *p: torch.func.functional_call(enc, dict(zip(names, p, strict=True)), (x,))[..., :2], inputs,
+        eps=1e-7, atol=1e-7)
 
 
 def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec):
@@ -244,9 +246,11 @@ def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec
     flat = x + enc.pretension
     same = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length,
                            force_map=gmap.expand(200, -1, -1))
-    assert torch.allclose(same, rho.flatten(-2), rtol=0, atol=roundoff_tol(torch.float64, float(rho.abs().max()), ulps=1024))
+    tol = roundoff_tol(torch.float64, float(rho.abs().max()), ulps=1024)
+    assert torch.allclose(same, rho.flatten(-2), rtol=0, atol=tol)
     reduced = gmap * torch.linspace(0.6, 1.0, 9, dtype=torch.float64)[:, None]
-    rho_f = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length, force_map=reduced.expand(200, -1, -1))
+    rho_f = solve_tendon_qp(flat, gmap, bend_w.repeat_interleave(2), 1 / enc.path_length,
+                            force_map=reduced.expand(200, -1, -1))
     tension_f = (flat - rho_f @ gmap.mT).clamp_min(0) / enc.path_length
     assert torch.allclose(bend_w.repeat_interleave(2) * rho_f, tension_f @ reduced, atol=1e-12 * float(rhs.abs().max()))
     assert not torch.allclose(rho_f, rho.flatten(-2), atol=1e-6)
@@ -255,7 +259,8 @@ def test_slack_encoder_balances_forces_so_straight_tendons_cause_no_torsion(spec
     load = (torch.rand(200, 6, generator=g, dtype=torch.float64) - 0.5) * 2e-3
     rho_l = solve_tendon_qp(flat, gmap, enc.bend_weights(), 1 / enc.path_length, load=load)
     tension_l = (flat - rho_l @ gmap.mT).clamp_min(0) / enc.path_length
-    assert torch.allclose(bend_w.repeat_interleave(2) * rho_l, tension_l @ gmap + load, atol=1e-12 * float(rhs.abs().max()))
+    assert torch.allclose(bend_w.repeat_interleave(2) * rho_l, tension_l @ gmap + load,
+                          atol=1e-12 * float(rhs.abs().max()))
     assert not torch.allclose(rho_l, rho.flatten(-2), atol=1e-6)
 
 
@@ -306,7 +311,7 @@ def test_calibration_ignores_column_order_and_ids(spec, pulls):
     _, smap, _ = calibrate(shuffled, spec)
     got = {a.servo[1:]: (a.segment, a.joint) for a in smap.servos}
     truth = label_truth(pulls)
-    for sid, (seg, joint) in truth.items():          # same segments; joints up to a cyclic relabelling
+    for sid, (seg, _joint) in truth.items():          # same segments; joints up to a cyclic relabelling
         assert got[sid][0] == seg
     for seg in range(3):
         ids = [s for s in truth if truth[s][0] == seg]
