@@ -41,6 +41,15 @@ def pose_loss(pred: Tensor, target: Tensor, length: float, rot_weight: float = 1
     return pos + rot_weight * rot
 
 
+def one_cycle(opt: torch.optim.Optimizer, lr: float, total_steps: int) -> torch.optim.lr_scheduler.OneCycleLR:
+    """One-cycle schedule: warm-up over 5 % of the steps (at least 2, which OneCycleLR needs to avoid a
+    zero-length phase on very short runs), then cosine annealing to ~0 at ``total_steps``."""
+    if total_steps < 4:
+        raise ValueError(f"one-cycle schedule: expected at least 4 training steps, got {total_steps}")
+    return torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=total_steps,
+                                               pct_start=min(0.5, max(0.05, 2 / total_steps)))
+
+
 class KinematicsModule(pl.LightningModule):
     """Shared training logic. Subclasses build ``self.model`` and define ``loss`` and ``errors``.
 
@@ -81,8 +90,7 @@ class KinematicsModule(pl.LightningModule):
 
     def configure_optimizers(self):
         opt = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr, weight_decay=self.hparams.weight_decay)
-        sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=self.hparams.lr, pct_start=0.05,
-                                                    total_steps=self.trainer.estimated_stepping_batches)
+        sched = one_cycle(opt, self.hparams.lr, int(self.trainer.estimated_stepping_batches))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
@@ -166,9 +174,7 @@ class FKModule(KinematicsModule):
 
     def pose_loss(self, pred: Tensor, target: Tensor) -> Tensor:
         """Mean of ‖Δp‖²/L² + rot_weight·‖R̂ − R‖²_F over poses (..., 4, 4)."""
-        pos = ((pred[..., :3, 3] - target[..., :3, 3]) / self.spec.total_length).square().sum(-1).mean()
-        rot = (pred[..., :3, :3] - target[..., :3, :3]).square().sum((-1, -2)).mean()
-        return pos + self.hparams.rot_weight * rot
+        return pose_loss(pred, target, self.spec.total_length, self.hparams.rot_weight)
 
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
         weight = self.hparams.get("segment_weight", 0.0)
