@@ -11,6 +11,7 @@ One extra parameter, μ, fitted with the CC parameters on the training rows.
 Usage: python experiments/hardware_cv/capstan_hysteresis.py [--sigma-width 1e-4 ...] [--val | --extrap]
 (--extrap: fit on the single-segment family, test on all pairs)
 """
+
 import argparse
 import json
 import time
@@ -30,20 +31,20 @@ class CapstanCC(CalibratedCC):
     def __init__(self, mu0=0.0):
         super().__init__(spec)
         self.mu = nn.Parameter(torch.tensor(float(mu0), dtype=torch.float64))
-        self.sigma = None   # (n, N) set before calling
+        self.sigma = None  # (n, N) set before calling
 
     def clarke_with_friction(self, x):
         enc = self.encoder
         d = enc.effective_radius()
         bend_w, tendon_w = enc.bend_weights(), 1.0 / enc.path_length
-        g = enc.displacement_map()                                              # (N, 2m)
+        g = enc.displacement_map()  # (N, 2m)
         xp = x + enc.pretension
-        with torch.no_grad():                                                   # wrap angles from the frictionless shape
+        with torch.no_grad():  # wrap angles from the frictionless shape
             rho0 = solve_tendon_qp(xp, g, bend_w, tendon_w).unflatten(-1, (m, 2))
-            th = rho0.norm(dim=-1) / d                                          # (n, m)
+            th = rho0.norm(dim=-1) / d  # (n, m)
             wrap = torch.cat([torch.zeros_like(th[:, :1]), th.cumsum(-1)[:, :-1]], -1) + th / 2
-        factor = 1 - self.mu * self.sigma.unsqueeze(-1) * wrap.unsqueeze(-2)    # (n, N, m)
-        gf = g * factor.repeat_interleave(2, dim=-1)                            # (n, N, 2m) force map
+        factor = 1 - self.mu * self.sigma.unsqueeze(-1) * wrap.unsqueeze(-2)  # (n, N, m)
+        gf = g * factor.repeat_interleave(2, dim=-1)  # (n, N, 2m) force map
         rho = solve_tendon_qp(xp, g, bend_w, tendon_w, force_map=gf)
         return rho.unflatten(-1, (m, 2))
 
@@ -57,7 +58,7 @@ def direction(x, width):
 
 def fit_capstan(x, tip, sigma, mu0=0.05):
     base = CalibratedCC(spec)
-    fit_cc(base, x, tip, scales=SCALES)                      # start from the frictionless fit
+    fit_cc(base, x, tip, scales=SCALES)  # start from the frictionless fit
     cc = CapstanCC(mu0)
     cc.load_state_dict({**base.state_dict(), "mu": cc.mu.detach()})
     cc.sigma = sigma
@@ -83,8 +84,9 @@ if __name__ == "__main__":
         out = {"sigma_width_mm": w * 1e3, "mu": round(float(cc.mu), 4), "train": round(train, 3)}
         if args.val:
             x_va, tip_va = val_data()
-            x_all = torch.cat([x_tr, x_va]); sig_all = direction(x_all, w)   # causal: history runs on
-            cc.sigma = sig_all[len(x_tr):]
+            x_all = torch.cat([x_tr, x_va])
+            sig_all = direction(x_all, w)  # causal: history runs on
+            cc.sigma = sig_all[len(x_tr) :]
             with torch.no_grad():
                 out["VAL"] = round(rmse(cc(x_va), tip_va), 3)
         elif args.extrap:
@@ -92,7 +94,9 @@ if __name__ == "__main__":
             c, _ = fit_capstan(x_tr[single], tip_tr[single], sig[single])
             c.sigma = sig[~single]
             with torch.no_grad():
-                out.update(singles_to_pairs=round(rmse(c(x_tr[~single]), tip_tr[~single]), 3), mu_singles=round(float(c.mu), 4))
+                out.update(
+                    singles_to_pairs=round(rmse(c(x_tr[~single]), tip_tr[~single]), 3), mu_singles=round(float(c.mu), 4)
+                )
         else:
             folds = {}
             for f in FOLDS:

@@ -6,6 +6,7 @@ residual network (``residual_memory.py``) then corrects each segment as before.
 Usage: python experiments/hardware_cv/capstan_residual.py SEEDS [CV|EXTRAP|VAL]
 (EXTRAP: fit on the single-segment family, test on all pairs, as in residual_memory.py)
 """
+
 import json
 import sys
 import time
@@ -48,16 +49,35 @@ if __name__ == "__main__":
         tr = torch.arange(len(x_all)) < len(x_tr)
         cap, _ = fit_capstan(x_tr, tip_tr, sig[tr])
         res = [run(CFG, CapstanView(cap, sig), x_all, tip_all, tr, ~tr, s)[0] for s in seeds]
-        print(json.dumps({"name": "capstan_g01", "VAL": [round(r, 3) for r in res], "val_mean": round(float(np.mean(res)), 3),
-                          "mu": round(float(cap.mu), 4), "s": round(time.time() - t0, 1)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "name": "capstan_g01",
+                    "VAL": [round(r, 3) for r in res],
+                    "val_mean": round(float(np.mean(res)), 3),
+                    "mu": round(float(cap.mu), 4),
+                    "s": round(time.time() - t0, 1),
+                }
+            ),
+            flush=True,
+        )
     elif mode == "EXTRAP":
         sig = direction(x_tr, SIGMA_WIDTH)
         tr = torch.from_numpy(fam == "single")
         cap, _ = fit_capstan(x_tr[tr], tip_tr[tr], sig[tr])
         res = [run(CFG, CapstanView(cap, sig), x_tr, tip_tr, tr, ~tr, s)[0] for s in seeds]
-        print(json.dumps({"name": "capstan_g01", "singles_to_pairs": round(float(np.mean(res)), 3),
-                          "per_seed": [round(r, 3) for r in res], "mu": round(float(cap.mu), 4),
-                          "s": round(time.time() - t0, 1)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "name": "capstan_g01",
+                    "singles_to_pairs": round(float(np.mean(res)), 3),
+                    "per_seed": [round(r, 3) for r in res],
+                    "mu": round(float(cap.mu), 4),
+                    "s": round(time.time() - t0, 1),
+                }
+            ),
+            flush=True,
+        )
     else:
         sig = direction(x_tr, SIGMA_WIDTH)
         per = {}
@@ -65,5 +85,15 @@ if __name__ == "__main__":
             tr = torch.from_numpy(fam != f)
             cap, _ = fit_capstan(x_tr[tr], tip_tr[tr], sig[tr])
             per[f] = float(np.mean([run(CFG, CapstanView(cap, sig), x_tr, tip_tr, tr, ~tr, s)[0] for s in seeds]))
-        print(json.dumps({"name": "capstan_g01", "cv": round(float(np.mean(list(per.values()))), 3),
-                          "folds": {k: round(v, 2) for k, v in per.items()}, "seeds": seeds, "s": round(time.time() - t0, 1)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "name": "capstan_g01",
+                    "cv": round(float(np.mean(list(per.values()))), 3),
+                    "folds": {k: round(v, 2) for k, v in per.items()},
+                    "seeds": seeds,
+                    "s": round(time.time() - t0, 1),
+                }
+            ),
+            flush=True,
+        )

@@ -13,6 +13,7 @@ Static CC only. Reports train RMSE, leave-one-family-out CV RMSE and the singles
 extrapolation RMSE.
 Usage: python experiments/hardware_cv/gravity.py [--tip-mass 0 1] [--val]
 """
+
 import argparse
 import json
 import time
@@ -27,7 +28,7 @@ from dacr_learn.hardware.slack import solve_tendon_qp
 from dacr_learn.kinematics import backbone_points
 
 SCALES = {"gravity": 1e-5}  # extra fit_cc scale of the gravity load
-POINTS = 8   # backbone points per segment
+POINTS = 8  # backbone points per segment
 
 
 class GravityCC(CalibratedCC):
@@ -38,7 +39,9 @@ class GravityCC(CalibratedCC):
 
     def height(self, rho):
         """(B,) summed mocap-z of the backbone points (+ tip_mass × tip) for ρ (B, 2m)."""
-        pts = self.to_world(backbone_points(self.spec, self.encoder.features_from_clarke(rho.unflatten(-1, (m, 2))), POINTS))[..., 1:, :]
+        pts = self.to_world(
+            backbone_points(self.spec, self.encoder.features_from_clarke(rho.unflatten(-1, (m, 2))), POINTS)
+        )[..., 1:, :]
         return pts[..., 2].sum(-1) / pts.shape[-2] + self.tip_mass * pts[..., -1, 2]
 
     def encode(self, x):
@@ -47,7 +50,7 @@ class GravityCC(CalibratedCC):
         rho0 = solve_tendon_qp(xp, g, bend_w, tendon_w)
         with torch.enable_grad():
             r = rho0.detach().requires_grad_(True)
-            dz = torch.autograd.grad(self.height(r).sum(), r)[0]       # ∂Z/∂ρ at ρ₀ (B, 2m)
+            dz = torch.autograd.grad(self.height(r).sum(), r)[0]  # ∂Z/∂ρ at ρ₀ (B, 2m)
         rho = solve_tendon_qp(xp, g, bend_w, tendon_w, load=-self.gravity * dz)
         return self.encoder.features_from_clarke(rho.unflatten(-1, (m, 2)))
 
@@ -78,9 +81,15 @@ if __name__ == "__main__":
                 folds[f] = rmse(fitted(tm, x_tr[tr], tip_tr[tr])(x_tr[~tr]), tip_tr[~tr])
         single = torch.from_numpy(fam == "single")
         with torch.no_grad():
-            out["singles_to_pairs"] = round(rmse(fitted(tm, x_tr[single], tip_tr[single])(x_tr[~single]), tip_tr[~single]), 3)
-        out.update(cv=round(float(np.mean(list(folds.values()))), 3), folds={k: round(s, 2) for k, s in folds.items()},
-                   gravity=cc.gravity.item(), report=cc.report())
+            out["singles_to_pairs"] = round(
+                rmse(fitted(tm, x_tr[single], tip_tr[single])(x_tr[~single]), tip_tr[~single]), 3
+            )
+        out.update(
+            cv=round(float(np.mean(list(folds.values()))), 3),
+            folds={k: round(s, 2) for k, s in folds.items()},
+            gravity=cc.gravity.item(),
+            report=cc.report(),
+        )
         if a.val:
             x_va, tip_va = val_data()
             with torch.no_grad():

@@ -10,6 +10,7 @@ three segments), pairs bending the same / opposite way.
   after the fact; used for no choice).
 Usage: python experiments/hardware_cv/loading_bias.py [--val]
 """
+
 import argparse
 import re
 
@@ -18,9 +19,19 @@ import torch
 from common import DATA, bend_angles, fam, fit, load_recording, spec, tip_tr, train_rec, val_data, x_tr
 from residual_memory import fit_predict
 
-BINS = [(0, .5), (.5, 1), (1, 1.5), (1.5, 2), (2, 3)]
-train_kind = np.array(["pull_distal" if re.search(r"tendon[678]_", s) else "pull" if "tendon" in s else "single" if "_seg" in s
-                       else ("same" if "same" in s else "opp") for s in train_rec.labels])   # tendons 6-8: segment 3
+BINS = [(0, 0.5), (0.5, 1), (1, 1.5), (1.5, 2), (2, 3)]
+train_kind = np.array(
+    [
+        "pull_distal"
+        if re.search(r"tendon[678]_", s)
+        else "pull"
+        if "tendon" in s
+        else "single"
+        if "_seg" in s
+        else ("same" if "same" in s else "opp")
+        for s in train_rec.labels
+    ]
+)  # tendons 6-8: segment 3
 
 
 def table(title, cc, x, tip, kinds, pred):
@@ -29,7 +40,11 @@ def table(title, cc, x, tip, kinds, pred):
     r = ((pred[:, :2] - straight[:2]).norm(dim=-1) - (tip[:, :2] - straight[:2]).norm(dim=-1)) * 1e3
     th = bend_angles(cc, x).sum(-1)
     dt = torch.cat([torch.zeros(1, dtype=th.dtype), th[1:] - th[:-1]])
-    print(f"{title}  (bins of total bend: " + ", ".join(f"{a}-{b}" for a, b in BINS) + " rad; mean radial error mm (rows))")
+    print(
+        f"{title}  (bins of total bend: "
+        + ", ".join(f"{a}-{b}" for a, b in BINS)
+        + " rad; mean radial error mm (rows))"
+    )
     for k in sorted(set(kinds)):
         mk = torch.from_numpy(kinds == k)
         for name, dm in (("load", dt > 1e-4), ("unload", dt < -1e-4)):
@@ -51,11 +66,24 @@ if __name__ == "__main__":
     pairs = ~single
     cc1 = fit(x_tr[single], tip_tr[single])
     with torch.no_grad():
-        table("static CC fitted on single segments, on the pairs", cc1, x_tr[pairs], tip_tr[pairs], train_kind[~single.numpy()], cc1(x_tr[pairs]))
+        table(
+            "static CC fitted on single segments, on the pairs",
+            cc1,
+            x_tr[pairs],
+            tip_tr[pairs],
+            train_kind[~single.numpy()],
+            cc1(x_tr[pairs]),
+        )
     cfg = {"width": 1e-4, "mem_in": True, "lin": [], "c0": False}
     preds = [fit_predict(cfg, cc1, x_tr, tip_tr, single, pairs, seed)[1] for seed in (0, 1)]
-    table("(g) fitted on single segments (2 seeds averaged), on the pairs", cc1, x_tr[pairs], tip_tr[pairs],
-          train_kind[~single.numpy()], torch.stack(preds).mean(0))
+    table(
+        "(g) fitted on single segments (2 seeds averaged), on the pairs",
+        cc1,
+        x_tr[pairs],
+        tip_tr[pairs],
+        train_kind[~single.numpy()],
+        torch.stack(preds).mean(0),
+    )
     if a.val:
         x_va, tip_va = val_data()
         labels = load_recording(DATA / "val.csv", spec).labels

@@ -2,6 +2,7 @@
 refitted with the offset fixed at several values (the base translation absorbs the rest); family CV
 and the singles → pairs extrapolation score.
 Usage: python experiments/hardware_cv/marker_offset.py"""
+
 import json
 
 import numpy as np
@@ -27,7 +28,16 @@ for offset in (0.0, 2e-3, 4e-3, 6e-3, 8.43e-3, 12e-3):
         folds[f] = rmse(fit_fixed(x_tr[tr], tip_tr[tr], offset)(x_tr[~tr]), tip_tr[~tr])
     single = torch.from_numpy(fam == "single")
     extrap = rmse(fit_fixed(x_tr[single], tip_tr[single], offset)(x_tr[~single]), tip_tr[~single])
-    print(json.dumps({"marker_offset_mm": offset * 1e3, "train": round(rmse(cc(x_tr), tip_tr), 3),
-                      "singles_to_pairs": round(extrap, 3),
-                      "cv": round(float(np.mean(list(folds.values()))), 3), "folds": {k: round(v, 2) for k, v in folds.items()},
-                      "base_z_mm": round(float(cc.base_translation[2]) * 1e3, 2)}), flush=True)
+    print(
+        json.dumps(
+            {
+                "marker_offset_mm": offset * 1e3,
+                "train": round(rmse(cc(x_tr), tip_tr), 3),
+                "singles_to_pairs": round(extrap, 3),
+                "cv": round(float(np.mean(list(folds.values()))), 3),
+                "folds": {k: round(v, 2) for k, v in folds.items()},
+                "base_z_mm": round(float(cc.base_translation[2]) * 1e3, 2),
+            }
+        ),
+        flush=True,
+    )

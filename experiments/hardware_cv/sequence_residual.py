@@ -4,6 +4,7 @@ output is added to the static per-segment Clarke correction before the CC kinema
 windows (warm-up rows without loss, then loss rows of the training families), evaluated by
 running the GRU causally along the whole recording.
 Usage: python experiments/hardware_cv/sequence_residual.py HIDDEN SEEDS [CV|VAL]"""
+
 import json
 import sys
 import time
@@ -29,7 +30,8 @@ class SeqResidual(nn.Module):
         self.static = mlp(2 + m, 2, hidden=64)
         self.gru = nn.GRU(4 + m, hidden, batch_first=True)
         self.head = nn.Linear(hidden, 2)
-        nn.init.zeros_(self.head.weight); nn.init.zeros_(self.head.bias)
+        nn.init.zeros_(self.head.weight)
+        nn.init.zeros_(self.head.bias)
 
     def forward(self, feats):
         """feats (B, T, m, 4) sequences → tips (B, T, 3)."""
@@ -37,7 +39,7 @@ class SeqResidual(nn.Module):
         step = torch.cat([torch.zeros_like(rho[:, :1]), rho.diff(dim=1)], 1)
         hot = self.onehot.expand(*rho.shape[:-1], -1)
         static = self.static(torch.cat([rho / self.rho_std, hot], -1))
-        seq_in = torch.cat([rho / self.rho_std, step / self.step_std, hot], -1)       # (B, T, m, 4+m)
+        seq_in = torch.cat([rho / self.rho_std, step / self.step_std, hot], -1)  # (B, T, m, 4+m)
         b, t = seq_in.shape[:2]
         out, _ = self.gru(seq_in.transpose(1, 2).reshape(b * m, t, -1))
         dyn = self.head(out).reshape(b, m, t, 2).transpose(1, 2)
@@ -56,12 +58,12 @@ def train_and_predict(cc, x_all, tip_all, train_mask, hidden, seed):
         feats = cc.encoder(x_all)
     torch.manual_seed(seed)
     model = SeqResidual(cc, feats[train_mask], hidden)
-    wins = [w for w in windows(len(x_all)) if train_mask[w[1]:w[2]].any()]
+    wins = [w for w in windows(len(x_all)) if train_mask[w[1] : w[2]].any()]
     length = WARMUP + WINDOW
-    idx = torch.stack([torch.arange(e - length, e).clamp_min(0) for _, _, e in wins])       # (W, L)
+    idx = torch.stack([torch.arange(e - length, e).clamp_min(0) for _, _, e in wins])  # (W, L)
     loss_mask = torch.zeros_like(idx, dtype=torch.bool)
-    for i, (a, s, e) in enumerate(wins):
-        loss_mask[i, length - (e - s):] = train_mask[s:e]
+    for i, (_, s, e) in enumerate(wins):
+        loss_mask[i, length - (e - s) :] = train_mask[s:e]
     fw, tw = feats[idx], tip_all[idx]
     params = [p for n_, p in model.named_parameters() if not n_.startswith("cc.")]
     opt = torch.optim.Adam(params, lr=LR)
@@ -71,13 +73,15 @@ def train_and_predict(cc, x_all, tip_all, train_mask, hidden, seed):
         err = (model(fw) - tw).pow(2).sum(-1)
         loss = err[loss_mask].mean() / 1e-6
         loss.backward()
-        opt.step(); sched.step()
+        opt.step()
+        sched.step()
     with torch.no_grad():
         return model(feats.unsqueeze(0))[0]
 
 
 if __name__ == "__main__":
-    hidden = int(sys.argv[1]); seeds = [int(s) for s in sys.argv[2].split(",")]
+    hidden = int(sys.argv[1])
+    seeds = [int(s) for s in sys.argv[2].split(",")]
     mode = sys.argv[3] if len(sys.argv) > 3 else "CV"
     t0 = time.time()
     if mode == "VAL":
@@ -86,13 +90,33 @@ if __name__ == "__main__":
         tr = torch.arange(len(x_all)) < len(x_tr)
         cc = fit(x_tr, tip_tr)
         res = [rmse(train_and_predict(cc, x_all, tip_all, tr, hidden, s)[~tr], tip_va) for s in seeds]
-        print(json.dumps({"hidden": hidden, "VAL": [round(r, 3) for r in res], "val_mean": round(float(np.mean(res)), 3),
-                          "s": round(time.time() - t0, 1)}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "hidden": hidden,
+                    "VAL": [round(r, 3) for r in res],
+                    "val_mean": round(float(np.mean(res)), 3),
+                    "s": round(time.time() - t0, 1),
+                }
+            ),
+            flush=True,
+        )
     else:
         folds = {}
         for f in FOLDS:
             tr = torch.from_numpy(fam != f)
             cc = fit(x_tr[tr], tip_tr[tr])
-            folds[f] = float(np.mean([rmse(train_and_predict(cc, x_tr, tip_tr, tr, hidden, s)[~tr], tip_tr[~tr]) for s in seeds]))
-        print(json.dumps({"hidden": hidden, "cv": round(float(np.mean(list(folds.values()))), 3),
-                          "folds": {k: round(v, 2) for k, v in folds.items()}, "s": round(time.time() - t0, 1)}), flush=True)
+            folds[f] = float(
+                np.mean([rmse(train_and_predict(cc, x_tr, tip_tr, tr, hidden, s)[~tr], tip_tr[~tr]) for s in seeds])
+            )
+        print(
+            json.dumps(
+                {
+                    "hidden": hidden,
+                    "cv": round(float(np.mean(list(folds.values()))), 3),
+                    "folds": {k: round(v, 2) for k, v in folds.items()},
+                    "s": round(time.time() - t0, 1),
+                }
+            ),
+            flush=True,
+        )

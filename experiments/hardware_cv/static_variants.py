@@ -14,6 +14,7 @@ the radial bias of loading rows by family (positive = over-bends).
 Usage: python experiments/hardware_cv/coupling.py VARIANT[,VARIANT...] [--val]
   VARIANT: base | pass1 | pass | stiff | marker3, or several joined by '+'
 """
+
 import argparse
 import json
 import time
@@ -35,7 +36,7 @@ class CoupledEncoder(SlackAwareEncoder):
         super().__init__(spec, compliance=1e-6)
         self.variant = variant
         owner = self.segment_of_joint
-        self.register_buffer("passing", (torch.arange(m)[None, :] < owner[:, None]).double())   # (N, m)
+        self.register_buffer("passing", (torch.arange(m)[None, :] < owner[:, None]).double())  # (N, m)
         n_pass = 1 if "pass1" in variant else m
         self.pass_log_scale = nn.Parameter(torch.zeros(n_pass, dtype=torch.float64))
         self.log_stiffness = nn.Parameter(torch.zeros(m - 1, dtype=torch.float64))
@@ -44,8 +45,8 @@ class CoupledEncoder(SlackAwareEncoder):
         g = super().displacement_map()
         if "pass" not in self.variant:
             return g
-        scale = self.pass_log_scale.expand(m).exp()                                # (m,)
-        factor = 1 + self.passing * (scale - 1)                                    # (N, m)
+        scale = self.pass_log_scale.expand(m).exp()  # (m,)
+        factor = 1 + self.passing * (scale - 1)  # (N, m)
         return g * factor.repeat_interleave(2, dim=-1)
 
     def bend_weights(self):
@@ -84,7 +85,9 @@ def fitted(variant, x, tip):
 
 
 labels = np.array(train_rec.labels)
-kind = np.array(["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp") for s in labels])
+kind = np.array(
+    ["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp") for s in labels]
+)
 
 
 def loading_bias(cc, x, tip, kinds):
@@ -111,10 +114,17 @@ if __name__ == "__main__":
             folds[f] = rmse(fitted(v, x_tr[tr], tip_tr[tr])(x_tr[~tr]).detach(), tip_tr[~tr])
         single = torch.from_numpy(fam == "single")
         extrap = rmse(fitted(v, x_tr[single], tip_tr[single])(x_tr[~single]).detach(), tip_tr[~single])
-        out.update(cv=round(float(np.mean(list(folds.values()))), 3), singles_to_pairs=round(extrap, 3), folds={k: round(s, 2) for k, s in folds.items()},
-                   load_bias_train=loading_bias(cc, x_tr, tip_tr, kind),
-                   params={n: [round(t, 4) for t in p.detach().flatten().tolist()] for n, p in cc.named_parameters()
-                           if "pass" in n or "stiff" in n or "marker" in n or "tip_offset" in n})
+        out.update(
+            cv=round(float(np.mean(list(folds.values()))), 3),
+            singles_to_pairs=round(extrap, 3),
+            folds={k: round(s, 2) for k, s in folds.items()},
+            load_bias_train=loading_bias(cc, x_tr, tip_tr, kind),
+            params={
+                n: [round(t, 4) for t in p.detach().flatten().tolist()]
+                for n, p in cc.named_parameters()
+                if "pass" in n or "stiff" in n or "marker" in n or "tip_offset" in n
+            },
+        )
         if a.val:
             x_va, tip_va = val_data()
             out["VAL"] = round(rmse(cc(x_va).detach(), tip_va), 3)

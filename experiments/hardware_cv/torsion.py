@@ -3,6 +3,7 @@ moment on segment k is d·Σ_tendons T_i κ_k × ê_i = cross(ρ_k, Σ_{j≥k} F
 force vector of segment j. At the encoder's equilibrium each segment bends along the total tendon
 force through it, so the cross product vanishes: the model predicts no twist. This script checks
 that numerically (max |moment| relative to its scale). Usage: python experiments/hardware_cv/torsion.py"""
+
 import torch
 from common import fit, m, tip_tr, val_data, x_tr
 
@@ -15,14 +16,15 @@ cc = fit(x_tr, tip_tr)
 enc = cc.encoder
 for name, x in (("train", x_tr), ("val", val_data()[0])):
     with torch.no_grad():
-        rho = enc.clarke(x)                                                   # (n, m, 2)
-        g = enc.displacement_map()                                            # (N, 2m)
+        rho = enc.clarke(x)  # (n, m, 2)
+        g = enc.displacement_map()  # (N, 2m)
         tension = (x + enc.pretension - rho.flatten(-2) @ g.mT).clamp_min(0) / enc.path_length
         own = g.unflatten(-1, (m, 2))[torch.arange(g.shape[0]), enc.segment_of_joint]
-        direction = own / own.norm(dim=-1, keepdim=True)                      # (N, 2) joint angle
+        direction = own / own.norm(dim=-1, keepdim=True)  # (N, 2) joint angle
         onehot = torch.nn.functional.one_hot(enc.segment_of_joint, m).to(x.dtype)
-        force = torch.einsum("ni,ij,ic->njc", tension, onehot, direction)     # (n, m, 2)
-        through = force.flip(-2).cumsum(-2).flip(-2)                          # Σ_{j≥k}
+        force = torch.einsum("ni,ij,ic->njc", tension, onehot, direction)  # (n, m, 2)
+        through = force.flip(-2).cumsum(-2).flip(-2)  # Σ_{j≥k}
         moment = cross(rho, through)
         scale = rho.norm(dim=-1) * through.norm(dim=-1)
-    print(f"{name}: max |cross(rho_k, F_through_k)| / (|rho_k| |F|) = {float((moment.abs() / scale.clamp_min(1e-30)).max()):.2e}")
+    worst = float((moment.abs() / scale.clamp_min(1e-30)).max())
+    print(f"{name}: max |cross(rho_k, F_through_k)| / (|rho_k| |F|) = {worst:.2e}")
