@@ -207,3 +207,19 @@ def test_support_score_is_larger_outside_the_training_box():
     assert float(score_out.min()) > 1.0
     between = 0.5 * (inside[:-1] + inside[1:])                             # between neighbouring training rows
     assert float(model.support(between).max()) <= 1.0
+
+
+def test_the_cc_model_saves_as_a_zero_residual_member(tmp_path):
+    from dacr_learn.hardware.checkpoint import cc_as_residual
+
+    model = _model(history=False, members=1)
+    member = cc_as_residual(make_split(_recording(200, 0), model.spec, model.smap, model.cc), model.cc)
+    model.members[:] = [member]
+    rec = _recording(50, 7)
+    split = make_split(rec, model.spec, model.smap, model.cc)
+    with torch.no_grad():
+        tip = member(split)
+    assert torch.allclose(tip, split.cc_tip.double(), rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))
+    loaded = load_hardware_model(save_hardware_model(model, tmp_path / "cc.pt"))
+    with torch.no_grad():
+        assert torch.allclose(_batch_prediction(loaded, rec), tip, rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))

@@ -154,14 +154,28 @@ def _build(blob: dict) -> HardwareModel:
                          blob.get("examples"), dict(blob.get("info") or {}))
 
 
+def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
+    """The calibrated CC model (registry name ``cc``) in the CC Clarke-residual form: a correction network
+    whose output layer is zero, so it predicts exactly the CC model's tips — and saves, exports and runs in
+    a controller like the learned members."""
+    model = CCClarkeResidual(train, cc)
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
+    return model.eval()
+
+
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
                        info: dict | None = None) -> HardwareModel:
-    """Train model ``name`` (a CC Clarke-residual model) once per seed on the whole training recording
+    """Train model ``name`` (a CC Clarke-residual model, or ``cc`` itself) once per seed on the whole training recording
     of a :class:`~.benchmark.Setup` and bundle the ensemble with the support model of the training
     commands (labels = pattern labels) and, if given, a σ calibration fitted on held-out residuals."""
     from .benchmark import fit_model
 
-    members = [fit_model(name, setup, seed).eval() for seed in seeds]
+    if name == "cc":                    # deterministic: one member, the CC model itself
+        members = [cc_as_residual(setup.train, setup.cc)]
+    else:
+        members = [fit_model(name, setup, seed).eval() for seed in seeds]
     support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
     return HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, members,
                          sigma=sigma, support=support, examples=1e3 * setup.train_rec.servo[:256],
