@@ -284,6 +284,16 @@ def label_truth(rec) -> dict[str, tuple[int, int]]:
 CALIBRATION_TOL = float(torch.finfo(torch.float64).eps) ** 0.5
 
 
+def assert_matches_committed_calibration(cal_spec: RobotSpec, smap: ServoMap, calibrated: Path) -> None:
+    """The committed calibrated YAML and servo map are this result: the same structure and servo ids,
+    floats equal up to the rounding of another CPU's BLAS/LAPACK kernels (angles [rad], lengths [m])."""
+    assert_tree_close(cal_spec.to_dict(), RobotSpec.from_yaml(calibrated).to_dict(), atol=CALIBRATION_TOL)
+    committed = ServoMap.from_yaml(calibrated.parent / "servo_maps" / calibrated.name)
+    assert_tree_close([dataclasses.asdict(a) for a in smap.servos], [dataclasses.asdict(a) for a in committed.servos],
+                      atol=CALIBRATION_TOL)
+    assert smap.slack_level == pytest.approx(committed.slack_level, rel=0, abs=CALIBRATION_TOL)
+
+
 def test_calibration_recovers_the_servo_map_of_ftdcr_v4(spec, pulls):
     truth = label_truth(pulls)
     assert len(truth) == 9
@@ -295,13 +305,7 @@ def test_calibration_recovers_the_servo_map_of_ftdcr_v4(spec, pulls):
     for seg, expected in zip(report["segments"], (-174.0, -145.0, -115.0), strict=True):
         assert seg["offset_deg"] == pytest.approx(expected, abs=3.0)
         assert seg["angle_rms_deg"] < 8.0
-    # the committed calibrated YAML and servo map are this result: the same structure and servo ids,
-    # floats equal up to the rounding of another CPU's BLAS/LAPACK kernels (angles [rad], lengths [m])
-    assert_tree_close(cal_spec.to_dict(), RobotSpec.from_yaml(CALIBRATED).to_dict(), atol=CALIBRATION_TOL)
-    committed = ServoMap.from_yaml(CALIBRATED.parent / "servo_maps" / CALIBRATED.name)
-    assert_tree_close([dataclasses.asdict(a) for a in smap.servos], [dataclasses.asdict(a) for a in committed.servos],
-                      atol=CALIBRATION_TOL)
-    assert smap.slack_level == pytest.approx(committed.slack_level, rel=0, abs=CALIBRATION_TOL)
+    assert_matches_committed_calibration(cal_spec, smap, CALIBRATED)
 
 
 def test_calibration_ignores_column_order_and_ids(spec, pulls):

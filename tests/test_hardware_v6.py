@@ -6,17 +6,14 @@ design (a hidden hold-out): the CLI scores the models with the train-only proxie
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
 import pytest
-from conftest import assert_tree_close
-from test_hardware import CALIBRATION_TOL, label_truth
+from test_hardware import assert_matches_committed_calibration, label_truth
 
 from dacr_learn.hardware.calibration import calibrate
 from dacr_learn.hardware.recording import load_recording
-from dacr_learn.hardware.servo_map import ServoMap
 from dacr_learn.robot import RobotSpec
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,11 +37,7 @@ def test_calibration_recovers_the_servo_map_of_ftdcr_v6():
     assert all(a.sign == 1 for a in smap.servos)
     for seg in report["segments"]:
         assert seg["angle_rms_deg"] < 8.0
-    assert_tree_close(cal_spec.to_dict(), RobotSpec.from_yaml(CALIBRATED).to_dict(), atol=CALIBRATION_TOL)
-    committed = ServoMap.from_yaml(CALIBRATED.parent / "servo_maps" / CALIBRATED.name)
-    assert_tree_close([dataclasses.asdict(a) for a in smap.servos], [dataclasses.asdict(a) for a in committed.servos],
-                      atol=CALIBRATION_TOL)
-    assert smap.slack_level == pytest.approx(committed.slack_level, rel=0, abs=CALIBRATION_TOL)
+    assert_matches_committed_calibration(cal_spec, smap, CALIBRATED)
 
 
 @pytest.mark.slow
