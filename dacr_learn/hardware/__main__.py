@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> dict:
 
         model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]})
         path = save_hardware_model(model, args.save / "model.pt")
-        print(f"saved the default model {report['default_model']} ({len(args.seeds)} members) to {path}")
+        print(f"saved the default model {report['default_model']} ({len(model.members)} members) to {path}")
         warning = support_warning(model, setup.val) if setup.val is not None else None
         if warning:
             print(warning)
