@@ -84,8 +84,9 @@ def checkpoint_task(ckpt: Path, raw: Any) -> str:
               f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
 
 
-def load_lightning_checkpoint(ckpt: str | Path):
+def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
     """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
+    ``blob``: the file's content when the caller has loaded it already (weights-only).
 
     Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
     (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
@@ -93,7 +94,7 @@ def load_lightning_checkpoint(ckpt: str | Path):
     from .training import FKModule, IKModule  # Lightning is needed to export, not to run
 
     ckpt = Path(ckpt)
-    task = checkpoint_task(ckpt, load_torch_file(ckpt, CHECKPOINT))
+    task = checkpoint_task(ckpt, load_torch_file(ckpt, CHECKPOINT) if blob is None else blob)
     cls = FKModule if task == "fk" else IKModule
     try:
         return task, cls.load_from_checkpoint(ckpt, map_location="cpu").eval()
@@ -172,11 +173,13 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
     deviations are recorded (``max_abs_deviation``) and above VERIFY_TOLERANCE the export fails.
     """
     ckpt, out = Path(ckpt), Path(out)
-    from .hardware.export import export_hardware, is_hardware_checkpoint
+    from .hardware.checkpoint import hardware_model_from_blob, is_hardware_blob
+    from .hardware.export import export_hardware
 
-    if ckpt.is_file() and is_hardware_checkpoint(ckpt):       # a saved hardware model (hardware/checkpoint.py)
-        return export_hardware(ckpt, out, dtype=dtype, aoti=aoti)
-    task, lit = load_lightning_checkpoint(ckpt)
+    blob = load_torch_file(ckpt, CHECKPOINT)                  # loaded once: sniffed here, reused below
+    if is_hardware_blob(blob):                                # a saved hardware model (hardware/checkpoint.py)
+        return export_hardware(ckpt, out, dtype=dtype, aoti=aoti, model=hardware_model_from_blob(blob, ckpt))
+    task, lit = load_lightning_checkpoint(ckpt, blob)
     lit = lit.to(dtype)
     out.mkdir(parents=True, exist_ok=True)
     spec, examples = lit.spec, _examples(lit.spec, 256, dtype)

@@ -113,7 +113,17 @@ def load_hardware_model(path: str | Path) -> HardwareModel:
     except Exception as err:
         raise ValueError(f"{path}: not a weights-only hardware model checkpoint ({type(err).__name__}: "
                          f"{str(err)[:200]})") from None
-    if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+    return hardware_model_from_blob(blob, path)
+
+
+def is_hardware_blob(blob: Any) -> bool:
+    """True for the loaded content of a file written by :func:`save_hardware_model`."""
+    return isinstance(blob, dict) and blob.get("format") == FORMAT
+
+
+def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
+    """The model in a checkpoint's loaded content (``path`` names the file in errors)."""
+    if not is_hardware_blob(blob):
         got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise ValueError(f"{path}: expected a hardware model checkpoint of format {FORMAT!r}, got {got!r}")
     missing = [k for k in _KEYS if k not in blob]

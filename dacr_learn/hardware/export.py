@@ -20,7 +20,6 @@ from torch import Tensor, nn
 
 from .. import export as dexport
 from ..checks import check_tensor
-from .checkpoint import FORMAT as CHECKPOINT_FORMAT
 from .checkpoint import HardwareModel, load_hardware_model
 from .inference import HardwareFK, HardwareJacobian
 
@@ -29,15 +28,6 @@ UNITS = {"servo": "mm (commanded tendon displacement, columns in servo_ids order
          "tip": "m (motion-capture frame)", "tip_std": "m (ensemble spread, calibrated if the checkpoint says so)",
          "jacobian": "m/mm, d tip / d servo (rows x, y, z; columns servo_ids)",
          "state": "m (play operator state per segment, Clarke coordinates)"}
-
-
-def is_hardware_checkpoint(path: str | Path) -> bool:
-    """True for a file written by :func:`.checkpoint.save_hardware_model` (weights-only load)."""
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception:
-        return False
-    return isinstance(blob, dict) and blob.get("format") == CHECKPOINT_FORMAT
 
 
 class InitialState(nn.Module):
@@ -88,10 +78,11 @@ def examples(model: HardwareModel, dtype: torch.dtype) -> tuple[Tensor, Tensor |
 
 
 def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
-                    aoti: bool | tuple[str, ...] = True) -> dict[str, Any]:
-    """Export a hardware checkpoint's modules to ``out``; returns the metadata (also written)."""
+                    aoti: bool | tuple[str, ...] = True, model: HardwareModel | None = None) -> dict[str, Any]:
+    """Export a hardware checkpoint's modules to ``out``; returns the metadata (also written).
+    ``model``: the checkpoint's model when the caller has loaded it already (not loaded again)."""
     ckpt, out = Path(ckpt), Path(out)
-    model = load_hardware_model(ckpt)
+    model = model if model is not None else load_hardware_model(ckpt)
     out.mkdir(parents=True, exist_ok=True)
     servo, state = examples(model, dtype)
     sig = signatures(model)
