@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ..kinematics import forward_kinematics
+from ..kinematics import _TAYLOR_BELOW, bending_coefficients, forward_kinematics
 from .checkpoint import HardwareModel
 from .learned import RESIDUAL_RHO_SCALE
 from .uncertainty import SigmaCalibration
@@ -36,21 +36,17 @@ QP_ITERATIONS = 8  # the active set repeats after 2–5 iterations on the record
 
 
 def _bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """s = sin φ/φ, f = (1 − cos φ)/φ² and their derivatives w.r.t. φ² (Taylor branch near 0)."""
-    small = phi_sq < 1e-2
+    """s = sin φ/φ, f = (1 − cos φ)/φ² (:func:`~dacr_learn.kinematics.bending_coefficients`) and their
+    derivatives w.r.t. φ² (Taylor branch near 0, below the same threshold)."""
+    s, f = bending_coefficients(phi_sq)
+    small = phi_sq < _TAYLOR_BELOW
     phi_sq_big = torch.where(small, 1.0, phi_sq)
-    phi = torch.sqrt(phi_sq_big)
-    s_big, half = torch.sin(phi) / phi, torch.sin(0.5 * phi) / phi
-    f_big = 2 * half * half
     y = torch.where(small, phi_sq, 0.0)
-    s_small = (((y / 362880 - 1 / 5040) * y + 1 / 120) * y - 1 / 6) * y + 1
-    f_small = (((y / 3628800 - 1 / 40320) * y + 1 / 720) * y - 1 / 24) * y + 0.5
     ds_small = ((4 * y / 362880 - 3 / 5040) * y + 2 / 120) * y - 1 / 6
     df_small = ((4 * y / 3628800 - 3 / 40320) * y + 2 / 720) * y - 1 / 24
-    ds_big = (torch.cos(phi) - s_big) / (2 * phi_sq_big)
-    df_big = (s_big - 2 * f_big) / (2 * phi_sq_big)
-    pick = lambda a, b: torch.where(small, a, b)  # noqa: E731
-    return pick(s_small, s_big), pick(f_small, f_big), pick(ds_small, ds_big), pick(df_small, df_big)
+    ds_big = (torch.cos(torch.sqrt(phi_sq_big)) - s) / (2 * phi_sq_big)   # s, f of the big branch where used
+    df_big = (s - 2 * f) / (2 * phi_sq_big)
+    return s, f, torch.where(small, ds_small, ds_big), torch.where(small, df_small, df_big)
 
 
 def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
