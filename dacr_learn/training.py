@@ -41,6 +41,21 @@ def pose_loss(pred: Tensor, target: Tensor, length: float, rot_weight: float = 1
     return pos + rot_weight * rot
 
 
+def limit_excess(spec: RobotSpec, features: Tensor) -> Tensor:
+    """Squared excess of feature tensors (..., m, 4) over the robot's sampling limits → (...):
+    Σ_k (‖ρ_k‖/(d_k·bend_k) − 1)₊² + ((β_k, α_k) beyond their range / half the range)²
+    (dimensionless, 0 inside the limits; β, α only where the segment extends / twists)."""
+    total = features.new_zeros(features.shape[:-2])
+    for k, seg in enumerate(spec.segments):
+        f = features[..., k, :]
+        total = total + (torch.linalg.vector_norm(f[..., :2], dim=-1) / (seg.radius * seg.bend) - 1).relu().square()
+        for col, lim in ((2, seg.length_range), (3, seg.twist_range)):
+            if lim is not None:
+                half = (lim[1] - lim[0]) / 2
+                total = total + (((f[..., col] - (lim[0] + lim[1]) / 2).abs() - half) / half).relu().square()
+    return total
+
+
 def one_cycle(opt: torch.optim.Optimizer, lr: float, total_steps: int) -> torch.optim.lr_scheduler.OneCycleLR:
     """One-cycle schedule: warm-up over 5 % of the steps (at least 2, which OneCycleLR needs to avoid a
     zero-length phase on very short runs), then cosine annealing to ~0 at ``total_steps``."""
@@ -201,6 +216,9 @@ class IKModule(KinematicsModule):
     pose) has a manifold of joint solutions per pose; the feature term regresses to their
     conditional mean, which is not a solution, while the pose term accepts any solution.
 
+    ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps predictions inside
+    the sampled joint limits (a loss that accepts any solution otherwise drifts out of them).
+
     ``pose_ramp`` (a fraction of the training steps) is a curriculum: the loss starts as the pure
     feature term (weights 1, 0) and moves linearly to (``feature_weight``, ``pose_weight``) over
     that fraction, then stays there. The network first learns the smooth conditional mean, and the
@@ -211,8 +229,10 @@ class IKModule(KinematicsModule):
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, feature_weight: float = 1.0,
-                 pose_weight: float = 0.0, rot_weight: float = 1.0, pose_ramp: float = 0.0):
-        for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight)):
+                 pose_weight: float = 0.0, rot_weight: float = 1.0, pose_ramp: float = 0.0,
+                 limit_weight: float = 0.0):
+        for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight),
+                        ("limit_weight", limit_weight)):
             if not w >= 0:
                 raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
         if not 0 <= pose_ramp <= 1:
@@ -243,9 +263,14 @@ class IKModule(KinematicsModule):
         loss = z.new_zeros(())
         if wf:
             loss = loss + wf * (z - self.model.out_norm(self.model.target(batch["q"]))).square().mean()
+        lw = self.hparams.get("limit_weight", 0.0)
+        if wp or lw:
+            features = self.model.decode_features(z)
         if wp:
-            pred = forward_kinematics(self.spec, self.model.decode_features(z))
+            pred = forward_kinematics(self.spec, features)
             loss = loss + wp * pose_loss(pred, batch["pose"], self.spec.total_length, self.hparams.rot_weight)
+        if lw:
+            loss = loss + lw * limit_excess(self.spec, features).mean()
         return loss
 
     def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:

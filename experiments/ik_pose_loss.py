@@ -1,81 +1,119 @@
 """Exploration behind the IK pose loss (docs/ablation.md, "Multi-segment IK with a pose loss").
 
-    .venv/bin/python experiments/ik_pose_loss.py --steps 2000 --n-train 100000 --variants all
+    .venv/bin/python experiments/ik_pose_loss.py --steps 8000 --n-train 1000 --loss ramp0.05_limit1 --seeds 0 1
 
-Trains the IK of the 3-segment coupled robot with each loss variant through the ablation runner's
-``fit`` (fixed steps, batch 256, MLP 4x64, seed 0) and prints, on the ablation's fixed clean test set:
-the mean position / rotation error of the analytic FK of the predicted joints, the joint error against
-the sampled joints, the constraint residual and the fraction of predictions outside the joint limits
-(a bend angle above the segment's limit or a length outside its range). "ramp": ``pose_ramp``, the
-feature loss moved linearly to the pose loss over that fraction of the steps; "anchor": the feature
-weight kept beside the pose loss after the ramp.
+Trains the IK of the 3-segment coupled robot, with Clarke and raw features alike, for each named loss
+setting through the ablation runner's ``fit`` (fixed steps, batch 256, MLP 4x64 unless ``--set``
+changes it) and prints one line per training, appended as CSV to ``--csv``: on the training samples
+(``train``, at most 2 000 of them), on a validation split (2 000 fresh samples, seed 2000003: the one
+used for choices) and on the ablation's fixed clean test set (``test``, reported): the mean position
+[mm] / rotation [deg] error of the analytic FK of the predicted joints and the fraction of predictions
+outside the joint limits (a bend angle above the segment's limit or a length outside its range), plus
+the test joint error and constraint residual. "rampX": ``pose_ramp`` X (the feature loss moved linearly
+to the pose loss over that fraction of the steps); "limitX": ``limit_weight`` X (joint-limit penalty);
+"anchorX": a feature weight X kept beside the pose loss; "rotX": the rotation weight; "wdX": AdamW decay.
 """
 from __future__ import annotations
 
 import argparse
+import csv
+import re
+from pathlib import Path
 
 import torch
 
 from dacr_learn.ablation import runner
+from dacr_learn.data import generate
 from dacr_learn.robot import RobotSpec
+from dacr_learn.training import limit_excess
 
 ROBOT = "configs/robots/tdcr_3seg_coupled.yaml"
 CONDITIONS = {"joint_noise": 2e-4, "offset": 1e-3, "pose_noise_pos": 5e-4, "pose_noise_rot": 8.7e-3}
-RAMP = {"feature_weight": 0.0, "pose_weight": 1.0, "rot_weight": 0.1, "pose_ramp": 0.3}
-VARIANTS = {   # name: (features, IKModule loss settings)
-    "clarke_feature": ("clarke", {}),
-    "raw_feature": ("raw", {}),
-    "clarke_pose": ("clarke", {"feature_weight": 0.0, "pose_weight": 1.0}),
-    "raw_pose": ("raw", {"feature_weight": 0.0, "pose_weight": 1.0}),
-    "clarke_pose_rot0.1": ("clarke", {"feature_weight": 0.0, "pose_weight": 1.0, "rot_weight": 0.1}),
-    "clarke_ramp0.3_rot0.1": ("clarke", RAMP),
-    "clarke_ramp0.3_rot0.1_anchor1e-4": ("clarke", {**RAMP, "feature_weight": 1e-4}),
-    "raw_ramp0.3_rot0.1_anchor1e-4": ("raw", {**RAMP, "feature_weight": 1e-4}),
-    "clarke_ramp0.3_rot1_anchor1e-4": ("clarke", {**RAMP, "feature_weight": 1e-4, "rot_weight": 1.0}),
-    "clarke_ramp0.6_rot0.1_anchor1e-4": ("clarke", {**RAMP, "feature_weight": 1e-4, "pose_ramp": 0.6}),
-    "clarke_ramp0.3_rot0.1_anchor1e-3": ("clarke", {**RAMP, "feature_weight": 1e-3}),
-    "clarke_ramp0.3_rot0.1_anchor1e-2": ("clarke", {**RAMP, "feature_weight": 1e-2}),
-    "raw_ramp0.3_rot0.1_anchor1e-3": ("raw", {**RAMP, "feature_weight": 1e-3}),
-    "clarke_ramp0.05_rot0.1": ("clarke", {**RAMP, "pose_ramp": 0.05}),
-    "raw_ramp0.05_rot0.1": ("raw", {**RAMP, "pose_ramp": 0.05}),
-}
+POSE = {"feature_weight": 0.0, "pose_weight": 1.0, "rot_weight": 0.1, "pose_ramp": 0.3}
+TAGS = {"ramp": "pose_ramp", "limit": "limit_weight", "anchor": "feature_weight", "rot": "rot_weight",
+        "wd": "weight_decay", "width": "width", "depth": "depth", "lr": "lr"}
+VAL_SEED, VAL_N = 2000003, 2000
+
+
+def loss_settings(name: str) -> dict:
+    """IKModule settings of a loss name: "feature" (the feature MSE alone), or "pose" plus any of the
+    ``TAGS`` joined by "_" (e.g. "ramp0.05_limit1"): the pose loss with those settings changed."""
+    if name == "feature":
+        return {}
+    settings = dict(POSE)
+    for part in name.split("_"):
+        m = re.fullmatch(r"([a-z]+)([-+0-9.e]+)", part)
+        if part != "pose" and (m is None or m[1] not in TAGS):
+            raise ValueError(f"loss {name!r}: unknown part {part!r}, expected 'pose' or one of {sorted(TAGS)} "
+                             "followed by a number")
+        if m is not None:
+            value = float(m[2])
+            settings[TAGS[m[1]]] = int(value) if m[1] in ("width", "depth") else value
+    return settings
 
 
 @torch.no_grad()
 def out_of_limits(spec: RobotSpec, features: torch.Tensor) -> float:
-    """Fraction of feature tensors (N, m, 4) with a segment beyond its bend or length limits."""
-    bad = torch.zeros(features.shape[0], dtype=torch.bool)
-    for k, seg in enumerate(spec.segments):
-        phi = features[:, k, :2].norm(dim=-1) / seg.radius
-        lo, hi = seg.length_range or (seg.length, seg.length)
-        bad |= (phi > seg.bend * 1.001) | (features[:, k, 2] < lo - 1e-5) | (features[:, k, 2] > hi + 1e-5)
-    return bad.float().mean().item()
+    """Fraction of feature tensors (N, m, 4) beyond the bend, length or twist limits (0.1 % slack)."""
+    return (limit_excess(spec, features) > 1e-6).float().mean().item()
 
 
-def run(name: str, steps: int, n_train: int) -> str:
-    features, loss = VARIANTS[name]
-    cfg = {"robots": {"tdcr3": ROBOT}, "model": {"width": 64, "depth": 4, "activation": "silu", "lr": 3e-3, **loss},
+@torch.no_grad()
+def scores(module, spec: RobotSpec, data: dict) -> tuple[float, float, float]:
+    """(mean position error [mm], mean rotation error [deg], fraction out of limits) of a split."""
+    s = runner.evaluate(module, "ik", data)
+    return s["pos_err_mean_mm"], s["rot_err_mean_deg"], out_of_limits(spec, module.model.encoder(module.model(
+        data["pose"])))
+
+
+def run(features: str, loss: str, steps: int, n_train: int, seed: int) -> dict:
+    settings = loss_settings(loss)
+    model = {"width": 64, "depth": 4, "activation": "silu", "lr": 3e-3}
+    model.update({k: settings.pop(k) for k in ("width", "depth", "lr") if k in settings})
+    cfg = {"robots": {"tdcr3": ROBOT}, "model": {**model, **settings},
            "train": {"steps": steps, "batch_size": 256}, "test": {"n": 5000, "seed": 1000003},
            "conditions": CONDITIONS}
     spec = RobotSpec.from_yaml(runner.resolve_path(ROBOT))
-    module, seconds = runner.fit(cfg, runner.Job("tdcr3", "ik", features, n_train, 0), spec)
-    test = runner.test_set(cfg, spec, "clean")
-    s = runner.evaluate(module, "ik", test)
-    limits = out_of_limits(spec, module.model.encoder(module.model(test["pose"])))
-    return (f"{name:34s} steps={steps} n_train={n_train} pos={s['pos_err_mean_mm']:.3f} mm "
-            f"rot={s['rot_err_mean_deg']:.3f} deg joint={s['joint_err_mean_mm']:.2f} mm "
-            f"residual={s['constraint_residual_max_m']:.1e} m out_of_limits={limits:.3f} fit={seconds:.0f} s")
+    module, seconds = runner.fit(cfg, runner.Job("tdcr3", "ik", features, n_train, seed), spec)
+    train = generate(spec, n_train, seed=1 + seed)                  # the training samples of runner.fit
+    train = {k: v[:VAL_N] for k, v in train.items()}
+    row = {"features": features, "loss": loss, "n_train": n_train, "seed": seed, "steps": steps}
+    for split, data in (("train", train), ("val", generate(spec, VAL_N, VAL_SEED)),
+                        ("test", runner.test_set(cfg, spec, "clean"))):
+        names = (f"{split}_pos_mm", f"{split}_rot_deg", f"{split}_out_of_limits")
+        row.update(zip(names, scores(module, spec, data), strict=True))
+    s = runner.evaluate(module, "ik", runner.test_set(cfg, spec, "clean"))
+    row.update(test_joint_mm=s["joint_err_mean_mm"], test_residual_m=s["constraint_residual_max_m"],
+               fit_seconds=round(seconds))
+    return row
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--steps", type=int, default=2000)
-    p.add_argument("--n-train", type=int, default=100_000)
-    p.add_argument("--variants", nargs="+", default=["all"], help=f"'all' or some of {list(VARIANTS)}")
+    p.add_argument("--steps", type=int, default=8000)
+    p.add_argument("--n-train", type=int, nargs="+", default=[1000])
+    p.add_argument("--loss", nargs="+", default=["ramp0.3"], help="loss names (see loss_settings)")
+    p.add_argument("--features", nargs="+", default=["clarke", "raw"])
+    p.add_argument("--seeds", type=int, nargs="+", default=[0])
+    p.add_argument("--csv", type=Path, default=Path("runs/ablation_ik_tdcr3/exploration.csv"))
     args = p.parse_args()
     torch.set_num_threads(1)
-    for name in VARIANTS if args.variants == ["all"] else args.variants:
-        print(run(name, args.steps, args.n_train), flush=True)
+    for loss in args.loss:
+        loss_settings(loss)                                       # refuse a bad name before training
+    for seed in args.seeds:
+        for n in args.n_train:
+            for loss in args.loss:
+                for features in args.features:
+                    row = run(features, loss, args.steps, n, seed)
+                    print(" ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()),
+                          flush=True)
+                    new = not args.csv.is_file()
+                    args.csv.parent.mkdir(parents=True, exist_ok=True)
+                    with args.csv.open("a", newline="") as f:
+                        w = csv.DictWriter(f, fieldnames=list(row))
+                        if new:
+                            w.writeheader()
+                        w.writerow(row)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
-"""IK with a pose-space loss (IKModule feature_weight / pose_weight): the decoded features, the loss at a
-true solution, gradients in float64, and bad weights."""
+"""IK with a pose-space loss (IKModule feature_weight / pose_weight / limit_weight): the decoded features, the
+loss at a true solution, the joint-limit penalty, gradients in float64, and bad weights."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,7 +11,7 @@ import torch
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.robot import RobotSpec
-from dacr_learn.training import IKModule, pose_loss
+from dacr_learn.training import IKModule, limit_excess, pose_loss
 
 ROOT = Path(__file__).resolve().parents[1]
 TDCR3 = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
@@ -82,7 +82,8 @@ def test_training_loss_combines_feature_and_pose_terms():
 @pytest.mark.parametrize("kwargs,match", [({"feature_weight": 0.0, "pose_weight": 0.0}, "at least one"),
                                           ({"pose_weight": -1.0}, "pose_weight: expected a number >= 0"),
                                           ({"rot_weight": float("nan")}, "rot_weight"),
-                                          ({"pose_ramp": 1.5}, "pose_ramp: expected a fraction")])
+                                          ({"pose_ramp": 1.5}, "pose_ramp: expected a fraction"),
+                                          ({"limit_weight": -0.1}, "limit_weight: expected a number >= 0")])
 def test_bad_loss_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         IKModule(robot=str(TDCR3), **kwargs)
@@ -98,3 +99,37 @@ def test_pose_ramp_moves_from_the_feature_loss_to_the_final_weights():
     for step, (wf, wp) in expected.items():
         module._trainer.global_step = step
         assert module.loss_weights() == pytest.approx((wf, wp), rel=1e-12), step
+
+
+def test_limit_excess_is_zero_inside_the_limits_and_the_relative_overshoot_squared_outside():
+    """Sampled features (inside the limits, the bend reaching them) → 0; segment 1 bent to 1.5 × its limit
+    → 0.5²; segment 3 half a half-range above its longest → 0.5²; both → the sum."""
+    spec = RobotSpec.from_yaml(TDCR3)
+    features = generate(spec, 256, seed=3, dtype=torch.float64)["features"]
+    assert limit_excess(spec, features).abs().max() == 0
+    seg1, seg3 = spec.segments[0], spec.segments[2]
+    f = features[:4].clone()
+    f[0, 0, :2] = torch.tensor([0.6, 0.8], dtype=f.dtype) * 1.5 * seg1.radius * seg1.bend
+    lo, hi = seg3.length_range
+    f[1, 2, 2] = hi + (hi - lo) / 4
+    f[2, 2, 2] = lo - (hi - lo) / 4
+    f[3] = torch.stack([f[0, 0], f[3, 1], f[1, 2]])
+    expected = torch.tensor([0.25, 0.25, 0.25, 0.5], dtype=f.dtype)
+    assert torch.allclose(limit_excess(spec, f), expected, atol=1e3 * torch.finfo(f.dtype).eps)
+
+
+def test_limit_weight_adds_the_mean_limit_excess_of_the_decoded_features():
+    """loss(limit_weight = w) = loss(0) + w · mean limit_excess(decode_features(z)), with predictions
+    pushed out of the limits (a fresh network scaled up) so that the term is not zero; gradcheck."""
+    losses, excess = {}, None
+    for w in (0.0, 2.5):
+        module, data = ik_module("clarke", feature_weight=0.0, pose_weight=1.0, limit_weight=w)
+        with torch.no_grad():
+            module.model.net[-1].weight.mul_(20.0)
+        batch = {"q": data["q"], "pose": data["pose"]}
+        losses[w] = module.loss(batch)
+        excess = limit_excess(module.spec, module.model.decode_features(module.model.forward_normalized(data["pose"])))
+    assert excess.mean() > 0.01
+    assert torch.allclose(losses[2.5], losses[0.0] + 2.5 * excess.mean(), rtol=1e3 * torch.finfo(torch.float64).eps)
+    spec, features = module.spec, module.model.decode_features(module.model.forward_normalized(data["pose"][:6]))
+    assert torch.autograd.gradcheck(lambda f: limit_excess(spec, f).sum(), (features.detach().requires_grad_(True),))
