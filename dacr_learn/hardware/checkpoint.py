@@ -11,7 +11,9 @@ loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
     units: "mm" (unit of the servo commands a user passes in; tips are metres)
     cc: CalibratedCC state dict (fitted physical parameters)
     members: [state dict of each ensemble member's residual network (cc.* keys left out)]
-    sigma_calibration: {"scale", "floor" [m]} or None; support: SupportModel state dict or None
+    sigma_calibration: {"scale", "floor" [m]} or None (ensemble std only: what exported modules output)
+    sigma_model: SigmaModel.to_dict() ({"terms", "coefficients", "floor"}) or None (the σ of
+        :meth:`HardwareModel.predict`; absent in older checkpoints); support: SupportModel state dict or None
     examples: (n, S) training commands [mm] in time order (to verify exports), or None
     info: free-form dict (metrics, command line, …)
 
@@ -29,9 +31,10 @@ from torch import nn
 
 from ..robot import RobotSpec
 from .ccmodel import CalibratedCC
-from .learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split
+from .learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, make_split
+from .recording import Recording
 from .servo_map import ServoMap
-from .uncertainty import SigmaCalibration, SupportModel
+from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
 FORMAT = "dacr_learn.hardware_model/1"
 _KEYS = ("format", "model", "history", "play_width", "robot", "servo_map", "servo_ids", "units", "cc", "members")
@@ -52,10 +55,37 @@ class HardwareModel:
     support: SupportModel | None = None
     examples: torch.Tensor | None = None
     info: dict[str, Any] = field(default_factory=dict)
+    sigma_model: SigmaModel | None = None
 
     @property
     def history(self) -> bool:
         return bool(self.members[0].history)
+
+    def split(self, servo_mm: torch.Tensor) -> Split:
+        """The model inputs of commands servo (n, S) [mm, ``servo_ids`` order; time order for a history model]."""
+        servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
+        if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
+            raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
+        n = servo.shape[0]
+        rec = Recording(self.servo_ids, servo, servo.new_zeros(n, 3), ("",) * n, servo.new_zeros(n), "commands")
+        return make_split(rec, self.spec, self.smap, self.cc)
+
+    def predict(self, commands: torch.Tensor | Split) -> tuple[torch.Tensor, torch.Tensor]:
+        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split.
+
+        σ is the stored σ model's (:class:`~.uncertainty.SigmaModel`) when there is one, else the
+        ensemble std through the σ calibration (or raw without one)."""
+        split = commands if isinstance(commands, Split) else self.split(commands)
+        with torch.no_grad():
+            preds = torch.stack([m(split) for m in self.members])
+        if self.sigma_model is None:
+            std = preds.std(0, correction=1) if len(self.members) > 1 else torch.zeros_like(preds[0])
+            return preds.mean(0), (self.sigma or SigmaCalibration())(std)
+        rho = split.features[..., :2]
+        if self.support is None and "support" in self.sigma_model.terms:
+            raise ValueError("sigma_model: its 'support' term needs the support model, which this model lacks")
+        dist = self.support.distance(rho) if self.support is not None else rho.new_zeros(rho.shape[0])
+        return preds.mean(0), self.sigma_model(sigma_terms(preds, split.cc_tip, rho, dist))
 
 
 def _member_state(member: nn.Module) -> dict[str, torch.Tensor]:
@@ -73,6 +103,7 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
             "members": [_member_state(m) for m in model.members],
             "sigma_calibration": None if model.sigma is None else
             {"scale": float(model.sigma.scale), "floor": float(model.sigma.floor)},
+            "sigma_model": None if model.sigma_model is None else model.sigma_model.to_dict(),
             "support": None if model.support is None else dict(model.support.state_dict()),
             "clamp": bool(getattr(model.members[0], "support", False)),
             "gate_width": getattr(model.members[0], "gate_width", None),
@@ -156,12 +187,13 @@ def _build(blob: dict) -> HardwareModel:
         members.append(member.eval())
     if not members:
         raise ValueError("members: the checkpoint holds no ensemble member")
-    cal = blob.get("sigma_calibration")
+    cal, sigma_model = blob.get("sigma_calibration"), blob.get("sigma_model")
     support = blob.get("support")
     return HardwareModel(blob["model"], spec, smap, ids, cc, members, float(blob["play_width"]),
                          None if cal is None else SigmaCalibration(cal["scale"], cal["floor"]),
                          None if support is None else _support_from_state(support, spec.num_segments),
-                         blob.get("examples"), dict(blob.get("info") or {}))
+                         blob.get("examples"), dict(blob.get("info") or {}),
+                         None if sigma_model is None else SigmaModel.from_dict(sigma_model))
 
 
 def cc_as_residual(train: Split, cc) -> CCClarkeResidual:

@@ -40,8 +40,115 @@ def ensemble_predict(members: Sequence[Callable], x) -> tuple[Tensor, Tensor]:
     return preds.mean(0), std
 
 
+TERMS = ("ensemble", "disagreement", "support", "bend")
+
+
+def sigma_terms(preds: Tensor, cc_tip: Tensor, rho: Tensor, support_distance: Tensor) -> dict[str, Tensor]:
+    """The inputs of a :class:`SigmaModel` for n commands.
+
+    Args:
+        preds: (K, n, 3) tips of the K ensemble members [m].
+        cc_tip: (n, 3) tips of the calibrated CC model alone [m] (no learned correction).
+        rho: (n, m, 2) Clarke coordinates of the commands [m].
+        support_distance: (n,) :meth:`SupportModel.distance` of the commands [training std].
+
+    Returns {"ensemble": members' std (n, 3) [m] (zeros for K = 1), "disagreement": |mean − CC| (n, 3) [m]
+    (the learned correction: how far the model moved from the physics), "support": distance (n, 1),
+    "bend": ‖ρ‖ over all segments (n, 1) [m]}.
+    """
+    check_tensor(cc_tip, "cc_tip", (3,))
+    if preds.dim() != 3 or preds.shape[1:] != cc_tip.shape:
+        raise ValueError(f"preds: expected shape (K, {cc_tip.shape[0]}, 3), got {tuple(preds.shape)}")
+    check_tensor(rho, "rho", (2,))
+    if rho.dim() != 3 or rho.shape[0] != cc_tip.shape[0] or support_distance.shape != (cc_tip.shape[0],):
+        raise ValueError(f"rho/support_distance: expected shapes (n, m, 2) and (n,) with n = {cc_tip.shape[0]}, "
+                         f"got {tuple(rho.shape)} and {tuple(support_distance.shape)}")
+    std = preds.std(0, correction=1) if preds.shape[0] > 1 else torch.zeros_like(preds[0])
+    return {"ensemble": std, "disagreement": (preds.mean(0) - cc_tip).abs(),
+            "support": support_distance.unsqueeze(-1).to(preds.dtype),
+            "bend": rho.flatten(-2).norm(dim=-1, keepdim=True).to(preds.dtype)}
+
+
+class SigmaModel(nn.Module):
+    """σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over the chosen terms t of :data:`TERMS`.
+
+    The features f_t come from :func:`sigma_terms`; the coefficients c_t ≥ 0 and the floor σ₀ [m]
+    are fitted by Gaussian maximum likelihood on *held-out* offset-removed residuals (:meth:`fit`).
+    """
+
+    def __init__(self, terms: Sequence[str], coefficients: Sequence[float], floor: float):
+        super().__init__()
+        unknown = [t for t in terms if t not in TERMS]
+        if unknown or not terms or len(coefficients) != len(terms) or len(set(terms)) != len(terms):
+            raise ValueError(f"terms/coefficients: expected distinct terms of {TERMS} and one coefficient each, "
+                             f"got {list(terms)} and {list(coefficients)}")
+        self.terms = tuple(terms)
+        self.register_buffer("coefficients", torch.tensor([float(c) for c in coefficients], dtype=torch.float64))
+        self.register_buffer("floor", torch.tensor(float(floor), dtype=torch.float64))
+
+    def variance(self, features: dict[str, Tensor]) -> Tensor:
+        """σ² (n, 3) [m²] from the features of :func:`sigma_terms` (only this model's terms are read)."""
+        missing = [t for t in self.terms if t not in features]
+        if missing:
+            raise ValueError(f"features: expected the terms {list(self.terms)}, missing {missing}")
+        ref = features[self.terms[0]]
+        var = (self.floor.to(ref.dtype) ** 2).expand(*ref.shape[:-1], 3)
+        for c, t in zip(self.coefficients.to(ref.dtype), self.terms, strict=True):
+            var = var + (c * features[t]) ** 2
+        return var
+
+    def forward(self, features: dict[str, Tensor]) -> Tensor:
+        """σ (n, 3) [m]."""
+        return self.variance(features).sqrt()
+
+    def to_dict(self) -> dict:
+        """Plain {"terms", "coefficients", "floor" [m]} (weights-only checkpoints)."""
+        return {"terms": list(self.terms), "coefficients": self.coefficients.tolist(), "floor": float(self.floor)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SigmaModel:
+        return cls(d["terms"], d["coefficients"], d["floor"])
+
+    def describe(self) -> str:
+        units = {"ensemble": "", "disagreement": "", "support": " mm", "bend": ""}
+        parts = [f"{t} {c * (1e3 if t == 'support' else 1):.3g}{units[t]}" for t, c in
+                 zip(self.terms, self.coefficients.tolist(), strict=True)]
+        return ", ".join(parts) + f", floor {float(self.floor) * 1e3:.2f} mm"
+
+    @classmethod
+    def fit(cls, terms: Sequence[str], features: dict[str, Tensor], residual: Tensor, iters: int = 200) -> SigmaModel:
+        """Maximise Σ log N(residual; 0, σ²) over the coefficients and σ₀ (all ≥ 0); residual (n, 3) [m],
+        held out and offset-removed (the lab's metric forgives a constant offset)."""
+        check_tensor(residual, "residual", (3,))
+        if residual.dim() != 2 or residual.shape[0] < 2:
+            raise ValueError(f"residual: expected shape (n, 3) with n >= 2, got {tuple(residual.shape)}")
+        cls(terms, [1.0] * len(terms), 0.0).variance(features)          # validates terms and features
+        r2 = residual.double().pow(2)
+        unit = float(r2.mean().sqrt())                                     # optimise in units of the rms residual
+        feats = [features[t].double() for t in terms]
+        scales = [float(f.pow(2).mean().sqrt()) or 1.0 for f in feats]     # and each feature in its rms
+        for f in feats:
+            if f.shape[0] != residual.shape[0]:
+                raise ValueError(f"features: expected {residual.shape[0]} rows like residual, got {f.shape[0]}")
+        z = [f / s for f, s in zip(feats, scales, strict=True)]
+        log_p = torch.full((len(terms) + 1,), -1.0, dtype=torch.float64, requires_grad=True)
+        opt = torch.optim.LBFGS([log_p], max_iter=iters, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            var = log_p[-1].exp() ** 2 + sum((log_p[i].exp() * zi) ** 2 for i, zi in enumerate(z))
+            loss = (torch.log(var) + r2 / unit**2 / var).mean()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        p = log_p.detach().exp().tolist()
+        return cls(terms, [p[i] * unit / scales[i] for i in range(len(terms))], p[-1] * unit)
+
+
 class SigmaCalibration(nn.Module):
-    """σ_cal = sqrt((s·σ)² + σ₀²) per axis; s and σ₀ fitted on held-out residuals (see the module doc)."""
+    """σ_cal = sqrt((s·σ)² + σ₀²) per axis from the ensemble std alone (the ``ensemble`` term of
+    :class:`SigmaModel`); s and σ₀ fitted on held-out residuals (see the module doc)."""
 
     def __init__(self, scale: float = 1.0, floor: float = 0.0):
         super().__init__()
@@ -63,21 +170,25 @@ class SigmaCalibration(nn.Module):
         if residual.shape != std.shape or residual.shape[0] < 2:
             raise ValueError(f"residual/std: expected equal shapes (n, 3) with n >= 2, got "
                              f"{tuple(residual.shape)} and {tuple(std.shape)}")
-        r2, s = residual.double().pow(2), std.double()
-        unit = float(r2.mean().sqrt())                              # optimise in units of the rms residual
-        log_p = torch.tensor([0.0, -1.0], dtype=torch.float64, requires_grad=True)
-        opt = torch.optim.LBFGS([log_p], max_iter=iters, line_search_fn="strong_wolfe")
+        model = SigmaModel.fit(("ensemble",), {"ensemble": std}, residual, iters)
+        return cls(float(model.coefficients[0]), float(model.floor))
 
-        def closure():
-            opt.zero_grad()
-            var = (log_p[0].exp() * s / unit) ** 2 + log_p[1].exp() ** 2
-            loss = (torch.log(var) + r2 / unit**2 / var).mean()
-            loss.backward()
-            return loss
 
-        opt.step(closure)
-        scale, floor = log_p.detach().exp().tolist()
-        return cls(scale, floor * unit)
+def coverage(residual: Tensor, sigma: Tensor, k: float = 2.0) -> float:
+    """Fraction of the entries of residual (n, 3) with |r| ≤ k·σ (per axis, σ (n, 3) in the same unit)."""
+    if residual.shape != sigma.shape:
+        raise ValueError(f"residual/sigma: expected equal shapes, got {tuple(residual.shape)} and {tuple(sigma.shape)}")
+    return float((residual.abs() <= k * sigma).double().mean())
+
+
+def spearman(a: Tensor, b: Tensor) -> float:
+    """Spearman rank correlation of two (n,) tensors (ties broken by order; nan if one is constant)."""
+    if a.shape != b.shape or a.dim() != 1 or a.shape[0] < 2:
+        raise ValueError(f"a/b: expected equal shapes (n,) with n >= 2, got {tuple(a.shape)} and {tuple(b.shape)}")
+    ranks = [x.argsort().argsort().double() for x in (a, b)]
+    if any(bool((x == x[0]).all()) for x in (a, b)):
+        return float("nan")
+    return float(torch.corrcoef(torch.stack(ranks))[0, 1])
 
 
 def _groups_from_labels(labels: Sequence[str]) -> Tensor:

@@ -1,0 +1,84 @@
+"""Held-out predictions of a hardware model on the train-only selection folds, and the σ model fitted to them.
+
+A σ model (:class:`~.uncertainty.SigmaModel`) must be fitted on residuals the model did not train on,
+and without the validation recording: the folds of :func:`~.selection.proxy_masks` (family CV and
+singles → pairs) provide them. Per fold the CC model is refitted on the fold's training rows
+(:func:`~.selection.make_folds`), the model is trained there once per seed, and on the held-out rows
+the σ features (:func:`~.uncertainty.sigma_terms`, the support distance measured to the fold's
+training rows) and the offset-removed residual of the ensemble mean are kept.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .registry import build_model
+from .selection import PROXIES, make_folds, proxy_masks
+from .uncertainty import SigmaModel, SupportModel, sigma_terms
+
+
+@dataclass
+class HeldOut:
+    """One fold's held-out rows: member tips (K, n, 3), CC tips, measured tips (n, 3) [m], ρ (n, m, 2) [m]
+    and the support distance (n,) to the fold's training rows."""
+
+    fold: str
+    preds: Tensor
+    cc_tip: Tensor
+    tip: Tensor
+    rho: Tensor
+    support: Tensor
+
+    def features(self) -> dict[str, Tensor]:
+        return sigma_terms(self.preds, self.cc_tip, self.rho, self.support)
+
+    def residual(self) -> Tensor:
+        """Offset-removed residual (n, 3) [m] of the ensemble mean (ē: the mean over this fold's rows)."""
+        e = self.preds.mean(0) - self.tip
+        return e - e.mean(0)
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[int], fold: str = "") -> HeldOut:
+    """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``."""
+    preds = []
+    for seed in seeds:
+        model = build_model(name, ctx, seed)
+        model.fit(ctx.train)
+        with torch.no_grad():
+            preds.append(model.eval()(test))
+    support = SupportModel(ctx.train.features[..., :2], list(train_labels))
+    rho = test.features[..., :2]
+    return HeldOut(fold, torch.stack(preds), test.cc_tip, test.tip, rho, support.distance(rho))
+
+
+def held_out_folds(setup, name: str, seeds: Sequence[int], proxies: Sequence[str] = PROXIES,
+                   log=None) -> list[HeldOut]:
+    """:class:`HeldOut` of every fold of the given proxies on the training recording of a
+    :class:`~.benchmark.Setup` (``log``: optional callable reporting each fold)."""
+    labels = setup.train_rec.labels
+    out = []
+    for proxy, masks in proxy_masks(labels).items():
+        if proxy not in proxies:
+            continue
+        for fold, (fold_name, train_rows, _) in zip(make_folds(setup.train_rec, setup.spec, setup.smap, masks),
+                                                    masks, strict=True):
+            train_labels = [lb for lb, t in zip(labels, train_rows, strict=True) if t]
+            out.append(held_out(name, fold.ctx, fold.test, train_labels, seeds, f"{proxy}:{fold_name}"))
+            if log is not None:
+                log(f"held-out σ features: fold {proxy}:{fold_name} done")
+    return out
+
+
+def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaModel:
+    """:meth:`SigmaModel.fit` on the held-out rows of all blocks (residuals offset-removed per block)."""
+    if not blocks:
+        raise ValueError("blocks: expected at least one held-out fold, got none")
+    feats = [b.features() for b in blocks]
+    return SigmaModel.fit(terms, {t: torch.cat([f[t] for f in feats]) for t in feats[0]},
+                          torch.cat([b.residual() for b in blocks]))
