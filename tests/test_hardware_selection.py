@@ -16,9 +16,16 @@ from test_hardware import write_csv
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.learned import CCClarkeResidual, make_split
+from dacr_learn.hardware.pool import TaskPool
 from dacr_learn.hardware.recording import load_recording
-from dacr_learn.hardware.registry import MODELS, REGISTRY, FitContext, model_info
-from dacr_learn.hardware.selection import choose_default, make_folds, pattern_family, proxy_masks, proxy_scores
+from dacr_learn.hardware.registry import MODELS, REGISTRY, FitContext, build_model, model_info
+from dacr_learn.hardware.selection import (
+    choose_default,
+    make_folds,
+    pattern_family,
+    proxy_masks,
+    proxy_scores,
+)
 from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
 from dacr_learn.layers import ClarkeDecoder
 from dacr_learn.robot import RobotSpec
@@ -92,6 +99,10 @@ def test_pattern_families_and_proxy_masks():
         pattern_family("random")
     with pytest.raises(ValueError, match="expected 'single' and at least one pair family"):
         proxy_masks(["rep1_pair12_same", "rep1_pair13_opp"])
+    assert list(proxy_masks(labels, ["extrap"])) == ["extrap"]            # only the requested proxies
+    assert [m[0] for m in proxy_masks(labels, ["extrap", "cv"])["cv"]] == ["single", "pair12", "pair13"]
+    with pytest.raises(ValueError, match="expected one or more of"):
+        proxy_masks(labels, ["loo"])
 
 
 def test_choose_default_takes_the_lowest_proxy():
@@ -127,9 +138,41 @@ def test_cli_without_val_records_the_default_model(robot_dir, tmp_path):
     assert results["default_model"] == report["default_model"] == "cc"
     assert results["selection"]["candidates"] == ["cc"] and results["val"] is None
     assert set(results["selection"]["scores"]) == {"linear_raw", "cc"}
+    assert results["selection"]["proxies"] == ["extrap"]                   # the family CV only on request
+    assert "cv" not in results["selection"]["scores"]["cc"] and "| – |" in (out / "results.md").read_text()
     assert "val" not in results["models"]["cc"] and results["models"]["cc"]["train"]["rmse_mm"]["mean"] < 0.3
     assert not (out / "val_predictions.csv").exists()
     assert "**`cc`** (default)" in (out / "results.md").read_text()
+
+
+def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(robot_dir, tmp_path):
+    from dacr_learn.hardware.__main__ import main, parse_args
+
+    data, robot = robot_dir
+    args = ["--data", str(data), "--robot", str(robot), "--models", "linear_raw", "cc", "--seeds", "0"]
+    full = main(args + ["--out", str(tmp_path / "full"), "--proxies", "cv", "extrap"])
+    short = main(args + ["--out", str(tmp_path / "short")])
+    assert full["default_model"] == short["default_model"] == "cc" and full["selection"]["proxies"] == ["cv", "extrap"]
+    for name in ("linear_raw", "cc"):
+        f, s = full["selection"]["scores"][name], short["selection"]["scores"][name]
+        assert set(f["cv_folds"]) == {"single", "pair12"} and f["extrap"] == pytest.approx(s["extrap"], rel=1e-9)
+    with pytest.raises(SystemExit):
+        parse_args(args + ["--out", str(tmp_path), "--proxies", "cv"])    # the default is chosen on extrap
+
+
+def test_a_model_built_in_a_worker_process_equals_the_one_built_here(robot_dir):
+    ctx = _context(robot_dir)
+    with TaskPool(jobs=2) as pool:
+        remote = pool.submit(build_model, "mlp_clarke", ctx, 0)
+        here = pool.run_here(build_model, "mlp_clarke", ctx, 0)
+        (got, seconds), (want, _) = remote.result(), here.result()
+    assert seconds > 0
+    for (key, a), b in zip(got.state_dict().items(), want.state_dict().values(), strict=True):
+        assert torch.allclose(a, b, rtol=0, atol=1e-7), key                # seeded in the worker: the same start
+    other = build_model("mlp_clarke", ctx, 1).net[0].weight
+    assert not torch.allclose(got.net[0].weight, other)                    # …and the seed matters
+    with pytest.raises(ValueError, match="jobs >= 1"):
+        TaskPool(jobs=0)
 
 
 def _context(robot_dir) -> FitContext:

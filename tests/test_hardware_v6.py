@@ -46,7 +46,7 @@ def test_cli_on_ftdcr_v6_without_val_chooses_a_default_on_train(tmp_path):
 
     out = tmp_path / "run"
     report = main(["--data", str(DATA), "--robot", str(CALIBRATED), "--out", str(out),
-                   "--models", "cc", "--seeds", "0"])
+                   "--models", "cc", "--seeds", "0", "--proxies", "cv", "extrap"])
     results = json.loads((out / "results.json").read_text())
     assert report["rows"] == {"train": 1019, "val": 0} and results["val"] is None
     assert results["default_model"] == "cc"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -20,15 +21,18 @@ import torch
 
 from .benchmark import (
     Setup,
+    collect_benchmark,
+    collect_selection,
     default_candidates,
     load_setup,
     markdown_table,
-    run_benchmark,
-    run_selection,
     select_default,
+    submit_benchmark,
+    submit_selection,
 )
+from .pool import TaskPool
 from .registry import MODELS, model_info
-from .selection import SELECTION_PROXY
+from .selection import DEFAULT_PROXIES, PROXIES, SELECTION_PROXY
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -49,12 +53,23 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--proxy-seeds", type=int, nargs="+", default=[0], help="seeds of the selection proxies")
     ap.add_argument("--no-proxies", action="store_true",
                     help="skip the selection proxies (no default model; needs pattern labels otherwise)")
+    ap.add_argument("--proxies", nargs="+", default=list(DEFAULT_PROXIES), choices=PROXIES,
+                    help=f"selection proxies to compute (default: {SELECTION_PROXY}, which chooses the default "
+                    "model; add cv for the family cross-validation column, 4 more fits per model and seed)")
     ap.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS)
-    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (1 is fastest for these sizes)")
+    ap.add_argument("--threads", type=int, default=1,
+                    help="torch CPU threads per process (1 is fastest for these sizes)")
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
+                    help="worker processes for the fits (default: 2, or 1 on a one-core machine; 1: in this process)")
     ap.add_argument("--no-visuals", action="store_true", help="skip the PNG and the Rerun recording")
     ap.add_argument("--save", type=Path, help="write the default model (one member per --seeds) as DIR/model.pt "
                     "(dacr_learn.hardware.checkpoint; export with python -m dacr_learn.export --ckpt DIR/model.pt)")
-    return ap.parse_args(argv)
+    args = ap.parse_args(argv)
+    if SELECTION_PROXY not in args.proxies:
+        ap.error(f"--proxies must include {SELECTION_PROXY} (the default model is chosen on it), got {args.proxies}")
+    if args.jobs < 1 or args.threads < 1:
+        ap.error(f"--jobs and --threads: expected >= 1, got {args.jobs} and {args.threads}")
+    return args
 
 
 def write_predictions(path: Path, rec, preds: dict) -> None:
@@ -82,13 +97,25 @@ def _val_path(args: argparse.Namespace) -> Path | None:
     return None
 
 
-def _selection(setup: Setup, args: argparse.Namespace) -> dict:
-    """Proxy scores of every model, or {} (with the reason printed) when the labels name no pattern families."""
+def _submit_selection(pool: TaskPool, setup: Setup, args: argparse.Namespace) -> dict:
+    """Pending proxy fits of every model, or {} (with the reason printed) when the labels name no pattern families."""
+    if args.no_proxies:
+        return {}
     try:
-        return run_selection(setup, args.models, args.proxy_seeds)
+        return submit_selection(pool, setup, args.models, args.proxy_seeds, args.proxies)
     except ValueError as err:
         print(f"no selection proxies, so no default model: {err}")
         return {}
+
+
+def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, dict, dict]:
+    """(proxy scores, final results, val predictions): every fit handed to one pool before any is collected."""
+    with TaskPool(args.jobs, args.threads) as pool:
+        pending = _submit_selection(pool, setup, args)
+        final = submit_benchmark(pool, setup, tuple(args.models), tuple(args.seeds))
+        scores = collect_selection(pending, args.proxy_seeds)
+        results, preds = collect_benchmark(final, tuple(args.seeds))
+    return scores, results, preds
 
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup]:
@@ -101,9 +128,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
                        args.servo_map, args.data / args.pulls, args.units)
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
-    scores = {} if args.no_proxies else _selection(setup, args)
+    scores, results, preds = _fit_all(setup, args)
     default = select_default(scores) if default_candidates(list(scores)) else None
-    results, preds = run_benchmark(setup, tuple(args.models), tuple(args.seeds))
     clarke = tuple(m for m in results if model_info(m).clarke_space)
     report = {"command": "python -m dacr_learn.hardware " + " ".join(sys.argv[1:] if argv is None else argv),
               "robot": setup.spec.to_dict(), "train": str(args.data / args.train),
@@ -112,10 +138,12 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               "calibration": setup.calibration, "cc_fit": setup.cc_fit,
               "default_model": default,
               "selection": {"proxy": SELECTION_PROXY, "candidates": list(default_candidates(list(scores))),
-                            "proxy_seeds": args.proxy_seeds, "scores": scores},
+                            "proxy_seeds": args.proxy_seeds, "proxies": [] if not scores else args.proxies,
+                            "scores": scores},
               "models": results, "best_clarke_model": best_model(results, clarke),
               "best_static_clarke_model": best_model(results, tuple(m for m in clarke if model_info(m).static)),
-              "environment": {"torch": torch.__version__, "threads": args.threads, "python": platform.python_version()}}
+              "environment": {"torch": torch.__version__, "threads": args.threads, "jobs": args.jobs,
+                              "python": platform.python_version()}}
     report["seconds_total"] = time.perf_counter() - start
     (args.out / "results.json").write_text(json.dumps(report, indent=1))
     (args.out / "results.md").write_text(markdown_table(results, scores, default) + "\n")

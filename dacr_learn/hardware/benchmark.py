@@ -6,16 +6,20 @@ Steps (all generic: file names come from arguments, servo ids from the CSV heade
    it, or ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls``
    and write ``calibrated_robot.yaml`` / ``servo_maps/calibrated_robot.yaml`` into the run folder.
 2. Fit the calibrated CC model's physical parameters on the training recording.
-3. Score every model with the train-only selection proxies (:mod:`.selection`) and choose the
-   default model among the Clarke-space candidates.
+3. Score every model with the train-only selection proxies (:mod:`.selection`; ``extrap`` by
+   default, the family CV on request) and choose the default model among the Clarke-space candidates.
 4. Train every model of :mod:`.registry` (learned ones once per seed) on the whole training
    recording and, when there is a validation recording, evaluate on it: offset-removed RMSE,
    mean and p95 Euclidean error.
+
+Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool` (worker
+processes, or in line) and ``collect_*`` assembles the results in model order; ``run_*`` do both.
+Deterministic models (``linear_raw``, ``cc``: instant) always run in this process.
 """
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,9 +32,19 @@ from .calibration import calibrate, default_map_path, write_calibration
 from .ccmodel import CalibratedCC, fit_cc
 from .learned import Split, make_split
 from .metrics import tip_metrics
+from .pool import TaskPool, timed
 from .recording import Recording, load_recording
 from .registry import MODELS, FitContext, build_model, model_info
-from .selection import SELECTION_PROXY, choose_default, make_folds, proxy_masks, proxy_scores
+from .selection import (
+    DEFAULT_PROXIES,
+    SELECTION_PROXY,
+    choose_default,
+    fold_rmse,
+    make_folds,
+    model_seeds,
+    proxy_masks,
+    summarize_scores,
+)
 from .servo_map import ServoMap
 
 
@@ -99,39 +113,91 @@ def _summary(values: list[float]) -> dict:
             "per_seed": [round(float(v), 4) for v in a]}
 
 
-def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
-    """Train/evaluate one model over seeds; returns (summary, val predictions of the first seed or None)."""
+def run_seed(name: str, s: Setup, seed: int) -> tuple[dict, torch.Tensor | None]:
+    """One training run: ({"train": metrics, "val": metrics (with val)}, val predictions or None)."""
+    model = fit_model(name, s, seed)
+    with torch.no_grad():
+        run, pred_val = {"train": tip_metrics(model(s.train), s.train.tip)}, None
+        if s.val is not None:
+            pred_val = model(s.val)
+            run["val"] = tip_metrics(pred_val, s.val.tip)
+    return run, pred_val
+
+
+def _submit(pool: TaskPool, name: str, fn: Callable, *args) -> Future:
+    """Learned models to the pool; deterministic ones (instant) in this process."""
+    return (pool.run_here if model_info(name).deterministic else pool.submit)(fn, name, *args)
+
+
+def submit_benchmark(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int]) -> dict[str, list]:
+    """{model: [future of timed(run_seed) per seed]}: every model trained on the whole training recording."""
+    return {name: [_submit(pool, name, run_seed, s, seed) for seed in model_seeds(name, seeds)] for name in models}
+
+
+def summarize_model(name: str, runs: list[tuple[tuple[dict, torch.Tensor | None], float]],
+                    seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
+    """(summary over seeds, val predictions of the first seed or None) from [((run, pred), seconds)]."""
     info = model_info(name)
-    runs, first_pred = [], None
-    for seed in (seeds[:1] if info.deterministic else seeds):
-        start = time.perf_counter()
-        model = fit_model(name, s, seed)
-        with torch.no_grad():
-            run = {"train": tip_metrics(model(s.train), s.train.tip)}
-            if s.val is not None:
-                pred_val = model(s.val)
-                run["val"] = tip_metrics(pred_val, s.val.tip)
-                first_pred = pred_val if first_pred is None else first_pred
-        runs.append(run | {"seconds": time.perf_counter() - start})
     summary = {"letter": info.letter, "clarke_space": info.clarke_space, "static": info.static,
-               "seeds": seeds[:len(runs)], "seconds_per_run": float(np.mean([r["seconds"] for r in runs]))}
+               "seeds": seeds[:len(runs)], "seconds_per_run": float(np.mean([sec for _, sec in runs]))}
+    first = runs[0][0][0]
     for split in ("val", "train"):
-        if split in runs[0]:
-            summary[split] = {k: _summary([r[split][k] for r in runs]) for k in runs[0][split]}
-    return summary, first_pred
+        if split in first:
+            summary[split] = {k: _summary([run[split][k] for (run, _), _ in runs]) for k in first[split]}
+    return summary, runs[0][0][1]
 
 
-def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = print) -> dict:
-    """{model: train-only proxy scores} (:func:`.selection.proxy_scores`), folds built once."""
-    masks = proxy_masks(s.train_rec.labels)
+def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = print
+                      ) -> tuple[dict, dict[str, torch.Tensor]]:
+    """({model: summary}, {model: val predictions (first seed)}; empty without val), logged in model order."""
+    results, preds = {}, {}
+    for name, futures in pending.items():
+        results[name], pred = summarize_model(name, [f.result() for f in futures], list(seeds))
+        if pred is not None:
+            preds[name] = pred
+        r = results[name]
+        v = r.get("val")
+        shown = (f"val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "
+                 f"mean {v['mean_mm']['mean']:6.2f}  p95 {v['p95_mm']['mean']:6.2f}  " if v else "")
+        log(f"{name:28s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, {r['seconds_per_run']:.1f} s/run)")
+    return results, preds
+
+
+def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
+    """Train/evaluate one model over seeds in this process; (summary, val predictions of the first seed or None)."""
+    return summarize_model(name, [timed(run_seed, name, s, seed) for seed in model_seeds(name, seeds)], seeds)
+
+
+def submit_selection(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int],
+                     proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, dict]:
+    """{model: {proxy: {fold: [future of timed(fold_rmse) per seed]}}}, folds built once (CC refits).
+    Raises ValueError when the labels name no pattern families (:func:`.selection.proxy_masks`)."""
+    masks = proxy_masks(s.train_rec.labels, proxies)
     folds = {proxy: make_folds(s.train_rec, s.spec, s.smap, m) for proxy, m in masks.items()}
+    return {name: {proxy: {f.name: [_submit(pool, name, fold_rmse, f, seed) for seed in model_seeds(name, seeds)]
+                           for f in fs} for proxy, fs in folds.items()} for name in models}
+
+
+_PROXY_NAMES = {"cv": "family CV", "extrap": "singles→pairs"}
+
+
+def collect_selection(pending: dict[str, dict], seeds: Sequence[int], log: Callable = print) -> dict:
+    """{model: train-only proxy scores} (:func:`.selection.summarize_scores`; seconds: the model's fits)."""
     scores = {}
-    for name in models:
-        scores[name] = proxy_scores(name, folds, seeds)
-        p = scores[name]
-        log(f"{name:28s} proxies: family CV {p['cv']:6.2f} mm, singles→pairs {p['extrap']:6.2f} mm "
-            f"({p['seconds']:.0f} s)")
+    for name, per in pending.items():
+        done = {proxy: {fold: [f.result() for f in fs] for fold, fs in folds.items()} for proxy, folds in per.items()}
+        rmse = {proxy: {fold: [r for r, _ in runs] for fold, runs in folds.items()} for proxy, folds in done.items()}
+        seconds = sum(sec for folds in done.values() for runs in folds.values() for _, sec in runs)
+        scores[name] = p = summarize_scores(rmse, model_seeds(name, seeds), seconds)
+        shown = ", ".join(f"{_PROXY_NAMES[proxy]} {p[proxy]:6.2f} mm" for proxy in per)
+        log(f"{name:28s} proxies: {shown} ({p['seconds']:.0f} s)")
     return scores
+
+
+def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = print,
+                  proxies: Sequence[str] = DEFAULT_PROXIES, pool: TaskPool | None = None) -> dict:
+    """{model: train-only proxy scores} for ``proxies`` (as :func:`.selection.proxy_scores`), folds built once."""
+    return collect_selection(submit_selection(pool or TaskPool(), s, models, seeds, proxies), seeds, log)
 
 
 def default_candidates(models: Sequence[str]) -> tuple[str, ...]:
@@ -144,19 +210,9 @@ def select_default(scores: dict) -> str:
 
 
 def run_benchmark(s: Setup, models: Sequence[str] = MODELS, seeds: Sequence[int] = (0, 1, 2),
-                  log: Callable = print) -> tuple[dict, dict[str, torch.Tensor]]:
+                  log: Callable = print, pool: TaskPool | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
     """All models → ({model: summary}, {model: val predictions (first seed)}; empty without val)."""
-    results, preds = {}, {}
-    for name in models:
-        results[name], pred = run_model(name, s, list(seeds))
-        if pred is not None:
-            preds[name] = pred
-        r = results[name]
-        v = r.get("val")
-        shown = (f"val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "
-                 f"mean {v['mean_mm']['mean']:6.2f}  p95 {v['p95_mm']['mean']:6.2f}  " if v else "")
-        log(f"{name:28s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, {r['seconds_per_run']:.1f} s/run)")
-    return results, preds
+    return collect_benchmark(submit_benchmark(pool or TaskPool(), s, models, seeds), seeds, log)
 
 
 def _pm(d: dict | None) -> str:

@@ -14,6 +14,10 @@ In every fold the calibrated CC model is refitted on the fold's training rows, h
 run along the whole recording (causal), and each learned model is trained on the training rows
 only. Labels without a family raise (there is no proxy without families).
 
+The benchmark computes ``extrap`` by default (:data:`DEFAULT_PROXIES`, one fold per model) and the
+family CV (four more folds on FTDCR v4/v6, ~4× the cost) on request; both are the same computation
+whether or not the other is run.
+
 :func:`choose_default` picks the candidate with the lowest ``extrap`` (the proxy of the regime
 shift; docs/hardware.md shows on FTDCR v4 how each proxy's ranking compares with val's).
 """
@@ -37,6 +41,7 @@ from .servo_map import ServoMap
 
 PROXIES = ("cv", "extrap")
 SELECTION_PROXY = "extrap"
+DEFAULT_PROXIES = (SELECTION_PROXY,)
 _PAIR = re.compile(r"pair(\d\d)")
 _SINGLE = re.compile(r"(^|_)(seg\d+|tendon\d+)")
 
@@ -52,15 +57,21 @@ def pattern_family(label: str) -> str:
                      f"('seg<k>', 'tendon<k>') or a pair of segments ('pair<jk>')")
 
 
-def proxy_masks(labels: Sequence[str]) -> dict[str, list[tuple[str, np.ndarray, np.ndarray]]]:
-    """{proxy: [(fold name, train rows (n,) bool, test rows (n,) bool), …]} from pattern labels."""
+def proxy_masks(labels: Sequence[str], proxies: Sequence[str] = PROXIES
+                ) -> dict[str, list[tuple[str, np.ndarray, np.ndarray]]]:
+    """{proxy: [(fold name, train rows (n,) bool, test rows (n,) bool), …]} from pattern labels,
+    for each of ``proxies`` (in the order given)."""
+    unknown = [p for p in proxies if p not in PROXIES]
+    if unknown or not proxies:
+        raise ValueError(f"proxies: expected one or more of {PROXIES}, got {list(proxies)}")
     fam = np.array([pattern_family(label) for label in labels])
     names = sorted(set(fam), key=lambda f: (f != "single", f))
     if "single" not in names or len(names) < 2:
         raise ValueError(f"pattern families: expected 'single' and at least one pair family, got {names}")
     pairs = fam != "single"
-    return {"cv": [(str(f), fam != f, fam == f) for f in names],
-            "extrap": [("singles_to_pairs", ~pairs, pairs)]}
+    masks = {"cv": [(str(f), fam != f, fam == f) for f in names],
+             "extrap": [("singles_to_pairs", ~pairs, pairs)]}
+    return {p: masks[p] for p in proxies}
 
 
 @dataclass
@@ -96,18 +107,31 @@ def fold_rmse(model_name: str | ModelInfo, fold: Fold, seed: int) -> float:
         return float(offset_removed_rmse(model(fold.test), fold.test.tip)) * 1e3
 
 
-def proxy_scores(name: str | ModelInfo, folds: dict[str, list[Fold]], seeds: Sequence[int]) -> dict:
-    """{proxy: mean RMSE [mm], proxy + "_folds": {fold: RMSE averaged over seeds}, "seconds"}."""
-    start = time.perf_counter()
-    seeds = list(seeds)[:1] if model_info(name).deterministic else list(seeds)
+def model_seeds(name: str | ModelInfo, seeds: Sequence[int]) -> list[int]:
+    """The seeds a model is fitted with: the first only for a deterministic model (the same for every seed)."""
+    return list(seeds)[:1] if model_info(name).deterministic else list(seeds)
+
+
+def summarize_scores(rmse: dict[str, dict[str, list[float]]], seeds: list[int], seconds: float) -> dict:
+    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, "seeds", "seconds"} from
+    {proxy: {fold: [RMSE [mm] per seed]}}."""
     out: dict = {}
-    for proxy, fs in folds.items():
-        per = {f.name: float(np.mean([fold_rmse(name, f, s) for s in seeds])) for f in fs}
+    for proxy, folds in rmse.items():
+        per = {fold: float(np.mean(values)) for fold, values in folds.items()}
         out[proxy] = round(float(np.mean(list(per.values()))), 4)
         out[proxy + "_folds"] = {k: round(v, 4) for k, v in per.items()}
     out["seeds"] = seeds
-    out["seconds"] = round(time.perf_counter() - start, 2)
+    out["seconds"] = round(seconds, 2)
     return out
+
+
+def proxy_scores(name: str | ModelInfo, folds: dict[str, list[Fold]], seeds: Sequence[int]) -> dict:
+    """{proxy: mean RMSE [mm], proxy + "_folds": {fold: RMSE averaged over seeds}, "seeds", "seconds"}
+    for every proxy in ``folds``, fitted in this process (the benchmark spreads the fits over cores)."""
+    start = time.perf_counter()
+    seeds = model_seeds(name, seeds)
+    rmse = {proxy: {f.name: [fold_rmse(name, f, s) for s in seeds] for f in fs} for proxy, fs in folds.items()}
+    return summarize_scores(rmse, seeds, time.perf_counter() - start)
 
 
 def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY) -> str:
