@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from .ccmodel import CalibratedCC
+from .compositional_model import CCCompositionalResidual
 from .learned import (
     PRETRAIN_SAMPLES,
     CCClarkeResidual,
@@ -72,6 +73,7 @@ _MODELS = (
               static=False),
     ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.train), "clarke"),
     ModelInfo("pretrained_raw", "i", lambda c, s: Pretrained("raw", c.train, c.synthetic(s)), "raw"),
+    ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke"),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)

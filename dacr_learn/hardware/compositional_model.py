@@ -1,0 +1,96 @@
+"""Compositional hardware tip model: the calibrated CC segment transforms, each corrected by a shared network.
+
+Per segment k the calibrated CC model gives T_k^CC(x_k) (base of segment k → its end,
+:func:`~dacr_learn.kinematics.segment_poses` of the slack-aware encoder's features x_k). The model
+right-multiplies each by a learned rigid correction and composes the robot like the CC model:
+
+    T_k = T_k^CC(x_k) · exp(ξ_k^),   ξ_k = s · f_θ(z_k, c_k),   T_tip = T_1 · T_2 ⋯ T_m,
+    tip = R_base · (p_tip + t_marker · z_tip) + t_base             (the CC model's calibration)
+
+f_θ is the per-segment network of :class:`dacr_learn.compositional.CompositionalFK` (an MLP plus a
+linear skip shared by all segments, twist head: ξ = (v · L_s, ω), exp in closed form), fed with the
+standardised features z_k of segment k and a context c_k: "none", "segment" (one-hot index) or
+"distal" (the sum of the standardised features of the segments beyond k, whose tendons pass through
+segment k and load it on a coupled tendon robot). s = :data:`TWIST_SCALE` sets the output unit
+(s·L_s of translation, s rad of rotation) and the output layers start at zero, so an untrained model
+is the calibrated CC model. With ``torsion=False`` the rotation about the segment's end axis (ω_z) is
+held at 0: from tip positions of single-segment moves it is unobservable at a bent segment (the
+distal segments are straight, so a roll about their axis moves no tip), and the network would
+extrapolate it freely to the pairs, where it turns the distal bending planes.
+
+Training: full-batch Adam on the mean squared tip error [mm²] plus ``weight_decay`` × the sum of
+squared network weights (biases excluded), the CC parameters frozen.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..compositional import CompositionalFK
+from ..kinematics import _chain, effective_features, segment_poses
+from .ccmodel import CalibratedCC
+from .learned import LR, RESIDUAL_HIDDEN, STEPS, Split, train_full_batch
+
+TWIST_SCALE = 0.05   # network output 1 ↔ 0.05·L_s translation, 0.05 rad (≈ 2.9°) rotation per segment
+CONTEXT, DEPTH, WEIGHT_DECAY, TORSION = "none", 2, 1e-3, False   # chosen on the train-only proxies
+# (docs/compositional.md, experiments/hardware_cv/compositional_sweep.py)
+
+
+class CCCompositionalResidual(nn.Module):
+    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists."""
+
+    def __init__(self, train: Split, cc: CalibratedCC, context: str = CONTEXT, width: int = RESIDUAL_HIDDEN,
+                 depth: int = DEPTH, weight_decay: float = WEIGHT_DECAY, torsion: bool = TORSION, steps: int = STEPS,
+                 lr: float = LR):
+        super().__init__()
+        if weight_decay < 0 or steps < 1 or lr <= 0:
+            raise ValueError(f"expected weight_decay >= 0, steps >= 1 and lr > 0, got weight_decay="
+                             f"{weight_decay}, steps={steps}, lr={lr}")
+        self.cc, self.spec = cc, cc.spec
+        self.weight_decay, self.steps, self.lr = weight_decay, steps, lr
+        self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context)
+        self.fk.front.norm.fit(self.segment_features(train))
+        for layer in (self.fk.net[-1], self.fk.skip):
+            nn.init.zeros_(layer.weight)
+        nn.init.zeros_(self.fk.net[-1].bias)
+        mask = torch.ones(6)
+        mask[5] = float(torsion)                                         # ξ = (v_x, v_y, v_z, ω_x, ω_y, ω_z)
+        self.register_buffer("twist_mask", mask * TWIST_SCALE)
+
+    def segment_features(self, split: Split) -> Tensor:
+        """Per-segment features (n, m, 4) of the calibrated encoder in the network's dtype (float32 unless
+        the model was cast), fixed columns at β = l, α = 0."""
+        if not isinstance(split, Split):
+            raise ValueError(f"split: expected a hardware Split (dacr_learn.hardware.learned), got {type(split)}")
+        return effective_features(self.spec, split.features.to(self.fk.skip.weight.dtype))
+
+    def corrections(self, split: Split) -> Tensor:
+        """Learned correction exp(ξ_k^) of every segment: (n, m, 4, 4)."""
+        front = self.fk.front
+        z = front.with_context(front.norm(self.segment_features(split)))
+        return self.fk.head((self.fk.net(z) + self.fk.skip(z)) * self.twist_mask)
+
+    def segment_ends(self, split: Split) -> Tensor:
+        """End frame of every segment in the robot base frame (n, m, 4, 4) [m]; [:, -1] is the tip."""
+        cc_poses = segment_poses(self.spec, self.segment_features(split))
+        return _chain(cc_poses @ self.corrections(split))
+
+    def forward(self, split: Split) -> Tensor:
+        """Tip marker (n, 3) [m] in the motion-capture frame, float64 (kinematics in float32 like (e), unless cast)."""
+        tip = self.segment_ends(split)[:, -1]
+        p = tip[:, :3, 3] + tip[:, :3, 2] * self.cc.tip_offset.to(tip.dtype)
+        return self.cc.to_world(p).double()
+
+    def penalty(self) -> Tensor:
+        """Sum of squared network weights (the linear layers' matrices; biases are not decayed)."""
+        return sum(p.pow(2).sum() for n, p in self.fk.named_parameters() if n.endswith("weight"))
+
+    def objective(self, train: Split) -> Tensor:
+        """Mean squared tip error [mm²] + weight_decay × :meth:`penalty`."""
+        return (self(train) - train.tip).pow(2).mean() / 1e-6 + self.weight_decay * self.penalty()
+
+    def fit(self, train: Split) -> None:
+        for p in self.cc.parameters():
+            p.requires_grad_(False)
+        params = [p for n, p in self.fk.named_parameters() if not n.startswith("front.")]
+        train_full_batch(params, lambda: self.objective(train), steps=self.steps, lr=self.lr)

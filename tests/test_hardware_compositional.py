@@ -1,0 +1,154 @@
+"""The compositional hardware model: calibrated CC segment transforms × learned per-segment twists.
+
+A synthetic recording of a small two-segment robot (the calibrated CC model at its nominal
+parameters, :func:`~dacr_learn.hardware.learned.synthetic_split`) stands in for hardware data.
+"""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from dacr_learn.hardware.ccmodel import CalibratedCC
+from dacr_learn.hardware.compositional_model import TWIST_SCALE, CCCompositionalResidual
+from dacr_learn.hardware.learned import Split, synthetic_split
+from dacr_learn.hardware.registry import REGISTRY, FitContext, build_model
+from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
+from dacr_learn.kinematics import segment_poses
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+ROBOT = {"name": "synthetic-2seg", "routing": "coupled", "segments": [
+    {"type": "0", "length": 0.08, "radius": 0.005, "joints": 3, "offset": 0.3, "limits": {"bend": 0.8}},
+    {"type": "0", "length": 0.07, "radius": 0.005, "joints": 3, "offset": -0.5, "limits": {"bend": 0.8}}]}
+IDS = ("s4", "s1", "s6", "s2", "s5", "s3")
+NAME = "cc_compositional_residual"
+
+
+def _servo_map(spec: RobotSpec) -> ServoMap:
+    return ServoMap(spec.name, tuple(ServoAssignment(s, j // 3, j % 3) for j, s in enumerate(IDS)), -8e-3)
+
+
+@pytest.fixture(scope="module")
+def setup() -> tuple[CalibratedCC, Split]:
+    spec = RobotSpec.from_dict(ROBOT)
+    smap = _servo_map(spec)
+    cc = CalibratedCC(spec, compliance=1e-7)
+    for p in cc.parameters():
+        p.requires_grad_(False)
+    return cc, synthetic_split(cc, smap, IDS, 64, seed=0)
+
+
+def _randomised(model: CCCompositionalResidual, seed: int = 1) -> CCCompositionalResidual:
+    """The model with every network weight drawn at random (the output layers start at zero)."""
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for p in model.fk.parameters():
+            p.copy_(0.3 * torch.randn(p.shape, generator=g, dtype=p.dtype))
+    return model
+
+
+def test_untrained_model_is_the_calibrated_cc_model(setup):
+    cc, split = setup
+    model = CCCompositionalResidual(split, cc)
+    with torch.no_grad():
+        tip, ends = model(split), model.segment_ends(split)
+    assert tip.shape == (64, 3) and tip.dtype == torch.float64 and ends.shape == (64, 2, 4, 4)
+    scale = float(cc.spec.total_length)
+    assert torch.allclose(tip, split.cc_tip, atol=64 * torch.finfo(torch.float32).eps * scale)
+
+
+def test_composition_matches_an_independent_product_of_exponentials(setup):
+    """Segment ends = ∏_k T_k^CC · expm(ξ_k^) with torch.linalg.matrix_exp, float64, to round-off."""
+    cc, split = setup
+    model = _randomised(CCCompositionalResidual(split, cc, context="distal", torsion=True)).double()
+    with torch.no_grad():
+        ends = model.segment_ends(split)
+        fk, front = model.fk, model.fk.front
+        z = front.with_context(front.norm(model.segment_features(split)))
+        xi = (fk.net(z) + fk.skip(z)) * TWIST_SCALE
+        v, w = xi[..., :3] * fk.length_scale, xi[..., 3:]
+        hat = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype)
+        hat[..., 0, 1], hat[..., 0, 2], hat[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+        hat[..., 1, 0], hat[..., 2, 0], hat[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+        hat[..., :3, 3] = v
+        poses = segment_poses(cc.spec, split.features) @ torch.linalg.matrix_exp(hat)
+        expected = torch.stack([poses[:, 0], poses[:, 0] @ poses[:, 1]], 1)
+    assert w.abs().max() > 1e-2                      # the corrections are not trivially the identity
+    assert torch.allclose(ends, expected, atol=1e3 * torch.finfo(torch.float64).eps)
+
+
+def test_without_torsion_the_corrections_do_not_roll_about_the_segment_axis(setup):
+    """torsion=False: ω_z = 0, so each correction's rotation axis lies in the end frame's xy plane
+    (the skew part of R, sin φ · n^, has n_z = 0: R_10 = R_01)."""
+    cc, split = setup
+    rolled = _randomised(CCCompositionalResidual(split, cc, torsion=True)).double()
+    plain = _randomised(CCCompositionalResidual(split, cc, torsion=False)).double()
+    with torch.no_grad():
+        r_plain, r_rolled = plain.corrections(split)[..., :3, :3], rolled.corrections(split)[..., :3, :3]
+    tol = 64 * torch.finfo(torch.float64).eps
+    assert torch.allclose(r_plain[..., 1, 0], r_plain[..., 0, 1], atol=tol)
+    assert (r_rolled[..., 1, 0] - r_rolled[..., 0, 1]).abs().max() > 1e-3
+
+
+def test_fit_reduces_the_training_error_of_a_non_cc_robot(setup):
+    cc, split = setup
+    bend = split.features[..., :2].norm(dim=-1).sum(-1, keepdim=True) / 5e-3     # total bend [rad]
+    target = Split(split.servo, split.x, split.features, split.cc_tip,
+                   split.cc_tip + 4e-3 * bend * torch.tensor([1.0, -0.5, 0.3], dtype=torch.float64),
+                   split.memory)
+    torch.manual_seed(0)
+    model = CCCompositionalResidual(target, cc, steps=25, lr=2e-2)
+    rmse = lambda: float((model(target) - target.tip).pow(2).sum(-1).mean().sqrt())  # noqa: E731
+    with torch.no_grad():
+        before = rmse()
+    model.fit(target)
+    with torch.no_grad():
+        assert rmse() < 0.5 * before
+    assert not any(p.requires_grad for p in cc.parameters())
+
+
+def test_gradients_wrt_the_features_and_the_weights(setup):
+    cc, split = setup
+    rows = split.rows(torch.arange(4))
+    model = _randomised(CCCompositionalResidual(rows, cc, context="segment")).double()
+
+    def tip(features):
+        return model(Split(rows.servo, rows.x, features, rows.cc_tip, rows.tip, rows.memory))
+
+    features = rows.features.clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(tip, (features,), eps=1e-7, atol=1e-6)
+    model.objective(rows).backward()
+    grads = [p.grad for p in model.fk.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads) and any(g.abs().max() > 0 for g in grads)
+
+
+def test_weight_decay_adds_the_squared_weights(setup):
+    cc, split = setup
+    plain = _randomised(CCCompositionalResidual(split, cc, weight_decay=0.0))
+    decayed = _randomised(CCCompositionalResidual(split, cc, weight_decay=0.5))
+    with torch.no_grad():
+        squares = sum(float(m.weight.pow(2).sum()) for m in decayed.fk.modules() if isinstance(m, torch.nn.Linear))
+        diff = float(decayed.objective(split) - plain.objective(split))
+    assert diff == pytest.approx(0.5 * squares, rel=1e-5)
+
+
+def test_bad_input_raises(setup):
+    cc, split = setup
+    with pytest.raises(ValueError, match="weight_decay"):
+        CCCompositionalResidual(split, cc, weight_decay=-1.0)
+    with pytest.raises(ValueError, match="context"):
+        CCCompositionalResidual(split, cc, context="proximal")
+    model = CCCompositionalResidual(split, cc)
+    with pytest.raises(ValueError, match="hardware Split"):
+        model(split.features)
+    short = Split(split.servo, split.x, split.features[:, :1], split.cc_tip, split.tip, split.memory)
+    with pytest.raises(ValueError, match="features"):
+        model(short)
+
+
+def test_registered_with_clarke_inputs(setup):
+    cc, split = setup
+    info = REGISTRY[NAME]
+    assert info.clarke_space and info.static and not info.deterministic and info.letter == "j"
+    ctx = FitContext(cc, _servo_map(cc.spec), IDS, split)
+    assert isinstance(build_model(NAME, ctx, 0), CCCompositionalResidual)
