@@ -19,6 +19,7 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .checks import check_tensor
+from .kinematics import forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .robot import RobotSpec
 
@@ -163,15 +164,27 @@ class FKModel(nn.Module):
         return pose_from_parts(rot, out[..., :3] * self.length)
 
 
+OUTPUT_SCALES = ("std", "task")
+
+
 class IKModel(nn.Module):
-    """Learned inverse kinematics: tip pose (..., 4, 4) → joint vector (..., num_joints)."""
+    """Learned inverse kinematics: tip pose (..., 4, 4) → joint vector (..., num_joints).
+
+    ``output_scale``: how the network output z is standardised, y = mean + scale·z. "std": the training
+    targets' standard deviations. "task": scales that make one unit of every output move the tip pose
+    alike (median over training samples of ‖∂v/∂z_i‖, v = :func:`pose_to_vector`, equal for all i;
+    geometric mean of scale/std = 1), so a feature MSE weighs each output by its effect on the tip and
+    the pose-loss gradient is balanced across outputs (see :meth:`fit_normalization`).
+    """
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
-                 activation: str = "silu"):
+                 activation: str = "silu", output_scale: str = "std"):
         super().__init__()
         if features not in FEATURE_MODES:
             raise ValueError(f"features: expected one of {FEATURE_MODES}, got {features!r}")
-        self.spec, self.features, self.length = spec, features, spec.total_length
+        if output_scale not in OUTPUT_SCALES:
+            raise ValueError(f"output_scale: expected one of {OUTPUT_SCALES}, got {output_scale!r}")
+        self.spec, self.features, self.length, self.output_scale = spec, features, spec.total_length, output_scale
         self.in_norm = Standardizer(9)
         self.encoder, self.decoder = ClarkeEncoder(spec), ClarkeDecoder(spec)
         if features == "clarke":
@@ -187,9 +200,25 @@ class IKModel(nn.Module):
             return q
         return self.encoder(q).flatten(-2) @ self.selection.to(q.dtype).mT
 
-    def fit_normalization(self, q: Tensor, pose: Tensor) -> None:
+    def fit_normalization(self, q: Tensor, pose: Tensor, num_jacobian: int = 256) -> None:
+        """Input and output standardisation from training joint vectors (N, num_joints) and poses (N, 4, 4);
+        "task" output scales from the pose Jacobian at the first ``num_jacobian`` samples (float64)."""
         self.in_norm.fit(pose_to_vector(pose, self.length))
         self.out_norm.fit(self.target(q))
+        if self.output_scale == "task":
+            self.out_norm.std.copy_(self.task_scale(q[:num_jacobian]))
+
+    def task_scale(self, q: Tensor) -> Tensor:
+        """Output scales (D,) of the "task" standardisation at joint vectors q (B, num_joints) (see class)."""
+        std = self.out_norm.std.double()
+        y = self.target(q.double()).detach().requires_grad_(True)
+        features = ClarkeEncoder(self.spec).double()(y) if self.features == "raw" else actuated_to_features(
+            y, self.selection.double(), self.base_features.double())
+        v = pose_to_vector(forward_kinematics(self.spec, features), self.length)
+        jac = torch.stack([torch.autograd.grad(v[:, i].sum(), y, retain_graph=True)[0] for i in range(v.shape[-1])])
+        gain = jac.norm(dim=0).median(dim=0).values                  # (D,) pose change per unit of y_i
+        scale = 1 / gain.clamp_min(1e-12 * gain.max().item())
+        return (scale * torch.exp(torch.log(std / scale).mean())).to(self.out_norm.std.dtype)
 
     def forward_normalized(self, pose: Tensor) -> Tensor:
         check_tensor(pose, "pose", (4, 4))

@@ -216,6 +216,7 @@ class IKModule(KinematicsModule):
     pose) has a manifold of joint solutions per pose; the feature term regresses to their
     conditional mean, which is not a solution, while the pose term accepts any solution.
 
+    ``output_scale``: the standardisation of the network output (:class:`~dacr_learn.models.IKModel`).
     ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps predictions inside
     the sampled joint limits (a loss that accepts any solution otherwise drifts out of them).
 
@@ -230,7 +231,7 @@ class IKModule(KinematicsModule):
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, feature_weight: float = 1.0,
                  pose_weight: float = 0.0, rot_weight: float = 1.0, pose_ramp: float = 0.0,
-                 limit_weight: float = 0.0):
+                 limit_weight: float = 0.0, output_scale: str = "std"):
         for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight),
                         ("limit_weight", limit_weight)):
             if not w >= 0:
@@ -244,7 +245,7 @@ class IKModule(KinematicsModule):
 
     def build_model(self) -> IKModel:
         h = self.hparams
-        return IKModel(self.spec, h.features, h.width, h.depth, h.activation)
+        return IKModel(self.spec, h.features, h.width, h.depth, h.activation, h.get("output_scale", "std"))
 
     def forward(self, pose: Tensor) -> Tensor:
         return self.model(pose)

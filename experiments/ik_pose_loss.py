@@ -11,7 +11,8 @@ used for choices) and on the ablation's fixed clean test set (``test``, reported
 outside the joint limits (a bend angle above the segment's limit or a length outside its range), plus
 the test joint error and constraint residual. "rampX": ``pose_ramp`` X (the feature loss moved linearly
 to the pose loss over that fraction of the steps); "limitX": ``limit_weight`` X (joint-limit penalty);
-"anchorX": a feature weight X kept beside the pose loss; "rotX": the rotation weight; "wdX": AdamW decay.
+"anchorX": a feature weight X kept beside the pose loss; "rotX": the rotation weight; "wdX": AdamW decay;
+"task": ``output_scale="task"`` (network outputs scaled by their effect on the tip pose, not by their std).
 """
 from __future__ import annotations
 
@@ -37,12 +38,15 @@ VAL_SEED, VAL_N = 2000003, 2000
 
 def loss_settings(name: str) -> dict:
     """IKModule settings of a loss name: "feature" (the feature MSE alone), or "pose" plus any of the
-    ``TAGS`` joined by "_" (e.g. "ramp0.05_limit1"): the pose loss with those settings changed."""
+    ``TAGS`` (or "task") joined by "_" (e.g. "ramp0.05_limit1"): the pose loss with those settings changed."""
     if name == "feature":
         return {}
     settings = dict(POSE)
     for part in name.split("_"):
         m = re.fullmatch(r"([a-z]+)([-+0-9.e]+)", part)
+        if part == "task":
+            settings["output_scale"] = "task"
+            continue
         if part != "pose" and (m is None or m[1] not in TAGS):
             raise ValueError(f"loss {name!r}: unknown part {part!r}, expected 'pose' or one of {sorted(TAGS)} "
                              "followed by a number")

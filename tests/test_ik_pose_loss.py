@@ -10,6 +10,7 @@ import torch
 
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics
+from dacr_learn.models import pose_to_vector
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import IKModule, limit_excess, pose_loss
 
@@ -37,12 +38,13 @@ def test_decoded_features_are_those_of_the_decoded_joints(features):
     assert torch.allclose(model.decode_features(z), expected, atol=1e3 * torch.finfo(z.dtype).eps * scale, rtol=0)
 
 
+@pytest.mark.parametrize("output_scale", ["std", "task"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("features", ["clarke", "raw"])
-def test_pose_loss_vanishes_at_the_true_joints(features, dtype):
+def test_pose_loss_vanishes_at_the_true_joints(features, dtype, output_scale):
     """A network output equal to the standardised true target has zero pose loss (to round-off of the
     standardisation and the FK; the loss is a squared relative error, so ~ (1e3·eps)²)."""
-    module, data = ik_module(features, dtype)
+    module, data = ik_module(features, dtype, output_scale=output_scale)
     model = module.model
     z = model.out_norm(model.target(data["q"]))
     pred = forward_kinematics(module.spec, model.decode_features(z))
@@ -83,7 +85,8 @@ def test_training_loss_combines_feature_and_pose_terms():
                                           ({"pose_weight": -1.0}, "pose_weight: expected a number >= 0"),
                                           ({"rot_weight": float("nan")}, "rot_weight"),
                                           ({"pose_ramp": 1.5}, "pose_ramp: expected a fraction"),
-                                          ({"limit_weight": -0.1}, "limit_weight: expected a number >= 0")])
+                                          ({"limit_weight": -0.1}, "limit_weight: expected a number >= 0"),
+                                          ({"output_scale": "range"}, "output_scale: expected one of")])
 def test_bad_loss_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         IKModule(robot=str(TDCR3), **kwargs)
@@ -133,3 +136,27 @@ def test_limit_weight_adds_the_mean_limit_excess_of_the_decoded_features():
     assert torch.allclose(losses[2.5], losses[0.0] + 2.5 * excess.mean(), rtol=1e3 * torch.finfo(torch.float64).eps)
     spec, features = module.spec, module.model.decode_features(module.model.forward_normalized(data["pose"][:6]))
     assert torch.autograd.gradcheck(lambda f: limit_excess(spec, f).sum(), (features.detach().requires_grad_(True),))
+
+
+@pytest.mark.parametrize("features", ["clarke", "raw"])
+def test_task_output_scale_makes_every_output_move_the_pose_alike(features):
+    """output_scale="task": the median over the fitted samples of ‖∂v/∂z_i‖ (v = pose_to_vector of the FK of
+    the decoded output) is the same for every output i, and the scales keep the geometric mean of the
+    std-based ones. With "std" the Clarke outputs differ by more than 10x (β barely moves the tip)."""
+    gains = {}
+    for scale in ("std", "task"):
+        module, data = ik_module(features, output_scale=scale)
+        model = module.model
+        z = model.out_norm(model.target(data["q"])).requires_grad_(True)
+        v = pose_to_vector(forward_kinematics(module.spec, model.decode_features(z)), module.spec.total_length)
+        jac = torch.stack([torch.autograd.grad(v[:, i].sum(), z, retain_graph=True)[0] for i in range(9)])
+        gains[scale] = jac.norm(dim=0).median(dim=0).values
+        if scale == "std":
+            std = model.out_norm.std.clone()
+        else:
+            ratio = model.out_norm.std / std
+            assert torch.log(ratio).mean().abs() < 1e-6
+    task = gains["task"]
+    assert torch.allclose(task, task.mean().expand_as(task), rtol=1e-6)
+    if features == "clarke":
+        assert gains["std"].max() > 10 * gains["std"].min()
