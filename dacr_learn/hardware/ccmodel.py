@@ -1,12 +1,21 @@
 """Calibrated constant-curvature model of a tendon robot: joint displacements → tip position.
 
-    x (..., N) [m] ──SlackAwareEncoder──▶ features (..., m, 4) ──forward_kinematics──▶ T_tip
-    tip = R_base · (p_tip + t_marker · z_tip) + t_base   (motion-capture frame, metres)
+    x (..., N) [m] ──SlackAwareEncoder──▶ features (..., m, 4) ──forward_kinematics──▶ T_tip = (R_tip, p_tip)
+    tip = R_base · (p_tip + R_tip · d_marker) + t_base   (motion-capture frame, metres)
 
-Fitted physical parameters (14 for a 3-segment robot): per segment the effective radius and
-a rotation of the joint angles, the tendon compliance EI/EA and pretension (encoder), the
-base tilt (2 angles) and translation (3), and the marker offset along the tip axis.
+Fitted physical parameters (14 for a 3-segment robot, 16 with ``lateral_marker``): per segment the
+effective radius and a rotation of the joint angles, the tendon compliance EI/EA and pretension
+(encoder), the base tilt (2 angles) and translation (3), and the marker offset d_marker in the tip
+frame: along the tip axis, d = (0, 0, t) (``lateral_marker=False``, the model before), or the full
+3-vector (x, y, t) (``lateral_marker=True``: the tracked marker sits off the backbone axis).
 Segment lengths stay nominal (they trade off against the radii and made the fit degenerate).
+
+Identifiability of the lateral offset: the CC tip frame has no twist (it equals the base frame when
+straight), so (x, y) acts like a base translation on a straight robot and is separated from it only
+by the bends. A common rotation φ of all joint angles (the model's base yaw) maps the predictions to
+Rz(φ)·(p_tip + R_tip·Rz(−φ)·d): it turns the lateral offset as well as the whole tip cloud, so the
+two are not traded against each other (there is no separate base yaw that could compensate); the
+fitted (x, y) is the physical offset in the robot frame whose yaw the joint rotations define.
 """
 from __future__ import annotations
 
@@ -25,14 +34,33 @@ from .slack import SlackAwareEncoder
 class CalibratedCC(nn.Module):
     """Joint displacements (..., N) [m] → tip position (..., 3) [m] in the motion-capture frame."""
 
-    def __init__(self, spec: RobotSpec, compliance: float = 1e-6):
+    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, lateral_marker: bool = False):
         super().__init__()
         self.spec = spec
         self.encoder = SlackAwareEncoder(spec, compliance=compliance)
         f64 = dict(dtype=torch.float64)
         self.base_tilt = nn.Parameter(torch.zeros(2, **f64))   # about x, then y; yaw = joint rotations
         self.base_translation = nn.Parameter(torch.zeros(3, **f64))
-        self.tip_offset = nn.Parameter(torch.zeros((), **f64))
+        self.tip_offset = nn.Parameter(torch.zeros((), **f64))                # along the tip axis z_tip
+        self.lateral_marker = bool(lateral_marker)
+        if self.lateral_marker:
+            self.marker_lateral = nn.Parameter(torch.zeros(2, **f64))      # (x, y) in the tip frame
+
+    @classmethod
+    def from_state_dict(cls, spec: RobotSpec, state: Mapping[str, Tensor]) -> CalibratedCC:
+        """The model of a saved ``state_dict()`` (with or without the lateral marker offset)."""
+        model = cls(spec, lateral_marker="marker_lateral" in state)
+        model.load_state_dict(state)
+        return model
+
+    def marker_offset(self) -> Tensor:
+        """Marker position d (3,) [m] in the tip frame: (x, y, t); x = y = 0 without ``lateral_marker``."""
+        lateral = self.marker_lateral if self.lateral_marker else self.tip_offset.new_zeros(2)
+        return torch.cat([lateral, self.tip_offset.reshape(1)])
+
+    def marker_point(self, pose: Tensor) -> Tensor:
+        """Tip poses (..., 4, 4) [m] in the robot base frame → marker points p + R·d (..., 3) [m], same frame."""
+        return pose[..., :3, 3] + pose[..., :3, :3] @ self.marker_offset().to(pose.dtype)
 
     def base_rotation(self) -> Tensor:
         """Base tilt R = Rx·Ry (yaw is not separate: it equals a common rotation of the joints)."""
@@ -45,9 +73,7 @@ class CalibratedCC(nn.Module):
 
     def tip_from_features(self, features: Tensor) -> Tensor:
         """Features (..., m, 4) (nominal-spec convention) → tip marker position (..., 3) [m]."""
-        pose = forward_kinematics(self.spec, features)
-        p = pose[..., :3, 3] + pose[..., :3, 2] * self.tip_offset.to(features.dtype)
-        return self.to_world(p)
+        return self.to_world(self.marker_point(forward_kinematics(self.spec, features)))
 
     def forward(self, x: Tensor) -> Tensor:
         return self.tip_from_features(self.encoder(x))
@@ -60,7 +86,7 @@ class CalibratedCC(nn.Module):
         """Fitted physical parameters in readable units (mm, deg)."""
         enc = self.encoder
         with torch.no_grad():
-            return {
+            out = {
                 "effective_radius_mm": [round(v * 1e3, 3) for v in enc.effective_radius().tolist()],
                 "joint_rotation_deg": [round(v, 2) for v in torch.rad2deg(enc.rotation).tolist()],
                 "compliance_EI_over_EA_mm2": round(enc.log_compliance.exp().item() * 1e6, 4),
@@ -69,12 +95,16 @@ class CalibratedCC(nn.Module):
                 "base_translation_mm": [round(v * 1e3, 2) for v in self.base_translation.tolist()],
                 "tip_marker_offset_mm": round(self.tip_offset.item() * 1e3, 2),
             }
+            if self.lateral_marker:
+                out["marker_lateral_xy_mm"] = [round(v * 1e3, 2) for v in self.marker_lateral.tolist()]
+            return out
 
 
 # Typical magnitude of each parameter: the fit works on parameter / scale, so that the
 # L-BFGS steps are well conditioned across metres, millimetre pretensions and log-radii.
 FIT_SCALES = {"encoder.log_radius_scale": 0.1, "encoder.rotation": 0.05, "encoder.log_compliance": 1.0,
-               "encoder.pretension": 1e-4, "base_tilt": 0.02, "base_translation": 1e-3, "tip_offset": 1e-3}
+               "encoder.pretension": 1e-4, "base_tilt": 0.02, "base_translation": 1e-3, "tip_offset": 1e-3,
+               "marker_lateral": 1e-3}
 
 
 def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, frozen: tuple[str, ...] = (),

@@ -7,11 +7,13 @@ distal tendon pulls bend several segments at once):
   one shared: ``pass1``); the displacement map G and the force balance use it alike.
 - ``stiff``: per-segment bending stiffness, EI_k = EI·exp(s_k) with s_0 = 0 (m − 1 parameters).
 - ``marker3``: the marker offset as a 3-vector in the tip frame (2 more parameters than the axial
-  offset of the package model).
+  offset; since promoted to the package model: ``CalibratedCC(spec, lateral_marker=True)``, which
+  this variant now uses; ``base`` is ``lateral_marker=False``).
 Static CC only (no residual network). Reports in-sample train RMSE, leave-one-family-out CV RMSE,
-the singles → pairs extrapolation RMSE (fit on the single-segment family, test on all pairs) and
-the radial bias of loading rows by family (positive = over-bends).
-Usage: python experiments/hardware_cv/coupling.py VARIANT[,VARIANT...] [--val]
+the singles → pairs extrapolation RMSE (fit on the single-segment family, test on all pairs), the
+radial bias of loading rows by family (positive = over-bends) and the marker offset [mm] fitted in
+each fold.
+Usage: python experiments/hardware_cv/static_variants.py VARIANT[,VARIANT...] [--val]
   VARIANT: base | pass1 | pass | stiff | marker3, or several joined by '+'
 """
 
@@ -24,11 +26,10 @@ import torch
 from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, train_rec, val_data, x_tr
 from torch import nn
 
-from dacr_learn.hardware import ccmodel
 from dacr_learn.hardware.ccmodel import fit_cc
 from dacr_learn.hardware.slack import SlackAwareEncoder
 
-SCALES = {"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1, "marker_lateral": 1e-3}  # extra fit_cc scales
+SCALES = {"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1}  # extra fit_cc scales
 
 
 class CoupledEncoder(SlackAwareEncoder):
@@ -58,20 +59,14 @@ class CoupledEncoder(SlackAwareEncoder):
 
 class VariantCC(CalibratedCC):
     def __init__(self, variant: str):
-        super().__init__(spec)
+        super().__init__(spec, lateral_marker="marker3" in variant)
         self.variant = variant
         self.encoder = CoupledEncoder(variant)
-        if "marker3" in variant:
-            self.marker_lateral = nn.Parameter(torch.zeros(2, dtype=torch.float64))
 
-    def tip_from_features(self, features):
-        pose = ccmodel.forward_kinematics(self.spec, features)
-        offset = self.tip_offset.to(features.dtype).reshape(1)
-        if "marker3" in self.variant:
-            offset = torch.cat([self.marker_lateral.to(features.dtype), offset])
-        else:
-            offset = torch.cat([offset.new_zeros(2), offset])
-        return self.to_world(pose[..., :3, 3] + (pose[..., :3, :3] @ offset.unsqueeze(-1)).squeeze(-1))
+
+def marker_mm(cc) -> list[float]:
+    """Fitted marker offset (x, y, t) [mm] in the tip frame."""
+    return [round(v * 1e3, 2) for v in cc.marker_offset().tolist()]
 
 
 def make(variant):
@@ -108,17 +103,20 @@ if __name__ == "__main__":
         t0 = time.time()
         cc = fitted(v, x_tr, tip_tr)
         out = {"name": v, "train": round(rmse(cc(x_tr).detach(), tip_tr), 3)}
-        folds = {}
+        folds, markers = {}, {"train": marker_mm(cc)}
         for f in FOLDS:
             tr = torch.from_numpy(fam != f)
-            folds[f] = rmse(fitted(v, x_tr[tr], tip_tr[tr])(x_tr[~tr]).detach(), tip_tr[~tr])
+            fold_cc = fitted(v, x_tr[tr], tip_tr[tr])
+            folds[f], markers[f] = rmse(fold_cc(x_tr[~tr]).detach(), tip_tr[~tr]), marker_mm(fold_cc)
         single = torch.from_numpy(fam == "single")
-        extrap = rmse(fitted(v, x_tr[single], tip_tr[single])(x_tr[~single]).detach(), tip_tr[~single])
+        single_cc = fitted(v, x_tr[single], tip_tr[single])
+        extrap, markers["singles"] = rmse(single_cc(x_tr[~single]).detach(), tip_tr[~single]), marker_mm(single_cc)
         out.update(
             cv=round(float(np.mean(list(folds.values()))), 3),
             singles_to_pairs=round(extrap, 3),
             folds={k: round(s, 2) for k, s in folds.items()},
             load_bias_train=loading_bias(cc, x_tr, tip_tr, kind),
+            marker_mm=markers,
             params={
                 n: [round(t, 4) for t in p.detach().flatten().tolist()]
                 for n, p in cc.named_parameters()
