@@ -26,9 +26,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ..kinematics import _TAYLOR_BELOW, bending_coefficients, forward_kinematics
+from ..kinematics import _TAYLOR_BELOW, bending_coefficients, cc_transform
 from .checkpoint import HardwareModel
 from .learned import RESIDUAL_RHO_SCALE
+from .slack import active_set_gains
 from .uncertainty import SigmaCalibration
 
 _F64 = torch.float64
@@ -51,27 +52,46 @@ def _bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tenso
 
 def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """One CC segment per (…) entry: bending vector u (..., 2) [rad], length β (...) [m] →
-    R (..., 3, 3), p (..., 3), ∂R/∂u (..., 2, 3, 3), ∂p/∂u (..., 2, 3) (docs/design.md §2)."""
+    R (..., 3, 3), p (..., 3) (:func:`~dacr_learn.kinematics.cc_transform`), ∂R/∂u (..., 2, 3, 3),
+    ∂p/∂u (..., 2, 3) (docs/design.md §2)."""
+    pose = cc_transform(u, beta)
     ux, uy = u[..., 0], u[..., 1]
     s, f, ds, df = _bending_coefficients_and_derivatives(ux * ux + uy * uy)
 
-    def rotation(a, b):   # R and ∂R/∂a for (a, b) = (ux, uy); the uy case swaps rows/columns 0 and 1
-        r = [[1 - f * a * a, -f * a * b, s * a], [-f * a * b, 1 - f * b * b, s * b],
-             [-s * a, -s * b, 1 - f * (a * a + b * b)]]
-        d = [[-2 * a * (f + df * a * a), -b * (f + 2 * df * a * a), s + 2 * ds * a * a],
-             [-b * (f + 2 * df * a * a), -2 * a * df * b * b, 2 * ds * a * b],
-             [-(s + 2 * ds * a * a), -2 * ds * a * b, -2 * a * (f + df * (a * a + b * b))]]
-        return r, d
+    def rotation(a, b):   # ∂R/∂a for (a, b) = (ux, uy); the uy case swaps rows/columns 0 and 1
+        return [[-2 * a * (f + df * a * a), -b * (f + 2 * df * a * a), s + 2 * ds * a * a],
+                [-b * (f + 2 * df * a * a), -2 * a * df * b * b, 2 * ds * a * b],
+                [-(s + 2 * ds * a * a), -2 * ds * a * b, -2 * a * (f + df * (a * a + b * b))]]
 
-    r, dx = rotation(ux, uy)
-    _, dy = rotation(uy, ux)
+    dx, dy = rotation(ux, uy), rotation(uy, ux)
     perm = [1, 0, 2]
     dy = [[dy[perm[i]][perm[j]] for j in range(3)] for i in range(3)]
     stack = lambda rows: torch.stack([torch.stack(row, -1) for row in rows], -2)  # noqa: E731
-    p = beta.unsqueeze(-1) * torch.stack([f * ux, f * uy, s], -1)
     dpx = beta.unsqueeze(-1) * torch.stack([f + 2 * df * ux * ux, 2 * df * ux * uy, 2 * ds * ux], -1)
     dpy = beta.unsqueeze(-1) * torch.stack([2 * df * ux * uy, f + 2 * df * uy * uy, 2 * ds * uy], -1)
-    return stack(r), p, torch.stack([stack(dx), stack(dy)], -3), torch.stack([dpx, dpy], -2)
+    return pose[..., :3, :3], pose[..., :3, 3], torch.stack([stack(dx), stack(dy)], -3), torch.stack([dpx, dpy], -2)
+
+
+def segment_twists(radius: Tensor, length: Tensor) -> tuple[Tensor, Tensor]:
+    """Linear map of a CC segment's ρ to its twist Ξ (4 × 4, flattened): Ξ = ρ·map + offset, map (m, 2, 16),
+    offset (m, 16), with Ξ = [[0, 0, uₓ, 0], [0, 0, u_y, 0], [−uₓ, −u_y, 0, β], 0] for u = ρ/d."""
+    m = radius.shape[0]
+    twist = torch.zeros(m, 2, 4, 4, dtype=radius.dtype)
+    twist[:, 0, 0, 2] = twist[:, 1, 1, 2] = 1 / radius
+    twist[:, 0, 2, 0] = twist[:, 1, 2, 1] = -1 / radius
+    offset = torch.zeros(m, 4, 4, dtype=radius.dtype)
+    offset[:, 2, 3] = length
+    return twist.flatten(-2), offset.flatten(-2)
+
+
+def segment_poses_from_twists(xi: Tensor) -> Tensor:
+    """CC segment poses (..., 4, 4) from their twists Ξ (..., 4, 4): T = exp(Ξ) = I + sΞ + fΞ² with
+    s = sin φ/φ, f = (1 − cos φ)/φ², φ² = −(Ξ²)₂₂ (:func:`~dacr_learn.kinematics.bending_coefficients`), the
+    closed form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the same
+    R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2)."""
+    xi2 = xi @ xi
+    s, f = bending_coefficients(-xi2[..., 2, 2])
+    return torch.eye(4, dtype=xi.dtype) + s[..., None, None] * xi + f[..., None, None] * xi2
 
 
 def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
@@ -94,19 +114,17 @@ class HardwareFK(nn.Module):
 
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()
-        spec, cc, enc = model.spec, model.cc, model.cc.encoder
+        spec, cc = model.spec, model.cc
         self.history, self.num_segments, self.num_servos = model.history, spec.num_segments, len(model.servo_ids)
         with torch.no_grad():
-            eye = torch.eye(self.num_servos, dtype=_F64)              # x = servo·A + a₀ (+ pretension)
-            a0 = model.smap.displacements(spec, _Rows(model.servo_ids, torch.zeros(1, self.num_servos, dtype=_F64)))[0]
-            a = model.smap.displacements(spec, _Rows(model.servo_ids, 1e-3 * eye)) - a0
-            buffers = {"servo_map": a, "servo_offset": a0 + enc.pretension, "g": enc.displacement_map(),
-                       "bend_w": enc.bend_weights(), "tendon_w": 1.0 / enc.path_length,
-                       "rho_scale": (enc.radius / enc.effective_radius()).unsqueeze(-1),
+            buffers = {**_active_set_maps(model),
                        "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64),
                        "base_rotation": cc.base_rotation(), "base_translation": cc.base_translation,
-                       "offset": cc.tip_offset, "play_width": torch.tensor(model.play_width, dtype=_F64)}
+                       "offset": cc.tip_offset, "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
+                       "tip_marker": torch.eye(4, dtype=_F64)[3] + cc.tip_offset * torch.eye(4, dtype=_F64)[2],
+                       "play_width": torch.tensor(model.play_width, dtype=_F64)}
+            buffers["twist_map"], buffers["twist_offset"] = segment_twists(buffers["radius"], buffers["length"])
             buffers.update(_stacked_members(model.members))
             self.clamp = bool(getattr(model.members[0], "support", False))   # CCClarkeResidual(support=True)
             if self.clamp:
@@ -122,21 +140,15 @@ class HardwareFK(nn.Module):
         self.spec = spec
 
     def clarke(self, servo: Tensor) -> tuple[Tensor, Tensor]:
-        """ρ (B, m, 2) [m, nominal-radius convention] of the commands and ∂ρ/∂servo (B, m, 2, S) [m/mm]."""
-        b = servo @ self.servo_map + self.servo_offset                        # (B, N) [m]
-        eye_w = torch.diag_embed(self.bend_w)
-        active = b > 0
-        for _ in range(QP_ITERATIONS - 1):
-            mat = eye_w + (self.g.mT * (self.tendon_w * active).unsqueeze(-2)) @ self.g
-            rho = torch.linalg.solve(mat, ((self.tendon_w * active * b) @ self.g).unsqueeze(-1)).squeeze(-1)
-            active = (b - rho @ self.g.mT) > 0
-        wa = self.tendon_w * active                                           # last solve's set (converged)
-        mat = eye_w + (self.g.mT * wa.unsqueeze(-2)) @ self.g
-        rhs = torch.cat([((wa * b) @ self.g).unsqueeze(-1), self.g.mT @ (wa.unsqueeze(-1) * self.servo_map.mT)], -1)
-        sol = torch.linalg.solve(mat, rhs)                                    # (B, D, 1 + S)
-        m = self.num_segments
-        sol = sol.unflatten(-2, (m, 2)) * self.rho_scale.unsqueeze(-1)
-        return sol[..., 0], sol[..., 1:]
+        """ρ (B, m, 2) [m, nominal-radius convention] of the commands and ∂ρ/∂servo (B, m, 2, S) [m/mm]:
+        the sign violations of all 2ᴺ active sets' solutions in one product, the least-violating set's
+        affine map (:func:`~.slack.select_active_set`)."""
+        n_sets = self.rho_gain.shape[0]
+        violation = torch.relu(servo @ self.violation_map + self.violation_offset).unflatten(-1, (n_sets, -1))
+        best = violation.sum(-1).argmin(-1)                                   # (B,)
+        gain = self.rho_gain[best]                                            # (B, 2m, S)
+        rho = (gain @ servo.unsqueeze(-1)).squeeze(-1) + self.rho_offset[best]
+        return rho.unflatten(-1, (self.num_segments, 2)), gain.unflatten(-2, (self.num_segments, 2))
 
     def initial_state(self, servo: Tensor) -> Tensor:
         """Play state to start a sequence at command ``servo`` (B, S): its own ρ (B, m, 2) [m]."""
@@ -213,6 +225,15 @@ class HardwareFK(nn.Module):
         world = p @ self.base_rotation.mT + self.base_translation
         return world, torch.einsum("ij,...jmk->...imk", self.base_rotation, jac)
 
+    def tip_only(self, rho: Tensor) -> Tensor:
+        """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (0, 0, offset, 1)."""
+        poses = segment_poses_from_twists((rho.unsqueeze(-2) @ self.twist_map).squeeze(-2).add(self.twist_offset)
+                                          .unflatten(-1, (4, 4)))
+        chain = self.base_pose
+        for pose in poses.unbind(-3):
+            chain = chain @ pose
+        return (chain @ self.tip_marker)[..., :3]
+
     def mean_std(self, tips: Tensor) -> tuple[Tensor, Tensor]:
         k = tips.shape[1]
         std = tips.std(1, correction=1) if k > 1 else torch.zeros_like(tips[:, 0])
@@ -224,10 +245,7 @@ class HardwareFK(nn.Module):
         if self.history:
             memory, new_state, _ = self.play(rho, state)
         corrected, _ = self.members(rho, memory, None)
-        features = torch.cat([corrected, self.length.expand(corrected.shape[:-1]).unsqueeze(-1),
-                              torch.zeros_like(corrected[..., :1])], -1)
-        pose = forward_kinematics(self.spec, features)
-        tips = (pose[..., :3, 3] + pose[..., :3, 2] * self.offset) @ self.base_rotation.mT + self.base_translation
+        tips = self.tip_only(corrected)
         tip, std = self.mean_std(tips)
         return (tip, std, new_state) if self.history else (tip, std)
 
@@ -251,6 +269,32 @@ class HardwareJacobian(nn.Module):
         jac = torch.einsum("bkimj,bkmjs->bis", dtip, dcorr) / corrected.shape[1]
         tip = tips.mean(1)
         return (tip, jac, new_state) if fk.history else (tip, jac)
+
+
+def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
+    """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
+    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, 2m, S) and ``rho_offset`` (2ᴺ, 2m) give
+    ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
+    give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
+    spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
+    a0 = model.smap.displacements(spec, _Rows(model.servo_ids, torch.zeros(1, s, dtype=_F64)))[0]
+    a = model.smap.displacements(spec, _Rows(model.servo_ids, 1e-3 * torch.eye(s, dtype=_F64))) - a0   # (S, N)
+    a0 = a0 + enc.pretension
+    g, tendon_w = enc.displacement_map(), 1.0 / enc.path_length
+    sets, gain = active_set_gains(g, enc.bend_weights(), tendon_w)                    # (2ᴺ, N), (2ᴺ, 2m, N)
+    weight = torch.where(sets, -1.0, 1.0).to(_F64) * tendon_w                          # (2ᴺ, N)
+    keep = torch.eye(g.shape[0], dtype=_F64) - g @ gain                                # x − Gρ_S = (I − G K_S) x
+    scale = (enc.radius / enc.effective_radius()).repeat_interleave(2).unsqueeze(-1)
+    return {"rho_gain": scale * gain @ a.mT, "rho_offset": ((scale * gain) @ a0),
+            "violation_map": torch.einsum("sij,kj->ksi", keep, a).mul(weight).flatten(-2),
+            "violation_offset": ((keep @ a0) * weight).flatten()}
+
+
+def _homogeneous(rotation: Tensor, translation: Tensor) -> Tensor:
+    """(3, 3), (3,) → the 4 × 4 homogeneous transform."""
+    out = torch.eye(4, dtype=rotation.dtype)
+    out[:3, :3], out[:3, 3] = rotation, translation
+    return out
 
 
 class _Rows:

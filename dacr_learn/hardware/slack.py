@@ -27,6 +27,14 @@ E is a convex piecewise quadratic. It is minimised by a semi-smooth Newton (acti
 iteration: guess the stretched tendons, solve the linear system, update the set, repeat.
 Batched over leading dims; gradients flow through the final linear solve (the active set
 is piecewise constant), so c, p, the radii and the joint-angle rotations can be fitted.
+
+For fixed parameters (inference, :mod:`.inference`) the same minimiser is found without
+iterating: :func:`active_set_gains` solves the linear system of every one of the 2ᴺ sets once
+(ρ_S = K_S x), and :func:`select_active_set` picks, per command, the set S whose solution is
+consistent with it — stretched exactly where x − Gρ_S > 0. Because E is strictly convex, that
+set is unique (it is the set at the minimiser) and ρ_S is the minimiser; in floating point the
+set with the least sign violation is taken, whose ρ_S is within ‖Gᵀ W v‖/min(bend_w) of the
+minimiser (v the violations: ∇E(ρ_S) = Gᵀ W v and E is min(bend_w)-strongly convex).
 """
 from __future__ import annotations
 
@@ -84,6 +92,49 @@ def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iter
             break
         active = new
     return rho
+
+
+MAX_ENUMERATED_TENDONS = 12  # 2^N sets: 4096 gains of (2m × N) at most
+
+
+def active_set_gains(g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> tuple[Tensor, Tensor]:
+    """Every set S of stretched tendons and its linear solution map, ρ_S = K_S x.
+
+    Args:
+        g: (N, D) displacement map G; bend_w (D,), tendon_w (N,) positive weights (as in
+            :func:`solve_tendon_qp`, energy form).
+    Returns:
+        sets (2ᴺ, N) bool (row k: bit i of k set ⇔ tendon i stretched) and
+        K (2ᴺ, D, N) = (diag(bend_w) + Gᵀ W_S G)⁻¹ Gᵀ W_S, W_S = diag(tendon_w·1_S).
+    """
+    n = g.shape[0]
+    if n > MAX_ENUMERATED_TENDONS:
+        raise ValueError(f"g: enumerating the active sets needs at most {MAX_ENUMERATED_TENDONS} tendons "
+                         f"(2^N linear systems), got N = {n}")
+    bits = torch.arange(n, device=g.device)
+    sets = (torch.arange(2**n, device=g.device).unsqueeze(-1) >> bits) & 1 == 1
+    gw = g.mT * (tendon_w * sets).unsqueeze(-2)                                   # (2ᴺ, D, N) = Gᵀ W_S
+    return sets, torch.linalg.solve(torch.diag_embed(bend_w) + gw @ g, gw)
+
+
+def select_active_set(residual: Tensor, sets: Tensor, tendon_w: Tensor) -> Tensor:
+    """Index of the consistent set: residual (..., 2ᴺ, N) = x − Gρ_S of every set's solution,
+    sets (2ᴺ, N) bool, tendon_w (N,) → (...,) long, the set whose stretched tendons are exactly
+    those with a positive residual (the least tendon-weighted sign violation in floating point;
+    ties go to the lowest index, the fewest stretched tendons of the tied sets)."""
+    sign = torch.where(sets, -1.0, 1.0).to(residual.dtype)                       # + where it must be ≤ 0
+    violation = (torch.relu(residual * sign) * tendon_w.to(residual.dtype)).sum(-1)
+    return violation.argmin(-1)
+
+
+def solve_tendon_qp_enumerated(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> Tensor:
+    """:func:`solve_tendon_qp` (energy form, no force map or load) by enumerating the active sets:
+    x (B, N) [m] → ρ (B, D). The same minimiser; differentiable in x (not in the weights)."""
+    sets, gain = active_set_gains(g, bend_w, tendon_w)
+    rho = torch.einsum("sdn,bn->bsd", gain.to(x.dtype), x)                      # (B, 2ᴺ, D)
+    residual = x.unsqueeze(-2) - rho @ g.to(x.dtype).mT
+    best = select_active_set(residual, sets, tendon_w)
+    return rho[torch.arange(x.shape[0], device=x.device), best]
 
 
 class SlackAwareEncoder(nn.Module):
