@@ -5,7 +5,7 @@ Per segment k the calibrated CC model gives T_k^CC(x_k) (base of segment k → i
 right-multiplies each by a learned rigid correction and composes the robot like the CC model:
 
     T_k = T_k^CC(x_k) · exp(ξ_k^),   ξ_k = s · f_θ(z_k, c_k),   T_tip = T_1 · T_2 ⋯ T_m,
-    tip = R_base · (p_tip + t_marker · z_tip) + t_base             (the CC model's calibration)
+    tip = R_base · (p_tip + R_tip · d_marker) + t_base             (the CC model's calibration)
 
 f_θ is the per-segment network of :class:`dacr_learn.compositional.CompositionalFK` (an MLP plus a
 linear skip shared by all segments, twist head: ξ = (v · L_s, ω), exp in closed form), fed with the
@@ -77,9 +77,7 @@ class CCCompositionalResidual(nn.Module):
 
     def forward(self, split: Split) -> Tensor:
         """Tip marker (n, 3) [m] in the motion-capture frame, float64 (kinematics in float32 like (e), unless cast)."""
-        tip = self.segment_ends(split)[:, -1]
-        p = tip[:, :3, 3] + tip[:, :3, 2] * self.cc.tip_offset.to(tip.dtype)
-        return self.cc.to_world(p).double()
+        return self.cc.to_world(self.cc.marker_point(self.segment_ends(split)[:, -1])).double()
 
     def penalty(self) -> Tensor:
         """Sum of squared network weights (the linear layers' matrices; biases are not decayed)."""
