@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from conftest import roundoff_tol
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import spearmanr
+from test_hardware_selection import robot_dir  # noqa: F401  (fixture: a labelled synthetic recording)
 
 from dacr_learn.hardware.uncertainty import (
     TERMS,
@@ -133,3 +135,27 @@ def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
     assert torch.allclose(model.predict(split)[1], model.sigma(preds.std(0)), rtol=1e-12, atol=0)
     with pytest.raises(ValueError, match=r"servo_mm: expected shape \(n, 8\)"):
         model.predict(servo_mm[:, :5])
+
+
+def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(robot_dir, tmp_path):  # noqa: F811
+    """On the synthetic robot whose CC model is the truth (0.1 mm noise per axis), the held-out residuals
+    of the CC model are the noise: the fitted σ is ≈ 0.1 mm everywhere and the bend term negligible."""
+    from dacr_learn.hardware.benchmark import load_setup
+    from dacr_learn.hardware.checkpoint import fit_hardware_model
+    from dacr_learn.hardware.heldout import SIGMA_TERMS, held_out_folds, sigma_models
+
+    data, robot = robot_dir
+    setup = load_setup(robot, data / "train.csv", None, tmp_path)
+    blocks = held_out_folds(setup, "cc", [0, 1])
+    assert [(b.fold, b.preds.shape[0], len(b.tip)) for b in blocks] == [
+        ("cv:single", 1, 80), ("cv:pair12", 1, 40), ("extrap:singles_to_pairs", 1, 40)]   # deterministic: one run
+    assert all(bool((b.support >= 0).all()) for b in blocks)
+    cal, model = sigma_models(setup, "cc", [0, 1])
+    assert model.terms == SIGMA_TERMS
+    assert float(model.floor) == pytest.approx(1e-4, rel=0.35)             # 40 rows × 3 axes of 0.1 mm noise
+    assert float(cal.floor) == pytest.approx(float(model.floor), rel=0.35)
+    hw = fit_hardware_model(setup, "cc", [0], sigma=cal)
+    hw.sigma_model = model
+    tip, sigma = hw.predict(setup.train)
+    assert (tip - setup.train.cc_tip).abs().max() <= roundoff_tol(torch.float32, 0.15)   # member kinematics in float32
+    assert float(sigma.max()) < 2e-4 and float(sigma.min()) >= float(model.floor) * (1 - 1e-12)

@@ -167,10 +167,13 @@ def main(argv: list[str] | None = None) -> dict:
     report, setup = run(args, argv)
     if args.save and report["default_model"] is not None:
         from .checkpoint import fit_hardware_model, save_hardware_model, support_warning
+        from .heldout import sigma_models
 
         model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]})
+        model.sigma, model.sigma_model = sigma_models(setup, report["default_model"], args.seeds)
         path = save_hardware_model(model, args.save / "model.pt")
-        print(f"saved the default model {report['default_model']} ({len(model.members)} members) to {path}")
+        print(f"saved the default model {report['default_model']} ({len(model.members)} members, σ model "
+              f"{model.sigma_model.describe()} fitted on held-out train rows) to {path}")
         warning = support_warning(model, setup.val) if setup.val is not None else None
         if warning:
             print(warning)

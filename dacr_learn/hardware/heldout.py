@@ -15,9 +15,16 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .registry import build_model
+from .registry import build_model, model_info
 from .selection import PROXIES, make_folds, proxy_masks
-from .uncertainty import SigmaModel, SupportModel, sigma_terms
+from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
+
+# The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
+# training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,
+# experiments/hardware_cv/ensemble_uncertainty.py), fitted on the singles → pairs fold (the cheapest:
+# one fold, trained on the single-segment rows).
+SIGMA_TERMS = ("bend",)
+SIGMA_PROXIES = ("extrap",)
 
 
 @dataclass
@@ -47,7 +54,7 @@ class HeldOut:
 def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[int], fold: str = "") -> HeldOut:
     """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``."""
     preds = []
-    for seed in seeds:
+    for seed in (list(seeds)[:1] if model_info(name).deterministic else seeds):
         model = build_model(name, ctx, seed)
         model.fit(ctx.train)
         with torch.no_grad():
@@ -63,9 +70,7 @@ def held_out_folds(setup, name: str, seeds: Sequence[int], proxies: Sequence[str
     :class:`~.benchmark.Setup` (``log``: optional callable reporting each fold)."""
     labels = setup.train_rec.labels
     out = []
-    for proxy, masks in proxy_masks(labels).items():
-        if proxy not in proxies:
-            continue
+    for proxy, masks in proxy_masks(labels, proxies).items():
         for fold, (fold_name, train_rows, _) in zip(make_folds(setup.train_rec, setup.spec, setup.smap, masks),
                                                     masks, strict=True):
             train_labels = [lb for lb, t in zip(labels, train_rows, strict=True) if t]
@@ -82,3 +87,13 @@ def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaMod
     feats = [b.features() for b in blocks]
     return SigmaModel.fit(terms, {t: torch.cat([f[t] for f in feats]) for t in feats[0]},
                           torch.cat([b.residual() for b in blocks]))
+
+
+def sigma_models(setup, name: str, seeds: Sequence[int], terms: Sequence[str] = SIGMA_TERMS,
+                 proxies: Sequence[str] = SIGMA_PROXIES, log=None) -> tuple[SigmaCalibration, SigmaModel]:
+    """(ensemble-only σ calibration — what exported modules output —, σ model with ``terms``), both fitted
+    on the held-out rows of the ``proxies`` folds of a :class:`~.benchmark.Setup`'s training recording."""
+    blocks = held_out_folds(setup, name, seeds, proxies, log)
+    residual = torch.cat([b.residual() for b in blocks])
+    std = torch.cat([b.features()["ensemble"] for b in blocks])
+    return SigmaCalibration.fit(residual, std), fit_sigma_model(blocks, terms)

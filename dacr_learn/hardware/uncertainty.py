@@ -1,12 +1,19 @@
-"""Uncertainty of hardware tip models: deep-ensemble σ, its calibration, and out-of-support scores.
+"""Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores.
 
 - :func:`ensemble_predict`: K independently trained members (different seeds) → mean tip and the
-  members' standard deviation σ per axis (n, 3) [m] — the spread of the learned part only.
-- :class:`SigmaCalibration`: σ_cal = sqrt((s·σ)² + σ₀²), the scale s and floor σ₀ [m] fitted by
-  Gaussian maximum likelihood to *held-out* residuals (e.g. family cross-validation on the
-  training recording; never on the validation recording). A plain ensemble is over-confident:
-  its members share the calibrated CC model and the same data, so they agree where the
-  systematic (hysteresis, marker) error is largest.
+  members' standard deviation per axis (n, 3) [m] — the spread of the learned part only.
+- :class:`SigmaModel`: a heteroscedastic σ, σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over terms
+  t of :data:`TERMS` (:func:`sigma_terms`): the ensemble std, the disagreement |mean − CC tip|
+  between the model and its physics, the support distance of the command and its total bend ‖ρ‖.
+  c_t and σ₀ are fitted by Gaussian maximum likelihood to *held-out* residuals (train-only folds:
+  :mod:`.heldout`; never the validation recording). The plain ensemble is over-confident and ranks
+  the errors poorly: its members share the calibrated CC model and the same data, so they agree
+  where the systematic (hysteresis, loading, marker) error is largest; that error grows with the bend.
+- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (what exported
+  modules output as ``tip_std``).
+- Scores of a σ on n rows with offset-removed residuals r = e − ē (e = prediction − measurement,
+  ē their mean over the n rows): :func:`coverage`, the fraction of the 3n entries with |r_a| ≤ 2σ_a,
+  and :func:`spearman`, the rank correlation between the per-row ‖σ‖ and ‖r‖ (Euclidean over axes).
 - :class:`SupportModel`: how far a command lies from the training commands, measured on its
   Clarke coordinates ρ (n, m, 2) [m] (standardised per coordinate): the distance to the nearest
   training row divided by a threshold chosen on the training recording alone — the 99th
