@@ -165,7 +165,10 @@ class HardwareExportedModule(nn.Module):
             if lead is not None and here != lead:
                 raise ValueError(f"{self.name}: inputs must share their batch dims, got {lead} and {here}")
             lead = here
-        flat = [x.reshape(-1, *s).to(self.dtype).contiguous() for x, (_, s) in zip(xs, self.inputs, strict=True)]
-        outs = self.runner(flat)
-        outs = [o.reshape(*lead, *s).to(xs[0].dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
+        if len(lead) == 1 and all(x.dtype == self.dtype and x.is_contiguous() for x in xs):   # fast path: as exported
+            outs = self.runner(list(xs))
+        else:
+            flat = [x.reshape(-1, *s).to(self.dtype).contiguous() for x, (_, s) in zip(xs, self.inputs, strict=True)]
+            outs = self.runner(flat)
+            outs = [o.reshape(*lead, *s).to(xs[0].dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
         return outs[0] if len(outs) == 1 else tuple(outs)

@@ -73,25 +73,25 @@ def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, 
 
 
 def segment_twists(radius: Tensor, length: Tensor) -> tuple[Tensor, Tensor]:
-    """Linear map of a CC segment's ρ to its twist Ξ (4 × 4, flattened): Ξ = ρ·map + offset, map (m, 2, 16),
-    offset (m, 16), with Ξ = [[0, 0, uₓ, 0], [0, 0, u_y, 0], [−uₓ, −u_y, 0, β], 0] for u = ρ/d."""
+    """Linear map of a CC segment's ρ to its twist Ξ: Ξ = Σᵢ ρᵢ·map[i] + offset, map (m, 2, 4, 4), offset
+    (m, 4, 4), Ξ = [[0, 0, uₓ, 0], [0, 0, u_y, 0], [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d (radius d, length β)."""
     m = radius.shape[0]
     twist = torch.zeros(m, 2, 4, 4, dtype=radius.dtype)
     twist[:, 0, 0, 2] = twist[:, 1, 1, 2] = 1 / radius
     twist[:, 0, 2, 0] = twist[:, 1, 2, 1] = -1 / radius
     offset = torch.zeros(m, 4, 4, dtype=radius.dtype)
     offset[:, 2, 3] = length
-    return twist.flatten(-2), offset.flatten(-2)
+    return twist, offset
 
 
-def segment_poses_from_twists(xi: Tensor) -> Tensor:
-    """CC segment poses (..., 4, 4) from their twists Ξ (..., 4, 4): T = exp(Ξ) = I + sΞ + fΞ² with
-    s = sin φ/φ, f = (1 − cos φ)/φ², φ² = −(Ξ²)₂₂ (:func:`~dacr_learn.kinematics.bending_coefficients`), the
-    closed form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the same
-    R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2)."""
-    xi2 = xi @ xi
-    s, f = bending_coefficients(-xi2[..., 2, 2])
-    return torch.eye(4, dtype=xi.dtype) + s[..., None, None] * xi + f[..., None, None] * xi2
+def segment_poses_from_twists(xi: Tensor, phi: Tensor, eye: Tensor) -> Tensor:
+    """CC segment poses (..., 4, 4) from their twists Ξ (..., 4, 4) and bending angles φ = ‖u‖ (..., 1, 1):
+    T = exp(Ξ) = I + sΞ + fΞ² with s = sin φ/φ = sinc(φ/π), f = (1 − cos φ)/φ² = ½ sinc(φ/2π)² — the closed
+    form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the same
+    R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2) to float rounding, both sinc terms
+    free of cancellation. ``eye``: I (4, 4)."""
+    f = 0.5 * torch.sinc(phi / (2 * torch.pi)) ** 2
+    return torch.addcmul(torch.addcmul(eye, torch.sinc(phi / torch.pi), xi), f, xi @ xi)
 
 
 def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
@@ -125,6 +125,7 @@ class HardwareFK(nn.Module):
                        "tip_marker": torch.eye(4, dtype=_F64)[3] + cc.tip_offset * torch.eye(4, dtype=_F64)[2],
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
             buffers["twist_map"], buffers["twist_offset"] = segment_twists(buffers["radius"], buffers["length"])
+            buffers["eye4"] = torch.eye(4, dtype=_F64)
             buffers.update(_stacked_members(model.members))
             self.clamp = bool(getattr(model.members[0], "support", False))   # CCClarkeResidual(support=True)
             if self.clamp:
@@ -137,6 +138,7 @@ class HardwareFK(nn.Module):
             self.register_buffer(name, value.detach().to(dtype))
         sigma = model.sigma or SigmaCalibration()
         self.sigma = SigmaCalibration(float(sigma.scale), float(sigma.floor)).to(dtype)
+        self.ensemble = len(model.members)
         self.spec = spec
 
     def clarke(self, servo: Tensor) -> tuple[Tensor, Tensor]:
@@ -144,23 +146,25 @@ class HardwareFK(nn.Module):
         the sign violations of all 2ᴺ active sets' solutions in one product, the least-violating set's
         affine map (:func:`~.slack.select_active_set`)."""
         n_sets = self.rho_gain.shape[0]
-        violation = torch.relu(servo @ self.violation_map + self.violation_offset).unflatten(-1, (n_sets, -1))
+        violation = torch.addmm(self.violation_offset, servo, self.violation_map).relu().unflatten(-1, (n_sets, -1))
         best = violation.sum(-1).argmin(-1)                                   # (B,)
-        gain = self.rho_gain[best]                                            # (B, 2m, S)
-        rho = (gain @ servo.unsqueeze(-1)).squeeze(-1) + self.rho_offset[best]
-        return rho.unflatten(-1, (self.num_segments, 2)), gain.unflatten(-2, (self.num_segments, 2))
+        gain = self.rho_gain[best]                                            # (B, m, 2, S)
+        rho = (gain @ servo[:, None, :, None]).squeeze(-1) + self.rho_offset[best]
+        return rho, gain
 
     def initial_state(self, servo: Tensor) -> Tensor:
         """Play state to start a sequence at command ``servo`` (B, S): its own ρ (B, m, 2) [m]."""
         return self.clarke(servo)[0]
 
-    def play(self, rho: Tensor, state: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """One play-operator step: (memory (B, m, 2), new state, ∂memory/∂ρ (B, m, 2, 2))."""
+    def play(self, rho: Tensor, state: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor, Tensor | None]:
+        """One play-operator step: (memory (B, m, 2), new state, ∂memory/∂ρ (B, m, 2, 2) or None)."""
         diff = state - rho
         norm = torch.linalg.vector_norm(diff, dim=-1, keepdim=True).clamp_min(1e-30)
         inside = norm <= self.play_width
         new = torch.where(inside, state, rho + diff * (self.play_width / norm))
         memory = (rho - new) / self.play_width
+        if not derivative:
+            return memory, new, None
         unit = diff / norm
         eye = torch.eye(2, dtype=rho.dtype)
         drag = (eye - unit.unsqueeze(-1) * unit.unsqueeze(-2)) / norm.unsqueeze(-1)
@@ -184,17 +188,20 @@ class HardwareFK(nn.Module):
     def members(self, rho: Tensor, memory: Tensor | None, tangent: Tensor | None):
         """Corrected ρ' (B, K, m, 2) of every member (and its tangents (B, K, m, 2, T) if given)."""
         rho_in, drho_in = self.network_input(rho, None if tangent is None else tangent[0])
-        a = torch.einsum("bmi,khi->bkmh", rho_in, self.w_rho) + self.b_first
-        if memory is not None:
-            a = a + torch.einsum("bmi,khi->bkmh", memory, self.w_memory)
+        if memory is None:
+            a = torch.einsum("bmi,khi->bkmh", rho_in, self.w_rho) + self.b_first
+        else:
+            a = torch.einsum("bmi,khi->bkmh", torch.cat([rho_in, memory], -1), self.w_first) + self.b_first
         da = None if tangent is None else torch.einsum("bmit,khi->bkmth", drho_in, self.w_rho) + (
             0 if memory is None else torch.einsum("bmit,khi->bkmth", tangent[1], self.w_memory))
         for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
-            sg = torch.sigmoid(a)
-            h = a * sg
-            if da is not None:
+            if da is None:
+                h = nn.functional.silu(a)
+            else:
+                sg = torch.sigmoid(a)
+                h = a * sg
                 da = torch.einsum("bkmth,kjh->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
-            a = torch.einsum("bkmh,kjh->bkmj", h, w) + bias.unsqueeze(-2)
+            a = torch.einsum("bkmh,kjh->bkmj", h, w) + bias
         if self.gate_width is not None:
             gate, dgate = self.gate(rho, None if tangent is None else tangent[0])
             if da is not None:
@@ -227,23 +234,26 @@ class HardwareFK(nn.Module):
 
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (0, 0, offset, 1)."""
-        poses = segment_poses_from_twists((rho.unsqueeze(-2) @ self.twist_map).squeeze(-2).add(self.twist_offset)
-                                          .unflatten(-1, (4, 4)))
+        xi = torch.einsum("...mi,mijk->...mjk", rho, self.twist_map) + self.twist_offset
+        phi = torch.linalg.vector_norm(rho / self.radius.unsqueeze(-1), dim=-1, keepdim=True).unsqueeze(-1)
+        poses = segment_poses_from_twists(xi, phi, self.eye4)
         chain = self.base_pose
         for pose in poses.unbind(-3):
             chain = chain @ pose
         return (chain @ self.tip_marker)[..., :3]
 
     def mean_std(self, tips: Tensor) -> tuple[Tensor, Tensor]:
-        k = tips.shape[1]
-        std = tips.std(1, correction=1) if k > 1 else torch.zeros_like(tips[:, 0])
-        return tips.mean(1), self.sigma(std)
+        """Ensemble mean and calibrated spread (:class:`~.uncertainty.SigmaCalibration`: √((s·std)² + σ₀²),
+        σ₀ alone for a single member) of tips (B, K, 3)."""
+        if self.ensemble == 1:
+            return tips[:, 0], self.sigma.floor.expand(tips.shape[0], 3)
+        return tips.mean(1), torch.hypot(self.sigma.scale * tips.std(1, correction=1), self.sigma.floor)
 
     def forward(self, servo: Tensor, state: Tensor | None = None):
         rho, _ = self.clarke(servo)
         memory, new_state = None, None
         if self.history:
-            memory, new_state, _ = self.play(rho, state)
+            memory, new_state, _ = self.play(rho, state, derivative=False)
         corrected, _ = self.members(rho, memory, None)
         tips = self.tip_only(corrected)
         tip, std = self.mean_std(tips)
@@ -273,7 +283,7 @@ class HardwareJacobian(nn.Module):
 
 def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
-    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, 2m, S) and ``rho_offset`` (2ᴺ, 2m) give
+    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, m, 2, S) and ``rho_offset`` (2ᴺ, m, 2) give
     ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
     give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
@@ -285,7 +295,9 @@ def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     weight = torch.where(sets, -1.0, 1.0).to(_F64) * tendon_w                          # (2ᴺ, N)
     keep = torch.eye(g.shape[0], dtype=_F64) - g @ gain                                # x − Gρ_S = (I − G K_S) x
     scale = (enc.radius / enc.effective_radius()).repeat_interleave(2).unsqueeze(-1)
-    return {"rho_gain": scale * gain @ a.mT, "rho_offset": ((scale * gain) @ a0),
+    m = spec.num_segments
+    return {"rho_gain": (scale * gain @ a.mT).unflatten(-2, (m, 2)),
+            "rho_offset": ((scale * gain) @ a0).unflatten(-1, (m, 2)),
             "violation_map": torch.einsum("sij,kj->ksi", keep, a).mul(weight).flatten(-2),
             "violation_offset": ((keep @ a0) * weight).flatten()}
 
@@ -317,7 +329,8 @@ def _stacked_members(members) -> dict[str, Tensor]:
     out = {"w_rho": w1[..., :2] / std, "w_memory": w1[..., 2:2 + hist],
            "b_first": (torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]),
            "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64),
-           "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64),
+           "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64).unsqueeze(1),
            "w_last": torch.stack([n[2].weight for n in nets]).to(_F64) * RESIDUAL_RHO_SCALE,
-           "b_last": torch.stack([n[2].bias for n in nets]).to(_F64) * RESIDUAL_RHO_SCALE}
+           "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
+    out["w_first"] = torch.cat([out["w_rho"], out["w_memory"]], -1)          # ρ and memory inputs together
     return out
