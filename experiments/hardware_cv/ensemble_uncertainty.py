@@ -1,6 +1,6 @@
 """σ models of the default hardware model (g) on ftdcr_v4: chosen on held-out train folds, reported on val.
 
-    .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --members 4 --out /tmp/unc.pt   # ~10 min
+    .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --members 4 --out /tmp/unc.pt   # ~30 min loaded
     .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --load /tmp/unc.pt               # analysis only
 
 1. Collect (``--out``): for every fold of :func:`dacr_learn.hardware.selection.proxy_masks` (family
@@ -93,6 +93,9 @@ def analyse(res: dict) -> str:
     val_block = HeldOut(**{**res["val"], "fold": "val"})
     val = score(final, val_block)
     raw = score(fit_sigma_model(list(folds.values()), ("ensemble",)), val_block)
+    saved = fit_sigma_model([folds[EXTRAP]], CANDIDATES[chosen])          # what --save fits (heldout.sigma_models)
+    on_cv = [score(saved, b) for name, b in folds.items() if name != EXTRAP]
+    saved_val = score(saved, val_block)
     return "\n".join([
         f"K = {res['k']} members of {MODEL}; σ models fitted by Gaussian likelihood on held-out train folds",
         "| σ model | CV-fold coverage [%] | CV-fold Spearman | singles→pairs coverage [%] | "
@@ -100,7 +103,10 @@ def analyse(res: dict) -> str:
         f"chosen on singles→pairs (coverage in 85–99 %, then the highest Spearman): {chosen}",
         f"fitted on all five train folds: {final.describe()}",
         f"v4 val (report only): ±2σ coverage {val[0] * 100:.1f} %, Spearman {val[1]:+.3f}, median ‖σ‖ "
-        f"{val[2]:.2f} mm   (ensemble-only σ fitted the same way: {raw[0] * 100:.1f} %, {raw[1]:+.3f})"])
+        f"{val[2]:.2f} mm   (ensemble-only σ fitted the same way: {raw[0] * 100:.1f} %, {raw[1]:+.3f})",
+        f"fitted on singles→pairs alone (as --save): {saved.describe()}; on the CV folds "
+        f"{sum(c for c, _, _ in on_cv) / len(on_cv) * 100:.1f} %, {sum(r for _, r, _ in on_cv) / len(on_cv):+.2f}; "
+        f"v4 val {saved_val[0] * 100:.1f} %, {saved_val[1]:+.3f}"])
 
 
 def main():
