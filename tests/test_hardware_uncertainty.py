@@ -131,6 +131,7 @@ def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
     feats = sigma_terms(preds, split.cc_tip, split.features[..., :2], model.support.distance(split.features[..., :2]))
     assert torch.allclose(sigma, model.sigma_model(feats), rtol=1e-12, atol=0)
     assert bool((sigma >= 3e-4).all())
+    assert torch.allclose(loaded.support_score(servo_mm), model.support(split.features[..., :2]), rtol=1e-12, atol=0)
     model.sigma_model = None                                   # without one: the calibrated ensemble std
     assert torch.allclose(model.predict(split)[1], model.sigma(preds.std(0)), rtol=1e-12, atol=0)
     with pytest.raises(ValueError, match=r"servo_mm: expected shape \(n, 8\)"):

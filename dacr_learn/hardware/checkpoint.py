@@ -87,6 +87,14 @@ class HardwareModel:
         dist = self.support.distance(rho) if self.support is not None else rho.new_zeros(rho.shape[0])
         return preds.mean(0), self.sigma_model(sigma_terms(preds, split.cc_tip, rho, dist))
 
+    def support_score(self, commands: torch.Tensor | Split) -> torch.Tensor:
+        """Out-of-support score (n,) of servo commands (n, S) [mm] or a Split (:class:`~.uncertainty.SupportModel`;
+        > 1: outside the training support, the prediction extrapolates)."""
+        if self.support is None:
+            raise ValueError("support_score: this model has no support model (saved without one)")
+        split = commands if isinstance(commands, Split) else self.split(commands)
+        return self.support(split.features[..., :2])
+
 
 def _member_state(member: nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in member.state_dict().items() if not k.startswith("cc.")}
