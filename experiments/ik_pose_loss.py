@@ -1,6 +1,7 @@
 """Exploration behind the IK pose loss (docs/ablation.md, "Multi-segment IK with a pose loss").
 
     .venv/bin/python experiments/ik_pose_loss.py --steps 8000 --n-train 1000 --loss ramp0.05_limit1 --seeds 0 1
+    .venv/bin/python experiments/ik_pose_loss.py --diagnose      # why Clarke IK overfits with little data
 
 Trains the IK of the 3-segment coupled robot, with Clarke and raw features alike, for each named loss
 setting through the ablation runner's ``fit`` (fixed steps, batch 256, MLP 4x64 unless ``--set``
@@ -25,6 +26,8 @@ import torch
 
 from dacr_learn.ablation import runner
 from dacr_learn.data import generate
+from dacr_learn.kinematics import forward_kinematics
+from dacr_learn.models import IKModel, pose_to_vector
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import limit_excess
 
@@ -92,6 +95,42 @@ def run(features: str, loss: str, steps: int, n_train: int, seed: int) -> dict:
     return row
 
 
+@torch.no_grad()
+def undetermined_share(spec: RobotSpec, features: str, n: int = 20000) -> torch.Tensor:
+    """(D,) share of each standardised IK target's variance that the pose does not determine: half the mean
+    squared difference to the target of the nearest pose (standardised pose_to_vector) over the variance."""
+    data = generate(spec, n, seed=5, dtype=torch.float64)
+    model = IKModel(spec, features, 8, 1).double()
+    model.fit_normalization(data["q"], data["pose"])
+    x, y = model.in_norm(pose_to_vector(data["pose"], spec.total_length)), model.out_norm(model.target(data["q"]))
+    nearest = []
+    for i in range(0, n, 2000):
+        d = torch.cdist(x[i:i + 2000], x)
+        d[torch.arange(len(d)), torch.arange(i, i + len(d))] = float("inf")
+        nearest.append(d.argmin(1))
+    return (y - y[torch.cat(nearest)]).square().mean(0) / 2 / y.var(0)
+
+
+def tip_gain(spec: RobotSpec, features: str, n: int = 256) -> torch.Tensor:
+    """(D,) median over n samples of ‖∂p/∂z_i‖ [mm]: tip displacement per unit of standardised output i."""
+    data = generate(spec, 1000, seed=1, dtype=torch.float64)
+    model = IKModel(spec, features, 8, 1).double()
+    model.fit_normalization(data["q"], data["pose"])
+    z = model.out_norm(model.target(data["q"][:n])).requires_grad_(True)
+    p = forward_kinematics(spec, model.decode_features(z))[..., :3, 3] * 1e3
+    jac = torch.stack([torch.autograd.grad(p[:, i].sum(), z, retain_graph=True)[0] for i in range(3)])
+    return jac.norm(dim=0).median(dim=0).values
+
+
+def diagnose() -> None:
+    spec = RobotSpec.from_yaml(runner.resolve_path(ROBOT))
+    for features in ("clarke", "raw"):
+        print(f"{features}: share of target variance not determined by the pose",
+              undetermined_share(spec, features).numpy().round(2))
+        print(f"{features}: tip displacement per unit standardised output [mm]",
+              tip_gain(spec, features).numpy().round(1))
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--steps", type=int, default=8000)
@@ -100,8 +139,11 @@ def main() -> None:
     p.add_argument("--features", nargs="+", default=["clarke", "raw"])
     p.add_argument("--seeds", type=int, nargs="+", default=[0])
     p.add_argument("--csv", type=Path, default=Path("runs/ablation_ik_tdcr3/exploration.csv"))
+    p.add_argument("--diagnose", action="store_true", help="print the target ambiguity and tip gain per output")
     args = p.parse_args()
     torch.set_num_threads(1)
+    if args.diagnose:
+        return diagnose()
     for loss in args.loss:
         loss_settings(loss)                                       # refuse a bad name before training
     for seed in args.seeds:
