@@ -72,26 +72,30 @@ def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, 
     return pose[..., :3, :3], pose[..., :3, 3], torch.stack([stack(dx), stack(dy)], -3), torch.stack([dpx, dpy], -2)
 
 
-def segment_twists(radius: Tensor, length: Tensor) -> tuple[Tensor, Tensor]:
-    """Linear map of a CC segment's ρ to its twist Ξ: Ξ = Σᵢ ρᵢ·map[i] + offset, map (m, 2, 4, 4), offset
-    (m, 4, 4), Ξ = [[0, 0, uₓ, 0], [0, 0, u_y, 0], [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d (radius d, length β)."""
+def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
+    """Constants of :func:`segment_poses` for segments of radius d (m,) and length β (m,) [m]: ``twist_map``
+    (m, 2, 16) and ``twist_offset`` (m, 4, 4) with Ξ = ρ·map + offset = [[0, 0, uₓ, 0], [0, 0, u_y, 0],
+    [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d, ``inv_radius`` (m, 1), ``eye4`` I (4, 4)."""
     m = radius.shape[0]
     twist = torch.zeros(m, 2, 4, 4, dtype=radius.dtype)
     twist[:, 0, 0, 2] = twist[:, 1, 1, 2] = 1 / radius
     twist[:, 0, 2, 0] = twist[:, 1, 2, 1] = -1 / radius
     offset = torch.zeros(m, 4, 4, dtype=radius.dtype)
     offset[:, 2, 3] = length
-    return twist, offset
+    return {"twist_map": twist.flatten(-2), "twist_offset": offset, "inv_radius": 1 / radius.unsqueeze(-1),
+            "eye4": torch.eye(4, dtype=radius.dtype)}
 
 
-def segment_poses_from_twists(xi: Tensor, phi: Tensor, eye: Tensor) -> Tensor:
-    """CC segment poses (..., 4, 4) from their twists Ξ (..., 4, 4) and bending angles φ = ‖u‖ (..., 1, 1):
-    T = exp(Ξ) = I + sΞ + fΞ² with s = sin φ/φ = sinc(φ/π), f = (1 − cos φ)/φ² = ½ sinc(φ/2π)² — the closed
-    form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the same
-    R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2) to float rounding, both sinc terms
-    free of cancellation. ``eye``: I (4, 4)."""
+def segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, inv_radius: Tensor, eye4: Tensor) -> Tensor:
+    """CC segment poses (..., m, 4, 4) of ρ (..., m, 2) [m] (constants from :func:`segment_twists`):
+    T = exp(Ξ) = I + sΞ + fΞ² with φ = ‖u‖, s = sin φ/φ = sinc(φ/π), f = (1 − cos φ)/φ² = ½ sinc(φ/2π)² — the
+    closed form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the
+    same R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2) to float rounding, both sinc
+    terms free of cancellation, finite gradients at u = 0."""
+    xi = (rho.unsqueeze(-2) @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset
+    phi = torch.linalg.vector_norm(rho * inv_radius, dim=-1, keepdim=True).unsqueeze(-1)
     f = 0.5 * torch.sinc(phi / (2 * torch.pi)) ** 2
-    return torch.addcmul(torch.addcmul(eye, torch.sinc(phi / torch.pi), xi), f, xi @ xi)
+    return torch.addcmul(torch.addcmul(eye4, torch.sinc(phi / torch.pi), xi), f, xi @ xi)
 
 
 def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
@@ -124,8 +128,7 @@ class HardwareFK(nn.Module):
                        "offset": cc.tip_offset, "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
                        "tip_marker": torch.eye(4, dtype=_F64)[3] + cc.tip_offset * torch.eye(4, dtype=_F64)[2],
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
-            buffers["twist_map"], buffers["twist_offset"] = segment_twists(buffers["radius"], buffers["length"])
-            buffers["eye4"] = torch.eye(4, dtype=_F64)
+            buffers.update(segment_twists(buffers["radius"], buffers["length"]))
             buffers.update(_stacked_members(model.members))
             self.clamp = bool(getattr(model.members[0], "support", False))   # CCClarkeResidual(support=True)
             if self.clamp:
@@ -188,20 +191,18 @@ class HardwareFK(nn.Module):
     def members(self, rho: Tensor, memory: Tensor | None, tangent: Tensor | None):
         """Corrected ρ' (B, K, m, 2) of every member (and its tangents (B, K, m, 2, T) if given)."""
         rho_in, drho_in = self.network_input(rho, None if tangent is None else tangent[0])
-        if memory is None:
-            a = torch.einsum("bmi,khi->bkmh", rho_in, self.w_rho) + self.b_first
-        else:
-            a = torch.einsum("bmi,khi->bkmh", torch.cat([rho_in, memory], -1), self.w_first) + self.b_first
-        da = None if tangent is None else torch.einsum("bmit,khi->bkmth", drho_in, self.w_rho) + (
-            0 if memory is None else torch.einsum("bmit,khi->bkmth", tangent[1], self.w_memory))
+        x, w = (rho_in, self.w_rho) if memory is None else (torch.cat([rho_in, memory], -1), self.w_first)
+        a = x.unsqueeze(1) @ w + self.b_first                                 # weights (K, in, out): matmul
+        da = None if tangent is None else torch.einsum("bmit,kih->bkmth", drho_in, self.w_rho) + (
+            0 if memory is None else torch.einsum("bmit,kih->bkmth", tangent[1], self.w_memory))
         for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
             if da is None:
                 h = nn.functional.silu(a)
             else:
                 sg = torch.sigmoid(a)
                 h = a * sg
-                da = torch.einsum("bkmth,kjh->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
-            a = torch.einsum("bkmh,kjh->bkmj", h, w) + bias
+                da = torch.einsum("bkmth,khj->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
+            a = h @ w + bias
         if self.gate_width is not None:
             gate, dgate = self.gate(rho, None if tangent is None else tangent[0])
             if da is not None:
@@ -234,9 +235,7 @@ class HardwareFK(nn.Module):
 
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (0, 0, offset, 1)."""
-        xi = torch.einsum("...mi,mijk->...mjk", rho, self.twist_map) + self.twist_offset
-        phi = torch.linalg.vector_norm(rho / self.radius.unsqueeze(-1), dim=-1, keepdim=True).unsqueeze(-1)
-        poses = segment_poses_from_twists(xi, phi, self.eye4)
+        poses = segment_poses(rho, self.twist_map, self.twist_offset, self.inv_radius, self.eye4)
         chain = self.base_pose
         for pose in poses.unbind(-3):
             chain = chain @ pose
@@ -317,8 +316,8 @@ class _Rows:
 
 
 def _stacked_members(members) -> dict[str, Tensor]:
-    """Residual networks of the K members stacked (float64), first layer split into ρ / memory /
-    one-hot parts (the one-hot part folded into a per-segment bias), output scale folded in."""
+    """Residual networks of the K members stacked (float64), weights (K, in, out), first layer split into ρ /
+    memory / one-hot parts (the one-hot part folded into a per-segment bias), output scale folded in."""
     nets = [[l for l in m.net if isinstance(l, nn.Linear)] for m in members]
     if any(len(n) != 3 for n in nets):
         raise ValueError(f"members: expected residual networks with 3 linear layers, got {[len(n) for n in nets]}")
@@ -326,11 +325,11 @@ def _stacked_members(members) -> dict[str, Tensor]:
     std = torch.stack([m.rho_std for m in members]).to(_F64).reshape(-1, 1, 1)
     m = members[0].onehot.shape[0]
     hist = 2 if members[0].history else 0
-    out = {"w_rho": w1[..., :2] / std, "w_memory": w1[..., 2:2 + hist],
+    out = {"w_rho": (w1[..., :2] / std).mT, "w_memory": w1[..., 2:2 + hist].mT,
            "b_first": (torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]),
-           "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64),
+           "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64).mT,
            "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64).unsqueeze(1),
-           "w_last": torch.stack([n[2].weight for n in nets]).to(_F64) * RESIDUAL_RHO_SCALE,
+           "w_last": torch.stack([n[2].weight for n in nets]).to(_F64).mT * RESIDUAL_RHO_SCALE,
            "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
-    out["w_first"] = torch.cat([out["w_rho"], out["w_memory"]], -1)          # ρ and memory inputs together
+    out["w_first"] = torch.cat([out["w_rho"], out["w_memory"]], -2)          # ρ and memory inputs together
     return out
