@@ -237,15 +237,15 @@ class HardwareFK(nn.Module):
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (0, 0, offset, 1)."""
         poses = segment_poses(rho, self.twist_map, self.twist_offset, self.inv_radius, self.eye4)
         chain = self.base_pose
-        for pose in poses.unbind(-3):
-            chain = chain @ pose
+        for k in range(self.num_segments):
+            chain = chain @ poses[..., k, :, :]
         return (chain @ self.tip_marker)[..., :3]
 
     def mean_std(self, tips: Tensor) -> tuple[Tensor, Tensor]:
         """Ensemble mean and calibrated spread (:class:`~.uncertainty.SigmaCalibration`: √((s·std)² + σ₀²),
         σ₀ alone for a single member) of tips (B, K, 3)."""
         if self.ensemble == 1:
-            return tips[:, 0], self.sigma.floor.expand(tips.shape[0], 3)
+            return tips[:, 0], self.sigma.floor.expand(tips.shape[0], 3).contiguous()   # an output owns its memory
         return tips.mean(1), torch.hypot(self.sigma.scale * tips.std(1, correction=1), self.sigma.floor)
 
     def forward(self, servo: Tensor, state: Tensor | None = None):
