@@ -6,8 +6,10 @@
 Fitted physical parameters (14 for a 3-segment robot, 16 with ``lateral_marker``): per segment the
 effective radius and a rotation of the joint angles, the tendon compliance EI/EA and pretension
 (encoder), the base tilt (2 angles) and translation (3), and the marker offset d_marker in the tip
-frame: along the tip axis, d = (0, 0, t) (``lateral_marker=False``, the model before), or the full
-3-vector (x, y, t) (``lateral_marker=True``: the tracked marker sits off the backbone axis).
+frame: the full 3-vector (x, y, t) (``lateral_marker=True``, the default: the tracked marker sits off
+the backbone axis), or along the tip axis, d = (0, 0, t) (``lateral_marker=False``, the model before).
+The lateral offset improves both train-only selection proxies of the CC model on FTDCR v4 and v6
+(docs/hardware.md, "Lateral marker offset").
 Segment lengths stay nominal (they trade off against the radii and made the fit degenerate).
 
 Identifiability of the lateral offset: the CC tip frame has no twist (it equals the base frame when
@@ -34,7 +36,7 @@ from .slack import SlackAwareEncoder
 class CalibratedCC(nn.Module):
     """Joint displacements (..., N) [m] → tip position (..., 3) [m] in the motion-capture frame."""
 
-    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, lateral_marker: bool = False):
+    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, lateral_marker: bool = True):
         super().__init__()
         self.spec = spec
         self.encoder = SlackAwareEncoder(spec, compliance=compliance)

@@ -180,8 +180,7 @@ def _build(blob: dict) -> HardwareModel:
     smap = ServoMap.from_dict(blob["servo_map"])
     ids = tuple(blob["servo_ids"])
     smap.check(spec, ids)
-    cc = CalibratedCC(spec)
-    cc.load_state_dict(blob["cc"])
+    cc = CalibratedCC.from_state_dict(spec, blob["cc"])   # axial or lateral marker, as saved
     cc.requires_grad_(False)
     cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
     members = []
