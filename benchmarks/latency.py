@@ -171,7 +171,7 @@ def hardware_candidates(ckpt: Path, out: Path, aoti: bool) -> dict:
     fns = {"hardware_fk_eager": lambda: fk(*args), "hardware_fk_export_program": lambda: loaded["fk"](*args),
            "hardware_jacobian_export_program": lambda: loaded["jacobian"](*args)}
     if aoti:
-        package = dexport.load(out / "hardware", "fk")
+        package = dexport.load(out / "hardware" / "fk.aoti.pt2")   # the package itself: no silent program fallback
         fns["hardware_fk_aoti"] = lambda: package(*args)
     return fns
 

@@ -159,8 +159,12 @@ class HardwareExportedModule(nn.Module):
         if len(xs) != len(self.inputs):
             raise ValueError(f"{self.name}: expected inputs {[n for n, _ in self.inputs]}, got {len(xs)} tensors")
         lead = None
+        # finiteness of all inputs in one reduction (a NaN/inf anywhere makes the sum non-finite); the
+        # per-input check that names the culprit runs only then
+        finite = len(xs) > 0 and all(isinstance(x, Tensor) and x.is_floating_point() for x in xs) and bool(
+            torch.isfinite(sum(x.sum() for x in xs)))
         for x, (n, shape) in zip(xs, self.inputs, strict=True):
-            check_tensor(x, f"{self.name} input {n}", shape, nonempty=True)
+            check_tensor(x, f"{self.name} input {n}", shape, finite=not finite, nonempty=True)
             here = tuple(x.shape[:x.dim() - len(shape)])
             if lead is not None and here != lead:
                 raise ValueError(f"{self.name}: inputs must share their batch dims, got {lead} and {here}")

@@ -10,11 +10,14 @@ K members); plain nn.Modules with every constant folded into buffers, exportable
   (+ the new state). For a history model the state is held fixed: J is the effect of the
   *current* command given the history, what a controller's next step needs.
 
-Pipeline (float32 by default): servo → joint displacements x (affine: sign, zero, mm → m) → the
-slack-aware Clarke encoder's active-set QP with a fixed number of iterations (the early stop of
-:func:`~.slack.solve_tendon_qp` is data dependent; after convergence an iteration repeats the
-same solve, so the result is the same) → ρ per segment → [play operator step] → per-member
-correction Δρ (the residual MLPs, batched over members) → CC kinematics → tip.
+Pipeline (float32 by default): servo → the slack-aware Clarke encoder's QP, solved by active-set
+enumeration with the servo map (x = servo·A + a₀ + p) folded in: one product gives every one of the
+2ᴺ stretched-tendon sets' sign violations, the consistent set's affine map gives ρ and ∂ρ/∂servo
+(:func:`~.slack.active_set_gains`; the same minimiser as :func:`~.slack.solve_tendon_qp`, without its
+data-dependent iterations or linear solves) → ρ per segment → [play operator step] → per-member
+correction Δρ (the residual MLPs, batched over members) → CC kinematics (segment poses
+T = exp(Ξ) = I + sΞ + fΞ², chained with the base pose) → tip. Written for few ops at batch 1: no
+einsum, linear solve or Python-side work in forward (N ≤ 12 tendons for the enumeration).
 
 History models run causally: ``state`` is the play operator's state (the previous call's output);
 start a sequence with :meth:`HardwareFK.initial_state` of the first command (the batch training
@@ -33,7 +36,6 @@ from .slack import active_set_gains
 from .uncertainty import SigmaCalibration
 
 _F64 = torch.float64
-QP_ITERATIONS = 8  # the active set repeats after 2–5 iterations on the recordings (checked at export)
 
 
 def _bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
@@ -75,27 +77,27 @@ def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, 
 def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
     """Constants of :func:`segment_poses` for segments of radius d (m,) and length β (m,) [m]: ``twist_map``
     (m, 2, 16) and ``twist_offset`` (m, 4, 4) with Ξ = ρ·map + offset = [[0, 0, uₓ, 0], [0, 0, u_y, 0],
-    [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d, ``inv_radius`` (m, 1), ``eye4`` I (4, 4)."""
+    [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d, ``half_turns`` 1/(2πd) (m, 1, 1), ``eye4`` I (4, 4)."""
     m = radius.shape[0]
     twist = torch.zeros(m, 2, 4, 4, dtype=radius.dtype)
     twist[:, 0, 0, 2] = twist[:, 1, 1, 2] = 1 / radius
     twist[:, 0, 2, 0] = twist[:, 1, 2, 1] = -1 / radius
     offset = torch.zeros(m, 4, 4, dtype=radius.dtype)
     offset[:, 2, 3] = length
-    return {"twist_map": twist.flatten(-2), "twist_offset": offset, "inv_radius": 1 / radius.unsqueeze(-1),
-            "eye4": torch.eye(4, dtype=radius.dtype)}
+    return {"twist_map": twist.flatten(-2), "twist_offset": offset,
+            "half_turns": 1 / (2 * torch.pi * radius[:, None, None]), "eye4": torch.eye(4, dtype=radius.dtype)}
 
 
-def segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, inv_radius: Tensor, eye4: Tensor) -> Tensor:
+def segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, half_turns: Tensor, eye4: Tensor) -> Tensor:
     """CC segment poses (..., m, 4, 4) of ρ (..., m, 2) [m] (constants from :func:`segment_twists`):
-    T = exp(Ξ) = I + sΞ + fΞ² with φ = ‖u‖, s = sin φ/φ = sinc(φ/π), f = (1 − cos φ)/φ² = ½ sinc(φ/2π)² — the
+    T = exp(Ξ) = I + sΞ + fΞ² with φ = ‖u‖ = 2πy, s = sin φ/φ = sinc(2y), f = (1 − cos φ)/φ² = ½ sinc(y)² — the
     closed form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the
     same R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2) to float rounding, both sinc
     terms free of cancellation, finite gradients at u = 0."""
-    xi = (rho.unsqueeze(-2) @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset
-    phi = torch.linalg.vector_norm(rho * inv_radius, dim=-1, keepdim=True).unsqueeze(-1)
-    f = 0.5 * torch.sinc(phi / (2 * torch.pi)) ** 2
-    return torch.addcmul(torch.addcmul(eye4, torch.sinc(phi / torch.pi), xi), f, xi @ xi)
+    row = rho.unsqueeze(-2)                                                       # (..., m, 1, 2)
+    xi = (row @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset
+    y = torch.linalg.vector_norm(row * half_turns, dim=-1, keepdim=True)          # (..., m, 1, 1)
+    return torch.addcmul(torch.addcmul(eye4, torch.sinc(2 * y), xi), torch.sinc(y) ** 2, xi @ xi, value=0.5)
 
 
 def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
@@ -151,9 +153,9 @@ class HardwareFK(nn.Module):
         n_sets = self.rho_gain.shape[0]
         violation = torch.addmm(self.violation_offset, servo, self.violation_map).relu().unflatten(-1, (n_sets, -1))
         best = violation.sum(-1).argmin(-1)                                   # (B,)
-        gain = self.rho_gain[best]                                            # (B, m, 2, S)
-        rho = (gain @ servo[:, None, :, None]).squeeze(-1) + self.rho_offset[best]
-        return rho, gain
+        gain = self.rho_gain[best]                                            # (B, S, 2m)
+        rho = torch.baddbmm(self.rho_offset[best], servo.unsqueeze(1), gain)  # (B, 1, 2m)
+        return rho.reshape(-1, self.num_segments, 2), gain.mT.reshape(-1, self.num_segments, 2, self.num_servos)
 
     def initial_state(self, servo: Tensor) -> Tensor:
         """Play state to start a sequence at command ``servo`` (B, S): its own ρ (B, m, 2) [m]."""
@@ -190,6 +192,8 @@ class HardwareFK(nn.Module):
 
     def members(self, rho: Tensor, memory: Tensor | None, tangent: Tensor | None):
         """Corrected ρ' (B, K, m, 2) of every member (and its tangents (B, K, m, 2, T) if given)."""
+        if tangent is None:
+            return self.members_only(rho, memory), None
         rho_in, drho_in = self.network_input(rho, None if tangent is None else tangent[0])
         x, w = (rho_in, self.w_rho) if memory is None else (torch.cat([rho_in, memory], -1), self.w_first)
         a = x.unsqueeze(1) @ w + self.b_first                                 # weights (K, in, out): matmul
@@ -209,6 +213,18 @@ class HardwareFK(nn.Module):
                 da = da * gate[:, None, None, None, None] + a.unsqueeze(-2) * dgate[:, None, None, :, None]
             a = a * gate[:, None, None, None]
         return rho.unsqueeze(1) + a, None if da is None else tangent[0].unsqueeze(1) + da.mT
+
+    def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
+        """Corrected ρ' (B, K, m, 2) of every member, the K networks side by side as one (block-diagonal)."""
+        x = self.network_input(rho, None)[0]
+        x = x if memory is None else torch.cat([x, memory], -1)
+        a = x @ self.first_all + self.b_first_all                            # (B, m, K·H)
+        a = nn.functional.linear(nn.functional.silu(a), self.hidden_all, self.b_hidden_all)
+        a = nn.functional.linear(nn.functional.silu(a), self.last_all, self.b_last_all)
+        a = a.unflatten(-1, (-1, 2)).transpose(1, 2)                         # (B, K, m, 2)
+        if self.gate_width is not None:
+            a = a * self.gate(rho, None)[0][:, None, None, None]
+        return rho.unsqueeze(1) + a
 
     def gate(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
         """Fallback weight exp(−(δ/τ)²) of the correction (B,), δ the distance of ρ to the nearest training
@@ -235,7 +251,7 @@ class HardwareFK(nn.Module):
 
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (0, 0, offset, 1)."""
-        poses = segment_poses(rho, self.twist_map, self.twist_offset, self.inv_radius, self.eye4)
+        poses = segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)
         chain = self.base_pose
         for k in range(self.num_segments):
             chain = chain @ poses[..., k, :, :]
@@ -282,7 +298,7 @@ class HardwareJacobian(nn.Module):
 
 def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
-    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, m, 2, S) and ``rho_offset`` (2ᴺ, m, 2) give
+    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, S, 2m) and ``rho_offset`` (2ᴺ, 1, 2m) give
     ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
     give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
@@ -294,9 +310,7 @@ def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     weight = torch.where(sets, -1.0, 1.0).to(_F64) * tendon_w                          # (2ᴺ, N)
     keep = torch.eye(g.shape[0], dtype=_F64) - g @ gain                                # x − Gρ_S = (I − G K_S) x
     scale = (enc.radius / enc.effective_radius()).repeat_interleave(2).unsqueeze(-1)
-    m = spec.num_segments
-    return {"rho_gain": (scale * gain @ a.mT).unflatten(-2, (m, 2)),
-            "rho_offset": ((scale * gain) @ a0).unflatten(-1, (m, 2)),
+    return {"rho_gain": (scale * gain @ a.mT).mT.contiguous(), "rho_offset": ((scale * gain) @ a0).unsqueeze(-2),
             "violation_map": torch.einsum("sij,kj->ksi", keep, a).mul(weight).flatten(-2),
             "violation_offset": ((keep @ a0) * weight).flatten()}
 
@@ -332,4 +346,12 @@ def _stacked_members(members) -> dict[str, Tensor]:
            "w_last": torch.stack([n[2].weight for n in nets]).to(_F64).mT * RESIDUAL_RHO_SCALE,
            "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
     out["w_first"] = torch.cat([out["w_rho"], out["w_memory"]], -2)          # ρ and memory inputs together
+    k = len(members)
+    # the K networks as one: inputs shared, hidden and output units side by side (block-diagonal weights (out, in))
+    out["first_all"] = out["w_first"].permute(1, 0, 2).flatten(1)          # (in, K·H)
+    out["b_first_all"] = out["b_first"].permute(1, 0, 2).flatten(1)        # (m, K·H)
+    out["hidden_all"] = torch.block_diag(*out["w_hidden"].mT)
+    out["b_hidden_all"] = out["b_hidden"].reshape(k * out["b_hidden"].shape[-1])
+    out["last_all"] = torch.block_diag(*out["w_last"].mT)
+    out["b_last_all"] = out["b_last"].reshape(k * out["b_last"].shape[-1])
     return out
