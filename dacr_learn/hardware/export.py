@@ -138,6 +138,13 @@ def load_exported(path: Path, meta: dict) -> HardwareExportedModule:
     return HardwareExportedModule(dexport._runner(path, kind, meta), meta, name, kind)
 
 
+def _all_finite(xs: tuple) -> bool:
+    """Whether all of ``xs`` are floating tensors with finite values, in one reduction (a NaN/inf anywhere
+    makes the sum non-finite; so may a huge finite sum, which the per-input check then clears)."""
+    return all(isinstance(x, Tensor) and x.is_floating_point() for x in xs) and bool(
+        torch.isfinite(sum(x.sum() for x in xs)))
+
+
 class HardwareExportedModule(nn.Module):
     """A loaded hardware export (returned by :func:`dacr_learn.export.load`): checks every input
     (shape (..., *shape), floating, finite), accepts leading batch dims and float32/float64
@@ -159,10 +166,7 @@ class HardwareExportedModule(nn.Module):
         if len(xs) != len(self.inputs):
             raise ValueError(f"{self.name}: expected inputs {[n for n, _ in self.inputs]}, got {len(xs)} tensors")
         lead = None
-        # finiteness of all inputs in one reduction (a NaN/inf anywhere makes the sum non-finite); the
-        # per-input check that names the culprit runs only then
-        finite = len(xs) > 0 and all(isinstance(x, Tensor) and x.is_floating_point() for x in xs) and bool(
-            torch.isfinite(sum(x.sum() for x in xs)))
+        finite = _all_finite(xs)              # else the per-input check below names the culprit
         for x, (n, shape) in zip(xs, self.inputs, strict=True):
             check_tensor(x, f"{self.name} input {n}", shape, finite=not finite, nonempty=True)
             here = tuple(x.shape[:x.dim() - len(shape)])
