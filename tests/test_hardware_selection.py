@@ -247,3 +247,27 @@ def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(rob
         assert torch.allclose(delta, (free[..., :2] - far.features[..., :2].float()) * gate[:, None, None], atol=1e-9)
         model.gate_width = 0.0                            # τ = 0: the calibrated CC model itself
         assert torch.allclose(model(far), ctx.cc.tip_from_features(far.features.float()).double(), atol=1e-9)
+
+
+def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reported(robot_dir, tmp_path):
+    """`deployable` in the registry is what checkpoint.save_hardware_model accepts: every deployable model
+    saves; a Clarke-space model that is not deployable is reported as the proxy's best but never the default."""
+    from dacr_learn.hardware.benchmark import default_candidates, load_setup
+    from dacr_learn.hardware.checkpoint import HardwareModel, cc_as_residual, save_hardware_model
+
+    data, robot = robot_dir
+    setup = load_setup(robot, data / "train.csv", None, tmp_path)
+    for name in MODELS:
+        info = model_info(name)
+        member = cc_as_residual(setup.train, setup.cc) if name == "cc" else build_model(name, setup.context(), 0)
+        model = HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, [member])
+        if info.deployable:
+            assert save_hardware_model(model, tmp_path / f"{name}.pt").exists()
+        else:
+            with pytest.raises(ValueError, match="members"):
+                save_hardware_model(model, tmp_path / f"{name}.pt")
+    assert set(default_candidates(MODELS)) == {m for m in MODELS if model_info(m).clarke_space
+                                               and model_info(m).deployable}
+    assert "cc_compositional_residual" in default_candidates(MODELS, deployable_only=False)
+    scores = {m: {"extrap": 1.0 if m == "cc_compositional_residual" else 2.0 + i} for i, m in enumerate(MODELS)}
+    assert choose_default(scores, default_candidates(list(scores)), "extrap") == "cc"

@@ -32,7 +32,7 @@ from .benchmark import (
 )
 from .pool import TaskPool
 from .registry import MODELS, model_info
-from .selection import DEFAULT_PROXIES, PROXIES, SELECTION_PROXY
+from .selection import DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, choose_default
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -130,6 +130,11 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
     scores, results, preds = _fit_all(setup, args)
     default = select_default(scores) if default_candidates(list(scores)) else None
+    everyone = default_candidates(list(scores), deployable_only=False)
+    proxy_best = choose_default(scores, everyone, SELECTION_PROXY) if everyone else None
+    if proxy_best is not None and proxy_best != default:
+        print(f"note: {proxy_best} has the best {SELECTION_PROXY} score of the Clarke-space models, but --save and "
+              f"the export do not support it yet; the default is the best deployable one, {default}")
     clarke = tuple(m for m in results if model_info(m).clarke_space)
     report = {"command": "python -m dacr_learn.hardware " + " ".join(sys.argv[1:] if argv is None else argv),
               "robot": setup.spec.to_dict(), "train": str(args.data / args.train),
@@ -138,6 +143,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               "calibration": setup.calibration, "cc_fit": setup.cc_fit,
               "default_model": default,
               "selection": {"proxy": SELECTION_PROXY, "candidates": list(default_candidates(list(scores))),
+                            "best_clarke_model_by_proxy": proxy_best,
                             "proxy_seeds": args.proxy_seeds, "proxies": [] if not scores else args.proxies,
                             "scores": scores},
               "models": results, "best_clarke_model": best_model(results, clarke),
@@ -156,8 +162,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
         plot_paths(setup, {m: preds[m] for m in dict.fromkeys(shown)}, args.out / "val_tip_paths.png")
         log_rerun(setup, preds, args.out / "val_tip_paths.rrd")
     print(markdown_table(results, scores, default))
-    print(f"default model (lowest {SELECTION_PROXY} proxy of the Clarke-space models, train only): {default}; "
-          f"best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
+    print(f"default model (lowest {SELECTION_PROXY} proxy of the deployable Clarke-space models, train only): "
+          f"{default}; best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
           f"({report['seconds_total']:.0f} s)")
     return report, setup
 

@@ -200,9 +200,10 @@ def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Ca
     return collect_selection(submit_selection(pool or TaskPool(), s, models, seeds, proxies), seeds, log)
 
 
-def default_candidates(models: Sequence[str]) -> tuple[str, ...]:
-    """The models the default is chosen from: the Clarke-space ones."""
-    return tuple(m for m in models if model_info(m).clarke_space)
+def default_candidates(models: Sequence[str], deployable_only: bool = True) -> tuple[str, ...]:
+    """The models the default is chosen from: the Clarke-space ones that ``--save`` and the export can
+    deploy (``deployable_only=False``: every Clarke-space model, to report which one the proxy prefers)."""
+    return tuple(m for m in models if model_info(m).clarke_space and (model_info(m).deployable or not deployable_only))
 
 
 def select_default(scores: dict) -> str:

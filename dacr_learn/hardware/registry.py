@@ -48,7 +48,8 @@ class FitContext:
 class ModelInfo:
     """One registered model. ``inputs``: "raw" (servo values) or "clarke" (calibrated Clarke features);
     ``static``: maps one command to one tip (False: also uses the command history);
-    ``deterministic``: the same for every seed (trained once)."""
+    ``deterministic``: the same for every seed (trained once); ``deployable``: ``--save`` can write it and
+    ``dacr_learn.export`` can export it (the CC Clarke-residual family of :mod:`.checkpoint`)."""
 
     name: str
     letter: str
@@ -56,6 +57,7 @@ class ModelInfo:
     inputs: str
     static: bool = True
     deterministic: bool = False
+    deployable: bool = False
 
     @property
     def clarke_space(self) -> bool:
@@ -66,11 +68,12 @@ _MODELS = (
     ModelInfo("linear_raw", "a", lambda c, s: LinearRaw(), "raw", deterministic=True),
     ModelInfo("mlp_raw", "b", lambda c, s: TipMLP("raw", c.train), "raw"),
     ModelInfo("mlp_clarke", "c", lambda c, s: TipMLP("clarke", c.train), "clarke"),
-    ModelInfo("cc", "d", lambda c, s: CCOnly(), "clarke", deterministic=True),
-    ModelInfo("cc_clarke_residual", "e", lambda c, s: CCClarkeResidual(c.train, c.cc), "clarke"),
+    ModelInfo("cc", "d", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True),
+    ModelInfo("cc_clarke_residual", "e", lambda c, s: CCClarkeResidual(c.train, c.cc), "clarke",
+              deployable=True),
     ModelInfo("pretrained_clarke", "f", lambda c, s: Pretrained("clarke", c.train, c.synthetic(s)), "clarke"),
     ModelInfo("cc_clarke_residual_history", "g", lambda c, s: CCClarkeResidualHistory(c.train, c.cc), "clarke",
-              static=False),
+              static=False, deployable=True),
     ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.train), "clarke"),
     ModelInfo("pretrained_raw", "i", lambda c, s: Pretrained("raw", c.train, c.synthetic(s)), "raw"),
     ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke"),
