@@ -146,7 +146,7 @@ class HardwareFK(nn.Module):
         self.ensemble = len(model.members)
         self.spec = spec
 
-    def clarke(self, servo: Tensor) -> tuple[Tensor, Tensor]:
+    def clarke(self, servo: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor | None]:
         """ρ (B, m, 2) [m, nominal-radius convention] of the commands and ∂ρ/∂servo (B, m, 2, S) [m/mm]:
         the sign violations of all 2ᴺ active sets' solutions in one product, the least-violating set's
         affine map (:func:`~.slack.select_active_set`)."""
@@ -155,18 +155,19 @@ class HardwareFK(nn.Module):
         best = violation.sum(-1).argmin(-1)                                   # (B,)
         gain = self.rho_gain[best]                                            # (B, S, 2m)
         rho = torch.baddbmm(self.rho_offset[best], servo.unsqueeze(1), gain)  # (B, 1, 2m)
-        return rho.reshape(-1, self.num_segments, 2), gain.mT.reshape(-1, self.num_segments, 2, self.num_servos)
+        rho = rho.reshape(-1, self.num_segments, 2)
+        return rho, gain.mT.reshape(-1, self.num_segments, 2, self.num_servos) if derivative else None
 
     def initial_state(self, servo: Tensor) -> Tensor:
         """Play state to start a sequence at command ``servo`` (B, S): its own ρ (B, m, 2) [m]."""
-        return self.clarke(servo)[0]
+        return self.clarke(servo, derivative=False)[0]
 
     def play(self, rho: Tensor, state: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor, Tensor | None]:
         """One play-operator step: (memory (B, m, 2), new state, ∂memory/∂ρ (B, m, 2, 2) or None)."""
         diff = state - rho
         norm = torch.linalg.vector_norm(diff, dim=-1, keepdim=True).clamp_min(1e-30)
         inside = norm <= self.play_width
-        new = torch.where(inside, state, rho + diff * (self.play_width / norm))
+        new = torch.where(inside, state, torch.addcmul(rho, diff, self.play_width / norm))
         memory = (rho - new) / self.play_width
         if not derivative:
             return memory, new, None
@@ -221,10 +222,11 @@ class HardwareFK(nn.Module):
         a = x @ self.first_all + self.b_first_all                            # (B, m, K·H)
         a = nn.functional.linear(nn.functional.silu(a), self.hidden_all, self.b_hidden_all)
         a = nn.functional.linear(nn.functional.silu(a), self.last_all, self.b_last_all)
-        a = a.unflatten(-1, (-1, 2)).transpose(1, 2)                         # (B, K, m, 2)
         if self.gate_width is not None:
-            a = a * self.gate(rho, None)[0][:, None, None, None]
-        return rho.unsqueeze(1) + a
+            a = a * self.gate(rho, None)[0][:, None, None]
+        if self.ensemble == 1:
+            return (rho + a).unsqueeze(1)
+        return rho.unsqueeze(1) + a.unflatten(-1, (-1, 2)).transpose(1, 2)  # (B, K, m, 2)
 
     def gate(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
         """Fallback weight exp(−(δ/τ)²) of the correction (B,), δ the distance of ρ to the nearest training
@@ -265,7 +267,7 @@ class HardwareFK(nn.Module):
         return tips.mean(1), torch.hypot(self.sigma.scale * tips.std(1, correction=1), self.sigma.floor)
 
     def forward(self, servo: Tensor, state: Tensor | None = None):
-        rho, _ = self.clarke(servo)
+        rho, _ = self.clarke(servo, derivative=False)
         memory, new_state = None, None
         if self.history:
             memory, new_state, _ = self.play(rho, state, derivative=False)
