@@ -141,8 +141,12 @@ def load_exported(path: Path, meta: dict) -> HardwareExportedModule:
 def _all_finite(xs: tuple) -> bool:
     """Whether all of ``xs`` are floating tensors with finite values, in one reduction (a NaN/inf anywhere
     makes the sum non-finite; so may a huge finite sum, which the per-input check then clears)."""
-    return all(isinstance(x, Tensor) and x.is_floating_point() for x in xs) and bool(
-        torch.isfinite(sum(x.sum() for x in xs)))
+    if not xs or not all(isinstance(x, Tensor) and x.is_floating_point() for x in xs):
+        return False
+    total = xs[0].sum()
+    for x in xs[1:]:
+        total = total + x.sum()
+    return bool(torch.isfinite(total))
 
 
 class HardwareExportedModule(nn.Module):
