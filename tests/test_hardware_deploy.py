@@ -103,6 +103,8 @@ def test_inference_module_equals_the_library_model_run_causally(history, gate):
                                                         (True, True, None), (True, False, 1.0)])
 def test_jacobian_matches_autograd_in_float64(history, clamp, gate):
     model = _model(history, clamp, gate)
+    with torch.no_grad():                                # a marker off the tip axis (CalibratedCC's default kind)
+        model.cc.marker_lateral.copy_(torch.tensor([4e-3, -3e-3], dtype=torch.float64))
     fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
     servo = 1e3 * _recording(40, 7, amplitude=5e-3).servo[::8]
     state = fk.initial_state(servo) + 3e-5 * torch.randn(servo.shape[0], 2, 2, dtype=torch.float64,

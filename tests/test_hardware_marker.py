@@ -147,8 +147,6 @@ def test_fit_recovers_a_lateral_marker(spec):
     assert rms[True] < 1.1 * noise and rms[False] > 5 * noise
 
 
-@pytest.mark.xfail(strict=True, reason="dacr_learn/hardware/inference.py still exports the axial marker "
-                   "(cc.tip_offset); it must use cc.marker_offset() (3-vector in the tip frame)")
 def test_inference_module_includes_the_lateral_marker():
     """The deployed FK (dacr_learn.hardware.inference) computes the library model's tips with a lateral marker."""
     from test_hardware_deploy import TIP_SCALE as DEPLOY_SCALE

@@ -100,13 +100,14 @@ def segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, half_tur
     return torch.addcmul(torch.addcmul(eye4, torch.sinc(2 * y), xi), torch.sinc(y) ** 2, xi @ xi, value=0.5)
 
 
-def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, offset: Tensor) -> tuple[Tensor, Tensor]:
-    """CC tip point p_tip + offset·z_tip (robot base frame) and ∂/∂ρ: ρ (..., m, 2) [m] → (..., 3), (..., 3, m, 2)."""
+def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, marker: Tensor) -> tuple[Tensor, Tensor]:
+    """CC marker point p_tip + R_tip·marker (robot base frame; marker (3,) [m] in the tip frame) and ∂/∂ρ:
+    ρ (..., m, 2) [m] → (..., 3), (..., 3, m, 2)."""
     r, p, dr, dp = cc_segment_and_derivative(rho / radius.unsqueeze(-1), length.expand(rho.shape[:-1]))
     m = rho.shape[-2]
-    point = offset * r[..., m - 1, :, 2] + p[..., m - 1, :]          # tip point in the last segment's base frame
+    point = r[..., m - 1, :, :] @ marker + p[..., m - 1, :]          # marker in the last segment's base frame
     jac = [None] * m
-    jac[m - 1] = (dr[..., m - 1, :, :, 2] * offset + dp[..., m - 1, :, :]).mT
+    jac[m - 1] = (dr[..., m - 1, :, :, :] @ marker + dp[..., m - 1, :, :]).mT
     for k in range(m - 2, -1, -1):                                    # point_k = p_k + R_k·point_{k+1}
         local = (dr[..., k, :, :, :] @ point[..., None, :, None]).squeeze(-1) + dp[..., k, :, :]
         jac = [None if j is None else r[..., k, :, :] @ j for j in jac]
@@ -127,8 +128,8 @@ class HardwareFK(nn.Module):
                        "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64),
                        "base_rotation": cc.base_rotation(), "base_translation": cc.base_translation,
-                       "offset": cc.tip_offset, "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
-                       "tip_marker": torch.eye(4, dtype=_F64)[3] + cc.tip_offset * torch.eye(4, dtype=_F64)[2],
+                       "marker": cc.marker_offset(), "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
+                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))
             buffers.update(_stacked_members(model.members))
@@ -247,12 +248,12 @@ class HardwareFK(nn.Module):
 
     def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., 3, m, 2) from ρ (..., m, 2)."""
-        p, jac = tip_and_jacobian(rho, self.radius, self.length, self.offset)
+        p, jac = tip_and_jacobian(rho, self.radius, self.length, self.marker)
         world = p @ self.base_rotation.mT + self.base_translation
         return world, torch.einsum("ij,...jmk->...imk", self.base_rotation, jac)
 
     def tip_only(self, rho: Tensor) -> Tensor:
-        """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (0, 0, offset, 1)."""
+        """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (marker, 1)."""
         poses = segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)
         chain = self.base_pose
         for k in range(self.num_segments):
