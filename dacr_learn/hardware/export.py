@@ -12,6 +12,7 @@ measured deviation from the in-memory model). Modules (:mod:`.inference`):
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -143,10 +144,7 @@ def _all_finite(xs: tuple) -> bool:
     makes the sum non-finite; so may a huge finite sum, which the per-input check then clears)."""
     if not xs or not all(isinstance(x, Tensor) and x.is_floating_point() for x in xs):
         return False
-    total = xs[0].sum()
-    for x in xs[1:]:
-        total = total + x.sum()
-    return bool(torch.isfinite(total))
+    return math.isfinite(sum(x.sum().item() for x in xs))      # Python floats: ~3 µs per input at batch 1
 
 
 class HardwareExportedModule(nn.Module):
