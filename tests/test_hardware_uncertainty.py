@@ -160,3 +160,26 @@ def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(robot_dir, t
     tip, sigma = hw.predict(setup.train)
     assert (tip - setup.train.cc_tip).abs().max() <= roundoff_tol(torch.float32, 0.15)   # member kinematics in float32
     assert float(sigma.max()) < 2e-4 and float(sigma.min()) >= float(model.floor) * (1 - 1e-12)
+
+
+def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
+    """HardwareFK (what dacr_learn.export exports) gives predict's σ for a σ model of the ensemble and bend
+    terms (float64), and refuses terms it cannot compute instead of silently returning another σ."""
+    from test_hardware_deploy import TIP_SCALE, _model, _recording
+
+    from dacr_learn.hardware.inference import HardwareFK
+
+    model = _model(history=False)
+    model.sigma_model = SigmaModel(("ensemble", "bend"), [1.7, 0.4], 2e-4)
+    servo_mm = 1e3 * _recording(40, 7, amplitude=4e-3).servo
+    tip, sigma = model.predict(servo_mm)
+    tip_fk, sigma_fk = HardwareFK(model, torch.float64)(servo_mm.double())
+    # The library model runs its kinematics in float32: tips agree to float32 rounding at tip scale, and σ
+    # to that times the ensemble coefficient (the members' std is a difference of such tips).
+    tol = roundoff_tol(torch.float32, TIP_SCALE)
+    assert torch.allclose(tip_fk, tip, rtol=0, atol=tol)
+    assert torch.allclose(sigma_fk, sigma, rtol=0, atol=2 * tol)
+    assert not torch.allclose(sigma_fk, HardwareFK(_model(history=False), torch.float64)(servo_mm.double())[1])
+    model.sigma_model = SigmaModel(("support",), [0.1], 2e-4)
+    with pytest.raises(ValueError, match="unsupported: \\['support'\\]"):
+        HardwareFK(model)

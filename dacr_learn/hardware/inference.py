@@ -116,6 +116,23 @@ def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, marker: Tensor
     return point, torch.stack(jac, -2) / radius.unsqueeze(-1)
 
 
+SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
+
+
+def _sigma_model_coefficients(model: HardwareModel) -> Tensor | None:
+    """(σ₀ [m], c_ensemble, c_bend) float64 of the model's σ model (absent terms: 0), or None without one.
+    Raises ValueError for terms the exported module cannot compute (support distance, disagreement)."""
+    sm = model.sigma_model
+    if sm is None:
+        return None
+    other = [t for t in sm.terms if t not in SIGMA_TERMS_EXPORTED]
+    if other:
+        raise ValueError(f"sigma_model: the exported FK computes the terms {SIGMA_TERMS_EXPORTED}, got "
+                         f"{list(sm.terms)} (unsupported: {other}); save the model without them")
+    coef = dict(zip(sm.terms, sm.coefficients.tolist(), strict=True))
+    return torch.tensor([float(sm.floor), coef.get("ensemble", 0.0), coef.get("bend", 0.0)], dtype=_F64)
+
+
 class HardwareFK(nn.Module):
     """Servo commands (B, S) [mm] (+ play state (B, m, 2)) → (tip (B, 3) [m], tip_std (B, 3) [m] (+ state))."""
 
@@ -144,6 +161,9 @@ class HardwareFK(nn.Module):
             self.register_buffer(name, value.detach().to(dtype))
         sigma = model.sigma or SigmaCalibration()
         self.sigma = SigmaCalibration(float(sigma.scale), float(sigma.floor)).to(dtype)
+        self.sigma_coefficients = _sigma_model_coefficients(model)        # None: the calibrated spread above
+        if self.sigma_coefficients is not None:
+            self.sigma_coefficients = self.sigma_coefficients.to(dtype)
         self.ensemble = len(model.members)
         self.spec = spec
 
@@ -260,9 +280,16 @@ class HardwareFK(nn.Module):
             chain = chain @ poses[..., k, :, :]
         return (chain @ self.tip_marker)[..., :3]
 
-    def mean_std(self, tips: Tensor) -> tuple[Tensor, Tensor]:
-        """Ensemble mean and calibrated spread (:class:`~.uncertainty.SigmaCalibration`: √((s·std)² + σ₀²),
-        σ₀ alone for a single member) of tips (B, K, 3)."""
+    def mean_std(self, tips: Tensor, rho: Tensor) -> tuple[Tensor, Tensor]:
+        """Ensemble mean and σ of tips (B, K, 3) [m] at commands of Clarke coordinates ρ (B, m, 2) [m]: the
+        stored σ model's √(σ₀² + (c_e·std)² + (c_b·‖ρ‖)²) (:class:`~.uncertainty.SigmaModel`, as
+        ``HardwareModel.predict``) when the model has one, else the calibrated spread
+        (:class:`~.uncertainty.SigmaCalibration`: √((s·std)² + σ₀²), σ₀ alone for a single member)."""
+        if self.sigma_coefficients is not None:
+            floor, c_ens, c_bend = self.sigma_coefficients
+            std = tips.std(1, correction=1) if self.ensemble > 1 else torch.zeros_like(tips[:, 0])
+            bend = rho.flatten(-2).norm(dim=-1, keepdim=True)
+            return tips.mean(1), (floor**2 + (c_ens * std) ** 2 + (c_bend * bend) ** 2).sqrt()
         if self.ensemble == 1:
             return tips[:, 0], self.sigma.floor.expand(tips.shape[0], 3).contiguous()   # an output owns its memory
         return tips.mean(1), torch.hypot(self.sigma.scale * tips.std(1, correction=1), self.sigma.floor)
@@ -274,7 +301,7 @@ class HardwareFK(nn.Module):
             memory, new_state, _ = self.play(rho, state, derivative=False)
         corrected, _ = self.members(rho, memory, None)
         tips = self.tip_only(corrected)
-        tip, std = self.mean_std(tips)
+        tip, std = self.mean_std(tips, rho)
         return (tip, std, new_state) if self.history else (tip, std)
 
 
