@@ -119,12 +119,16 @@ def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, marker: Tensor
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
 
 
-def _sigma_model_coefficients(model: HardwareModel) -> Tensor | None:
-    """(σ₀ [m], c_ensemble, c_bend) float64 of the model's σ model (absent terms: 0), or None without one.
-    Raises ValueError for terms the exported module cannot compute (support distance, disagreement)."""
+def _sigma_coefficients(model: HardwareModel) -> Tensor:
+    """(σ₀ [m], c_ensemble, c_bend) float64 of σ = √(σ₀² + (c_ensemble·spread)² + (c_bend·‖ρ‖)²), as
+    ``HardwareModel.predict``: the stored σ model's (:class:`~.uncertainty.SigmaModel`, absent terms 0) or,
+    without one, the σ calibration's (:class:`~.uncertainty.SigmaCalibration` √((s·spread)² + σ₀²): σ₀, s, 0;
+    neither: the raw spread, 0, 1, 0). Raises ValueError for σ-model terms the exported module cannot
+    compute (support distance, disagreement)."""
     sm = model.sigma_model
     if sm is None:
-        return None
+        cal = model.sigma or SigmaCalibration()
+        return torch.tensor([float(cal.floor), float(cal.scale), 0.0], dtype=_F64)
     other = [t for t in sm.terms if t not in SIGMA_TERMS_EXPORTED]
     if other:
         raise ValueError(f"sigma_model: the exported FK computes the terms {SIGMA_TERMS_EXPORTED}, got "
@@ -157,13 +161,9 @@ class HardwareFK(nn.Module):
             if self.gate_width is not None:
                 buffers["gate_points"] = model.members[0].train_clarke * model.members[0].rho_std
                 buffers["rho_std"] = model.members[0].rho_std
+            buffers["sigma_coefficients"] = _sigma_coefficients(model)
         for name, value in buffers.items():
             self.register_buffer(name, value.detach().to(dtype))
-        sigma = model.sigma or SigmaCalibration()
-        self.sigma = SigmaCalibration(float(sigma.scale), float(sigma.floor)).to(dtype)
-        self.sigma_coefficients = _sigma_model_coefficients(model)        # None: the calibrated spread above
-        if self.sigma_coefficients is not None:
-            self.sigma_coefficients = self.sigma_coefficients.to(dtype)
         self.ensemble = len(model.members)
         self.spec = spec
 
@@ -212,29 +212,23 @@ class HardwareFK(nn.Module):
         proj = proj * (self.rho_max / norm).unsqueeze(-1)
         return out, torch.where(inside.unsqueeze(-1), drho, proj @ drho)
 
-    def members(self, rho: Tensor, memory: Tensor | None, tangent: Tensor | None):
-        """Corrected ρ' (B, K, m, 2) of every member (and its tangents (B, K, m, 2, T) if given)."""
-        if tangent is None:
-            return self.members_only(rho, memory), None
-        rho_in, drho_in = self.network_input(rho, None if tangent is None else tangent[0])
+    def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None]):
+        """Corrected ρ' (B, K, m, 2) of every member and its tangents (B, K, m, 2, T), from the tangents
+        (∂ρ (B, m, 2, T), ∂memory or None) of the inputs (the FK path without tangents: :meth:`members_only`)."""
+        rho_in, drho_in = self.network_input(rho, tangent[0])
         x, w = (rho_in, self.w_rho) if memory is None else (torch.cat([rho_in, memory], -1), self.w_first)
         a = x.unsqueeze(1) @ w + self.b_first                                 # weights (K, in, out): matmul
-        da = None if tangent is None else torch.einsum("bmit,kih->bkmth", drho_in, self.w_rho) + (
+        da = torch.einsum("bmit,kih->bkmth", drho_in, self.w_rho) + (
             0 if memory is None else torch.einsum("bmit,kih->bkmth", tangent[1], self.w_memory))
         for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
-            if da is None:
-                h = nn.functional.silu(a)
-            else:
-                sg = torch.sigmoid(a)
-                h = a * sg
-                da = torch.einsum("bkmth,khj->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
-            a = h @ w + bias
+            sg = torch.sigmoid(a)
+            da = torch.einsum("bkmth,khj->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
+            a = (a * sg) @ w + bias
         if self.gate_width is not None:
-            gate, dgate = self.gate(rho, None if tangent is None else tangent[0])
-            if da is not None:
-                da = da * gate[:, None, None, None, None] + a.unsqueeze(-2) * dgate[:, None, None, :, None]
+            gate, dgate = self.gate(rho, tangent[0])
+            da = da * gate[:, None, None, None, None] + a.unsqueeze(-2) * dgate[:, None, None, :, None]
             a = a * gate[:, None, None, None]
-        return rho.unsqueeze(1) + a, None if da is None else tangent[0].unsqueeze(1) + da.mT
+        return rho.unsqueeze(1) + a, tangent[0].unsqueeze(1) + da.mT
 
     def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
         """Corrected ρ' (B, K, m, 2) of every member, the K networks side by side as one (block-diagonal)."""
@@ -281,25 +275,20 @@ class HardwareFK(nn.Module):
         return (chain @ self.tip_marker)[..., :3]
 
     def mean_std(self, tips: Tensor, rho: Tensor) -> tuple[Tensor, Tensor]:
-        """Ensemble mean and σ of tips (B, K, 3) [m] at commands of Clarke coordinates ρ (B, m, 2) [m]: the
-        stored σ model's √(σ₀² + (c_e·std)² + (c_b·‖ρ‖)²) (:class:`~.uncertainty.SigmaModel`, as
-        ``HardwareModel.predict``) when the model has one, else the calibrated spread
-        (:class:`~.uncertainty.SigmaCalibration`: √((s·std)² + σ₀²), σ₀ alone for a single member)."""
-        if self.sigma_coefficients is not None:
-            floor, c_ens, c_bend = self.sigma_coefficients
-            std = tips.std(1, correction=1) if self.ensemble > 1 else torch.zeros_like(tips[:, 0])
-            bend = rho.flatten(-2).norm(dim=-1, keepdim=True)
-            return tips.mean(1), (floor**2 + (c_ens * std) ** 2 + (c_bend * bend) ** 2).sqrt()
+        """Ensemble mean and σ = √(σ₀² + (c_e·spread)² + (c_b·‖ρ‖)²) (:func:`_sigma_coefficients`) of tips
+        (B, K, 3) [m] at commands of Clarke coordinates ρ (B, m, 2) [m]; one member has no spread."""
+        floor, c_ens, c_bend = self.sigma_coefficients
+        var = floor**2 + (c_bend * rho.flatten(-2).norm(dim=-1, keepdim=True)) ** 2          # (B, 1)
         if self.ensemble == 1:
-            return tips[:, 0], self.sigma.floor.expand(tips.shape[0], 3).contiguous()   # an output owns its memory
-        return tips.mean(1), torch.hypot(self.sigma.scale * tips.std(1, correction=1), self.sigma.floor)
+            return tips[:, 0], var.sqrt().expand(-1, 3).contiguous()   # every axis; an output owns its memory
+        return tips.mean(1), (var + (c_ens * tips.std(1, correction=1)) ** 2).sqrt()
 
     def forward(self, servo: Tensor, state: Tensor | None = None):
         rho, _ = self.clarke(servo, derivative=False)
         memory, new_state = None, None
         if self.history:
             memory, new_state, _ = self.play(rho, state, derivative=False)
-        corrected, _ = self.members(rho, memory, None)
+        corrected = self.members_only(rho, memory)
         tips = self.tip_only(corrected)
         tip, std = self.mean_std(tips, rho)
         return (tip, std, new_state) if self.history else (tip, std)
