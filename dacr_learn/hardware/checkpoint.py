@@ -74,18 +74,24 @@ class HardwareModel:
         """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split.
 
         σ is the stored σ model's (:class:`~.uncertainty.SigmaModel`) when there is one, else the
-        ensemble std through the σ calibration (or raw without one)."""
+        ensemble std through the σ calibration (or raw without one): :meth:`sigma_of`."""
         split = commands if isinstance(commands, Split) else self.split(commands)
         with torch.no_grad():
             preds = torch.stack([m(split) for m in self.members])
-        if self.sigma_model is None:
-            std = preds.std(0, correction=1) if len(self.members) > 1 else torch.zeros_like(preds[0])
-            return preds.mean(0), (self.sigma or SigmaCalibration())(std)
+        sigma = self.sigma_of()
         rho = split.features[..., :2]
-        if self.support is None and "support" in self.sigma_model.terms:
+        if "support" not in sigma.terms:
+            dist = rho.new_zeros(rho.shape[0])
+        elif self.support is None:
             raise ValueError("sigma_model: its 'support' term needs the support model, which this model lacks")
-        dist = self.support.distance(rho) if self.support is not None else rho.new_zeros(rho.shape[0])
-        return preds.mean(0), self.sigma_model(sigma_terms(preds, split.cc_tip, rho, dist))
+        else:
+            dist = self.support.distance(rho)
+        return preds.mean(0), sigma(sigma_terms(preds, split.cc_tip, rho, dist))
+
+    def sigma_of(self) -> SigmaModel:
+        """The σ this model reports: the stored σ model, else the σ calibration (an ``ensemble``-term σ
+        model; without one the raw ensemble std)."""
+        return self.sigma_model or (self.sigma or SigmaCalibration()).as_model()
 
     def support_score(self, commands: torch.Tensor | Split) -> torch.Tensor:
         """Out-of-support score (n,) of servo commands (n, S) [mm] or a Split (:class:`~.uncertainty.SupportModel`;

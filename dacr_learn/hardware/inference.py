@@ -33,7 +33,6 @@ from ..kinematics import _TAYLOR_BELOW, bending_coefficients, cc_transform
 from .checkpoint import HardwareModel
 from .learned import RESIDUAL_RHO_SCALE
 from .slack import active_set_gains
-from .uncertainty import SigmaCalibration
 
 _F64 = torch.float64
 
@@ -120,15 +119,10 @@ SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
 
 
 def _sigma_coefficients(model: HardwareModel) -> Tensor:
-    """(σ₀ [m], c_ensemble, c_bend) float64 of σ = √(σ₀² + (c_ensemble·spread)² + (c_bend·‖ρ‖)²), as
-    ``HardwareModel.predict``: the stored σ model's (:class:`~.uncertainty.SigmaModel`, absent terms 0) or,
-    without one, the σ calibration's (:class:`~.uncertainty.SigmaCalibration` √((s·spread)² + σ₀²): σ₀, s, 0;
-    neither: the raw spread, 0, 1, 0). Raises ValueError for σ-model terms the exported module cannot
-    compute (support distance, disagreement)."""
-    sm = model.sigma_model
-    if sm is None:
-        cal = model.sigma or SigmaCalibration()
-        return torch.tensor([float(cal.floor), float(cal.scale), 0.0], dtype=_F64)
+    """(σ₀ [m], c_ensemble, c_bend) float64 of σ = √(σ₀² + (c_ensemble·spread)² + (c_bend·‖ρ‖)²): the σ
+    model of ``HardwareModel.predict`` (:meth:`~.checkpoint.HardwareModel.sigma_of`; absent terms 0).
+    Raises ValueError for σ-model terms the exported module cannot compute (support distance, disagreement)."""
+    sm = model.sigma_of()
     other = [t for t in sm.terms if t not in SIGMA_TERMS_EXPORTED]
     if other:
         raise ValueError(f"sigma_model: the exported FK computes the terms {SIGMA_TERMS_EXPORTED}, got "

@@ -166,6 +166,10 @@ class SigmaCalibration(nn.Module):
         """Ensemble std (..., 3) [m] → calibrated std (..., 3) [m]."""
         return ((self.scale.to(std.dtype) * std) ** 2 + self.floor.to(std.dtype) ** 2).sqrt()
 
+    def as_model(self) -> SigmaModel:
+        """The same σ as a :class:`SigmaModel` of the ``ensemble`` term (coefficient s, floor σ₀)."""
+        return SigmaModel(("ensemble",), [float(self.scale)], float(self.floor))
+
     @classmethod
     def fit(cls, residual: Tensor, std: Tensor, iters: int = 200) -> SigmaCalibration:
         """Maximise Σ log N(residual; 0, σ_cal²) over (s, σ₀) ≥ 0; residual, std (n, 3) [m], held out.
