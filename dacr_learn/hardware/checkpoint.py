@@ -11,7 +11,7 @@ loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
     units: "mm" (unit of the servo commands a user passes in; tips are metres)
     cc: CalibratedCC state dict (fitted physical parameters)
     members: [state dict of each ensemble member's residual network (cc.* keys left out)]
-    sigma_calibration: {"scale", "floor" [m]} or None (ensemble std only: what exported modules output)
+    sigma_calibration: {"scale", "floor" [m]} or None (ensemble std only; the σ when sigma_model is None)
     sigma_model: SigmaModel.to_dict() ({"terms", "coefficients", "floor"}) or None (the σ of
         :meth:`HardwareModel.predict`; absent in older checkpoints); support: SupportModel state dict or None
     examples: (n, S) training commands [mm] in time order (to verify exports), or None

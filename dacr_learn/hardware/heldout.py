@@ -91,7 +91,7 @@ def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaMod
 
 def sigma_models(setup, name: str, seeds: Sequence[int], terms: Sequence[str] = SIGMA_TERMS,
                  proxies: Sequence[str] = SIGMA_PROXIES, log=None) -> tuple[SigmaCalibration, SigmaModel]:
-    """(ensemble-only σ calibration — what exported modules output —, σ model with ``terms``), both fitted
+    """(ensemble-only σ calibration — the σ of a model saved without a σ model —, σ model with ``terms``), both fitted
     on the held-out rows of the ``proxies`` folds of a :class:`~.benchmark.Setup`'s training recording."""
     blocks = held_out_folds(setup, name, seeds, proxies, log)
     residual = torch.cat([b.residual() for b in blocks])

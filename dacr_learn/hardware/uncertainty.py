@@ -9,8 +9,8 @@
   :mod:`.heldout`; never the validation recording). The plain ensemble is over-confident and ranks
   the errors poorly: its members share the calibrated CC model and the same data, so they agree
   where the systematic (hysteresis, loading, marker) error is largest; that error grows with the bend.
-- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (what exported
-  modules output as ``tip_std``).
+- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (the σ of a model
+  saved without a σ model; :meth:`SigmaCalibration.as_model`).
 - Scores of a σ on n rows with offset-removed residuals r = e − ē (e = prediction − measurement,
   ē their mean over the n rows): :func:`coverage`, the fraction of the 3n entries with |r_a| ≤ 2σ_a,
   and :func:`spearman`, the rank correlation between the per-row ‖σ‖ and ‖r‖ (Euclidean over axes).
