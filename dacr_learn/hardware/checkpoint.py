@@ -3,7 +3,8 @@
 A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, so it
 loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
 
-    format: "dacr_learn.hardware_model/1"
+    format: "dacr_learn.hardware_model/1" (CC Clarke-residual family) or "dacr_learn.hardware_model/2"
+        (compositional members; /2 = /1 plus the ``structure`` and ``compositional`` entries: see below)
     model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m];
     clamp: the members were fitted with ``support=True`` (network input clamped to the training range);
     gate_width: the members' fallback gate width τ (``gate_width``) or None
@@ -11,6 +12,10 @@ loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
     units: "mm" (unit of the servo commands a user passes in; tips are metres)
     cc: CalibratedCC state dict (fitted physical parameters)
     members: [state dict of each ensemble member's residual network (cc.* keys left out)]
+    structure (/2 only): "compositional"; a /1 file is the structure "clarke_residual"
+    compositional (/2 only): {"context", "width", "depth", "torsion"} of the members'
+        :class:`~.compositional_model.CCCompositionalResidual` (their state dicts hold the network
+        weights and the feature normaliser's buffers)
     sigma_calibration: {"scale", "floor" [m]} or None (ensemble std only; the σ when sigma_model is None)
     sigma_model: SigmaModel.to_dict() ({"terms", "coefficients", "floor"}) or None (the σ of
         :meth:`HardwareModel.predict`; absent in older checkpoints); support: SupportModel state dict or None
@@ -18,7 +23,11 @@ loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
     info: free-form dict (metrics, command line, …)
 
 Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
-history variant :class:`~.learned.CCClarkeResidualHistory`).
+history variant :class:`~.learned.CCClarkeResidualHistory`; registry ``cc``, ``cc_clarke_residual``,
+``cc_clarke_residual_history``), written as format /1, and the compositional CC model
+(:class:`~.compositional_model.CCCompositionalResidual`, registry ``cc_compositional_residual``), written
+as format /2. The loader reads both; a Clarke-residual checkpoint stays /1, so older code still reads it,
+and older code rejects a compositional one by its format instead of misreading it.
 """
 from __future__ import annotations
 
@@ -31,12 +40,15 @@ from torch import nn
 
 from ..robot import RobotSpec
 from .ccmodel import CalibratedCC
+from .compositional_model import CCCompositionalResidual
 from .learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, make_split
 from .recording import Recording
 from .servo_map import ServoMap
 from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
-FORMAT = "dacr_learn.hardware_model/1"
+FORMAT = "dacr_learn.hardware_model/1"                       # the CC Clarke-residual family
+FORMAT_COMPOSITIONAL = "dacr_learn.hardware_model/2"         # /1 + structure "compositional"
+FORMATS = (FORMAT, FORMAT_COMPOSITIONAL)
 _KEYS = ("format", "model", "history", "play_width", "robot", "servo_map", "servo_ids", "units", "cc", "members")
 
 
@@ -49,7 +61,7 @@ class HardwareModel:
     smap: ServoMap
     servo_ids: tuple[str, ...]
     cc: CalibratedCC
-    members: list[CCClarkeResidual]
+    members: list[CCClarkeResidual] | list[CCCompositionalResidual]
     play_width: float = PLAY_WIDTH
     sigma: SigmaCalibration | None = None
     support: SupportModel | None = None
@@ -59,7 +71,13 @@ class HardwareModel:
 
     @property
     def history(self) -> bool:
-        return bool(self.members[0].history)
+        """True when the members use the command history (a play-operator state; compositional members do not)."""
+        return bool(getattr(self.members[0], "history", False))
+
+    @property
+    def compositional(self) -> bool:
+        """True when the members are :class:`~.compositional_model.CCCompositionalResidual` models."""
+        return isinstance(self.members[0], CCCompositionalResidual)
 
     def split(self, servo_mm: torch.Tensor) -> Split:
         """The model inputs of commands servo (n, S) [mm, ``servo_ids`` order; time order for a history model]."""
@@ -106,12 +124,32 @@ def _member_state(member: nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.detach().clone() for k, v in member.state_dict().items() if not k.startswith("cc.")}
 
 
+def compositional_config(member: CCCompositionalResidual) -> dict[str, Any]:
+    """The constructor arguments that shape a compositional member: context, width, depth, torsion."""
+    linear = [layer for layer in member.fk.net if isinstance(layer, nn.Linear)]
+    return {"context": member.fk.front.context, "width": int(linear[0].out_features), "depth": len(linear) - 1,
+            "torsion": bool(member.twist_mask[5] != 0)}
+
+
+def _structure(members: list) -> str:
+    """The members' structure, "clarke_residual" or "compositional" (all of one family, else a ValueError)."""
+    for structure, cls in (("clarke_residual", CCClarkeResidual), ("compositional", CCCompositionalResidual)):
+        if members and all(isinstance(m, cls) for m in members):
+            return structure
+    raise ValueError(f"members: expected CCClarkeResidual models (the CC Clarke-residual family) or "
+                     f"CCCompositionalResidual models, all of one kind, got {[type(m).__name__ for m in members]}")
+
+
 def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
     """Write ``model`` as a weights-only checkpoint (format of the module docstring); returns the path."""
-    if not model.members or not all(isinstance(m, CCClarkeResidual) for m in model.members):
-        raise ValueError(f"members: expected CCClarkeResidual models (the CC Clarke-residual family), got "
-                         f"{[type(m).__name__ for m in model.members]}")
-    blob = {"format": FORMAT, "model": model.name, "history": model.history, "play_width": float(model.play_width),
+    structure = _structure(model.members)
+    extra = {} if structure == "clarke_residual" else {
+        "structure": structure, "compositional": compositional_config(model.members[0])}
+    if extra and any(compositional_config(m) != extra["compositional"] for m in model.members):
+        raise ValueError(f"members: expected compositional members of one shape, got "
+                         f"{[compositional_config(m) for m in model.members]}")
+    blob = {"format": FORMAT if not extra else FORMAT_COMPOSITIONAL, **extra,
+            "model": model.name, "history": model.history, "play_width": float(model.play_width),
             "robot": model.spec.to_dict(), "servo_map": model.smap.to_dict(), "servo_ids": list(model.servo_ids),
             "units": "mm", "cc": {k: v.detach().clone() for k, v in model.cc.state_dict().items()},
             "members": [_member_state(m) for m in model.members],
@@ -163,15 +201,17 @@ def load_hardware_model(path: str | Path) -> HardwareModel:
 
 def is_hardware_blob(blob: Any) -> bool:
     """True for the loaded content of a file written by :func:`save_hardware_model`."""
-    return isinstance(blob, dict) and blob.get("format") == FORMAT
+    return isinstance(blob, dict) and blob.get("format") in FORMATS
 
 
 def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
     """The model in a checkpoint's loaded content (``path`` names the file in errors)."""
     if not is_hardware_blob(blob):
         got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
-        raise ValueError(f"{path}: expected a hardware model checkpoint of format {FORMAT!r}, got {got!r}")
-    missing = [k for k in _KEYS if k not in blob]
+        raise ValueError(f"{path}: expected a hardware model checkpoint of format {' or '.join(FORMATS)}, "
+                         f"got {got!r}")
+    keys = _KEYS + (("structure", "compositional") if blob["format"] == FORMAT_COMPOSITIONAL else ())
+    missing = [k for k in keys if k not in blob]
     if missing:
         raise ValueError(f"{path}: hardware model checkpoint lacks the entries {missing}")
     try:
@@ -188,16 +228,7 @@ def _build(blob: dict) -> HardwareModel:
     smap.check(spec, ids)
     cc = CalibratedCC.from_state_dict(spec, blob["cc"])   # axial or lateral marker, as saved
     cc.requires_grad_(False)
-    cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
-    members = []
-    for state in blob["members"]:
-        rows = state["train_clarke"].shape[0] if "train_clarke" in state else 2
-        options = {"support": bool(blob.get("clamp", False))}
-        if blob.get("gate_width") is not None:
-            options["gate_width"] = float(blob["gate_width"])
-        member = cls(_placeholder_split(spec.num_segments, rows), cc, **options)
-        member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})
-        members.append(member.eval())
+    members = [_member(blob, state, cc) for state in blob["members"]]
     if not members:
         raise ValueError("members: the checkpoint holds no ensemble member")
     cal, sigma_model = blob.get("sigma_calibration"), blob.get("sigma_model")
@@ -207,6 +238,25 @@ def _build(blob: dict) -> HardwareModel:
                          None if support is None else _support_from_state(support, spec.num_segments),
                          blob.get("examples"), dict(blob.get("info") or {}),
                          None if sigma_model is None else SigmaModel.from_dict(sigma_model))
+
+
+def _member(blob: dict, state: dict, cc: CalibratedCC) -> nn.Module:
+    """One ensemble member of a checkpoint, rebuilt around the shared CC model and loaded (strict)."""
+    m = cc.spec.num_segments
+    if blob.get("structure", "clarke_residual") == "compositional":
+        if blob["structure"] != "compositional" or blob["history"]:
+            raise ValueError(f"structure: expected 'compositional' without history, got {blob['structure']!r} "
+                             f"with history={blob['history']!r}")
+        member = CCCompositionalResidual(_placeholder_split(m), cc, steps=1, **blob["compositional"])
+    else:
+        cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
+        rows = state["train_clarke"].shape[0] if "train_clarke" in state else 2
+        options = {"support": bool(blob.get("clamp", False))}
+        if blob.get("gate_width") is not None:
+            options["gate_width"] = float(blob["gate_width"])
+        member = cls(_placeholder_split(m, rows), cc, **options)
+    member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})
+    return member.eval()
 
 
 def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
@@ -222,9 +272,10 @@ def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
 
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
                        info: dict | None = None) -> HardwareModel:
-    """Train model ``name`` (a CC Clarke-residual model, or ``cc`` itself) once per seed on the whole training recording
-    of a :class:`~.benchmark.Setup` and bundle the ensemble with the support model of the training
-    commands (labels = pattern labels) and, if given, a σ calibration fitted on held-out residuals."""
+    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
+    per seed on the whole training recording of a :class:`~.benchmark.Setup` and bundle the ensemble with
+    the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
+    fitted on held-out residuals."""
     from .benchmark import fit_model
 
     if name == "cc":                    # deterministic: one member, the CC model itself
