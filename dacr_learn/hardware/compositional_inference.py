@@ -1,0 +1,238 @@
+"""Inference modules of a saved compositional hardware model (registry ``cc_compositional_residual``).
+
+The counterparts of :class:`~.inference.HardwareFK` / :class:`~.inference.HardwareJacobian` for an
+ensemble of K :class:`~.compositional_model.CCCompositionalResidual` members; plain nn.Modules with
+every constant in buffers, exportable with torch.export (``python -m dacr_learn.export``):
+
+- :class:`CompositionalHardwareFK`: servo (B, S) [mm, checkpoint column order] → tip (B, 3) [m,
+  motion-capture frame] = the ensemble mean, tip_std (B, 3) [m] = the model's σ
+  (:meth:`~.checkpoint.HardwareModel.sigma_of`: floor, ensemble spread and bend terms, the same buffer
+  and formula as HardwareFK).
+- :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm],
+  by reverse-mode autodiff (torch.func.jacrev) of the FK: three reverse passes (one per tip axis) over
+  the batch, since rows are independent.
+
+Pipeline: servo → ρ per segment (the slack-aware encoder's active-set fast path of HardwareFK: the
+same buffers, :func:`~.inference._active_set_maps`, and the same method, HardwareFK.clarke) → CC
+segment poses T_k^CC(ρ_k) (:func:`~.inference.segment_poses`) → each member's correction exp(ξ_k^),
+ξ_k = s·f_θ(z_k, c_k) (the K networks batched: weights (K, in, out); the feature normaliser kept as
+(ρ − μ)/σ with the standardised fixed columns β = l, α = 0 precomputed per segment in the member's
+own dtype; the twist scale s, the torsion mask and the translation unit L_s folded into the output
+layers) → base pose · T_1 ⋯ T_m · marker → ensemble mean and σ. No history: the model is static.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ..compositional import _TAYLOR_BELOW, _third_coefficient, twist_exp
+from ..kinematics import effective_features
+from .checkpoint import HardwareModel
+from .inference import (
+    HardwareFK,
+    _active_set_maps,
+    _bending_coefficients_and_derivatives,
+    _homogeneous,
+    _sigma_coefficients,
+    cc_segment_and_derivative,
+    segment_poses,
+    segment_twists,
+)
+
+_F64 = torch.float64
+
+
+def _check_servo(servo: Tensor, num_servos: int) -> None:
+    if servo.dim() != 2 or servo.shape[-1] != num_servos:
+        raise ValueError(f"servo: expected shape (B, {num_servos}) [mm], got {tuple(servo.shape)}")
+
+
+def _hat(w: Tensor) -> Tensor:
+    """Skew matrices (..., 3, 3) of vectors (..., 3): hat(w)·x = w × x."""
+    zero = torch.zeros_like(w[..., 0])
+    return torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0],
+                        -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
+
+
+def _homogeneous_batch(rotation: Tensor, translation: Tensor, tangent: bool = False) -> Tensor:
+    """(..., 3, 3), (..., 3) → (..., 4, 4) with bottom row (0, 0, 0, 1), or 0 for a tangent."""
+    top = torch.cat([rotation, translation.unsqueeze(-1)], -1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    if not tangent:
+        bottom = torch.cat([bottom[..., :3], torch.ones_like(bottom[..., 3:])], -1)
+    return torch.cat([top, bottom], -2)
+
+
+def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
+    """exp of se(3) twists ξ = (v, ω) (..., 6) (:func:`~dacr_learn.compositional.twist_exp`, (..., 4, 4)) and its
+    tangents (..., T, 4, 4) along dξ (..., T, 6): the derivative of R = I + s·ω^ + f·ω^², p = v + f·ω×v + g·ω×(ω×v)
+    with s, f, g functions of φ² = ‖ω‖² (their φ²-derivatives: Taylor series below the same threshold)."""
+    v, w, dv, dw = xi[..., :3], xi[..., 3:], dxi[..., :3], dxi[..., 3:]
+    phi_sq = (w * w).sum(-1)
+    s, f, ds, df = _bending_coefficients_and_derivatives(phi_sq)
+    g = _third_coefficient(phi_sq, s)
+    small = phi_sq < _TAYLOR_BELOW
+    y = torch.where(small, phi_sq, 0.0)
+    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
+    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
+    dphi = 2 * (w.unsqueeze(-2) * dw).sum(-1)                                              # (..., T)
+    at = lambda c: c.unsqueeze(-1)  # noqa: E731   coefficient (...) → (..., T) broadcast
+    wv = torch.linalg.cross(w, v)
+    dwv = torch.linalg.cross(dw, v.unsqueeze(-2)) + torch.linalg.cross(w.unsqueeze(-2), dv)
+    wwv = torch.linalg.cross(w, wv)
+    dwwv = torch.linalg.cross(dw, wv.unsqueeze(-2)) + torch.linalg.cross(w.unsqueeze(-2), dwv)
+    dp = (dv + (at(df) * dphi).unsqueeze(-1) * wv.unsqueeze(-2) + at(f).unsqueeze(-1) * dwv
+          + (at(dg) * dphi).unsqueeze(-1) * wwv.unsqueeze(-2) + at(g).unsqueeze(-1) * dwwv)
+    hat, dhat = _hat(w).unsqueeze(-3), _hat(dw)
+    hat2 = hat @ hat
+    k = lambda c: c[..., None, None]  # noqa: E731   (..., T) → (..., T, 1, 1)
+    drot = (k(at(ds) * dphi) * hat + k(at(s)) * dhat + k(at(df) * dphi) * hat2
+            + k(at(f)) * (dhat @ hat + hat @ dhat))
+    return twist_exp(xi), _homogeneous_batch(drot, dp, tangent=True)
+
+
+def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
+    """The K members' per-segment networks side by side (float64 buffers), their activation and context.
+
+    ``rho_mean``/``rho_std`` (K, 1, 2) and ``z_fixed`` (K, m, 2): the normaliser (ρ part; the fixed columns
+    standardised once, in the member's dtype, as training saw them); ``w{i}`` (K, in, out), ``b{i}`` (K, 1, out)
+    the linear layers of f_θ; ``skip`` (K, in, 6); the last layer and skip scaled by the twist mask and, for
+    the translation rows, the segment length unit L_s, so that ξ = a_last + z·skip directly."""
+    fks = [m.fk for m in members]
+    context, acts = fks[0].front.context, {type(l) for fk in fks for l in fk.net if not isinstance(l, nn.Linear)}
+    if len(acts) != 1 or any(fk.front.context != context or fk.rotation != "twist" for fk in fks):
+        raise ValueError(f"members: expected one activation, one context and the twist head, got activations "
+                         f"{sorted(a.__name__ for a in acts)}, contexts {[fk.front.context for fk in fks]}, heads "
+                         f"{[fk.rotation for fk in fks]}")
+    spec = members[0].spec
+    out: dict[str, Tensor] = {}
+    with torch.no_grad():
+        dtype = fks[0].skip.weight.dtype
+        fixed = effective_features(spec, torch.zeros(1, spec.num_segments, 4, dtype=dtype))
+        out["z_fixed"] = torch.stack([fk.front.norm(fixed)[0, :, 2:] for fk in fks]).to(_F64)
+        out["rho_mean"] = torch.stack([fk.front.norm.mean[:2] for fk in fks]).to(_F64).unsqueeze(1)
+        out["rho_std"] = torch.stack([fk.front.norm.std[:2] for fk in fks]).to(_F64).unsqueeze(1)
+        out["context_matrix"] = fks[0].front.context_matrix.to(_F64)
+        unit = torch.stack([m.twist_mask.to(_F64) for m in members])                      # (K, 6)
+        unit[:, :3] *= torch.stack([fk.length_scale.to(_F64) for fk in fks]).unsqueeze(-1)
+        layers = [[l for l in fk.net if isinstance(l, nn.Linear)] for fk in fks]
+        for i in range(len(layers[0])):
+            scale = unit.unsqueeze(1) if i == len(layers[0]) - 1 else 1.0
+            out[f"w{i}"] = torch.stack([ls[i].weight for ls in layers]).to(_F64).mT * scale
+            out[f"b{i}"] = torch.stack([ls[i].bias for ls in layers]).to(_F64).unsqueeze(1) * scale
+        out["skip"] = torch.stack([fk.skip.weight for fk in fks]).to(_F64).mT * unit.unsqueeze(1)
+    return out, acts.pop()(), context
+
+
+class CompositionalHardwareFK(nn.Module):
+    """Servo commands (B, S) [mm] → (tip (B, 3) [m], tip_std (B, 3) [m]) of a compositional hardware model."""
+
+    history = False
+
+    def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        if not model.compositional:
+            raise ValueError(f"model: expected CCCompositionalResidual members, got "
+                             f"{[type(m).__name__ for m in model.members]} (use inference.HardwareFK)")
+        spec, cc = model.spec, model.cc
+        self.num_segments, self.num_servos, self.ensemble = spec.num_segments, len(model.servo_ids), len(model.members)
+        nets, self.activation, self.context = _stacked_networks(model.members)
+        self.layers = sum(1 for k in nets if k.startswith("w"))
+        with torch.no_grad():
+            buffers = {**_active_set_maps(model), **nets,
+                       "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
+                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
+                       "sigma_coefficients": _sigma_coefficients(model),
+                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
+                       "length": torch.tensor([s.length for s in spec.segments], dtype=_F64)}
+            buffers.update(segment_twists(buffers["radius"], buffers["length"]))
+        for name, value in buffers.items():
+            self.register_buffer(name, value.detach().to(dtype))
+        self.spec = spec
+
+    clarke = HardwareFK.clarke          # servo → ρ (B, m, 2) [+ ∂ρ/∂servo]: the same buffers as HardwareFK's
+    mean_std = HardwareFK.mean_std      # ensemble mean and the σ model, the same buffer and formula
+
+    def inputs(self, rho: Tensor) -> Tensor:
+        """Network inputs (B, K, m, C) of every member: standardised features and context of ρ (B, m, 2)."""
+        z_rho = (rho.unsqueeze(1) - self.rho_mean) / self.rho_std                          # (B, K, m, 2)
+        return self.context_of(torch.cat([z_rho, self.z_fixed.expand(rho.shape[0], -1, -1, -1)], -1))
+
+    def context_of(self, z: Tensor, zero: bool = False) -> Tensor:
+        """Standardised features z (B, K, m, [T,] 4) with the context appended (CompositionalFK's
+        ``with_context``); ``zero``: z are tangents (one more dim, before the features), whose one-hot
+        context is constant (tangent 0)."""
+        if self.context == "none":
+            return z
+        if self.context == "segment":
+            extra = self.context_matrix.expand(*z.shape[:-2], -1, -1)
+            extra = torch.zeros_like(z[..., :1]).expand(*z.shape[:-1], self.num_segments) if zero else extra
+        else:
+            extra = (self.context_matrix @ z.flatten(-2)).unflatten(-1, z.shape[-2:]) if zero else (
+                self.context_matrix @ z)
+        return torch.cat([z, extra], -1)
+
+    def corrections(self, rho: Tensor) -> Tensor:
+        """Each member's correction exp(ξ_k^) of every segment (B, K, m, 4, 4) at ρ (B, m, 2) [m]."""
+        z = self.inputs(rho)                                                               # (B, K, m, C)
+        a = z @ self.w0 + self.b0                                                          # weights (K, in, out)
+        for i in range(1, self.layers):
+            a = self.activation(a) @ getattr(self, f"w{i}") + getattr(self, f"b{i}")
+        return twist_exp(a + z @ self.skip)                                                # ξ (B, K, m, 6)
+
+    def tips(self, rho: Tensor) -> Tensor:
+        """Every member's tip (B, K, 3) [m, motion-capture frame] at ρ (B, m, 2) [m]."""
+        cc = segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)  # (B, m, 4, 4)
+        poses = cc.unsqueeze(1) @ self.corrections(rho)                                    # (B, K, m, 4, 4)
+        chain = self.base_pose
+        for k in range(self.num_segments):
+            chain = chain @ poses[..., k, :, :]
+        return (chain @ self.tip_marker)[..., :3]
+
+    def tips_and_tangents(self, rho: Tensor, drho: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`tips` (B, K, 3) and their tangents (B, K, T, 3) along the tangents ∂ρ (B, m, T, 2) of ρ
+        (forward mode, written out: torch.export does not trace torch.func transforms of this model)."""
+        z = self.inputs(rho)                                                               # (B, K, m, C)
+        dz_rho = drho.unsqueeze(1) / self.rho_std.unsqueeze(-2)                           # (B, K, m, T, 2)
+        dz = self.context_of(torch.cat([dz_rho, torch.zeros_like(dz_rho)], -1), zero=True)  # fixed columns: 0
+        a, da = z @ self.w0 + self.b0, dz @ self.w0[:, None]
+        for i in range(1, self.layers):
+            sg = torch.sigmoid(a)
+            da = (da * (sg * (1 + a * (1 - sg))).unsqueeze(-2)) @ getattr(self, f"w{i}")[:, None]
+            a = (a * sg) @ getattr(self, f"w{i}") + getattr(self, f"b{i}")
+        corr, dcorr = twist_exp_and_tangent(a + z @ self.skip, da + dz @ self.skip[:, None])
+        u = rho / self.radius.unsqueeze(-1)
+        r, p, dr_du, dp_du = cc_segment_and_derivative(u, self.length.expand(rho.shape[:-1]))
+        du = drho / self.radius[:, None, None]                                             # (B, m, T, 2)
+        cc = _homogeneous_batch(r, p)
+        dcc = _homogeneous_batch(torch.einsum("bmtj,bmjxy->bmtxy", du, dr_du),
+                                 torch.einsum("bmtj,bmjx->bmtx", du, dp_du), tangent=True)
+        poses = cc.unsqueeze(1) @ corr                                                     # (B, K, m, 4, 4)
+        dposes = dcc.unsqueeze(1) @ corr.unsqueeze(-3) + cc[:, None, :, None] @ dcorr      # (B, K, m, T, 4, 4)
+        chain, dchain = self.base_pose @ poses[..., 0, :, :], self.base_pose @ dposes[..., 0, :, :, :]
+        for k in range(1, self.num_segments):
+            dchain = dchain @ poses[..., k, None, :, :] + chain.unsqueeze(-3) @ dposes[..., k, :, :, :]
+            chain = chain @ poses[..., k, :, :]
+        return (chain @ self.tip_marker)[..., :3], (dchain @ self.tip_marker)[..., :3]
+
+    def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:
+        _check_servo(servo, self.num_servos)
+        rho = self.clarke(servo, derivative=False)[0]
+        return self.mean_std(self.tips(rho), rho)
+
+
+class CompositionalHardwareJacobian(nn.Module):
+    """Servo (B, S) [mm] → (tip (B, 3) [m], J = ∂tip/∂servo (B, 3, S) [m/mm]) of the ensemble-mean tip."""
+
+    history = False
+
+    def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        self.fk = CompositionalHardwareFK(model, dtype)
+
+    def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:
+        fk = self.fk
+        _check_servo(servo, fk.num_servos)
+        rho, drho = fk.clarke(servo)                                                       # (B, m, 2), (B, m, 2, S)
+        tips, dtips = fk.tips_and_tangents(rho, drho.mT)                                   # (B, K, 3), (B, K, S, 3)
+        return tips.mean(1), dtips.mean(1).mT
