@@ -303,41 +303,49 @@ def load(path: str | Path, name: str | None = None, *, robot=None, features: str
         raise ValueError(f"{path}: checksum mismatch (sha256 {actual[:12]}…, {METADATA_FILE} records {digest[:12]}…): "
                          "the file was modified, truncated or comes from another export")
     _check_expectations(meta, path, robot, features, checkpoint)
-    if meta["task"] == "hardware_fk":                          # servo commands → tip (dacr_learn.hardware.export)
-        from .hardware.export import HardwareExportedModule
-
-        return HardwareExportedModule(_runner(path, kind, meta), meta, name, kind)
     return ExportedModule(_runner(path, kind, meta), meta, name, kind)
 
 
 class ExportedModule(nn.Module):
-    """A loaded export: validates the input (shape, floating dtype, finite values) and handles
-    leading batch dims (..., *input_shape) and dtype (computed in the export's dtype, returned in
-    the input's). Returns one tensor or a tuple (``jacobian``: pose, J_f, J_q).
+    """A loaded export (synthetic FK / Jacobian / IK, or a hardware model's modules): checks every
+    input (shape (..., *shape), floating dtype, finite values, non-empty), accepts leading batch dims
+    shared by all inputs and float32/float64 (computed in the export's dtype, returned in the first
+    input's). Returns one tensor, or a tuple when the module has several outputs (``jacobian``:
+    pose, J_f, J_q; hardware ``fk``: tip, tip_std[, state]).
 
-    Attributes: ``metadata`` (dict of metadata.json), ``name``, ``kind`` ("aoti" | "export").
+    Attributes: ``metadata`` (dict of metadata.json), ``name``, ``kind`` ("aoti" | "export"),
+    ``inputs`` ([(name, shape)] of the module's inputs).
     """
 
     def __init__(self, runner, metadata: dict, name: str, kind: str):
         super().__init__()
         self.runner, self.metadata, self.name, self.kind = runner, metadata, name, kind
         info = metadata["modules"][name]
-        (self.input_name, shape), = info["inputs"]
-        self.input_shape = tuple(shape)
+        self.inputs = [(n, tuple(s)) for n, s in info["inputs"]]
+        self._labels = [f"{name} input {n}" for n, _ in self.inputs]   # error prefixes, built once
         self.output_shapes = [tuple(s) for _, s in info["outputs"]]
         self.dtype = _DTYPES[metadata["dtype"]]
 
     def extra_repr(self) -> str:
         return f"name={self.name!r}, kind={self.kind!r}, robot={self.metadata['robot']['name']!r}"
 
-    def forward(self, x: Tensor):
-        check_tensor(x, f"{self.name} input {self.input_name}", self.input_shape, nonempty=True)
-        if x.dim() == len(self.input_shape) + 1 and x.dtype == self.dtype:     # fast path: (B, ...) as exported
-            outs = self.runner([x if x.is_contiguous() else x.contiguous()])
+    def forward(self, *xs: Tensor):
+        if len(xs) != len(self.inputs):
+            raise ValueError(f"{self.name}: expected inputs {[n for n, _ in self.inputs]}, got {len(xs)} tensors")
+        lead, fast = None, True
+        for x, (_, shape), label in zip(xs, self.inputs, self._labels, strict=True):
+            check_tensor(x, label, shape, nonempty=True)
+            here = x.shape[:x.dim() - len(shape)]
+            if lead is not None and here != lead:
+                raise ValueError(f"{self.name}: inputs must share their batch dims, got {tuple(lead)} and "
+                                 f"{tuple(here)}")
+            lead, fast = here, fast and x.dtype == self.dtype and x.is_contiguous()
+        if fast and len(lead) == 1:                                   # fast path: (B, ...) as exported
+            outs = self.runner(list(xs))
         else:
-            lead = x.shape[:x.dim() - len(self.input_shape)]
-            outs = self.runner([x.reshape(-1, *self.input_shape).to(self.dtype).contiguous()])
-            outs = [o.reshape(*lead, *s).to(x.dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
+            outs = self.runner([x.reshape(-1, *s).to(self.dtype).contiguous()
+                                for x, (_, s) in zip(xs, self.inputs, strict=True)])
+            outs = [o.reshape(*lead, *s).to(xs[0].dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
         return outs[0] if len(outs) == 1 else tuple(outs)
 
 

@@ -19,8 +19,8 @@ import torch
 from torch import Tensor, nn
 
 from .. import export as dexport
-from ..checks import check_tensor
 from .checkpoint import HardwareModel, load_hardware_model
+from .compositional_inference import CompositionalHardwareFK, CompositionalHardwareJacobian
 from .inference import HardwareFK, HardwareJacobian
 
 TASK = "hardware_fk"
@@ -42,6 +42,9 @@ class InitialState(nn.Module):
 
 
 def modules(model: HardwareModel, dtype: torch.dtype) -> dict[str, nn.Module]:
+    if model.compositional:                        # the compositional CC model (j): static, no state
+        return {"fk": CompositionalHardwareFK(model, dtype).eval(),
+                "jacobian": CompositionalHardwareJacobian(model, dtype).eval()}
     fk = HardwareFK(model, dtype).eval()
     out = {"fk": fk, "jacobian": HardwareJacobian(model, dtype).eval()}
     if model.history:
@@ -131,44 +134,8 @@ def reference_dtype(module: nn.Module) -> torch.dtype:
     return next(b for b in module.buffers() if b.is_floating_point()).dtype
 
 
-def load_exported(path: Path, meta: dict) -> HardwareExportedModule:
+def load_exported(path: Path, meta: dict) -> dexport.ExportedModule:
     """A file of an export being written (before its metadata is final), for verification."""
     name, kind = next((n, k) for n, info in meta["modules"].items() for k, e in info["files"].items()
                       if e["file"] == path.name)
-    return HardwareExportedModule(dexport._runner(path, kind, meta), meta, name, kind)
-
-
-class HardwareExportedModule(nn.Module):
-    """A loaded hardware export (returned by :func:`dacr_learn.export.load`): checks every input
-    (shape (..., *shape), floating, finite), accepts leading batch dims and float32/float64
-    (computed in the export's dtype, returned in the first input's). Returns a tuple of tensors
-    (or one tensor for ``initial_state``). Attributes: ``metadata``, ``name``, ``kind``."""
-
-    def __init__(self, runner, metadata: dict, name: str, kind: str):
-        super().__init__()
-        self.runner, self.metadata, self.name, self.kind = runner, metadata, name, kind
-        info = metadata["modules"][name]
-        self.inputs = [(n, tuple(s)) for n, s in info["inputs"]]
-        self.output_shapes = [tuple(s) for _, s in info["outputs"]]
-        self.dtype = dexport._DTYPES[metadata["dtype"]]
-
-    def extra_repr(self) -> str:
-        return f"name={self.name!r}, kind={self.kind!r}, robot={self.metadata['robot']['name']!r}"
-
-    def forward(self, *xs: Tensor):
-        if len(xs) != len(self.inputs):
-            raise ValueError(f"{self.name}: expected inputs {[n for n, _ in self.inputs]}, got {len(xs)} tensors")
-        lead = None
-        for x, (n, shape) in zip(xs, self.inputs, strict=True):
-            check_tensor(x, f"{self.name} input {n}", shape, nonempty=True)
-            here = tuple(x.shape[:x.dim() - len(shape)])
-            if lead is not None and here != lead:
-                raise ValueError(f"{self.name}: inputs must share their batch dims, got {lead} and {here}")
-            lead = here
-        if len(lead) == 1 and all(x.dtype == self.dtype and x.is_contiguous() for x in xs):   # fast path: as exported
-            outs = self.runner(list(xs))
-        else:
-            flat = [x.reshape(-1, *s).to(self.dtype).contiguous() for x, (_, s) in zip(xs, self.inputs, strict=True)]
-            outs = self.runner(flat)
-            outs = [o.reshape(*lead, *s).to(xs[0].dtype) for o, s in zip(outs, self.output_shapes, strict=True)]
-        return outs[0] if len(outs) == 1 else tuple(outs)
+    return dexport.ExportedModule(dexport._runner(path, kind, meta), meta, name, kind)
