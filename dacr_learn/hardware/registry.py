@@ -49,7 +49,8 @@ class ModelInfo:
     """One registered model. ``inputs``: "raw" (servo values) or "clarke" (calibrated Clarke features);
     ``static``: maps one command to one tip (False: also uses the command history);
     ``deterministic``: the same for every seed (trained once); ``deployable``: ``--save`` can write it and
-    ``dacr_learn.export`` can export it (the CC Clarke-residual family of :mod:`.checkpoint`)."""
+    ``dacr_learn.export`` can export it (the CC Clarke-residual family and the compositional CC model of
+    :mod:`.checkpoint`)."""
 
     name: str
     letter: str
@@ -76,7 +77,8 @@ _MODELS = (
               static=False, deployable=True),
     ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.train), "clarke"),
     ModelInfo("pretrained_raw", "i", lambda c, s: Pretrained("raw", c.train, c.synthetic(s)), "raw"),
-    ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke"),
+    ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke",
+              deployable=True),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)
