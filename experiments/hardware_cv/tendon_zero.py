@@ -1,0 +1,208 @@
+"""Why the calibrated CC model fits FTDCR v6 badly: per-tendon zero offsets and gains (issue 12).
+
+The package CC model shares one pretension p across all tendons: tendon i is taut when
+x_i + p > (Gρ)_i. If the tendons were tied off at different lengths, each has its own taut point
+(the "taut onset" the calibration reports per servo: v4 −0.13 … −1.51 mm, v6 −0.55 … −4.23 mm).
+Candidates (static, physically motivated, few parameters), all on top of the package model
+(``CalibratedCC``, lateral marker):
+
+- ``base``: the package model;
+- ``zero``: per-tendon zero offsets δ (N fitted, zero mean: the common part is the pretension),
+  x_i → x_i + δ_i;
+- ``zero_seg``: the zero offsets only as a mean per segment (m fitted, zero mean over joints);
+- ``zero_cal``: δ_i = −(taut onset_i − mean onset) fixed from the calibration's pull line fits
+  (0 fitted parameters);
+- ``gain``: per-tendon displacement gain x_i → x_i·exp(g_i) (N fitted: spool radius / stretch);
+- ``zero+gain``: both.
+- ``zero_r<σ>``: ``zero`` with a Gaussian prior δ ~ N(0, σ mm) (ridge, as pseudo-residuals).
+
+Usage: HW-independent; python experiments/hardware_cv/tendon_zero.py ROBOT VARIANTS [--diag]
+→ one JSON line per variant (train, cv, extrap [mm], per fold, fitted offsets) appended to
+results/tendon_zero.jsonl; --diag prints per-label RMSE of the fit on all train.
+"""
+import json
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+torch.set_num_threads(1)
+
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
+from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
+from dacr_learn.hardware.recording import load_recording  # noqa: E402
+from dacr_learn.hardware.selection import proxy_masks  # noqa: E402
+from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
+from dacr_learn.robot import RobotSpec  # noqa: E402
+
+OUT = ROOT / "experiments/hardware_cv/results/tendon_zero.jsonl"
+
+
+class TendonCC(CalibratedCC):
+    """CalibratedCC with per-tendon zero offsets / gains on the joint displacements."""
+
+    def __init__(self, spec, zero="", gain=False, fixed=None, ridge=None, pull_level=None):
+        super().__init__(spec)
+        n = self.encoder.g_nominal.shape[0]
+        self.zero_mode, self.gain_mode, self.ridge, self.pull_level = zero, gain, ridge, pull_level
+        f64 = dict(dtype=torch.float64)
+        if zero == "strain":
+            self.tendon_zero = nn.Parameter(torch.zeros((), **f64))
+        elif zero in ("tendon", "pull"):
+            self.tendon_zero = nn.Parameter(torch.zeros(n, **f64))
+        elif zero == "segment":
+            self.tendon_zero = nn.Parameter(torch.zeros(spec.num_segments, **f64))
+        if pull_level is not None and zero != "pull":
+            self.pull_zero = nn.Parameter(torch.zeros(n, **f64))   # pull-regime offsets on top of `zero`
+        if gain:
+            self.tendon_gain = nn.Parameter(torch.zeros(n, **f64))
+        self.register_buffer("fixed", torch.zeros(n, **f64) if fixed is None else fixed)
+
+    def offsets(self):
+        d = self.fixed
+        if self.zero_mode in ("tendon", "pull"):
+            d = d + self.tendon_zero - (self.tendon_zero.mean() if self.zero_mode == "tendon" else 0)
+        elif self.zero_mode == "strain":   # pretension stretch ∝ path length: p_i = p + s·(L_i − L̄)/L̄
+            path = self.encoder.path_length
+            d = d + self.tendon_zero * (path / path.mean() - 1)
+        elif self.zero_mode == "segment":
+            d = d + (self.tendon_zero - self.tendon_zero.mean())[self.encoder.segment_of_joint]
+        return d
+
+    def forward(self, x):
+        if self.zero_mode == "pull":
+            # offsets only in the pull regime: all other tendons parked below pull_level [m]
+            regime = ((x < self.pull_level).sum(-1, keepdim=True) >= x.shape[-1] - 1).to(x.dtype)
+            xe = x + regime * self.tendon_zero.to(x.dtype)
+        else:
+            xe = x + self.offsets().to(x.dtype)
+            if self.pull_level is not None:
+                regime = ((x < self.pull_level).sum(-1, keepdim=True) >= x.shape[-1] - 1).to(x.dtype)
+                xe = xe + regime * self.pull_zero.to(x.dtype)
+        if self.gain_mode:
+            xe = xe * self.tendon_gain.exp().to(x.dtype)
+        return self.tip_from_features(self.encoder(xe))
+
+
+NOISE_MM = 5.0
+SCALES = {"tendon_zero": 1e-3, "pull_zero": 1e-3, "tendon_gain": 0.1}
+
+
+def make(spec, variant, onsets, slack=-0.01):
+    if variant == "base":
+        return CalibratedCC(spec)
+    if variant == "zero_cal":
+        return TendonCC(spec, fixed=-(onsets - onsets.mean()))
+    if variant == "strain":
+        return TendonCC(spec, zero="strain")
+    if variant == "strain+pullzero":
+        return TendonCC(spec, zero="strain", pull_level=0.5 * slack)
+    if variant == "pullzero":
+        return TendonCC(spec, zero="pull", pull_level=0.5 * slack)
+    ridge = None
+    m = re.fullmatch(r"zero_r([\d.]+)", variant)
+    if m:
+        variant, ridge = "zero", float(m.group(1)) * 1e-3
+    parts = variant.split("+")
+    zero = "tendon" if "zero" in parts else "segment" if "zero_seg" in parts else ""
+    return TendonCC(spec, zero=zero, gain="gain" in parts, ridge=ridge)
+
+
+def fit(model, x, tip):
+    if getattr(model, "ridge", None):
+        return fit_ridge(model, x, tip)
+    fit_cc(model, x, tip, scales=SCALES)
+    return model
+
+
+def fit_ridge(model, x, tip):
+    """Two-stage: fit without prior, then refit with the prior as N pseudo-residual rows (L-BFGS)."""
+    fit_cc(model, x, tip, scales=SCALES)
+    params = [p for p in model.parameters()]
+    opt = torch.optim.LBFGS(params, max_iter=100, line_search_fn="strong_wolfe", tolerance_grad=1e-12,
+                            tolerance_change=1e-16)
+    n = x.shape[0]
+
+    def closure():
+        opt.zero_grad()
+        loss = ((model(x) - tip) ** 2).sum(-1).mean() * 1e6
+        # MAP with tip noise σ_n = NOISE_MM: mean |r|² [mm²] + σ_n²/n · Σ (δ/σ)²
+        loss = loss + NOISE_MM**2 / n * ((model.offsets() / model.ridge) ** 2).sum()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    return model
+
+
+def rmse(model, x, tip):
+    with torch.no_grad():
+        return round(float(offset_removed_rmse(model(x), tip)) * 1e3, 3)
+
+
+def load(robot):
+    spec = RobotSpec.from_yaml(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml")
+    smap = ServoMap.from_yaml(ROOT / f"configs/robots/servo_maps/ftdcr_{robot}_calibrated.yaml")
+    rec = load_recording(ROOT / f"data/ftdcr_{robot}/train.csv", spec)
+    by_slot = {(s.segment, s.joint): s.servo for s in smap.servos}
+    order = [by_slot[(j, i)] for j, seg in enumerate(spec.segments) for i in range(seg.num_joints)]
+    onsets = torch.tensor([smap.calibration["servos"][s]["taut_onset_mm"] * 1e-3 for s in order], dtype=torch.float64)
+    return spec, smap, rec, order, onsets
+
+
+def diag(robot, variants):
+    spec, smap, rec, order, onsets = load(robot)
+    x, tip = smap.displacements(spec, rec), rec.tip
+    labels = np.array([re.sub(r"_hold$", "", lab) for lab in rec.labels])
+    print("servo order", order, "taut onsets mm", [round(v * 1e3, 2) for v in onsets.tolist()])
+    models = {}
+    for v in variants:
+        models[v] = fit(make(spec, v, onsets, smap.slack_level), x, tip)
+        print(v, "train", rmse(models[v], x, tip), json.dumps(models[v].report()))
+        if isinstance(models[v], TendonCC):
+            with torch.no_grad():
+                print("  offsets mm", [round(d * 1e3, 2) for d in models[v].offsets().tolist()],
+                      "gains", [round(g, 3) for g in models[v].tendon_gain.exp().tolist()]
+                      if models[v].gain_mode else "")
+    with torch.no_grad():
+        pred = {v: mdl(x) for v, mdl in models.items()}
+    print("label".ljust(28), " ".join(v[:10].rjust(10) for v in variants), "  mean residual xyz (first variant) mm")
+    for lab in dict.fromkeys(labels):
+        sel = torch.from_numpy(labels == lab)
+        errs = [float(((pred[v][sel] - tip[sel]) ** 2).sum(-1).mean().sqrt()) * 1e3 for v in variants]
+        mean_res = ((tip[sel] - pred[variants[0]][sel]).mean(0) * 1e3).tolist()
+        print(lab[:28].ljust(28), " ".join(f"{e:10.2f}" for e in errs), [round(r, 1) for r in mean_res])
+
+
+def score(robot, variant):
+    spec, smap, rec, order, onsets = load(robot)
+    x, tip = smap.displacements(spec, rec), rec.tip
+    full = fit(make(spec, variant, onsets, smap.slack_level), x, tip)
+    out = {"robot": robot, "variant": variant, "train": rmse(full, x, tip)}
+    if isinstance(full, TendonCC):
+        out["offsets_mm"] = [round(d * 1e3, 2) for d in full.offsets().tolist()]
+        if full.gain_mode:
+            out["gains"] = [round(g, 3) for g in full.tendon_gain.exp().tolist()]
+    for proxy, folds in proxy_masks(rec.labels).items():
+        per = {}
+        for name, tr, te in folds:
+            tr, te = torch.from_numpy(tr), torch.from_numpy(te)
+            per[name] = rmse(fit(make(spec, variant, onsets, smap.slack_level), x[tr], tip[tr]), x[te], tip[te])
+        out[proxy], out[proxy + "_folds"] = round(float(np.mean(list(per.values()))), 3), per
+    print(json.dumps(out), flush=True)
+    with OUT.open("a") as f:
+        f.write(json.dumps(out) + "\n")
+
+
+if __name__ == "__main__":
+    robot, variants = sys.argv[1], sys.argv[2].split(",")
+    if "--diag" in sys.argv:
+        diag(robot, variants)
+    else:
+        for v in variants:
+            score(robot, v)
