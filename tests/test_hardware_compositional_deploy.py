@@ -29,6 +29,8 @@ from dacr_learn.hardware.checkpoint import (
 from dacr_learn.hardware.compositional_inference import (
     CompositionalHardwareFK,
     CompositionalHardwareJacobian,
+    _hat_map,
+    exp_of_twist_matrix,
     twist_exp_and_tangent,
 )
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual
@@ -170,6 +172,14 @@ def test_twist_exp_tangent_matches_forward_mode_autodiff(scale):
     ref = torch.func.vmap(torch.func.jacfwd(twist_exp))(xi).permute(0, 3, 1, 2)    # (16, 6, 4, 4)
     assert torch.equal(value, twist_exp(xi))
     assert (tangent - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()))
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.02, 1.5])
+def test_exp_of_the_twist_matrix_is_twist_exp(scale):
+    """The FK path's exp(ξ^) = I + ξ^ + f·ξ^² + g·ξ^³ equals compositional.twist_exp (ξ = 0 included)."""
+    xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    got = exp_of_twist_matrix((xi @ _hat_map()).unflatten(-1, (4, 4)))
+    assert (got - twist_exp(xi)).abs().max() <= roundoff_tol(torch.float64, 1.0 + float(xi.abs().max()))
 
 
 def test_fk_gradcheck_in_float64(setup, models):

@@ -121,7 +121,31 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
             out[f"w{i}"] = torch.stack([ls[i].weight for ls in layers]).to(_F64).mT * scale
             out[f"b{i}"] = torch.stack([ls[i].bias for ls in layers]).to(_F64).unsqueeze(1) * scale
         out["skip"] = torch.stack([fk.skip.weight for fk in fks]).to(_F64).mT * unit.unsqueeze(1)
+        last = len(layers[0]) - 1        # the FK path: output layer and skip give the 4 × 4 twist matrix ξ^ directly
+        hat = _hat_map()
+        out.update({"w_hat": out[f"w{last}"] @ hat, "b_hat": out[f"b{last}"] @ hat, "skip_hat": out["skip"] @ hat})
     return out, acts.pop()(), context
+
+
+def _hat_map() -> Tensor:
+    """(6, 16): ξ = (v, ω) ↦ ξ^ = [[ω^, v], [0, 0]] flattened (float64)."""
+    basis = torch.eye(6, dtype=_F64)
+    return _homogeneous_batch(_hat(basis[:, 3:]), basis[:, :3], tangent=True).flatten(-2)
+
+
+def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
+    """exp(ξ^) (..., 4, 4) of twist matrices ξ^ = [[ω^, v], [0, 0]] (..., 4, 4): I + ξ^ + f·ξ^² + g·ξ^³ with
+    f = (1 − cos φ)/φ², g = (φ − sin φ)/φ³, φ = ‖ω‖ (ω^³ = −φ²ω^ makes the series collapse; the same map as
+    :func:`~dacr_learn.compositional.twist_exp`, in fewer ops: the FK path). ‖ω^‖_F = √2·φ; s, f as sinc terms
+    of y = φ/2π (:func:`~.inference.segment_poses`), g from the Taylor-guarded (1 − s)/φ²."""
+    rot = xi_hat[..., :3, :3]
+    phi_sq = 0.5 * (rot * rot).sum((-2, -1))
+    y = torch.linalg.vector_norm(rot.flatten(-2), dim=-1) * (0.5 / (torch.pi * 2**0.5))
+    g = _third_coefficient(phi_sq, torch.sinc(2 * y))
+    sq = xi_hat @ xi_hat
+    out = torch.addcmul(xi_hat, (0.5 * torch.sinc(y) ** 2)[..., None, None], sq)
+    out = torch.addcmul(out, g[..., None, None], sq @ xi_hat)
+    return out + torch.eye(4, dtype=xi_hat.dtype)
 
 
 class CompositionalHardwareFK(nn.Module):
@@ -137,7 +161,7 @@ class CompositionalHardwareFK(nn.Module):
         spec, cc = model.spec, model.cc
         self.num_segments, self.num_servos, self.ensemble = spec.num_segments, len(model.servo_ids), len(model.members)
         nets, self.activation, self.context = _stacked_networks(model.members)
-        self.layers = sum(1 for k in nets if k.startswith("w"))
+        self.layers = sum(1 for k in nets if k[0] == "w" and k[1:].isdigit())    # linear layers of f_θ
         with torch.no_grad():
             buffers = {**_active_set_maps(model), **nets,
                        "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
@@ -176,9 +200,10 @@ class CompositionalHardwareFK(nn.Module):
         """Each member's correction exp(ξ_k^) of every segment (B, K, m, 4, 4) at ρ (B, m, 2) [m]."""
         z = self.inputs(rho)                                                               # (B, K, m, C)
         a = z @ self.w0 + self.b0                                                          # weights (K, in, out)
-        for i in range(1, self.layers):
+        for i in range(1, self.layers - 1):
             a = self.activation(a) @ getattr(self, f"w{i}") + getattr(self, f"b{i}")
-        return twist_exp(a + z @ self.skip)                                                # ξ (B, K, m, 6)
+        xi_hat = self.activation(a) @ self.w_hat + self.b_hat + z @ self.skip_hat           # ξ^ (B, K, m, 16)
+        return exp_of_twist_matrix(xi_hat.unflatten(-1, (4, 4)))
 
     def tips(self, rho: Tensor) -> Tensor:
         """Every member's tip (B, K, 3) [m, motion-capture frame] at ρ (B, m, 2) [m]."""
