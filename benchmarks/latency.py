@@ -159,11 +159,11 @@ def hardware_checkpoint(out: Path, members: int) -> Path:
 def hardware_candidates(ckpt: Path, out: Path, aoti: bool) -> dict:
     """Rows of a hardware model (``hardware_*``), batch 1: servo (1, S) [mm] and play state (1, m, 2)."""
     from dacr_learn.hardware.checkpoint import load_hardware_model
-    from dacr_learn.hardware.inference import HardwareFK
+    from dacr_learn.hardware.export import modules
 
     dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk",) if aoti else False)
     model = load_hardware_model(ckpt)
-    fk = HardwareFK(model).eval()
+    fk = modules(model, torch.float32)["fk"]          # HardwareFK, or the compositional model's FK
     servo = (model.examples[len(model.examples) // 2:][:1] if model.examples is not None else
              torch.zeros(1, len(model.servo_ids))).float()
     args = (servo, fk.initial_state(servo)) if model.history else (servo,)
