@@ -8,17 +8,20 @@ every constant in buffers, exportable with torch.export (``python -m dacr_learn.
   motion-capture frame] = the ensemble mean, tip_std (B, 3) [m] = the model's σ
   (:meth:`~.checkpoint.HardwareModel.sigma_of`: floor, ensemble spread and bend terms, the same buffer
   and formula as HardwareFK).
-- :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm],
-  by reverse-mode autodiff (torch.func.jacrev) of the FK: three reverse passes (one per tip axis) over
-  the batch, since rows are independent.
+- :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm]:
+  forward-mode tangents written out (∂ρ/∂servo of the active set's affine map, through the networks,
+  :func:`twist_exp_and_tangent`, :func:`~.inference.cc_segment_and_derivative` and the chain); the
+  torch.func transforms (jacrev, jacfwd) of the FK do not trace with torch.export (torch 2.13).
 
 Pipeline: servo → ρ per segment (the slack-aware encoder's active-set fast path of HardwareFK: the
 same buffers, :func:`~.inference._active_set_maps`, and the same method, HardwareFK.clarke) → CC
 segment poses T_k^CC(ρ_k) (:func:`~.inference.segment_poses`) → each member's correction exp(ξ_k^),
 ξ_k = s·f_θ(z_k, c_k) (the K networks batched: weights (K, in, out); the feature normaliser kept as
 (ρ − μ)/σ with the standardised fixed columns β = l, α = 0 precomputed per segment in the member's
-own dtype; the twist scale s, the torsion mask and the translation unit L_s folded into the output
-layers) → base pose · T_1 ⋯ T_m · marker → ensemble mean and σ. No history: the model is static.
+own dtype; the twist scale s, the torsion mask, the translation unit L_s and, in the FK path, the map
+ξ ↦ ξ^ folded into the output layer and the skip; exp(ξ^) = I + ξ^ + fξ^² + gξ^³,
+:func:`exp_of_twist_matrix`) → base pose · T_1 ⋯ T_m · marker → ensemble mean and σ. No history: the
+model is static.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ from torch import Tensor, nn
 
 from ..compositional import _TAYLOR_BELOW, _third_coefficient, twist_exp
 from ..kinematics import effective_features
+from ..models import pose_from_parts
 from .checkpoint import HardwareModel
 from .inference import (
     HardwareFK,
@@ -54,15 +58,6 @@ def _hat(w: Tensor) -> Tensor:
                         -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
 
 
-def _homogeneous_batch(rotation: Tensor, translation: Tensor, tangent: bool = False) -> Tensor:
-    """(..., 3, 3), (..., 3) → (..., 4, 4) with bottom row (0, 0, 0, 1), or 0 for a tangent."""
-    top = torch.cat([rotation, translation.unsqueeze(-1)], -1)
-    bottom = torch.zeros_like(top[..., :1, :])
-    if not tangent:
-        bottom = torch.cat([bottom[..., :3], torch.ones_like(bottom[..., 3:])], -1)
-    return torch.cat([top, bottom], -2)
-
-
 def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
     """exp of se(3) twists ξ = (v, ω) (..., 6) (:func:`~dacr_learn.compositional.twist_exp`, (..., 4, 4)) and its
     tangents (..., T, 4, 4) along dξ (..., T, 6): the derivative of R = I + s·ω^ + f·ω^², p = v + f·ω×v + g·ω×(ω×v)
@@ -88,7 +83,7 @@ def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
     k = lambda c: c[..., None, None]  # noqa: E731   (..., T) → (..., T, 1, 1)
     drot = (k(at(ds) * dphi) * hat + k(at(s)) * dhat + k(at(df) * dphi) * hat2
             + k(at(f)) * (dhat @ hat + hat @ dhat))
-    return twist_exp(xi), _homogeneous_batch(drot, dp, tangent=True)
+    return twist_exp(xi), pose_from_parts(drot, dp, dp.new_zeros(1, 4))
 
 
 def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
@@ -130,7 +125,7 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
 def _hat_map() -> Tensor:
     """(6, 16): ξ = (v, ω) ↦ ξ^ = [[ω^, v], [0, 0]] flattened (float64)."""
     basis = torch.eye(6, dtype=_F64)
-    return _homogeneous_batch(_hat(basis[:, 3:]), basis[:, :3], tangent=True).flatten(-2)
+    return pose_from_parts(_hat(basis[:, 3:]), basis[:, :3], basis.new_zeros(1, 4)).flatten(-2)
 
 
 def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
@@ -229,9 +224,9 @@ class CompositionalHardwareFK(nn.Module):
         u = rho / self.radius.unsqueeze(-1)
         r, p, dr_du, dp_du = cc_segment_and_derivative(u, self.length.expand(rho.shape[:-1]))
         du = drho / self.radius[:, None, None]                                             # (B, m, T, 2)
-        cc = _homogeneous_batch(r, p)
-        dcc = _homogeneous_batch(torch.einsum("bmtj,bmjxy->bmtxy", du, dr_du),
-                                 torch.einsum("bmtj,bmjx->bmtx", du, dp_du), tangent=True)
+        cc = pose_from_parts(r, p)
+        dcc = pose_from_parts(torch.einsum("bmtj,bmjxy->bmtxy", du, dr_du), torch.einsum("bmtj,bmjx->bmtx", du, dp_du),
+                              p.new_zeros(1, 4))                                          # tangent: bottom row 0
         poses = cc.unsqueeze(1) @ corr                                                     # (B, K, m, 4, 4)
         dposes = dcc.unsqueeze(1) @ corr.unsqueeze(-3) + cc[:, None, :, None] @ dcorr      # (B, K, m, T, 4, 4)
         chain, dchain = self.base_pose @ poses[..., 0, :, :], self.base_pose @ dposes[..., 0, :, :, :]
