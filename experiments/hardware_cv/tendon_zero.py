@@ -33,11 +33,13 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 torch.set_num_threads(1)
 
+from dacr_learn.clarke import joint_space_maps  # noqa: E402
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.selection import proxy_masks  # noqa: E402
+from dacr_learn.hardware.selection import pattern_family, proxy_masks  # noqa: E402
 from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
+from dacr_learn.hardware.slack import solve_tendon_qp  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/tendon_zero.jsonl"
@@ -90,7 +92,39 @@ class TendonCC(CalibratedCC):
 
 
 NOISE_MM = 5.0
-SCALES = {"tendon_zero": 1e-3, "pull_zero": 1e-3, "tendon_gain": 0.1}
+class AxialCC(TendonCC):
+    """Backbone axial compression as m extra generalised coordinates u_k ≥ 0 (shortening of segment k):
+    tendon stretch s = x + p − Gρ − C u (C (N, m) path incidence), energy ½ Σ_k (r/l_k) u_k² with
+    r = EA_backbone/EA_tendon (1 parameter). Many taut tendons compress the backbone and lower the
+    effective pretension of the distal tendons; a single pulled tendon barely does."""
+
+    def __init__(self, spec, zero="", axial=30.0):
+        super().__init__(spec, zero=zero)
+        self.log_axial = nn.Parameter(torch.tensor(float(axial), dtype=torch.float64).log())
+        self.register_buffer("incidence", joint_space_maps(spec).path)
+
+    def forward(self, x):
+        enc = self.encoder
+        xe = (x + self.offsets().to(x.dtype)).reshape(-1, x.shape[-1]).to(torch.float64)
+        g = torch.cat([enc.displacement_map(), self.incidence], -1)
+        w = torch.cat([enc.bend_weights(), self.log_axial.exp() / enc.lengths])
+        z = solve_tendon_qp(xe + enc.pretension, g, w, 1.0 / enc.path_length)
+        rho = z[:, : 2 * spec_m(enc)].reshape(*x.shape[:-1], -1, 2).to(x.dtype)
+        return self.tip_from_features(enc.features_from_clarke(rho))
+
+    def compression(self, x):
+        enc = self.encoder
+        xe = (x + self.offsets().to(x.dtype)).reshape(-1, x.shape[-1]).to(torch.float64)
+        g = torch.cat([enc.displacement_map(), self.incidence], -1)
+        w = torch.cat([enc.bend_weights(), self.log_axial.exp() / enc.lengths])
+        return solve_tendon_qp(xe + enc.pretension, g, w, 1.0 / enc.path_length)[:, 2 * spec_m(enc):]
+
+
+def spec_m(enc):
+    return enc.spec.num_segments
+
+
+SCALES = {"log_axial": 1.0, "tendon_zero": 1e-3, "pull_zero": 1e-3, "tendon_gain": 0.1}
 
 
 def make(spec, variant, onsets, slack=-0.01):
@@ -100,6 +134,9 @@ def make(spec, variant, onsets, slack=-0.01):
         return TendonCC(spec, fixed=-(onsets - onsets.mean()))
     if variant == "strain":
         return TendonCC(spec, zero="strain")
+    m = re.fullmatch(r"axial(\d*)(\+strain)?", variant)
+    if m:
+        return AxialCC(spec, zero="strain" if m.group(2) else "", axial=float(m.group(1) or 30))
     if variant == "strain+pullzero":
         return TendonCC(spec, zero="strain", pull_level=0.5 * slack)
     if variant == "pullzero":
@@ -179,11 +216,16 @@ def diag(robot, variants):
         print(lab[:28].ljust(28), " ".join(f"{e:10.2f}" for e in errs), [round(r, 1) for r in mean_res])
 
 
-def score(robot, variant):
+def score(robot, variant, pull_test=True):
+    """Train / CV / extrap [mm]; pull_test=False (information only, not a selection proxy): the
+    single-tendon pull rows are dropped from every test set (they are in the CV's single fold)."""
     spec, smap, rec, order, onsets = load(robot)
     x, tip = smap.displacements(spec, rec), rec.tip
+    keep = np.array([pull_test or not re.search(r"tendon\d+", lab) for lab in rec.labels])
     full = fit(make(spec, variant, onsets, smap.slack_level), x, tip)
     out = {"robot": robot, "variant": variant, "train": rmse(full, x, tip)}
+    if not pull_test:
+        out["test_rows"] = "without pull rows (information only)"
     if isinstance(full, TendonCC):
         out["offsets_mm"] = [round(d * 1e3, 2) for d in full.offsets().tolist()]
         if full.gain_mode:
@@ -191,7 +233,7 @@ def score(robot, variant):
     for proxy, folds in proxy_masks(rec.labels).items():
         per = {}
         for name, tr, te in folds:
-            tr, te = torch.from_numpy(tr), torch.from_numpy(te)
+            tr, te = torch.from_numpy(tr), torch.from_numpy(te & keep)
             per[name] = rmse(fit(make(spec, variant, onsets, smap.slack_level), x[tr], tip[tr]), x[te], tip[te])
         out[proxy], out[proxy + "_folds"] = round(float(np.mean(list(per.values()))), 3), per
     print(json.dumps(out), flush=True)
@@ -199,10 +241,42 @@ def score(robot, variant):
         f.write(json.dumps(out) + "\n")
 
 
+def subsets(robot, variants):
+    """Fit on subsets of train (pulls, single-segment patterns without pulls, pair12, all patterns, all)
+    and report the RMSE [mm] on every subset plus the fitted radii, compliance and per-segment
+    pretension: which parts of the recording a CC model can fit together (results/tendon_zero_subsets.jsonl)."""
+    spec, smap, rec, order, onsets = load(robot)
+    x, tip = smap.displacements(spec, rec), rec.tip
+    fam = np.array([pattern_family(lab) for lab in rec.labels])
+    pull = np.array([bool(re.search(r"tendon\d+", lab)) for lab in rec.labels])
+    parts = {"pulls": pull, "singles_no_pulls": (fam == "single") & ~pull, "pair12": fam == "pair12",
+             "pair13": fam == "pair13", "pair23": fam == "pair23"}
+    fits = {**parts, "singles": fam == "single", "singles_no_pulls+pair12": parts["singles_no_pulls"] | parts["pair12"],
+            "patterns": ~pull, "pairs": fam != "single", "all": np.ones_like(pull)}
+    for v in variants:
+        for name, sel in fits.items():
+            if name in ("pair13", "pair23"):
+                continue
+            mdl = fit(make(spec, v, onsets, smap.slack_level), x[torch.from_numpy(sel)], tip[torch.from_numpy(sel)])
+            with torch.no_grad():
+                seg_p = (mdl.encoder.pretension + mdl.offsets()[0::3] if isinstance(mdl, TendonCC)
+                         else mdl.encoder.pretension.expand(spec.num_segments)) * 1e3
+            r = mdl.report()
+            on = {k: rmse(mdl, x[torch.from_numpy(q)], tip[torch.from_numpy(q)]) for k, q in parts.items()}
+            out = {"robot": robot, "variant": v, "fit_on": name, "rmse_on": on,
+                   "radius_mm": r["effective_radius_mm"], "compliance_mm2": r["compliance_EI_over_EA_mm2"],
+                   "segment_pretension_mm": [round(float(p), 3) for p in seg_p]}
+            print(json.dumps(out), flush=True)
+            with OUT.with_name("tendon_zero_subsets.jsonl").open("a") as f:
+                f.write(json.dumps(out) + "\n")
+
+
 if __name__ == "__main__":
     robot, variants = sys.argv[1], sys.argv[2].split(",")
     if "--diag" in sys.argv:
         diag(robot, variants)
+    elif "--subsets" in sys.argv:
+        subsets(robot, variants)
     else:
         for v in variants:
-            score(robot, v)
+            score(robot, v, pull_test="--no-pull-test" not in sys.argv)
