@@ -1,4 +1,4 @@
-"""Why the calibrated CC model fits FTDCR v6 badly: per-tendon zero offsets and gains (issue 12).
+"""Why the calibrated CC model fits FTDCR v6 badly: tendon zero offsets and pretension (issue 12).
 
 The package CC model shares one pretension p across all tendons: tendon i is taut when
 x_i + p > (Gρ)_i. If the tendons were tied off at different lengths, each has its own taut point
@@ -8,17 +8,30 @@ Candidates (static, physically motivated, few parameters), all on top of the pac
 
 - ``base``: the package model;
 - ``zero``: per-tendon zero offsets δ (N fitted, zero mean: the common part is the pretension),
-  x_i → x_i + δ_i;
+  x_i → x_i + δ_i; ``zero_r<σ>``: with a Gaussian prior δ ~ N(0, σ mm) (MAP, tip noise 5 mm);
 - ``zero_seg``: the zero offsets only as a mean per segment (m fitted, zero mean over joints);
-- ``zero_cal``: δ_i = −(taut onset_i − mean onset) fixed from the calibration's pull line fits
-  (0 fitted parameters);
+- ``strain``: pretension stretch grows with the path length, p_i = p + s·(L_i − L̄)/L̄ (+1 parameter:
+  a common pretension *force* stretches each tendon ∝ its length; s = p is pure strain);
+- ``zero_cal``: δ_i = −(taut onset_i − mean onset) fixed from the calibration's pull line fits (+0);
 - ``gain``: per-tendon displacement gain x_i → x_i·exp(g_i) (N fitted: spool radius / stretch);
-- ``zero+gain``: both.
-- ``zero_r<σ>``: ``zero`` with a Gaussian prior δ ~ N(0, σ mm) (ridge, as pseudo-residuals).
+  ``zero+gain``: both;
+- ``pullzero``: per-tendon offsets active only in the pull regime (all other tendons parked below
+  half the slack level) — nuisance parameters that let the pulls inform the rest without their
+  taut points; ``strain+pullzero``: both;
+- ``series[+strain]``: tendon stiffness 1/(L_i + L0), a series compliance at the actuator (+1);
+- ``axial[R0][+strain]``: backbone axial compression as m extra coordinates in the tendon QP
+  (r = EA_backbone/EA_tendon fitted, start R0): many taut tendons shorten the backbone.
 
-Usage: HW-independent; python experiments/hardware_cv/tendon_zero.py ROBOT VARIANTS [--diag]
+Selection rule, fixed before scoring (brief of issue 12): a candidate counts only if, on both
+FTDCR v4 and v6, neither proxy (family CV, singles → pairs) is worse than ``base`` by more than
+0.10 mm ("neutral"), and on at least one robot both proxies are ≥ 0.20 mm better ("clearly better").
+
+Usage: python experiments/hardware_cv/tendon_zero.py ROBOT VARIANTS [--diag | --subsets | --no-pull-test]
 → one JSON line per variant (train, cv, extrap [mm], per fold, fitted offsets) appended to
-results/tendon_zero.jsonl; --diag prints per-label RMSE of the fit on all train.
+results/tendon_zero.jsonl; --diag prints per-label RMSE of the fits on all train; --subsets fits
+on parts of train (pulls, single-segment patterns, pair12, …) → results/tendon_zero_subsets.jsonl;
+--no-pull-test drops the pull rows from every test set (information only, not a selection proxy).
+About 10 s per variant and robot on a quiet core (6 CC fits), 30–60 s loaded.
 """
 import json
 import re
@@ -120,11 +133,28 @@ class AxialCC(TendonCC):
         return solve_tendon_qp(xe + enc.pretension, g, w, 1.0 / enc.path_length)[:, 2 * spec_m(enc):]
 
 
+class SeriesCC(TendonCC):
+    """Tendon stiffness 1/(L_i + L0) instead of 1/L_i: a series compliance at the actuator (servo horn,
+    spool, connector) worth a tendon length L0 [m] (1 parameter), on top of ``zero`` mode offsets."""
+
+    def __init__(self, spec, zero="", series=0.05):
+        super().__init__(spec, zero=zero)
+        self.log_series = nn.Parameter(torch.tensor(float(series), dtype=torch.float64).log())
+
+    def forward(self, x):
+        enc = self.encoder
+        xe = (x + self.offsets().to(x.dtype)).reshape(-1, x.shape[-1]).to(torch.float64)
+        w = 1.0 / (enc.path_length + self.log_series.exp())
+        rho = solve_tendon_qp(xe + enc.pretension, enc.displacement_map(), enc.bend_weights(), w)
+        rho = rho[:, : 2 * spec_m(enc)].reshape(*x.shape[:-1], -1, 2).to(x.dtype)
+        return self.tip_from_features(enc.features_from_clarke(rho))
+
+
 def spec_m(enc):
     return enc.spec.num_segments
 
 
-SCALES = {"log_axial": 1.0, "tendon_zero": 1e-3, "pull_zero": 1e-3, "tendon_gain": 0.1}
+SCALES = {"log_axial": 1.0, "log_series": 1.0, "tendon_zero": 1e-3, "pull_zero": 1e-3, "tendon_gain": 0.1}
 
 
 def make(spec, variant, onsets, slack=-0.01):
@@ -134,6 +164,9 @@ def make(spec, variant, onsets, slack=-0.01):
         return TendonCC(spec, fixed=-(onsets - onsets.mean()))
     if variant == "strain":
         return TendonCC(spec, zero="strain")
+    m = re.fullmatch(r"series(\+strain)?", variant)
+    if m:
+        return SeriesCC(spec, zero="strain" if m.group(1) else "")
     m = re.fullmatch(r"axial(\d*)(\+strain)?", variant)
     if m:
         return AxialCC(spec, zero="strain" if m.group(2) else "", axial=float(m.group(1) or 30))
