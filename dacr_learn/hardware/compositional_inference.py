@@ -249,10 +249,13 @@ class CompositionalHardwareJacobian(nn.Module):
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()
         self.fk = CompositionalHardwareFK(model, dtype)
+        m = self.fk.num_segments                      # tangents along each of the 2m Clarke coordinates
+        self.register_buffer("rho_basis", torch.eye(2 * m, dtype=dtype).reshape(2 * m, m, 2).transpose(0, 1))
 
     def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:
+        """∂tip/∂servo = ∂tip/∂ρ · ∂ρ/∂servo: 2m tangents through the model (fewer than S servos)."""
         fk = self.fk
         _check_servo(servo, fk.num_servos)
         rho, drho = fk.clarke(servo)                                                       # (B, m, 2), (B, m, 2, S)
-        tips, dtips = fk.tips_and_tangents(rho, drho.mT)                                   # (B, K, 3), (B, K, S, 3)
-        return tips.mean(1), dtips.mean(1).mT
+        tips, dtips = fk.tips_and_tangents(rho, self.rho_basis.expand(rho.shape[0], -1, -1, -1))  # (B, K, 2m, 3)
+        return tips.mean(1), dtips.mean(1).mT @ drho.flatten(1, 2)
