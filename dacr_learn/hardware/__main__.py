@@ -32,7 +32,7 @@ from .benchmark import (
 )
 from .pool import TaskPool
 from .registry import MODELS, model_info
-from .selection import DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, choose_default
+from .selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, choose_default
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -49,6 +49,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--servo-map", type=Path,
                     help="servo map YAML (default: servo_maps/<robot file name> next to the robot)")
     ap.add_argument("--units", default="mm", choices=["mm", "m"])
+    ap.add_argument("--cc-variant", default="auto", choices=["auto", *CC_VARIANTS],
+                    help="calibrated CC model variant (base: one pretension; strain: pretension ∝ tendon path "
+                         "length, +1 parameter); auto (default): the lower singles→pairs score of the CC model")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds of the final training runs")
     ap.add_argument("--proxy-seeds", type=int, nargs="+", default=[0], help="seeds of the selection proxies")
     ap.add_argument("--no-proxies", action="store_true",
@@ -125,7 +128,11 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
     setup = load_setup(args.robot, args.data / args.train, _val_path(args), args.out,
-                       args.servo_map, args.data / args.pulls, args.units)
+                       args.servo_map, args.data / args.pulls, args.units, args.cc_variant)
+    variant = setup.cc_fit["variant"]
+    if "extrap" in variant:
+        print(f"CC variant {variant['chosen']!r}, chosen by the CC model's singles→pairs score "
+              f"({', '.join(f'{k} {v:.2f} mm' for k, v in variant['extrap'].items())})")
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
     scores, results, preds = _fit_all(setup, args)

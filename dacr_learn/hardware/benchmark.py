@@ -5,7 +5,9 @@ Steps (all generic: file names come from arguments, servo ids from the CSV heade
 1. Robot + servo map: the robot YAML's servo map (``servo_maps/<robot file name>`` next to
    it, or ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls``
    and write ``calibrated_robot.yaml`` / ``servo_maps/calibrated_robot.yaml`` into the run folder.
-2. Fit the calibrated CC model's physical parameters on the training recording.
+2. Choose the calibrated CC model's variant (``--cc-variant auto``: the lower singles → pairs score
+   of the CC model, :func:`.selection.choose_cc_variant`) and fit its physical parameters on the
+   training recording.
 3. Score every model with the train-only selection proxies (:mod:`.selection`; ``extrap`` by
    default, the family CV on request) and choose the default model among the Clarke-space candidates.
 4. Train every model of :mod:`.registry` (learned ones once per seed) on the whole training
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +38,10 @@ from .pool import TaskPool, timed
 from .recording import Recording, load_recording
 from .registry import MODELS, FitContext, build_model, model_info
 from .selection import (
+    CC_VARIANTS,
     DEFAULT_PROXIES,
     SELECTION_PROXY,
+    choose_cc_variant,
     choose_default,
     fold_rmse,
     make_folds,
@@ -61,6 +65,7 @@ class Setup:
     val: Split | None
     calibration: dict
     cc_fit: dict
+    cc_options: dict = field(default_factory=dict)   # CalibratedCC options of the chosen CC variant
 
     def context(self) -> FitContext:
         return FitContext(self.cc, self.smap, self.train_rec.servo_ids, self.train)
@@ -85,19 +90,39 @@ def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: 
 
 
 def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map: Path | None = None,
-               pulls: Path | None = None, units: str = "mm") -> Setup:
-    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None."""
+               pulls: Path | None = None, units: str = "mm", cc_variant: str = "base") -> Setup:
+    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None.
+
+    ``cc_variant``: a name of :data:`.selection.CC_VARIANTS`, or ``"auto"``: the one with the lowest
+    singles → pairs score of the CC model (:func:`.selection.choose_cc_variant`; ``base`` when the
+    labels name no pattern families). ``cc_fit["variant"]`` records the choice and its scores."""
     spec, smap, cal = resolve_robot(robot, servo_map, pulls, out, units)
     train_rec = load_recording(train, spec, units)
     val_rec = load_recording(val, spec, units) if val is not None else None
     smap.check(spec, train_rec.servo_ids)
-    cc = CalibratedCC(spec)
+    variant = _cc_variant(cc_variant, train_rec, spec, smap)
+    cc = CalibratedCC(spec, **CC_VARIANTS[variant["chosen"]])
     fit = fit_cc(cc, smap.displacements(spec, train_rec), train_rec.tip)
-    fit["parameters"] = cc.report()
+    fit["parameters"], fit["variant"] = cc.report(), variant
     for p in cc.parameters():
         p.requires_grad_(False)
     val_split = make_split(val_rec, spec, smap, cc) if val_rec is not None else None
-    return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc), val_split, cal, fit)
+    return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc), val_split, cal, fit,
+                 dict(CC_VARIANTS[variant["chosen"]]))
+
+
+def _cc_variant(requested: str, rec: Recording, spec: RobotSpec, smap: ServoMap) -> dict:
+    """{"requested", "chosen", "extrap": {variant: CC singles → pairs [mm]} (auto only)}."""
+    if requested != "auto":
+        if requested not in CC_VARIANTS:
+            raise ValueError(f"cc_variant: expected 'auto' or one of {tuple(CC_VARIANTS)}, got {requested!r}")
+        return {"requested": requested, "chosen": requested}
+    try:
+        chosen, scores = choose_cc_variant(rec, spec, smap)
+    except ValueError as err:                      # no pattern families: no proxy to choose with
+        print(f"cc variant: no singles → pairs proxy ({err}); using 'base'")
+        return {"requested": "auto", "chosen": "base"}
+    return {"requested": "auto", "chosen": chosen, "extrap": scores}
 
 
 def fit_model(name: str, s: Setup, seed: int = 0) -> nn.Module:
@@ -173,7 +198,7 @@ def submit_selection(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Seq
     """{model: {proxy: {fold: [future of timed(fold_rmse) per seed]}}}, folds built once (CC refits).
     Raises ValueError when the labels name no pattern families (:func:`.selection.proxy_masks`)."""
     masks = proxy_masks(s.train_rec.labels, proxies)
-    folds = {proxy: make_folds(s.train_rec, s.spec, s.smap, m) for proxy, m in masks.items()}
+    folds = {proxy: make_folds(s.train_rec, s.spec, s.smap, m, s.cc_options) for proxy, m in masks.items()}
     return {name: {proxy: {f.name: [_submit(pool, name, fold_rmse, f, seed) for seed in model_seeds(name, seeds)]
                            for f in fs} for proxy, fs in folds.items()} for name in models}
 

@@ -10,6 +10,11 @@ frame: the full 3-vector (x, y, t) (``lateral_marker=True``, the default: the tr
 the backbone axis), or along the tip axis, d = (0, 0, t) (``lateral_marker=False``, the model before).
 The lateral offset improves both train-only selection proxies of the CC model on FTDCR v4 and v6
 (docs/hardware.md, "Lateral marker offset").
+With ``pretension_strain=True`` (+1 parameter) the pretension stretch of tendon i grows with its
+path length L_i, p_i = p + s·(L_i/L̄ − 1) (:class:`~.slack.SlackAwareEncoder`): a common pretension
+force stretches each tendon in proportion to its length. It is a per-robot choice, made on the
+train-only singles → pairs score of the CC model (:func:`.selection.choose_cc_variant`; FTDCR v4
+6.16 → 5.26 mm, v6 8.71 → 10.03 mm, so v4 takes it and v6 does not; docs/hardware.md).
 Segment lengths stay nominal (they trade off against the radii and made the fit degenerate).
 
 Identifiability of the lateral offset: the CC tip frame has no twist (it equals the base frame when
@@ -36,10 +41,11 @@ from .slack import SlackAwareEncoder
 class CalibratedCC(nn.Module):
     """Joint displacements (..., N) [m] → tip position (..., 3) [m] in the motion-capture frame."""
 
-    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, lateral_marker: bool = True):
+    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, lateral_marker: bool = True,
+                 pretension_strain: bool = False):
         super().__init__()
         self.spec = spec
-        self.encoder = SlackAwareEncoder(spec, compliance=compliance)
+        self.encoder = SlackAwareEncoder(spec, compliance=compliance, strain=pretension_strain)
         f64 = dict(dtype=torch.float64)
         self.base_tilt = nn.Parameter(torch.zeros(2, **f64))   # about x, then y; yaw = joint rotations
         self.base_translation = nn.Parameter(torch.zeros(3, **f64))
@@ -50,8 +56,10 @@ class CalibratedCC(nn.Module):
 
     @classmethod
     def from_state_dict(cls, spec: RobotSpec, state: Mapping[str, Tensor]) -> CalibratedCC:
-        """The model of a saved ``state_dict()`` (with or without the lateral marker offset)."""
-        model = cls(spec, lateral_marker="marker_lateral" in state)
+        """The model of a saved ``state_dict()`` (with or without the lateral marker offset and the
+        pretension strain)."""
+        model = cls(spec, lateral_marker="marker_lateral" in state,
+                    pretension_strain="encoder.pretension_strain" in state)
         model.load_state_dict(state)
         return model
 
@@ -97,6 +105,10 @@ class CalibratedCC(nn.Module):
                 "base_translation_mm": [round(v * 1e3, 2) for v in self.base_translation.tolist()],
                 "tip_marker_offset_mm": round(self.tip_offset.item() * 1e3, 2),
             }
+            if enc.strain:
+                member = nn.functional.one_hot(enc.segment_of_joint, self.spec.num_segments).to(enc.lengths.dtype)
+                per_segment = member.T @ enc.tendon_pretension() / member.sum(0)       # mean per segment
+                out["pretension_per_segment_mm"] = [round(v * 1e3, 3) for v in per_segment.tolist()]
             if self.lateral_marker:
                 out["marker_lateral_xy_mm"] = [round(v * 1e3, 2) for v in self.marker_lateral.tolist()]
             return out
@@ -106,7 +118,7 @@ class CalibratedCC(nn.Module):
 # L-BFGS steps are well conditioned across metres, millimetre pretensions and log-radii.
 FIT_SCALES = {"encoder.log_radius_scale": 0.1, "encoder.rotation": 0.05, "encoder.log_compliance": 1.0,
                "encoder.pretension": 1e-4, "base_tilt": 0.02, "base_translation": 1e-3, "tip_offset": 1e-3,
-               "marker_lateral": 1e-3}
+               "marker_lateral": 1e-3, "encoder.pretension_strain": 1e-4}
 
 
 def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, frozen: tuple[str, ...] = (),

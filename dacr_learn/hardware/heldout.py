@@ -71,7 +71,8 @@ def held_out_folds(setup, name: str, seeds: Sequence[int], proxies: Sequence[str
     labels = setup.train_rec.labels
     out = []
     for proxy, masks in proxy_masks(labels, proxies).items():
-        for fold, (fold_name, train_rows, _) in zip(make_folds(setup.train_rec, setup.spec, setup.smap, masks),
+        for fold, (fold_name, train_rows, _) in zip(make_folds(setup.train_rec, setup.spec, setup.smap, masks,
+                                                               setup.cc_options),
                                                     masks, strict=True):
             train_labels = [lb for lb, t in zip(labels, train_rows, strict=True) if t]
             out.append(held_out(name, fold.ctx, fold.test, train_labels, seeds, f"{proxy}:{fold_name}"))

@@ -317,7 +317,7 @@ def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
     a0 = model.smap.displacements(spec, _Rows(model.servo_ids, torch.zeros(1, s, dtype=_F64)))[0]
     a = model.smap.displacements(spec, _Rows(model.servo_ids, 1e-3 * torch.eye(s, dtype=_F64))) - a0   # (S, N)
-    a0 = a0 + enc.pretension
+    a0 = a0 + enc.tendon_pretension()
     g, tendon_w = enc.displacement_map(), 1.0 / enc.path_length
     sets, gain = active_set_gains(g, enc.bend_weights(), tendon_w)                    # (2ᴺ, N), (2ᴺ, 2m, N)
     weight = torch.where(sets, -1.0, 1.0).to(_F64) * tendon_w                          # (2ᴺ, N)

@@ -18,6 +18,10 @@ The benchmark computes ``extrap`` by default (:data:`DEFAULT_PROXIES`, one fold 
 family CV (four more folds on FTDCR v4/v6, ~4× the cost) on request; both are the same computation
 whether or not the other is run.
 
+Before the models, :func:`choose_cc_variant` picks the calibrated CC model's variant
+(:data:`CC_VARIANTS`) by the CC model's own ``extrap`` score: the physical base of every
+Clarke-space model is chosen per robot on the same proxy.
+
 :func:`choose_default` picks the candidate with the lowest ``extrap`` (the proxy of the regime
 shift; docs/hardware.md shows on FTDCR v4 how each proxy's ranking compares with val's).
 """
@@ -39,6 +43,7 @@ from .recording import Recording
 from .registry import FitContext, ModelInfo, build_model, model_info
 from .servo_map import ServoMap
 
+CC_VARIANTS: dict[str, dict] = {"base": {}, "strain": {"pretension_strain": True}}   # name → CalibratedCC options
 PROXIES = ("cv", "extrap")
 SELECTION_PROXY = "extrap"
 DEFAULT_PROXIES = (SELECTION_PROXY,)
@@ -84,13 +89,14 @@ class Fold:
 
 
 def make_folds(rec: Recording, spec: RobotSpec, smap: ServoMap,
-               masks: list[tuple[str, np.ndarray, np.ndarray]]) -> list[Fold]:
-    """Refit the calibrated CC model on each fold's training rows and split the recording."""
+               masks: list[tuple[str, np.ndarray, np.ndarray]], cc_options: dict | None = None) -> list[Fold]:
+    """Refit the calibrated CC model (``CalibratedCC(spec, **cc_options)``) on each fold's training rows
+    and split the recording."""
     x = smap.displacements(spec, rec)
     folds = []
     for name, tr, te in masks:
         tr, te = torch.from_numpy(tr), torch.from_numpy(te)
-        cc = CalibratedCC(spec)
+        cc = CalibratedCC(spec, **(cc_options or {}))
         fit_cc(cc, x[tr], rec.tip[tr])
         for p in cc.parameters():
             p.requires_grad_(False)
@@ -132,6 +138,24 @@ def proxy_scores(name: str | ModelInfo, folds: dict[str, list[Fold]], seeds: Seq
     seeds = model_seeds(name, seeds)
     rmse = {proxy: {f.name: [fold_rmse(name, f, s) for s in seeds] for f in fs} for proxy, fs in folds.items()}
     return summarize_scores(rmse, seeds, time.perf_counter() - start)
+
+
+def choose_cc_variant(rec: Recording, spec: RobotSpec, smap: ServoMap,
+                      variants: Sequence[str] = tuple(CC_VARIANTS)) -> tuple[str, dict[str, float]]:
+    """(name, {variant: singles → pairs RMSE [mm] of the CC model alone}): the calibrated CC variant of
+    :data:`CC_VARIANTS` with the lowest ``extrap`` score, ties to the earlier one (``base`` first).
+
+    The CC model is the physical base of every Clarke-space model, so its variant is chosen per robot
+    before them, on the same train-only proxy (one CC fit per variant on the single-segment family).
+    Raises ValueError when the labels name no pattern families."""
+    unknown = [v for v in variants if v not in CC_VARIANTS]
+    if unknown or not variants:
+        raise ValueError(f"cc variants: expected one or more of {tuple(CC_VARIANTS)}, got {list(variants)}")
+    masks = proxy_masks(rec.labels, ("extrap",))["extrap"]
+    scores = {v: round(float(np.mean([fold_rmse("cc", f, 0) for f in make_folds(rec, spec, smap, masks,
+                                                                                   CC_VARIANTS[v])])), 4)
+              for v in variants}
+    return min(variants, key=lambda v: scores[v]), scores
 
 
 def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY) -> str:

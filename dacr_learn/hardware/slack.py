@@ -143,14 +143,17 @@ class SlackAwareEncoder(nn.Module):
     Learnable physical parameters (nn.Parameters, float64):
     ``log_radius_scale`` (m,): effective radius d_k = d_k,nominal·exp(·);
     ``rotation`` (m,) [rad]: rotation of each segment's joint angles (refines the offsets);
-    ``log_compliance``: log c, c = EI/EA [m²]; ``pretension`` p [m].
+    ``log_compliance``: log c, c = EI/EA [m²]; ``pretension`` p [m]; with ``strain=True`` also
+    ``pretension_strain`` s [m]: tendon i's pretension stretch is p_i = p + s·(L_i/L̄ − 1), L_i its
+    path length, L̄ their mean (a common pretension *force* stretches each tendon ∝ its length; s = p
+    is pure strain). Without it every tendon has the same p (the model before; its default).
 
     Output features follow docs/design.md §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
     d_nominal/d_effective, β = l, α = 0, so that ``forward_kinematics(spec, features)`` gives
     the shape with the effective radius.
     """
 
-    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, pretension: float = 0.0):
+    def __init__(self, spec: RobotSpec, compliance: float = 1e-6, pretension: float = 0.0, strain: bool = False):
         super().__init__()
         check_type0(spec)
         self.spec = spec
@@ -167,6 +170,15 @@ class SlackAwareEncoder(nn.Module):
         self.rotation = nn.Parameter(torch.zeros(m, **f64))
         self.log_compliance = nn.Parameter(torch.tensor(float(compliance), **f64).log())
         self.pretension = nn.Parameter(torch.tensor(float(pretension), **f64))
+        self.strain = bool(strain)
+        if self.strain:
+            self.pretension_strain = nn.Parameter(torch.zeros((), **f64))
+
+    def tendon_pretension(self) -> Tensor:
+        """Pretension stretch of each tendon (N,) [m]: p, or p + s·(L_i/L̄ − 1) with ``strain``."""
+        if not self.strain:
+            return self.pretension.expand(self.path_length.shape)
+        return self.pretension + self.pretension_strain * (self.path_length / self.path_length.mean() - 1)
 
     def effective_radius(self) -> Tensor:
         """(m,) effective radii d_k [m]."""
@@ -189,7 +201,7 @@ class SlackAwareEncoder(nn.Module):
         check_tensor(x, "displacements", (self.g_nominal.shape[0],))
         flat = x.reshape(-1, x.shape[-1]).to(torch.float64)
         tendon_w = 1.0 / self.path_length
-        rho = solve_tendon_qp(flat + self.pretension, self.displacement_map(), self.bend_weights(), tendon_w)
+        rho = solve_tendon_qp(flat + self.tendon_pretension(), self.displacement_map(), self.bend_weights(), tendon_w)
         return rho.reshape(*x.shape[:-1], -1, 2).to(x.dtype)
 
     def features_from_clarke(self, rho: Tensor) -> Tensor:
