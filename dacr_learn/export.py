@@ -361,8 +361,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     meta = export_checkpoint(args.ckpt, args.out, dtype=_DTYPES[args.dtype], aoti=not args.no_aoti)
     print(f"exported {meta['task'].upper()} of robot {meta['robot']['name']!r} ({meta['features']} features, "
           f"{meta['dtype']}) from {args.ckpt} to {args.out}/")
+    source = "Lightning" if meta["task"] in ("fk", "ik") else "saved model"   # hardware: the loaded checkpoint
     for f, dev in meta["max_abs_deviation"].items():
-        print(f"  {f:<22} max |exported − Lightning| = {dev:.2e}")
+        print(f"  {f:<22} max |exported − {source}| = {dev:.2e}")
     print(f"  load with: dacr_learn.export.load('{args.out}', '{next(iter(meta['modules']))}')")
     return meta
 
