@@ -32,6 +32,10 @@ base: v4 ``strain``, v6 ``base``; the extra parameters start at 0 from the base 
   w_i = exp(τ·(k_i − 1))/L_i (+1): friction "locks" a tendon in the proximal discs, so a held distal
   tendon is stiffer than its free length says (τ = 0: the base model; the ``series`` compliance of the
   fourth round is the opposite direction of the same family).
+- ``axial``: backbone axial compression (``tendon_zero.AxialCC``, r = EA_backbone/EA_tendon fitted, +1; with
+  the strain pretension on v4 as ``axial+strain`` there): in ``pair12_opp`` the pulled tendon must also
+  drive segment 2 back through the held distal tendon, about twice the tension of a single pattern, and
+  a shortening backbone would absorb part of its command — segment 1 bends less at the same command.
 
 Rule fixed before scoring (brief): a candidate counts only if it improves v6's singles → pairs score
 (``extrap``) by ≥ 0.20 mm AND worsens neither v4's singles → pairs nor v4's family CV (``cv``) by more
@@ -52,7 +56,8 @@ import torch
 from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tendon_zero import ROOT, load, rmse  # also puts the repository root on sys.path
+from tendon_zero import ROOT, AxialCC, load, rmse  # also puts the repository root on sys.path
+from tendon_zero import SCALES as TENDON_ZERO_SCALES
 
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
 from dacr_learn.hardware.selection import pattern_family, proxy_masks
@@ -156,6 +161,10 @@ def fit(spec, robot, variant, x, tip):
     fit_cc(base, x, tip)
     if variant == "base":
         return base
+    if variant == "axial":                       # tendon_zero's model, its start (r = 30) and scales
+        model = AxialCC(spec, zero="strain" if CHOSEN[robot] else "")
+        fit_cc(model, x, tip, scales=TENDON_ZERO_SCALES)
+        return model
     name, _, start = variant.partition("@")          # "capstan@-10": the extra parameter starts at −10
     model = make(spec, robot, name)
     model.load_state_dict({**base.state_dict(), model.param_name: torch.tensor(float(start or 0), dtype=torch.float64)})
@@ -164,6 +173,8 @@ def fit(spec, robot, variant, x, tip):
 
 
 def extra_value(model):
+    if isinstance(model, AxialCC):               # r = EA_backbone / EA_tendon
+        return round(float(model.log_axial.detach().exp()), 4)
     return round(float(getattr(model, model.param_name).detach()), 6) if isinstance(model, CouplingCC) else None
 
 
