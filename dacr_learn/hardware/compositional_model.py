@@ -20,6 +20,9 @@ extrapolate it freely to the pairs, where it turns the distal bending planes.
 
 Training: full-batch Adam on the mean squared tip error [mm²] plus ``weight_decay`` × the sum of
 squared network weights (biases excluded), the CC parameters frozen.
+
+Deployable: :mod:`.checkpoint` saves and loads it (format /2), :mod:`.compositional_inference` has its
+exportable FK and Jacobian modules (``python -m dacr_learn.export``).
 """
 from __future__ import annotations
 
