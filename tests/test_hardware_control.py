@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from conftest import roundoff_tol
-from test_hardware_deploy import TIP_SCALE, _model, _recording
+from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
 
 from dacr_learn import export as dexport
 from dacr_learn.control import scaled_dls_step
@@ -49,7 +49,7 @@ def test_scaled_dls_step_solves_the_task_and_respects_the_step_limit():
 
 def _task(model):
     """Box of the training-like commands [mm], the start command and a reachable target (the model's tip)."""
-    commands = 1e3 * _recording(200, 0).servo
+    commands = 1e3 * command_recording(200, 0).servo
     lower, upper = commands.min(0).values, commands.max(0).values
     goal, start = commands[37], torch.zeros(commands.shape[1], dtype=torch.float64).clamp(lower, upper)
     return lower, upper, goal, start
@@ -67,7 +67,7 @@ def _reach(example, fk, jac, init, lower, upper, goal, start, steps=60):
 
 def test_controller_reaches_a_static_target_on_the_history_model():
     example = _example()
-    model = _model(history=True)
+    model = synthetic_model(history=True)
     fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
     lower, upper, goal, start = _task(model)
     err = _reach(example, fk, jac, fk.initial_state, lower, upper, goal, start)
@@ -77,7 +77,7 @@ def test_controller_reaches_a_static_target_on_the_history_model():
 
 def test_controller_runs_the_exported_modules_causally(tmp_path):
     example = _example()
-    model = _model(history=True, members=2)
+    model = synthetic_model(history=True, members=2)
     dexport.export_checkpoint(save_hardware_model(model, tmp_path / "model.pt"), tmp_path / "export", aoti=False)
     fk, jac, init, meta = example.load_modules(tmp_path / "export")
     assert meta["history"] and init is not None

@@ -10,74 +10,15 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import roundoff_tol
+from hardware_testkit import IDS, TIP_SCALE, batch_prediction, command_recording, synthetic_model
 
 from dacr_learn import export as dexport
-from dacr_learn.hardware.ccmodel import CalibratedCC
-from dacr_learn.hardware.checkpoint import HardwareModel, load_hardware_model, save_hardware_model
+from dacr_learn.hardware.checkpoint import load_hardware_model, save_hardware_model
 from dacr_learn.hardware.inference import HardwareFK, HardwareJacobian
-from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, make_split
-from dacr_learn.hardware.recording import Recording
-from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
-from dacr_learn.hardware.uncertainty import SigmaCalibration, SupportModel, ensemble_predict
-from dacr_learn.robot import RobotSpec
+from dacr_learn.hardware.learned import make_split
+from dacr_learn.hardware.uncertainty import SigmaCalibration, ensemble_predict
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-IDS = ("B7", "A2", "C1", "A9", "B3", "C5", "A4", "B1")
-COLS = (3, 6, 0, 5, 1, 7, 2, 4)                     # joint driven by each column
-TIP_SCALE = 0.15                                    # [m] magnitude of tip coordinates
-
-
-def _spec() -> RobotSpec:
-    return RobotSpec.from_dict({"name": "synthetic-2seg", "routing": "coupled", "segments": [
-        {"type": "0", "length": 0.08, "radius": 0.005, "joints": 4, "offset": 0.4, "limits": {"bend": 0.8}},
-        {"type": "0", "length": 0.07, "radius": 0.005, "joints": 4, "offset": -1.1, "limits": {"bend": 0.8}}]})
-
-
-def _recording(n: int, seed: int, amplitude: float = 3e-3) -> Recording:
-    """A smooth random command sequence (servo values in column order) [m]; tips are not used."""
-    g = torch.Generator().manual_seed(seed)
-    t = torch.linspace(0, 1, n, dtype=torch.float64)[:, None]
-    phase = 6.3 * torch.rand(1, 8, generator=g, dtype=torch.float64)
-    servo = amplitude * torch.sin(2 * torch.pi * (1 + torch.arange(8)) * t / 3 + phase)
-    return Recording(IDS, servo, torch.zeros(n, 3, dtype=torch.float64), ("p",) * n,
-                     torch.arange(n, dtype=torch.float64), "synthetic")
-
-
-def _model(history: bool, clamp: bool = False, gate: float | None = None, members: int = 3) -> HardwareModel:
-    spec = _spec()
-    smap = ServoMap(spec.name, tuple(ServoAssignment(i, c // 4, c % 4, (-1) ** c, 1e-4 * c)
-                                     for i, c in zip(IDS, COLS, strict=True)), -8e-3)
-    cc = CalibratedCC(spec, compliance=1e-6)
-    with torch.no_grad():
-        cc.encoder.log_radius_scale.copy_(torch.tensor([0.05, -0.03]))
-        cc.encoder.rotation.copy_(torch.tensor([0.02, -0.04]))
-        cc.encoder.pretension.fill_(2e-4)
-        cc.base_tilt.copy_(torch.tensor([0.03, -0.02]))
-        cc.base_translation.copy_(torch.tensor([0.01, -0.02, 0.005]))
-        cc.tip_offset.fill_(0.012)
-    cc.requires_grad_(False)
-    train = make_split(_recording(200, 0), spec, smap, cc)
-    cls = CCClarkeResidualHistory if history else CCClarkeResidual
-    nets = []
-    for seed in range(members):
-        torch.manual_seed(seed)
-        member = cls(train, cc, support=clamp, gate_width=gate)
-        with torch.no_grad():
-            member.net[-1].weight.mul_(20.0)
-            if clamp:
-                member.rho_max.mul_(0.5)                # so that some commands are clamped
-        nets.append(member.eval())
-    support = SupportModel(train.features[..., :2], ["p"] * 100 + ["q"] * 100)
-    return HardwareModel("cc_clarke_residual_history" if history else "cc_clarke_residual", spec, smap, IDS, cc,
-                         nets, sigma=SigmaCalibration(1.5, 2e-4), support=support,
-                         examples=1e3 * _recording(64, 3).servo)
-
-
-def _batch_prediction(model: HardwareModel, rec: Recording) -> torch.Tensor:
-    split = make_split(rec, model.spec, model.smap, model.cc)
-    return ensemble_predict(model.members, split)[0]
-
-
 def _causal(fk, servo_mm: torch.Tensor, history: bool) -> torch.Tensor:
     """Run an FK module command by command, passing the play state on."""
     if not history:
@@ -91,22 +32,22 @@ def _causal(fk, servo_mm: torch.Tensor, history: bool) -> torch.Tensor:
 
 @pytest.mark.parametrize(("history", "gate"), [(False, None), (True, None), (True, 1.0)])
 def test_inference_module_equals_the_library_model_run_causally(history, gate):
-    model = _model(history, gate=gate)
-    rec = _recording(120, 5, amplitude=4e-3)          # partly outside the training commands (gate < 1)
+    model = synthetic_model(history, gate=gate)
+    rec = command_recording(120, 5, amplitude=4e-3)          # partly outside the training commands (gate < 1)
     fk = HardwareFK(model, torch.float64)
     got = _causal(fk, 1e3 * rec.servo, history)
     # The library model runs its kinematics in float32: agreement to float32 rounding at tip scale.
-    assert (got - _batch_prediction(model, rec)).abs().max() <= roundoff_tol(torch.float32, TIP_SCALE)
+    assert (got - batch_prediction(model, rec)).abs().max() <= roundoff_tol(torch.float32, TIP_SCALE)
 
 
 @pytest.mark.parametrize(("history", "clamp", "gate"), [(False, False, None), (True, False, None),
                                                         (True, True, None), (True, False, 1.0)])
 def test_jacobian_matches_autograd_in_float64(history, clamp, gate):
-    model = _model(history, clamp, gate)
+    model = synthetic_model(history, clamp, gate)
     with torch.no_grad():                                # a marker off the tip axis (CalibratedCC's default kind)
         model.cc.marker_lateral.copy_(torch.tensor([4e-3, -3e-3], dtype=torch.float64))
     fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
-    servo = 1e3 * _recording(40, 7, amplitude=5e-3).servo[::8]
+    servo = 1e3 * command_recording(40, 7, amplitude=5e-3).servo[::8]
     state = fk.initial_state(servo) + 3e-5 * torch.randn(servo.shape[0], 2, 2, dtype=torch.float64,
                                                          generator=torch.Generator().manual_seed(0))
     args = (state,) if history else ()
@@ -121,14 +62,14 @@ def test_jacobian_matches_autograd_in_float64(history, clamp, gate):
 
 
 def test_checkpoint_round_trip_loads_weights_only(tmp_path):
-    model = _model(history=True, clamp=True, gate=1.0)
+    model = synthetic_model(history=True, clamp=True, gate=1.0)
     path = save_hardware_model(model, tmp_path / "model.pt")
     raw = torch.load(path, weights_only=True)
     assert raw["format"] == "dacr_learn.hardware_model/1" and len(raw["members"]) == 3
     loaded = load_hardware_model(path)
     assert loaded.servo_ids == IDS and loaded.spec == model.spec and loaded.history
-    rec = _recording(50, 9)
-    assert torch.equal(_batch_prediction(loaded, rec), _batch_prediction(model, rec))
+    rec = command_recording(50, 9)
+    assert torch.equal(batch_prediction(loaded, rec), batch_prediction(model, rec))
     rho = make_split(rec, model.spec, model.smap, model.cc).features[..., :2]
     assert torch.equal(loaded.support(rho), model.support(rho))
     assert float(loaded.sigma.scale) == 1.5 and float(loaded.sigma.floor) == 2e-4
@@ -142,7 +83,7 @@ def test_bad_checkpoints_are_value_errors(tmp_path):
     torch.save({"format": "something/2"}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="expected a hardware model checkpoint of format"):
         load_hardware_model(tmp_path / "other.pt")
-    good = torch.load(save_hardware_model(_model(False), tmp_path / "m.pt"), weights_only=True)
+    good = torch.load(save_hardware_model(synthetic_model(False), tmp_path / "m.pt"), weights_only=True)
     torch.save({k: v for k, v in good.items() if k != "cc"}, tmp_path / "partial.pt")
     with pytest.raises(ValueError, match=r"lacks the entries \['cc'\]"):
         load_hardware_model(tmp_path / "partial.pt")
@@ -155,7 +96,7 @@ def test_bad_checkpoints_are_value_errors(tmp_path):
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     out = tmp_path_factory.mktemp("hw")
-    model = _model(history=True)
+    model = synthetic_model(history=True)
     ckpt = save_hardware_model(model, out / "model.pt")
     meta = dexport.export_checkpoint(ckpt, out / "export", aoti=False)
     return model, ckpt, out / "export", meta
@@ -167,14 +108,14 @@ def test_export_of_a_hardware_checkpoint_equals_the_model(exported):
     assert set(meta["modules"]) == {"fk", "jacobian", "initial_state"}
     assert max(meta["max_abs_deviation"].values()) <= dexport.VERIFY_TOLERANCE
     fk = dexport.load(out, "fk", checkpoint=ckpt)
-    rec = _recording(80, 11)
+    rec = command_recording(80, 11)
     servo = (1e3 * rec.servo).float()
     init = dexport.load(out, "initial_state")
     state, tips = init(servo[:1]), []
     for t in range(servo.shape[0]):                      # the controller's causal loop
         tip, std, state = fk(servo[t:t + 1], state)
         tips.append(tip)
-    assert (torch.cat(tips).double() - _batch_prediction(model, rec)).abs().max() <= roundoff_tol(
+    assert (torch.cat(tips).double() - batch_prediction(model, rec)).abs().max() <= roundoff_tol(
         torch.float32, TIP_SCALE, ulps=256)
     jac = dexport.load(out, "jacobian")
     # not the last command: the final state lies exactly at the play width from it, where J is one-sided
@@ -200,8 +141,8 @@ def test_sigma_calibration_recovers_a_known_scale_and_floor():
 
 
 def test_support_score_is_larger_outside_the_training_box():
-    model = _model(history=False)
-    inside = make_split(_recording(200, 0), model.spec, model.smap, model.cc).features[..., :2]   # training rows
+    model = synthetic_model(history=False)
+    inside = make_split(command_recording(200, 0), model.spec, model.smap, model.cc).features[..., :2]   # training rows
     outside = inside.clone()
     coord = inside[:, 0, 0]
     outside[:, 0, 0] += (coord.max() - coord.min()) + 6 * coord.std()    # every row beyond the range by 6 std
@@ -216,14 +157,14 @@ def test_support_score_is_larger_outside_the_training_box():
 def test_the_cc_model_saves_as_a_zero_residual_member(tmp_path):
     from dacr_learn.hardware.checkpoint import cc_as_residual
 
-    model = _model(history=False, members=1)
-    member = cc_as_residual(make_split(_recording(200, 0), model.spec, model.smap, model.cc), model.cc)
+    model = synthetic_model(history=False, members=1)
+    member = cc_as_residual(make_split(command_recording(200, 0), model.spec, model.smap, model.cc), model.cc)
     model.members[:] = [member]
-    rec = _recording(50, 7)
+    rec = command_recording(50, 7)
     split = make_split(rec, model.spec, model.smap, model.cc)
     with torch.no_grad():
         tip = member(split)
     assert torch.allclose(tip, split.cc_tip.double(), rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))
     loaded = load_hardware_model(save_hardware_model(model, tmp_path / "cc.pt"))
     with torch.no_grad():
-        assert torch.allclose(_batch_prediction(loaded, rec), tip, rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))
+        assert torch.allclose(batch_prediction(loaded, rec), tip, rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))

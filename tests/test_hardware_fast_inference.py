@@ -3,7 +3,7 @@
 - The slack QP by active-set enumeration (:func:`~dacr_learn.hardware.slack.solve_tendon_qp_enumerated`,
   used folded by HardwareFK) against the semi-smooth Newton iteration :func:`solve_tendon_qp` and the
   optimality condition of the energy, in float64 and float32.
-- The CC segment pose T = I + sΞ + fΞ² (:func:`~dacr_learn.hardware.inference.segment_poses`)
+- The CC segment pose T = I + sΞ + fΞ² (:func:`~dacr_learn.hardware.inference.twist_segment_poses`)
   against :func:`~dacr_learn.kinematics.cc_transform`, with finite gradients at zero bending.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ from conftest import FAST, ROOT, roundoff_tol
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dacr_learn.hardware.inference import segment_poses, segment_twists
+from dacr_learn.hardware.inference import segment_twists, twist_segment_poses
 from dacr_learn.hardware.slack import SlackAwareEncoder, active_set_gains, solve_tendon_qp, solve_tendon_qp_enumerated
 from dacr_learn.kinematics import cc_transform
 from dacr_learn.robot import RobotSpec
@@ -84,7 +84,7 @@ def test_segment_pose_from_twist_is_cc_transform(dtype):
     rho[:50] *= 1e-6                                           # nearly straight
     rho[50:60] = 0.0                                           # straight
     constants = {k: v.to(dtype) for k, v in segment_twists(radius, length).items()}
-    got = segment_poses(rho.to(dtype), **constants)
+    got = twist_segment_poses(rho.to(dtype), **constants)
     ref = cc_transform(rho / radius.unsqueeze(-1), length.expand(400, 3))
     assert (got.double() - ref).abs().max() <= roundoff_tol(dtype, 1.0, ulps=16)
 
@@ -94,7 +94,7 @@ def test_segment_pose_gradient_is_finite_and_right_at_zero_bending():
     constants = segment_twists(radius, length)
 
     def pose(rho):
-        return segment_poses(rho, **constants)
+        return twist_segment_poses(rho, **constants)
 
     def reference(rho):
         return cc_transform(rho / radius.unsqueeze(-1), length)

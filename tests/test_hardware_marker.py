@@ -39,7 +39,7 @@ def _displacements(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
     return dec(torch.cat([torch.zeros_like(feat[..., :2]), feat[..., 2:]], -1)) - dec(feat)
 
 
-def _model(spec: RobotSpec, lateral: bool, marker_mm=(3.0, -2.0, 8.0)) -> CalibratedCC:
+def _cc_model(spec: RobotSpec, lateral: bool, marker_mm=(3.0, -2.0, 8.0)) -> CalibratedCC:
     """A CalibratedCC with non-trivial physical parameters (float64)."""
     cc = CalibratedCC(spec, compliance=1e-7, lateral_marker=lateral)
     f64 = dict(dtype=torch.float64)
@@ -55,7 +55,7 @@ def _model(spec: RobotSpec, lateral: bool, marker_mm=(3.0, -2.0, 8.0)) -> Calibr
 
 
 def test_axial_marker_is_the_previous_model(spec):
-    cc = _model(spec, lateral=False)
+    cc = _cc_model(spec, lateral=False)
     assert "marker_lateral" not in cc.state_dict() and "marker_lateral_xy_mm" not in cc.report()
     assert torch.equal(cc.marker_offset(), torch.tensor([0.0, 0.0, 8e-3], dtype=torch.float64))
     x = _displacements(spec, 20, 0)
@@ -66,7 +66,7 @@ def test_axial_marker_is_the_previous_model(spec):
 
 
 def test_lateral_marker_is_the_tip_pose_applied_to_the_marker(spec):
-    cc = _model(spec, lateral=True)
+    cc = _cc_model(spec, lateral=True)
     assert cc.report()["marker_lateral_xy_mm"] == [3.0, -2.0]
     x = _displacements(spec, 20, 1)
     with torch.no_grad():
@@ -75,13 +75,13 @@ def test_lateral_marker_is_the_tip_pose_applied_to_the_marker(spec):
         ref = cc.to_world((pose @ point)[..., :3])
         got = cc(x)
         assert (got - ref).abs().max() <= roundoff_tol(torch.float64, TIP_SCALE)
-        axial = _model(spec, lateral=False)(x)
+        axial = _cc_model(spec, lateral=False)(x)
         assert (got - axial).norm(dim=-1).max() > 1e-3, "the lateral offset moves bent tips"
 
 
 @pytest.mark.parametrize("lateral", [False, True])
 def test_state_dict_round_trip_keeps_the_marker_model(spec, lateral):
-    cc = _model(spec, lateral)
+    cc = _cc_model(spec, lateral)
     loaded = CalibratedCC.from_state_dict(spec, cc.state_dict())
     assert loaded.lateral_marker == lateral
     x = _displacements(spec, 10, 2)
@@ -96,7 +96,7 @@ def test_common_joint_rotation_turns_the_whole_tip_and_the_lateral_marker(spec):
     lateral offset turns by −φ relative to the tip cloud, so it is not degenerate with the joint
     rotations (the model has no separate base yaw that could undo the turn of the cloud)."""
     phi = 0.4
-    turned, ref = _model(spec, True), _model(spec, True)
+    turned, ref = _cc_model(spec, True), _cc_model(spec, True)
     rz = torch.tensor([[math.cos(phi), -math.sin(phi), 0.0], [math.sin(phi), math.cos(phi), 0.0], [0.0, 0.0, 1.0]],
                       dtype=torch.float64)
     with torch.no_grad():
@@ -111,7 +111,7 @@ def test_common_joint_rotation_turns_the_whole_tip_and_the_lateral_marker(spec):
 
 
 def test_gradcheck_in_the_marker_parameters(spec):
-    cc = _model(spec, lateral=True)
+    cc = _cc_model(spec, lateral=True)
     x = _displacements(spec, 4, 4)
 
     def tips(lateral, axial):
@@ -126,14 +126,14 @@ def test_fit_recovers_a_lateral_marker(spec):
     rotations, base tilt and translation (the parameters it could trade against), the lateral model
     recovers the offset; the axial model cannot represent it. (The radii, compliance and pretension are
     held at the truth to keep the test short.)"""
-    truth = _model(spec, lateral=True)
+    truth = _cc_model(spec, lateral=True)
     x = _displacements(spec, 40, 5)
     with torch.no_grad():
         tip = truth(x) + 5e-5 * torch.randn(len(x), 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     frozen = ("encoder.log_radius_scale", "encoder.log_compliance", "encoder.pretension")
     rms = {}
     for lateral in (True, False):
-        cc = CalibratedCC.from_state_dict(spec, truth.state_dict()) if lateral else _model(spec, False)
+        cc = CalibratedCC.from_state_dict(spec, truth.state_dict()) if lateral else _cc_model(spec, False)
         with torch.no_grad():
             for p in (cc.encoder.rotation, cc.base_tilt, cc.base_translation, cc.tip_offset):
                 p.zero_()
@@ -149,15 +149,15 @@ def test_fit_recovers_a_lateral_marker(spec):
 
 def test_inference_module_includes_the_lateral_marker():
     """The deployed FK (dacr_learn.hardware.inference) computes the library model's tips with a lateral marker."""
-    from test_hardware_deploy import TIP_SCALE as DEPLOY_SCALE
-    from test_hardware_deploy import _batch_prediction, _model, _recording
+    from hardware_testkit import TIP_SCALE as DEPLOY_SCALE
+    from hardware_testkit import batch_prediction, command_recording, synthetic_model
 
     from dacr_learn.hardware.inference import HardwareFK
 
-    model = _model(history=False)
+    model = synthetic_model(history=False)
     assert model.cc.lateral_marker
     with torch.no_grad():
         model.cc.marker_lateral.copy_(torch.tensor([4e-3, -3e-3], dtype=torch.float64))
-    rec = _recording(60, 5)
+    rec = command_recording(60, 5)
     got = HardwareFK(model, torch.float64)(1e3 * rec.servo)[0]
-    assert (got - _batch_prediction(model, rec)).abs().max() <= roundoff_tol(torch.float32, DEPLOY_SCALE)
+    assert (got - batch_prediction(model, rec)).abs().max() <= roundoff_tol(torch.float32, DEPLOY_SCALE)

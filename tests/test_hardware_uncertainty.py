@@ -113,13 +113,13 @@ def test_bad_input_is_named():
 
 
 def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
-    from test_hardware_deploy import _model, _recording
+    from hardware_testkit import command_recording, synthetic_model
 
     from dacr_learn.hardware.checkpoint import load_hardware_model, save_hardware_model
 
-    model = _model(history=True)
+    model = synthetic_model(history=True)
     model.sigma_model = SigmaModel(TERMS, [1.2, 0.3, 2e-4, 0.1], 3e-4)
-    servo_mm = 1e3 * _recording(50, 5, amplitude=4e-3).servo
+    servo_mm = 1e3 * command_recording(50, 5, amplitude=4e-3).servo
     tip, sigma = model.predict(servo_mm)
     loaded = load_hardware_model(save_hardware_model(model, tmp_path / "model.pt"))
     assert loaded.sigma_model.to_dict() == model.sigma_model.to_dict()
@@ -165,13 +165,13 @@ def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(robot_dir, t
 def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     """HardwareFK (what dacr_learn.export exports) gives predict's σ for a σ model of the ensemble and bend
     terms (float64), and refuses terms it cannot compute instead of silently returning another σ."""
-    from test_hardware_deploy import TIP_SCALE, _model, _recording
+    from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
 
     from dacr_learn.hardware.inference import HardwareFK
 
-    model = _model(history=False)
+    model = synthetic_model(history=False)
     model.sigma_model = SigmaModel(("ensemble", "bend"), [1.7, 0.4], 2e-4)
-    servo_mm = 1e3 * _recording(40, 7, amplitude=4e-3).servo
+    servo_mm = 1e3 * command_recording(40, 7, amplitude=4e-3).servo
     tip, sigma = model.predict(servo_mm)
     tip_fk, sigma_fk = HardwareFK(model, torch.float64)(servo_mm.double())
     # The library model runs its kinematics in float32: tips agree to float32 rounding at tip scale, and σ
@@ -179,7 +179,7 @@ def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     tol = roundoff_tol(torch.float32, TIP_SCALE)
     assert torch.allclose(tip_fk, tip, rtol=0, atol=tol)
     assert torch.allclose(sigma_fk, sigma, rtol=0, atol=2 * tol)
-    assert not torch.allclose(sigma_fk, HardwareFK(_model(history=False), torch.float64)(servo_mm.double())[1])
+    assert not torch.allclose(sigma_fk, HardwareFK(synthetic_model(history=False), torch.float64)(servo_mm.double())[1])
     model.sigma_model = SigmaModel(("support",), [0.1], 2e-4)
     with pytest.raises(ValueError, match="unsupported: \\['support'\\]"):
         HardwareFK(model)

@@ -15,7 +15,7 @@ every constant in buffers, exportable with torch.export (``python -m dacr_learn.
 
 Pipeline: servo → ρ per segment (the slack-aware encoder's active-set fast path of HardwareFK: the
 same buffers, :func:`~.inference._active_set_maps`, and the same method, HardwareFK.clarke) → CC
-segment poses T_k^CC(ρ_k) (:func:`~.inference.segment_poses`) → each member's correction exp(ξ_k^),
+segment poses T_k^CC(ρ_k) (:func:`~.inference.twist_segment_poses`) → each member's correction exp(ξ_k^),
 ξ_k = s·f_θ(z_k, c_k) (the K networks batched: weights (K, in, out); the feature normaliser kept as
 (ρ − μ)/σ with the standardised fixed columns β = l, α = 0 precomputed per segment in the member's
 own dtype; the twist scale s, the torsion mask, the translation unit L_s and, in the FK path, the map
@@ -39,8 +39,8 @@ from .inference import (
     _homogeneous,
     _sigma_coefficients,
     cc_segment_and_derivative,
-    segment_poses,
     segment_twists,
+    twist_segment_poses,
 )
 
 _F64 = torch.float64
@@ -132,7 +132,7 @@ def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
     """exp(ξ^) (..., 4, 4) of twist matrices ξ^ = [[ω^, v], [0, 0]] (..., 4, 4): I + ξ^ + f·ξ^² + g·ξ^³ with
     f = (1 − cos φ)/φ², g = (φ − sin φ)/φ³, φ = ‖ω‖ (ω^³ = −φ²ω^ makes the series collapse; the same map as
     :func:`~dacr_learn.compositional.twist_exp`, in fewer ops: the FK path). ‖ω^‖_F = √2·φ; s, f as sinc terms
-    of y = φ/2π (:func:`~.inference.segment_poses`), g from the Taylor-guarded (1 − s)/φ²."""
+    of y = φ/2π (:func:`~.inference.twist_segment_poses`), g from the Taylor-guarded (1 − s)/φ²."""
     rot = xi_hat[..., :3, :3]
     phi_sq = 0.5 * (rot * rot).sum((-2, -1))
     y = torch.linalg.vector_norm(rot.flatten(-2), dim=-1) * (0.5 / (torch.pi * 2**0.5))
@@ -202,7 +202,7 @@ class CompositionalHardwareFK(nn.Module):
 
     def tips(self, rho: Tensor) -> Tensor:
         """Every member's tip (B, K, 3) [m, motion-capture frame] at ρ (B, m, 2) [m]."""
-        cc = segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)  # (B, m, 4, 4)
+        cc = twist_segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)  # (B, m, 4, 4)
         poses = cc.unsqueeze(1) @ self.corrections(rho)                                    # (B, K, m, 4, 4)
         chain = self.base_pose
         for k in range(self.num_segments):

@@ -74,7 +74,7 @@ def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, 
 
 
 def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
-    """Constants of :func:`segment_poses` for segments of radius d (m,) and length β (m,) [m]: ``twist_map``
+    """Constants of :func:`twist_segment_poses` for segments of radius d (m,) and length β (m,) [m]: ``twist_map``
     (m, 2, 16) and ``twist_offset`` (m, 4, 4) with Ξ = ρ·map + offset = [[0, 0, uₓ, 0], [0, 0, u_y, 0],
     [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d, ``half_turns`` 1/(2πd) (m, 1, 1), ``eye4`` I (4, 4)."""
     m = radius.shape[0]
@@ -87,7 +87,8 @@ def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
             "half_turns": 1 / (2 * torch.pi * radius[:, None, None]), "eye4": torch.eye(4, dtype=radius.dtype)}
 
 
-def segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, half_turns: Tensor, eye4: Tensor) -> Tensor:
+def twist_segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, half_turns: Tensor,
+                        eye4: Tensor) -> Tensor:
     """CC segment poses (..., m, 4, 4) of ρ (..., m, 2) [m] (constants from :func:`segment_twists`):
     T = exp(Ξ) = I + sΞ + fΞ² with φ = ‖u‖ = 2πy, s = sin φ/φ = sinc(2y), f = (1 − cos φ)/φ² = ½ sinc(y)² — the
     closed form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the
@@ -262,7 +263,7 @@ class HardwareFK(nn.Module):
 
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (marker, 1)."""
-        poses = segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)
+        poses = twist_segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)
         chain = self.base_pose
         for k in range(self.num_segments):
             chain = chain @ poses[..., k, :, :]

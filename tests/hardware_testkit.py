@@ -1,0 +1,73 @@
+"""Shared pieces of the hardware deploy tests (not collected: no ``test_`` prefix).
+
+A small synthetic 2-segment robot (the same kind as tests/test_hardware.py's second robot): a
+CalibratedCC with non-trivial physical parameters and an ensemble of untrained residual networks
+(with enlarged output weights, so that the correction matters). Used by test_hardware_deploy,
+test_hardware_control, test_hardware_marker and test_hardware_uncertainty.
+"""
+from __future__ import annotations
+
+import torch
+
+from dacr_learn.hardware.ccmodel import CalibratedCC
+from dacr_learn.hardware.checkpoint import HardwareModel
+from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, make_split
+from dacr_learn.hardware.recording import Recording
+from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
+from dacr_learn.hardware.uncertainty import SigmaCalibration, SupportModel, ensemble_predict
+from dacr_learn.robot import RobotSpec
+
+IDS = ("B7", "A2", "C1", "A9", "B3", "C5", "A4", "B1")
+COLS = (3, 6, 0, 5, 1, 7, 2, 4)                     # joint driven by each column
+TIP_SCALE = 0.15                                    # [m] magnitude of tip coordinates
+
+
+def synthetic_spec() -> RobotSpec:
+    return RobotSpec.from_dict({"name": "synthetic-2seg", "routing": "coupled", "segments": [
+        {"type": "0", "length": 0.08, "radius": 0.005, "joints": 4, "offset": 0.4, "limits": {"bend": 0.8}},
+        {"type": "0", "length": 0.07, "radius": 0.005, "joints": 4, "offset": -1.1, "limits": {"bend": 0.8}}]})
+
+
+def command_recording(n: int, seed: int, amplitude: float = 3e-3) -> Recording:
+    """A smooth random command sequence (servo values in column order) [m]; tips are not used."""
+    g = torch.Generator().manual_seed(seed)
+    t = torch.linspace(0, 1, n, dtype=torch.float64)[:, None]
+    phase = 6.3 * torch.rand(1, 8, generator=g, dtype=torch.float64)
+    servo = amplitude * torch.sin(2 * torch.pi * (1 + torch.arange(8)) * t / 3 + phase)
+    return Recording(IDS, servo, torch.zeros(n, 3, dtype=torch.float64), ("p",) * n,
+                     torch.arange(n, dtype=torch.float64), "synthetic")
+
+
+def synthetic_model(history: bool, clamp: bool = False, gate: float | None = None, members: int = 3) -> HardwareModel:
+    spec = synthetic_spec()
+    smap = ServoMap(spec.name, tuple(ServoAssignment(i, c // 4, c % 4, (-1) ** c, 1e-4 * c)
+                                     for i, c in zip(IDS, COLS, strict=True)), -8e-3)
+    cc = CalibratedCC(spec, compliance=1e-6)
+    with torch.no_grad():
+        cc.encoder.log_radius_scale.copy_(torch.tensor([0.05, -0.03]))
+        cc.encoder.rotation.copy_(torch.tensor([0.02, -0.04]))
+        cc.encoder.pretension.fill_(2e-4)
+        cc.base_tilt.copy_(torch.tensor([0.03, -0.02]))
+        cc.base_translation.copy_(torch.tensor([0.01, -0.02, 0.005]))
+        cc.tip_offset.fill_(0.012)
+    cc.requires_grad_(False)
+    train = make_split(command_recording(200, 0), spec, smap, cc)
+    cls = CCClarkeResidualHistory if history else CCClarkeResidual
+    nets = []
+    for seed in range(members):
+        torch.manual_seed(seed)
+        member = cls(train, cc, support=clamp, gate_width=gate)
+        with torch.no_grad():
+            member.net[-1].weight.mul_(20.0)
+            if clamp:
+                member.rho_max.mul_(0.5)                # so that some commands are clamped
+        nets.append(member.eval())
+    support = SupportModel(train.features[..., :2], ["p"] * 100 + ["q"] * 100)
+    return HardwareModel("cc_clarke_residual_history" if history else "cc_clarke_residual", spec, smap, IDS, cc,
+                         nets, sigma=SigmaCalibration(1.5, 2e-4), support=support,
+                         examples=1e3 * command_recording(64, 3).servo)
+
+
+def batch_prediction(model: HardwareModel, rec: Recording) -> torch.Tensor:
+    split = make_split(rec, model.spec, model.smap, model.cc)
+    return ensemble_predict(model.members, split)[0]
