@@ -86,12 +86,13 @@ def save_checkpoint(module: lightning.LightningModule, path: Path) -> Path:
     return path
 
 
-def export_all(fk: FKModule, ik: IKModule, out: Path, aoti: bool) -> dict[str, float]:
+def export_all(fk: FKModule, ik: IKModule, out: Path, aoti: bool, autotune: bool = False) -> dict[str, float]:
     """Export both checkpoints into out/fk and out/ik; returns seconds spent per export."""
     seconds = {}
     for name, module in (("fk", fk), ("ik", ik)):
         t0 = time.perf_counter()
-        dexport.export_checkpoint(save_checkpoint(module, out / f"{name}.ckpt"), out / name, aoti=aoti)
+        dexport.export_checkpoint(save_checkpoint(module, out / f"{name}.ckpt"), out / name, aoti=aoti,
+                                  autotune=autotune and aoti)
         seconds[name] = time.perf_counter() - t0
     return seconds
 
@@ -118,7 +119,7 @@ def candidates(fk: FKModule, ik: IKModule, out: Path, aoti: bool, compile_fk: bo
     return fns
 
 
-def compositional_candidates(config: Path, out: Path, aoti: bool) -> dict:
+def compositional_candidates(config: Path, out: Path, aoti: bool, autotune: bool = False) -> dict:
     """Rows of the compositional FK (the config's shape, 3-segment robot; random weights): Lightning
     model, folded module, export program and AOTInductor package (``fk_compositional_*``)."""
     cfg = yaml.safe_load(config.read_text())
@@ -126,7 +127,8 @@ def compositional_candidates(config: Path, out: Path, aoti: bool) -> dict:
     fk = FKModule(robot=str(ROOT / cfg["data"]["robot"]), **cfg["model"]["init_args"])
     fk.model.fit_normalization(generate(fk.spec, 4096, seed=0)["q"])
     fk.eval()
-    dexport.export_checkpoint(save_checkpoint(fk, out / "fk_compositional.ckpt"), out / "fk_compositional", aoti=aoti)
+    dexport.export_checkpoint(save_checkpoint(fk, out / "fk_compositional.ckpt"), out / "fk_compositional", aoti=aoti,
+                              autotune=autotune and aoti)
     q = generate(fk.spec, 1, seed=7)["q"]
     folded = InferenceCompositionalFK(fk.model).eval()
     fns = {"fk_compositional_eager_lightning": _bound(fk.model, q), "fk_compositional_eager_folded": _bound(folded, q),
@@ -156,12 +158,12 @@ def hardware_checkpoint(out: Path, members: int) -> Path:
     return save_hardware_model(model, out / "hardware.pt")
 
 
-def hardware_candidates(ckpt: Path, out: Path, aoti: bool) -> dict:
+def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = False) -> dict:
     """Rows of a hardware model (``hardware_*``), batch 1: servo (1, S) [mm] and play state (1, m, 2)."""
     from dacr_learn.hardware.checkpoint import load_hardware_model
     from dacr_learn.hardware.export import modules
 
-    dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk",) if aoti else False)
+    dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk",) if aoti else False, autotune=autotune and aoti)
     model = load_hardware_model(ckpt)
     fk = modules(model, torch.float32)["fk"]          # HardwareFK, or the compositional model's FK
     servo = (model.examples[len(model.examples) // 2:][:1] if model.examples is not None else
@@ -230,6 +232,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--calls", type=int, default=500, help="calls per candidate per round")
     p.add_argument("--no-aoti", action="store_true", help="skip AOTInductor (no C++ compiler needed)")
     p.add_argument("--compile", action="store_true", help="also time torch.compile of the folded FK")
+    p.add_argument("--autotune", action="store_true",
+                   help="export every AOTInductor package with dacr_learn.export's --autotune (C++ GEMM kernels)")
     p.add_argument("--out", type=Path, default=None, help="keep the exports here (default: a temp dir)")
     p.add_argument("--compositional-config", type=Path, default=COMPOSITIONAL_CONFIG,
                    help="shape of the compositional FK rows (fk_compositional_*)")
@@ -246,18 +250,19 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp)
         out.mkdir(parents=True, exist_ok=True)
-        export_seconds = export_all(fk, ik, out, aoti=not args.no_aoti)
+        export_seconds = export_all(fk, ik, out, aoti=not args.no_aoti, autotune=args.autotune)
         fns = candidates(fk, ik, out, aoti=not args.no_aoti, compile_fk=args.compile)
         if not args.no_compositional:
-            fns.update(compositional_candidates(args.compositional_config, out, aoti=not args.no_aoti))
+            fns.update(compositional_candidates(args.compositional_config, out, aoti=not args.no_aoti,
+                                                autotune=args.autotune))
         if not args.no_hardware:
             hw_ckpt = args.hardware_ckpt or hardware_checkpoint(out, args.hardware_members)
-            fns.update(hardware_candidates(hw_ckpt, out, aoti=not args.no_aoti))
+            fns.update(hardware_candidates(hw_ckpt, out, aoti=not args.no_aoti, autotune=args.autotune))
         with torch.inference_mode():
             seconds = time_interleaved(fns, args.rounds, args.calls, warmup=200)
         results = summarize({k: v * 1e6 for k, v in seconds.items()})   # µs
         deviation = json.loads((out / "fk" / dexport.METADATA_FILE).read_text())["max_abs_deviation"]
-    report = {"benchmark": "latency", "batch": 1, "threads": torch.get_num_threads(),
+    report = {"benchmark": "latency", "batch": 1, "threads": torch.get_num_threads(), "aoti_autotune": args.autotune,
               "config": str(args.config.relative_to(ROOT) if args.config.is_relative_to(ROOT) else args.config),
               "model": {k: fk.hparams[k] for k in ("features", "width", "depth", "activation", "rotation")},
               "robot": fk.spec.name, "torch": torch.__version__, "cpu": platform.processor() or platform.machine(),

@@ -139,15 +139,23 @@ def export_program(module: nn.Module, example: Tensor | tuple[Tensor, ...]) -> t
         return torch.export.export(module, examples, dynamic_shapes=tuple({0: batch} for _ in examples))
 
 
+# Inductor options of ``autotune=True``: small matrix products as generated C++ GEMM kernels (chosen by
+# timing them at export) instead of BLAS calls. Measured at batch 1, one thread (docs/export.md): AOTI
+# runner of the default synthetic FK 19.0 → 7.7 µs, of FTDCR v4's hardware FK 48 → 27 µs; export slower.
+AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATEN"}
+
+
 def _write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
-                  aoti: bool) -> dict[str, str]:
-    """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2``."""
+                  aoti: bool, autotune: bool = False) -> dict[str, str]:
+    """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2`` (with
+    :data:`AUTOTUNE_CONFIGS` when ``autotune``)."""
     program = export_program(module, example)
     files = {"export": f"{name}.pt2"}
     torch.export.save(program, out / files["export"])
     if aoti:
         try:
-            torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"))
+            torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"),
+                                                     inductor_configs=AUTOTUNE_CONFIGS if autotune else None)
             files["aoti"] = f"{name}.aoti.pt2"
         except Exception as err:  # no compiler, unsupported platform, …: keep the program
             warnings.warn(f"export {name}: the AOTInductor package did not build ({short_error(err)}); "
@@ -164,10 +172,11 @@ def _deviation(reference, loaded, x: Tensor) -> float:
 
 
 def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
-                      aoti: bool | tuple[str, ...] = True) -> dict[str, Any]:
+                      aoti: bool | tuple[str, ...] = True, autotune: bool = False) -> dict[str, Any]:
     """Export a checkpoint's inference modules to ``out`` (see the module docstring); returns the metadata.
 
     ``aoti``: build AOTInductor packages for every module (True), none (False) or the named ones.
+    ``autotune``: build them with :data:`AUTOTUNE_CONFIGS` (faster packages, slower export).
 
     The exported files are loaded back and compared with the Lightning model on 256 samples;
     deviations are recorded (``max_abs_deviation``) and above VERIFY_TOLERANCE the export fails.
@@ -178,7 +187,8 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
 
     blob = load_torch_file(ckpt, CHECKPOINT)                  # loaded once: sniffed here, reused below
     if is_hardware_blob(blob):                                # a saved hardware model (hardware/checkpoint.py)
-        return export_hardware(ckpt, out, dtype=dtype, aoti=aoti, model=hardware_model_from_blob(blob, ckpt))
+        return export_hardware(ckpt, out, dtype=dtype, aoti=aoti, model=hardware_model_from_blob(blob, ckpt),
+                               autotune=autotune)
     task, lit = load_lightning_checkpoint(ckpt, blob)
     lit = lit.to(dtype)
     out.mkdir(parents=True, exist_ok=True)
@@ -188,11 +198,12 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
         "format": FORMAT, "task": task, "robot": spec.to_dict(), "features": lit.hparams.features,
         "rotation": lit.hparams.get("rotation"), "structure": getattr(lit.model, "structure", "monolithic"),
         "dtype": str(dtype).removeprefix("torch."),
-        "units": UNITS, "torch_version": torch.__version__, "max_batch": MAX_BATCH,
+        "units": UNITS, "torch_version": torch.__version__, "max_batch": MAX_BATCH, "aoti_autotune": bool(autotune),
         "source_checkpoint": {"path": str(ckpt), "sha256": file_sha256(ckpt)}, "modules": {}}
     for name, module in inference_modules(task, lit.model, dtype).items():
         example = examples[sig[name]["inputs"][0][0]]
-        files = _write_module(name, module, example[:2], out, aoti if isinstance(aoti, bool) else name in aoti)
+        files = _write_module(name, module, example[:2], out, aoti if isinstance(aoti, bool) else name in aoti,
+                              autotune)
         meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": file_sha256(out / f)}
                                                         for k, f in files.items()}}
     meta["metadata_sha256"] = _metadata_digest(meta)
@@ -357,8 +368,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--dtype", choices=sorted(_DTYPES), default="float32")
     p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor packages (faster export)")
+    p.add_argument("--autotune", action="store_true",
+                   help="build the AOTInductor packages with generated C++ GEMM kernels chosen by timing "
+                        "(faster at batch 1, slower export)")
     args = p.parse_args(argv)
-    meta = export_checkpoint(args.ckpt, args.out, dtype=_DTYPES[args.dtype], aoti=not args.no_aoti)
+    if args.autotune and args.no_aoti:
+        p.error("--autotune tunes the AOTInductor packages; it cannot be combined with --no-aoti")
+    meta = export_checkpoint(args.ckpt, args.out, dtype=_DTYPES[args.dtype], aoti=not args.no_aoti,
+                             autotune=args.autotune)
     print(f"exported {meta['task'].upper()} of robot {meta['robot']['name']!r} ({meta['features']} features, "
           f"{meta['dtype']}) from {args.ckpt} to {args.out}/")
     source = "Lightning" if meta["task"] in ("fk", "ik") else "saved model"   # hardware: the loaded checkpoint

@@ -121,13 +121,21 @@ def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
 @pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0",
                     reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
-def test_aoti_package_equals_lightning(ckpts, samples, tmp_path):
-    meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",))
+@pytest.mark.parametrize("autotune", [False, True])
+def test_aoti_package_equals_lightning(ckpts, samples, tmp_path, autotune):
+    meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",), autotune=autotune)
     fk = dexport.load(tmp_path, "fk")
     lit = FKModule.load_from_checkpoint(ckpts["fk"], map_location="cpu").eval()
     with torch.no_grad():
         assert fk.kind == "aoti" and _max_diff(fk(samples["q"]), lit(samples["q"])) <= F32_TOL
-    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL
+    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is autotune
+
+
+def test_autotune_needs_the_aoti_packages(ckpts, exports, tmp_path, capsys):
+    assert dexport.read_metadata(exports["fk"])["aoti_autotune"] is False      # the default
+    with pytest.raises(SystemExit) as exit_info:
+        dexport.main(["--ckpt", str(ckpts["fk"]), "--out", str(tmp_path / "x"), "--no-aoti", "--autotune"])
+    assert exit_info.value.code == 2 and "--autotune tunes the AOTInductor packages" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------------

@@ -81,9 +81,11 @@ def examples(model: HardwareModel, dtype: torch.dtype) -> tuple[Tensor, Tensor |
 
 
 def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
-                    aoti: bool | tuple[str, ...] = True, model: HardwareModel | None = None) -> dict[str, Any]:
+                    aoti: bool | tuple[str, ...] = True, model: HardwareModel | None = None,
+                    autotune: bool = False) -> dict[str, Any]:
     """Export a hardware checkpoint's modules to ``out``; returns the metadata (also written).
-    ``model``: the checkpoint's model when the caller has loaded it already (not loaded again)."""
+    ``model``: the checkpoint's model when the caller has loaded it already (not loaded again);
+    ``autotune``: AOTInductor packages with :data:`dacr_learn.export.AUTOTUNE_CONFIGS`."""
     ckpt, out = Path(ckpt), Path(out)
     model = model if model is not None else load_hardware_model(ckpt)
     out.mkdir(parents=True, exist_ok=True)
@@ -94,12 +96,12 @@ def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = t
         "ensemble_members": len(model.members), "robot": model.spec.to_dict(), "features": "clarke",
         "servo_ids": list(model.servo_ids), "servo_map": model.smap.to_dict(), "units": UNITS,
         "dtype": str(dtype).removeprefix("torch."), "torch_version": torch.__version__,
-        "max_batch": dexport.MAX_BATCH, "modules": {},
+        "max_batch": dexport.MAX_BATCH, "aoti_autotune": bool(autotune), "modules": {},
         "source_checkpoint": {"path": str(ckpt), "sha256": dexport.file_sha256(ckpt)}}
     for name, module in modules(model, dtype).items():
         inputs = (servo[:2],) if name == "initial_state" or state is None else (servo[:2], state[:2])
         want_aoti = aoti if isinstance(aoti, bool) else name in aoti
-        files = dexport._write_module(name, module, inputs, out, want_aoti)
+        files = dexport._write_module(name, module, inputs, out, want_aoti, autotune)
         meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": dexport.file_sha256(out / f)}
                                                         for k, f in files.items()}}
     # fk / initial_state against the float64 model. The Jacobian jumps where a tendon is exactly at its
