@@ -50,6 +50,13 @@ def _third_coefficient(phi_sq: Tensor, s: Tensor) -> Tensor:
     return torch.where(small, g_small, (1 - s) / torch.where(small, 1.0, phi_sq))
 
 
+def hat(w: Tensor) -> Tensor:
+    """Skew matrices ω^ (..., 3, 3) of vectors ω (..., 3): ω^·x = ω × x."""
+    zero = torch.zeros_like(w[..., 0])
+    return torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0],
+                        -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
+
+
 def twist_exp(xi: Tensor) -> Tensor:
     """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4).
 
@@ -63,11 +70,9 @@ def twist_exp(xi: Tensor) -> Tensor:
     g = _third_coefficient(phi_sq, s)
     wv = torch.linalg.cross(w, v)
     p = v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * torch.linalg.cross(w, wv)
-    zero = torch.zeros_like(phi_sq)
-    hat = torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0],
-                       -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
+    w_hat = hat(w)
     eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
-    rot = eye + s[..., None, None] * hat + f[..., None, None] * (hat @ hat)
+    rot = eye + s[..., None, None] * w_hat + f[..., None, None] * (w_hat @ w_hat)
     return pose_from_parts(rot, p)
 
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ..compositional import _TAYLOR_BELOW, _third_coefficient, twist_exp
+from ..compositional import _TAYLOR_BELOW, _third_coefficient, hat, twist_exp
 from ..kinematics import effective_features
 from ..models import pose_from_parts
 from .checkpoint import HardwareModel
@@ -39,6 +39,7 @@ from .inference import (
     _homogeneous,
     _sigma_coefficients,
     cc_segment_and_derivative,
+    chained_marker_point,
     segment_twists,
     twist_segment_poses,
 )
@@ -49,13 +50,6 @@ _F64 = torch.float64
 def _check_servo(servo: Tensor, num_servos: int) -> None:
     if servo.dim() != 2 or servo.shape[-1] != num_servos:
         raise ValueError(f"servo: expected shape (B, {num_servos}) [mm], got {tuple(servo.shape)}")
-
-
-def _hat(w: Tensor) -> Tensor:
-    """Skew matrices (..., 3, 3) of vectors (..., 3): hat(w)·x = w × x."""
-    zero = torch.zeros_like(w[..., 0])
-    return torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0],
-                        -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
 
 
 def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
@@ -78,11 +72,11 @@ def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
     dwwv = torch.linalg.cross(dw, wv.unsqueeze(-2)) + torch.linalg.cross(w.unsqueeze(-2), dwv)
     dp = (dv + (at(df) * dphi).unsqueeze(-1) * wv.unsqueeze(-2) + at(f).unsqueeze(-1) * dwv
           + (at(dg) * dphi).unsqueeze(-1) * wwv.unsqueeze(-2) + at(g).unsqueeze(-1) * dwwv)
-    hat, dhat = _hat(w).unsqueeze(-3), _hat(dw)
-    hat2 = hat @ hat
+    w_hat, dhat = hat(w).unsqueeze(-3), hat(dw)
+    hat2 = w_hat @ w_hat
     k = lambda c: c[..., None, None]  # noqa: E731   (..., T) → (..., T, 1, 1)
-    drot = (k(at(ds) * dphi) * hat + k(at(s)) * dhat + k(at(df) * dphi) * hat2
-            + k(at(f)) * (dhat @ hat + hat @ dhat))
+    drot = (k(at(ds) * dphi) * w_hat + k(at(s)) * dhat + k(at(df) * dphi) * hat2
+            + k(at(f)) * (dhat @ w_hat + w_hat @ dhat))
     return twist_exp(xi), pose_from_parts(drot, dp, dp.new_zeros(1, 4))
 
 
@@ -117,15 +111,16 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
             out[f"b{i}"] = torch.stack([ls[i].bias for ls in layers]).to(_F64).unsqueeze(1) * scale
         out["skip"] = torch.stack([fk.skip.weight for fk in fks]).to(_F64).mT * unit.unsqueeze(1)
         last = len(layers[0]) - 1        # the FK path: output layer and skip give the 4 × 4 twist matrix ξ^ directly
-        hat = _hat_map()
-        out.update({"w_hat": out[f"w{last}"] @ hat, "b_hat": out[f"b{last}"] @ hat, "skip_hat": out["skip"] @ hat})
+        hat_map = _hat_map()
+        out.update({"w_hat": out[f"w{last}"] @ hat_map, "b_hat": out[f"b{last}"] @ hat_map,
+                    "skip_hat": out["skip"] @ hat_map})
     return out, acts.pop()(), context
 
 
 def _hat_map() -> Tensor:
     """(6, 16): ξ = (v, ω) ↦ ξ^ = [[ω^, v], [0, 0]] flattened (float64)."""
     basis = torch.eye(6, dtype=_F64)
-    return pose_from_parts(_hat(basis[:, 3:]), basis[:, :3], basis.new_zeros(1, 4)).flatten(-2)
+    return pose_from_parts(hat(basis[:, 3:]), basis[:, :3], basis.new_zeros(1, 4)).flatten(-2)
 
 
 def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
@@ -203,11 +198,7 @@ class CompositionalHardwareFK(nn.Module):
     def tips(self, rho: Tensor) -> Tensor:
         """Every member's tip (B, K, 3) [m, motion-capture frame] at ρ (B, m, 2) [m]."""
         cc = twist_segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)  # (B, m, 4, 4)
-        poses = cc.unsqueeze(1) @ self.corrections(rho)                                    # (B, K, m, 4, 4)
-        chain = self.base_pose
-        for k in range(self.num_segments):
-            chain = chain @ poses[..., k, :, :]
-        return (chain @ self.tip_marker)[..., :3]
+        return chained_marker_point(self.base_pose, cc.unsqueeze(1) @ self.corrections(rho), self.tip_marker)
 
     def tips_and_tangents(self, rho: Tensor, drho: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`tips` (B, K, 3) and their tangents (B, K, T, 3) along the tangents ∂ρ (B, m, T, 2) of ρ

@@ -100,6 +100,15 @@ def twist_segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, ha
     return torch.addcmul(torch.addcmul(eye4, torch.sinc(2 * y), xi), torch.sinc(y) ** 2, xi @ xi, value=0.5)
 
 
+def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -> Tensor:
+    """Marker point (..., 3) [m, motion-capture frame] = base pose (4, 4) · T₁ ⋯ T_m · (marker, 1) of segment
+    poses (..., m, 4, 4), tip_marker (4,) homogeneous (the chain unrolled over the m segments)."""
+    chain = base_pose
+    for k in range(poses.shape[-3]):
+        chain = chain @ poses[..., k, :, :]
+    return (chain @ tip_marker)[..., :3]
+
+
 def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, marker: Tensor) -> tuple[Tensor, Tensor]:
     """CC marker point p_tip + R_tip·marker (robot base frame; marker (3,) [m] in the tip frame) and ∂/∂ρ:
     ρ (..., m, 2) [m] → (..., 3), (..., 3, m, 2)."""
@@ -264,10 +273,7 @@ class HardwareFK(nn.Module):
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (marker, 1)."""
         poses = twist_segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)
-        chain = self.base_pose
-        for k in range(self.num_segments):
-            chain = chain @ poses[..., k, :, :]
-        return (chain @ self.tip_marker)[..., :3]
+        return chained_marker_point(self.base_pose, poses, self.tip_marker)
 
     def mean_std(self, tips: Tensor, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Ensemble mean and σ = √(σ₀² + (c_e·spread)² + (c_b·‖ρ‖)²) (:func:`_sigma_coefficients`) of tips
