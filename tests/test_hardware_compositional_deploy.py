@@ -110,6 +110,10 @@ def test_bad_compositional_checkpoints_and_inputs_are_value_errors(setup, models
     torch.save({k: v for k, v in good.items() if k != "compositional"}, tmp_path / "partial.pt")
     with pytest.raises(ValueError, match=r"lacks the entries \['compositional'\]"):
         load_hardware_model(tmp_path / "partial.pt")
+    for bad in ({"structure": "clarke_residual"}, {"history": True}):        # a /2 file that is not compositional
+        torch.save({**good, **bad}, tmp_path / "structure.pt")
+        with pytest.raises(ValueError, match="structure: expected 'compositional' without history"):
+            load_hardware_model(tmp_path / "structure.pt")
     torch.save({**good, "compositional": {**good["compositional"], "width": 32}}, tmp_path / "shapes.pt")
     with pytest.raises(ValueError, match="shapes.pt: the stored weights do not fit"):
         load_hardware_model(tmp_path / "shapes.pt")

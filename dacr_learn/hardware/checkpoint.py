@@ -243,7 +243,7 @@ def _build(blob: dict) -> HardwareModel:
 def _member(blob: dict, state: dict, cc: CalibratedCC) -> nn.Module:
     """One ensemble member of a checkpoint, rebuilt around the shared CC model and loaded (strict)."""
     m = cc.spec.num_segments
-    if blob.get("structure", "clarke_residual") == "compositional":
+    if blob["format"] == FORMAT_COMPOSITIONAL:
         if blob["structure"] != "compositional" or blob["history"]:
             raise ValueError(f"structure: expected 'compositional' without history, got {blob['structure']!r} "
                              f"with history={blob['history']!r}")
