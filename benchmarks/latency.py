@@ -16,7 +16,7 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
 - ``fk_compositional_{eager_lightning, eager_folded, export_program, aoti}``: the compositional FK of
   configs/fk_tdcr3_compositional.yaml (3-segment robot: per-segment network, twist head, products),
   exported the same way (``--no-compositional`` skips these rows).
-- ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti}``: a hardware model
+- ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti, fk_aoti_runner}``: a hardware model
   (servo commands [mm] + play state → tip, tip_std, new state; dacr_learn.hardware.inference) of
   FTDCR v4's shape — the registry's ``cc_clarke_residual_history``, ``--hardware-members`` ensemble
   members, untrained (latency does not depend on the weights), or a saved model (``--hardware-ckpt``)
@@ -175,6 +175,8 @@ def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = Fals
     if aoti:
         package = dexport.load(out / "hardware" / "fk.aoti.pt2")   # the package itself: no silent program fallback
         fns["hardware_fk_aoti"] = lambda: package(*args)
+        inputs = [a.contiguous() for a in args]
+        fns["hardware_fk_aoti_runner"] = lambda: package.runner(inputs)
     return fns
 
 

@@ -5,6 +5,7 @@ Every failure is a ValueError naming the tensor or file, what was expected and w
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import zipfile
@@ -18,9 +19,16 @@ _PY_SUM_MAX = 256   # elements up to which check_tensor's finiteness sum runs in
 
 
 def _sum_is_finite(x: Tensor) -> bool:
-    """Whether the sum of all entries of x is finite (False for any NaN/inf entry, or an overflow)."""
+    """Whether the sum of all entries of x is finite (False for any NaN/inf entry, or an overflow).
+    Small tensors: the nested list of ``tolist`` flattened in Python, no tensor (view) created — a view's
+    allocation alone slowed the AOTI call after it by a few µs (docs/export.md)."""
     if x.numel() <= _PY_SUM_MAX:
-        return math.isfinite(sum(x.detach().reshape(-1).tolist()))
+        values = x.tolist()
+        if x.dim() == 0:
+            return math.isfinite(values)
+        for _ in range(x.dim() - 1):
+            values = itertools.chain.from_iterable(values)
+        return math.isfinite(sum(values))
     return math.isfinite(x.sum().item())
 
 

@@ -176,10 +176,12 @@ class HardwareFK(nn.Module):
         the sign violations of all 2ᴺ active sets' solutions in one product, the least-violating set's
         affine map (:func:`~.slack.select_active_set`)."""
         n_sets = self.rho_gain.shape[0]
-        violation = torch.addmm(self.violation_offset, servo, self.violation_map).relu().unflatten(-1, (n_sets, -1))
-        best = violation.sum(-1).argmin(-1)                                   # (B,)
-        gain = self.rho_gain[best]                                            # (B, S, 2m)
-        rho = torch.baddbmm(self.rho_offset[best], servo.unsqueeze(1), gain)  # (B, 1, 2m)
+        # products as broadcast-multiply-sums, not BLAS calls: Inductor fuses them with the relu, the sums
+        # and the argmin into a few loops (batch-1 AOTI runner of the v4 model's encoder 13.6 → 7.2 µs)
+        violation = (servo.unsqueeze(-1) * self.violation_map).sum(-2) + self.violation_offset   # (B, 2ᴺ·N)
+        best = violation.relu().unflatten(-1, (n_sets, -1)).sum(-1).argmin(-1)                 # (B,)
+        gain = self.rho_gain[best]                                                             # (B, S, 2m)
+        rho = (servo.unsqueeze(-1) * gain).sum(-2) + self.rho_offset[best].squeeze(-2)         # (B, 2m)
         rho = rho.reshape(-1, self.num_segments, 2)
         return rho, gain.mT.reshape(-1, self.num_segments, 2, self.num_servos) if derivative else None
 
@@ -235,17 +237,20 @@ class HardwareFK(nn.Module):
         return rho.unsqueeze(1) + a, tangent[0].unsqueeze(1) + da.mT
 
     def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
-        """Corrected ρ' (B, K, m, 2) of every member, the K networks side by side as one (block-diagonal)."""
+        """Corrected ρ' (B, K, m, 2) of every member: the shared input through all K first layers in one
+        product, then the K hidden and output layers as batched products over the members (bmm: a third
+        of the work of one block-diagonal product; v4 model's AOTI runner of this part 23.0 → 14.7 µs)."""
         x = self.network_input(rho, None)[0]
         x = x if memory is None else torch.cat([x, memory], -1)
+        k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
         a = x @ self.first_all + self.b_first_all                            # (B, m, K·H)
-        a = nn.functional.linear(nn.functional.silu(a), self.hidden_all, self.b_hidden_all)
-        a = nn.functional.linear(nn.functional.silu(a), self.last_all, self.b_last_all)
+        a = nn.functional.silu(a).reshape(-1, k, h).transpose(0, 1)          # (K, B·m, H)
+        a = torch.baddbmm(self.b_hidden, a, self.w_hidden)
+        a = torch.baddbmm(self.b_last, nn.functional.silu(a), self.w_last)   # (K, B·m, 2)
+        a = a.reshape(k, -1, self.num_segments, 2).transpose(0, 1)           # (B, K, m, 2)
         if self.gate_width is not None:
-            a = a * self.gate(rho, None)[0][:, None, None]
-        if self.ensemble == 1:
-            return (rho + a).unsqueeze(1)
-        return rho.unsqueeze(1) + a.unflatten(-1, (-1, 2)).transpose(1, 2)  # (B, K, m, 2)
+            a = a * self.gate(rho, None)[0][:, None, None, None]
+        return rho.unsqueeze(1) + a
 
     def gate(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
         """Fallback weight exp(−(δ/τ)²) of the correction (B,), δ the distance of ρ to the nearest training
@@ -366,12 +371,7 @@ def _stacked_members(members) -> dict[str, Tensor]:
            "w_last": torch.stack([n[2].weight for n in nets]).to(_F64).mT * RESIDUAL_RHO_SCALE,
            "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
     out["w_first"] = torch.cat([out["w_rho"], out["w_memory"]], -2)          # ρ and memory inputs together
-    k = len(members)
-    # the K networks as one: inputs shared, hidden and output units side by side (block-diagonal weights (out, in))
+    # the K first layers as one (the input is shared): hidden units of the members side by side
     out["first_all"] = out["w_first"].permute(1, 0, 2).flatten(1)          # (in, K·H)
     out["b_first_all"] = out["b_first"].permute(1, 0, 2).flatten(1)        # (m, K·H)
-    out["hidden_all"] = torch.block_diag(*out["w_hidden"].mT)
-    out["b_hidden_all"] = out["b_hidden"].reshape(k * out["b_hidden"].shape[-1])
-    out["last_all"] = torch.block_diag(*out["w_last"].mT)
-    out["b_last_all"] = out["b_last"].reshape(k * out["b_last"].shape[-1])
     return out
