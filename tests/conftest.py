@@ -284,6 +284,15 @@ def spec_by_name(name: str) -> RobotSpec:
         ROOT / "configs" / "robots" / f"{name}.yaml")
 
 
+@pytest.fixture(scope="session")
+def labelled_robot_dir(tmp_path_factory) -> tuple[Path, Path]:
+    """(data folder with train.csv only, robot YAML with its servo map next to it): a labelled synthetic
+    recording (hardware_testkit.write_labelled_robot), shared read-only by the hardware selection tests."""
+    from hardware_testkit import write_labelled_robot
+
+    return write_labelled_robot(tmp_path_factory.mktemp("labelled"))
+
+
 @pytest.fixture()
 def one_thread():
     """The suite's thread count (``DACR_TEST_THREADS``, default 1), restored after the test."""

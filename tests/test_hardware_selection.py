@@ -1,18 +1,16 @@
 """Model registry, train-only selection proxies, the default model and the carry-over options.
 
-A small synthetic two-segment robot (the calibrated CC model is its ground truth, 0.1 mm noise)
-with labelled single-segment and pair patterns stands in for a hardware recording; its folder has
-no val.csv, like data/ftdcr_v6.
+The ``labelled_robot_dir`` fixture (tests/conftest.py, built by hardware_testkit.write_labelled_robot):
+a small synthetic two-segment robot (the calibrated CC model is its ground truth, 0.1 mm noise) with
+labelled single-segment and pair patterns stands in for a hardware recording; its folder has no
+val.csv, like data/ftdcr_v6.
 """
 from __future__ import annotations
 
 import json
-import math
-from pathlib import Path
 
 import pytest
 import torch
-from test_hardware import write_csv
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.learned import CCClarkeResidual, make_split
@@ -26,55 +24,10 @@ from dacr_learn.hardware.selection import (
     proxy_masks,
     proxy_scores,
 )
-from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
-from dacr_learn.layers import ClarkeDecoder
+from dacr_learn.hardware.servo_map import ServoMap
 from dacr_learn.robot import RobotSpec
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-ROBOT = {"name": "synthetic-2seg", "routing": "coupled", "segments": [
-    {"type": "0", "length": 0.08, "radius": 0.005, "joints": 3, "offset": 0.3, "limits": {"bend": 0.8}},
-    {"type": "0", "length": 0.07, "radius": 0.005, "joints": 3, "offset": -0.5, "limits": {"bend": 0.8}}]}
-IDS = ["s4", "s1", "s6", "s2", "s5", "s3"]
-
-
-def _rows(g: torch.Generator, n: int, moving: tuple[int, ...], reach: float) -> torch.Tensor:
-    """(n, 2, 4) features with only the segments in ``moving`` bent (|ρ| ≤ reach [m])."""
-    feat = torch.zeros(n, 2, 4, dtype=torch.float64)
-    for k in moving:
-        r = reach * torch.rand(n, generator=g, dtype=torch.float64).sqrt()
-        a = 2 * math.pi * torch.rand(n, generator=g, dtype=torch.float64)
-        feat[:, k, 0], feat[:, k, 1] = r * a.cos(), r * a.sin()
-    feat[..., 2] = torch.tensor([0.08, 0.07], dtype=torch.float64)
-    return feat
-
-
-@pytest.fixture(scope="module")
-def robot_dir(tmp_path_factory) -> tuple[Path, Path]:
-    """(data folder with train.csv only, robot YAML with its servo map next to it)."""
-    root = tmp_path_factory.mktemp("synthetic")
-    spec = RobotSpec.from_dict(ROBOT)
-    robot = root / "robot.yaml"
-    spec.to_yaml(robot)
-    (root / "servo_maps").mkdir()
-    smap = ServoMap(spec.name, tuple(ServoAssignment(s, j // 3, j % 3) for j, s in enumerate(IDS)), -8e-3)
-    smap.to_yaml(root / "servo_maps" / "robot.yaml")
-    g = torch.Generator().manual_seed(3)
-    parts = [("rep1_seg1_dir0", (0,)), ("rep1_seg2_dir0", (1,)), ("rep1_pair12_same_dir0", (0, 1))]
-    feat = torch.cat([_rows(g, 40, moving, 0.004) for _, moving in parts])
-    labels = [label for label, _ in parts for _ in range(40)]
-    dec = ClarkeDecoder(spec)
-    x = dec(torch.cat([torch.zeros_like(feat[..., :2]), feat[..., 2:]], -1)) - dec(feat)
-    with torch.no_grad():
-        tip = CalibratedCC(spec, compliance=1e-7)(x) + 1e-4 * torch.randn(len(x), 3, generator=g, dtype=torch.float64)
-    data = root / "data"
-    data.mkdir()
-    rows = [[1000.0 + 0.5 * k, labels[k]] + [f"{v * 1e3:.5f}" for v in x[k].tolist() + tip[k].tolist()]
-            for k in range(len(x))]
-    header = ["timestamp", "pattern_label"] + [f"servo_{i}_mm" for i in IDS] + ["tip_x", "tip_y", "tip_z"]
-    write_csv(data / "train.csv", header, rows)
-    return data, robot
-
-
 def test_registry_has_unique_letters_and_flags():
     letters = [REGISTRY[m].letter for m in MODELS]
     assert len(set(letters)) == len(letters) == len(MODELS)
@@ -113,8 +66,8 @@ def test_choose_default_takes_the_lowest_proxy():
         choose_default(scores, ["pretrained_clarke"])
 
 
-def test_proxies_score_the_true_model_at_the_noise(robot_dir):
-    data, robot = robot_dir
+def test_proxies_score_the_true_model_at_the_noise(labelled_robot_dir):
+    data, robot = labelled_robot_dir
     spec = RobotSpec.from_yaml(robot)
     smap = ServoMap.from_yaml(robot.parent / "servo_maps" / robot.name)
     rec = load_recording(data / "train.csv", spec)
@@ -127,10 +80,10 @@ def test_proxies_score_the_true_model_at_the_noise(robot_dir):
     assert lin["extrap"] > 3 * cc["extrap"] and set(lin["cv_folds"]) == {"single", "pair12"}
 
 
-def test_cli_without_val_records_the_default_model(robot_dir, tmp_path):
+def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path):
     from dacr_learn.hardware.__main__ import main
 
-    data, robot = robot_dir
+    data, robot = labelled_robot_dir
     out = tmp_path / "run"
     report = main(["--data", str(data), "--robot", str(robot), "--out", str(out),
                    "--models", "linear_raw", "cc", "--seeds", "0"])
@@ -145,10 +98,10 @@ def test_cli_without_val_records_the_default_model(robot_dir, tmp_path):
     assert "**`cc`** (default)" in (out / "results.md").read_text()
 
 
-def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(robot_dir, tmp_path):
+def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, tmp_path):
     from dacr_learn.hardware.__main__ import main, parse_args
 
-    data, robot = robot_dir
+    data, robot = labelled_robot_dir
     args = ["--data", str(data), "--robot", str(robot), "--models", "linear_raw", "cc", "--seeds", "0"]
     full = main(args + ["--out", str(tmp_path / "full"), "--proxies", "cv", "extrap"])
     short = main(args + ["--out", str(tmp_path / "short")])
@@ -160,8 +113,8 @@ def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(robot_dir, 
         parse_args(args + ["--out", str(tmp_path), "--proxies", "cv"])    # the default is chosen on extrap
 
 
-def test_a_model_built_in_a_worker_process_equals_the_one_built_here(robot_dir):
-    ctx = _context(robot_dir)
+def test_a_model_built_in_a_worker_process_equals_the_one_built_here(labelled_robot_dir):
+    ctx = _context(labelled_robot_dir)
     with TaskPool(jobs=2) as pool:
         remote = pool.submit(build_model, "mlp_clarke", ctx, 0)
         here = pool.run_here(build_model, "mlp_clarke", ctx, 0)
@@ -175,8 +128,8 @@ def test_a_model_built_in_a_worker_process_equals_the_one_built_here(robot_dir):
         TaskPool(jobs=0)
 
 
-def _context(robot_dir) -> FitContext:
-    data, robot = robot_dir
+def _context(labelled_robot_dir) -> FitContext:
+    data, robot = labelled_robot_dir
     spec = RobotSpec.from_yaml(robot)
     smap = ServoMap.from_yaml(robot.parent / "servo_maps" / robot.name)
     rec = load_recording(data / "train.csv", spec)
@@ -186,8 +139,8 @@ def _context(robot_dir) -> FitContext:
     return FitContext(cc, smap, rec.servo_ids, make_split(rec, spec, smap, cc))
 
 
-def test_support_clamp_holds_the_correction_beyond_the_training_range(robot_dir):
-    ctx = _context(robot_dir)
+def test_support_clamp_holds_the_correction_beyond_the_training_range(labelled_robot_dir):
+    ctx = _context(labelled_robot_dir)
     torch.manual_seed(0)
     model = CCClarkeResidual(ctx.train, ctx.cc, support=True)
     rows = ctx.train.rows(torch.arange(5))
@@ -207,8 +160,8 @@ def test_support_clamp_holds_the_correction_beyond_the_training_range(robot_dir)
         assert not torch.allclose(free.corrected_features(far), model.corrected_features(far), atol=1e-7)
 
 
-def test_rehearsal_adds_the_cc_models_synthetic_tips_to_the_objective(robot_dir):
-    ctx = _context(robot_dir)
+def test_rehearsal_adds_the_cc_models_synthetic_tips_to_the_objective(labelled_robot_dir):
+    ctx = _context(labelled_robot_dir)
     synth = ctx.synthetic(0, 50)
     torch.manual_seed(0)
     plain = CCClarkeResidual(ctx.train, ctx.cc)
@@ -225,8 +178,8 @@ def test_rehearsal_adds_the_cc_models_synthetic_tips_to_the_objective(robot_dir)
     assert model.net[-1].weight.grad.abs().sum() > 0                  # the rehearsal term trains the correction
 
 
-def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(robot_dir):
-    ctx = _context(robot_dir)
+def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(labelled_robot_dir):
+    ctx = _context(labelled_robot_dir)
     torch.manual_seed(0)
     model = CCClarkeResidual(ctx.train, ctx.cc)
     with torch.no_grad():
@@ -249,13 +202,13 @@ def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(rob
         assert torch.allclose(model(far), ctx.cc.tip_from_features(far.features.float()).double(), atol=1e-9)
 
 
-def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reported(robot_dir, tmp_path):
+def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reported(labelled_robot_dir, tmp_path):
     """`deployable` in the registry is what checkpoint.save_hardware_model accepts: every deployable model
     saves; a Clarke-space model that is not deployable is reported as the proxy's best but never the default."""
     from dacr_learn.hardware.benchmark import default_candidates, load_setup
     from dacr_learn.hardware.checkpoint import HardwareModel, cc_as_residual, save_hardware_model
 
-    data, robot = robot_dir
+    data, robot = labelled_robot_dir
     setup = load_setup(robot, data / "train.csv", None, tmp_path)
     for name in MODELS:
         info = model_info(name)

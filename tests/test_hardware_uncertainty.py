@@ -8,7 +8,6 @@ from conftest import roundoff_tol
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import spearmanr
-from test_hardware_selection import robot_dir  # noqa: F401  (fixture: a labelled synthetic recording)
 
 from dacr_learn.hardware.uncertainty import (
     TERMS,
@@ -138,14 +137,14 @@ def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
         model.predict(servo_mm[:, :5])
 
 
-def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(robot_dir, tmp_path):  # noqa: F811
+def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(labelled_robot_dir, tmp_path):
     """On the synthetic robot whose CC model is the truth (0.1 mm noise per axis), the held-out residuals
     of the CC model are the noise: the fitted σ is ≈ 0.1 mm everywhere and the bend term negligible."""
     from dacr_learn.hardware.benchmark import load_setup
     from dacr_learn.hardware.checkpoint import fit_hardware_model
     from dacr_learn.hardware.heldout import SIGMA_TERMS, held_out_folds, sigma_models
 
-    data, robot = robot_dir
+    data, robot = labelled_robot_dir
     setup = load_setup(robot, data / "train.csv", None, tmp_path)
     blocks = held_out_folds(setup, "cc", [0, 1])
     assert [(b.fold, b.preds.shape[0], len(b.tip)) for b in blocks] == [
