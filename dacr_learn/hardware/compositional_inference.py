@@ -161,8 +161,24 @@ class CompositionalHardwareFK(nn.Module):
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))
         for name, value in buffers.items():
-            self.register_buffer(name, value.detach().to(dtype))
+            self.register_buffer(name, value.detach())                 # float64 until the affine part is folded
+        self.hidden_width = self.w0.shape[-1]
+        with torch.no_grad():
+            affine_map, affine_offset = self._affine_part()
+        self.register_buffer("affine_map", affine_map)
+        self.register_buffer("affine_offset", affine_offset)
+        self.to(dtype)
         self.spec = spec
+
+    def _affine_part(self) -> tuple[Tensor, Tensor]:
+        """The first layer's pre-activation and the skip term ξ^ of every member (B, K, m, H + 16) are affine
+        in ρ (standardisation, fixed columns and context are): their map (2m, K·m·(H + 16)) and offset, from
+        the module evaluated at ρ = 0 and the 2m unit vectors (float64; exact for an affine function)."""
+        m = self.num_segments
+        basis = torch.cat([torch.zeros(1, 2 * m, dtype=_F64), torch.eye(2 * m, dtype=_F64)]).unflatten(-1, (m, 2))
+        z = self.inputs(basis)                                                            # (1 + 2m, K, m, C)
+        both = torch.cat([z @ self.w0 + self.b0, z @ self.skip_hat], -1)                  # (1 + 2m, K, m, H + 16)
+        return (both[1:] - both[:1]).flatten(1), both[0].flatten()
 
     clarke = HardwareFK.clarke          # servo → ρ (B, m, 2) [+ ∂ρ/∂servo]: the same buffers as HardwareFK's
     mean_std = HardwareFK.mean_std      # ensemble mean and the σ model, the same buffer and formula
@@ -187,12 +203,16 @@ class CompositionalHardwareFK(nn.Module):
         return torch.cat([z, extra], -1)
 
     def corrections(self, rho: Tensor) -> Tensor:
-        """Each member's correction exp(ξ_k^) of every segment (B, K, m, 4, 4) at ρ (B, m, 2) [m]."""
-        z = self.inputs(rho)                                                               # (B, K, m, C)
-        a = z @ self.w0 + self.b0                                                          # weights (K, in, out)
+        """Each member's correction exp(ξ_k^) of every segment (B, K, m, 4, 4) at ρ (B, m, 2) [m]: the affine
+        part (first layer and skip, :meth:`_affine_part`) in one product, the hidden and output layers as
+        batched products over the members (K, B·m, ·) (v6 default's AOTI runner 46.0 → 41.3 µs)."""
+        k, m, h = self.ensemble, self.num_segments, self.hidden_width
+        pre = torch.addmm(self.affine_offset, rho.flatten(1), self.affine_map).view(-1, k, m, h + 16)
+        a = pre[..., :h].transpose(0, 1).reshape(k, -1, h)                                # (K, B·m, H)
         for i in range(1, self.layers - 1):
-            a = self.activation(a) @ getattr(self, f"w{i}") + getattr(self, f"b{i}")
-        xi_hat = self.activation(a) @ self.w_hat + self.b_hat + z @ self.skip_hat           # ξ^ (B, K, m, 16)
+            a = torch.baddbmm(getattr(self, f"b{i}"), self.activation(a), getattr(self, f"w{i}"))
+        xi_hat = torch.baddbmm(self.b_hat, self.activation(a), self.w_hat)                # (K, B·m, 16)
+        xi_hat = xi_hat.view(k, -1, m, 16).transpose(0, 1) + pre[..., h:]                 # ξ^ (B, K, m, 16)
         return exp_of_twist_matrix(xi_hat.unflatten(-1, (4, 4)))
 
     def tips(self, rho: Tensor) -> Tensor:
