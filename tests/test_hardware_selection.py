@@ -225,3 +225,38 @@ def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reporte
     blocked = next(m for m in default_candidates(MODELS, deployable_only=False) if not model_info(m).deployable)
     scores = {m: {"extrap": 1.0 if m == blocked else 2.0 + i} for i, m in enumerate(MODELS)}
     assert choose_default(scores, default_candidates(list(scores)), "extrap") == "cc"
+
+
+def test_save_bundles_the_final_runs_models_instead_of_training_them_again(labelled_robot_dir, tmp_path,
+                                                                            monkeypatch):
+    """``--save`` (two worker processes): the saved ensemble is the benchmark's own final-run models, returned
+    from the workers — nothing is trained in this process (fit_model here raises), its members predict like
+    the same model trained here per seed, and the reported train RMSE per seed is the saved member's."""
+    from dacr_learn.hardware import benchmark
+    from dacr_learn.hardware.__main__ import main
+    from dacr_learn.hardware.checkpoint import load_hardware_model
+    from dacr_learn.hardware.metrics import tip_metrics
+
+    data, robot = labelled_robot_dir
+    out, save = tmp_path / "run", tmp_path / "model"
+    fit_model = benchmark.fit_model
+
+    def no_fit_here(*args):
+        raise AssertionError(f"fit_model{args[:1]} called in the main process: --save trained the default again")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(benchmark, "fit_model", no_fit_here)      # the spawned workers import their own, unpatched
+        report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), "--models",
+                       "cc_clarke_residual", "--seeds", "0", "1", "--jobs", "2", "--save", str(save)])
+    assert report["default_model"] == "cc_clarke_residual"
+    saved = load_hardware_model(save / "model.pt")
+    setup = benchmark.load_setup(robot, data / "train.csv", None, tmp_path / "setup",
+                       cc_variant=report["cc_fit"]["variant"]["chosen"])
+    per_seed = report["models"]["cc_clarke_residual"]["train"]["rmse_mm"]["per_seed"]
+    assert len(saved.members) == 2
+    for seed, member in zip((0, 1), saved.members, strict=True):
+        reference = fit_model("cc_clarke_residual", setup, seed).eval()
+        with torch.no_grad():
+            want, got = reference(setup.train), member(setup.train)
+            assert torch.allclose(got, want, rtol=0, atol=1e-9)               # [m]: the same fit
+            assert tip_metrics(got, setup.train.tip)["rmse_mm"] == pytest.approx(per_seed[seed], abs=1e-3)

@@ -111,19 +111,23 @@ def _submit_selection(pool: TaskPool, setup: Setup, args: argparse.Namespace) ->
         return {}
 
 
-def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, dict, dict]:
-    """(proxy scores, final results, val predictions): every fit handed to one pool before any is collected."""
+def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, dict, dict, dict]:
+    """(proxy scores, final results, val predictions, {model: fitted models per seed}): every fit handed to one
+    pool before any is collected. With ``--save`` the final runs of the default candidates return their fitted
+    models, so the saved ensemble is the one whose results are reported (not trained a second time)."""
+    keep = default_candidates(list(args.models)) if args.save else ()
+    fitted: dict = {}
     with TaskPool(args.jobs, args.threads) as pool:
         pending = _submit_selection(pool, setup, args)
-        final = submit_benchmark(pool, setup, tuple(args.models), tuple(args.seeds))
+        final = submit_benchmark(pool, setup, tuple(args.models), tuple(args.seeds), keep)
         scores = collect_selection(pending, args.proxy_seeds)
-        results, preds = collect_benchmark(final, tuple(args.seeds))
-    return scores, results, preds
+        results, preds = collect_benchmark(final, tuple(args.seeds), fitted=fitted)
+    return scores, results, preds, fitted
 
 
-def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup]:
-    """The benchmark of ``args``; returns (the results.json report, the setup). The default model is
-    ``report["default_model"]``; :func:`.benchmark.fit_model` trains it for saving."""
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup, dict]:
+    """The benchmark of ``args``; returns (the results.json report, the setup, {model: fitted models per seed}
+    of the default candidates with ``--save``, else {}). The default model is ``report["default_model"]``."""
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -135,7 +139,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               f"({', '.join(f'{k} {v:.2f} mm' for k, v in variant['extrap'].items())})")
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
-    scores, results, preds = _fit_all(setup, args)
+    scores, results, preds, fitted = _fit_all(setup, args)
     default = select_default(scores) if default_candidates(list(scores)) else None
     everyone = default_candidates(list(scores), deployable_only=False)
     proxy_best = choose_default(scores, everyone, SELECTION_PROXY) if everyone else None
@@ -172,17 +176,18 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     print(f"default model (lowest {SELECTION_PROXY} proxy of the deployable Clarke-space models, train only): "
           f"{default}; best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
           f"({report['seconds_total']:.0f} s)")
-    return report, setup
+    return report, setup, fitted
 
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
-    report, setup = run(args, argv)
+    report, setup, fitted = run(args, argv)
     if args.save and report["default_model"] is not None:
         from .checkpoint import fit_hardware_model, save_hardware_model, support_warning
         from .heldout import sigma_models
 
-        model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]})
+        model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]},
+                                   members=fitted.get(report["default_model"]))
         model.sigma, model.sigma_model = sigma_models(setup, report["default_model"], args.seeds)
         path = save_hardware_model(model, args.save / "model.pt")
         print(f"saved the default model {report['default_model']} ({len(model.members)} members, σ model "

@@ -138,15 +138,16 @@ def _summary(values: list[float]) -> dict:
             "per_seed": [round(float(v), 4) for v in a]}
 
 
-def run_seed(name: str, s: Setup, seed: int) -> tuple[dict, torch.Tensor | None]:
-    """One training run: ({"train": metrics, "val": metrics (with val)}, val predictions or None)."""
+def run_seed(name: str, s: Setup, seed: int, keep: bool = False) -> tuple[dict, torch.Tensor | None, nn.Module | None]:
+    """One training run: ({"train": metrics, "val": metrics (with val)}, val predictions or None, the fitted
+    model if ``keep`` else None — e.g. the members ``--save`` bundles, returned instead of trained again)."""
     model = fit_model(name, s, seed)
     with torch.no_grad():
         run, pred_val = {"train": tip_metrics(model(s.train), s.train.tip)}, None
         if s.val is not None:
             pred_val = model(s.val)
             run["val"] = tip_metrics(pred_val, s.val.tip)
-    return run, pred_val
+    return run, pred_val, model.eval() if keep else None
 
 
 def _submit(pool: TaskPool, name: str, fn: Callable, *args) -> Future:
@@ -154,32 +155,38 @@ def _submit(pool: TaskPool, name: str, fn: Callable, *args) -> Future:
     return (pool.run_here if model_info(name).deterministic else pool.submit)(fn, name, *args)
 
 
-def submit_benchmark(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int]) -> dict[str, list]:
-    """{model: [future of timed(run_seed) per seed]}: every model trained on the whole training recording."""
-    return {name: [_submit(pool, name, run_seed, s, seed) for seed in model_seeds(name, seeds)] for name in models}
+def submit_benchmark(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int],
+                     keep: Sequence[str] = ()) -> dict[str, list]:
+    """{model: [future of timed(run_seed) per seed]}: every model trained on the whole training recording;
+    the fitted models of those in ``keep`` come back with their results (:func:`collect_benchmark`)."""
+    return {name: [_submit(pool, name, run_seed, s, seed, name in keep) for seed in model_seeds(name, seeds)]
+            for name in models}
 
 
-def summarize_model(name: str, runs: list[tuple[tuple[dict, torch.Tensor | None], float]],
-                    seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
-    """(summary over seeds, val predictions of the first seed or None) from [((run, pred), seconds)]."""
+def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
+    """(summary over seeds, val predictions of the first seed or None) from [((run, pred, model), seconds)]."""
     info = model_info(name)
     summary = {"letter": info.letter, "clarke_space": info.clarke_space, "static": info.static,
                "seeds": seeds[:len(runs)], "seconds_per_run": float(np.mean([sec for _, sec in runs]))}
     first = runs[0][0][0]
     for split in ("val", "train"):
         if split in first:
-            summary[split] = {k: _summary([run[split][k] for (run, _), _ in runs]) for k in first[split]}
+            summary[split] = {k: _summary([run[0][split][k] for run, _ in runs]) for k in first[split]}
     return summary, runs[0][0][1]
 
 
-def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = print
-                      ) -> tuple[dict, dict[str, torch.Tensor]]:
-    """({model: summary}, {model: val predictions (first seed)}; empty without val), logged in model order."""
+def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = print,
+                      fitted: dict[str, list[nn.Module]] | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
+    """({model: summary}, {model: val predictions (first seed)}; empty without val), logged in model order.
+    ``fitted``: a dict that receives {model: [fitted model per seed]} of the models submitted with ``keep``."""
     results, preds = {}, {}
     for name, futures in pending.items():
-        results[name], pred = summarize_model(name, [f.result() for f in futures], list(seeds))
+        runs = [f.result() for f in futures]
+        results[name], pred = summarize_model(name, runs, list(seeds))
         if pred is not None:
             preds[name] = pred
+        if fitted is not None and runs[0][0][2] is not None:
+            fitted[name] = [run[2] for run, _ in runs]
         r = results[name]
         v = r.get("val")
         shown = (f"val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "

@@ -271,15 +271,20 @@ def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
 
 
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
-                       info: dict | None = None) -> HardwareModel:
+                       info: dict | None = None, members: list[nn.Module] | None = None) -> HardwareModel:
     """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
     per seed on the whole training recording of a :class:`~.benchmark.Setup` and bundle the ensemble with
     the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
-    fitted on held-out residuals."""
+    fitted on held-out residuals. ``members``: the models already fitted that way, one per seed (e.g. by
+    the benchmark's final runs), bundled instead of trained again (ignored for ``cc``)."""
     from .benchmark import fit_model
 
     if name == "cc":                    # deterministic: one member, the CC model itself
         members = [cc_as_residual(setup.train, setup.cc)]
+    elif members is not None:
+        if len(members) != len(seeds):
+            raise ValueError(f"members: expected one fitted {name} per seed {list(seeds)}, got {len(members)}")
+        members = [m.eval() for m in members]
     else:
         members = [fit_model(name, setup, seed).eval() for seed in seeds]
     support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
