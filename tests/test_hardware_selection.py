@@ -230,9 +230,11 @@ def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reporte
 def test_save_bundles_the_final_runs_models_instead_of_training_them_again(labelled_robot_dir, tmp_path,
                                                                             monkeypatch):
     """``--save`` (two worker processes): the saved ensemble is the benchmark's own final-run models, returned
-    from the workers — nothing is trained in this process (fit_model here raises), its members predict like
-    the same model trained here per seed, and the reported train RMSE per seed is the saved member's."""
-    from dacr_learn.hardware import benchmark
+    from the workers, and the σ model's held-out fits run in the workers too — nothing is trained in this
+    process (fit_model / the held-out build_model here raise). The members predict like the same model
+    trained here per seed, the reported train RMSE per seed is the saved member's, and the σ model equals
+    sigma_models computed here."""
+    from dacr_learn.hardware import benchmark, heldout
     from dacr_learn.hardware.__main__ import main
     from dacr_learn.hardware.checkpoint import load_hardware_model
     from dacr_learn.hardware.metrics import tip_metrics
@@ -242,10 +244,11 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     fit_model = benchmark.fit_model
 
     def no_fit_here(*args):
-        raise AssertionError(f"fit_model{args[:1]} called in the main process: --save trained the default again")
+        raise AssertionError(f"{args[0]} trained in the main process by --save (the default again, or its σ folds)")
 
     with monkeypatch.context() as patch:
         patch.setattr(benchmark, "fit_model", no_fit_here)      # the spawned workers import their own, unpatched
+        patch.setattr(heldout, "build_model", no_fit_here)
         report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), "--models",
                        "cc_clarke_residual", "--seeds", "0", "1", "--jobs", "2", "--save", str(save)])
     assert report["default_model"] == "cc_clarke_residual"
@@ -260,3 +263,8 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
             want, got = reference(setup.train), member(setup.train)
             assert torch.allclose(got, want, rtol=0, atol=1e-9)               # [m]: the same fit
             assert tip_metrics(got, setup.train.tip)["rmse_mm"] == pytest.approx(per_seed[seed], abs=1e-3)
+    calibration, sigma_model = heldout.sigma_models(setup, "cc_clarke_residual", [0, 1])
+    assert saved.sigma_model.terms == sigma_model.terms
+    assert torch.allclose(saved.sigma_model.coefficients, sigma_model.coefficients, rtol=1e-6, atol=1e-12)
+    assert float(saved.sigma_model.floor) == pytest.approx(float(sigma_model.floor), rel=1e-6)
+    assert float(saved.sigma.scale) == pytest.approx(float(calibration.scale), rel=1e-6)

@@ -30,6 +30,7 @@ from .benchmark import (
     submit_benchmark,
     submit_selection,
 )
+from .heldout import SIGMA_PROXIES, collect_held_out, sigma_models_of, submit_held_out
 from .pool import TaskPool
 from .registry import MODELS, model_info
 from .selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, choose_default
@@ -112,22 +113,28 @@ def _submit_selection(pool: TaskPool, setup: Setup, args: argparse.Namespace) ->
 
 
 def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, dict, dict, dict]:
-    """(proxy scores, final results, val predictions, {model: fitted models per seed}): every fit handed to one
-    pool before any is collected. With ``--save`` the final runs of the default candidates return their fitted
-    models, so the saved ensemble is the one whose results are reported (not trained a second time)."""
+    """(proxy scores, final results, val predictions, what ``--save`` needs): every fit handed to one pool
+    before any is collected. With ``--save`` the final runs of the default candidates return their fitted
+    models, so the saved ensemble is the one whose results are reported (not trained a second time), and
+    the σ model's held-out fits of the default join the pool as soon as the proxies have chosen it:
+    {"members": {model: fitted models per seed}, "held_out": [HeldOut]} (empty without ``--save``)."""
     keep = default_candidates(list(args.models)) if args.save else ()
     fitted: dict = {}
     with TaskPool(args.jobs, args.threads) as pool:
         pending = _submit_selection(pool, setup, args)
         final = submit_benchmark(pool, setup, tuple(args.models), tuple(args.seeds), keep)
         scores = collect_selection(pending, args.proxy_seeds)
+        default = select_default(scores) if default_candidates(list(scores)) else None
+        sigma = submit_held_out(pool, setup, default, args.seeds, SIGMA_PROXIES) if keep and default else []
         results, preds = collect_benchmark(final, tuple(args.seeds), fitted=fitted)
-    return scores, results, preds, fitted
+        saving = {"members": fitted, "held_out": collect_held_out(sigma)} if keep else {}
+    return scores, results, preds, saving
 
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup, dict]:
-    """The benchmark of ``args``; returns (the results.json report, the setup, {model: fitted models per seed}
-    of the default candidates with ``--save``, else {}). The default model is ``report["default_model"]``."""
+    """The benchmark of ``args``; returns (the results.json report, the setup, what ``--save`` needs: the
+    fitted default candidates and the σ model's held-out folds, :func:`_fit_all`; {} without ``--save``).
+    The default model is ``report["default_model"]``."""
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -139,7 +146,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               f"({', '.join(f'{k} {v:.2f} mm' for k, v in variant['extrap'].items())})")
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
-    scores, results, preds, fitted = _fit_all(setup, args)
+    scores, results, preds, saving = _fit_all(setup, args)
     default = select_default(scores) if default_candidates(list(scores)) else None
     everyone = default_candidates(list(scores), deployable_only=False)
     proxy_best = choose_default(scores, everyone, SELECTION_PROXY) if everyone else None
@@ -176,19 +183,18 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     print(f"default model (lowest {SELECTION_PROXY} proxy of the deployable Clarke-space models, train only): "
           f"{default}; best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
           f"({report['seconds_total']:.0f} s)")
-    return report, setup, fitted
+    return report, setup, saving
 
 
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
-    report, setup, fitted = run(args, argv)
+    report, setup, saving = run(args, argv)
     if args.save and report["default_model"] is not None:
         from .checkpoint import fit_hardware_model, save_hardware_model, support_warning
-        from .heldout import sigma_models
 
         model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]},
-                                   members=fitted.get(report["default_model"]))
-        model.sigma, model.sigma_model = sigma_models(setup, report["default_model"], args.seeds)
+                                   members=saving["members"].get(report["default_model"]))
+        model.sigma, model.sigma_model = sigma_models_of(saving["held_out"])
         path = save_hardware_model(model, args.save / "model.pt")
         print(f"saved the default model {report['default_model']} ({len(model.members)} members, σ model "
               f"{model.sigma_model.describe()} fitted on held-out train rows) to {path}")

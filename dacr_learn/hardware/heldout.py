@@ -10,13 +10,15 @@ training rows) and the offset-removed residual of the ensemble mean are kept.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from .pool import TaskPool
 from .registry import build_model, model_info
-from .selection import PROXIES, make_folds, proxy_masks
+from .selection import PROXIES, make_folds, model_seeds, proxy_masks
 from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
 # The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
@@ -65,9 +67,17 @@ def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[
 
 
 def held_out_folds(setup, name: str, seeds: Sequence[int], proxies: Sequence[str] = PROXIES,
-                   log=None) -> list[HeldOut]:
+                   log=None, pool: TaskPool | None = None) -> list[HeldOut]:
     """:class:`HeldOut` of every fold of the given proxies on the training recording of a
-    :class:`~.benchmark.Setup` (``log``: optional callable reporting each fold)."""
+    :class:`~.benchmark.Setup` (``log``: optional callable reporting each fold; ``pool``: where the fits
+    run, default in this process)."""
+    return collect_held_out(submit_held_out(pool or TaskPool(), setup, name, seeds, proxies), log)
+
+
+def submit_held_out(pool: TaskPool, setup, name: str, seeds: Sequence[int],
+                    proxies: Sequence[str] = PROXIES) -> list[tuple[str, list[Future]]]:
+    """The fits of :func:`held_out_folds` handed to ``pool`` (one task per fold and seed; the folds' CC
+    refits run here): [(fold, [future of timed(held_out) per seed])], for :func:`collect_held_out`."""
     labels = setup.train_rec.labels
     out = []
     for proxy, masks in proxy_masks(labels, proxies).items():
@@ -75,9 +85,20 @@ def held_out_folds(setup, name: str, seeds: Sequence[int], proxies: Sequence[str
                                                                setup.cc_options),
                                                     masks, strict=True):
             train_labels = [lb for lb, t in zip(labels, train_rows, strict=True) if t]
-            out.append(held_out(name, fold.ctx, fold.test, train_labels, seeds, f"{proxy}:{fold_name}"))
-            if log is not None:
-                log(f"held-out σ features: fold {proxy}:{fold_name} done")
+            tag = f"{proxy}:{fold_name}"
+            out.append((tag, [pool.submit(held_out, name, fold.ctx, fold.test, train_labels, [seed], tag)
+                              for seed in model_seeds(name, seeds)]))
+    return out
+
+
+def collect_held_out(pending: list[tuple[str, list[Future]]], log=None) -> list[HeldOut]:
+    """:class:`HeldOut` per fold of :func:`submit_held_out`'s fits, the seeds' predictions stacked in order."""
+    out = []
+    for tag, futures in pending:
+        parts = [f.result()[0] for f in futures]
+        out.append(HeldOut(**{**parts[0].to_dict(), "preds": torch.cat([p.preds for p in parts])}))
+        if log is not None:
+            log(f"held-out σ features: fold {tag} done")
     return out
 
 
@@ -94,7 +115,12 @@ def sigma_models(setup, name: str, seeds: Sequence[int], terms: Sequence[str] = 
                  proxies: Sequence[str] = SIGMA_PROXIES, log=None) -> tuple[SigmaCalibration, SigmaModel]:
     """(ensemble-only σ calibration — the σ of a model saved without a σ model —, σ model with ``terms``), both fitted
     on the held-out rows of the ``proxies`` folds of a :class:`~.benchmark.Setup`'s training recording."""
-    blocks = held_out_folds(setup, name, seeds, proxies, log)
+    return sigma_models_of(held_out_folds(setup, name, seeds, proxies, log), terms)
+
+
+def sigma_models_of(blocks: Sequence[HeldOut],
+                    terms: Sequence[str] = SIGMA_TERMS) -> tuple[SigmaCalibration, SigmaModel]:
+    """:func:`sigma_models` from held-out blocks computed already (e.g. by :func:`submit_held_out` in a pool)."""
     residual = torch.cat([b.residual() for b in blocks])
     std = torch.cat([b.features()["ensemble"] for b in blocks])
     return SigmaCalibration.fit(residual, std), fit_sigma_model(blocks, terms)
