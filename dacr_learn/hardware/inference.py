@@ -220,21 +220,33 @@ class HardwareFK(nn.Module):
 
     def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None]):
         """Corrected ρ' (B, K, m, 2) of every member and its tangents (B, K, m, 2, T), from the tangents
-        (∂ρ (B, m, 2, T), ∂memory or None) of the inputs (the FK path without tangents: :meth:`members_only`)."""
+        (∂ρ (B, m, 2, T), ∂memory or None) of the inputs (the FK path without tangents: :meth:`members_only`).
+
+        Forward mode as stacked rows: per (batch, segment) the input value and its T tangents are 1 + T rows
+        through the same products (the bias on the value row only; after each SiLU the tangent rows are
+        scaled by SiLU'(value)), so each layer is one product for all members — the first layer shared, the
+        others batched over the members (K, B·m·(1 + T), ·) (v4 default's AOTI Jacobian runner 94.9 → 79.3 µs)."""
         rho_in, drho_in = self.network_input(rho, tangent[0])
-        x, w = (rho_in, self.w_rho) if memory is None else (torch.cat([rho_in, memory], -1), self.w_first)
-        a = x.unsqueeze(1) @ w + self.b_first                                 # weights (K, in, out): matmul
-        da = torch.einsum("bmit,kih->bkmth", drho_in, self.w_rho) + (
-            0 if memory is None else torch.einsum("bmit,kih->bkmth", tangent[1], self.w_memory))
+        x = rho_in if memory is None else torch.cat([rho_in, memory], -1)                  # (B, m, I)
+        dx = drho_in if memory is None else torch.cat([drho_in, tangent[1]], -2)           # (B, m, I, T)
+        b, m, t = rho.shape[0], rho.shape[1], dx.shape[-1]
+        k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
+        value = (torch.arange(1 + t) == 0).to(rho.dtype).unsqueeze(-1)                   # (1 + T, 1): value row
+        rows = torch.cat([x.unsqueeze(2), dx.transpose(-1, -2)], 2)                        # (B, m, 1 + T, I)
+        a = rows @ self.first_all + self.b_first_all.unsqueeze(1) * value                  # (B, m, 1 + T, K·H)
+        a = a.view(b, m, 1 + t, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, 1 + t, h)
         for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
-            sg = torch.sigmoid(a)
-            da = torch.einsum("bkmth,khj->bkmtj", da * (sg * (1 + a * (1 - sg))).unsqueeze(-2), w)
-            a = (a * sg) @ w + bias
+            v = a[:, :, :1]
+            sg = torch.sigmoid(v)
+            a = torch.cat([v * sg, a[:, :, 1:] * (sg * (1 + v * (1 - sg)))], 2).reshape(k, -1, a.shape[-1])
+            a = torch.bmm(a, w).view(k, b * m, 1 + t, -1) + bias.unsqueeze(1) * value
+        a = a.view(k, b, m, 1 + t, 2).transpose(0, 1)                                     # (B, K, m, 1 + T, 2)
+        out, dout = a[:, :, :, 0], a[:, :, :, 1:].transpose(-1, -2)                        # (B,K,m,2), (B,K,m,2,T)
         if self.gate_width is not None:
             gate, dgate = self.gate(rho, tangent[0])
-            da = da * gate[:, None, None, None, None] + a.unsqueeze(-2) * dgate[:, None, None, :, None]
-            a = a * gate[:, None, None, None]
-        return rho.unsqueeze(1) + a, tangent[0].unsqueeze(1) + da.mT
+            dout = dout * gate[:, None, None, None, None] + out.unsqueeze(-1) * dgate[:, None, None, None, :]
+            out = out * gate[:, None, None, None]
+        return rho.unsqueeze(1) + out, tangent[0].unsqueeze(1) + dout
 
     def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
         """Corrected ρ' (B, K, m, 2) of every member: the shared input through all K first layers in one
@@ -355,8 +367,9 @@ class _Rows:
 
 
 def _stacked_members(members) -> dict[str, Tensor]:
-    """Residual networks of the K members stacked (float64), weights (K, in, out), first layer split into ρ /
-    memory / one-hot parts (the one-hot part folded into a per-segment bias), output scale folded in."""
+    """Residual networks of the K members stacked (float64), weights (K, in, out): the first layers side by
+    side as one (in, K·H) map of ρ [and memory] (input standardisation folded in) with the one-hot part folded
+    into a per-segment bias (m, K·H); hidden and output layers (K, in, out), the output scale folded in."""
     nets = [[l for l in m.net if isinstance(l, nn.Linear)] for m in members]
     if any(len(n) != 3 for n in nets):
         raise ValueError(f"members: expected residual networks with 3 linear layers, got {[len(n) for n in nets]}")
@@ -364,14 +377,12 @@ def _stacked_members(members) -> dict[str, Tensor]:
     std = torch.stack([m.rho_std for m in members]).to(_F64).reshape(-1, 1, 1)
     m = members[0].onehot.shape[0]
     hist = 2 if members[0].history else 0
-    out = {"w_rho": (w1[..., :2] / std).mT, "w_memory": w1[..., 2:2 + hist].mT,
-           "b_first": (torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]),
-           "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64).mT,
-           "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64).unsqueeze(1),
-           "w_last": torch.stack([n[2].weight for n in nets]).to(_F64).mT * RESIDUAL_RHO_SCALE,
-           "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
-    out["w_first"] = torch.cat([out["w_rho"], out["w_memory"]], -2)          # ρ and memory inputs together
+    w_first = torch.cat([(w1[..., :2] / std).mT, w1[..., 2:2 + hist].mT], -2)   # (K, 2 [+2], H): ρ [and memory]
+    b_first = torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]  # (K, m, H)
     # the K first layers as one (the input is shared): hidden units of the members side by side
-    out["first_all"] = out["w_first"].permute(1, 0, 2).flatten(1)          # (in, K·H)
-    out["b_first_all"] = out["b_first"].permute(1, 0, 2).flatten(1)        # (m, K·H)
-    return out
+    return {"first_all": w_first.permute(1, 0, 2).flatten(1),              # (in, K·H)
+            "b_first_all": b_first.permute(1, 0, 2).flatten(1),            # (m, K·H)
+            "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64).mT,
+            "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64).unsqueeze(1),
+            "w_last": torch.stack([n[2].weight for n in nets]).to(_F64).mT * RESIDUAL_RHO_SCALE,
+            "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
