@@ -16,13 +16,14 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
 - ``fk_compositional_{eager_lightning, eager_folded, export_program, aoti}``: the compositional FK of
   configs/fk_tdcr3_compositional.yaml (3-segment robot: per-segment network, twist head, products),
   exported the same way (``--no-compositional`` skips these rows).
-- ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti, fk_aoti_runner}``: a hardware model
-  (servo commands [mm] + play state → tip, tip_std, new state; dacr_learn.hardware.inference) of
-  FTDCR v4's shape — the registry's ``cc_clarke_residual_history``, ``--hardware-members`` ensemble
-  members, untrained (latency does not depend on the weights), or a saved model (``--hardware-ckpt``)
-  — exported with ``dacr_learn.export`` (AOTInductor for ``fk`` only). ``hardware_fk_vs_fk`` in
-  the JSON and the side-by-side table: each hardware FK row's p50 next to the synthetic FK's row of the
-  same kind (eager: ``fk_eager_folded``), measured in the same run, and their ratio (target ≤ 2 for the
+- ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti, fk_aoti_runner,
+  jacobian_aoti}``: a hardware model (servo commands [mm] + play state → tip, tip_std, new state;
+  dacr_learn.hardware.inference) of FTDCR v4's shape — the registry's
+  ``cc_clarke_residual_history``, ``--hardware-members`` ensemble members, untrained (latency does
+  not depend on the weights), or a saved model (``--hardware-ckpt``) — exported with
+  ``dacr_learn.export`` (AOTInductor for ``fk`` and ``jacobian``). ``hardware_fk_vs_fk`` in the JSON
+  and the side-by-side table: each hardware FK row's p50 next to the synthetic FK's row of the same
+  kind (eager: ``fk_eager_folded``), measured in the same run, and their ratio (target ≤ 2 for the
   exported rows). ``--no-hardware`` skips these rows.
 
 Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs].
@@ -163,7 +164,8 @@ def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = Fals
     from dacr_learn.hardware.checkpoint import load_hardware_model
     from dacr_learn.hardware.export import modules
 
-    dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk",) if aoti else False, autotune=autotune and aoti)
+    dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk", "jacobian") if aoti else False,
+                              autotune=autotune and aoti)
     model = load_hardware_model(ckpt)
     fk = modules(model, torch.float32)["fk"]          # HardwareFK, or the compositional model's FK
     servo = (model.examples[len(model.examples) // 2:][:1] if model.examples is not None else
@@ -177,6 +179,8 @@ def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = Fals
         fns["hardware_fk_aoti"] = lambda: package(*args)
         inputs = [a.contiguous() for a in args]
         fns["hardware_fk_aoti_runner"] = lambda: package.runner(inputs)
+        jacobian = dexport.load(out / "hardware" / "jacobian.aoti.pt2")
+        fns["hardware_jacobian_aoti"] = lambda: jacobian(*args)
     return fns
 
 

@@ -5,6 +5,8 @@
   optimality condition of the energy, in float64 and float32.
 - The CC segment pose T = I + sΞ + fΞ² (:func:`~dacr_learn.hardware.inference.twist_segment_poses`)
   against :func:`~dacr_learn.kinematics.cc_transform`, with finite gradients at zero bending.
+- The chained tip and its closed-form ∂tip/∂ρ (:func:`~dacr_learn.hardware.inference.twist_tip_and_jacobian`)
+  against the tip of cc_transform products and autograd's Jacobian of it, straight segments included.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from conftest import FAST, ROOT, roundoff_tol
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dacr_learn.hardware.inference import segment_twists, twist_segment_poses
+from dacr_learn.hardware.inference import segment_twists, twist_segment_poses, twist_tip_and_jacobian
 from dacr_learn.hardware.slack import SlackAwareEncoder, active_set_gains, solve_tendon_qp, solve_tendon_qp_enumerated
 from dacr_learn.kinematics import cc_transform
 from dacr_learn.robot import RobotSpec
@@ -104,3 +106,36 @@ def test_segment_pose_gradient_is_finite_and_right_at_zero_bending():
         ref = torch.autograd.functional.jacobian(reference, rho)
         assert bool(torch.isfinite(got).all())
         assert (got - ref).abs().max() <= roundoff_tol(F64, float(ref.abs().max()), ulps=1024)
+
+
+def test_tip_jacobian_in_closed_form_is_autograds_of_the_cc_chain():
+    """Three segments, a base pose and a marker offset; ρ with straight (0) and nearly straight (1e-9 m)
+    segments, where s, f and their derivatives take the Taylor branch."""
+    g = torch.Generator().manual_seed(1)
+    radius, length = torch.tensor([0.005, 0.004, 0.0045], dtype=F64), torch.tensor([0.08, 0.07, 0.06], dtype=F64)
+    angle = torch.tensor(0.3, dtype=F64)
+    base = torch.eye(4, dtype=F64)
+    base[:2, :2] = torch.tensor([[angle.cos(), -angle.sin()], [angle.sin(), angle.cos()]])
+    base[:3, 3] = torch.tensor([0.01, -0.02, 0.3], dtype=F64)
+    marker = torch.tensor([0.004, -0.002, 0.01, 1.0], dtype=F64)
+    constants = segment_twists(radius, length)
+    rho = 0.004 * (2 * torch.rand(6, 3, 2, generator=g, dtype=F64) - 1)
+    rho[0, 1] = 0.0
+    rho[1, 0] = 1e-9
+    rho[2] = 0.0
+
+    def reference_tip(r):                                      # base · T₁ T₂ T₃ · marker with cc_transform
+        chain = base
+        for k in range(3):
+            chain = chain @ cc_transform(r[k] / radius[k], length[k])
+        return (chain @ marker)[:3]
+
+    tip, jac = twist_tip_and_jacobian(rho, constants["twist_map"], constants["twist_offset"], radius,
+                                      constants["eye4"], base, marker)
+    for b in range(rho.shape[0]):
+        ref_tip = reference_tip(rho[b])
+        ref_jac = torch.autograd.functional.jacobian(reference_tip, rho[b])             # (3, m, 2)
+        assert (tip[b] - ref_tip).abs().max() <= roundoff_tol(F64, 1.0, ulps=64)
+        assert bool(torch.isfinite(jac[b]).all())
+        tol = roundoff_tol(F64, float(ref_jac.abs().max()), ulps=1024)
+        assert (jac[b].permute(2, 0, 1) - ref_jac).abs().max() <= tol

@@ -109,20 +109,38 @@ def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -
     return (chain @ tip_marker)[..., :3]
 
 
-def tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, marker: Tensor) -> tuple[Tensor, Tensor]:
-    """CC marker point p_tip + R_tip·marker (robot base frame; marker (3,) [m] in the tip frame) and ∂/∂ρ:
-    ρ (..., m, 2) [m] → (..., 3), (..., 3, m, 2)."""
-    r, p, dr, dp = cc_segment_and_derivative(rho / radius.unsqueeze(-1), length.expand(rho.shape[:-1]))
+def twist_tip_and_jacobian(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radius: Tensor, eye4: Tensor,
+                           base_pose: Tensor, tip_marker: Tensor) -> tuple[Tensor, Tensor]:
+    """Marker point base · T₁ ⋯ T_m · marker (:func:`twist_segment_poses`, :func:`chained_marker_point`) and its
+    derivative ∂tip/∂ρ: ρ (..., m, 2) [m] → tip (..., 3) [m], J (..., m, 2, 3) [m/m].
+
+    T_k = I + sΞ + fΞ² with s, f functions of φ² = ‖ρ_k‖²/d_k², so ∂T_k/∂ρ_kj = 2ρ_kj/d_k²·(s'Ξ + f'Ξ²) + s·M_j +
+    f·(M_jΞ + ΞM_j) (M_j = ∂Ξ/∂ρ_kj, constant; s', f' the φ²-derivatives, Taylor branch near 0), and
+    ∂tip/∂ρ_kj = P_{k−1} · ∂T_k/∂ρ_kj · v_k with the prefix P_{k−1} = base · T₁ ⋯ T_{k−1} and the suffix
+    v_k = T_{k+1} ⋯ T_m · marker: matrix-vector products only."""
     m = rho.shape[-2]
-    point = r[..., m - 1, :, :] @ marker + p[..., m - 1, :]          # marker in the last segment's base frame
-    jac = [None] * m
-    jac[m - 1] = (dr[..., m - 1, :, :, :] @ marker + dp[..., m - 1, :, :]).mT
-    for k in range(m - 2, -1, -1):                                    # point_k = p_k + R_k·point_{k+1}
-        local = (dr[..., k, :, :, :] @ point[..., None, :, None]).squeeze(-1) + dp[..., k, :, :]
-        jac = [None if j is None else r[..., k, :, :] @ j for j in jac]
-        jac[k] = local.mT
-        point = p[..., k, :] + (r[..., k, :, :] @ point.unsqueeze(-1)).squeeze(-1)
-    return point, torch.stack(jac, -2) / radius.unsqueeze(-1)
+    maps = twist_map.view(m, 2, 4, 4)
+    xi = (rho.unsqueeze(-2) @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset       # (..., m, 4, 4)
+    inv_d2 = 1 / radius**2
+    s, f, ds, df = _bending_coefficients_and_derivatives((rho * rho).sum(-1) * inv_d2)        # (..., m)
+    poses = eye4 + s[..., None, None] * xi + f[..., None, None] * (xi @ xi)
+    suffix = [tip_marker.expand(*rho.shape[:-2], 4)]
+    for k in range(m - 1, 0, -1):
+        suffix.insert(0, (poses[..., k, :, :] @ suffix[0].unsqueeze(-1)).squeeze(-1))
+    prefix = [base_pose.expand(*rho.shape[:-2], 4, 4)]
+    for k in range(m - 1):
+        prefix.append(prefix[-1] @ poses[..., k, :, :])
+    v, p = torch.stack(suffix, -2), torch.stack(prefix, -3)                       # (..., m, 4), (..., m, 4, 4)
+    tip = (p[..., m - 1, :3, :] @ (poses[..., m - 1, :, :] @ v[..., m - 1, :].unsqueeze(-1))).squeeze(-1)
+    xv = (xi @ v.unsqueeze(-1)).squeeze(-1)                                                  # Ξv (..., m, 4)
+    xxv = (xi @ xv.unsqueeze(-1)).squeeze(-1)                                                # Ξ²v
+    mv = (maps @ v[..., None, :, None]).squeeze(-1)                                          # M_j v (..., m, 2, 4)
+    mxv = (maps @ xv[..., None, :, None]).squeeze(-1)                                        # M_j Ξ v
+    xmv = (xi.unsqueeze(-3) @ mv.unsqueeze(-1)).squeeze(-1)                                  # Ξ M_j v
+    dphi_sq = 2 * rho * inv_d2.unsqueeze(-1)                                                 # ∂φ²/∂ρ_j (..., m, 2)
+    dtv = (dphi_sq.unsqueeze(-1) * (ds[..., None, None] * xv.unsqueeze(-2) + df[..., None, None] * xxv.unsqueeze(-2))
+           + s[..., None, None] * mv + f[..., None, None] * (mxv + xmv))                    # ∂T_k/∂ρ_kj · v_k
+    return tip, (p[..., :3, :].unsqueeze(-3) @ dtv.unsqueeze(-1)).squeeze(-1)               # J (..., m, 2, 3)
 
 
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
@@ -152,8 +170,7 @@ class HardwareFK(nn.Module):
             buffers = {**_active_set_maps(model),
                        "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64),
-                       "base_rotation": cc.base_rotation(), "base_translation": cc.base_translation,
-                       "marker": cc.marker_offset(), "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
+                       "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
                        "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))
@@ -282,10 +299,10 @@ class HardwareFK(nn.Module):
         return gate, -gate.unsqueeze(-1) * ddelta2 / self.gate_width**2
 
     def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
-        """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., 3, m, 2) from ρ (..., m, 2)."""
-        p, jac = tip_and_jacobian(rho, self.radius, self.length, self.marker)
-        world = p @ self.base_rotation.mT + self.base_translation
-        return world, torch.einsum("ij,...jmk->...imk", self.base_rotation, jac)
+        """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., m, 2, 3) from ρ (..., m, 2)
+        (:func:`twist_tip_and_jacobian`)."""
+        return twist_tip_and_jacobian(rho, self.twist_map, self.twist_offset, self.radius, self.eye4, self.base_pose,
+                                      self.tip_marker)
 
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (marker, 1)."""
@@ -327,8 +344,9 @@ class HardwareJacobian(nn.Module):
             memory, new_state, dmem = fk.play(rho, state)
             tangent = (drho, dmem @ drho)
         corrected, dcorr = fk.members(rho, memory, tangent)                   # (B, K, m, 2), (B, K, m, 2, S)
-        tips, dtip = fk.tip(corrected)                                        # (B, K, 3), (B, K, 3, m, 2)
-        jac = torch.einsum("bkimj,bkmjs->bis", dtip, dcorr) / corrected.shape[1]
+        tips, dtip = fk.tip(corrected)                                        # (B, K, 3), (B, K, m, 2, 3)
+        b, k = corrected.shape[:2]                                            # J = mean over members of dtip · dcorr
+        jac = dtip.reshape(b, -1, 3).mT @ dcorr.reshape(b, -1, dcorr.shape[-1]) / k
         tip = tips.mean(1)
         return (tip, jac, new_state) if fk.history else (tip, jac)
 
