@@ -10,8 +10,9 @@ every constant in buffers, exportable with torch.export (``python -m dacr_learn.
   and formula as HardwareFK).
 - :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm]:
   forward-mode tangents written out (∂ρ/∂servo of the active set's affine map, through the networks,
-  :func:`twist_exp_and_tangent`, :func:`~.inference.cc_segment_and_derivative` and the chain); the
-  torch.func transforms (jacrev, jacfwd) of the FK do not trace with torch.export (torch 2.13).
+  :func:`twist_exp_and_tangent`, :func:`~.inference.twist_pose_derivative_times` and the chain's prefixes
+  and suffixes, :meth:`CompositionalHardwareFK.tips_and_rho_jacobian`); the torch.func transforms (jacrev,
+  jacfwd) of the FK do not trace with torch.export (torch 2.13).
 
 Pipeline: servo → ρ per segment (the slack-aware encoder's active-set fast path of HardwareFK: the
 same buffers, :func:`~.inference._active_set_maps`, and the same method, HardwareFK.clarke) → CC
@@ -38,9 +39,11 @@ from .inference import (
     _bending_coefficients_and_derivatives,
     _homogeneous,
     _sigma_coefficients,
-    cc_segment_and_derivative,
+    chain_prefix_suffix,
     chained_marker_point,
     segment_twists,
+    twist_pose_derivative_times,
+    twist_pose_terms,
     twist_segment_poses,
 )
 
@@ -164,20 +167,21 @@ class CompositionalHardwareFK(nn.Module):
             self.register_buffer(name, value.detach())                 # float64 until the affine part is folded
         self.hidden_width = self.w0.shape[-1]
         with torch.no_grad():
-            affine_map, affine_offset = self._affine_part()
+            affine_map, affine_offset = self.affine_part(self.skip_hat)
         self.register_buffer("affine_map", affine_map)
         self.register_buffer("affine_offset", affine_offset)
         self.to(dtype)
         self.spec = spec
 
-    def _affine_part(self) -> tuple[Tensor, Tensor]:
-        """The first layer's pre-activation and the skip term ξ^ of every member (B, K, m, H + 16) are affine
-        in ρ (standardisation, fixed columns and context are): their map (2m, K·m·(H + 16)) and offset, from
-        the module evaluated at ρ = 0 and the 2m unit vectors (float64; exact for an affine function)."""
-        m = self.num_segments
-        basis = torch.cat([torch.zeros(1, 2 * m, dtype=_F64), torch.eye(2 * m, dtype=_F64)]).unflatten(-1, (m, 2))
+    def affine_part(self, skip: Tensor) -> tuple[Tensor, Tensor]:
+        """The first layer's pre-activation and the skip term z·skip of every member (B, K, m, H + E) are affine
+        in ρ (standardisation, fixed columns and context are): their map (2m, K·m·(H + E)) and offset, from the
+        module evaluated at ρ = 0 and the 2m unit vectors (exact for an affine function; float64 at build).
+        ``skip`` (K, C, E): ``skip_hat`` (ξ^, E = 16, the FK path) or ``skip`` (ξ, E = 6, the Jacobian)."""
+        m, dtype = self.num_segments, self.w0.dtype
+        basis = torch.cat([torch.zeros(1, 2 * m, dtype=dtype), torch.eye(2 * m, dtype=dtype)]).unflatten(-1, (m, 2))
         z = self.inputs(basis)                                                            # (1 + 2m, K, m, C)
-        both = torch.cat([z @ self.w0 + self.b0, z @ self.skip_hat], -1)                  # (1 + 2m, K, m, H + 16)
+        both = torch.cat([z @ self.w0 + self.b0, z @ skip], -1)                           # (1 + 2m, K, m, H + E)
         return (both[1:] - both[:1]).flatten(1), both[0].flatten()
 
     clarke = HardwareFK.clarke          # servo → ρ (B, m, 2) [+ ∂ρ/∂servo]: the same buffers as HardwareFK's
@@ -220,31 +224,40 @@ class CompositionalHardwareFK(nn.Module):
         cc = twist_segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)  # (B, m, 4, 4)
         return chained_marker_point(self.base_pose, cc.unsqueeze(1) @ self.corrections(rho), self.tip_marker)
 
-    def tips_and_tangents(self, rho: Tensor, drho: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`tips` (B, K, 3) and their tangents (B, K, T, 3) along the tangents ∂ρ (B, m, T, 2) of ρ
-        (forward mode, written out: torch.export does not trace torch.func transforms of this model)."""
-        z = self.inputs(rho)                                                               # (B, K, m, C)
-        dz_rho = drho.unsqueeze(1) / self.rho_std.unsqueeze(-2)                           # (B, K, m, T, 2)
-        dz = self.context_of(torch.cat([dz_rho, torch.zeros_like(dz_rho)], -1), zero=True)  # fixed columns: 0
-        a, da = z @ self.w0 + self.b0, dz @ self.w0[:, None]
+    def tips_and_rho_jacobian(self, rho: Tensor, affine_map: Tensor, affine_offset: Tensor) -> tuple[Tensor, Tensor]:
+        """:meth:`tips` (B, K, 3) and ∂tips/∂ρ (B, K, 2m, 3) (forward mode along the 2m Clarke coordinates,
+        written out: torch.export does not trace torch.func transforms of this model); ``affine_map``/``_offset``:
+        :meth:`affine_part` of ``skip`` (ξ, 6 columns).
+
+        The first layer and the skip term are affine in ρ, so their tangents are the map's rows; the value and
+        its 2m tangents go through each further layer as 1 + 2m stacked rows of one product per layer, batched
+        over the members (bias on the value row only; SiLU' scales the tangent rows). The corrections and their
+        tangents come from :func:`twist_exp_and_tangent`; the chain is differentiated with prefixes and suffixes
+        (:func:`~.inference.chain_prefix_suffix`): ∂tip = P_k · (∂T_k^CC · C_k + T_k^CC · ∂C_k) · v_k."""
+        b, m, k, h = rho.shape[0], self.num_segments, self.ensemble, self.hidden_width
+        t = 2 * m
+        value = (torch.arange(1 + t) == 0).to(rho.dtype).unsqueeze(-1)                        # (1 + T, 1)
+        pre = torch.addmm(affine_offset, rho.flatten(1), affine_map).view(b, 1, k, m, -1)
+        rows = torch.cat([pre, affine_map.view(1, t, k, m, -1).expand(b, -1, -1, -1, -1)], 1)  # (B, 1 + T, K, m, H + 6)
+        a = rows[..., :h].permute(2, 0, 3, 1, 4).reshape(k, b * m, 1 + t, h)
         for i in range(1, self.layers):
-            sg = torch.sigmoid(a)
-            da = (da * (sg * (1 + a * (1 - sg))).unsqueeze(-2)) @ getattr(self, f"w{i}")[:, None]
-            a = (a * sg) @ getattr(self, f"w{i}") + getattr(self, f"b{i}")
-        corr, dcorr = twist_exp_and_tangent(a + z @ self.skip, da + dz @ self.skip[:, None])
-        u = rho / self.radius.unsqueeze(-1)
-        r, p, dr_du, dp_du = cc_segment_and_derivative(u, self.length.expand(rho.shape[:-1]))
-        du = drho / self.radius[:, None, None]                                             # (B, m, T, 2)
-        cc = pose_from_parts(r, p)
-        dcc = pose_from_parts(torch.einsum("bmtj,bmjxy->bmtxy", du, dr_du), torch.einsum("bmtj,bmjx->bmtx", du, dp_du),
-                              p.new_zeros(1, 4))                                          # tangent: bottom row 0
+            v = a[:, :, :1]
+            sg = torch.sigmoid(v)
+            a = torch.cat([v * sg, a[:, :, 1:] * (sg * (1 + v * (1 - sg)))], 2).reshape(k, -1, a.shape[-1])
+            a = torch.bmm(a, getattr(self, f"w{i}")).view(k, b * m, 1 + t, -1)
+            a = a + getattr(self, f"b{i}").unsqueeze(1) * value
+        xi = a.view(k, b, m, 1 + t, 6).permute(1, 0, 2, 3, 4) + rows[..., h:].permute(0, 2, 3, 1, 4)  # (B,K,m,1+T,6)
+        corr, dcorr = twist_exp_and_tangent(xi[..., 0, :], xi[..., 1:, :])                 # (B,K,m,4,4), (B,K,m,T,4,4)
+        cc, terms = twist_pose_terms(rho, self.twist_map, self.twist_offset, self.radius, self.eye4)
         poses = cc.unsqueeze(1) @ corr                                                     # (B, K, m, 4, 4)
-        dposes = dcc.unsqueeze(1) @ corr.unsqueeze(-3) + cc[:, None, :, None] @ dcorr      # (B, K, m, T, 4, 4)
-        chain, dchain = self.base_pose @ poses[..., 0, :, :], self.base_pose @ dposes[..., 0, :, :, :]
-        for k in range(1, self.num_segments):
-            dchain = dchain @ poses[..., k, None, :, :] + chain.unsqueeze(-3) @ dposes[..., k, :, :, :]
-            chain = chain @ poses[..., k, :, :]
-        return (chain @ self.tip_marker)[..., :3], (dchain @ self.tip_marker)[..., :3]
+        p, v = chain_prefix_suffix(self.base_pose, poses, self.tip_marker)                 # (B,K,m,4,4), (B,K,m,4)
+        tip = (p[..., -1, :3, :] @ (poses[..., -1, :, :] @ v[..., -1, :].unsqueeze(-1))).squeeze(-1)
+        terms = tuple(x.unsqueeze(1) for x in terms[:-1]) + terms[-1:]                      # members broadcast
+        dcc = twist_pose_derivative_times(terms, (corr @ v.unsqueeze(-1)).squeeze(-1))     # ∂T^CC·C·v (B,K,m,2,4)
+        d_own = (p[..., :3, :].unsqueeze(-3) @ dcc.unsqueeze(-1)).squeeze(-1).flatten(2, 3)  # (B, K, 2m, 3)
+        dcv = (dcorr @ v[..., None, :, None]).squeeze(-1)                                  # ∂C·v (B, K, m, T, 4)
+        d_corr = ((p @ cc.unsqueeze(1))[..., :3, :].unsqueeze(-3) @ dcv.unsqueeze(-1)).squeeze(-1).sum(2)  # (B,K,T,3)
+        return tip, d_own + d_corr
 
     def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:
         _check_servo(servo, self.num_servos)
@@ -260,13 +273,15 @@ class CompositionalHardwareJacobian(nn.Module):
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()
         self.fk = CompositionalHardwareFK(model, dtype)
-        m = self.fk.num_segments                      # tangents along each of the 2m Clarke coordinates
-        self.register_buffer("rho_basis", torch.eye(2 * m, dtype=dtype).reshape(2 * m, m, 2).transpose(0, 1))
+        with torch.no_grad():                         # the affine part with the 6-column skip ξ (float64 at build)
+            affine_map, affine_offset = CompositionalHardwareFK(model, _F64).affine_part(self.fk.skip.to(_F64))
+        self.register_buffer("affine_map", affine_map.to(dtype))
+        self.register_buffer("affine_offset", affine_offset.to(dtype))
 
     def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:
         """∂tip/∂servo = ∂tip/∂ρ · ∂ρ/∂servo: 2m tangents through the model (fewer than S servos)."""
         fk = self.fk
         _check_servo(servo, fk.num_servos)
         rho, drho = fk.clarke(servo)                                                       # (B, m, 2), (B, m, 2, S)
-        tips, dtips = fk.tips_and_tangents(rho, self.rho_basis.expand(rho.shape[0], -1, -1, -1))  # (B, K, 2m, 3)
+        tips, dtips = fk.tips_and_rho_jacobian(rho, self.affine_map, self.affine_offset)   # (B, K, 3), (B, K, 2m, 3)
         return tips.mean(1), dtips.mean(1).mT @ drho.flatten(1, 2)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ..kinematics import _TAYLOR_BELOW, bending_coefficients, cc_transform
+from ..kinematics import _TAYLOR_BELOW, bending_coefficients
 from .checkpoint import HardwareModel
 from .learned import RESIDUAL_RHO_SCALE
 from .slack import active_set_gains
@@ -49,28 +49,6 @@ def _bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tenso
     ds_big = (torch.cos(torch.sqrt(phi_sq_big)) - s) / (2 * phi_sq_big)   # s, f of the big branch where used
     df_big = (s - 2 * f) / (2 * phi_sq_big)
     return s, f, torch.where(small, ds_small, ds_big), torch.where(small, df_small, df_big)
-
-
-def cc_segment_and_derivative(u: Tensor, beta: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """One CC segment per (…) entry: bending vector u (..., 2) [rad], length β (...) [m] →
-    R (..., 3, 3), p (..., 3) (:func:`~dacr_learn.kinematics.cc_transform`), ∂R/∂u (..., 2, 3, 3),
-    ∂p/∂u (..., 2, 3) (docs/design.md §2)."""
-    pose = cc_transform(u, beta)
-    ux, uy = u[..., 0], u[..., 1]
-    s, f, ds, df = _bending_coefficients_and_derivatives(ux * ux + uy * uy)
-
-    def rotation(a, b):   # ∂R/∂a for (a, b) = (ux, uy); the uy case swaps rows/columns 0 and 1
-        return [[-2 * a * (f + df * a * a), -b * (f + 2 * df * a * a), s + 2 * ds * a * a],
-                [-b * (f + 2 * df * a * a), -2 * a * df * b * b, 2 * ds * a * b],
-                [-(s + 2 * ds * a * a), -2 * ds * a * b, -2 * a * (f + df * (a * a + b * b))]]
-
-    dx, dy = rotation(ux, uy), rotation(uy, ux)
-    perm = [1, 0, 2]
-    dy = [[dy[perm[i]][perm[j]] for j in range(3)] for i in range(3)]
-    stack = lambda rows: torch.stack([torch.stack(row, -1) for row in rows], -2)  # noqa: E731
-    dpx = beta.unsqueeze(-1) * torch.stack([f + 2 * df * ux * ux, 2 * df * ux * uy, 2 * ds * ux], -1)
-    dpy = beta.unsqueeze(-1) * torch.stack([2 * df * ux * uy, f + 2 * df * uy * uy, 2 * ds * uy], -1)
-    return pose[..., :3, :3], pose[..., :3, 3], torch.stack([stack(dx), stack(dy)], -3), torch.stack([dpx, dpy], -2)
 
 
 def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
@@ -109,38 +87,55 @@ def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -
     return (chain @ tip_marker)[..., :3]
 
 
-def twist_tip_and_jacobian(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radius: Tensor, eye4: Tensor,
-                           base_pose: Tensor, tip_marker: Tensor) -> tuple[Tensor, Tensor]:
-    """Marker point base · T₁ ⋯ T_m · marker (:func:`twist_segment_poses`, :func:`chained_marker_point`) and its
-    derivative ∂tip/∂ρ: ρ (..., m, 2) [m] → tip (..., 3) [m], J (..., m, 2, 3) [m/m].
-
-    T_k = I + sΞ + fΞ² with s, f functions of φ² = ‖ρ_k‖²/d_k², so ∂T_k/∂ρ_kj = 2ρ_kj/d_k²·(s'Ξ + f'Ξ²) + s·M_j +
-    f·(M_jΞ + ΞM_j) (M_j = ∂Ξ/∂ρ_kj, constant; s', f' the φ²-derivatives, Taylor branch near 0), and
-    ∂tip/∂ρ_kj = P_{k−1} · ∂T_k/∂ρ_kj · v_k with the prefix P_{k−1} = base · T₁ ⋯ T_{k−1} and the suffix
-    v_k = T_{k+1} ⋯ T_m · marker: matrix-vector products only."""
+def twist_pose_terms(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radius: Tensor,
+                     eye4: Tensor) -> tuple[Tensor, tuple[Tensor, ...]]:
+    """CC segment poses T = I + sΞ + fΞ² (..., m, 4, 4) of ρ (..., m, 2) [m] (:func:`twist_segment_poses`) and the
+    terms :func:`twist_pose_derivative_times` needs: (Ξ, s, f, s', f', ∂φ²/∂ρ (..., m, 2), M = ∂Ξ/∂ρ (m, 2, 4, 4)),
+    s, f functions of φ² = ‖ρ_k‖²/d_k² and s', f' their φ²-derivatives (Taylor branch near 0)."""
     m = rho.shape[-2]
-    maps = twist_map.view(m, 2, 4, 4)
     xi = (rho.unsqueeze(-2) @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset       # (..., m, 4, 4)
     inv_d2 = 1 / radius**2
     s, f, ds, df = _bending_coefficients_and_derivatives((rho * rho).sum(-1) * inv_d2)        # (..., m)
     poses = eye4 + s[..., None, None] * xi + f[..., None, None] * (xi @ xi)
-    suffix = [tip_marker.expand(*rho.shape[:-2], 4)]
+    return poses, (xi, s, f, ds, df, 2 * rho * inv_d2.unsqueeze(-1), twist_map.view(m, 2, 4, 4))
+
+
+def twist_pose_derivative_times(terms: tuple[Tensor, ...], w: Tensor) -> Tensor:
+    """(∂T_k/∂ρ_kj)·w_k (..., m, 2, 4) for vectors w (..., m, 4): ∂T/∂ρ_j = ∂φ²/∂ρ_j·(s'Ξ + f'Ξ²) + s·M_j +
+    f·(M_jΞ + ΞM_j) with the terms of :func:`twist_pose_terms` (matrix-vector products only)."""
+    xi, s, f, ds, df, dphi_sq, maps = terms
+    xw = (xi @ w.unsqueeze(-1)).squeeze(-1)                                                  # Ξw (..., m, 4)
+    xxw = (xi @ xw.unsqueeze(-1)).squeeze(-1)                                                # Ξ²w
+    mw = (maps @ w[..., None, :, None]).squeeze(-1)                                          # M_j w (..., m, 2, 4)
+    mxw = (maps @ xw[..., None, :, None]).squeeze(-1)                                        # M_j Ξ w
+    xmw = (xi.unsqueeze(-3) @ mw.unsqueeze(-1)).squeeze(-1)                                  # Ξ M_j w
+    return (dphi_sq.unsqueeze(-1) * (ds[..., None, None] * xw.unsqueeze(-2) + df[..., None, None] * xxw.unsqueeze(-2))
+            + s[..., None, None] * mw + f[..., None, None] * (mxw + xmw))
+
+
+def chain_prefix_suffix(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -> tuple[Tensor, Tensor]:
+    """For poses T (..., m, 4, 4): prefixes P_k = base · T₁ ⋯ T_{k−1} (..., m, 4, 4) and suffixes
+    v_k = T_{k+1} ⋯ T_m · marker (..., m, 4), so that the marker point is P_k · T_k · v_k for every k and its
+    derivative along a change dT_k of one segment is P_k · dT_k · v_k."""
+    m = poses.shape[-3]
+    suffix = [tip_marker.expand(*poses.shape[:-3], 4)]
     for k in range(m - 1, 0, -1):
         suffix.insert(0, (poses[..., k, :, :] @ suffix[0].unsqueeze(-1)).squeeze(-1))
-    prefix = [base_pose.expand(*rho.shape[:-2], 4, 4)]
+    prefix = [base_pose.expand(*poses.shape[:-3], 4, 4)]
     for k in range(m - 1):
         prefix.append(prefix[-1] @ poses[..., k, :, :])
-    v, p = torch.stack(suffix, -2), torch.stack(prefix, -3)                       # (..., m, 4), (..., m, 4, 4)
-    tip = (p[..., m - 1, :3, :] @ (poses[..., m - 1, :, :] @ v[..., m - 1, :].unsqueeze(-1))).squeeze(-1)
-    xv = (xi @ v.unsqueeze(-1)).squeeze(-1)                                                  # Ξv (..., m, 4)
-    xxv = (xi @ xv.unsqueeze(-1)).squeeze(-1)                                                # Ξ²v
-    mv = (maps @ v[..., None, :, None]).squeeze(-1)                                          # M_j v (..., m, 2, 4)
-    mxv = (maps @ xv[..., None, :, None]).squeeze(-1)                                        # M_j Ξ v
-    xmv = (xi.unsqueeze(-3) @ mv.unsqueeze(-1)).squeeze(-1)                                  # Ξ M_j v
-    dphi_sq = 2 * rho * inv_d2.unsqueeze(-1)                                                 # ∂φ²/∂ρ_j (..., m, 2)
-    dtv = (dphi_sq.unsqueeze(-1) * (ds[..., None, None] * xv.unsqueeze(-2) + df[..., None, None] * xxv.unsqueeze(-2))
-           + s[..., None, None] * mv + f[..., None, None] * (mxv + xmv))                    # ∂T_k/∂ρ_kj · v_k
-    return tip, (p[..., :3, :].unsqueeze(-3) @ dtv.unsqueeze(-1)).squeeze(-1)               # J (..., m, 2, 3)
+    return torch.stack(prefix, -3), torch.stack(suffix, -2)
+
+
+def twist_tip_and_jacobian(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radius: Tensor, eye4: Tensor,
+                           base_pose: Tensor, tip_marker: Tensor) -> tuple[Tensor, Tensor]:
+    """Marker point base · T₁ ⋯ T_m · marker (:func:`twist_segment_poses`, :func:`chained_marker_point`) and its
+    derivative ∂tip/∂ρ: ρ (..., m, 2) [m] → tip (..., 3) [m], J (..., m, 2, 3) [m/m], ∂tip/∂ρ_kj =
+    P_k · ∂T_k/∂ρ_kj · v_k (:func:`chain_prefix_suffix`, :func:`twist_pose_derivative_times`)."""
+    poses, terms = twist_pose_terms(rho, twist_map, twist_offset, radius, eye4)
+    p, v = chain_prefix_suffix(base_pose, poses, tip_marker)
+    tip = (p[..., -1, :3, :] @ (poses[..., -1, :, :] @ v[..., -1, :].unsqueeze(-1))).squeeze(-1)
+    return tip, (p[..., :3, :].unsqueeze(-3) @ twist_pose_derivative_times(terms, v).unsqueeze(-1)).squeeze(-1)
 
 
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
