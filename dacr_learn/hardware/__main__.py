@@ -112,8 +112,9 @@ def _submit_selection(pool: TaskPool, setup: Setup, args: argparse.Namespace) ->
         return {}
 
 
-def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, dict, dict, dict]:
-    """(proxy scores, final results, val predictions, what ``--save`` needs): every fit handed to one pool
+def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, str | None, dict, dict, dict]:
+    """(proxy scores, default model or None, final results, val predictions, what ``--save`` needs): every fit
+    handed to one pool
     before any is collected. With ``--save`` the final runs of the default candidates return their fitted
     models, so the saved ensemble is the one whose results are reported (not trained a second time), and
     the σ model's held-out fits of the default join the pool as soon as the proxies have chosen it:
@@ -128,7 +129,7 @@ def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, dict, dict, 
         sigma = submit_held_out(pool, setup, default, args.seeds, SIGMA_PROXIES) if keep and default else []
         results, preds = collect_benchmark(final, tuple(args.seeds), fitted=fitted)
         saving = {"members": fitted, "held_out": collect_held_out(sigma)} if keep else {}
-    return scores, results, preds, saving
+    return scores, default, results, preds, saving
 
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup, dict]:
@@ -146,8 +147,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               f"({', '.join(f'{k} {v:.2f} mm' for k, v in variant['extrap'].items())})")
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
-    scores, results, preds, saving = _fit_all(setup, args)
-    default = select_default(scores) if default_candidates(list(scores)) else None
+    scores, default, results, preds, saving = _fit_all(setup, args)
     everyone = default_candidates(list(scores), deployable_only=False)
     proxy_best = choose_default(scores, everyone, SELECTION_PROXY) if everyone else None
     if proxy_best is not None and proxy_best != default:

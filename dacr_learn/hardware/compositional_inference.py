@@ -42,6 +42,7 @@ from .inference import (
     chain_prefix_suffix,
     chained_marker_point,
     segment_twists,
+    silu_linear_rows,
     twist_pose_derivative_times,
     twist_pose_terms,
     twist_segment_poses,
@@ -192,23 +193,17 @@ class CompositionalHardwareFK(nn.Module):
         z_rho = (rho.unsqueeze(1) - self.rho_mean) / self.rho_std                          # (B, K, m, 2)
         return self.context_of(torch.cat([z_rho, self.z_fixed.expand(rho.shape[0], -1, -1, -1)], -1))
 
-    def context_of(self, z: Tensor, zero: bool = False) -> Tensor:
-        """Standardised features z (B, K, m, [T,] 4) with the context appended (CompositionalFK's
-        ``with_context``); ``zero``: z are tangents (one more dim, before the features), whose one-hot
-        context is constant (tangent 0)."""
+    def context_of(self, z: Tensor) -> Tensor:
+        """Standardised features z (B, K, m, 4) with the context appended (CompositionalFK's ``with_context``)."""
         if self.context == "none":
             return z
-        if self.context == "segment":
-            extra = self.context_matrix.expand(*z.shape[:-2], -1, -1)
-            extra = torch.zeros_like(z[..., :1]).expand(*z.shape[:-1], self.num_segments) if zero else extra
-        else:
-            extra = (self.context_matrix @ z.flatten(-2)).unflatten(-1, z.shape[-2:]) if zero else (
-                self.context_matrix @ z)
+        extra = self.context_matrix.expand(*z.shape[:-2], -1, -1) if self.context == "segment" else (
+            self.context_matrix @ z)
         return torch.cat([z, extra], -1)
 
     def corrections(self, rho: Tensor) -> Tensor:
         """Each member's correction exp(ξ_k^) of every segment (B, K, m, 4, 4) at ρ (B, m, 2) [m]: the affine
-        part (first layer and skip, :meth:`_affine_part`) in one product, the hidden and output layers as
+        part (first layer and skip, :meth:`affine_part`) in one product, the hidden and output layers as
         batched products over the members (K, B·m, ·) (v6 default's AOTI runner 46.0 → 41.3 µs)."""
         k, m, h = self.ensemble, self.num_segments, self.hidden_width
         pre = torch.addmm(self.affine_offset, rho.flatten(1), self.affine_map).view(-1, k, m, h + 16)
@@ -236,16 +231,11 @@ class CompositionalHardwareFK(nn.Module):
         (:func:`~.inference.chain_prefix_suffix`): ∂tip = P_k · (∂T_k^CC · C_k + T_k^CC · ∂C_k) · v_k."""
         b, m, k, h = rho.shape[0], self.num_segments, self.ensemble, self.hidden_width
         t = 2 * m
-        value = (torch.arange(1 + t) == 0).to(rho.dtype).unsqueeze(-1)                        # (1 + T, 1)
         pre = torch.addmm(affine_offset, rho.flatten(1), affine_map).view(b, 1, k, m, -1)
         rows = torch.cat([pre, affine_map.view(1, t, k, m, -1).expand(b, -1, -1, -1, -1)], 1)  # (B, 1 + T, K, m, H + 6)
         a = rows[..., :h].permute(2, 0, 3, 1, 4).reshape(k, b * m, 1 + t, h)
         for i in range(1, self.layers):
-            v = a[:, :, :1]
-            sg = torch.sigmoid(v)
-            a = torch.cat([v * sg, a[:, :, 1:] * (sg * (1 + v * (1 - sg)))], 2).reshape(k, -1, a.shape[-1])
-            a = torch.bmm(a, getattr(self, f"w{i}")).view(k, b * m, 1 + t, -1)
-            a = a + getattr(self, f"b{i}").unsqueeze(1) * value
+            a = silu_linear_rows(a, getattr(self, f"w{i}"), getattr(self, f"b{i}"))
         xi = a.view(k, b, m, 1 + t, 6).permute(1, 0, 2, 3, 4) + rows[..., h:].permute(0, 2, 3, 1, 4)  # (B,K,m,1+T,6)
         corr, dcorr = twist_exp_and_tangent(xi[..., 0, :], xi[..., 1:, :])                 # (B,K,m,4,4), (B,K,m,T,4,4)
         cc, terms = twist_pose_terms(rho, self.twist_map, self.twist_offset, self.radius, self.eye4)

@@ -138,6 +138,23 @@ def twist_tip_and_jacobian(rho: Tensor, twist_map: Tensor, twist_offset: Tensor,
     return tip, (p[..., :3, :].unsqueeze(-3) @ twist_pose_derivative_times(terms, v).unsqueeze(-1)).squeeze(-1)
 
 
+def _value_row(rows: int, dtype: torch.dtype) -> Tensor:
+    """(rows, 1): 1 on the first (value) row of a value-and-tangents stack, 0 on the tangent rows."""
+    return (torch.arange(rows) == 0).to(dtype).unsqueeze(-1)
+
+
+def silu_linear_rows(a: Tensor, w: Tensor, bias: Tensor) -> Tensor:
+    """One SiLU + linear layer in forward mode on stacked rows a (K, R, 1 + T, H) = a value row and its T
+    tangent rows per network input: SiLU on the value, the tangents scaled by SiLU'(value), then all rows
+    through the K members' weights w (K, H, H') in one bmm, the bias (K, 1, H') on the value row only
+    → (K, R, 1 + T, H')."""
+    k, r, n, h = a.shape
+    v = a[:, :, :1]
+    sg = torch.sigmoid(v)
+    a = torch.cat([v * sg, a[:, :, 1:] * (sg * (1 + v * (1 - sg)))], 2).reshape(k, -1, h)
+    return torch.bmm(a, w).view(k, r, n, -1) + bias.unsqueeze(1) * _value_row(n, a.dtype)
+
+
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
 
 
@@ -243,15 +260,11 @@ class HardwareFK(nn.Module):
         dx = drho_in if memory is None else torch.cat([drho_in, tangent[1]], -2)           # (B, m, I, T)
         b, m, t = rho.shape[0], rho.shape[1], dx.shape[-1]
         k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
-        value = (torch.arange(1 + t) == 0).to(rho.dtype).unsqueeze(-1)                   # (1 + T, 1): value row
         rows = torch.cat([x.unsqueeze(2), dx.transpose(-1, -2)], 2)                        # (B, m, 1 + T, I)
-        a = rows @ self.first_all + self.b_first_all.unsqueeze(1) * value                  # (B, m, 1 + T, K·H)
+        a = rows @ self.first_all + self.b_first_all.unsqueeze(1) * _value_row(1 + t, rho.dtype)  # (B,m,1+T,K·H)
         a = a.view(b, m, 1 + t, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, 1 + t, h)
         for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
-            v = a[:, :, :1]
-            sg = torch.sigmoid(v)
-            a = torch.cat([v * sg, a[:, :, 1:] * (sg * (1 + v * (1 - sg)))], 2).reshape(k, -1, a.shape[-1])
-            a = torch.bmm(a, w).view(k, b * m, 1 + t, -1) + bias.unsqueeze(1) * value
+            a = silu_linear_rows(a, w, bias)
         a = a.view(k, b, m, 1 + t, 2).transpose(0, 1)                                     # (B, K, m, 1 + T, 2)
         out, dout = a[:, :, :, 0], a[:, :, :, 1:].transpose(-1, -2)                        # (B,K,m,2), (B,K,m,2,T)
         if self.gate_width is not None:
