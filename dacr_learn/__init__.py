@@ -21,11 +21,20 @@ torch.Size([4, 4])
 from importlib.metadata import PackageNotFoundError, version
 
 from .control import ControllerConfig, ResolvedRateController, analytic_jacobian
-from .export import load as load_exported
 from .kinematics import analytic_inverse_kinematics, backbone_points, forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import FKModel, IKModel
 from .robot import RobotSpec
+
+
+def __getattr__(name: str):
+    # load_exported is imported on first use, so `python -m dacr_learn.export` does not find its own
+    # module already imported by the package (runpy's RuntimeWarning)
+    if name == "load_exported":
+        from .export import load
+        return load
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 try:
     __version__ = version("dacr_learn")
