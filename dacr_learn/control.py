@@ -170,15 +170,31 @@ class ResolvedRateController:
         return self.space.joints(self.space.saturate(f))
 
 
-def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: float, max_step: float) -> Tensor:
+def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: float, max_step: float,
+                    secondary: Tensor | None = None) -> Tensor:
     """Damped least-squares step in scaled coordinates z = u / s, for any actuation vector u (float64).
 
     J (..., k, D) [task unit per u unit], Δx (..., k), s (D,) [u units], λ = damping [task unit] →
     Δu = s·Δz, Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx with J̃ = J·diag(s), shortened to ‖Δz‖ ≤ max_step.
+
+    ``secondary`` (..., D): a step Δz₂ [scaled units] wanted for a second task (e.g. pulling the commands
+    towards a rest posture), added through the damped null-space projector: Δz += (I − J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹J̃)Δz₂
+    (with λ = 0 it does not move the task: J̃·projected Δz₂ = 0). Directions J does not see at all
+    (a slack tendon's zero column) pass unchanged, so this is how a resolved-rate controller re-tensions a
+    tendon its Jacobian cannot. The sum is shortened to ``max_step``.
     """
     j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
     a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
-    dz = (j.mT @ torch.linalg.solve(a, _f64(task_step).unsqueeze(-1))).squeeze(-1)
+    rhs = _f64(task_step).unsqueeze(-1)
+    if secondary is not None:
+        if tuple(secondary.shape) != tuple(j.shape[:-2]) + (j.shape[-1],):
+            raise ValueError(f"secondary: expected shape {tuple(j.shape[:-2]) + (j.shape[-1],)} (a scaled step per "
+                             f"actuator), got {tuple(secondary.shape)}")
+        z2 = _f64(secondary).unsqueeze(-1)
+        rhs = rhs - j @ z2                                                    # Δz = z₂ + J̃ᵀA⁻¹(Δx − J̃z₂)
+    dz = (j.mT @ torch.linalg.solve(a, rhs)).squeeze(-1)
+    if secondary is not None:
+        dz = dz + _f64(secondary)
     norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
     dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
     return dz * _f64(scale)

@@ -9,7 +9,11 @@ sliding derivative a continuing motion sees; evaluated at the state after the st
 sits exactly at its width and the one-sided "reversal" derivative ∝ 1/play width is taken, which
 made the loop diverge on a strongly history-dependent test model) and takes a damped least-squares step in servo space
 (:func:`dacr_learn.control.scaled_dls_step`, servo displacements scaled by their half-range),
-clipped to the box of commands seen in the training recording. So this checks the deployment
+clipped to the box of commands seen in the training recording. A slack tendon's column of J is zero,
+so the tip task alone never re-tensions it; opt-in, a second task in J's null space pulls each slack
+servo in (``--retension``, :func:`slack_pull`; on FTDCR v4's default it reaches a far static target
+that stalls 16 mm short without it, but it jolts the tip where a tendon goes taut mid-circle:
+docs/export.md). So this checks the deployment
 plumbing (exported modules, Jacobian, explicit causal state) and the controller on the model; it
 says nothing about how well the real robot would track (that is bounded by the model's own error,
 docs/hardware.md).
@@ -50,17 +54,25 @@ _F64 = torch.float64
 @dataclass(frozen=True)
 class ServoControl:
     """gain: fraction of the tip error corrected per step, in (0, 1]; damping: λ [m] of the DLS;
-    max_step: largest scaled servo step ‖Δu / s‖ per control step (s: each servo's half-range)."""
+    max_step: largest scaled servo step ‖Δu / s‖ per control step (s: each servo's half-range);
+    retension: scaled step ‖Δu / s‖ per control step by which each *slack* servo (a zero column of J) is
+    pulled in, in [0, max_step] (0: off, the default). The tip task alone never moves a slack tendon's
+    servo (its column of J is zero), so a target that needs the tendon taut again can stall. The pull is in
+    J's null space, so it does not move the tip until the tendon goes taut (its column turns non-zero and
+    the pull stops); the step that crosses the taut onset does move it (docs/export.md: a trade-off)."""
 
     gain: float = 0.5
     damping: float = 2e-3
     max_step: float = 0.05
+    retension: float = 0.0
 
     def __post_init__(self):
         if not 0 < self.gain <= 1:
             raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
         if not self.damping >= 0 or not self.max_step > 0:
             raise ValueError(f"damping ≥ 0 [m] and max_step > 0 expected, got {self.damping}, {self.max_step}")
+        if not 0 <= self.retension <= self.max_step:
+            raise ValueError(f"retension: expected a value in [0, max_step = {self.max_step}], got {self.retension}")
 
 
 def training_commands(servo_ids: list[str], recording: Path) -> Tensor:
@@ -74,19 +86,23 @@ def training_commands(servo_ids: list[str], recording: Path) -> Tensor:
 
 
 def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | None, lower: Tensor,
-                upper: Tensor, config: ServoControl = ServoControl(), settle: int = 0) -> dict[str, np.ndarray]:
+                upper: Tensor, config: ServoControl = ServoControl(), settle: int = 0,
+                pull_sign: Tensor | None = None) -> dict[str, np.ndarray]:
     """Track ``targets`` (T, 3) [m] from command ``servo0`` (S,) [mm] and play state ``state0`` (1, m, 2)
     (None: a static model). ``fk`` / ``jacobian``: the exported modules (or HardwareFK / HardwareJacobian).
 
     Each step: the plant (``fk``) executes the command u with the current state → tip and the new state;
     J = ∂tip/∂u at (u, the state before this step: the tangent of the plant's step, module docstring);
-    u ← clip(u + DLS(J, gain·(p* − tip) + Δp*), lower, upper). The first
+    u ← clip(u + DLS(J, gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper),
+    ``pull_sign`` (S,): +1 where a larger command pulls the tendon in, −1 where a smaller one does (the servo
+    map's signs; default all +1). The first
     ``settle`` steps hold targets[0] and are not returned. Returns numpy arrays of the tracking phase:
     desired, actual (T, 3) [m], servo (T, S) [mm], step_us (T,) (controller step: Jacobian + DLS + clip).
     """
     scale = ((upper - lower) / 2).to(_F64).clamp_min(1e-9)
     lower, upper = lower.to(_F64), upper.to(_F64)
     u, state = servo0.to(_F64).clamp(lower, upper), state0
+    pull_sign = torch.ones_like(u) if pull_sign is None else pull_sign.to(_F64)
     desired = torch.cat([targets[:1].expand(settle, 3), targets, targets[-1:]]).to(_F64)
     rows: dict[str, list] = {"desired": [], "actual": [], "servo": [], "step_us": []}
     with torch.no_grad():
@@ -97,13 +113,28 @@ def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | 
             t0 = time.perf_counter_ns()
             j = (jacobian(u[None]) if before is None else jacobian(u[None], before))[1][0]
             task = config.gain * (desired[k] - tip) + (desired[k + 1] - desired[k])
-            u_next = (u + scaled_dls_step(j, task, scale, config.damping, config.max_step)).clamp(lower, upper)
+            pull = slack_pull(j, pull_sign, config.retension) if config.retension > 0 else None
+            u_next = (u + scaled_dls_step(j, task, scale, config.damping, config.max_step, pull)).clamp(lower, upper)
             step_us = (time.perf_counter_ns() - t0) / 1e3
             if k >= settle:
                 for key, v in (("desired", desired[k]), ("actual", tip), ("servo", u), ("step_us", step_us)):
                     rows[key].append(torch.as_tensor(v, dtype=_F64))
             u = u_next
     return {k: torch.stack(v).numpy() for k, v in rows.items()}
+
+
+def slack_pull(jac: Tensor, pull_sign: Tensor, retension: float) -> Tensor:
+    """Scaled null-space step (S,) re-tensioning slack tendons: retension·pull_sign on the servos whose
+    column of J (3, S) is zero (relative to the largest: a slack tendon), 0 elsewhere; pull_sign (S,) ±1."""
+    column = torch.linalg.vector_norm(jac.to(_F64), dim=-2)
+    slack = column <= 1e-6 * column.max().clamp_min(1e-300)
+    return torch.where(slack, retension * pull_sign.to(_F64), torch.zeros_like(column))
+
+
+def servo_signs(meta: dict) -> Tensor:
+    """(S,) ±1 of an export's servo map in ``servo_ids`` order: the direction that pulls each tendon in."""
+    sign = {str(a["servo"]): float(a["sign"]) for a in meta["servo_map"]["servos"]}
+    return torch.tensor([sign[str(i)] for i in meta["servo_ids"]], dtype=_F64)
 
 
 def circle(center: Tensor, radius: float, drop: float, steps: int) -> Tensor:
@@ -141,6 +172,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--settle", type=int, default=100, help="steps on the first target before tracking")
     p.add_argument("--hold", type=int, default=200, help="steps per static target")
     p.add_argument("--gain", type=float, default=0.5)
+    p.add_argument("--retension", type=float, default=ServoControl.retension,
+                   help="scaled step per control step pulling each slack tendon's servo in (null space; 0: off)")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "control_hardware")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -149,13 +182,15 @@ def main(argv: list[str] | None = None) -> dict:
     fk, jac, init, meta = load_modules(args.export)
     commands = training_commands(meta["servo_ids"], args.train)
     lower, upper = commands.min(0).values, commands.max(0).values          # the box of the training commands
-    config = ServoControl(gain=args.gain)
+    config = ServoControl(gain=args.gain, retension=args.retension)
+    pull_sign = servo_signs(meta)
     rest = torch.zeros(len(meta["servo_ids"]), dtype=_F64).clamp(lower, upper)
     state0 = None if init is None else init(rest[None])
     rest_tip = fk(rest[None], *(() if init is None else (state0,)))[0][0]
     path = circle(rest_tip, 1e-3 * args.radius, 1e-3 * args.drop, args.period).repeat(args.laps, 1)
-    results = {"circle": errors(run_control(fk, jac, path, rest, state0, lower, upper, config, args.settle))}
-    results.update(static_targets(fk, jac, init, commands, rest, lower, upper, config, args.hold))
+    results = {"circle": errors(run_control(fk, jac, path, rest, state0, lower, upper, config, args.settle,
+                                            pull_sign))}
+    results.update(static_targets(fk, jac, init, commands, rest, lower, upper, config, args.hold, pull_sign))
     summary = {"export": str(args.export), "model": meta["model"], "robot": meta["robot"]["name"],
                "history": meta["history"], "plant": "the learned model itself (exported fk module)",
                "servo_box_mm": {"lower": lower.tolist(), "upper": upper.tolist()}, "controller": asdict(config),
@@ -168,7 +203,7 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 def static_targets(fk, jac, init, commands: Tensor, rest: Tensor, lower: Tensor, upper: Tensor,
-                   config: ServoControl, hold: int, count: int = 4) -> dict[str, dict]:
+                   config: ServoControl, hold: int, pull_sign: Tensor | None = None, count: int = 4) -> dict[str, dict]:
     """Reach the model's tips at ``count`` evenly spaced training ``commands`` (N, S) [mm] from the rest
     command, one by one (each target: the model's tip at that command, play state started there)."""
     out = {}
@@ -177,7 +212,7 @@ def static_targets(fk, jac, init, commands: Tensor, rest: Tensor, lower: Tensor,
         state_goal = None if init is None else init(goal[None])
         target = fk(goal[None], *(() if init is None else (state_goal,)))[0][0].to(_F64)
         state0 = None if init is None else init(rest[None])
-        res = run_control(fk, jac, target.expand(hold, 3), rest, state0, lower, upper, config)
+        res = run_control(fk, jac, target.expand(hold, 3), rest, state0, lower, upper, config, pull_sign=pull_sign)
         err = np.linalg.norm(res["actual"] - res["desired"], axis=-1)
         out[f"static_{n}"] = {"train_row": row, "start_error_mm": 1e3 * float(err[0]),
                               "final_error_mm": 1e3 * float(err[-1]), "step_p50_us": float(np.median(res["step_us"]))}

@@ -21,6 +21,7 @@ from dacr_learn.hardware.inference import HardwareFK, HardwareJacobian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ROOT = Path(__file__).resolve().parents[1]
+RETENSION = 0.01                               # the slack pull of the re-tension test (scaled step per control step)
 
 
 def _example():
@@ -45,6 +46,68 @@ def test_scaled_dls_step_solves_the_task_and_respects_the_step_limit():
     assert (proj.squeeze(-1) - dz).abs().max() <= roundoff_tol(torch.float64, float(dz.abs().max()), 1024)
     short = scaled_dls_step(jac, task, scale, damping=1e-2, max_step=1e-5)
     assert torch.allclose(torch.linalg.vector_norm(short / scale, dim=-1), torch.full((4,), 1e-5, dtype=torch.float64))
+
+
+def test_scaled_dls_step_adds_the_secondary_step_in_the_null_space():
+    g = torch.Generator().manual_seed(1)
+    jac = torch.randn(3, 8, generator=g, dtype=torch.float64)
+    task = 1e-3 * torch.randn(3, generator=g, dtype=torch.float64)
+    scale = 0.5 + torch.rand(8, generator=g, dtype=torch.float64)
+    z2 = 1e-2 * torch.randn(8, generator=g, dtype=torch.float64)
+    plain = scaled_dls_step(jac, task, scale, damping=0.0, max_step=1e3)
+    both = scaled_dls_step(jac, task, scale, damping=0.0, max_step=1e3, secondary=z2)
+    tol = roundoff_tol(torch.float64, 1e-2, 1024)
+    assert (jac @ both - task).abs().max() <= tol                        # the task is still solved exactly
+    jt = jac * scale                                                     # the rest is z₂ minus its row-space part
+    null_part = z2 - jt.mT @ torch.linalg.solve(jt @ jt.mT, jt @ z2)
+    assert ((both - plain) / scale - null_part).abs().max() <= tol
+    assert float(null_part.norm()) > 1e-3                                # not a vacuous check
+    zero_column = jac.clone()
+    zero_column[:, 2] = 0.0                                              # a slack tendon: J does not see it
+    e2 = torch.zeros(8, dtype=torch.float64)
+    e2[2] = 1e-2
+    step = scaled_dls_step(zero_column, torch.zeros(3, dtype=torch.float64), scale, 1e-3, 1e3, secondary=e2)
+    assert torch.allclose(step, e2 * scale, rtol=0, atol=tol)           # passes unchanged, even damped
+    with pytest.raises(ValueError, match=r"secondary: expected shape \(8,\)"):
+        scaled_dls_step(jac, task, scale, 0.0, 1.0, secondary=torch.zeros(7, dtype=torch.float64))
+
+
+def test_slack_pull_pulls_in_only_slack_servos():
+    example = _example()
+    jac = torch.ones(3, 4, dtype=torch.float64)
+    jac[:, 1] = 0.0                                                      # servos 1 and 3 slack
+    jac[:, 3] = 0.0
+    sign = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=torch.float64)     # servo 3 pulls in downwards
+    pull = example.slack_pull(jac, sign, 0.01)
+    assert torch.equal(pull, torch.tensor([0.0, 0.01, 0.0, -0.01], dtype=torch.float64))
+    meta = {"servo_ids": ["b", "a"], "servo_map": {"servos": [{"servo": "a", "sign": -1}, {"servo": "b", "sign": 1}]}}
+    assert torch.equal(example.servo_signs(meta), torch.tensor([1.0, -1.0], dtype=torch.float64))
+    assert example.ServoControl().retension == 0.0                       # opt-in
+    for bad in (-0.1, 0.2):
+        with pytest.raises(ValueError, match="retension"):
+            example.ServoControl(max_step=0.1, retension=bad)
+
+
+def test_controller_re_tensions_a_slack_tendon_the_tip_task_cannot():
+    """From training command 78 to the tip of command 0 the tip task alone stalls on the history test
+    model (the tendons it needs are slack: their columns of J are zero); the null-space pull reaches it."""
+    example = _example()
+    model = synthetic_model(history=True)
+    fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
+    commands = 1e3 * command_recording(200, 0).servo
+    lower, upper = commands.min(0).values, commands.max(0).values
+    goal, start = commands[0], commands[78]
+    target = fk(goal[None], fk.initial_state(goal[None]))[0][0].double()
+    final = {}
+    for retension in (0.0, RETENSION):
+        res = example.run_control(fk, jac, target.expand(150, 3), start, fk.initial_state(start[None]), lower,
+                                  upper, example.ServoControl(gain=0.5, damping=1e-3, max_step=0.1,
+                                                              retension=retension))
+        final[retension] = float((torch.from_numpy(res["actual"][-1]) - target).norm())
+        servo = torch.from_numpy(res["servo"])
+        assert bool(((servo >= lower - 1e-12) & (servo <= upper + 1e-12)).all()), "commands stay in the box"
+    assert final[0.0] > 1e-3, final                                      # the stall this second task is for
+    assert final[RETENSION] <= 1e-6 * TIP_SCALE, final                   # reached (0.15 µm)
 
 
 def _task(model):
