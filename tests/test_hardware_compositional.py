@@ -152,3 +152,59 @@ def test_registered_with_clarke_inputs(setup):
     assert info.clarke_space and info.static and not info.deterministic and info.letter == "j"
     ctx = FitContext(cc, _servo_map(cc.spec), IDS, split)
     assert isinstance(build_model(NAME, ctx, 0), CCCompositionalResidual)
+
+
+def _with_memory(split: Split, seed: int = 2) -> Split:
+    """The split with a random play memory (n, m, 2) in the unit disc (synthetic splits carry zeros)."""
+    g = torch.Generator().manual_seed(seed)
+    memory = torch.rand(split.memory.shape, generator=g, dtype=torch.float64) * 2 - 1
+    return Split(split.servo, split.x, split.features, split.cc_tip, split.tip, memory / 2)
+
+
+def test_history_variant_feeds_each_segment_its_own_memory(setup):
+    """history=True: untrained it is the CC model whatever the memory; trained weights make each segment's
+    correction depend on its own memory (segment k's correction moves only when memory[:, k] does)."""
+    cc, split = setup
+    moved = _with_memory(split)
+    untrained = CCCompositionalResidual(split, cc, history=True)
+    assert untrained.history and not CCCompositionalResidual(split, cc).history
+    with torch.no_grad():
+        assert torch.allclose(untrained(moved), split.cc_tip, atol=64 * torch.finfo(torch.float32).eps * 0.15)
+    model = _randomised(CCCompositionalResidual(split, cc, history=True)).double()
+    assert model.fk.skip.in_features == model.fk.front.dim + 2
+    one = Split(*(getattr(moved, f) for f in ("servo", "x", "features", "cc_tip", "tip")),
+                torch.cat([moved.memory[:, :1], split.memory[:, 1:]], 1))     # only segment 0's memory set
+    with torch.no_grad():
+        base, first = model.corrections(split), model.corrections(one)
+        assert (base[:, 0] - first[:, 0]).abs().max() > 1e-3                   # segment 0 sees it
+        assert torch.allclose(base[:, 1], first[:, 1], rtol=0, atol=1e3 * torch.finfo(torch.float64).eps)
+        assert (model(moved) - model(split)).abs().max() > 1e-4
+
+
+def test_history_variant_fits_a_direction_dependent_offset(setup):
+    """A tip offset proportional to the memory (hysteresis) is learnt by the history variant, not the static one."""
+    cc, split = setup
+    moved = _with_memory(split)
+    target = Split(moved.servo, moved.x, moved.features, moved.cc_tip,
+                   moved.cc_tip + 4e-3 * moved.memory.sum(1) @ torch.tensor([[1.0, 0.0, 0.2], [0.0, 1.0, -0.3]],
+                                                                            dtype=torch.float64), moved.memory)
+    errors = {}
+    for history in (False, True):
+        torch.manual_seed(0)
+        model = CCCompositionalResidual(target, cc, steps=60, lr=2e-2, weight_decay=0.0, history=history)
+        model.fit(target)
+        with torch.no_grad():
+            errors[history] = float((model(target) - target.tip).pow(2).sum(-1).mean().sqrt())
+    assert errors[True] < 0.5 * errors[False], errors
+
+
+def test_history_variant_is_scored_but_cannot_be_saved_yet(setup, tmp_path):
+    from dacr_learn.hardware.checkpoint import HardwareModel, save_hardware_model
+
+    cc, split = setup
+    info = REGISTRY["cc_compositional_history"]
+    assert info.clarke_space and not info.static and not info.deployable and info.letter == "k"
+    member = build_model("cc_compositional_history", FitContext(cc, _servo_map(cc.spec), IDS, split), 0)
+    model = HardwareModel("cc_compositional_history", cc.spec, _servo_map(cc.spec), IDS, cc, [member])
+    with pytest.raises(ValueError, match="history inputs .* cannot be saved yet"):
+        save_hardware_model(model, tmp_path / "model.pt")

@@ -32,7 +32,9 @@ def test_registry_has_unique_letters_and_flags():
     letters = [REGISTRY[m].letter for m in MODELS]
     assert len(set(letters)) == len(letters) == len(MODELS)
     assert {m for m in MODELS if REGISTRY[m].deterministic} == {"linear_raw", "cc"}
-    assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history"]
+    assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history", "cc_compositional_history"]
+    history = model_info("cc_compositional_history")
+    assert history.letter == "k" and history.clarke_space and not history.deployable
     assert not model_info("mlp_raw").clarke_space and model_info("pretrained_clarke").clarke_space
     with pytest.raises(ValueError, match="expected one of"):
         model_info("mlp")

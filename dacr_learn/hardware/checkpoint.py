@@ -143,6 +143,9 @@ def _structure(members: list) -> str:
 def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
     """Write ``model`` as a weights-only checkpoint (format of the module docstring); returns the path."""
     structure = _structure(model.members)
+    if structure == "compositional" and model.history:
+        raise ValueError(f"members: compositional models with history inputs ({model.name!r}) cannot be saved yet "
+                         f"(no exported module passes their play state); save a static compositional model")
     extra = {} if structure == "clarke_residual" else {
         "structure": structure, "compositional": compositional_config(model.members[0])}
     if extra and any(compositional_config(m) != extra["compositional"] for m in model.members):

@@ -21,8 +21,14 @@ extrapolate it freely to the pairs, where it turns the distal bending planes.
 Training: full-batch Adam on the mean squared tip error [mm²] plus ``weight_decay`` × the sum of
 squared network weights (biases excluded), the CC parameters frozen.
 
+With ``history=True`` (registry (k) ``cc_compositional_history``) the network also sees segment k's
+play memory (ρ_k − play(ρ_k))/PLAY_WIDTH, the motion-direction input of model (g), so each correction
+depends on how the segment got there (hysteresis) as well as where it is.
+
 Deployable: :mod:`.checkpoint` saves and loads it (format /2), :mod:`.compositional_inference` has its
-exportable FK and Jacobian modules (``python -m dacr_learn.export``).
+exportable FK and Jacobian modules (``python -m dacr_learn.export``) — without history; the history
+variant is scored by the benchmark but cannot be saved yet (its exported modules would need the play
+state passed in and out, as :class:`~.inference.HardwareFK` does).
 """
 from __future__ import annotations
 
@@ -31,9 +37,11 @@ from torch import Tensor, nn
 
 from ..compositional import CompositionalFK
 from ..kinematics import _chain, effective_features, segment_poses
+from ..models import mlp
 from .ccmodel import CalibratedCC
 from .learned import LR, RESIDUAL_HIDDEN, STEPS, Split, train_full_batch
 
+MEMORY_INPUTS = 2    # with history=True: segment k's play memory (ρ_k − play(ρ_k))/PLAY_WIDTH, as model (g) sees it
 TWIST_SCALE = 0.05   # network output 1 ↔ 0.05·L_s translation, 0.05 rad (≈ 2.9°) rotation per segment
 CONTEXT, DEPTH, WEIGHT_DECAY, TORSION = "none", 2, 3.0, False   # chosen on the train-only proxies
 # (docs/compositional.md, experiments/hardware_cv/compositional_sweep.py)
@@ -44,8 +52,9 @@ class CCCompositionalResidual(nn.Module):
 
     def __init__(self, train: Split, cc: CalibratedCC, context: str = CONTEXT, width: int = RESIDUAL_HIDDEN,
                  depth: int = DEPTH, weight_decay: float = WEIGHT_DECAY, torsion: bool = TORSION, steps: int = STEPS,
-                 lr: float = LR):
+                 lr: float = LR, history: bool = False):
         super().__init__()
+        self.history = bool(history)
         if weight_decay < 0 or steps < 1 or lr <= 0:
             raise ValueError(f"expected weight_decay >= 0, steps >= 1 and lr > 0, got weight_decay="
                              f"{weight_decay}, steps={steps}, lr={lr}")
@@ -53,6 +62,10 @@ class CCCompositionalResidual(nn.Module):
         self.weight_decay, self.steps, self.lr = weight_decay, steps, lr
         self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context)
         self.fk.front.norm.fit(self.segment_features(train))
+        if self.history:                          # segment k's play memory (2 values) joins its network input
+            dim, out = self.fk.front.dim + MEMORY_INPUTS, self.fk.skip.out_features
+            self.fk.net = mlp(dim, out, width, depth, "silu")
+            self.fk.skip = nn.Linear(dim, out, bias=False)
         for layer in (self.fk.net[-1], self.fk.skip):
             nn.init.zeros_(layer.weight)
         nn.init.zeros_(self.fk.net[-1].bias)
@@ -71,6 +84,8 @@ class CCCompositionalResidual(nn.Module):
         """Learned correction exp(ξ_k^) of every segment: (n, m, 4, 4)."""
         front = self.fk.front
         z = front.with_context(front.norm(self.segment_features(split)))
+        if self.history:
+            z = torch.cat([z, split.memory.to(z.dtype)], -1)          # (n, m, C + 2)
         return self.fk.head((self.fk.net(z) + self.fk.skip(z)) * self.twist_mask)
 
     def segment_ends(self, split: Split) -> Tensor:

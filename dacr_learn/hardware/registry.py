@@ -79,6 +79,8 @@ _MODELS = (
     ModelInfo("pretrained_raw", "i", lambda c, s: Pretrained("raw", c.train, c.synthetic(s)), "raw"),
     ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke",
               deployable=True),
+    ModelInfo("cc_compositional_history", "k",
+              lambda c, s: CCCompositionalResidual(c.train, c.cc, history=True), "clarke", static=False),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)

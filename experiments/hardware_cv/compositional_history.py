@@ -9,6 +9,9 @@ Rule, written down before any score of it was computed: it becomes a registry ca
 singles → pairs score (seed 0, the robot's CC variant as the benchmark chooses it) is ≥ 0.2 mm below (j)'s
 on one robot and not more than 0.1 mm above on the other.
 
+The variant is now the library's ``CCCompositionalResidual(history=True)``, registry (k)
+``cc_compositional_history`` (it passed: results/compositional_history.jsonl, docs/hardware.md).
+
 Usage: python experiments/hardware_cv/compositional_history.py ROBOT [PROXIES]      (ROBOT: v4 | v6)
 One JSON line per model and proxy appended to results/compositional_history.jsonl.
 """
@@ -19,17 +22,14 @@ import time
 from pathlib import Path
 
 import torch
-from torch import Tensor, nn
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 torch.set_num_threads(1)
 
 from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
-from dacr_learn.hardware.compositional_model import CCCompositionalResidual  # noqa: E402
-from dacr_learn.hardware.learned import Split  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.registry import ModelInfo  # noqa: E402
+from dacr_learn.hardware.registry import REGISTRY  # noqa: E402
 from dacr_learn.hardware.selection import (  # noqa: E402
     CC_VARIANTS,
     choose_cc_variant,
@@ -37,39 +37,11 @@ from dacr_learn.hardware.selection import (  # noqa: E402
     proxy_masks,
     proxy_scores,
 )
-from dacr_learn.models import mlp  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/compositional_history.jsonl"
-MEMORY = 2                                          # (ρ_re, ρ_im) memory of the segment
 
 
-class CCCompositionalHistory(CCCompositionalResidual):
-    """(j) whose per-segment network also sees its segment's play memory (n, m, 2) of the Split."""
-
-    history = True
-
-    def __init__(self, train: Split, cc, **kwargs):
-        super().__init__(train, cc, **kwargs)
-        fk, dim = self.fk, self.fk.front.dim + MEMORY
-        linear = [layer for layer in fk.net if isinstance(layer, nn.Linear)]
-        fk.net = mlp(dim, linear[-1].out_features, linear[0].out_features, len(linear) - 1, "silu")
-        fk.skip = nn.Linear(dim, linear[-1].out_features, bias=False)
-        for layer in (fk.net[-1], fk.skip):                             # an untrained model is the CC model
-            nn.init.zeros_(layer.weight)
-        nn.init.zeros_(fk.net[-1].bias)
-
-    def corrections(self, split: Split) -> Tensor:
-        front = self.fk.front
-        z = front.with_context(front.norm(self.segment_features(split)))
-        z = torch.cat([z, split.memory.to(z.dtype)], -1)
-        return self.fk.head((self.fk.net(z) + self.fk.skip(z)) * self.twist_mask)
-
-
-MODELS = {"cc_compositional_residual": ModelInfo("cc_compositional_residual", "j",
-                                                 lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke"),
-          "cc_compositional_history": ModelInfo("cc_compositional_history", "?",
-                                                lambda c, s: CCCompositionalHistory(c.train, c.cc), "clarke",
-                                                static=False)}
+MODELS = {name: REGISTRY[name] for name in ("cc_compositional_residual", "cc_compositional_history")}
 
 
 def main(robot: str, proxies: tuple[str, ...]) -> None:
