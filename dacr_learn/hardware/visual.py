@@ -11,7 +11,7 @@ from .metrics import offset_removed_errors
 
 COLORS = {"measured": (20, 20, 20), "cc": (31, 119, 180)}
 PALETTE = [(214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (140, 86, 75),
-           (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207), (255, 0, 255), (0, 0, 128)]
+           (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207), (255, 0, 255), (0, 150, 136)]
 # one colour per registered model besides cc: k = 1 … 11 in registry order never wraps onto another's
 
 
