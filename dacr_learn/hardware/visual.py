@@ -8,6 +8,7 @@ import torch
 
 from .benchmark import Setup
 from .metrics import offset_removed_errors
+from .registry import MODELS
 
 COLORS = {"measured": (20, 20, 20), "cc": (31, 119, 180)}
 PALETTE = [(214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (140, 86, 75),
@@ -16,6 +17,10 @@ PALETTE = [(214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (140, 
 
 
 def _color(name: str, k: int) -> tuple[int, int, int]:
+    """A model's colour: fixed by its registry position (so the PNG, which shows a few models, and the
+    Rerun recording, which shows all, agree); ``k`` (its position in the plot) only for other names."""
+    if name in MODELS:
+        k = MODELS.index(name) + 1
     return COLORS.get(name, PALETTE[k % len(PALETTE)])
 
 
