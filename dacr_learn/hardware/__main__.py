@@ -176,7 +176,9 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     if preds and not args.no_visuals:
         from .visual import log_rerun, plot_paths
 
-        shown = [m for m in ("cc", report["best_static_clarke_model"], default) if m in preds]
+        # the CC model, the best static Clarke model and the default (without proxies: the best Clarke model)
+        third = default or report["best_clarke_model"]
+        shown = [m for m in ("cc", report["best_static_clarke_model"], third) if m in preds]
         plot_paths(setup, {m: preds[m] for m in dict.fromkeys(shown)}, args.out / "val_tip_paths.png")
         log_rerun(setup, preds, args.out / "val_tip_paths.rrd")
     print(markdown_table(results, scores, default))
