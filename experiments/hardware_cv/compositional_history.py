@@ -17,7 +17,6 @@ One JSON line per model and proxy appended to results/compositional_history.json
 """
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,32 +24,20 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 torch.set_num_threads(1)
 
-from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
+from folds import train_folds  # noqa: E402  (experiments/hardware_cv/folds.py)
+
 from dacr_learn.hardware.registry import REGISTRY  # noqa: E402
-from dacr_learn.hardware.selection import (  # noqa: E402
-    CC_VARIANTS,
-    choose_cc_variant,
-    make_folds,
-    proxy_masks,
-    proxy_scores,
-)
+from dacr_learn.hardware.selection import proxy_scores  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/compositional_history.jsonl"
-
-
 MODELS = {name: REGISTRY[name] for name in ("cc_compositional_residual", "cc_compositional_history")}
 
 
 def main(robot: str, proxies: tuple[str, ...]) -> None:
-    spec, smap, _ = resolve_robot(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml", None, None,
-                                  Path(tempfile.mkdtemp()), "mm")
-    rec = load_recording(ROOT / f"data/ftdcr_{robot}/train.csv", spec)      # train only, never val
-    variant, _ = choose_cc_variant(rec, spec, smap)
-    masks = proxy_masks(list(rec.labels), proxies)
-    folds = {p: make_folds(rec, spec, smap, masks[p], CC_VARIANTS[variant]) for p in proxies}
+    folds, variant = train_folds(robot, proxies)
     for name, info in MODELS.items():
         start = time.perf_counter()
         scores = proxy_scores(info, folds, [0])

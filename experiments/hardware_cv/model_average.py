@@ -15,7 +15,6 @@ e.g.   python experiments/hardware_cv/model_average.py v6 cc,cc_compositional_re
 import itertools
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,13 +23,13 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 torch.set_num_threads(1)
 
-from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
+from folds import train_folds  # noqa: E402  (experiments/hardware_cv/folds.py)
+
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
 from dacr_learn.hardware.registry import build_model  # noqa: E402
-from dacr_learn.hardware.selection import CC_VARIANTS, choose_cc_variant, make_folds, proxy_masks  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/model_average.jsonl"
 
@@ -44,12 +43,7 @@ def fold_tips(model: str, fold, seed: int = 0) -> torch.Tensor:
 
 
 def main(robot: str, models: list[str], proxies: tuple[str, ...]) -> None:
-    spec, smap, _ = resolve_robot(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml", None, None,
-                                  Path(tempfile.mkdtemp()), "mm")
-    rec = load_recording(ROOT / f"data/ftdcr_{robot}/train.csv", spec)      # train only, never val
-    variant, _ = choose_cc_variant(rec, spec, smap)
-    masks = proxy_masks(list(rec.labels), proxies)
-    folds = {p: make_folds(rec, spec, smap, masks[p], CC_VARIANTS[variant]) for p in proxies}
+    folds, variant = train_folds(robot, proxies)
     tips: dict[str, dict[str, dict[str, torch.Tensor]]] = {p: {} for p in proxies}   # proxy → fold → model → tips
     for model in models:
         start = time.perf_counter()
