@@ -119,12 +119,15 @@ class CompositionalFK(nn.Module):
 
     ``segment_transforms`` gives T_k (..., m, 4, 4), ``segment_ends`` the end frame of every segment
     in the base frame (..., m, 4, 4). Clarke features only (raw joints do not split per segment).
+    ``extra_inputs``: per-segment inputs a caller appends to the front end's (the network and skip take
+    ``front.dim + extra_inputs`` columns; the hardware model's play memory); :meth:`segment_transforms`
+    needs 0.
     """
 
     structure = "compositional"
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 64, depth: int = 3,
-                 activation: str = "silu", rotation: str = "twist", context: str = "none"):
+                 activation: str = "silu", rotation: str = "twist", context: str = "none", extra_inputs: int = 0):
         super().__init__()
         if features != "clarke":
             raise ValueError(f"features: the compositional structure needs 'clarke' features (a raw joint "
@@ -132,10 +135,13 @@ class CompositionalFK(nn.Module):
         if rotation not in HEADS:
             raise ValueError(f"rotation: expected one of {sorted(HEADS)} for the compositional structure, "
                              f"got {rotation!r}")
+        if extra_inputs < 0:
+            raise ValueError(f"extra_inputs: expected a number of columns >= 0, got {extra_inputs}")
         self.spec, self.rotation, self.length = spec, rotation, spec.total_length
         self.front = SegmentFrontEnd(spec, context)
-        self.net = mlp(self.front.dim, HEADS[rotation], width, depth, activation)
-        self.skip = nn.Linear(self.front.dim, HEADS[rotation], bias=False)   # learned linear part of f_θ
+        dim = self.front.dim + extra_inputs
+        self.net = mlp(dim, HEADS[rotation], width, depth, activation)
+        self.skip = nn.Linear(dim, HEADS[rotation], bias=False)              # learned linear part of f_θ
         self.register_buffer("length_scale", torch.tensor(spec.total_length / spec.num_segments))
 
     def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:

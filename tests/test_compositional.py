@@ -117,6 +117,8 @@ def test_bad_options_are_refused():
         CompositionalFK(TDCR3, rotation="quaternion")
     with pytest.raises(ValueError, match="context"):
         CompositionalFK(TDCR3, context="proximal")
+    with pytest.raises(ValueError, match="extra_inputs"):
+        CompositionalFK(TDCR3, extra_inputs=-1)
     with pytest.raises(ValueError, match="structure"):
         build_fk_model(TDCR3, "modular")
     with pytest.raises(ValueError, match="context"):

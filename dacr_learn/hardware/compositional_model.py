@@ -37,7 +37,6 @@ from torch import Tensor, nn
 
 from ..compositional import CompositionalFK
 from ..kinematics import _chain, effective_features, segment_poses
-from ..models import mlp
 from .ccmodel import CalibratedCC
 from .learned import LR, RESIDUAL_HIDDEN, STEPS, Split, train_full_batch
 
@@ -60,12 +59,9 @@ class CCCompositionalResidual(nn.Module):
                              f"{weight_decay}, steps={steps}, lr={lr}")
         self.cc, self.spec = cc, cc.spec
         self.weight_decay, self.steps, self.lr = weight_decay, steps, lr
-        self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context)
+        self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context,
+                                  extra_inputs=MEMORY_INPUTS if self.history else 0)   # + segment k's play memory
         self.fk.front.norm.fit(self.segment_features(train))
-        if self.history:                          # segment k's play memory (2 values) joins its network input
-            dim, out = self.fk.front.dim + MEMORY_INPUTS, self.fk.skip.out_features
-            self.fk.net = mlp(dim, out, width, depth, "silu")
-            self.fk.skip = nn.Linear(dim, out, bias=False)
         for layer in (self.fk.net[-1], self.fk.skip):
             nn.init.zeros_(layer.weight)
         nn.init.zeros_(self.fk.net[-1].bias)
