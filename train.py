@@ -1,56 +1,91 @@
 """Train and evaluate learned FK / IK models from YAML configs (LightningCLI).
 
-    python train.py fit  --config configs/default.yaml          # train, then test → runs/default/
-    python train.py fit  --config configs/default.yaml --ckpt_path last   # resume an interrupted run
-    python train.py test --config configs/default.yaml --ckpt_path runs/default/checkpoints/last.ckpt
+    python train.py fit  --config configs/default.yaml          # a new run → runs/default/version_<n>/
+    python train.py fit  --config configs/default.yaml --ckpt_path last   # resume the newest run of that name
+    python train.py test --config configs/default.yaml --ckpt_path last   # → runs/default/version_<n>/test_<k>/
     python train.py fit  --config configs/default.yaml --print_config
     python train.py fit  --config configs/fk_tdcr3.yaml --trainer.devices 2 --trainer.strategy ddp
 
-Every run writes to runs/<run_name>/: checkpoints/ (last.ckpt is refreshed every epoch and on
-interruption), rerun.rrd (metrics and 3D scenes), metrics.json (test-split summary).
+A ``fit`` without ``--ckpt_path`` always starts a new run folder ``<runs_dir>/<run_name>/version_<n>/``;
+nothing a run writes overwrites another run (layout: :mod:`dacr_learn.runs`). ``--ckpt_path`` takes
+``last`` (the newest version of ``--run_name`` that has a ``last.ckpt``) or a checkpoint file; a resumed
+fit continues that run's folder and adds a further ``rerun_<k>.rrd`` part to its recording.
 """
 from __future__ import annotations
 
 import atexit
 import json
+import os
+import shlex
+import sys
 import time
 from pathlib import Path
 
 import torch
-from lightning.pytorch.callbacks import ModelCheckpoint, OnExceptionCheckpoint
+from lightning.pytorch import Callback
+from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
+from lightning.pytorch.utilities.exceptions import SIGTERMException
 
+from dacr_learn import runs
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
 from dacr_learn.rerun_log import RerunLogger, RerunVisualCallback
 from dacr_learn.training import KinematicsModule
 
 
-class InterruptCheckpoint(OnExceptionCheckpoint):
-    """Saves ``last.ckpt`` when a run is interrupted (Ctrl-C, error) and, unlike its parent,
-    keeps it at teardown, so ``fit --ckpt_path last`` resumes from the point of interruption."""
+class InterruptCheckpoint(Callback):
+    """Saves ``last.ckpt`` when a fit stops on an exception (Ctrl-C, SIGTERM, an error) and prints the
+    exact command that resumes it.
 
-    def teardown(self, trainer, *args, **kwargs) -> None:
-        pass
+    Not Lightning's ``OnExceptionCheckpoint``: with one of those among the callbacks, ``fit`` without a
+    ``ckpt_path`` silently resumes from ``last`` (Lightning 2.6), which is how a second run used to
+    continue the first one instead of starting anew."""
+
+    def __init__(self, dirpath: Path, resume_command: str) -> None:
+        self.ckpt_path = str(Path(dirpath) / "last.ckpt")
+        self.resume_command = resume_command
+
+    stopped_by: type[BaseException] | None = None   # the exception type that stopped the last fit, if any
+
+    def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
+        InterruptCheckpoint.stopped_by = type(exception)
+        trainer.save_checkpoint(self.ckpt_path, weights_only=False)   # a full state: fit resumes from it
+        if trainer.is_global_zero:
+            what = {KeyboardInterrupt: "interrupted (Ctrl-C)", SIGTERMException: "stopped by SIGTERM"}.get(
+                type(exception), f"stopped by {type(exception).__name__}")
+            print(f"\nTraining {what} at epoch {trainer.current_epoch}, step {trainer.global_step}; "
+                  f"saved {self.ckpt_path}.\nResume this run with:\n  {self.resume_command}\n",
+                  file=sys.stderr, flush=True)
 
 
 class SaveConfigToRunDir(SaveConfigCallback):
-    """Writes config.yaml into the run's own directory (trainer.default_root_dir = runs/<run_name>);
-    Lightning's default uses the logger's save_dir, which every run shares."""
+    """Writes config.yaml into the run's own folder (trainer.default_root_dir); Lightning's default
+    uses the logger's save_dir, which every run shares. Never overwrites: a resumed fit keeps the
+    first config.yaml and writes config_<k>.yaml beside it."""
 
     def setup(self, trainer, pl_module, stage: str) -> None:
         if self.already_saved:
             return
         if trainer.is_global_zero:
-            path = Path(trainer.default_root_dir) / self.config_filename
-            path.parent.mkdir(parents=True, exist_ok=True)
-            self.parser.save(self.config, path, skip_none=False, overwrite=True, multifile=self.multifile)
+            folder = Path(trainer.default_root_dir)
+            folder.mkdir(parents=True, exist_ok=True)
+            path, k = folder / self.config_filename, 0
+            while path.exists():
+                k += 1
+                path = folder / f"{Path(self.config_filename).stem}_{k}.yaml"
+            self.parser.save(self.config, path, skip_unset=False, multifile=self.multifile)
         self.already_saved = trainer.strategy.broadcast(True)
 
 
 class DacrCLI(LightningCLI):
+    def __init__(self, *args, argv: list[str] | None = None, **kwargs) -> None:
+        self._argv = list(sys.argv[1:] if argv is None else argv)
+        super().__init__(*args, args=argv, **kwargs)
+
     def add_arguments_to_parser(self, parser) -> None:
-        parser.add_argument("--run_name", type=str, default="default", help="outputs go to <runs_dir>/<run_name>/")
+        parser.add_argument("--run_name", type=str, default="default",
+                            help="runs go to <runs_dir>/<run_name>/version_<n>/")
         parser.add_argument("--runs_dir", type=str, default="runs")
         parser.add_argument("--rerun_spawn", type=bool, default=False, help="also stream to a spawned Rerun viewer")
         parser.add_argument("--rerun_connect", type=str | None, default=None, help="URL of a running Rerun viewer")
@@ -60,32 +95,93 @@ class DacrCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         torch.set_num_threads(self.run_config.num_threads)
+        if self.subcommand is None:   # main(run=False): instantiate only, as for a new fit
+            return
+        cfg = self.run_config
+        ckpt = cfg.get("ckpt_path")
+        if self.subcommand in ("test", "validate", "predict") and ckpt is None:
+            raise ValueError(f"train.py {self.subcommand} needs --ckpt_path: 'last' (the newest run of "
+                             f"--run_name {cfg.run_name!r}) or a checkpoint file such as "
+                             f"{self.run_root}/version_0/checkpoints/last.ckpt")
+        if ckpt == "last":
+            try:
+                ckpt = str(runs.find_checkpoint(self.run_root))
+            except FileNotFoundError as err:
+                raise ValueError(f"--ckpt_path last: {err}") from None
+        elif ckpt is not None and not Path(ckpt).is_file():
+            raise ValueError(f"--ckpt_path {ckpt}: no such file; expected 'last' or a checkpoint file "
+                             f"(e.g. {self.run_root}/version_0/checkpoints/last.ckpt)")
+        cfg.ckpt_path = ckpt
 
     @property
     def run_config(self):
         return self.config[self.subcommand] if self.subcommand else self.config
 
     @property
-    def run_dir(self) -> Path:
+    def run_root(self) -> Path:
+        """``<runs_dir>/<run_name>``: the folder holding this run name's versions."""
         return Path(self.run_config.runs_dir) / self.run_config.run_name
 
+    def _run_folders(self) -> tuple[Path, Path, dict]:
+        """(run folder, folder this command writes to, run info) — creating a new folder where needed."""
+        ckpt = self.run_config.get("ckpt_path")
+        run = runs.checkpoint_run_dir(ckpt) if ckpt is not None else None
+        if self.subcommand in (None, "fit"):
+            if run is None:   # a new run (or fine-tuning from a checkpoint outside any run folder)
+                run = runs.new_numbered_dir(self.run_root, "version_")
+                info = runs.write_run_info(run, run_name=self.run_config.run_name, version=run.name,
+                                           started_from=ckpt)
+            else:
+                info = runs.read_run_info(run)
+            return run, run, info
+        if run is None:
+            run = runs.new_numbered_dir(self.run_root, "version_")
+            runs.write_run_info(run, run_name=self.run_config.run_name, version=run.name, evaluates=ckpt)
+        out = runs.new_numbered_dir(run, f"{self.subcommand}_")
+        return run, out, {"recording_id": None}
+
+    def _resume_command(self, ckpt: Path) -> str:
+        args, skip = [], False
+        for arg in self._argv:
+            if skip:
+                skip = False
+            elif arg == "--ckpt_path":
+                skip = True
+            elif not arg.startswith("--ckpt_path="):
+                args.append(arg)
+        python = Path(sys.executable)
+        try:
+            python = python.relative_to(Path.cwd())
+        except ValueError:
+            pass
+        return shlex.join([str(python), "train.py", *args, "--ckpt_path", str(ckpt)])
+
     def instantiate_trainer(self, **kwargs):
-        cfg, ckpt_dir = self.run_config, self.run_dir / "checkpoints"
+        cfg = self.run_config
+        if cfg.get("ckpt_path") is not None:
+            runs.check_checkpoint_fits(cfg.ckpt_path, type(self.model).__name__, dict(self.model.hparams),
+                                       self.model.state_dict())
+        run, out, info = self._run_folders()
+        self.run_dir, self.out_dir = run, out
+        ckpt_dir = run / "checkpoints"
         configured = self._get(self.config_init, "trainer", default={})
-        callbacks = list(configured.get("callbacks") or []) + [
-            ModelCheckpoint(dirpath=ckpt_dir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
-                            save_last=True, save_top_k=1),
-            InterruptCheckpoint(dirpath=ckpt_dir, filename="last"),
-            RerunVisualCallback()]
-        logger = RerunLogger(save_dir=cfg.runs_dir, name=cfg.run_name, spawn=cfg.rerun_spawn,
-                             connect=cfg.rerun_connect, close_on_finalize=False)   # one file for fit + test
+        callbacks = list(configured.get("callbacks") or []) + [RerunVisualCallback()]
+        if self.subcommand in (None, "fit"):
+            callbacks += [ModelCheckpoint(dirpath=ckpt_dir, filename="epoch{epoch:03d}", auto_insert_metric_name=False,
+                                          save_last=True, save_top_k=1),
+                          InterruptCheckpoint(ckpt_dir, self._resume_command(ckpt_dir / "last.ckpt"))]
+        name = f"{cfg.run_name}/{run.name}" + ("" if out == run else f"/{out.name}")
+        logger = RerunLogger(save_dir=str(out.parent), name=out.name, spawn=cfg.rerun_spawn,
+                             connect=cfg.rerun_connect, close_on_finalize=False,   # one file for fit + test
+                             recording_id=info.get("recording_id"), recording_name=name)
         atexit.register(logger.close)
-        kwargs = {"default_root_dir": str(self.run_dir), "logger": logger, "callbacks": callbacks, **kwargs}
+        kwargs = {"default_root_dir": str(out), "logger": logger, "callbacks": callbacks,
+                  "enable_checkpointing": self.subcommand in (None, "fit"), **kwargs}
         return super().instantiate_trainer(**kwargs)
 
     def before_fit(self) -> None:
         self._fit_started = time.perf_counter()
-        self.model.run_config = self.parser.dump(self.config, skip_none=False)   # carried by checkpoints
+        self.model.run_config = self.parser.dump(self.config, skip_unset=False)   # carried by checkpoints
 
     def after_fit(self) -> None:
         seconds = time.perf_counter() - self._fit_started
@@ -95,7 +191,7 @@ class DacrCLI(LightningCLI):
         self.trainer.logger.close()
 
     def after_test(self) -> None:
-        self._write_summary()
+        self._write_summary(checkpoint=str(self.run_config.ckpt_path))
         self.trainer.logger.close()
 
     def _write_summary(self, **extra) -> None:
@@ -105,19 +201,55 @@ class DacrCLI(LightningCLI):
         h = model.hparams
         summary = {**model.test_summary, **extra, "task": type(model).__name__.removesuffix("Module").lower(),
                    "features": h.features, "robot": model.spec.name, "n_test": len(self.datamodule.splits["test"]["q"])}
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        (self.run_dir / "metrics.json").write_text(json.dumps(summary, indent=2))
+        path = self.out_dir / "metrics.json"
+        k = 0
+        while path.exists():   # a resumed fit that finishes keeps the first summary too
+            k += 1
+            path = self.out_dir / f"metrics_{k}.json"
+        path.write_text(json.dumps(summary, indent=2))
         print(format_table(model.test_summary, f"\nTest metrics of {summary['task'].upper()} ({h.features} features, "
-                                               f"robot {model.spec.name}) → {self.run_dir / 'metrics.json'}"))
-        rrd = self.run_dir / "rerun.rrd"
-        print(f"  Rerun recording: {rrd}  (open with: .venv/bin/rerun {rrd})")
+                                               f"robot {model.spec.name}) → {path}"))
+        parts = sorted(self.out_dir.glob("rerun*.rrd"))
+        target = parts[0] if len(parts) == 1 else self.out_dir / "*.rrd"
+        print(f"  Rerun recording: {target}  (open with: .venv/bin/rerun {target})")
 
 
-def main(args=None, run: bool = True) -> DacrCLI:
+def main(args: list[str] | None = None, run: bool = True) -> DacrCLI:
     """Run the CLI on ``args`` (default: sys.argv); ``run=False`` only instantiates (no subcommand)."""
     return DacrCLI(KinematicsModule, KinematicsDataModule, subclass_mode_model=True,
-                   save_config_callback=SaveConfigToRunDir, args=args, run=run)
+                   save_config_callback=SaveConfigToRunDir, argv=args, run=run)
+
+
+def first_user_error(err: BaseException) -> BaseException | None:   # replaced by dacr_learn.console's
+    seen = set()
+    while err is not None and id(err) not in seen:
+        seen.add(id(err))
+        if isinstance(err, ValueError | FileNotFoundError):
+            found = err
+        err = err.__cause__ or err.__context__
+    return found if "found" in locals() else None
+
+
+def run_command_line(argv: list[str] | None = None) -> int:
+    """``python train.py …``: the exit status. A mistake in the user's files or arguments is one line
+    ``error: …`` (no traceback; ``DACR_DEBUG=1`` shows it); SIGTERM exits with 143 and Ctrl-C with 130,
+    after the interrupted fit printed how to resume it."""
+    try:
+        main(argv)
+    except SIGTERMException:
+        return 143
+    except SystemExit as stop:
+        if InterruptCheckpoint.stopped_by is KeyboardInterrupt:   # Lightning exits with 1 after a Ctrl-C
+            return 130
+        raise stop
+    except Exception as err:
+        user_error = first_user_error(err)
+        if user_error is None or os.environ.get("DACR_DEBUG"):
+            raise
+        print(f"error: {user_error}", file=sys.stderr)
+        return 2
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_command_line())

@@ -25,6 +25,7 @@ from .kinematics import analytic_inverse_kinematics, backbone_points, forward_ki
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import FKModel, IKModel
 from .robot import RobotSpec
+from .runs import load_model
 
 
 def __getattr__(name: str):
@@ -55,4 +56,5 @@ __all__ = [
     "backbone_points",
     "forward_kinematics",
     "load_exported",
+    "load_model",
 ]

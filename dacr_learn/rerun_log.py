@@ -92,7 +92,9 @@ class RerunLogger(Logger):
     """Lightning logger writing metrics and hyper-parameters to a Rerun recording.
 
     The recording is saved to ``<save_dir>/<name>/rerun.rrd`` (``<save_dir>/<name>/<version>/``
-    when ``version`` is given; an int becomes ``version_<n>``), optionally streamed to a
+    when ``version`` is given; an int becomes ``version_<n>``); an existing ``.rrd`` file is never
+    overwritten: the logger writes the first free name of ``rerun.rrd``, ``rerun_1.rrd``, … Optionally
+    streamed to a
     spawned viewer (``spawn=True``, port 9876) and/or a running one
     (``connect="rerun+http://host:9876/proxy"``).
     ``save_dir=None`` writes no file. Metrics go to ``metrics/<name>`` on the ``step`` timeline.
@@ -102,8 +104,10 @@ class RerunLogger(Logger):
     ``close_on_finalize=False`` and the run succeeded: then the recording stays open (one file
     across ``fit`` and a following ``test``) until :meth:`close` is called. If the logger is used
     again afterwards (``trainer.fit`` then ``trainer.test``) the next part goes to
-    ``rerun_1.rrd``, ``rerun_2.rrd``, … with the same recording id: open them together and
-    the viewer merges them into one recording.
+    the next free ``rerun_<k>.rrd`` with the same recording id: open them together and the viewer
+    merges them into one recording. ``recording_id`` (default: a new UUID) lets a resumed run write
+    its parts into the recording of the run it continues; ``recording_name`` is what the viewer calls
+    the recording (default ``name`` or ``name/version``).
 
     ``live_flush_s``: how often rows are sent when streaming to a viewer (``spawn``/``connect``);
     writing only a file, rows are batched until :meth:`finalize` (a run is then one chunk per
@@ -114,7 +118,7 @@ class RerunLogger(Logger):
         self, save_dir: str | os.PathLike | None = "runs", name: str = "default",
         version: int | str | None = None, spawn: bool = False, connect: str | None = None,
         application_id: str = "dacr_learn", flush_timeout: float = 10.0, close_on_finalize: bool = True,
-        live_flush_s: float = 1.0,
+        live_flush_s: float = 1.0, recording_id: str | None = None, recording_name: str | None = None,
     ) -> None:
         super().__init__()
         if save_dir is None and not spawn and not connect:
@@ -127,7 +131,8 @@ class RerunLogger(Logger):
         self._application_id = application_id
         self._flush_timeout = flush_timeout
         self._close_on_finalize = close_on_finalize
-        self._recording_id = str(uuid.uuid4())
+        self._recording_id = recording_id or str(uuid.uuid4())
+        self._recording_name = recording_name
         self._rec: rr.RecordingStream | None = None
         self._part = -1  # index of the .rrd part being (or last) written
         self._live_flush = timedelta(seconds=live_flush_s)
@@ -165,8 +170,7 @@ class RerunLogger(Logger):
         """The ``.rrd`` file being (or last) written, or ``None`` without ``save_dir``."""
         if self.log_dir is None:
             return None
-        part = max(self._part, 0)
-        return os.path.join(self.log_dir, "rerun.rrd" if part == 0 else f"rerun_{part}.rrd")
+        return self._part_path(self._part if self._part >= 0 else self._next_part())
 
     @property
     @rank_zero_experiment
@@ -180,6 +184,21 @@ class RerunLogger(Logger):
     def recording(self) -> rr.RecordingStream:
         """Alias of :attr:`experiment`."""
         return self.experiment
+
+    @property
+    def recording_id(self) -> str:
+        """The Rerun recording id every part of this logger's recording is written with."""
+        return self._recording_id
+
+    def _next_part(self) -> int:
+        """The first part index after the current one whose file does not exist yet."""
+        part = self._part + 1
+        while self.log_dir is not None and os.path.exists(self._part_path(part)):
+            part += 1
+        return part
+
+    def _part_path(self, part: int) -> str:
+        return os.path.join(self.log_dir, "rerun.rrd" if part == 0 else f"rerun_{part}.rrd")
 
     def _sinks(self, rec: rr.RecordingStream) -> list[Any]:
         sinks: list[Any] = []
@@ -195,14 +214,14 @@ class RerunLogger(Logger):
         return sinks + [rr.GrpcSink(url) for url in urls]
 
     def _open(self) -> rr.RecordingStream:
-        self._part += 1
+        self._part = self._next_part()
         live = self._spawn or bool(self._connect)
         batching = rr.ChunkBatcherConfig(flush_tick=self._live_flush if live else FILE_ONLY_FLUSH,
                                          flush_num_bytes=8 << 20, flush_num_rows=1 << 20)
         rec = rr.RecordingStream(self._application_id, recording_id=self._recording_id, batcher_config=batching)
         rec.set_sinks(*self._sinks(rec), default_blueprint=self._blueprint())
         run = self._name if self._version is None else f"{self._name}/{self._version}"
-        rec.send_recording_name(run)
+        rec.send_recording_name(self._recording_name or run)
         rec.log(SCENE_ROOT, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         for name in self._metric_names:
             self._log_series_style(rec, name)

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 
@@ -307,3 +308,20 @@ def pytest_report_header(config):
 
     return (f"dacr_learn tests: torch threads {TEST_THREADS} (DACR_TEST_THREADS), hypothesis profile "
             f"{current._current_profile!r} (derandomize={current.default.derandomize})")
+
+
+def write_run_config(tmp_path: Path, task: str = "FKModule", robot: str = "configs/robots/type1.yaml", epochs: int = 3,
+                     run_name: str = "smoke", callbacks: list[dict] | None = None, **data) -> Path:
+    """A small train.py config (a 2×32 MLP, 2 000 samples, runs under ``tmp_path/runs``) written to
+    ``tmp_path/config.yaml``; ``data`` entries override the datamodule's arguments."""
+    trainer = {"accelerator": "cpu", "devices": 1, "max_epochs": epochs, "enable_progress_bar": False,
+               "log_every_n_steps": 5, "enable_model_summary": False}
+    if callbacks:
+        trainer["callbacks"] = callbacks
+    cfg = {"run_name": run_name, "runs_dir": str(tmp_path / "runs"), "seed_everything": 0, "trainer": trainer,
+           "model": {"class_path": f"dacr_learn.training.{task}", "init_args": {"width": 32, "depth": 2, "lr": 1e-2}},
+           "data": {"robot": str(ROOT / robot), "n_train": 2000, "n_val": 256, "n_test": 300, "batch_size": 64,
+                    **data}}
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path

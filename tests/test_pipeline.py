@@ -9,6 +9,7 @@ import lightning.pytorch as pl
 import pytest
 import torch
 import yaml
+from conftest import write_run_config
 
 import train
 from dacr_learn.training import FKModule
@@ -17,14 +18,7 @@ RERUN = Path(sys.executable).parent / "rerun"
 
 
 def write_config(tmp_path, task="FKModule", robot="configs/robots/type1.yaml", epochs=3, **data):
-    cfg = {"run_name": "smoke", "runs_dir": str(tmp_path / "runs"), "seed_everything": 0,
-           "trainer": {"accelerator": "cpu", "devices": 1, "max_epochs": epochs, "enable_progress_bar": False,
-                       "log_every_n_steps": 5, "enable_model_summary": False},
-           "model": {"class_path": f"dacr_learn.training.{task}", "init_args": {"width": 32, "depth": 2, "lr": 1e-2}},
-           "data": {"robot": robot, "n_train": 2000, "n_val": 256, "n_test": 300, "batch_size": 64, **data}}
-    path = tmp_path / "config.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return path
+    return write_run_config(tmp_path, task=task, robot=robot, epochs=epochs, **data)
 
 
 def batch_loss(module, split):
@@ -34,7 +28,7 @@ def batch_loss(module, split):
 
 def test_fit_writes_summary_recording_and_checkpoint_and_loss_goes_down(tmp_path):
     cli = train.main(["fit", "--config", str(write_config(tmp_path))])
-    run = tmp_path / "runs" / "smoke"
+    run = tmp_path / "runs" / "smoke" / "version_0"
     summary = json.loads((run / "metrics.json").read_text())
     for key in ("pos_err_mean_mm", "pos_err_p95_mm", "pos_err_mean_pct", "rot_err_mean_deg", "train_seconds"):
         assert key in summary and summary[key] == summary[key]
@@ -85,12 +79,12 @@ def test_interrupted_run_resumes_from_last_checkpoint(tmp_path):
     cli.trainer.callbacks.append(CrashAt(steps_per_epoch + 5))            # in the middle of epoch 2
     with pytest.raises(RuntimeError, match="simulated crash"):
         cli.trainer.fit(cli.model, cli.datamodule)
-    last = tmp_path / "runs" / "smoke" / "checkpoints" / "last.ckpt"
+    last = tmp_path / "runs" / "smoke" / "version_0" / "checkpoints" / "last.ckpt"
     assert torch.load(last, weights_only=True)["global_step"] == steps_per_epoch + 5
     resumed = train.main(["--config", cfg], run=False)
     counter = CountSteps()
     resumed.trainer.callbacks.append(counter)
-    resumed.trainer.fit(resumed.model, resumed.datamodule, ckpt_path="last")
+    resumed.trainer.fit(resumed.model, resumed.datamodule, ckpt_path=str(last))
     assert resumed.trainer.current_epoch == 2
     assert resumed.trainer.global_step == 2 * steps_per_epoch
     assert counter.steps == steps_per_epoch - 5                           # only the unfinished part re-ran
@@ -99,7 +93,7 @@ def test_interrupted_run_resumes_from_last_checkpoint(tmp_path):
 def test_ik_training_keeps_the_constraint_and_reports_ik_metrics(tmp_path):
     config = write_config(tmp_path, task="IKModule", robot="configs/robots/tdcr_3seg_coupled.yaml")
     train.main(["fit", "--config", str(config)])
-    summary = json.loads((tmp_path / "runs" / "smoke" / "metrics.json").read_text())
+    summary = json.loads((tmp_path / "runs" / "smoke" / "version_0" / "metrics.json").read_text())
     assert summary["task"] == "ik"
     assert summary["constraint_residual_max_m"] <= 1e-6
     assert summary["joint_err_mean_mm"] > 0 and summary["pos_err_mean_mm"] > 0
@@ -112,7 +106,7 @@ def test_ddp_with_two_cpu_processes_matches_single_process_evaluation(tmp_path):
     proc = subprocess.run([sys.executable, "train.py", "fit", "--config", str(cfg), "--trainer.devices", "2",
                            "--trainer.strategy", "ddp"], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    run = tmp_path / "runs" / "smoke"
+    run = tmp_path / "runs" / "smoke" / "version_0"
     summary = json.loads((run / "metrics.json").read_text())
     # the all-gathered DDP test metrics equal a single-process evaluation of the same checkpoint
     module = FKModule.load_from_checkpoint(run / "checkpoints" / "last.ckpt", weights_only=True)

@@ -1,0 +1,196 @@
+"""Run folders: where ``train.py`` keeps a run's files, so that nothing a user starts overwrites a run.
+
+Layout (``runs_dir`` defaults to ``runs``)::
+
+    <runs_dir>/<run_name>/version_<n>/      one folder per `fit` started without --ckpt_path (n = 0, 1, …)
+        run.json                            recording id, run name, version, creation time, command line
+        config.yaml                         the full CLI config of the fit
+        checkpoints/last.ckpt               refreshed every epoch and on interruption (+ the best epochNNN.ckpt)
+        rerun.rrd                           the fit's recording; each resume adds rerun_1.rrd, rerun_2.rrd, …
+                                            with the same recording id (open them together: one recording)
+        metrics.json                        test-split summary written after the fit
+        test_<k>/metrics.json, rerun.rrd    one folder per later `train.py test` on this run's checkpoints
+
+Folders are created with an exclusive ``mkdir``, so two runs started at once get two versions.
+A trained model loads with :func:`load_model` from a run folder, a version folder or a ``.ckpt`` file.
+No Lightning here: the functions only handle paths and small JSON files.
+"""
+from __future__ import annotations
+
+import json
+import re
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = [
+    "ARCHITECTURE", "RUN_INFO", "check_checkpoint_fits", "checkpoint_run_dir", "describe_model", "find_checkpoint",
+    "load_model", "new_numbered_dir", "read_run_info", "versions", "write_run_info",
+]
+
+RUN_INFO = "run.json"
+LAST = "last.ckpt"
+_VERSION = re.compile(r"^version_(\d+)$")
+
+
+def _numbered(parent: Path, prefix: str) -> list[tuple[int, Path]]:
+    pattern = re.compile(rf"^{re.escape(prefix)}(\d+)$")
+    if not parent.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in parent.iterdir() if p.is_dir() and (m := pattern.match(p.name))]
+    return sorted(found)
+
+
+def versions(run_root: str | Path) -> list[Path]:
+    """The ``version_<n>`` folders of a run name's folder, by increasing ``n`` (empty if none)."""
+    return [p for _, p in _numbered(Path(run_root), "version_")]
+
+
+def new_numbered_dir(parent: str | Path, prefix: str) -> Path:
+    """Create and return ``parent/<prefix><n>`` for the smallest ``n`` above every existing one.
+
+    The folder is made with an exclusive ``mkdir``: a concurrent caller gets the next number, never
+    the same folder, and an existing folder is never reused."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
+    n = max((k for k, _ in _numbered(parent, prefix)), default=-1) + 1
+    while True:
+        path = parent / f"{prefix}{n}"
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            n += 1
+
+
+def write_run_info(run_dir: str | Path, **fields: Any) -> dict[str, Any]:
+    """Write ``run.json`` (a new ``recording_id`` and the creation time, plus ``fields``) into a new run
+    folder; returns what was written. Refuses (ValueError) when the folder already has one."""
+    path = Path(run_dir) / RUN_INFO
+    info = {"recording_id": str(uuid.uuid4()), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "command": " ".join(sys.argv), **fields}
+    try:
+        with open(path, "x", encoding="utf-8") as f:
+            json.dump(info, f, indent=2)
+    except FileExistsError:
+        raise ValueError(f"{path}: this run folder already has a run.json; a new run needs a new folder") from None
+    return info
+
+
+def read_run_info(run_dir: str | Path) -> dict[str, Any]:
+    """The ``run.json`` of a run folder, or ``{}`` when it has none (e.g. a checkpoint copied elsewhere)."""
+    path = Path(run_dir) / RUN_INFO
+    if not path.is_file():
+        return {}
+    try:
+        info = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err}); expected the run.json that train.py writes") from err
+    if not isinstance(info, dict):
+        raise ValueError(f"{path}: expected a JSON object, found a {type(info).__name__}")
+    return info
+
+
+def checkpoint_run_dir(ckpt: str | Path) -> Path | None:
+    """The run folder a checkpoint belongs to (``<run>/checkpoints/<file>.ckpt`` → ``<run>``), or ``None``
+    when the file is not inside a folder that ``train.py`` made (no ``run.json`` beside ``checkpoints/``)."""
+    ckpt = Path(ckpt)
+    run = ckpt.parent.parent
+    return run if ckpt.parent.name == "checkpoints" and (run / RUN_INFO).is_file() else None
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """The checkpoint a path names: a ``.ckpt`` file itself; a version folder → its ``checkpoints/last.ckpt``;
+    a run name's folder → ``last.ckpt`` of its newest version that has one.
+
+    FileNotFoundError names the path and what was looked for."""
+    path = Path(path)
+    if path.is_file():
+        return path
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path}: no such file or folder; expected a .ckpt file, a run folder "
+                                "(runs/<run_name>) or a version folder (runs/<run_name>/version_<n>)")
+    if (path / "checkpoints" / LAST).is_file():
+        return path / "checkpoints" / LAST
+    for version in reversed(versions(path)):
+        if (version / "checkpoints" / LAST).is_file():
+            return version / "checkpoints" / LAST
+    raise FileNotFoundError(f"{path}: no checkpoints/{LAST} in it or in any version_<n> folder below it; "
+                            "train a model first (train.py fit --config …)")
+
+
+# hyper-parameters that decide what a checkpoint's weights compute (not how they were trained)
+ARCHITECTURE = ("features", "structure", "context", "width", "depth", "activation", "rotation")
+
+
+def describe_model(kind: str, hparams: dict[str, Any]) -> str:
+    """One phrase naming a model: its class, robot (name, joints) and architecture hyper-parameters."""
+    from .robot import RobotSpec
+
+    try:
+        spec = RobotSpec.coerce(hparams.get("robot"))
+        segments = f"{spec.num_segments} segment" + ("s" if spec.num_segments > 1 else "")
+        robot_text = f"robot {spec.name!r} ({segments}, {spec.num_joints} joints)"
+    except (ValueError, OSError, TypeError):
+        robot_text = f"robot {hparams.get('robot')!r}"
+    arch = ", ".join(f"{k} {hparams[k]}" for k in ARCHITECTURE if k in hparams)
+    return f"{kind} for {robot_text}, {arch}"
+
+
+def check_checkpoint_fits(ckpt: str | Path, kind: str, hparams: dict[str, Any],
+                          state_dict: dict[str, torch.Tensor]) -> None:
+    """ValueError (one line, naming both) unless the checkpoint ``ckpt`` holds a model of class ``kind``
+    for the same robot, with the same architecture hyper-parameters and weight shapes as the model the
+    config builds (``kind``, ``hparams``, ``state_dict``: that model's)."""
+    from .checks import load_torch_file
+
+    blob = load_torch_file(ckpt, "a checkpoint written by train.py")
+    saved = blob.get("hyper_parameters") if isinstance(blob, dict) else None
+    weights = blob.get("state_dict") if isinstance(blob, dict) else None
+    if not isinstance(saved, dict) or not isinstance(weights, dict):
+        raise ValueError(f"{ckpt}: expected a checkpoint written by train.py (with hyper_parameters and state_dict)")
+    saved_kind = blob.get("dacr_module") or _kind_of(weights)
+    same = (saved_kind == kind and saved.get("robot") == hparams.get("robot")
+            and all(saved.get(k) == hparams.get(k) for k in ARCHITECTURE)
+            and {k: tuple(v.shape) for k, v in weights.items()}
+            == {k: tuple(v.shape) for k, v in state_dict.items()})
+    if not same:
+        raise ValueError(f"checkpoint {ckpt} holds an {describe_model(saved_kind, saved)}; the config asks for an "
+                         f"{describe_model(kind, hparams)}: pass a checkpoint of this model, or start a new run "
+                         "without --ckpt_path")
+
+
+def _kind_of(weights: dict[str, Any]) -> str:
+    if "model.front.norm.mean" in weights:
+        return "FKModule"
+    return "IKModule" if "model.in_norm.mean" in weights else "unknown module"
+
+
+def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn.Module:
+    """The trained network of a ``train.py`` run, in eval mode, ready to predict.
+
+    Args:
+        path: a run folder (``runs/<run_name>``: its newest version), a version folder
+            (``runs/<run_name>/version_<n>``) or a checkpoint file (``.ckpt``).
+        dtype: floating dtype of the returned model's parameters.
+
+    Returns:
+        An ``nn.Module`` with ``.spec`` (the :class:`~dacr_learn.robot.RobotSpec` it was trained for):
+        an FK model maps joint lengths ``(..., N)`` [m] to tip poses ``(..., 4, 4)`` [m];
+        an IK model maps tip poses ``(..., 4, 4)`` to joint lengths ``(..., N)`` [m].
+        Its ``.task`` attribute is ``"fk"`` or ``"ik"``.
+
+    Raises:
+        FileNotFoundError: nothing to load at ``path``.
+        ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
+    """
+    from .export import load_lightning_checkpoint  # Lightning is imported only to read the checkpoint
+
+    task, module = load_lightning_checkpoint(find_checkpoint(path))
+    model = module.model.to(dtype).eval()
+    model.task = task
+    return model

@@ -1,0 +1,207 @@
+"""Runs a user can trust: train.py never destroys an earlier run, resumes keep the whole recording,
+`test` writes beside the fit, a checkpoint of another model is refused, interruptions say how to resume.
+
+Run folders and the loader (dacr_learn.runs) are tested directly; the CLI behaviour through train.main
+in-process, and SIGTERM / Ctrl-C through a train.py subprocess (a callback sends the signal mid-epoch).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import ROOT, write_run_config
+from rerun.chunk import RrdReader
+
+import train
+from dacr_learn import runs
+from dacr_learn.training import FKModule
+
+STEPS_PER_EPOCH = 2000 // 64 + 1          # write_run_config: 2 000 samples, batch 64
+
+
+def digests(folder: Path) -> dict[str, str]:
+    """sha256 of every file below ``folder`` (relative path → hex)."""
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def recording(folder: Path) -> tuple[set[str], list[int]]:
+    """(recording ids, sorted steps of every logged train-loss row) over all rerun*.rrd parts in ``folder``."""
+    ids, steps = set(), []
+    for part in sorted(folder.glob("rerun*.rrd")):
+        ids |= {r.recording_id for r in RrdReader(part).recordings()}
+        for chunk in RrdReader(part).stream():
+            if chunk.entity_path == "/metrics/train/loss":
+                batch = chunk.to_record_batch()
+                if "step" in batch.schema.names:            # the static series style has no time column
+                    steps += batch.column("step").to_pylist()
+    return ids, sorted(steps)
+
+
+def run_train(args: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), str(ROOT)])}
+    return subprocess.run([sys.executable, str(ROOT / "train.py"), *args], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=300)
+
+
+# ---- dacr_learn.runs: folders and the loader ----------------------------------------------------------
+
+def test_new_numbered_dir_never_reuses_a_folder(tmp_path):
+    first = runs.new_numbered_dir(tmp_path / "r", "version_")
+    second = runs.new_numbered_dir(tmp_path / "r", "version_")
+    (tmp_path / "r" / "version_7").mkdir()
+    assert [first.name, second.name] == ["version_0", "version_1"]
+    assert runs.new_numbered_dir(tmp_path / "r", "version_").name == "version_8"
+    assert [p.name for p in runs.versions(tmp_path / "r")] == ["version_0", "version_1", "version_7", "version_8"]
+
+
+def test_run_info_is_written_once(tmp_path):
+    info = runs.write_run_info(tmp_path, run_name="x")
+    assert runs.read_run_info(tmp_path) == info and len(info["recording_id"]) == 36
+    with pytest.raises(ValueError, match="already has a run.json"):
+        runs.write_run_info(tmp_path)
+    assert runs.read_run_info(tmp_path / "elsewhere") == {}
+
+
+def test_find_checkpoint_resolves_run_version_and_file(tmp_path):
+    for v in (0, 1, 2):
+        (tmp_path / f"version_{v}" / "checkpoints").mkdir(parents=True)
+    for v in (0, 1):
+        (tmp_path / f"version_{v}" / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    newest = tmp_path / "version_1" / "checkpoints" / "last.ckpt"      # version_2 has no checkpoint yet
+    assert runs.find_checkpoint(tmp_path) == newest
+    assert runs.find_checkpoint(tmp_path / "version_0") == tmp_path / "version_0" / "checkpoints" / "last.ckpt"
+    assert runs.find_checkpoint(newest) == newest
+    with pytest.raises(FileNotFoundError, match="no checkpoints/last.ckpt"):
+        runs.find_checkpoint(tmp_path / "version_2")
+    with pytest.raises(FileNotFoundError, match="no such file or folder"):
+        runs.find_checkpoint(tmp_path / "missing")
+
+
+# ---- train.py fit / test -----------------------------------------------------------------------------
+
+def test_second_fit_is_a_new_run_and_leaves_the_first_byte_identical(tmp_path):
+    config = str(write_run_config(tmp_path, epochs=2))
+    train.main(["fit", "--config", config])
+    first = tmp_path / "runs" / "smoke" / "version_0"
+    before = digests(first)
+    second_cli = train.main(["fit", "--config", config])
+    second = tmp_path / "runs" / "smoke" / "version_1"
+    assert digests(first) == before                           # nothing of the first run changed
+    assert second_cli.trainer.global_step == 2 * STEPS_PER_EPOCH   # trained from scratch, not resumed
+    for run in (first, second):
+        assert {"run.json", "config.yaml", "metrics.json", "rerun.rrd", "checkpoints/last.ckpt"} <= set(digests(run))
+        ids, steps = recording(run)
+        assert len(ids) == 1 and steps[0] <= 5 and steps[-1] >= 2 * STEPS_PER_EPOCH - 5   # whole curve
+    assert recording(first)[0] != recording(second)[0]         # two recordings, not one
+
+
+def test_another_robot_under_the_same_run_name_does_not_touch_the_first(tmp_path):
+    train.main(["fit", "--config", str(write_run_config(tmp_path, epochs=1))])
+    first = tmp_path / "runs" / "smoke" / "version_0"
+    before = digests(first)
+    other = write_run_config(tmp_path, epochs=1, robot="configs/robots/tdcr_3seg_coupled.yaml")
+    cli = train.main(["fit", "--config", str(other)])
+    assert digests(first) == before
+    assert cli.model.spec.num_joints == 12
+    assert torch.load(tmp_path / "runs/smoke/version_1/checkpoints/last.ckpt", weights_only=True)["global_step"] > 0
+
+
+def test_checkpoint_of_another_model_is_refused_naming_both(tmp_path):
+    config = write_run_config(tmp_path, epochs=1)
+    train.main(["fit", "--config", str(config)])
+    first = tmp_path / "runs" / "smoke" / "version_0"
+    before = digests(first)
+    other = write_run_config(tmp_path, epochs=1, robot="configs/robots/tdcr_3seg_coupled.yaml")
+    for sub in ("fit", "test"):
+        with pytest.raises(ValueError) as err:
+            train.main([sub, "--config", str(other), "--ckpt_path", "last"])
+        message = str(err.value)
+        assert "\n" not in message
+        assert "holds an FKModule for robot 'type1' (1 segment, 4 joints)" in message
+        assert "the config asks for an FKModule for robot 'tdcr-3seg' (3 segments, 12 joints)" in message
+    with pytest.raises(ValueError, match="width 32.*width 64"):
+        train.main(["fit", "--config", str(config), "--model.init_args.width", "64", "--ckpt_path", "last"])
+    assert digests(first) == before
+    assert runs.versions(tmp_path / "runs" / "smoke") == [first]      # no folder was made for the refusals
+
+
+def test_test_writes_its_own_folder_and_keeps_the_fit_files(tmp_path):
+    config = str(write_run_config(tmp_path, epochs=1))
+    train.main(["fit", "--config", config])
+    run = tmp_path / "runs" / "smoke" / "version_0"
+    before = digests(run)
+    for k in (0, 1):
+        train.main(["test", "--config", config, "--ckpt_path", "last"])
+        out = run / f"test_{k}"
+        summary = json.loads((out / "metrics.json").read_text())
+        assert summary["checkpoint"] == str(run / "checkpoints" / "last.ckpt")
+        assert summary["pos_err_mean_mm"] == pytest.approx(json.loads((run / "metrics.json").read_text())
+                                                           ["pos_err_mean_mm"], rel=1e-5)
+        assert (out / "rerun.rrd").stat().st_size > 0
+    assert {k: v for k, v in digests(run).items() if not k.startswith("test_")} == before
+
+
+def test_test_needs_a_checkpoint(tmp_path):
+    config = str(write_run_config(tmp_path, epochs=1))
+    with pytest.raises(ValueError, match="needs --ckpt_path"):
+        train.main(["test", "--config", config])
+    with pytest.raises(ValueError, match="--ckpt_path last: .*no such file or folder"):
+        train.main(["test", "--config", config, "--ckpt_path", "last"])
+    assert not (tmp_path / "runs").exists()
+
+
+def test_load_model_from_a_run_folder_predicts_like_the_trained_module(tmp_path):
+    cli = train.main(["fit", "--config", str(write_run_config(tmp_path, epochs=1))])
+    model = runs.load_model(tmp_path / "runs" / "smoke")
+    q = cli.datamodule.splits["test"]["q"][:16]
+    cli.model.eval()
+    with torch.no_grad():
+        expected = cli.model(q)
+        pose = model(q)
+    assert model.task == "fk" and model.spec == cli.model.spec and not model.training
+    assert pose.shape == (16, 4, 4)
+    torch.testing.assert_close(pose, expected)
+    assert isinstance(FKModule.load_from_checkpoint(runs.find_checkpoint(tmp_path / "runs/smoke")), FKModule)
+
+
+# ---- interruptions (subprocess: real signals) ---------------------------------------------------------
+
+def _resume_command(stderr: str) -> list[str]:
+    lines = stderr.splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith("Resume this run with:"))
+    words = shlex.split(lines[at + 1])
+    assert Path(words[1]).name == "train.py"
+    return words[2:]
+
+
+@pytest.mark.parametrize("signal_callback, code", [("SigtermAt", 143), ("InterruptAt", 130)])
+def test_interrupt_mid_epoch_prints_the_resume_command_and_resume_keeps_the_whole_recording(
+        tmp_path, signal_callback, code):
+    stop_at = STEPS_PER_EPOCH + 7                                   # in the middle of the second epoch
+    callback = {"class_path": f"fault_injection.{signal_callback}", "init_args": {"step": stop_at}}
+    config = write_run_config(tmp_path, epochs=3, callbacks=[callback])
+    stopped = run_train(["fit", "--config", str(config)], tmp_path)
+    assert stopped.returncode == code, stopped.stderr[-2000:]
+    run = tmp_path / "runs" / "smoke" / "version_0"
+    last = run / "checkpoints" / "last.ckpt"
+    assert torch.load(last, weights_only=True)["global_step"] == stop_at
+    args = _resume_command(stopped.stderr)
+    assert args[-2:] == ["--ckpt_path", str(last)] or Path(args[-1]).resolve() == last.resolve()
+    resumed = run_train(args, tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    assert runs.versions(tmp_path / "runs" / "smoke") == [run]       # the same run, not a new one
+    assert torch.load(last, weights_only=True)["global_step"] == 3 * STEPS_PER_EPOCH
+    ids, steps = recording(run)
+    assert len(ids) == 1 and len(list(run.glob("rerun*.rrd"))) == 2
+    assert steps[0] <= 5 and steps[-1] >= 3 * STEPS_PER_EPOCH - 5
+    gaps = [b - a for a, b in zip(steps, steps[1:], strict=False)]
+    assert max(gaps) <= 5 + 5, gaps                                    # no hole around the interruption
+    assert (run / "metrics.json").is_file()
