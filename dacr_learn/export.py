@@ -33,6 +33,7 @@ from torch import Tensor, nn
 from .checks import check_tensor, load_torch_file, read_json_object, short_error
 from .inference import InferenceCompositionalFK, InferenceFK, InferenceIK, InferenceJacobian
 from .robot import RobotSpec
+from .runs import CHECKPOINT, find_checkpoint, load_lightning_checkpoint
 
 FORMAT = "dacr_learn.export/1"
 METADATA_FILE = "metadata.json"
@@ -42,7 +43,6 @@ UNITS = {"joint_lengths": "m", "twist": "rad", "position": "m", "rotation": "3x3
          "jacobian_rows": "tip linear velocity [m] (rows 0-2) and angular velocity [rad] (rows 3-5), base frame",
          "clarke_features": "rho_re, rho_im [m] per segment, beta [m] and alpha [rad] where actuated"}
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
-CHECKPOINT = "an FKModule/IKModule checkpoint written by train.py or a Lightning Trainer"
 
 
 def file_sha256(path: str | Path) -> str:
@@ -57,50 +57,6 @@ def file_sha256(path: str | Path) -> str:
 def _metadata_digest(meta: dict) -> str:
     body = {k: v for k, v in meta.items() if k != "metadata_sha256"}
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
-
-
-def checkpoint_task(ckpt: Path, raw: Any) -> str:
-    """"fk" | "ik" of a loaded checkpoint dict; ValueError naming the file and the missing or wrong entry."""
-    def bad(found: str) -> ValueError:
-        return ValueError(f"{ckpt}: expected {CHECKPOINT}, found {found}")
-
-    if not isinstance(raw, dict):
-        raise bad(f"a torch file holding a {type(raw).__name__}, not a checkpoint dict")
-    missing = [k for k in ("state_dict", "hyper_parameters", "pytorch-lightning_version") if k not in raw]
-    if missing:
-        raise bad(f"a dict without {missing} (keys: {sorted(map(str, raw))[:8]})")
-    hparams, weights = raw["hyper_parameters"], raw["state_dict"]
-    if not isinstance(hparams, dict) or "robot" not in hparams:
-        raise bad(f"hyper_parameters without a robot spec: {str(hparams)[:200]}")
-    try:
-        RobotSpec.coerce(hparams["robot"])
-    except (ValueError, OSError) as err:
-        raise ValueError(f"{ckpt}: hyper_parameters.robot: {err}") from err
-    if isinstance(weights, dict) and "model.front.norm.mean" in weights:
-        return "fk"
-    if isinstance(weights, dict) and "model.in_norm.mean" in weights:
-        return "ik"
-    raise bad("a state_dict without model.front.norm / model.in_norm weights "
-              f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
-
-
-def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
-    """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
-    ``blob``: the file's content when the caller has loaded it already (weights-only).
-
-    Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
-    (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
-    """
-    from .training import FKModule, IKModule  # Lightning is needed to export, not to run
-
-    ckpt = Path(ckpt)
-    task = checkpoint_task(ckpt, load_torch_file(ckpt, CHECKPOINT) if blob is None else blob)
-    cls = FKModule if task == "fk" else IKModule
-    try:
-        return task, cls.load_from_checkpoint(ckpt, map_location="cpu").eval()
-    except (KeyError, RuntimeError, TypeError, ValueError) as err:
-        raise ValueError(f"{ckpt}: expected {CHECKPOINT}, found one that {cls.__name__} cannot load "
-                         f"({short_error(err)})") from err
 
 
 def inference_modules(task: str, model: nn.Module, dtype: torch.dtype = torch.float32) -> dict[str, nn.Module]:
@@ -364,7 +320,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     """CLI: export a checkpoint; prints the written files and the verified deviations."""
     p = argparse.ArgumentParser(prog="python -m dacr_learn.export", description=__doc__.split("\n\n")[0])
     p.add_argument("--ckpt", required=True,
-                   help="FKModule / IKModule checkpoint (e.g. runs/<name>/checkpoints/last.ckpt)")
+                   help="FKModule / IKModule checkpoint, or a train.py run folder (runs/<name>: its newest "
+                        "version's last.ckpt; runs/<name>/version_<n>), or a hardware model.pt")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--dtype", choices=sorted(_DTYPES), default="float32")
     p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor packages (faster export)")
@@ -374,6 +331,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     args = p.parse_args(argv)
     if args.autotune and args.no_aoti:
         p.error("--autotune tunes the AOTInductor packages; it cannot be combined with --no-aoti")
+    args.ckpt = str(find_checkpoint(args.ckpt))
     meta = export_checkpoint(args.ckpt, args.out, dtype=_DTYPES[args.dtype], aoti=not args.no_aoti,
                              autotune=args.autotune)
     print(f"exported {meta['task'].upper()} of robot {meta['robot']['name']!r} ({meta['features']} features, "

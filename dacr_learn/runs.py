@@ -27,12 +27,17 @@ from typing import Any
 
 import torch
 
+from .checks import load_torch_file, short_error
+from .robot import RobotSpec
+
 __all__ = [
-    "ARCHITECTURE", "RUN_INFO", "check_checkpoint_fits", "checkpoint_run_dir", "describe_model", "find_checkpoint",
-    "load_model", "new_numbered_dir", "read_run_info", "versions", "write_run_info",
+    "ARCHITECTURE", "CHECKPOINT", "RUN_INFO", "check_checkpoint_fits", "checkpoint_run_dir", "checkpoint_task",
+    "describe_model", "find_checkpoint", "load_lightning_checkpoint", "load_model", "new_numbered_dir",
+    "read_run_info", "versions", "write_run_info",
 ]
 
 RUN_INFO = "run.json"
+CHECKPOINT = "an FKModule/IKModule checkpoint written by train.py or a Lightning Trainer"
 LAST = "last.ckpt"
 _VERSION = re.compile(r"^version_(\d+)$")
 
@@ -123,14 +128,56 @@ def find_checkpoint(path: str | Path) -> Path:
                             "train a model first (train.py fit --config …)")
 
 
+def checkpoint_task(ckpt: Path, raw: Any) -> str:
+    """"fk" | "ik" of a loaded checkpoint dict; ValueError naming the file and the missing or wrong entry."""
+    def bad(found: str) -> ValueError:
+        return ValueError(f"{ckpt}: expected {CHECKPOINT}, found {found}")
+
+    if not isinstance(raw, dict):
+        raise bad(f"a torch file holding a {type(raw).__name__}, not a checkpoint dict")
+    missing = [k for k in ("state_dict", "hyper_parameters", "pytorch-lightning_version") if k not in raw]
+    if missing:
+        raise bad(f"a dict without {missing} (keys: {sorted(map(str, raw))[:8]})")
+    hparams, weights = raw["hyper_parameters"], raw["state_dict"]
+    if not isinstance(hparams, dict) or "robot" not in hparams:
+        raise bad(f"hyper_parameters without a robot spec: {str(hparams)[:200]}")
+    try:
+        RobotSpec.coerce(hparams["robot"])
+    except (ValueError, OSError) as err:
+        raise ValueError(f"{ckpt}: hyper_parameters.robot: {err}") from err
+    if isinstance(weights, dict) and "model.front.norm.mean" in weights:
+        return "fk"
+    if isinstance(weights, dict) and "model.in_norm.mean" in weights:
+        return "ik"
+    raise bad("a state_dict without model.front.norm / model.in_norm weights "
+              f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
+
+
+def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
+    """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
+    ``blob``: the file's content when the caller has loaded it already (weights-only).
+
+    Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
+    (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
+    """
+    from .training import FKModule, IKModule  # Lightning is imported only to read a checkpoint
+
+    ckpt = Path(ckpt)
+    task = checkpoint_task(ckpt, load_torch_file(ckpt, CHECKPOINT) if blob is None else blob)
+    cls = FKModule if task == "fk" else IKModule
+    try:
+        return task, cls.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        raise ValueError(f"{ckpt}: expected {CHECKPOINT}, found one that {cls.__name__} cannot load "
+                         f"({short_error(err)})") from err
+
+
 # hyper-parameters that decide what a checkpoint's weights compute (not how they were trained)
 ARCHITECTURE = ("features", "structure", "context", "width", "depth", "activation", "rotation")
 
 
 def describe_model(kind: str, hparams: dict[str, Any]) -> str:
     """One phrase naming a model: its class, robot (name, joints) and architecture hyper-parameters."""
-    from .robot import RobotSpec
-
     try:
         spec = RobotSpec.coerce(hparams.get("robot"))
         segments = f"{spec.num_segments} segment" + ("s" if spec.num_segments > 1 else "")
@@ -146,14 +193,12 @@ def check_checkpoint_fits(ckpt: str | Path, kind: str, hparams: dict[str, Any],
     """ValueError (one line, naming both) unless the checkpoint ``ckpt`` holds a model of class ``kind``
     for the same robot, with the same architecture hyper-parameters and weight shapes as the model the
     config builds (``kind``, ``hparams``, ``state_dict``: that model's)."""
-    from .checks import load_torch_file
-
     blob = load_torch_file(ckpt, "a checkpoint written by train.py")
     saved = blob.get("hyper_parameters") if isinstance(blob, dict) else None
     weights = blob.get("state_dict") if isinstance(blob, dict) else None
     if not isinstance(saved, dict) or not isinstance(weights, dict):
         raise ValueError(f"{ckpt}: expected a checkpoint written by train.py (with hyper_parameters and state_dict)")
-    saved_kind = blob.get("dacr_module") or _kind_of(weights)
+    saved_kind = {"fk": "FKModule", "ik": "IKModule"}[checkpoint_task(Path(ckpt), blob)]
     same = (saved_kind == kind and saved.get("robot") == hparams.get("robot")
             and all(saved.get(k) == hparams.get(k) for k in ARCHITECTURE)
             and {k: tuple(v.shape) for k, v in weights.items()}
@@ -162,12 +207,6 @@ def check_checkpoint_fits(ckpt: str | Path, kind: str, hparams: dict[str, Any],
         raise ValueError(f"checkpoint {ckpt} holds an {describe_model(saved_kind, saved)}; the config asks for an "
                          f"{describe_model(kind, hparams)}: pass a checkpoint of this model, or start a new run "
                          "without --ckpt_path")
-
-
-def _kind_of(weights: dict[str, Any]) -> str:
-    if "model.front.norm.mean" in weights:
-        return "FKModule"
-    return "IKModule" if "model.in_norm.mean" in weights else "unknown module"
 
 
 def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn.Module:
@@ -188,8 +227,6 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
         FileNotFoundError: nothing to load at ``path``.
         ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
     """
-    from .export import load_lightning_checkpoint  # Lightning is imported only to read the checkpoint
-
     task, module = load_lightning_checkpoint(find_checkpoint(path))
     model = module.model.to(dtype).eval()
     model.task = task
