@@ -325,3 +325,15 @@ def write_run_config(tmp_path: Path, task: str = "FKModule", robot: str = "confi
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(cfg))
     return path
+
+
+def readme_sections() -> dict[str, str]:
+    """The README's ``## `` sections: heading text → the section's text (heading line included)."""
+    sections, name, lines = {}, "", []
+    for line in (ROOT / "README.md").read_text(encoding="utf-8").splitlines(keepends=True):
+        if line.startswith("## "):
+            sections[name] = "".join(lines)
+            name, lines = line[3:].strip(), []
+        lines.append(line)
+    sections[name] = "".join(lines)
+    return sections
