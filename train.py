@@ -19,6 +19,7 @@ import os
 import shlex
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -32,6 +33,19 @@ from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
 from dacr_learn.rerun_log import RerunLogger, RerunVisualCallback
 from dacr_learn.training import KinematicsModule
+
+
+def quiet_run_handling_warnings() -> None:
+    """Lightning warnings about situations this CLI creates on purpose, which a user cannot act on."""
+    for message in (
+        # a resumed fit writes into its own run folder, which holds that run's checkpoints
+        r"Checkpoint directory .* exists and is not empty",
+        # Ctrl-C / SIGTERM save mid-epoch; the resumed epoch draws a fresh shuffle of the remaining batches
+        r"You're resuming from a checkpoint that ended before the epoch ended",
+        # `test` restores weights only; the ModelCheckpoint that wrote the file is a fit-time callback
+        r"Be aware that when using `ckpt_path`, callbacks used to create the checkpoint",
+    ):
+        warnings.filterwarnings("ignore", message=message)
 
 
 class InterruptCheckpoint(Callback):
@@ -94,6 +108,7 @@ class DacrCLI(LightningCLI):
         parser.link_arguments("data.robot", "model.init_args.robot")
 
     def before_instantiate_classes(self) -> None:
+        quiet_run_handling_warnings()
         torch.set_num_threads(self.run_config.num_threads)
         if self.subcommand is None:   # main(run=False): instantiate only, as for a new fit
             return
@@ -112,6 +127,8 @@ class DacrCLI(LightningCLI):
             raise ValueError(f"--ckpt_path {ckpt}: no such file; expected 'last' or a checkpoint file "
                              f"(e.g. {self.run_root}/version_0/checkpoints/last.ckpt)")
         cfg.ckpt_path = ckpt
+        if "verbose" in cfg:   # `test` prints the project's metrics table (after_test); Lightning's repeats it
+            cfg.verbose = False
 
     @property
     def run_config(self):
