@@ -19,8 +19,8 @@ from rerun.blueprint.components import PlayState
 
 __all__ = [
     "HPARAMS_ENTITY", "CONFIG_ENTITY", "LOG10_ROOT", "METRICS_ROOT", "SCENE_ROOT", "STEP_TIMELINE",
-    "SUMMARY_ENTITY", "WORKSPACE_ENTITY", "default_blueprint", "log10_entity", "metric_entity",
-    "metric_groups", "series_style", "summary_markdown",
+    "SUMMARY_ENTITY", "WORKSPACE_ENTITY", "default_blueprint", "full_range_plot", "log10_entity", "metric_entity",
+    "metric_groups", "series_style", "summary_markdown", "time_panel_at_end",
 ]
 
 STEP_TIMELINE = "step"
@@ -118,16 +118,37 @@ def _fmt(value: float) -> str:
     return f"{value:.4g}" if math.isfinite(value) else str(value)
 
 
-def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesView]:
-    whole = rrb.VisibleTimeRange(STEP_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
+def full_range_plot(
+    timeline: str, *, name: str, origin: str = "/", contents: Iterable[str] | str = "$origin/**",
+    from_zero: bool = False, legend: rrb.Corner2D | None = rrb.Corner2D.RightTop, **kwargs,
+) -> rrb.TimeSeriesView:
+    """A named time-series plot of ``origin``/``contents`` that shows every point of ``timeline``.
+
+    Rerun's default is a window around the time cursor (±1000 steps), which hides most of a long
+    curve: here the visible range and the x axis cover the whole timeline (from 0 with
+    ``from_zero``; LinkAxis.LinkToGlobal would bring the window back). ``legend``: its corner, or
+    None for no legend. Other keyword arguments (``axis_y``, ``overrides``, …) go to
+    rrb.TimeSeriesView.
+    """
+    whole = rrb.VisibleTimeRange(timeline, start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.infinite())
+    start = rrb.TimeRangeBoundary.absolute(seq=0) if from_zero else rrb.TimeRangeBoundary.infinite()
+    axis_x = rrb.TimeAxis(view_range=rrb.TimeRange(start=start, end=rrb.TimeRangeBoundary.infinite()))
+    plot_legend = rrb.PlotLegend(visible=False) if legend is None else rrb.PlotLegend(legend, visible=True)
+    return rrb.TimeSeriesView(origin=origin, contents=contents, time_ranges=[whole], axis_x=axis_x, name=name,
+                              plot_legend=plot_legend, **kwargs)
+
+
+def time_panel_at_end(timeline: str) -> rrb.TimePanel:
+    """The time panel on ``timeline`` at its last time, in follow mode (a live recording stays current),
+    collapsed: a recording opens on its final state instead of auto-playing from an empty start."""
+    return rrb.TimePanel(timeline=timeline, play_state=PlayState.Following, state="collapsed")
+
+
+def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesView]:
     entity = log10_entity if log10 else metric_entity
-    everything = rrb.TimeRange(start=rrb.TimeRangeBoundary.absolute(seq=0), end=rrb.TimeRangeBoundary.infinite())
-    # every step from 0 in every plot (LinkAxis.LinkToGlobal would replace this by a window around the cursor)
-    linked = rrb.TimeAxis(view_range=everything)
-    return [rrb.TimeSeriesView(origin="/", contents=[entity(n) for n in names], time_ranges=[whole], axis_x=linked,
-                               name=f"{title}, log10" if log10 else title,
-                               plot_legend=rrb.PlotLegend(rrb.Corner2D.RightTop, visible=True))
+    return [full_range_plot(STEP_TIMELINE, contents=[entity(n) for n in names], from_zero=True,
+                            name=f"{title}, log10" if log10 else title)
             for title, names in groups.items()]
 
 
@@ -153,5 +174,5 @@ def default_blueprint(metric_names: Iterable[str] = (), colour_note: str = "") -
                     rrb.TextDocumentView(origin=CONFIG_ENTITY, name="config"),
                     rrb.TextLogView(origin="/", name="log"))
     right = rrb.Vertical(robot, rrb.Horizontal(workspace, info), row_shares=[3, 2])
-    time_panel = rrb.TimePanel(timeline=STEP_TIMELINE, play_state=PlayState.Following, state="collapsed")
-    return rrb.Blueprint(rrb.Horizontal(curves, right, column_shares=[1, 1]), time_panel, collapse_panels=True)
+    return rrb.Blueprint(rrb.Horizontal(curves, right, column_shares=[1, 1]), time_panel_at_end(STEP_TIMELINE),
+                         collapse_panels=True)

@@ -7,7 +7,8 @@ a model mismatch (a different joint radius, a different backbone length); its me
 position closes the loop. The tip tracks a circle and a figure-8; printed are the RMS / max
 tracking errors in mm and % of the robot length, and everything is logged to Rerun
 (``runs/track/track.rrd``: desired and actual paths, the robot's backbone and tip frame over
-time, the error curves).
+time, the error curves). The recording carries its layout (:func:`tracking_blueprint`): the 3D
+scene beside one full-range error plot per trajectory, opening at the last step.
 
     .venv/bin/python train.py fit --config configs/fk_type1.yaml          # the model (~2-3 min)
     .venv/bin/python examples/track_trajectory.py --ckpt runs/fk_type1/checkpoints/last.ckpt
@@ -27,10 +28,12 @@ import math
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,12 +42,16 @@ from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
 from dacr_learn.kinematics import backbone_points, forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
+from dacr_learn.rerun_layout import full_range_plot, time_panel_at_end  # noqa: E402
 from dacr_learn.rerun_scene import log_path, log_scene  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 DEFAULT_CKPT = ROOT / "runs" / "fk_type1" / "checkpoints" / "last.ckpt"
 TRAIN_COMMAND = [".venv/bin/python", "train.py", "fit", "--config", "configs/fk_type1.yaml"]
 DESIRED_COLOR, ACTUAL_COLOR = (40, 90, 230), (240, 120, 0)
+TRAJECTORIES = {"circle": "circle", "figure8": "figure-8"}   # name (entity paths, summary) -> title
+SCENE_SPACING = 0.1                                          # [m] in x between the trajectories' scenes
+TIMELINE = "step"
 
 
 class SimulatedRobot:
@@ -125,22 +132,65 @@ def errors(result: dict, length: float) -> dict[str, float]:
 def log_result(rec: rr.RecordingStream, name: str, offset: float, robot: SimulatedRobot, result: dict,
                every: int) -> None:
     """Desired/actual paths, the robot every ``every`` steps, the error curve; scene shifted by ``offset`` in x."""
-    root = f"scene/{name}"
+    root, title = f"scene/{name}", TRAJECTORIES.get(name, name)
     rec.log(root, rr.Transform3D(translation=[offset, 0.0, 0.0]), static=True)
-    rec.set_time("step", sequence=0)
-    log_path(rec, f"{root}/desired", result["desired"], color=DESIRED_COLOR, radius=0.0004)
-    log_path(rec, f"{root}/actual", result["actual"], color=ACTUAL_COLOR, radius=0.0004)
+    rec.set_time(TIMELINE, sequence=0)
+    log_path(rec, f"{root}/desired", result["desired"], color=DESIRED_COLOR, radius=0.0008)  # wider: seen around
+    log_path(rec, f"{root}/actual", result["actual"], color=ACTUAL_COLOR, radius=0.0003)     # the actual path
+    front = [[0.5 * (lo + hi) for lo, hi in zip(result["desired"].min(0), result["desired"].max(0), strict=True)]]
+    front[0][1] = float(result["desired"][:, 1].min()) - 0.15 * robot.spec.total_length   # in front of the path
+    rec.log(f"{root}/title", rr.Points3D(front, labels=[title], show_labels=True, radii=0.0002,
+                                         colors=DESIRED_COLOR), static=True)
     feats = torch.from_numpy(result["features"])
     for k in range(0, len(feats), every):
-        rec.set_time("step", sequence=k)
+        rec.set_time(TIMELINE, sequence=k)
         pose = robot.pose(feats[k])
         log_scene(rec, f"{root}/robot", {"backbone": backbone_points(robot.spec, feats[k])[None],
                                          "pose_true": pose[None]}, axis_length=0.01)
         rec.log(f"{root}/target", rr.Points3D(result["desired"][k:k + 1], colors=DESIRED_COLOR, radii=0.0015))
     err_mm = 1e3 * np.linalg.norm(result["actual"] - result["desired"], axis=-1)
+    rms_mm = float(np.sqrt(np.mean(err_mm**2)))
+    label = f"|actual − reference| (RMS {rms_mm:.4f} mm, max {err_mm.max():.4f} mm)"
+    rec.log(f"metrics/{name}/tracking_error_mm", rr.SeriesLines(names=[label], colors=[ACTUAL_COLOR]), static=True)
     rec.send_columns(f"metrics/{name}/tracking_error_mm",
-                     indexes=[rr.TimeColumn("step", sequence=np.arange(len(err_mm)))],
+                     indexes=[rr.TimeColumn(TIMELINE, sequence=np.arange(len(err_mm)))],
                      columns=rr.Scalars.columns(scalars=err_mm))
+
+
+def tracking_blueprint(results: Mapping[str, Mapping[str, float]], length: float) -> rrb.Blueprint:
+    """Layout of track.rrd; ``results``: trajectory name -> its :func:`errors` (``rms_mm``, ``max_mm``).
+
+    Left, the 3D scene: every trajectory's reference and actual tip paths and the robot at the
+    time cursor (trajectory ``i`` is shifted by ``i * SCENE_SPACING`` in x; the camera sees them
+    all for a robot of ``length`` [m]). Right, one plot per trajectory, titled with its name, RMS
+    and max error: every step, y from 0. The time panel opens at the last step.
+    """
+    centre = 0.5 * SCENE_SPACING * (len(results) - 1)
+    eye = rrb.EyeControls3D(position=[centre, -0.6 * SCENE_SPACING - 1.0 * length, 1.6 * length],
+                            look_target=[centre, 0.0, 0.55 * length], eye_up=[0.0, 0.0, 1.0])
+    titles = " and ".join(TRAJECTORIES.get(n, n) for n in results)
+    scene = rrb.Spatial3DView(origin="scene", eye_controls=eye,
+                              name=f"{titles}: reference (blue) vs actual tip path (orange), robot at the cursor")
+    plots = [full_range_plot(TIMELINE, origin=f"metrics/{n}", from_zero=True, legend=None,
+                             axis_y=rrb.ScalarAxis(range=(0.0, 1.1 * r["max_mm"] or 1.0)),
+                             name=f"{TRAJECTORIES.get(n, n)}: tracking error [mm] "
+                                  f"(RMS {r['rms_mm']:.4f}, max {r['max_mm']:.4f})")
+             for n, r in results.items()]
+    return rrb.Blueprint(rrb.Horizontal(scene, rrb.Vertical(*plots), column_shares=[3, 2]),
+                         time_panel_at_end(TIMELINE), collapse_panels=True)
+
+
+def write_recording(path: Path, robot: SimulatedRobot, results: Mapping[str, dict], every: int) -> None:
+    """``path`` (.rrd): :func:`log_result` of every trajectory (name -> :func:`run_scenario`'s arrays),
+    with :func:`tracking_blueprint` as its layout."""
+    length = robot.spec.total_length
+    layout = tracking_blueprint({n: errors(r, length) for n, r in results.items()}, length)
+    rec = rr.RecordingStream("dacr_track_trajectory")
+    rec.set_sinks(rr.FileSink(str(path)), default_blueprint=layout)
+    rec.log("scene", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    for i, (name, result) in enumerate(results.items()):
+        log_result(rec, name, SCENE_SPACING * i, robot, result, every=every)
+    rec.disconnect()
 
 
 def resolve_checkpoint(ckpt: str | None, no_train: bool) -> Path:
@@ -208,19 +258,16 @@ def main(argv: list[str] | None = None) -> dict:
     ctrl = ResolvedRateController(spec, jac, ControllerConfig(gain=args.gain))
     robot = SimulatedRobot(spec, args.radius_scale, args.length_scale, args.joint_noise)
     period, settle = round(args.period * args.rate), round(0.5 * args.rate)
-    rec = rr.RecordingStream("dacr_track_trajectory")
-    args.out.mkdir(parents=True, exist_ok=True)
-    rec.set_sinks(rr.FileSink(str(args.out / "track.rrd")))
-    rec.log("scene", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     summary = {"checkpoint": str(ckpt), "robot": spec.name, "jacobian": args.jacobian,
                "kind": getattr(jac, "kind", "analytic"), "rate_hz": args.rate, "period_s": args.period,
                "laps": args.laps, "joint_noise_m": args.joint_noise, "radius_scale": args.radius_scale,
                "length_scale": args.length_scale, "controller": dataclasses.asdict(ctrl.config), "results": {}}
-    for i, kind in enumerate(("circle", "figure8")):
-        result = run_scenario(ctrl, robot, trajectory(kind, spec, args.laps * period, period), settle)
-        summary["results"][kind] = errors(result, spec.total_length)
-        log_result(rec, kind, 0.1 * i, robot, result, every=max(1, round(args.rate / 50)))
-    rec.disconnect()
+    results = {}
+    for kind in TRAJECTORIES:
+        results[kind] = run_scenario(ctrl, robot, trajectory(kind, spec, args.laps * period, period), settle)
+        summary["results"][kind] = errors(results[kind], spec.total_length)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_recording(args.out / "track.rrd", robot, results, every=max(1, round(args.rate / 50)))
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
     print_summary(summary, spec, args.out)
     if args.json:

@@ -180,7 +180,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
         third = default or report["best_clarke_model"]
         shown = [m for m in ("cc", report["best_static_clarke_model"], third) if m in preds]
         plot_paths(setup, {m: preds[m] for m in dict.fromkeys(shown)}, args.out / "val_tip_paths.png")
-        log_rerun(setup, preds, args.out / "val_tip_paths.rrd")
+        log_rerun(setup, preds, args.out / "val_tip_paths.rrd", default=default)
     print(markdown_table(results, scores, default))
     print(f"default model (lowest {SELECTION_PROXY} proxy of the deployable Clarke-space models, train only): "
           f"{default}; best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "

@@ -83,49 +83,76 @@ def _rerun_color(name: str, k: int) -> tuple[int, int, int]:
     return RERUN_MEASURED if name == "measured" else _color(name, k)
 
 
+LEGEND_ROOM = 0.25  # top fraction of the error plot kept free of curves, for its legend (three lines)
+
+
 def error_axis_max(errors: dict[str, np.ndarray]) -> float:
-    """Top of the error plot [mm]: 1.3 × the largest p95 error of the models within 2× of the best
-    RMSE, so that a poor model's spikes do not flatten the others (its RMSE stays in the legend)."""
-    rmse = {name: float(np.sqrt((e**2).mean())) for name, e in errors.items()}
-    p95 = {name: float(np.percentile(e, 95)) for name, e in errors.items()}
-    best = min(rmse.values())
-    top = 1.3 * max(p95[n] for n, r in rmse.items() if r <= 2 * best)
-    return top if top > 0 else 1.3 * max(p95.values()) or 1.0  # a perfect model must not collapse the axis
+    """Top of the error plot [mm] for the plotted models' ``errors``: their largest error over
+    (1 − LEGEND_ROOM), so every point is visible and the legend (top right) lies above the curves."""
+    top = max((float(e.max()) for e in errors.values() if e.size), default=0.0) / (1 - LEGEND_ROOM)
+    return top if top > 0 else 1.0  # a perfect model must not collapse the axis
 
 
-def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown_3d: int = 3):
+def rmse_mm(errors: dict[str, np.ndarray]) -> dict[str, float]:
+    """Model -> RMSE [mm] of its offset-removed errors [mm]."""
+    return {name: float(np.sqrt((e**2).mean())) for name, e in errors.items()}
+
+
+def shown_models(errors: dict[str, np.ndarray], default: str | None = None, shown: int = 3) -> list[str]:
+    """The models the recording shows by default (error plot and 3D view): the default model (if it
+    is one of ``errors``) and the lowest-val-RMSE others, ``shown`` models in all, default first."""
+    rmse = rmse_mm(errors)
+    first = [default] if default in errors else []
+    return first + sorted((n for n in errors if n not in first), key=rmse.__getitem__)[:max(shown - len(first), 0)]
+
+
+def _hidden(entities: list[str]) -> dict[str, list]:
+    """View overrides hiding ``entities`` (still in the recording and the blueprint panel: one click shows one)."""
+    import rerun.blueprint as rrb
+
+    return {e: [rrb.EntityBehavior(visible=False)] for e in entities}
+
+
+def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown: int = 3, default: str | None = None):
     """Layout for :func:`log_rerun`; ``errors``: model -> offset-removed errors [mm].
 
-    A large 3D view (measured path, the CC model, the ``shown_3d`` lowest-RMSE models and their
-    ±2σ bands; the other models are hidden there, one click away in the blueprint panel) beside
-    one error plot with every model overlaid (one y-scale from 0 to :func:`error_axis_max`,
-    legend with RMSEs), the predicted-2σ plot when given, and the RMSE table. Opens at the
-    last sample (follow mode).
+    Left, large: the 3D view (measured path, the CC model and the :func:`shown_models` — the
+    ``default`` model and the best others by val RMSE, ``shown`` in all — with their ±2σ bands);
+    below it the offset-removed error per val sample of the shown models only (every sample, y
+    from 0 to :func:`error_axis_max` of them, so the three-line legend lies above the curves)
+    and, when ``with_std``, their predicted 2σ. Right: every model's val RMSE as a bar chart (one
+    bar per model, best first, in the model's colour; the legend reads rank and name) above the
+    RMSE table (same ranks). Every other model stays in the recording, hidden in the 3D view and
+    the plots (one click away in the blueprint panel). Opens at the last sample (follow mode).
     """
     import rerun.blueprint as rrb
-    from rerun.blueprint.components import PlayState
 
-    whole = rrb.VisibleTimeRange(SAMPLE_TIMELINE, start=rrb.TimeRangeBoundary.infinite(),
-                                 end=rrb.TimeRangeBoundary.infinite())
-    everything = rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite())
-    common = dict(time_ranges=[whole], axis_x=rrb.TimeAxis(view_range=everything),  # every sample, not a window
-                  plot_legend=rrb.PlotLegend(rrb.Corner2D.RightTop, visible=True))
-    top = error_axis_max(errors)
-    plots = [rrb.TimeSeriesView(origin="errors", axis_y=rrb.ScalarAxis(range=(0.0, top)), **common,
-                                name=f"offset-removed tip error [mm], all {len(errors)} models (y 0–{top:.0f} mm)")]
+    from ..rerun_layout import full_range_plot, time_panel_at_end
+
+    visible = shown_models(errors, default, shown)
+    hidden = [n for n in errors if n not in visible]
+    hidden_3d = [n for n in hidden if n != "cc"]            # the CC model's path stays, as the reference
+    top = error_axis_max({n: errors[n] for n in visible})
+    what = (f"default {visible[0]} and the best {len(visible) - 1} others" if visible and visible[0] == default
+            else f"the best {len(visible)}")
+    plots = [full_range_plot(SAMPLE_TIMELINE, origin="errors", axis_y=rrb.ScalarAxis(range=(0.0, top)),
+                             overrides=_hidden([f"errors/{n}" for n in hidden]),
+                             name=f"offset-removed tip error [mm] per val sample: {what} "
+                                  f"({len(hidden)} more hidden)")]
     if with_std:
-        plots.append(rrb.TimeSeriesView(origin="sigma", name="predicted 2σ [mm] (uncertainty)", **common))
-    side = rrb.Vertical(*plots, rrb.TextDocumentView(origin="summary", name="val RMSE"),
-                        row_shares=[3] * len(plots) + [2])
-    ranked = sorted(errors, key=lambda n: float((errors[n] ** 2).mean()))
-    hidden = [n for n in ranked[shown_3d:] if n != "cc"]
-    behaviour = [rrb.EntityBehavior(visible=False)]
-    overrides = {f"world/{kind}/{n}": behaviour for n in hidden for kind in ("paths", "tip", "band_2sigma")}
-    shown = ", ".join(n for n in ranked if n not in hidden)
+        plots.append(full_range_plot(SAMPLE_TIMELINE, origin="sigma", overrides=_hidden([f"sigma/{n}" for n in hidden]),
+                                     name="predicted 2σ [mm] (uncertainty)"))
+    bars = rrb.BarChartView(origin="rmse", name=f"val RMSE [mm] of all {len(errors)} models, best first",
+                            plot_legend=rrb.PlotLegend(rrb.Corner2D.LeftTop, visible=True))
+    table = rrb.TextDocumentView(origin="summary", name="val RMSE table")
+    overrides = _hidden([f"world/{kind}/{n}" for n in hidden_3d for kind in ("paths", "tip", "band_2sigma")])
+    names = ", ".join(dict.fromkeys([*visible, "cc"] if "cc" in errors else visible))
     scene = rrb.Spatial3DView(origin="world", overrides=overrides,
-                              name=f"val tip paths: measured (white) and {shown}; CC backbone (blue)")
-    time_panel = rrb.TimePanel(timeline=SAMPLE_TIMELINE, play_state=PlayState.Following, state="collapsed")
-    return rrb.Blueprint(rrb.Horizontal(scene, side, column_shares=[3, 2]), time_panel, collapse_panels=True)
+                              name=f"val tip paths: measured (white) and {names}; CC backbone (blue)")
+    left = rrb.Vertical(scene, *plots, row_shares=[3] + [2] * len(plots))
+    right = rrb.Vertical(bars, table, row_shares=[1, 1])
+    return rrb.Blueprint(rrb.Horizontal(left, right, column_shares=[5, 3]), time_panel_at_end(SAMPLE_TIMELINE),
+                         collapse_panels=True)
 
 
 def _check_std(std: dict[str, torch.Tensor] | None, preds: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
@@ -162,7 +189,7 @@ def _log_paths(rec, setup: Setup, preds: dict[str, torch.Tensor], sigma: dict[st
 
 
 def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], errors: dict[str, np.ndarray],
-                 sigma: dict[str, np.ndarray]) -> dict[str, float]:
+                 sigma: dict[str, np.ndarray], default: str | None = None) -> dict[str, float]:
     """Per sample (batched columns): tips, CC backbone, each model's error and 2σ [mm]; returns RMSEs [mm]."""
     import rerun as rr
 
@@ -181,7 +208,8 @@ def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], errors: dict
         rmse[name] = float(np.sqrt((err**2).mean()))
         rec.log(f"world/tip/{name}", rr.Points3D.from_fields(colors=[color], radii=0.0015), static=True)
         rec.send_columns(f"world/tip/{name}", index, rr.Points3D.columns(positions=pred.numpy()))
-        rec.log(f"errors/{name}", rr.SeriesLines(names=[f"{name} ({rmse[name]:.2f} mm)"], colors=[color]), static=True)
+        legend = f"{name} ({rmse[name]:.2f} mm{', default' if name == default else ''})"
+        rec.log(f"errors/{name}", rr.SeriesLines(names=[legend], colors=[color]), static=True)
         rec.send_columns(f"errors/{name}", index, rr.Scalars.columns(scalars=err))
         if name in sigma:
             two_sigma_mm = 2e3 * np.linalg.norm(sigma[name], axis=1)
@@ -190,21 +218,39 @@ def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], errors: dict
     return rmse
 
 
-def _summary(setup: Setup, rmse: dict[str, float]) -> str:
-    rows = "\n".join(f"| {name} | {value:.2f} |" for name, value in sorted(rmse.items(), key=lambda kv: kv[1]))
+def _log_rmse_bars(rec, rmse: dict[str, float], colors: dict[str, tuple[int, int, int]]) -> None:
+    """Static: one rr.BarChart per model at :func:`rmse_entity`, its bar at x = rank (1: the lowest RMSE) in
+    the model's colour; the viewer's legend lists the entities, so it reads rank and name, best first."""
+    import rerun as rr
+
+    for rank, name in enumerate(sorted(rmse, key=rmse.__getitem__), start=1):
+        rec.log(rmse_entity(rank, name), rr.BarChart([rmse[name]], abscissa=[rank], color=colors[name]), static=True)
+
+
+def rmse_entity(rank: int, name: str) -> str:
+    """Entity of a model's RMSE bar: ``rmse/<rank>_<model>`` (rank 1 = lowest RMSE)."""
+    return f"rmse/{rank}_{name}"
+
+
+def _summary(setup: Setup, rmse: dict[str, float], default: str | None = None) -> str:
+    ranked = sorted(rmse, key=rmse.__getitem__)
+    rows = "\n".join(f"| {rank} | {name}{' (default)' if name == default else ''} | {rmse[name]:.2f} |"
+                     for rank, name in enumerate(ranked, start=1))
     return (f"**{setup.spec.name}**, {len(setup.val.tip)} val samples of `{Path(setup.val_rec.source).name}`.\n\n"
             "Offset-removed tip RMSE (the mean tip offset of each model is removed, as in results.json):\n\n"
-            f"| model | RMSE [mm] |\n|---|---|\n{rows}\n")
+            f"| # | model | RMSE [mm] |\n|---|---|---|\n{rows}\n")
 
 
 def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
-              std: dict[str, torch.Tensor] | None = None) -> None:
+              std: dict[str, torch.Tensor] | None = None, default: str | None = None) -> None:
     """Rerun .rrd of the val recording, with its own blueprint (:func:`hardware_blueprint`).
 
-    Static: the measured and predicted val paths [m] and, for models in ``std`` (σ per sample
-    [m], shape (N,) or (N, 3)), a ±2σ band of ellipsoids. On the timeline ``sample``: the
-    measured and predicted tips, the CC model's backbone, each model's offset-removed error
-    [mm] (all in one plot, colours as in 3D, RMSE in the legend) and its predicted 2σ [mm].
+    Static: the measured and predicted val paths [m], for models in ``std`` (σ per sample [m],
+    shape (N,) or (N, 3)) a ±2σ band of ellipsoids, and every model's val RMSE as a bar
+    (``rmse/…``). On the timeline ``sample``: the measured and predicted tips, the CC model's
+    backbone, each model's offset-removed error [mm] (colours as in 3D, RMSE in the legend) and
+    its predicted 2σ [mm]. The layout shows ``default`` (the benchmark's default model, if any)
+    and the two best others by val RMSE; every other model is one click away.
     """
     import rerun as rr
 
@@ -212,11 +258,12 @@ def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
     errors = {name: centered_errors_mm(p, setup.val.tip) for name, p in preds.items()}
     rec = rr.RecordingStream("dacr_learn_hardware", recording_id=f"{setup.spec.name}-{Path(path).stem}")
     rec.set_sinks(rr.FileSink(str(path)))
-    rec.send_blueprint(hardware_blueprint(errors, bool(sigma)), make_active=True, make_default=True)
+    rec.send_blueprint(hardware_blueprint(errors, bool(sigma), default=default), make_active=True, make_default=True)
     rec.send_recording_name(f"{setup.spec.name}: val tip paths ({Path(setup.val_rec.source).name})")
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     _log_paths(rec, setup, preds, sigma)
-    rmse = _log_samples(rec, setup, preds, errors, sigma)
-    rec.log("summary", rr.TextDocument(_summary(setup, rmse), media_type="text/markdown"), static=True)
+    rmse = _log_samples(rec, setup, preds, errors, sigma, default)
+    _log_rmse_bars(rec, rmse, {name: _color(name, k) for k, name in enumerate(preds, start=1)})
+    rec.log("summary", rr.TextDocument(_summary(setup, rmse, default), media_type="text/markdown"), static=True)
     rec.flush()
     rec.disconnect()
