@@ -11,12 +11,13 @@ time, the error curves). The recording carries its layout (:func:`tracking_bluep
 scene beside one full-range error plot per trajectory, opening at the last step.
 
     .venv/bin/python train.py fit --config configs/fk_type1.yaml          # the model (~2-3 min)
-    .venv/bin/python examples/track_trajectory.py --ckpt runs/fk_type1/checkpoints/last.ckpt
-    .venv/bin/python examples/track_trajectory.py --ckpt runs/fk_type1/checkpoints/last.ckpt \\
+    .venv/bin/python examples/track_trajectory.py --ckpt runs/fk_type1
+    .venv/bin/python examples/track_trajectory.py --ckpt runs/fk_type1 \\
         --joint-noise 2e-5 --radius-scale 1.05 --length-scale 0.97      # noise + model mismatch
     .venv/bin/rerun runs/track/track.rrd
 
-Without ``--ckpt`` it uses runs/fk_type1/checkpoints/last.ckpt, or trains a quick small model
+``--ckpt`` takes a checkpoint or a run folder (its newest version's last.ckpt). Without it the
+example uses runs/fk_type1, or trains a quick small model
 (``--no-train``: just print the training command).
 """
 from __future__ import annotations
@@ -45,8 +46,9 @@ from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.rerun_layout import full_range_plot, time_panel_at_end  # noqa: E402
 from dacr_learn.rerun_scene import log_path, log_scene  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
+from dacr_learn.runs import find_checkpoint  # noqa: E402
 
-DEFAULT_CKPT = ROOT / "runs" / "fk_type1" / "checkpoints" / "last.ckpt"
+DEFAULT_RUN = ROOT / "runs" / "fk_type1"
 TRAIN_COMMAND = [".venv/bin/python", "train.py", "fit", "--config", "configs/fk_type1.yaml"]
 DESIRED_COLOR, ACTUAL_COLOR = (40, 90, 230), (240, 120, 0)
 TRAJECTORIES = {"circle": "circle", "figure8": "figure-8"}   # name (entity paths, summary) -> title
@@ -194,20 +196,24 @@ def write_recording(path: Path, robot: SimulatedRobot, results: Mapping[str, dic
 
 
 def resolve_checkpoint(ckpt: str | None, no_train: bool) -> Path:
-    """--ckpt, else runs/fk_type1/checkpoints/last.ckpt, else a quickly trained small model."""
+    """--ckpt (a checkpoint or a run folder), else the newest run of runs/fk_type1, else a quickly trained
+    small model."""
     if ckpt:
-        return Path(ckpt)
-    if DEFAULT_CKPT.is_file():
-        print(f"using {DEFAULT_CKPT.relative_to(ROOT)}")
-        return DEFAULT_CKPT
+        return find_checkpoint(ckpt)
+    try:
+        found = find_checkpoint(DEFAULT_RUN)
+        print(f"using {found.relative_to(ROOT)}")
+        return found
+    except FileNotFoundError:
+        pass
     if no_train:
         sys.exit(f"no checkpoint: train one with `{' '.join(TRAIN_COMMAND)}` "
-                 f"and pass --ckpt {DEFAULT_CKPT.relative_to(ROOT)}")
+                 f"and pass --ckpt {DEFAULT_RUN.relative_to(ROOT)}")
     quick = TRAIN_COMMAND + ["--run_name", "fk_type1_quick", "--trainer.max_epochs", "4", "--data.n_train", "10000"]
     print(f"no checkpoint given: training a quick small model ({' '.join(quick)}); "
           f"for the full one run `{' '.join(TRAIN_COMMAND)}`", flush=True)
     subprocess.run([sys.executable, *quick[1:]], cwd=ROOT, check=True)
-    return ROOT / "runs" / "fk_type1_quick" / "checkpoints" / "last.ckpt"
+    return find_checkpoint(ROOT / "runs" / "fk_type1_quick")
 
 
 def learned_jacobian(ckpt: Path, out: Path, aoti: bool) -> dexport.ExportedModule:
