@@ -40,7 +40,6 @@ import platform
 import sys
 import tempfile
 import time
-import warnings
 from pathlib import Path
 
 import lightning
@@ -53,6 +52,7 @@ sys.path.insert(0, str(ROOT))
 from timing import time_interleaved  # noqa: E402
 
 from dacr_learn import export as dexport  # noqa: E402
+from dacr_learn.console import quiet_third_party_warnings, run_cli  # noqa: E402
 from dacr_learn.data import generate  # noqa: E402
 from dacr_learn.inference import InferenceCompositionalFK, InferenceFK, InferenceJacobian  # noqa: E402
 from dacr_learn.kinematics import forward_kinematics  # noqa: E402
@@ -251,7 +251,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--hardware-members", type=int, default=3, help="ensemble members of the untrained hardware model")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    warnings.filterwarnings("ignore")
+    quiet_third_party_warnings()
     fk, ik = default_modules(args.config)
     with tempfile.TemporaryDirectory() as tmp:
         out = args.out or Path(tmp)
@@ -287,4 +287,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -15,11 +15,11 @@ import argparse
 import json
 import statistics
 import time
-import warnings
 
 import lightning.pytorch as pl
 import torch
 
+from dacr_learn.console import quiet_third_party_warnings
 from dacr_learn.data import generate
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.training import FKModule
@@ -77,7 +77,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    warnings.filterwarnings("ignore")
+    quiet_third_party_warnings()
     dm = KinematicsDataModule(ROBOT, n_train=50_000, n_val=10, n_test=10, batch_size=BATCH)
     dm.setup("fit")
     lightning_run(dm, 50), plain_run(dm, 50)                            # warm-up

@@ -20,6 +20,7 @@ import argparse
 import csv
 import json
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from torch import Tensor
 
 from .ablation.runner import StepDataModule, evaluate, quiet_lightning
 from .compositional import transfer
+from .console import run_cli
 from .data import generate
 from .robot import RobotSpec
 from .training import FKModule
@@ -180,4 +182,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from .checks import check_tensor, load_torch_file, read_json_object, short_error
+from .console import run_cli
 from .inference import InferenceCompositionalFK, InferenceFK, InferenceIK, InferenceJacobian
 from .robot import RobotSpec
 from .runs import CHECKPOINT, find_checkpoint, load_lightning_checkpoint
@@ -98,7 +100,9 @@ def export_program(module: nn.Module, example: Tensor | tuple[Tensor, ...]) -> t
 # Inductor options of ``autotune=True``: small matrix products as generated C++ GEMM kernels (chosen by
 # timing them at export) instead of BLAS calls. Measured at batch 1, one thread (docs/export.md): AOTI
 # runner of the default synthetic FK 19.0 → 7.7 µs, of FTDCR v4's hardware FK 48 → 27 µs; export slower.
-AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATEN"}
+# The last two keep Inductor from writing its timing table of every tuned product to stderr.
+AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATEN",
+                    "autotune_num_choices_displayed": 0, "max_autotune_report_choices_stats": False}
 
 
 def _write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
@@ -344,7 +348,4 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except (ValueError, FileNotFoundError) as err:    # a bad --ckpt: its message, not a traceback
-        raise SystemExit(f"python -m dacr_learn.export: error: {err}") from err
+    sys.exit(run_cli(main))       # a bad --ckpt: its one-line message, not a traceback

@@ -45,6 +45,7 @@ from torch import Tensor
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from dacr_learn import export as dexport  # noqa: E402
+from dacr_learn.console import run_cli  # noqa: E402
 from dacr_learn.control import scaled_dls_step  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
 
@@ -178,7 +179,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if not (args.export / dexport.METADATA_FILE).is_file():
-        sys.exit(f"no export in {args.export}: build one with the commands in this script's docstring")
+        raise FileNotFoundError(f"{args.export}: no hardware model export ({dexport.METADATA_FILE} missing); "
+                                "build one with the commands in this script's docstring")
     fk, jac, init, meta = load_modules(args.export)
     commands = training_commands(meta["servo_ids"], args.train)
     lower, upper = commands.min(0).values, commands.max(0).values          # the box of the training commands
@@ -236,4 +238,4 @@ def print_summary(summary: dict, out: Path) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -1,4 +1,7 @@
+import sys
+
+from ..console import run_cli
 from .cli import main
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -27,9 +27,10 @@ from pathlib import Path
 
 import lightning.pytorch as pl
 import torch
-import yaml
 from torch import Tensor
 
+from ..checks import read_yaml
+from ..console import quiet_third_party_warnings
 from ..data import SamplerOptions, generate
 from ..metrics import pose_errors, summarize
 from ..robot import RobotSpec
@@ -78,8 +79,11 @@ def robot_spec(entry: str | dict) -> RobotSpec:
 
 
 def load_config(path: str | Path, quick: bool = False) -> dict:
-    """The ablation config (YAML); with ``quick`` the keys of its ``quick:`` section replace the others."""
-    cfg = yaml.safe_load(resolve_path(path).read_text())
+    """The ablation config (YAML); with ``quick`` the keys of its ``quick:`` section replace the others.
+    Every robot it names is read here, so a broken robot file fails before the first job."""
+    cfg = read_yaml(resolve_path(path), "an ablation config YAML (docs/ablation.md)")
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{path}: expected an ablation config (a YAML mapping), found {type(cfg).__name__}")
     overrides = cfg.pop("quick", None) or {}
     if quick:
         cfg.update(overrides)
@@ -95,6 +99,14 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
     if bad:
         raise ValueError(f"ablation config {path}: tasks: unknown {sorted(bad)}, "
                          f"expected a subset of {sorted(MODULES)}")
+    robots = {f"robots.{name}": entry for name, entry in cfg["robots"].items()}
+    if (cfg.get("transfer") or {}).get("to") is not None:
+        robots["transfer.to"] = cfg["transfer"]["to"]
+    for key, entry in robots.items():
+        try:
+            robot_spec(entry)
+        except (ValueError, FileNotFoundError) as err:
+            raise type(err)(f"ablation config {path}: {key}: {err}") from err
     return cfg
 
 
@@ -215,9 +227,18 @@ def transferred(cfg: dict, module: pl.LightningModule, job: Job, target: RobotSp
 
 
 def quiet_lightning() -> None:
+    """Silence the Trainers these studies build inside each job: Lightning's INFO lines, the third-party
+    warnings of :func:`dacr_learn.console.quiet_third_party_warnings`, and Lightning's two warnings about
+    what the runner does on purpose (each filter: that one message from the module that issues it)."""
     for name in ("lightning.pytorch", "lightning.fabric", "lightning"):
         logging.getLogger(name).setLevel(logging.ERROR)
-    warnings.filterwarnings("ignore", message=".*(val_dataloader|LeafSpec|does not have many workers).*")
+    quiet_third_party_warnings()
+    # the runner trains without validation (StepDataModule has no val_dataloader)
+    warnings.filterwarnings("ignore", message="You defined a `validation_step` but have no `val_dataloader`",
+                            category=UserWarning, module=r"lightning\.pytorch\.trainer\.configuration_validator\Z")
+    # the training tensors are in memory: loader worker processes would only add start-up time
+    warnings.filterwarnings("ignore", message=r"The '\w+' does not have many workers", category=UserWarning,
+                            module=r"lightning\.pytorch\.trainer\.connectors\.data_connector\Z")
 
 
 def fit(cfg: dict, job: Job, spec: RobotSpec) -> tuple[pl.LightningModule, float]:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import torch
 
+from ..console import run_cli
 from .benchmark import (
     Setup,
     collect_benchmark,
@@ -94,11 +95,9 @@ def best_model(results: dict, candidates: tuple[str, ...]) -> str | None:
 
 
 def _val_path(args: argparse.Namespace) -> Path | None:
+    """``--data``/``--val`` when it exists, else None (reported by :func:`run` once the inputs have loaded)."""
     path = args.data / args.val
-    if path.exists():
-        return path
-    print(f"no validation recording {path}: scoring with the train-only selection proxies only")
-    return None
+    return path if path.exists() else None
 
 
 def _submit_selection(pool: TaskPool, setup: Setup, args: argparse.Namespace) -> dict:
@@ -141,6 +140,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     args.out.mkdir(parents=True, exist_ok=True)
     setup = load_setup(args.robot, args.data / args.train, _val_path(args), args.out,
                        args.servo_map, args.data / args.pulls, args.units, args.cc_variant)
+    if setup.val_rec is None:     # printed after loading: an error in the robot or train file comes first
+        print(f"no validation recording {args.data / args.val}: scoring with the train-only selection proxies only")
     variant = setup.cc_fit["variant"]
     if "extrap" in variant:
         print(f"CC variant {variant['chosen']!r}, chosen by the CC model's singles→pairs score "
@@ -207,4 +208,4 @@ def main(argv: list[str] | None = None) -> dict:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

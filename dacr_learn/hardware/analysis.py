@@ -15,11 +15,13 @@ from __future__ import annotations
 import argparse
 import csv
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from ..console import run_cli
 from ..robot import RobotSpec
 from .calibration import default_map_path
 from .ccmodel import CalibratedCC, fit_cc
@@ -99,4 +101,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -8,9 +8,11 @@ calibrated CC model fitted to the pull rows.
 from __future__ import annotations
 
 import argparse
+import sys
 
 import torch
 
+from ..console import run_cli
 from ..robot import RobotSpec
 from .calibration import calibrate, default_map_path, write_calibration
 from .ccmodel import CalibratedCC, fit_cc
@@ -54,4 +56,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_cli(main))

@@ -164,8 +164,8 @@ class CompositionalHardwareFK(nn.Module):
                        "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))
-        for name, value in buffers.items():
-            self.register_buffer(name, value.detach())                 # float64 until the affine part is folded
+        for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
+            self.register_buffer(name, value.detach().contiguous())    # float64 until the affine part is folded
         self.hidden_width = self.w0.shape[-1]
         with torch.no_grad():
             affine_map, affine_offset = self.affine_part(self.skip_hat)

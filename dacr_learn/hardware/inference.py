@@ -195,8 +195,8 @@ class HardwareFK(nn.Module):
                 buffers["gate_points"] = model.members[0].train_clarke * model.members[0].rho_std
                 buffers["rho_std"] = model.members[0].rho_std
             buffers["sigma_coefficients"] = _sigma_coefficients(model)
-        for name, value in buffers.items():
-            self.register_buffer(name, value.detach().to(dtype))
+        for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
+            self.register_buffer(name, value.detach().to(dtype).contiguous())
         self.ensemble = len(model.members)
         self.spec = spec
 
