@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import atexit
 import json
+import logging
 import os
+import re
 import shlex
 import sys
 import time
@@ -29,6 +31,7 @@ from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from dacr_learn import runs
+from dacr_learn.console import first_user_error, quiet_third_party_warnings
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
 from dacr_learn.rerun_log import RerunLogger, RerunVisualCallback
@@ -46,6 +49,24 @@ def quiet_run_handling_warnings() -> None:
         r"Be aware that when using `ckpt_path`, callbacks used to create the checkpoint",
     ):
         warnings.filterwarnings("ignore", message=message)
+
+
+class DropLightningChatter(logging.Filter):
+    """Drops Lightning's start-up INFO lines that tell a user of train.py nothing to act on (the seed is in
+    config.yaml and the recording; the device is the config's ``trainer.accelerator``)."""
+
+    CHATTER = re.compile(r"(\[rank: \d+\] )?(Seed set to |GPU available: |TPU available: |HPU available: |"
+                         r"Loading `train_dataloader` to estimate number of stepping batches)")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not self.CHATTER.match(record.getMessage())
+
+
+def quiet_lightning_chatter() -> None:
+    for name in ("lightning.fabric.utilities.seed", "lightning.pytorch.utilities.rank_zero"):
+        logger = logging.getLogger(name)
+        if not any(isinstance(f, DropLightningChatter) for f in logger.filters):
+            logger.addFilter(DropLightningChatter())
 
 
 class InterruptCheckpoint(Callback):
@@ -178,6 +199,8 @@ class DacrCLI(LightningCLI):
         if cfg.get("ckpt_path") is not None:
             runs.check_checkpoint_fits(cfg.ckpt_path, type(self.model).__name__, dict(self.model.hparams),
                                        self.model.state_dict())
+            if self.subcommand == "fit":
+                runs.check_same_schedule(cfg.ckpt_path, cfg.as_dict())
         run, out, info = self._run_folders()
         self.run_dir, self.out_dir = run, out
         ckpt_dir = run / "checkpoints"
@@ -237,20 +260,12 @@ def main(args: list[str] | None = None, run: bool = True) -> DacrCLI:
                    save_config_callback=SaveConfigToRunDir, argv=args, run=run)
 
 
-def first_user_error(err: BaseException) -> BaseException | None:   # replaced by dacr_learn.console's
-    seen = set()
-    while err is not None and id(err) not in seen:
-        seen.add(id(err))
-        if isinstance(err, ValueError | FileNotFoundError):
-            found = err
-        err = err.__cause__ or err.__context__
-    return found if "found" in locals() else None
-
-
 def run_command_line(argv: list[str] | None = None) -> int:
     """``python train.py …``: the exit status. A mistake in the user's files or arguments is one line
     ``error: …`` (no traceback; ``DACR_DEBUG=1`` shows it); SIGTERM exits with 143 and Ctrl-C with 130,
     after the interrupted fit printed how to resume it."""
+    quiet_third_party_warnings()
+    quiet_lightning_chatter()
     try:
         main(argv)
     except SIGTERMException:

@@ -31,7 +31,8 @@ from .checks import load_torch_file, short_error
 from .robot import RobotSpec
 
 __all__ = [
-    "ARCHITECTURE", "CHECKPOINT", "RUN_INFO", "check_checkpoint_fits", "checkpoint_run_dir", "checkpoint_task",
+    "ARCHITECTURE", "CHECKPOINT", "RUN_INFO", "SCHEDULE", "check_checkpoint_fits", "check_same_schedule",
+    "checkpoint_run_dir", "checkpoint_task",
     "describe_model", "find_checkpoint", "load_lightning_checkpoint", "load_model", "new_numbered_dir",
     "read_run_info", "versions", "write_run_info",
 ]
@@ -207,6 +208,32 @@ def check_checkpoint_fits(ckpt: str | Path, kind: str, hparams: dict[str, Any],
         raise ValueError(f"checkpoint {ckpt} holds an {describe_model(saved_kind, saved)}; the config asks for an "
                          f"{describe_model(kind, hparams)}: pass a checkpoint of this model, or start a new run "
                          "without --ckpt_path")
+
+
+# settings that fix the number of optimiser steps, over which the one-cycle learning-rate schedule runs
+SCHEDULE = (("trainer", "max_epochs"), ("trainer", "max_steps"), ("trainer", "accumulate_grad_batches"),
+            ("data", "n_train"), ("data", "batch_size"))
+
+
+def check_same_schedule(ckpt: str | Path, config: dict[str, Any]) -> None:
+    """ValueError (one line, naming both values) when a fit resumed from ``ckpt`` would change the length of
+    the run whose learning-rate schedule the checkpoint carries (:data:`SCHEDULE`). ``config``: the CLI
+    config of the resumed fit as a nested dict. A checkpoint without the CLI config passes."""
+    import yaml
+
+    blob = load_torch_file(ckpt, "a checkpoint written by train.py")
+    text = blob.get("dacr_config") if isinstance(blob, dict) else None
+    saved = yaml.safe_load(text) if isinstance(text, str) else None
+    if isinstance(saved, dict) and isinstance(saved.get("fit"), dict):
+        saved = saved["fit"]                          # the dump of the whole CLI: {fit: {...}}
+    if not isinstance(saved, dict):
+        return
+    for group, key in SCHEDULE:
+        before, now = (saved.get(group) or {}).get(key), (config.get(group) or {}).get(key)
+        if before != now:
+            raise ValueError(f"checkpoint {ckpt} was trained with {group}.{key} {before}; the config asks for {now}: "
+                             "a resumed fit keeps the run's learning-rate schedule, so resume with the run's own "
+                             "settings, or start a new run without --ckpt_path")
 
 
 def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn.Module:

@@ -149,6 +149,15 @@ def test_test_writes_its_own_folder_and_keeps_the_fit_files(tmp_path):
     assert {k: v for k, v in digests(run).items() if not k.startswith("test_")} == before
 
 
+def test_resuming_with_another_schedule_is_refused_naming_both(tmp_path):
+    config = str(write_run_config(tmp_path, epochs=1))
+    train.main(["fit", "--config", config])
+    for args, what in ((["--trainer.max_epochs", "3"], "trainer.max_epochs 1; the config asks for 3"),
+                       (["--data.n_train", "4000"], "data.n_train 2000; the config asks for 4000")):
+        with pytest.raises(ValueError, match=what):
+            train.main(["fit", "--config", config, *args, "--ckpt_path", "last"])
+
+
 def test_test_needs_a_checkpoint(tmp_path):
     config = str(write_run_config(tmp_path, epochs=1))
     with pytest.raises(ValueError, match="needs --ckpt_path"):
@@ -205,3 +214,31 @@ def test_interrupt_mid_epoch_prints_the_resume_command_and_resume_keeps_the_whol
     gaps = [b - a for a, b in zip(steps, steps[1:], strict=False)]
     assert max(gaps) <= 5 + 5, gaps                                    # no hole around the interruption
     assert (run / "metrics.json").is_file()
+
+
+# ---- what the terminal shows ----------------------------------------------------------------------------
+
+def test_a_typo_in_the_robot_file_is_one_line_naming_the_file(tmp_path):
+    robot = tmp_path / "typo.yaml"
+    robot.write_text((ROOT / "configs/robots/type1.yaml").read_text().replace("length: 0.10", "lenght: 0.10"))
+    config = write_run_config(tmp_path, epochs=1)
+    proc = run_train(["fit", "--config", str(config), "--data.robot", str(robot)], tmp_path)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    lines = [line for line in (proc.stdout + proc.stderr).splitlines() if line.strip()]
+    assert lines == [f"error: {robot}: segments[0]: got ['lenght'], expected only keys joint_angles, "
+                      "joint_radii, joints, length, limits, offset, radius, type"]
+    assert not (tmp_path / "runs").exists()                     # no run folder for a run that never started
+
+
+def test_a_fit_prints_no_warning_a_user_cannot_act_on(tmp_path):
+    config = write_run_config(tmp_path, epochs=1, n_train=512)
+    fresh = run_train(["fit", "--config", str(config)], tmp_path)
+    resumed = run_train(["fit", "--config", str(config), "--ckpt_path", "last"], tmp_path)   # a finished run
+    tested = run_train(["test", "--config", str(config), "--ckpt_path", "last"], tmp_path)
+    for proc in (fresh, resumed, tested):
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        text = proc.stdout + proc.stderr
+        for noise in ("Warning", "deprecated", "💡", "HINT", "no last checkpoint", "DataLoader 0", "Seed set",
+                      "GPU available"):
+            assert noise not in text, f"{noise!r} in:\n{text}"
