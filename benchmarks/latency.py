@@ -18,7 +18,7 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
   exported the same way (``--no-compositional`` skips these rows).
 - ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti, fk_aoti_runner,
   jacobian_aoti}``: a hardware model (servo commands [mm] + play state → tip, tip_std, new state;
-  dacr_learn.hardware.inference) of FTDCR v4's shape — the registry's
+  dacr_learn.hardware.deploy.inference) of FTDCR v4's shape — the registry's
   ``cc_clarke_residual_history``, ``--hardware-members`` ensemble members, untrained (latency does
   not depend on the weights), or a saved model (``--hardware-ckpt``) — exported with
   ``dacr_learn.export`` (AOTInductor for ``fk`` and ``jacobian``). ``hardware_fk_vs_fk`` in the JSON
@@ -142,12 +142,12 @@ def compositional_candidates(config: Path, out: Path, aoti: bool, autotune: bool
 def hardware_checkpoint(out: Path, members: int) -> Path:
     """A saved hardware model of FTDCR v4's shape: the registry's cc_clarke_residual_history, ``members``
     untrained members on an uncalibrated CC model (latency does not depend on the weights)."""
-    from dacr_learn.hardware.benchmark import resolve_robot
     from dacr_learn.hardware.ccmodel import CalibratedCC
-    from dacr_learn.hardware.checkpoint import HardwareModel, save_hardware_model
+    from dacr_learn.hardware.deploy.checkpoint import HardwareModel, save_hardware_model
     from dacr_learn.hardware.learned import make_split
     from dacr_learn.hardware.recording import load_recording
-    from dacr_learn.hardware.registry import FitContext, build_model
+    from dacr_learn.hardware.study.benchmark import resolve_robot
+    from dacr_learn.hardware.study.registry import FitContext, build_model
 
     spec, smap, _ = resolve_robot(HARDWARE_ROBOT, None, None, out, "mm")
     rec = load_recording(HARDWARE_TRAIN, spec, "mm")
@@ -161,8 +161,8 @@ def hardware_checkpoint(out: Path, members: int) -> Path:
 
 def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = False) -> dict:
     """Rows of a hardware model (``hardware_*``), batch 1: servo (1, S) [mm] and play state (1, m, 2)."""
-    from dacr_learn.hardware.checkpoint import load_hardware_model
-    from dacr_learn.hardware.export import modules
+    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
+    from dacr_learn.hardware.deploy.export import modules
 
     dexport.export_checkpoint(ckpt, out / "hardware", aoti=("fk", "jacobian") if aoti else False,
                               autotune=autotune and aoti)

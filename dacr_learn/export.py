@@ -25,6 +25,9 @@ import hashlib
 import json
 import sys
 import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any
 
@@ -56,7 +59,7 @@ def file_sha256(path: str | Path) -> str:
     return h.hexdigest()
 
 
-def _metadata_digest(meta: dict) -> str:
+def metadata_digest(meta: dict) -> str:
     body = {k: v for k, v in meta.items() if k != "metadata_sha256"}
     return hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
 
@@ -105,7 +108,7 @@ AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATE
                     "autotune_num_choices_displayed": 0, "max_autotune_report_choices_stats": False}
 
 
-def _write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
+def write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
                   aoti: bool, autotune: bool = False) -> dict[str, str]:
     """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2`` (with
     :data:`AUTOTUNE_CONFIGS` when ``autotune``)."""
@@ -131,6 +134,46 @@ def _deviation(reference, loaded, x: Tensor) -> float:
     return max((r.double() - g.double()).abs().max().item() for r, g in zip(ref, got, strict=True))
 
 
+EXPORTERS_GROUP = "dacr_learn.exporters"
+
+
+@dataclass(frozen=True)
+class Exporter:
+    """How :func:`export_checkpoint` exports a checkpoint format other than train.py's.
+
+    ``accepts(blob)``: whether the loaded file (``torch.load(..., weights_only=True)``) is of this format;
+    ``export(ckpt, out, blob, *, dtype, aoti, autotune)``: write the export to ``out`` and return its
+    metadata, like :func:`export_checkpoint`. A package adds its exporter with :func:`register_exporter`,
+    and names it under the entry-point group :data:`EXPORTERS_GROUP` so that it is found without this
+    module importing that package (dacr_learn's hardware exporter: ``pyproject.toml``)."""
+
+    name: str
+    accepts: Callable[[Any], bool]
+    export: Callable[..., dict[str, Any]]
+
+
+_EXPORTERS: dict[str, Exporter] = {}
+
+
+def register_exporter(exporter: Exporter) -> Exporter:
+    """Add ``exporter`` to those :func:`export_checkpoint` tries (a later one of the same name replaces it)."""
+    _EXPORTERS[exporter.name] = exporter
+    return exporter
+
+
+def exporters() -> list[Exporter]:
+    """The registered exporters, after loading those named under :data:`EXPORTERS_GROUP` (an entry point
+    names an :class:`Exporter` object; loading its module registers it)."""
+    for entry in entry_points(group=EXPORTERS_GROUP):
+        if entry.name not in _EXPORTERS:
+            found = entry.load()
+            if not isinstance(found, Exporter):
+                raise TypeError(f"entry point {entry.value!r} ({EXPORTERS_GROUP}): expected an Exporter, "
+                                f"got {type(found).__name__}")
+            register_exporter(found)
+    return list(_EXPORTERS.values())
+
+
 def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = torch.float32,
                       aoti: bool | tuple[str, ...] = True, autotune: bool = False) -> dict[str, Any]:
     """Export a checkpoint's inference modules to ``out`` (see the module docstring); returns the metadata.
@@ -142,13 +185,10 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
     deviations are recorded (``max_abs_deviation``) and above VERIFY_TOLERANCE the export fails.
     """
     ckpt, out = Path(ckpt), Path(out)
-    from .hardware.checkpoint import hardware_model_from_blob, is_hardware_blob
-    from .hardware.export import export_hardware
-
     blob = load_torch_file(ckpt, CHECKPOINT)                  # loaded once: sniffed here, reused below
-    if is_hardware_blob(blob):                                # a saved hardware model (hardware/checkpoint.py)
-        return export_hardware(ckpt, out, dtype=dtype, aoti=aoti, model=hardware_model_from_blob(blob, ckpt),
-                               autotune=autotune)
+    for exporter in exporters():                              # another format (e.g. a saved hardware model)
+        if exporter.accepts(blob):
+            return exporter.export(ckpt, out, blob, dtype=dtype, aoti=aoti, autotune=autotune)
     task, lit = load_lightning_checkpoint(ckpt, blob)
     lit = lit.to(dtype)
     out.mkdir(parents=True, exist_ok=True)
@@ -162,11 +202,11 @@ def export_checkpoint(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype =
         "source_checkpoint": {"path": str(ckpt), "sha256": file_sha256(ckpt)}, "modules": {}}
     for name, module in inference_modules(task, lit.model, dtype).items():
         example = examples[sig[name]["inputs"][0][0]]
-        files = _write_module(name, module, example[:2], out, aoti if isinstance(aoti, bool) else name in aoti,
+        files = write_module(name, module, example[:2], out, aoti if isinstance(aoti, bool) else name in aoti,
                               autotune)
         meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": file_sha256(out / f)}
                                                         for k, f in files.items()}}
-    meta["metadata_sha256"] = _metadata_digest(meta)
+    meta["metadata_sha256"] = metadata_digest(meta)
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2))
     _verify(out, meta, lit.model, examples)
     return meta
@@ -182,7 +222,7 @@ def _verify(out: Path, meta: dict, model: nn.Module, examples: dict[str, Tensor]
             first = loaded if name != "jacobian" else (lambda q, m=loaded: m(q)[0])
             worst[entry["file"]] = _deviation(model, first, x)
     meta["max_abs_deviation"] = worst
-    meta["metadata_sha256"] = _metadata_digest(meta)
+    meta["metadata_sha256"] = metadata_digest(meta)
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=2))
     bad = {f: e for f, e in worst.items() if not e <= VERIFY_TOLERANCE}
     if bad:
@@ -199,7 +239,7 @@ def read_metadata(directory: str | Path) -> dict[str, Any]:
     meta = read_json_object(path, f"the {METADATA_FILE} of an export")
     if meta.get("format") != FORMAT:
         raise ValueError(f"{path}: format {meta.get('format')!r} is not {FORMAT!r}; re-export the checkpoint")
-    if meta.get("metadata_sha256") != _metadata_digest(meta):
+    if meta.get("metadata_sha256") != metadata_digest(meta):
         raise ValueError(f"{path}: checksum mismatch: the metadata was modified after export")
     return meta
 
@@ -229,7 +269,7 @@ def _check_expectations(meta: dict, path: Path, robot, features, checkpoint) -> 
                              f"(sha256 {digest[:12]}…)")
 
 
-def _runner(path: Path, kind: str, meta: dict):
+def module_runner(path: Path, kind: str, meta: dict):
     """A callable list[Tensor] → list[Tensor] for an AOTInductor package or a torch.export program."""
     if kind == "aoti":
         if meta["torch_version"] != torch.__version__:
@@ -274,7 +314,7 @@ def load(path: str | Path, name: str | None = None, *, robot=None, features: str
         raise ValueError(f"{path}: checksum mismatch (sha256 {actual[:12]}…, {METADATA_FILE} records {digest[:12]}…): "
                          "the file was modified, truncated or comes from another export")
     _check_expectations(meta, path, robot, features, checkpoint)
-    return ExportedModule(_runner(path, kind, meta), meta, name, kind)
+    return ExportedModule(module_runner(path, kind, meta), meta, name, kind)
 
 
 class ExportedModule(nn.Module):

@@ -380,7 +380,7 @@ def _write_recording(path: Path, ids, cols, model, spec, x: torch.Tensor, labels
 
 
 def test_second_robot_runs_through_the_same_command(tmp_path):
-    from dacr_learn.hardware.__main__ import main
+    from dacr_learn.hardware.study.cli import main
 
     robot_yaml, true_spec = _second_robot(tmp_path)
     ids = ["B7", "A2", "C1", "A9", "B3", "C5", "A4", "B1"]
@@ -420,7 +420,7 @@ def test_second_robot_runs_through_the_same_command(tmp_path):
 
 
 def test_cli_on_ftdcr_v4_writes_results_and_visuals(tmp_path):
-    from dacr_learn.hardware.__main__ import main
+    from dacr_learn.hardware.study.cli import main
 
     out = tmp_path / "run"
     report = main(["--data", str(DATA), "--robot", str(CALIBRATED), "--out", str(out),
@@ -438,8 +438,8 @@ def test_cli_on_ftdcr_v4_writes_results_and_visuals(tmp_path):
 def test_every_registered_model_gets_its_own_plot_colour():
     """The PNG and the Rerun recording colour model k (registry order, from 1) by _color(name, k): no two
     models of the registry (and not the measured path) may share a colour."""
-    from dacr_learn.hardware.registry import MODELS
-    from dacr_learn.hardware.visual import _color
+    from dacr_learn.hardware.study.registry import MODELS
+    from dacr_learn.hardware.study.visual import _color
 
     colours = [_color("measured", 0)] + [_color(name, k) for k, name in enumerate(MODELS, start=1)]
     assert len(set(colours)) == len(colours), dict(zip(["measured", *MODELS], colours, strict=True))

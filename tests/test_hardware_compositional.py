@@ -11,8 +11,8 @@ import torch
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.compositional_model import TWIST_SCALE, CCCompositionalResidual
 from dacr_learn.hardware.learned import Split, synthetic_split
-from dacr_learn.hardware.registry import REGISTRY, FitContext, build_model
 from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
+from dacr_learn.hardware.study.registry import REGISTRY, FitContext, build_model
 from dacr_learn.kinematics import segment_poses
 from dacr_learn.robot import RobotSpec
 
@@ -199,7 +199,7 @@ def test_history_variant_fits_a_direction_dependent_offset(setup):
 
 
 def test_history_variant_is_scored_but_cannot_be_saved_yet(setup, tmp_path):
-    from dacr_learn.hardware.checkpoint import HardwareModel, save_hardware_model
+    from dacr_learn.hardware.deploy.checkpoint import HardwareModel, save_hardware_model
 
     cc, split = setup
     info = REGISTRY["cc_compositional_history"]

@@ -16,27 +16,26 @@ from conftest import ROOT, roundoff_tol
 
 from dacr_learn import export as dexport
 from dacr_learn.compositional import twist_exp
-from dacr_learn.hardware.benchmark import load_setup
-from dacr_learn.hardware.checkpoint import (
+from dacr_learn.hardware.compositional_model import CCCompositionalResidual
+from dacr_learn.hardware.deploy.checkpoint import (
     FORMAT,
     FORMAT_COMPOSITIONAL,
     HardwareModel,
-    cc_as_residual,
-    fit_hardware_model,
     load_hardware_model,
     save_hardware_model,
 )
-from dacr_learn.hardware.compositional_inference import (
+from dacr_learn.hardware.deploy.compositional_inference import (
     CompositionalHardwareFK,
     CompositionalHardwareJacobian,
     _hat_map,
     exp_of_twist_matrix,
     twist_exp_and_tangent,
 )
-from dacr_learn.hardware.compositional_model import CCCompositionalResidual
-from dacr_learn.hardware.inference import HardwareFK
-from dacr_learn.hardware.registry import REGISTRY, ModelInfo
-from dacr_learn.hardware.uncertainty import SigmaCalibration, SigmaModel, SupportModel
+from dacr_learn.hardware.deploy.inference import HardwareFK
+from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel
+from dacr_learn.hardware.learned import cc_as_residual
+from dacr_learn.hardware.study.benchmark import fit_hardware_model, load_setup
+from dacr_learn.hardware.study.registry import REGISTRY, ModelInfo
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 TIP_SCALE = 0.2                     # [m] magnitude of the tip coordinates (motion-capture frame)

@@ -16,8 +16,8 @@ from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
 
 from dacr_learn import export as dexport
 from dacr_learn.control import scaled_dls_step
-from dacr_learn.hardware.checkpoint import save_hardware_model
-from dacr_learn.hardware.inference import HardwareFK, HardwareJacobian
+from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
+from dacr_learn.hardware.deploy.inference import HardwareFK, HardwareJacobian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ROOT = Path(__file__).resolve().parents[1]

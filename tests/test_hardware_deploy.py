@@ -13,10 +13,10 @@ from conftest import roundoff_tol
 from hardware_testkit import IDS, TIP_SCALE, batch_prediction, command_recording, synthetic_model
 
 from dacr_learn import export as dexport
-from dacr_learn.hardware.checkpoint import load_hardware_model, save_hardware_model
-from dacr_learn.hardware.inference import HardwareFK, HardwareJacobian
+from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
+from dacr_learn.hardware.deploy.inference import HardwareFK, HardwareJacobian
+from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, ensemble_predict
 from dacr_learn.hardware.learned import make_split
-from dacr_learn.hardware.uncertainty import SigmaCalibration, ensemble_predict
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 def _causal(fk, servo_mm: torch.Tensor, history: bool) -> torch.Tensor:
@@ -155,7 +155,7 @@ def test_support_score_is_larger_outside_the_training_box():
 
 
 def test_the_cc_model_saves_as_a_zero_residual_member(tmp_path):
-    from dacr_learn.hardware.checkpoint import cc_as_residual
+    from dacr_learn.hardware.learned import cc_as_residual
 
     model = synthetic_model(history=False, members=1)
     member = cc_as_residual(make_split(command_recording(200, 0), model.spec, model.smap, model.cc), model.cc)

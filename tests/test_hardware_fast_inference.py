@@ -3,9 +3,9 @@
 - The slack QP by active-set enumeration (:func:`~dacr_learn.hardware.slack.solve_tendon_qp_enumerated`,
   used folded by HardwareFK) against the semi-smooth Newton iteration :func:`solve_tendon_qp` and the
   optimality condition of the energy, in float64 and float32.
-- The CC segment pose T = I + sΞ + fΞ² (:func:`~dacr_learn.hardware.inference.twist_segment_poses`)
+- The CC segment pose T = I + sΞ + fΞ² (:func:`~dacr_learn.hardware.deploy.inference.twist_segment_poses`)
   against :func:`~dacr_learn.kinematics.cc_transform`, with finite gradients at zero bending.
-- The chained tip and its closed-form ∂tip/∂ρ (:func:`~dacr_learn.hardware.inference.twist_tip_and_jacobian`)
+- The chained tip and its closed-form ∂tip/∂ρ (:func:`~dacr_learn.hardware.deploy.inference.twist_tip_and_jacobian`)
   against the tip of cc_transform products and autograd's Jacobian of it, straight segments included.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ from conftest import FAST, ROOT, roundoff_tol
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dacr_learn.hardware.inference import segment_twists, twist_segment_poses, twist_tip_and_jacobian
+from dacr_learn.hardware.deploy.inference import segment_twists, twist_segment_poses, twist_tip_and_jacobian
 from dacr_learn.hardware.slack import SlackAwareEncoder, active_set_gains, solve_tendon_qp, solve_tendon_qp_enumerated
 from dacr_learn.kinematics import cc_transform
 from dacr_learn.robot import RobotSpec

@@ -148,11 +148,11 @@ def test_fit_recovers_a_lateral_marker(spec):
 
 
 def test_inference_module_includes_the_lateral_marker():
-    """The deployed FK (dacr_learn.hardware.inference) computes the library model's tips with a lateral marker."""
+    """The deployed FK (hardware.deploy.inference) computes the library model's tips with a lateral marker."""
     from hardware_testkit import TIP_SCALE as DEPLOY_SCALE
     from hardware_testkit import batch_prediction, command_recording, synthetic_model
 
-    from dacr_learn.hardware.inference import HardwareFK
+    from dacr_learn.hardware.deploy.inference import HardwareFK
 
     model = synthetic_model(history=False)
     assert model.cc.lateral_marker

@@ -14,12 +14,12 @@ import pytest
 import torch
 from conftest import roundoff_tol
 
-from dacr_learn.hardware.benchmark import resolve_robot
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
-from dacr_learn.hardware.checkpoint import HardwareModel, cc_as_residual
-from dacr_learn.hardware.inference import HardwareFK
-from dacr_learn.hardware.learned import make_split
+from dacr_learn.hardware.deploy.checkpoint import HardwareModel
+from dacr_learn.hardware.deploy.inference import HardwareFK
+from dacr_learn.hardware.learned import cc_as_residual, make_split
 from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.study.benchmark import resolve_robot
 
 ROOT = Path(__file__).resolve().parents[1]
 TIP_SCALE = 0.2                                   # [m] magnitude of the tip coordinates
@@ -129,7 +129,7 @@ def test_inference_module_includes_the_strain(v4):
 
 
 def test_cc_variant_is_chosen_by_the_singles_to_pairs_score_of_the_cc_model(v4):
-    from dacr_learn.hardware.selection import CC_VARIANTS, choose_cc_variant, fold_rmse, make_folds, proxy_masks
+    from dacr_learn.hardware.study.selection import CC_VARIANTS, choose_cc_variant, fold_rmse, make_folds, proxy_masks
 
     spec, smap, _ = v4
     rec = load_recording(ROOT / "data/ftdcr_v4/train.csv", spec)
@@ -144,7 +144,7 @@ def test_cc_variant_is_chosen_by_the_singles_to_pairs_score_of_the_cc_model(v4):
 
 
 def test_load_setup_records_the_cc_variant_and_refuses_an_unknown_one(tmp_path):
-    from dacr_learn.hardware.benchmark import load_setup
+    from dacr_learn.hardware.study.benchmark import load_setup
 
     robot, data = ROOT / "configs/robots/ftdcr_v4_calibrated.yaml", ROOT / "data/ftdcr_v4"
     setup = load_setup(robot, data / "train.csv", None, tmp_path, cc_variant="strain")

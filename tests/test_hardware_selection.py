@@ -14,17 +14,17 @@ import torch
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.learned import CCClarkeResidual, make_split
-from dacr_learn.hardware.pool import TaskPool
 from dacr_learn.hardware.recording import load_recording
-from dacr_learn.hardware.registry import MODELS, REGISTRY, FitContext, build_model, model_info
-from dacr_learn.hardware.selection import (
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.study.pool import TaskPool
+from dacr_learn.hardware.study.registry import MODELS, REGISTRY, FitContext, build_model, model_info
+from dacr_learn.hardware.study.selection import (
     choose_default,
     make_folds,
     pattern_family,
     proxy_masks,
     proxy_scores,
 )
-from dacr_learn.hardware.servo_map import ServoMap
 from dacr_learn.robot import RobotSpec
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -83,7 +83,7 @@ def test_proxies_score_the_true_model_at_the_noise(labelled_robot_dir):
 
 
 def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path):
-    from dacr_learn.hardware.__main__ import main
+    from dacr_learn.hardware.study.cli import main
 
     data, robot = labelled_robot_dir
     out = tmp_path / "run"
@@ -101,7 +101,7 @@ def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path)
 
 
 def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, tmp_path):
-    from dacr_learn.hardware.__main__ import main, parse_args
+    from dacr_learn.hardware.study.cli import main, parse_args
 
     data, robot = labelled_robot_dir
     args = ["--data", str(data), "--robot", str(robot), "--models", "linear_raw", "cc", "--seeds", "0"]
@@ -207,8 +207,9 @@ def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(lab
 def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reported(labelled_robot_dir, tmp_path):
     """`deployable` in the registry is what checkpoint.save_hardware_model accepts: every deployable model
     saves; a Clarke-space model that is not deployable is reported as the proxy's best but never the default."""
-    from dacr_learn.hardware.benchmark import default_candidates, load_setup
-    from dacr_learn.hardware.checkpoint import HardwareModel, cc_as_residual, save_hardware_model
+    from dacr_learn.hardware.deploy.checkpoint import HardwareModel, save_hardware_model
+    from dacr_learn.hardware.learned import cc_as_residual
+    from dacr_learn.hardware.study.benchmark import default_candidates, load_setup
 
     data, robot = labelled_robot_dir
     setup = load_setup(robot, data / "train.csv", None, tmp_path)
@@ -236,9 +237,9 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     process (fit_model / the held-out build_model here raise). The members predict like the same model
     trained here per seed, the reported train RMSE per seed is the saved member's, and the σ model equals
     sigma_models computed here."""
-    from dacr_learn.hardware import benchmark, heldout
-    from dacr_learn.hardware.__main__ import main
-    from dacr_learn.hardware.checkpoint import load_hardware_model
+    from dacr_learn.hardware.study import benchmark, heldout
+    from dacr_learn.hardware.study.cli import main
+    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
     from dacr_learn.hardware.metrics import tip_metrics
 
     data, robot = labelled_robot_dir

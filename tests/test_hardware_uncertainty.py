@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import spearmanr
 
-from dacr_learn.hardware.uncertainty import (
+from dacr_learn.hardware.deploy.uncertainty import (
     TERMS,
     SigmaCalibration,
     SigmaModel,
@@ -114,7 +114,7 @@ def test_bad_input_is_named():
 def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
     from hardware_testkit import command_recording, synthetic_model
 
-    from dacr_learn.hardware.checkpoint import load_hardware_model, save_hardware_model
+    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
 
     model = synthetic_model(history=True)
     model.sigma_model = SigmaModel(TERMS, [1.2, 0.3, 2e-4, 0.1], 3e-4)
@@ -140,9 +140,8 @@ def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
 def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(labelled_robot_dir, tmp_path):
     """On the synthetic robot whose CC model is the truth (0.1 mm noise per axis), the held-out residuals
     of the CC model are the noise: the fitted σ is ≈ 0.1 mm everywhere and the bend term negligible."""
-    from dacr_learn.hardware.benchmark import load_setup
-    from dacr_learn.hardware.checkpoint import fit_hardware_model
-    from dacr_learn.hardware.heldout import SIGMA_TERMS, held_out_folds, sigma_models
+    from dacr_learn.hardware.study.benchmark import fit_hardware_model, load_setup
+    from dacr_learn.hardware.study.heldout import SIGMA_TERMS, held_out_folds, sigma_models
 
     data, robot = labelled_robot_dir
     setup = load_setup(robot, data / "train.csv", None, tmp_path)
@@ -166,7 +165,7 @@ def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     terms (float64), and refuses terms it cannot compute instead of silently returning another σ."""
     from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
 
-    from dacr_learn.hardware.inference import HardwareFK
+    from dacr_learn.hardware.deploy.inference import HardwareFK
 
     model = synthetic_model(history=False)
     model.sigma_model = SigmaModel(("ensemble", "bend"), [1.7, 0.4], 2e-4)

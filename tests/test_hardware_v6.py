@@ -42,7 +42,7 @@ def test_calibration_recovers_the_servo_map_of_ftdcr_v6():
 
 @pytest.mark.slow
 def test_cli_on_ftdcr_v6_without_val_chooses_a_default_on_train(tmp_path):
-    from dacr_learn.hardware.__main__ import main
+    from dacr_learn.hardware.study.cli import main
 
     out = tmp_path / "run"
     report = main(["--data", str(DATA), "--robot", str(CALIBRATED), "--out", str(out),

@@ -133,7 +133,7 @@ class _FakeCC:
 def _hardware_recording(path: Path, default: str | None, std: dict | None = None) -> list[str]:
     """A val recording of 10 models whose RMSE grows with their number (model_0 best), plus 'cc' (worst);
     returns the model names."""
-    from dacr_learn.hardware.visual import log_rerun
+    from dacr_learn.hardware.study.visual import log_rerun
 
     n, g = 30, torch.Generator().manual_seed(0)
     tip = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.05
@@ -189,7 +189,7 @@ def test_hardware_recording_without_a_default_shows_the_best_three(tmp_path):
 
 
 def test_error_axis_leaves_the_top_free_for_the_legend_and_hides_no_point():
-    from dacr_learn.hardware.visual import LEGEND_ROOM, error_axis_max, shown_models
+    from dacr_learn.hardware.study.visual import LEGEND_ROOM, error_axis_max, shown_models
 
     errors = {"a": np.array([1.0, 9.0]), "b": np.array([2.0, 3.0]), "c": np.array([50.0, 0.0])}
     assert shown_models(errors, "c", 2) == ["c", "b"] and shown_models(errors, None, 2) == ["b", "a"]

@@ -440,7 +440,7 @@ class _FakeCC:
 
 
 def test_hardware_recording_has_one_plot_with_every_model_and_opens_at_the_end(tmp_path):
-    from dacr_learn.hardware.visual import log_rerun
+    from dacr_learn.hardware.study.visual import log_rerun
 
     n, g = 30, torch.Generator().manual_seed(0)
     tip = torch.rand(n, 3, generator=g, dtype=torch.float64) * 0.05

@@ -328,3 +328,14 @@ class Pretrained(TipMLP):
                          lambda: self._loss(self.from_input(r_inp), r_tip)
                          + REHEARSAL * self._loss(self.from_input(s_inp), s_tip),
                          steps=FINETUNE_STEPS, lr=LR / 3)
+
+
+def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
+    """The calibrated CC model (registry name ``cc``) in the CC Clarke-residual form: a correction network
+    whose output layer is zero, so it predicts exactly the CC model's tips — and saves, exports and runs in
+    a controller like the learned members."""
+    model = CCClarkeResidual(train, cc)
+    with torch.no_grad():
+        model.net[-1].weight.zero_()
+        model.net[-1].bias.zero_()
+    return model.eval()

@@ -1,7 +1,7 @@
 """Clarke-space models that carry over between robots: support clamp and CC rehearsal (issue 12, item 3).
 
 Scores variants of (e) ``cc_clarke_residual`` and (g) ``cc_clarke_residual_history`` with the
-library's train-only selection proxies (:mod:`dacr_learn.hardware.selection`) on the training
+library's train-only selection proxies (:mod:`dacr_learn.hardware.study.selection`) on the training
 recording of one robot. Variants are passed as constructor arguments, no library global is patched.
 Usage (from the repository root):
 
@@ -27,9 +27,9 @@ torch.set_num_threads(1)
 from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.registry import ModelInfo, build_model, model_info  # noqa: E402
-from dacr_learn.hardware.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
 from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
+from dacr_learn.hardware.study.registry import ModelInfo, build_model, model_info  # noqa: E402
+from dacr_learn.hardware.study.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 REHEARSAL_SAMPLES = 1000

@@ -18,8 +18,8 @@ torch.set_num_threads(1)
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.selection import proxy_masks  # noqa: E402
 from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
+from dacr_learn.hardware.study.selection import proxy_masks  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 

@@ -20,11 +20,11 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 torch.set_num_threads(1)
 
-from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
 from dacr_learn.hardware.learned import play_operator  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
+from dacr_learn.hardware.study.benchmark import resolve_robot  # noqa: E402
 
 ROBOT_NAME = os.environ.get("HW_ROBOT", "v4")   # HW_ROBOT=v6 runs a script on FTDCR v6's train.csv (it has no val)
 DATA = ROOT / "data" / f"ftdcr_{ROBOT_NAME}"

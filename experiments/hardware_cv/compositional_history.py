@@ -29,8 +29,8 @@ torch.set_num_threads(1)
 
 from folds import train_folds  # noqa: E402  (experiments/hardware_cv/folds.py)
 
-from dacr_learn.hardware.registry import REGISTRY  # noqa: E402
-from dacr_learn.hardware.selection import proxy_scores  # noqa: E402
+from dacr_learn.hardware.study.registry import REGISTRY  # noqa: E402
+from dacr_learn.hardware.study.selection import proxy_scores  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/compositional_history.jsonl"
 MODELS = {name: REGISTRY[name] for name in ("cc_compositional_residual", "cc_compositional_history")}

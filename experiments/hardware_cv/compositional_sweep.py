@@ -21,9 +21,9 @@ torch.set_num_threads(1)
 
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.registry import ModelInfo  # noqa: E402
-from dacr_learn.hardware.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
 from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
+from dacr_learn.hardware.study.registry import ModelInfo  # noqa: E402
+from dacr_learn.hardware.study.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 CASTS = {"context": str, "width": int, "depth": int, "weight_decay": float, "steps": int, "lr": float,

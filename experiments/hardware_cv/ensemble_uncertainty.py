@@ -3,13 +3,13 @@
     .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --members 4 --out /tmp/unc.pt   # ~30 min loaded
     .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --load /tmp/unc.pt               # analysis only
 
-1. Collect (``--out``): for every fold of :func:`dacr_learn.hardware.selection.proxy_masks` (family
+1. Collect (``--out``): for every fold of :func:`dacr_learn.hardware.study.selection.proxy_masks` (family
    CV: single, pair12, pair13, pair23; extrap: singles → pairs) the CC model is refitted on the
    fold's training rows, K members of (g) (seeds 0..K−1) are trained there, and on the held-out
    rows the members' tips, the CC tip, the measured tip, ρ and the support distance (to the fold's
    training rows) are kept. The same on all of train.csv → val.csv (the val block is only read at
    the very end of the analysis, for the report).
-2. Analyse: each σ model of :data:`CANDIDATES` (terms of :class:`~dacr_learn.hardware.uncertainty.SigmaModel`)
+2. Analyse: each σ model of :data:`CANDIDATES` (terms of :class:`~dacr_learn.hardware.deploy.uncertainty.SigmaModel`)
    is fitted by Gaussian likelihood on held-out train residuals and scored, still on train, by
    (a) leave-one-CV-fold-out (fit on three families, score the fourth) and (b) fit on the four CV
    folds, score the singles → pairs fold. Scores: ±2σ coverage per axis and Spearman(‖σ‖, ‖e − ē‖),
@@ -29,9 +29,9 @@ import torch
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
-from dacr_learn.hardware.benchmark import load_setup  # noqa: E402
-from dacr_learn.hardware.heldout import HeldOut, fit_sigma_model, held_out, held_out_folds  # noqa: E402
-from dacr_learn.hardware.uncertainty import coverage, spearman  # noqa: E402
+from dacr_learn.hardware.deploy.uncertainty import coverage, spearman  # noqa: E402
+from dacr_learn.hardware.study.benchmark import load_setup  # noqa: E402
+from dacr_learn.hardware.study.heldout import HeldOut, fit_sigma_model, held_out, held_out_folds  # noqa: E402
 
 DATA = ROOT / "data" / "ftdcr_v4"
 ROBOT = ROOT / "configs" / "robots" / "ftdcr_v4_calibrated.yaml"

@@ -7,9 +7,9 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-from dacr_learn.hardware.benchmark import resolve_robot
 from dacr_learn.hardware.recording import load_recording
-from dacr_learn.hardware.selection import CC_VARIANTS, Fold, choose_cc_variant, make_folds, proxy_masks
+from dacr_learn.hardware.study.benchmark import resolve_robot
+from dacr_learn.hardware.study.selection import CC_VARIANTS, Fold, choose_cc_variant, make_folds, proxy_masks
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -29,7 +29,7 @@ torch.set_num_threads(1)
 from folds import train_folds  # noqa: E402  (experiments/hardware_cv/folds.py)
 
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.registry import build_model  # noqa: E402
+from dacr_learn.hardware.study.registry import build_model  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/model_average.jsonl"
 

@@ -60,8 +60,8 @@ from tendon_zero import ROOT, AxialCC, load, rmse  # also puts the repository ro
 from tendon_zero import SCALES as TENDON_ZERO_SCALES
 
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
-from dacr_learn.hardware.selection import pattern_family, proxy_masks
 from dacr_learn.hardware.slack import solve_tendon_qp
+from dacr_learn.hardware.study.selection import pattern_family, proxy_masks
 from dacr_learn.kinematics import backbone_points, forward_kinematics
 from dacr_learn.robot import RobotSpec
 

@@ -16,10 +16,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 torch.set_num_threads(1)
 
-from dacr_learn.hardware.checkpoint import load_hardware_model  # noqa: E402
+from dacr_learn.hardware.deploy.checkpoint import load_hardware_model  # noqa: E402
+from dacr_learn.hardware.deploy.uncertainty import coverage, spearman  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.uncertainty import coverage, spearman  # noqa: E402
 
 
 def scores(residual: torch.Tensor, sigma: torch.Tensor) -> dict:

@@ -19,9 +19,9 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 torch.set_num_threads(1)
 
-from dacr_learn.hardware.benchmark import resolve_robot  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.selection import CC_VARIANTS, make_folds, proxy_masks, proxy_scores  # noqa: E402
+from dacr_learn.hardware.study.benchmark import resolve_robot  # noqa: E402
+from dacr_learn.hardware.study.selection import CC_VARIANTS, make_folds, proxy_masks, proxy_scores  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/strain_proxies.jsonl"
 

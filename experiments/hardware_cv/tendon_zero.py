@@ -50,9 +50,9 @@ from dacr_learn.clarke import joint_space_maps  # noqa: E402
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
 from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
 from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.selection import pattern_family, proxy_masks  # noqa: E402
 from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
 from dacr_learn.hardware.slack import solve_tendon_qp  # noqa: E402
+from dacr_learn.hardware.study.selection import pattern_family, proxy_masks  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 OUT = ROOT / "experiments/hardware_cv/results/tendon_zero.jsonl"

@@ -29,10 +29,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ..kinematics import _TAYLOR_BELOW, bending_coefficients
+from ...kinematics import _TAYLOR_BELOW, bending_coefficients
+from ..learned import RESIDUAL_RHO_SCALE
+from ..slack import active_set_gains
 from .checkpoint import HardwareModel
-from .learned import RESIDUAL_RHO_SCALE
-from .slack import active_set_gains
 
 _F64 = torch.float64
 

@@ -29,9 +29,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ..compositional import _TAYLOR_BELOW, _third_coefficient, hat, twist_exp
-from ..kinematics import effective_features
-from ..models import pose_from_parts
+from ...compositional import _TAYLOR_BELOW, _third_coefficient, hat, twist_exp
+from ...kinematics import effective_features
+from ...models import pose_from_parts
 from .checkpoint import HardwareModel
 from .inference import (
     HardwareFK,

@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 from .pool import TaskPool
 from .registry import build_model, model_info
 from .selection import PROXIES, make_folds, model_seeds, proxy_masks
-from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
 # The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
 # training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,

@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..metrics import offset_removed_errors
 from .benchmark import Setup
-from .metrics import offset_removed_errors
 from .registry import MODELS
 
 COLORS = {"measured": (20, 20, 20), "cc": (31, 119, 180)}
@@ -127,7 +127,7 @@ def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown: int
     """
     import rerun.blueprint as rrb
 
-    from ..rerun_layout import full_range_plot, time_panel_at_end
+    from ...rerun_layout import full_range_plot, time_panel_at_end
 
     visible = shown_models(errors, default, shown)
     hidden = [n for n in errors if n not in visible]

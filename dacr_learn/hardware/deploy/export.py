@@ -18,8 +18,8 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from .. import export as dexport
-from .checkpoint import HardwareModel, load_hardware_model
+from ... import export as dexport
+from .checkpoint import HardwareModel, hardware_model_from_blob, is_hardware_blob, load_hardware_model
 from .compositional_inference import CompositionalHardwareFK, CompositionalHardwareJacobian
 from .inference import HardwareFK, HardwareJacobian
 
@@ -101,7 +101,7 @@ def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = t
     for name, module in modules(model, dtype).items():
         inputs = (servo[:2],) if name == "initial_state" or state is None else (servo[:2], state[:2])
         want_aoti = aoti if isinstance(aoti, bool) else name in aoti
-        files = dexport._write_module(name, module, inputs, out, want_aoti, autotune)
+        files = dexport.write_module(name, module, inputs, out, want_aoti, autotune)
         meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": dexport.file_sha256(out / f)}
                                                         for k, f in files.items()}}
     # fk / initial_state against the float64 model. The Jacobian jumps where a tendon is exactly at its
@@ -115,7 +115,7 @@ def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = t
         for entry in info["files"].values():
             worst[entry["file"]] = _deviation(ref, load_exported(out / entry["file"], meta), inputs)
     meta["max_abs_deviation"] = worst
-    meta["metadata_sha256"] = dexport._metadata_digest(meta)
+    meta["metadata_sha256"] = dexport.metadata_digest(meta)
     (out / dexport.METADATA_FILE).write_text(json.dumps(meta, indent=2))
     bad = {f: e for f, e in worst.items() if not e <= dexport.VERIFY_TOLERANCE}
     if bad:
@@ -140,4 +140,14 @@ def load_exported(path: Path, meta: dict) -> dexport.ExportedModule:
     """A file of an export being written (before its metadata is final), for verification."""
     name, kind = next((n, k) for n, info in meta["modules"].items() for k, e in info["files"].items()
                       if e["file"] == path.name)
-    return dexport.ExportedModule(dexport._runner(path, kind, meta), meta, name, kind)
+    return dexport.ExportedModule(dexport.module_runner(path, kind, meta), meta, name, kind)
+
+
+def _export_blob(ckpt: Path, out: Path, blob: Any, *, dtype: torch.dtype, aoti: bool | tuple[str, ...],
+                 autotune: bool) -> dict[str, Any]:
+    return export_hardware(ckpt, out, dtype=dtype, aoti=aoti, model=hardware_model_from_blob(blob, ckpt),
+                           autotune=autotune)
+
+
+# found by dacr_learn.export through the "dacr_learn.exporters" entry point (pyproject.toml)
+EXPORTER = dexport.register_exporter(dexport.Exporter("hardware", is_hardware_blob, _export_blob))

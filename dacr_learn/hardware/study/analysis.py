@@ -1,6 +1,6 @@
 """Diagnostics behind the benchmark numbers (docs/hardware.md, "Where the error comes from").
 
-``python -m dacr_learn.hardware.analysis --data DIR --robot YAML [--run RUN_DIR]`` prints
+``python -m dacr_learn.hardware.study.analysis --data DIR --robot YAML [--run RUN_DIR]`` prints
 
 1. the hysteresis gap: within each pattern (a run of equal labels), the rows after the largest
    command are matched to the rows before it with nearly the same command (joint displacements
@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..console import run_cli
-from ..robot import RobotSpec
-from .calibration import default_map_path
-from .ccmodel import CalibratedCC, fit_cc
-from .metrics import offset_removed_errors, tip_metrics
-from .recording import load_recording
-from .servo_map import ServoMap
+from ...console import run_cli
+from ...robot import RobotSpec
+from ..calibration import default_map_path
+from ..ccmodel import CalibratedCC, fit_cc
+from ..metrics import offset_removed_errors, tip_metrics
+from ..recording import load_recording
+from ..servo_map import ServoMap
 from .visual import label_runs
 
 

@@ -29,13 +29,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..robot import RobotSpec
-from .calibration import calibrate, default_map_path, write_calibration
-from .ccmodel import CalibratedCC, fit_cc
-from .learned import Split, make_split
-from .metrics import tip_metrics
+from ...robot import RobotSpec
+from ..calibration import calibrate, default_map_path, write_calibration
+from ..ccmodel import CalibratedCC, fit_cc
+from ..deploy.checkpoint import HardwareModel
+from ..deploy.uncertainty import SigmaCalibration, SupportModel
+from ..learned import Split, cc_as_residual, make_split
+from ..metrics import tip_metrics
+from ..recording import Recording, load_recording
+from ..servo_map import ServoMap
 from .pool import TaskPool, timed
-from .recording import Recording, load_recording
 from .registry import MODELS, FitContext, build_model, model_info
 from .selection import (
     CC_VARIANTS,
@@ -49,7 +52,6 @@ from .selection import (
     proxy_masks,
     summarize_scores,
 )
-from .servo_map import ServoMap
 
 
 @dataclass
@@ -268,3 +270,26 @@ def markdown_table(results: dict, scores: dict | None = None, default: str | Non
         lines.append(f"| {r['letter']} | {shown} | {inputs} | {proxy[0]} | {proxy[1]} | {_pm(v.get('rmse_mm'))} | "
                      f"{_pm(v.get('mean_mm'))} | {_pm(v.get('p95_mm'))} | {_pm(t['rmse_mm'])} | {len(r['seeds'])} |")
     return "\n".join(lines)
+
+
+def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
+                       info: dict | None = None, members: list[nn.Module] | None = None) -> HardwareModel:
+    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
+    per seed on the whole training recording of a :class:`Setup` and bundle the ensemble with
+    the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
+    fitted on held-out residuals. ``members``: the models already fitted that way, one per seed (e.g. by
+    the benchmark's final runs), bundled instead of trained again (ignored for ``cc``)."""
+    from ..study.benchmark import fit_model
+
+    if name == "cc":                    # deterministic: one member, the CC model itself
+        members = [cc_as_residual(setup.train, setup.cc)]
+    elif members is not None:
+        if len(members) != len(seeds):
+            raise ValueError(f"members: expected one fitted {name} per seed {list(seeds)}, got {len(members)}")
+        members = [m.eval() for m in members]
+    else:
+        members = [fit_model(name, setup, seed).eval() for seed in seeds]
+    support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
+    return HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, members,
+                         sigma=sigma, support=support, examples=1e3 * setup.train_rec.servo[:256],
+                         info=dict(info or {}))

@@ -28,7 +28,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor, nn
 
-from ..checks import check_tensor
+from ...checks import check_tensor
 
 SUPPORT_QUANTILE = 0.99
 _EXACT = "donot_use_mm_for_euclid_dist"  # no cancellation: a training row is at distance 0 from itself

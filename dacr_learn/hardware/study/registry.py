@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from .ccmodel import CalibratedCC
-from .compositional_model import CCCompositionalResidual
-from .learned import (
+from ..ccmodel import CalibratedCC
+from ..compositional_model import CCCompositionalResidual
+from ..learned import (
     PRETRAIN_SAMPLES,
     CCClarkeResidual,
     CCClarkeResidualHistory,
@@ -27,7 +27,7 @@ from .learned import (
     TipMLP,
     synthetic_split,
 )
-from .servo_map import ServoMap
+from ..servo_map import ServoMap
 
 
 @dataclass(frozen=True)

@@ -38,12 +38,12 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..robot import RobotSpec
-from .ccmodel import CalibratedCC
-from .compositional_model import CCCompositionalResidual
-from .learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, make_split
-from .recording import Recording
-from .servo_map import ServoMap
+from ...robot import RobotSpec
+from ..ccmodel import CalibratedCC
+from ..compositional_model import CCCompositionalResidual
+from ..learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, make_split
+from ..recording import Recording
+from ..servo_map import ServoMap
 from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
 FORMAT = "dacr_learn.hardware_model/1"                       # the CC Clarke-residual family
@@ -260,40 +260,6 @@ def _member(blob: dict, state: dict, cc: CalibratedCC) -> nn.Module:
         member = cls(_placeholder_split(m, rows), cc, **options)
     member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})
     return member.eval()
-
-
-def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
-    """The calibrated CC model (registry name ``cc``) in the CC Clarke-residual form: a correction network
-    whose output layer is zero, so it predicts exactly the CC model's tips — and saves, exports and runs in
-    a controller like the learned members."""
-    model = CCClarkeResidual(train, cc)
-    with torch.no_grad():
-        model.net[-1].weight.zero_()
-        model.net[-1].bias.zero_()
-    return model.eval()
-
-
-def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
-                       info: dict | None = None, members: list[nn.Module] | None = None) -> HardwareModel:
-    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
-    per seed on the whole training recording of a :class:`~.benchmark.Setup` and bundle the ensemble with
-    the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
-    fitted on held-out residuals. ``members``: the models already fitted that way, one per seed (e.g. by
-    the benchmark's final runs), bundled instead of trained again (ignored for ``cc``)."""
-    from .benchmark import fit_model
-
-    if name == "cc":                    # deterministic: one member, the CC model itself
-        members = [cc_as_residual(setup.train, setup.cc)]
-    elif members is not None:
-        if len(members) != len(seeds):
-            raise ValueError(f"members: expected one fitted {name} per seed {list(seeds)}, got {len(members)}")
-        members = [m.eval() for m in members]
-    else:
-        members = [fit_model(name, setup, seed).eval() for seed in seeds]
-    support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
-    return HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, members,
-                         sigma=sigma, support=support, examples=1e3 * setup.train_rec.servo[:256],
-                         info=dict(info or {}))
 
 
 def support_warning(model: HardwareModel, setup_split: Split, what: str = "val") -> str | None:

@@ -35,13 +35,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ..robot import RobotSpec
-from .ccmodel import CalibratedCC, fit_cc
-from .learned import Split, make_split
-from .metrics import offset_removed_rmse
-from .recording import Recording
+from ...robot import RobotSpec
+from ..ccmodel import CalibratedCC, fit_cc
+from ..learned import Split, make_split
+from ..metrics import offset_removed_rmse
+from ..recording import Recording
+from ..servo_map import ServoMap
 from .registry import FitContext, ModelInfo, build_model, model_info
-from .servo_map import ServoMap
 
 CC_VARIANTS: dict[str, dict] = {"base": {}, "strain": {"pretension_strain": True}}   # name → CalibratedCC options
 PROXIES = ("cv", "extrap")

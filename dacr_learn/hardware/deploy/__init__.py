@@ -1,0 +1,12 @@
+"""Deploying a fitted hardware tip model: save / load it, its uncertainty, inference modules, export.
+
+- :mod:`.checkpoint`  save / load a fitted model (weights-only file; :func:`load_hardware_model`)
+- :mod:`.uncertainty` σ per prediction (ensemble spread, σ model) and the out-of-support score
+- :mod:`.inference`, :mod:`.compositional_inference`  folded FK / Jacobian modules for export
+- :mod:`.export`      ``python -m dacr_learn.export --ckpt model.pt``: the exporter of saved hardware models
+
+Depends on :mod:`dacr_learn.hardware` (data, physics, models) only; nothing here imports the study.
+"""
+from .checkpoint import HardwareModel, load_hardware_model, save_hardware_model
+
+__all__ = ["HardwareModel", "load_hardware_model", "save_hardware_model"]
