@@ -18,11 +18,11 @@ from pathlib import Path
 import torch
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
-from dacr_learn.hardware.checkpoint import HardwareModel
+from dacr_learn.hardware.deploy.checkpoint import HardwareModel
+from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SupportModel, ensemble_predict
 from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, make_split
 from dacr_learn.hardware.recording import Recording
 from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
-from dacr_learn.hardware.uncertainty import SigmaCalibration, SupportModel, ensemble_predict
 from dacr_learn.layers import ClarkeDecoder
 from dacr_learn.robot import RobotSpec
 

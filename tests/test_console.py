@@ -119,9 +119,9 @@ def _residual_model(tmp: Path):
 
 def _compositional_model(tmp: Path):
     """An untrained compositional ensemble on a slice of FTDCR v4 (exported through CompositionalHardwareFK)."""
-    from dacr_learn.hardware.benchmark import load_setup
-    from dacr_learn.hardware.checkpoint import HardwareModel
     from dacr_learn.hardware.compositional_model import CCCompositionalResidual
+    from dacr_learn.hardware.deploy.checkpoint import HardwareModel
+    from dacr_learn.hardware.study.benchmark import load_setup
 
     rows = (ROOT / "data" / "ftdcr_v4" / "train.csv").read_text().splitlines()
     (tmp / "train.csv").write_text("\n".join(rows[:1] + rows[1::8]) + "\n")
@@ -135,7 +135,7 @@ def test_hardware_export_stores_whole_tensors(tmp_path, build):
     """torch.export.save warned "No complete tensor found in the group!" for every exported hardware module:
     their stacked weights were transposed views. Fixed at the source: the modules' buffers are contiguous."""
     from dacr_learn import export as dexport
-    from dacr_learn.hardware.checkpoint import save_hardware_model
+    from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
 
     ckpt = save_hardware_model(build(tmp_path), tmp_path / "model.pt")
     with warnings.catch_warnings(record=True) as caught:
