@@ -5,7 +5,7 @@ The Clarke encoder removes the routing coupling, so its features are per segment
 A network f_θ, shared by all segments, maps the standardised x_k and a context c_k to the
 segment's transform T_k ∈ SE(3) (base of segment k → its end); the robot is the product
 
-    T_tip = T_1 · T_2 · … · T_m,   end of segment k = T_1 ⋯ T_k      (kinematics._chain).
+    T_tip = T_1 · T_2 · … · T_m,   end of segment k = T_1 ⋯ T_k      (lie.chain_products).
 
 Output heads ("rotation"):
 - "twist": f_θ outputs an se(3) twist ξ = (v · L_s, ω) (v: translation part scaled by the mean
@@ -29,51 +29,15 @@ from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
 from .checks import check_tensor
-from .kinematics import _chain, bending_coefficients, effective_features
+from .kinematics import effective_features
 from .layers import ClarkeEncoder
-from .models import FKModel, Standardizer, mlp, pose_from_parts
+from .lie import chain_products, pose_from_parts, twist_exp
+from .models import FKModel, Standardizer, mlp
 from .robot import RobotSpec
 
 STRUCTURES = ("monolithic", "compositional")
 CONTEXTS = ("none", "segment", "distal")
 HEADS = {"twist": 6, "6d": 9}
-
-
-_TAYLOR_BELOW = 1e-2   # φ² below which g = (φ − sin φ)/φ³ is a Taylor polynomial (exact to ~1e-14 there)
-
-
-def _third_coefficient(phi_sq: Tensor, s: Tensor) -> Tensor:
-    """g = (φ − sin φ)/φ³ = (1 − s)/φ² as a function of φ² (..., ), finite with finite gradients at 0."""
-    small = phi_sq < _TAYLOR_BELOW
-    y = torch.where(small, phi_sq, 0.0)
-    g_small = (((-y / 39916800 + 1 / 362880) * y - 1 / 5040) * y + 1 / 120) * -y + 1 / 6
-    return torch.where(small, g_small, (1 - s) / torch.where(small, 1.0, phi_sq))
-
-
-def hat(w: Tensor) -> Tensor:
-    """Skew matrices ω^ (..., 3, 3) of vectors ω (..., 3): ω^·x = ω × x."""
-    zero = torch.zeros_like(w[..., 0])
-    return torch.stack([zero, -w[..., 2], w[..., 1], w[..., 2], zero, -w[..., 0],
-                        -w[..., 1], w[..., 0], zero], dim=-1).unflatten(-1, (3, 3))
-
-
-def twist_exp(xi: Tensor) -> Tensor:
-    """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4).
-
-    Closed form: R = I + s·ω^ + f·ω^², p = (I + f·ω^ + g·ω^²)·v with s = sin φ/φ, f = (1 − cos φ)/φ²
-    (kinematics.bending_coefficients), g = (φ − sin φ)/φ³, φ = ‖ω‖; equals torch.linalg.matrix_exp of
-    [[ω^, v], [0, 0]] (tested) at a fraction of its cost.
-    """
-    v, w = xi[..., :3], xi[..., 3:]
-    phi_sq = (w * w).sum(-1)
-    s, f = bending_coefficients(phi_sq)
-    g = _third_coefficient(phi_sq, s)
-    wv = torch.linalg.cross(w, v)
-    p = v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * torch.linalg.cross(w, wv)
-    w_hat = hat(w)
-    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
-    rot = eye + s[..., None, None] * w_hat + f[..., None, None] * (w_hat @ w_hat)
-    return pose_from_parts(rot, p)
 
 
 class SegmentFrontEnd(nn.Module):
@@ -161,7 +125,7 @@ class CompositionalFK(nn.Module):
 
     def segment_ends(self, q: Tensor) -> Tensor:
         """End frame of every segment in the robot base frame: (..., N) → (..., m, 4, 4); [..., -1] is the tip."""
-        return _chain(self.segment_transforms(q))
+        return chain_products(self.segment_transforms(q))
 
     def forward(self, q: Tensor) -> Tensor:
         return self.segment_ends(q)[..., -1, :, :]

@@ -411,7 +411,7 @@ class InferenceCompositionalFK(nn.Module):
 
     def segment_transforms(self, q: Tensor) -> Tensor:
         """T_k (B, m, 4, 4) of every segment."""
-        from .compositional import twist_exp
+        from .lie import twist_exp
 
         u = self.fold.inputs(q)
         pre = self.mlp.first(self.fold.features(u) if self.on_features else u)

@@ -17,26 +17,8 @@ import torch
 from torch import Tensor
 
 from .checks import check_tensor
+from .lie import bending_coefficients, chain_products
 from .robot import RobotSpec
-
-_TAYLOR_BELOW = 1e-2  # φ² threshold; the series through φ⁸ are exact to ~3e-18 there
-
-
-def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
-    """s = sin φ/φ and f = (1 − cos φ)/φ² as functions of φ² (..., ), finite with finite gradients at 0.
-
-    f is evaluated as 2·(sin(φ/2)/φ)², which has no cancellation (accurate in float32 too).
-    """
-    small = phi_sq < _TAYLOR_BELOW
-    phi = torch.sqrt(torch.where(small, 1.0, phi_sq))
-    inv_phi = 1 / phi
-    half = torch.sin(0.5 * phi) * inv_phi
-    s_big, f_big = torch.sin(phi) * inv_phi, 2 * half * half
-    y = torch.where(small, phi_sq, 0.0)
-    # Horner forms of s = 1 − y/6 + y²/120 − y³/5040 + y⁴/362880, f = 1/2 − y/24 + y²/720 − y³/40320 + y⁴/3628800
-    s_small = (((y / 362880 - 1 / 5040) * y + 1 / 120) * y - 1 / 6) * y + 1
-    f_small = (((y / 3628800 - 1 / 40320) * y + 1 / 720) * y - 1 / 24) * y + 0.5
-    return torch.where(small, s_small, s_big), torch.where(small, f_small, f_big)
 
 
 @functools.lru_cache(maxsize=64)
@@ -109,17 +91,9 @@ def segment_poses(spec: RobotSpec, features: Tensor) -> Tensor:
     return cc_transform(*_segment_parameters(spec, features))
 
 
-def _chain(poses: Tensor) -> Tensor:
-    """Cumulative products T⁽¹⁾, T⁽¹⁾T⁽²⁾, …: (..., m, 4, 4) → (..., m, 4, 4)."""
-    out = [poses[..., 0, :, :]]
-    for j in range(1, poses.shape[-3]):
-        out.append(out[-1] @ poses[..., j, :, :])
-    return torch.stack(out, dim=-3)
-
-
 def segment_tip_poses(spec: RobotSpec, features: Tensor) -> Tensor:
     """Pose of each segment's tip in the robot base frame: (..., m, 4) → (..., m, 4, 4)."""
-    return _chain(segment_poses(spec, features))
+    return chain_products(segment_poses(spec, features))
 
 
 def forward_kinematics(spec: RobotSpec, features: Tensor) -> Tensor:
@@ -143,7 +117,7 @@ def backbone_points(spec: RobotSpec, features: Tensor, points_per_segment: int =
     u_partial = u.unsqueeze(-3) * frac[:, None, None]                              # (..., K, m, 2)
     alpha_partial = None if alpha is None else alpha.unsqueeze(-2)                # (..., 1, m)
     partial = cc_transform(u_partial, beta.unsqueeze(-2) * frac[:, None], alpha_partial)
-    bases = _chain(cc_transform(u, beta, alpha))                                   # (..., m, 4, 4)
+    bases = chain_products(cc_transform(u, beta, alpha))                                   # (..., m, 4, 4)
     eye = torch.eye(4, dtype=u.dtype, device=u.device).expand(*bases.shape[:-3], 1, 4, 4)
     bases = torch.cat([eye, bases[..., :-1, :, :]], dim=-3)                        # base of each segment
     world = bases.unsqueeze(-4) @ partial                                          # (..., K, m, 4, 4)

@@ -21,6 +21,7 @@ from torch import Tensor, nn
 from .checks import check_tensor
 from .kinematics import forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
+from .lie import pose_from_parts
 from .robot import RobotSpec
 
 FEATURE_MODES = ("clarke", "raw")
@@ -122,17 +123,7 @@ class FeatureFrontEnd(nn.Module):
         return self.norm(self.raw_features(q))
 
 
-def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = None) -> Tensor:
-    """Homogeneous pose (..., 4, 4) from rotation (..., 3, 3) and position (..., 3).
 
-    ``bottom``: the row (0, 0, 0, 1) as a (1, 4) tensor of the right dtype/device, if the caller
-    keeps one (the exported inference modules hold it as a buffer); built here otherwise.
-    """
-    top = torch.cat([rotation, position.unsqueeze(-1)], dim=-1)
-    if bottom is None:
-        bottom = torch.zeros_like(top[..., :1, :])
-        bottom[..., 0, 3] = 1.0
-    return torch.cat([top, bottom.expand(*top.shape[:-2], 1, 4)], dim=-2)
 
 
 def pose_to_vector(pose: Tensor, length: float) -> Tensor:

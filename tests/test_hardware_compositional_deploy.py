@@ -15,7 +15,6 @@ import torch
 from conftest import ROOT, roundoff_tol
 
 from dacr_learn import export as dexport
-from dacr_learn.compositional import twist_exp
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual
 from dacr_learn.hardware.deploy.checkpoint import (
     FORMAT,
@@ -27,15 +26,13 @@ from dacr_learn.hardware.deploy.checkpoint import (
 from dacr_learn.hardware.deploy.compositional_inference import (
     CompositionalHardwareFK,
     CompositionalHardwareJacobian,
-    _hat_map,
-    exp_of_twist_matrix,
-    twist_exp_and_tangent,
 )
 from dacr_learn.hardware.deploy.inference import HardwareFK
 from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel
 from dacr_learn.hardware.learned import cc_as_residual
 from dacr_learn.hardware.study.benchmark import fit_hardware_model, load_setup
 from dacr_learn.hardware.study.registry import REGISTRY, ModelInfo
+from dacr_learn.lie import exp_of_twist_matrix, hat_map, twist_exp, twist_exp_and_tangent
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 TIP_SCALE = 0.2                     # [m] magnitude of the tip coordinates (motion-capture frame)
@@ -181,7 +178,7 @@ def test_twist_exp_tangent_matches_forward_mode_autodiff(scale):
 def test_exp_of_the_twist_matrix_is_twist_exp(scale):
     """The FK path's exp(ξ^) = I + ξ^ + f·ξ^² + g·ξ^³ equals compositional.twist_exp (ξ = 0 included)."""
     xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    got = exp_of_twist_matrix((xi @ _hat_map()).unflatten(-1, (4, 4)))
+    got = exp_of_twist_matrix((xi @ hat_map()).unflatten(-1, (4, 4)))
     assert (got - twist_exp(xi)).abs().max() <= roundoff_tol(torch.float64, 1.0 + float(xi.abs().max()))
 
 

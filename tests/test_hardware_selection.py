@@ -237,10 +237,10 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     process (fit_model / the held-out build_model here raise). The members predict like the same model
     trained here per seed, the reported train RMSE per seed is the saved member's, and the σ model equals
     sigma_models computed here."""
-    from dacr_learn.hardware.study import benchmark, heldout
-    from dacr_learn.hardware.study.cli import main
     from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
     from dacr_learn.hardware.metrics import tip_metrics
+    from dacr_learn.hardware.study import benchmark, heldout
+    from dacr_learn.hardware.study.cli import main
 
     data, robot = labelled_robot_dir
     out, save = tmp_path / "run", tmp_path / "model"

@@ -36,7 +36,8 @@ import torch
 from torch import Tensor, nn
 
 from ..compositional import CompositionalFK
-from ..kinematics import _chain, effective_features, segment_poses
+from ..kinematics import effective_features, segment_poses
+from ..lie import chain_products
 from .ccmodel import CalibratedCC
 from .learned import LR, RESIDUAL_HIDDEN, STEPS, Split, train_full_batch
 
@@ -87,7 +88,7 @@ class CCCompositionalResidual(nn.Module):
     def segment_ends(self, split: Split) -> Tensor:
         """End frame of every segment in the robot base frame (n, m, 4, 4) [m]; [:, -1] is the tip."""
         cc_poses = segment_poses(self.spec, self.segment_features(split))
-        return _chain(cc_poses @ self.corrections(split))
+        return chain_products(cc_poses @ self.corrections(split))
 
     def forward(self, split: Split) -> Tensor:
         """Tip marker (n, 3) [m] in the motion-capture frame, float64 (kinematics in float32 like (e), unless cast)."""

@@ -15,7 +15,7 @@ every constant in buffers, exportable with torch.export (``python -m dacr_learn.
   jacfwd) of the FK do not trace with torch.export (torch 2.13).
 
 Pipeline: servo → ρ per segment (the slack-aware encoder's active-set fast path of HardwareFK: the
-same buffers, :func:`~.inference._active_set_maps`, and the same method, HardwareFK.clarke) → CC
+same buffers, :func:`~.inference.active_set_maps`, and the same method, HardwareFK.clarke) → CC
 segment poses T_k^CC(ρ_k) (:func:`~.inference.twist_segment_poses`) → each member's correction exp(ξ_k^),
 ξ_k = s·f_θ(z_k, c_k) (the K networks batched: weights (K, in, out); the feature normaliser kept as
 (ρ − μ)/σ with the standardised fixed columns β = l, α = 0 precomputed per segment in the member's
@@ -29,19 +29,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ...compositional import _TAYLOR_BELOW, _third_coefficient, hat, twist_exp
 from ...kinematics import effective_features
-from ...models import pose_from_parts
+from ...lie import exp_of_twist_matrix, hat_map, pose_from_parts, twist_exp_and_tangent
 from .checkpoint import HardwareModel
 from .inference import (
     HardwareFK,
-    _active_set_maps,
-    _bending_coefficients_and_derivatives,
-    _homogeneous,
-    _sigma_coefficients,
+    active_set_maps,
     chain_prefix_suffix,
     chained_marker_point,
     segment_twists,
+    sigma_coefficients,
     silu_linear_rows,
     twist_pose_derivative_times,
     twist_pose_terms,
@@ -54,34 +51,6 @@ _F64 = torch.float64
 def _check_servo(servo: Tensor, num_servos: int) -> None:
     if servo.dim() != 2 or servo.shape[-1] != num_servos:
         raise ValueError(f"servo: expected shape (B, {num_servos}) [mm], got {tuple(servo.shape)}")
-
-
-def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
-    """exp of se(3) twists ξ = (v, ω) (..., 6) (:func:`~dacr_learn.compositional.twist_exp`, (..., 4, 4)) and its
-    tangents (..., T, 4, 4) along dξ (..., T, 6): the derivative of R = I + s·ω^ + f·ω^², p = v + f·ω×v + g·ω×(ω×v)
-    with s, f, g functions of φ² = ‖ω‖² (their φ²-derivatives: Taylor series below the same threshold)."""
-    v, w, dv, dw = xi[..., :3], xi[..., 3:], dxi[..., :3], dxi[..., 3:]
-    phi_sq = (w * w).sum(-1)
-    s, f, ds, df = _bending_coefficients_and_derivatives(phi_sq)
-    g = _third_coefficient(phi_sq, s)
-    small = phi_sq < _TAYLOR_BELOW
-    y = torch.where(small, phi_sq, 0.0)
-    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
-    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
-    dphi = 2 * (w.unsqueeze(-2) * dw).sum(-1)                                              # (..., T)
-    at = lambda c: c.unsqueeze(-1)  # noqa: E731   coefficient (...) → (..., T) broadcast
-    wv = torch.linalg.cross(w, v)
-    dwv = torch.linalg.cross(dw, v.unsqueeze(-2)) + torch.linalg.cross(w.unsqueeze(-2), dv)
-    wwv = torch.linalg.cross(w, wv)
-    dwwv = torch.linalg.cross(dw, wv.unsqueeze(-2)) + torch.linalg.cross(w.unsqueeze(-2), dwv)
-    dp = (dv + (at(df) * dphi).unsqueeze(-1) * wv.unsqueeze(-2) + at(f).unsqueeze(-1) * dwv
-          + (at(dg) * dphi).unsqueeze(-1) * wwv.unsqueeze(-2) + at(g).unsqueeze(-1) * dwwv)
-    w_hat, dhat = hat(w).unsqueeze(-3), hat(dw)
-    hat2 = w_hat @ w_hat
-    k = lambda c: c[..., None, None]  # noqa: E731   (..., T) → (..., T, 1, 1)
-    drot = (k(at(ds) * dphi) * w_hat + k(at(s)) * dhat + k(at(df) * dphi) * hat2
-            + k(at(f)) * (dhat @ w_hat + w_hat @ dhat))
-    return twist_exp(xi), pose_from_parts(drot, dp, dp.new_zeros(1, 4))
 
 
 def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
@@ -115,31 +84,10 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
             out[f"b{i}"] = torch.stack([ls[i].bias for ls in layers]).to(_F64).unsqueeze(1) * scale
         out["skip"] = torch.stack([fk.skip.weight for fk in fks]).to(_F64).mT * unit.unsqueeze(1)
         last = len(layers[0]) - 1        # the FK path: output layer and skip give the 4 × 4 twist matrix ξ^ directly
-        hat_map = _hat_map()
-        out.update({"w_hat": out[f"w{last}"] @ hat_map, "b_hat": out[f"b{last}"] @ hat_map,
-                    "skip_hat": out["skip"] @ hat_map})
+        to_matrix = hat_map()
+        out.update({"w_hat": out[f"w{last}"] @ to_matrix, "b_hat": out[f"b{last}"] @ to_matrix,
+                    "skip_hat": out["skip"] @ to_matrix})
     return out, acts.pop()(), context
-
-
-def _hat_map() -> Tensor:
-    """(6, 16): ξ = (v, ω) ↦ ξ^ = [[ω^, v], [0, 0]] flattened (float64)."""
-    basis = torch.eye(6, dtype=_F64)
-    return pose_from_parts(hat(basis[:, 3:]), basis[:, :3], basis.new_zeros(1, 4)).flatten(-2)
-
-
-def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
-    """exp(ξ^) (..., 4, 4) of twist matrices ξ^ = [[ω^, v], [0, 0]] (..., 4, 4): I + ξ^ + f·ξ^² + g·ξ^³ with
-    f = (1 − cos φ)/φ², g = (φ − sin φ)/φ³, φ = ‖ω‖ (ω^³ = −φ²ω^ makes the series collapse; the same map as
-    :func:`~dacr_learn.compositional.twist_exp`, in fewer ops: the FK path). ‖ω^‖_F = √2·φ; s, f as sinc terms
-    of y = φ/2π (:func:`~.inference.twist_segment_poses`), g from the Taylor-guarded (1 − s)/φ²."""
-    rot = xi_hat[..., :3, :3]
-    phi_sq = 0.5 * (rot * rot).sum((-2, -1))
-    y = torch.linalg.vector_norm(rot.flatten(-2), dim=-1) * (0.5 / (torch.pi * 2**0.5))
-    g = _third_coefficient(phi_sq, torch.sinc(2 * y))
-    sq = xi_hat @ xi_hat
-    out = torch.addcmul(xi_hat, (0.5 * torch.sinc(y) ** 2)[..., None, None], sq)
-    out = torch.addcmul(out, g[..., None, None], sq @ xi_hat)
-    return out + torch.eye(4, dtype=xi_hat.dtype)
 
 
 class CompositionalHardwareFK(nn.Module):
@@ -157,10 +105,10 @@ class CompositionalHardwareFK(nn.Module):
         nets, self.activation, self.context = _stacked_networks(model.members)
         self.layers = sum(1 for k in nets if k[0] == "w" and k[1:].isdigit())    # linear layers of f_θ
         with torch.no_grad():
-            buffers = {**_active_set_maps(model), **nets,
-                       "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
+            buffers = {**active_set_maps(model), **nets,
+                       "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
                        "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
-                       "sigma_coefficients": _sigma_coefficients(model),
+                       "sigma_coefficients": sigma_coefficients(model),
                        "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))

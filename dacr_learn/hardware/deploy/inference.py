@@ -29,26 +29,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ...kinematics import _TAYLOR_BELOW, bending_coefficients
+from ...lie import bending_coefficients_and_derivatives, pose_from_parts
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
 
 _F64 = torch.float64
-
-
-def _bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """s = sin φ/φ, f = (1 − cos φ)/φ² (:func:`~dacr_learn.kinematics.bending_coefficients`) and their
-    derivatives w.r.t. φ² (Taylor branch near 0, below the same threshold)."""
-    s, f = bending_coefficients(phi_sq)
-    small = phi_sq < _TAYLOR_BELOW
-    phi_sq_big = torch.where(small, 1.0, phi_sq)
-    y = torch.where(small, phi_sq, 0.0)
-    ds_small = ((4 * y / 362880 - 3 / 5040) * y + 2 / 120) * y - 1 / 6
-    df_small = ((4 * y / 3628800 - 3 / 40320) * y + 2 / 720) * y - 1 / 24
-    ds_big = (torch.cos(torch.sqrt(phi_sq_big)) - s) / (2 * phi_sq_big)   # s, f of the big branch where used
-    df_big = (s - 2 * f) / (2 * phi_sq_big)
-    return s, f, torch.where(small, ds_small, ds_big), torch.where(small, df_small, df_big)
 
 
 def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
@@ -95,7 +81,7 @@ def twist_pose_terms(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radiu
     m = rho.shape[-2]
     xi = (rho.unsqueeze(-2) @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset       # (..., m, 4, 4)
     inv_d2 = 1 / radius**2
-    s, f, ds, df = _bending_coefficients_and_derivatives((rho * rho).sum(-1) * inv_d2)        # (..., m)
+    s, f, ds, df = bending_coefficients_and_derivatives((rho * rho).sum(-1) * inv_d2)        # (..., m)
     poses = eye4 + s[..., None, None] * xi + f[..., None, None] * (xi @ xi)
     return poses, (xi, s, f, ds, df, 2 * rho * inv_d2.unsqueeze(-1), twist_map.view(m, 2, 4, 4))
 
@@ -158,7 +144,7 @@ def silu_linear_rows(a: Tensor, w: Tensor, bias: Tensor) -> Tensor:
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
 
 
-def _sigma_coefficients(model: HardwareModel) -> Tensor:
+def sigma_coefficients(model: HardwareModel) -> Tensor:
     """(σ₀ [m], c_ensemble, c_bend) float64 of σ = √(σ₀² + (c_ensemble·spread)² + (c_bend·‖ρ‖)²): the σ
     model of ``HardwareModel.predict`` (:meth:`~.checkpoint.HardwareModel.sigma_of`; absent terms 0).
     Raises ValueError for σ-model terms the exported module cannot compute (support distance, disagreement)."""
@@ -179,10 +165,10 @@ class HardwareFK(nn.Module):
         spec, cc = model.spec, model.cc
         self.history, self.num_segments, self.num_servos = model.history, spec.num_segments, len(model.servo_ids)
         with torch.no_grad():
-            buffers = {**_active_set_maps(model),
+            buffers = {**active_set_maps(model),
                        "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
                        "length": torch.tensor([s.length for s in spec.segments], dtype=_F64),
-                       "base_pose": _homogeneous(cc.base_rotation(), cc.base_translation),
+                       "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
                        "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))
@@ -194,7 +180,7 @@ class HardwareFK(nn.Module):
             if self.gate_width is not None:
                 buffers["gate_points"] = model.members[0].train_clarke * model.members[0].rho_std
                 buffers["rho_std"] = model.members[0].rho_std
-            buffers["sigma_coefficients"] = _sigma_coefficients(model)
+            buffers["sigma_coefficients"] = sigma_coefficients(model)
         for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
             self.register_buffer(name, value.detach().to(dtype).contiguous())
         self.ensemble = len(model.members)
@@ -318,7 +304,7 @@ class HardwareFK(nn.Module):
         return chained_marker_point(self.base_pose, poses, self.tip_marker)
 
     def mean_std(self, tips: Tensor, rho: Tensor) -> tuple[Tensor, Tensor]:
-        """Ensemble mean and σ = √(σ₀² + (c_e·spread)² + (c_b·‖ρ‖)²) (:func:`_sigma_coefficients`) of tips
+        """Ensemble mean and σ = √(σ₀² + (c_e·spread)² + (c_b·‖ρ‖)²) (:func:`sigma_coefficients`) of tips
         (B, K, 3) [m] at commands of Clarke coordinates ρ (B, m, 2) [m]; one member has no spread."""
         floor, c_ens, c_bend = self.sigma_coefficients
         var = floor**2 + (c_bend * rho.flatten(-2).norm(dim=-1, keepdim=True)) ** 2          # (B, 1)
@@ -359,7 +345,7 @@ class HardwareJacobian(nn.Module):
         return (tip, jac, new_state) if fk.history else (tip, jac)
 
 
-def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
+def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
     with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, S, 2m) and ``rho_offset`` (2ᴺ, 1, 2m) give
     ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
@@ -376,13 +362,6 @@ def _active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     return {"rho_gain": (scale * gain @ a.mT).mT.contiguous(), "rho_offset": ((scale * gain) @ a0).unsqueeze(-2),
             "violation_map": torch.einsum("sij,kj->ksi", keep, a).mul(weight).flatten(-2),
             "violation_offset": ((keep @ a0) * weight).flatten()}
-
-
-def _homogeneous(rotation: Tensor, translation: Tensor) -> Tensor:
-    """(3, 3), (3,) → the 4 × 4 homogeneous transform."""
-    out = torch.eye(4, dtype=rotation.dtype)
-    out[:3, :3], out[:3, 3] = rotation, translation
-    return out
 
 
 class _Rows:
