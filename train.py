@@ -34,7 +34,8 @@ from dacr_learn import runs
 from dacr_learn.console import first_user_error, quiet_third_party_warnings
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
-from dacr_learn.rerun_log import RerunLogger, RerunVisualCallback
+from dacr_learn.rerun_callback import RerunVisualCallback
+from dacr_learn.rerun_log import RerunLogger
 from dacr_learn.training import KinematicsModule
 
 

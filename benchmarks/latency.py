@@ -54,7 +54,8 @@ from timing import time_interleaved  # noqa: E402
 from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.console import quiet_third_party_warnings, run_cli  # noqa: E402
 from dacr_learn.data import generate  # noqa: E402
-from dacr_learn.inference import InferenceCompositionalFK, InferenceFK, InferenceJacobian  # noqa: E402
+from dacr_learn.inference import InferenceFK, InferenceJacobian  # noqa: E402
+from dacr_learn.inference_compositional import InferenceCompositionalFK  # noqa: E402
 from dacr_learn.kinematics import forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.training import FKModule, IKModule  # noqa: E402

@@ -36,7 +36,8 @@ from torch import Tensor, nn
 
 from .checks import check_tensor, load_torch_file, read_json_object, short_error
 from .console import run_cli
-from .inference import InferenceCompositionalFK, InferenceFK, InferenceIK, InferenceJacobian
+from .inference import InferenceFK, InferenceIK, InferenceJacobian
+from .inference_compositional import InferenceCompositionalFK
 from .robot import RobotSpec
 from .runs import CHECKPOINT, find_checkpoint, load_lightning_checkpoint
 

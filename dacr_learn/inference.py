@@ -31,16 +31,14 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .layers import ClarkeDecoder, ClarkeEncoder
+from .lie import pose_from_parts
 from .models import (
     ACTIVATIONS,
     FKModel,
     IKModel,
-    Standardizer,
     actuated_columns,
     actuated_selection,
     actuated_to_features,
-    fixed_features,
-    pose_from_parts,
 )
 from .robot import RobotSpec
 
@@ -196,7 +194,7 @@ class DecoderJacobian(nn.Module):
         return self.const + self.path * coef.unsqueeze(-2)
 
 
-def _linears(net: nn.Sequential) -> list[nn.Linear]:
+def linear_layers(net: nn.Sequential) -> list[nn.Linear]:
     return [m for m in net if isinstance(m, nn.Linear)]
 
 
@@ -207,7 +205,7 @@ def _frozen_linear(weight: Tensor, bias: Tensor, dtype: torch.dtype) -> nn.Linea
     return layer.requires_grad_(False)
 
 
-class _FoldedMLP(nn.Module):
+class FoldedMLP(nn.Module):
     """The MLP after the (folded) first affine map: hidden layers and a (scaled) output layer."""
 
     def __init__(self, net: nn.Sequential, first: tuple[Tensor, Tensor], out_scale: Tensor,
@@ -215,7 +213,7 @@ class _FoldedMLP(nn.Module):
         super().__init__()
         self.act = _activation_name(net)
         self.activation = next(m for m in net if not isinstance(m, nn.Linear))   # the model's own module
-        lin = _linears(net)
+        lin = linear_layers(net)
         last = lin[-1]
         w_last = out_scale[:, None] * last.weight.detach().to(_F64)
         b_last = out_scale * last.bias.detach().to(_F64) + out_shift
@@ -240,7 +238,7 @@ class _FoldedMLP(nn.Module):
 
 def _first_layer(net: nn.Sequential, mean: Tensor, std: Tensor) -> tuple[Tensor, Tensor]:
     """(W₁/std, b₁ − W₁·mean/std) in float64: the first layer acting on unstandardised inputs."""
-    first = _linears(net)[0]
+    first = linear_layers(net)[0]
     w = first.weight.detach().to(_F64) / std.to(_F64)
     return w, first.bias.detach().to(_F64) - w @ mean.to(_F64)
 
@@ -305,7 +303,7 @@ class InferenceFK(nn.Module):
         self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
         scale = torch.ones(net[-1].out_features, dtype=_F64)
         scale[:3] = model.length                                          # position × total length
-        self.mlp = _FoldedMLP(net, (k, k0), scale, torch.zeros_like(scale), dtype)
+        self.mlp = FoldedMLP(net, (k, k0), scale, torch.zeros_like(scale), dtype)
 
     def inputs(self, q: Tensor) -> Tensor:
         return q - self.q_ref if self.fold is None else self.fold.inputs(q)
@@ -366,7 +364,7 @@ class InferenceIK(nn.Module):
         scale[:3] = 1 / model.length                                      # v = [p / L, first two rows of R]
         w, b = _first_layer(model.net, model.in_norm.mean, model.in_norm.std)
         out_std, out_mean = model.out_norm.std.to(_F64), model.out_norm.mean.to(_F64)
-        self.mlp = _FoldedMLP(model.net, (w * scale, b), out_std, out_mean, dtype)
+        self.mlp = FoldedMLP(model.net, (w * scale, b), out_std, out_mean, dtype)
         if self.features_mode == "clarke":
             self.register_buffer("selection", model.selection.to(dtype))
             self.register_buffer("base", model.base_features.to(dtype))
@@ -378,79 +376,3 @@ class InferenceIK(nn.Module):
         if self.features_mode == "raw":
             return y
         return self.decoder(actuated_to_features(y, self.selection, self.base))
-
-
-class InferenceCompositionalFK(nn.Module):
-    """Compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`) with the front-end
-    folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
-
-    Encoder, per-segment standardisation, context ("segment": a constant, "distal": a sum of
-    standardised features) and the first layer together with the learned linear skip are affine in
-    u = [q − q_ref, g], so one matrix gives every segment's pre-activations at once,
-    (B, m·(W + O)); for type-III segments it acts on the exact features f instead (β = sqrt(h² − (αr)²)).
-    The translation scale L_s is folded into the output rows. Then the shared MLP runs on (B, m, W),
-    the head gives T_k and the products compose the tip.
-    """
-
-    def __init__(self, model, dtype: torch.dtype = torch.float32):
-        super().__init__()
-        from .compositional import HEADS
-        self.rotation, self.num_segments = model.rotation, model.spec.num_segments
-        self.num_joints, self.features_mode = model.spec.num_joints, "clarke"
-        self.width, self.out = _linears(model.net)[0].out_features, HEADS[model.rotation]
-        self.fold = ClarkeFold(model.spec)
-        scale = torch.ones(self.out, dtype=_F64)
-        scale[:3] = model.length_scale.to(_F64)
-        k, k0 = _compositional_first(model, scale)                        # acts on actuated features f
-        self.on_features = self.fold.has_type3
-        if not self.on_features:
-            k, k0 = k @ self.fold.E, k0 + k @ self.fold.e0
-        self.fold.to(dtype)
-        self.mlp = _FoldedMLP(model.net, (k, k0), scale, torch.zeros_like(scale), dtype)
-        self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
-
-    def segment_transforms(self, q: Tensor) -> Tensor:
-        """T_k (B, m, 4, 4) of every segment."""
-        from .lie import twist_exp
-
-        u = self.fold.inputs(q)
-        pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
-        pre = pre.unflatten(-1, (self.num_segments, self.width + self.out))
-        out = self.mlp(pre[..., :self.width]) + pre[..., self.width:]
-        if self.rotation == "twist":
-            return twist_exp(out)
-        return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
-
-    def forward(self, q: Tensor) -> Tensor:
-        t = self.segment_transforms(q)
-        tip = t[:, 0]
-        for k in range(1, self.num_segments):
-            tip = tip @ t[:, k]
-        return tip
-
-
-def _compositional_first(model, scale: Tensor) -> tuple[Tensor, Tensor]:
-    """(K, k₀) float64 with [a₁ | scale·skip] of every segment = K·f + k₀, f the actuated features (D,).
-
-    Found by probing the (affine) map with unit vectors, through the model's own modules.
-    """
-    spec, front = model.spec, model.front
-    sel, fixed = actuated_selection(spec).to(_F64), fixed_features(spec, _F64)
-    first, skip = _linears(model.net)[0], model.skip
-    w = torch.cat([first.weight, scale[:, None] * skip.weight]).detach().to(_F64)
-    b = torch.cat([first.bias.detach().to(_F64), torch.zeros(skip.out_features, dtype=_F64)])
-    norm = Standardizer(4).to(_F64)
-    norm.load_state_dict({k: v.to(_F64) for k, v in front.norm.state_dict().items()})
-    context = front.context_matrix.to(_F64)
-
-    def affine(f: Tensor) -> Tensor:
-        x = norm(actuated_to_features(f, sel, fixed))                    # (P, m, 4)
-        if front.context == "segment":
-            x = torch.cat([x, context.expand(x.shape[0], -1, -1)], dim=-1)
-        elif front.context == "distal":
-            x = torch.cat([x, context @ x], dim=-1)
-        return (x @ w.mT + b).flatten(-2)                                 # (P, m·(W + O))
-
-    d = sel.shape[0]
-    probe = affine(torch.cat([torch.zeros(1, d, dtype=_F64), torch.eye(d, dtype=_F64)]))
-    return (probe[1:] - probe[0]).mT.contiguous(), probe[0].clone()

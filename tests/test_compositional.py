@@ -19,7 +19,7 @@ from dacr_learn import export as dexport
 from dacr_learn.combination_shift import combination_split, summarize_rows
 from dacr_learn.compositional import CompositionalFK, build_fk_model, transfer, twist_exp
 from dacr_learn.data import bending_subsets, generate
-from dacr_learn.inference import InferenceCompositionalFK
+from dacr_learn.inference_compositional import InferenceCompositionalFK
 from dacr_learn.kinematics import cc_transform, forward_kinematics, segment_tip_poses
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule

@@ -26,12 +26,11 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_only
 from rerun.chunk import RrdReader
 from torch.utils.data import DataLoader, TensorDataset
 
+from dacr_learn.rerun_callback import RerunVisualCallback, find_rerun_logger
 from dacr_learn.rerun_layout import metric_groups, series_style, summary_markdown
 from dacr_learn.rerun_log import (
     RerunLogger,
-    RerunVisualCallback,
     default_blueprint,
-    find_rerun_logger,
     log_path,
     log_scene,
     metric_entity,
@@ -485,7 +484,7 @@ def test_hardware_recording_has_one_plot_with_every_model_and_opens_at_the_end(t
 
 def test_run_info_records_seed_trainer_and_the_datamodules_settings(monkeypatch):
     from dacr_learn.datamodule import KinematicsDataModule
-    from dacr_learn.rerun_log import run_info
+    from dacr_learn.rerun_callback import run_info
 
     monkeypatch.setenv("PL_GLOBAL_SEED", "7")
     dm = KinematicsDataModule(n_train=10, n_val=2, n_test=3, batch_size=4, seed=5, joint_noise=1e-4)
