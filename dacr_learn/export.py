@@ -1,6 +1,6 @@
 """Export trained FK / IK checkpoints as inference modules for controllers, and load them back.
 
-    python -m dacr_learn.export --ckpt runs/fk_type1/checkpoints/last.ckpt --out exports/fk_type1
+    python -m dacr_learn.export --ckpt runs/fk_type1/version_0/checkpoints/last.ckpt --out exports/fk_type1
     python -m dacr_learn.export --ckpt <ik.ckpt> --out <dir> --no-aoti --dtype float64
 
 From an FK checkpoint: ``fk`` (joint vector (..., N) → pose (..., 4, 4)) and ``jacobian``
