@@ -1,5 +1,4 @@
 """Models: front-ends, FK/IK heads, constraint satisfaction, batching."""
-import math
 
 import pytest
 import torch
@@ -87,20 +86,3 @@ def test_quaternion_head_and_bad_options():
         FKModel(spec, activation="swish")
     with pytest.raises(ValueError, match="joint vector"):
         FKModel(spec)(torch.zeros(3, 5))
-
-
-@pytest.mark.parametrize("total", [4, 5, 19, 39, 40, 1000])
-def test_one_cycle_schedule_runs_short_and_long(total):
-    from dacr_learn.training import one_cycle
-
-    opt = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=0.1)
-    sched = one_cycle(opt, 0.1, total)
-    lrs = []
-    for _ in range(total):
-        lrs.append(opt.param_groups[0]["lr"])
-        opt.step()
-        sched.step()
-    assert all(math.isfinite(v) and v > 0 for v in lrs)
-    assert max(lrs) == pytest.approx(0.1, rel=1e-6) and lrs[-1] < 0.01 * max(lrs)
-    with pytest.raises(ValueError, match="at least 4 training steps"):
-        one_cycle(opt, 0.1, 3)

@@ -1,12 +1,14 @@
-"""IK with a pose-space loss (IKModule feature_weight / pose_weight / limit_weight): the decoded features, the
-loss at a true solution, the joint-limit penalty, gradients in float64, and bad weights."""
+"""dacr_learn.training: IK with a pose-space loss (IKModule feature_weight / pose_weight / limit_weight): the decoded
+features, the loss at a true solution, the joint-limit penalty, gradients in float64, and bad weights; the one-cycle
+learning-rate schedule."""
 from __future__ import annotations
 
-from pathlib import Path
+import math
 from types import SimpleNamespace
 
 import pytest
 import torch
+from conftest import ROOT
 
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics
@@ -14,7 +16,6 @@ from dacr_learn.models import pose_to_vector
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import IKModule, limit_excess, pose_loss
 
-ROOT = Path(__file__).resolve().parents[1]
 TDCR3 = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
 
 
@@ -160,3 +161,20 @@ def test_task_output_scale_makes_every_output_move_the_pose_alike(features):
     assert torch.allclose(task, task.mean().expand_as(task), rtol=1e-6)
     if features == "clarke":
         assert gains["std"].max() > 10 * gains["std"].min()
+
+
+@pytest.mark.parametrize("total", [4, 5, 19, 39, 40, 1000])
+def test_one_cycle_schedule_runs_short_and_long(total):
+    from dacr_learn.training import one_cycle
+
+    opt = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=0.1)
+    sched = one_cycle(opt, 0.1, total)
+    lrs = []
+    for _ in range(total):
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert all(math.isfinite(v) and v > 0 for v in lrs)
+    assert max(lrs) == pytest.approx(0.1, rel=1e-6) and lrs[-1] < 0.01 * max(lrs)
+    with pytest.raises(ValueError, match="at least 4 training steps"):
+        one_cycle(opt, 0.1, 3)

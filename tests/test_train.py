@@ -17,17 +17,13 @@ from dacr_learn.training import FKModule
 RERUN = Path(sys.executable).parent / "rerun"
 
 
-def write_config(tmp_path, task="FKModule", robot="configs/robots/type1.yaml", epochs=3, **data):
-    return write_run_config(tmp_path, task=task, robot=robot, epochs=epochs, **data)
-
-
 def batch_loss(module, split):
     with torch.no_grad():
         return module.loss({"q": split["q"], "pose": split["pose"]}).item()
 
 
 def test_fit_writes_summary_recording_and_checkpoint_and_loss_goes_down(tmp_path):
-    cli = train.main(["fit", "--config", str(write_config(tmp_path))])
+    cli = train.main(["fit", "--config", str(write_run_config(tmp_path))])
     run = tmp_path / "runs" / "smoke" / "version_0"
     summary = json.loads((run / "metrics.json").read_text())
     for key in ("pos_err_mean_mm", "pos_err_p95_mm", "pos_err_mean_pct", "rot_err_mean_deg", "train_seconds"):
@@ -73,7 +69,7 @@ class CrashAt(pl.Callback):
 
 
 def test_interrupted_run_resumes_from_last_checkpoint(tmp_path):
-    cfg = str(write_config(tmp_path, epochs=2))
+    cfg = str(write_run_config(tmp_path, epochs=2))
     steps_per_epoch = 2000 // 64 + 1
     cli = train.main(["--config", cfg], run=False)
     cli.trainer.callbacks.append(CrashAt(steps_per_epoch + 5))            # in the middle of epoch 2
@@ -91,7 +87,7 @@ def test_interrupted_run_resumes_from_last_checkpoint(tmp_path):
 
 
 def test_ik_training_keeps_the_constraint_and_reports_ik_metrics(tmp_path):
-    config = write_config(tmp_path, task="IKModule", robot="configs/robots/tdcr_3seg_coupled.yaml")
+    config = write_run_config(tmp_path, task="IKModule", robot="configs/robots/tdcr_3seg_coupled.yaml")
     train.main(["fit", "--config", str(config)])
     summary = json.loads((tmp_path / "runs" / "smoke" / "version_0" / "metrics.json").read_text())
     assert summary["task"] == "ik"
@@ -101,7 +97,7 @@ def test_ik_training_keeps_the_constraint_and_reports_ik_metrics(tmp_path):
 
 @pytest.mark.slow
 def test_ddp_with_two_cpu_processes_matches_single_process_evaluation(tmp_path):
-    cfg = write_config(tmp_path, epochs=1)
+    cfg = write_run_config(tmp_path, epochs=1)
     env = {**os.environ, "PYTHONPATH": os.getcwd()}
     proc = subprocess.run([sys.executable, "train.py", "fit", "--config", str(cfg), "--trainer.devices", "2",
                            "--trainer.strategy", "ddp"], capture_output=True, text=True, env=env, timeout=300)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from conftest import ROOT
 
 distributed = pytest.importorskip("distributed", reason='Dask distributed not installed: pip install -e ".[cluster]"')
 
@@ -19,8 +20,6 @@ import psutil  # noqa: E402  (a dependency of distributed)
 
 from dacr_learn.ablation import load_config, main, make_jobs, runner  # noqa: E402
 from dacr_learn.ablation.cluster import connect, portable_config  # noqa: E402
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def tiny_config(tmp_path: Path) -> Path:
