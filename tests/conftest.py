@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,7 @@ def roundoff_tol(dtype: torch.dtype, scale: float = 1.0, ulps: float = 64.0) -> 
     """
     return float(ulps * torch.finfo(dtype).eps * scale)
 ROBOT_CONFIGS = sorted((ROOT / "configs" / "robots").glob("*.yaml"))
+TYPE1 = ROOT / "configs" / "robots" / "type1.yaml"
 
 # Modest, deterministic-per-run hypothesis budget: the whole core suite must stay fast on 2 cores.
 FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -337,3 +339,19 @@ def readme_sections() -> dict[str, str]:
         lines.append(line)
     sections[name] = "".join(lines)
     return sections
+
+
+# --------------------------------------------------------------------------------------------
+# Users' broken files: the error names the file (tests of the loaders' refusals)
+# --------------------------------------------------------------------------------------------
+
+
+def names(path: Path, *parts: str) -> str:
+    """Regex that the message starts with the file and contains every part, in order."""
+    return "^" + ".*".join(re.escape(p) for p in (str(path), *parts))
+
+
+def truncated(path: Path, keep: int) -> Path:
+    data = path.read_bytes()
+    path.write_bytes(data[:keep] if keep >= 0 else data[:len(data) + keep])
+    return path

@@ -98,18 +98,6 @@ def test_warning_filters_hide_nothing_else(module, message, category):
     assert shown(lambda: warnings.warn_explicit(message, category, "m.py", 5, module=module), quiet=True) == []
 
 
-def test_autotuned_export_does_not_print_inductors_timing_tables():
-    """python -m dacr_learn.export --autotune printed "AUTOTUNE addmm(…)" tables and "Autotune Choices Stats"
-    JSON for every tuned product (Inductor writes them to stderr); the export's Inductor options turn both off."""
-    import torch._inductor.config as inductor_config
-
-    from dacr_learn.export import AUTOTUNE_CONFIGS
-
-    assert AUTOTUNE_CONFIGS["autotune_num_choices_displayed"] == 0
-    assert AUTOTUNE_CONFIGS["max_autotune_report_choices_stats"] is False
-    assert all(hasattr(inductor_config, key) for key in AUTOTUNE_CONFIGS)     # names of this torch's options
-
-
 def _residual_model(tmp: Path):
     """A small residual ensemble of the synthetic robot (exported through HardwareFK)."""
     from hardware_testkit import synthetic_model

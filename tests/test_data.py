@@ -1,18 +1,23 @@
-"""Synthetic data: sampling distribution, determinism, dataset files and checksum refusal, batching."""
+"""Synthetic data: sampling distribution, determinism, dataset files and checksum refusal; broken dataset files
+(truncated tensors.pt, broken meta.json) give a ValueError naming the file."""
+from __future__ import annotations
+
 import json
-import math
+from pathlib import Path
 
 import pytest
 import torch
+from conftest import TYPE1, names, truncated
 
+from dacr_learn import data as ddata
 from dacr_learn.data import SamplerOptions, generate, load_dataset, sample_features, save_dataset
-from dacr_learn.datamodule import KinematicsDataModule, TensorBatches
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.layers import ClarkeEncoder
 from dacr_learn.robot import RobotSpec
 
 TYPE3 = RobotSpec.from_yaml("configs/robots/type3.yaml")
 COUPLED = RobotSpec.from_yaml("configs/robots/tdcr_3seg_coupled.yaml")
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_generation_is_bit_identical_for_a_seed_and_differs_across_seeds():
@@ -77,26 +82,57 @@ def test_dataset_round_trip_and_refusals(tmp_path):
         load_dataset(tmp_path / "nothing")
 
 
-def test_tensor_batches_cover_every_sample_once_per_epoch_and_reshuffle():
-    n = 1000
-    data = {"q": torch.arange(n, dtype=torch.float32)[:, None], "pose": torch.zeros(n, 4, 4)}
-    loader = TensorBatches(data, 128, shuffle=True, seed=0)
-    first = torch.cat([b["q"][:, 0] for b in loader])
-    second = torch.cat([b["q"][:, 0] for b in loader])
-    assert len(loader) == math.ceil(n / 128)
-    assert torch.equal(first.sort().values, data["q"][:, 0]) and torch.equal(second.sort().values, data["q"][:, 0])
-    assert not torch.equal(first, second)
-    assert all(b["valid"].all() for b in loader)
+# --------------------------------------------------------------------------------------------------
+# Broken dataset files
+# --------------------------------------------------------------------------------------------------
 
 
-def test_datamodule_splits_are_disjoint_slices(tmp_path):
-    dm = KinematicsDataModule("configs/robots/type1.yaml", n_train=300, n_val=50, n_test=70, seed=2,
-                              cache_dir=str(tmp_path / "cache"))
-    dm.prepare_data()
-    dm.setup("fit")
-    assert [len(dm.splits[s]["q"]) for s in ("train", "val", "test")] == [300, 50, 70]
-    full = generate(dm.spec, 420, 2)
-    assert torch.equal(dm.splits["test"]["q"], full["q"][350:])
-    assert (tmp_path / "cache" / "meta.json").is_file()
-    with pytest.raises(ValueError, match="n_val"):
-        KinematicsDataModule("configs/robots/type1.yaml", n_val=0)
+@pytest.fixture()
+def dataset(tmp_path) -> tuple[Path, RobotSpec]:
+    spec = RobotSpec.from_yaml(TYPE1)
+    return ddata.save_dataset(tmp_path / "ds", spec, ddata.generate(spec, 16, seed=0), 0, ddata.SamplerOptions()), spec
+
+
+@pytest.mark.parametrize("keep", [0, 1, 100, 0.5, -100, -10, -1])
+def test_truncated_tensor_file(dataset, keep):
+    """Truncations at every depth: torch raises EOFError, UnpicklingError, RuntimeError or OSError (EINVAL)."""
+    directory, spec = dataset
+    path = directory / ddata.TENSOR_FILE
+    truncated(path, int(keep * path.stat().st_size) if isinstance(keep, float) else keep)
+    with pytest.raises(ValueError, match=names(path, "expected the tensors.pt of a dataset", "found a file of",
+                                               "not a complete torch.save archive")) as err:
+        ddata.load_dataset(directory, spec)
+    assert err.value.__cause__ is not None
+
+
+def test_tensor_file_of_another_content(dataset):
+    directory, spec = dataset
+    path = directory / ddata.TENSOR_FILE
+    torch.save([1, 2], path)
+    with pytest.raises(ValueError, match=names(path, "a dict of named tensors", "found a list")):
+        ddata.load_dataset(directory, spec)
+    torch.save({"q": torch.zeros(2), "note": "text"}, path)
+    with pytest.raises(ValueError, match=names(path, "not named tensors", "'note': 'str'")):
+        ddata.load_dataset(directory, spec)
+
+
+@pytest.mark.parametrize("text,found", [("{not json", "found invalid JSON"), ("[1, 2]", "found a JSON list"),
+                                        ("", "found invalid JSON")])
+def test_broken_meta_json(dataset, text, found):
+    directory, spec = dataset
+    path = directory / ddata.META_FILE
+    path.write_text(text)
+    with pytest.raises(ValueError, match=names(path, "expected the meta.json of a dataset", found)):
+        ddata.load_dataset(directory, spec)
+    with pytest.raises(ValueError, match=names(path, found)):       # a cache directory is not silently replaced
+        ddata.generate_or_load(directory, spec, 16, 0)
+
+
+def test_meta_json_with_a_bad_robot(dataset):
+    directory, spec = dataset
+    path = directory / ddata.META_FILE
+    meta = json.loads(path.read_text())
+    meta["robot"] = {"segments": "none"}
+    path.write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=names(path, "segments: got 'none'")):
+        ddata.load_dataset(directory, spec)

@@ -10,12 +10,14 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import lightning.pytorch as pl
 import pytest
 import torch
-from conftest import roundoff_tol, spec_by_name
+from conftest import ROOT, TYPE1, names, roundoff_tol, spec_by_name, truncated
 
 from dacr_learn import export as dexport
 from dacr_learn.control import twist_jacobian
@@ -27,8 +29,6 @@ from dacr_learn.models import FKModel, IKModel, actuated_selection
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule, IKModule
 
-ROOT = Path(__file__).resolve().parents[1]
-TYPE1 = ROOT / "configs" / "robots" / "type1.yaml"
 ROBOTS = [*(p.stem for p in sorted((ROOT / "configs" / "robots").glob("*.yaml"))), "twisting"]
 
 
@@ -282,3 +282,100 @@ def test_nan_and_invalid_inputs_are_refused(exports, samples, task, name, key):
         module(samples[key][:4, ..., :2])
     with pytest.raises(ValueError, match="floating-point"):
         module(samples[key][:4].long())
+
+
+def test_autotuned_export_does_not_print_inductors_timing_tables():
+    """python -m dacr_learn.export --autotune printed "AUTOTUNE addmm(…)" tables and "Autotune Choices Stats"
+    JSON for every tuned product (Inductor writes them to stderr); the export's Inductor options turn both off."""
+    import torch._inductor.config as inductor_config
+
+    from dacr_learn.export import AUTOTUNE_CONFIGS
+
+    assert AUTOTUNE_CONFIGS["autotune_num_choices_displayed"] == 0
+    assert AUTOTUNE_CONFIGS["max_autotune_report_choices_stats"] is False
+    assert all(hasattr(inductor_config, key) for key in AUTOTUNE_CONFIGS)     # names of this torch's options
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints given to export: a broken file gives a ValueError naming it
+# --------------------------------------------------------------------------------------------------
+
+
+def _checkpoint(**changes) -> dict:
+    """A minimal Lightning checkpoint of an untrained FKModule (no Trainer needed)."""
+    module = FKModule(robot=str(TYPE1), width=8, depth=1)
+    ckpt = {"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+            "pytorch-lightning_version": "2.6.0"}
+    for key, value in changes.items():
+        if value is None:
+            ckpt.pop(key)
+        else:
+            ckpt[key] = value
+    return ckpt
+
+
+def test_well_formed_checkpoint_loads(tmp_path):
+    """Positive control for the refusals below: the same construction, unchanged, loads."""
+    torch.save(_checkpoint(), tmp_path / "ok.ckpt")
+    task, module = dexport.load_lightning_checkpoint(tmp_path / "ok.ckpt")
+    assert task == "fk" and module.hparams.width == 8
+
+
+def test_checkpoint_that_is_not_a_torch_file(tmp_path):
+    garbage = tmp_path / "garbage.ckpt"
+    garbage.write_bytes(b"not a checkpoint at all\n" * 10)
+    with pytest.raises(ValueError, match=names(garbage, "expected an FKModule/IKModule checkpoint",
+                                               "found a file of 240 bytes", "not a complete torch.save")):
+        dexport.load_lightning_checkpoint(garbage)
+    for keep in (0, 1, 100, -10):
+        torch.save(_checkpoint(), tmp_path / "cut.ckpt")
+        cut = truncated(tmp_path / "cut.ckpt", keep)
+        with pytest.raises(ValueError, match=names(cut, "not a complete torch.save archive")) as err:
+            dexport.load_lightning_checkpoint(cut)
+        assert err.value.__cause__ is not None
+    with pytest.raises(FileNotFoundError, match=names(tmp_path / "missing.ckpt", "no such file")):
+        dexport.load_lightning_checkpoint(tmp_path / "missing.ckpt")
+
+
+def test_export_cli_prints_the_error_not_a_traceback(tmp_path):
+    garbage = tmp_path / "garbage.ckpt"
+    garbage.write_bytes(b"\x00" * 64)
+    with pytest.raises(ValueError, match=names(garbage, "not a complete torch.save")):
+        dexport.main(["--ckpt", str(garbage), "--out", str(tmp_path / "out")])
+    run = subprocess.run([sys.executable, "-m", "dacr_learn.export", "--ckpt", str(garbage), "--out",
+                          str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert run.returncode != 0 and "Traceback" not in run.stderr, run.stderr
+    assert str(garbage) in run.stderr and "not a complete torch.save archive" in run.stderr, run.stderr
+    assert "RuntimeWarning" not in run.stderr, run.stderr     # runpy: the package must not import its own CLI module
+
+
+NOT_OURS = {   # case: (content of the torch file, parts of the message)
+    "tensor": (lambda: torch.zeros(3), ("found a torch file holding a Tensor",)),
+    "plain dict": (lambda: {"weights": torch.zeros(3)}, ("found a dict without", "state_dict", "hyper_parameters")),
+    "no hyper-parameters": (lambda: _checkpoint(hyper_parameters=None), ("found a dict without", "hyper_parameters")),
+    "no robot": (lambda: _checkpoint(hyper_parameters={"features": "clarke"}), ("without a robot spec",)),
+    "bad robot": (lambda: _checkpoint(hyper_parameters={"robot": {"segments": []}}),
+                  ("hyper_parameters.robot", "segments: got []", "expected a non-empty list")),
+    "other weights": (lambda: _checkpoint(state_dict={"layer.weight": torch.zeros(2)}),
+                      ("without model.front.norm / model.in_norm", "layer.weight")),
+    "weights of another width": (
+        lambda: _checkpoint(state_dict=FKModule(robot=str(TYPE1), width=16, depth=1).state_dict()),
+        ("FKModule cannot load", "size mismatch")),
+}
+
+
+@pytest.mark.parametrize("case", NOT_OURS)
+def test_torch_file_that_is_not_our_checkpoint(tmp_path, case):
+    content, parts = NOT_OURS[case]
+    path = tmp_path / "other.ckpt"
+    torch.save(content(), path)
+    with pytest.raises(ValueError, match=names(path, *parts)):
+        dexport.load_lightning_checkpoint(path)
+
+
+def test_export_metadata_that_is_not_json(tmp_path):
+    meta = tmp_path / dexport.METADATA_FILE
+    for text, found in (("{oops", "found invalid JSON"), ("[1, 2]", "found a JSON list")):
+        meta.write_text(text)
+        with pytest.raises(ValueError, match=names(meta, "expected the metadata.json of an export", found)):
+            dexport.read_metadata(tmp_path)

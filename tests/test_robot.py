@@ -8,10 +8,14 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import FAST, ROBOT_CONFIGS, robot_dicts, roundoff_tol
+from conftest import FAST, ROBOT_CONFIGS, TYPE1, names, robot_dicts, roundoff_tol
 from hypothesis import given
 
-from dacr_learn.robot import DEFAULT_BEND, RobotSpec
+from dacr_learn.datamodule import KinematicsDataModule
+from dacr_learn.robot import DEFAULT_BEND, MAX_LAYOUT_CONDITION, RobotSpec
+from dacr_learn.training import FKModule
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def base_robot() -> dict:
@@ -186,3 +190,90 @@ def test_every_robot_config_loads(path):
 def test_fewer_than_three_joints_message(layout):
     with pytest.raises(ValueError, match="at least 3 joints"):
         RobotSpec.from_dict({"segments": [{"type": "0", "length": 0.1, "radius": 0.008, **layout}]})
+
+
+# --------------------------------------------------------------------------------------------------
+# Robot YAML: a broken file gives a ValueError naming the file (and field)
+# --------------------------------------------------------------------------------------------------
+
+
+BAD_YAML = {
+    "syntax": ("name: x\nsegments: [\n  - {type: I", ("expected a robot description", "invalid YAML", "line 3")),
+    "empty": ("", ("expected a robot description", "found an empty file")),
+    "comments only": ("# nothing here\n", ("found an empty file",)),
+    "list": ("- 1\n- 2\n", ("robot: got [1, 2]", "expected a mapping")),
+    "string": ("just a sentence\n", ("robot: got 'just a sentence'", "expected a mapping")),
+    "bad field": ("segments:\n  - {type: I, length: -0.1, radius: 0.008, joints: 4}\n",
+                  ("segments[0].length", "got -0.1", "expected a finite number > 0")),
+}
+
+
+@pytest.mark.parametrize("case", BAD_YAML)
+def test_robot_yaml_errors_name_the_file(tmp_path, case):
+    text, parts = BAD_YAML[case]
+    path = tmp_path / "robot.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=names(path, *parts)) as err:
+        RobotSpec.from_yaml(path)
+    if case in ("syntax", "list", "bad field"):
+        assert err.value.__cause__ is not None            # the original error is chained
+
+
+def test_robot_yaml_unreadable_or_missing(tmp_path):
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ValueError, match=names(binary, "cannot be read as UTF-8", "UnicodeDecodeError")):
+        RobotSpec.from_yaml(binary)
+    with pytest.raises(ValueError, match=names(tmp_path, "cannot be read")):
+        RobotSpec.from_yaml(tmp_path)                     # a directory
+    with pytest.raises(FileNotFoundError, match=names(tmp_path / "nope.yaml", "no such file")):
+        RobotSpec.from_yaml(tmp_path / "nope.yaml")
+
+
+def test_coerce_accepts_spec_dict_and_path_and_names_bad_input(tmp_path):
+    spec = RobotSpec.from_yaml(TYPE1)
+    assert RobotSpec.coerce(spec) is spec
+    assert RobotSpec.coerce(spec.to_dict()) == spec
+    assert RobotSpec.coerce(str(TYPE1)) == spec == RobotSpec.coerce(TYPE1)
+    with pytest.raises(ValueError, match="^robot: got 3, expected a RobotSpec"):
+        RobotSpec.coerce(3)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("segments: [")
+    with pytest.raises(ValueError, match=names(bad, "invalid YAML")):     # the Lightning entry points use coerce
+        KinematicsDataModule(robot=str(bad))
+    with pytest.raises(ValueError, match=names(bad, "invalid YAML")):
+        FKModule(robot=str(bad))
+
+
+# --------------------------------------------------------------------------------------------------
+# Joint layouts: numerically singular ones are refused, with the condition number found
+# --------------------------------------------------------------------------------------------------
+
+
+def _numpy_condition(angles, extends: bool) -> float:
+    """Independent reference: cond of A = [cos ψ, sin ψ] (and [A, 1]) with equal radii."""
+    a = np.stack([np.cos(angles), np.sin(angles)], 1)
+    return float(np.linalg.cond(np.c_[a, np.ones(len(angles))] if extends else a))
+
+
+@pytest.mark.parametrize("seg_type", ["0", "I", "II", "III"])
+@pytest.mark.parametrize("angles", [[0.0, math.pi, 0.0], [0.0, math.pi, 2 * math.pi], [0.0, 3.14159, 0.0],
+                                    [1e-7, math.pi, 0.0], [0.0, math.pi - 1e-4, 0.0]])
+def test_near_singular_layout_is_refused_with_its_condition_number(seg_type, angles):
+    assert _numpy_condition(angles, seg_type in ("I", "III")) > MAX_LAYOUT_CONDITION    # guard of the fixture
+    desc = {"segments": [{"type": seg_type, "length": 0.1, "radius": 0.008, "joint_angles": angles}]}
+    with pytest.raises(ValueError, match=r"^segments\[0\]\.joint_angles: .*condition number <= 1e\+04.*"
+                                         r"found cond\(\[?A(, 1\])?\) = ([0-9.e+]+|inf)$"):
+        RobotSpec.from_dict(desc)
+
+
+@pytest.mark.parametrize("delta", [1e-1, 1e-2, 1e-3, 1e-4, 1e-5])
+def test_layout_condition_threshold_agrees_with_numpy(delta):
+    """Joints at 0, π − δ, 0: cond(A) ≈ 2/δ; accepted exactly when numpy's cond ≤ MAX_LAYOUT_CONDITION."""
+    angles = [0.0, math.pi - delta, 0.0]
+    desc = {"segments": [{"type": "0", "length": 0.1, "radius": 0.008, "joint_angles": angles}]}
+    if _numpy_condition(angles, False) <= MAX_LAYOUT_CONDITION:
+        assert RobotSpec.from_dict(desc).segments[0].joint_angles == tuple(angles)
+    else:
+        with pytest.raises(ValueError, match=r"segments\[0\]\.joint_angles"):
+            RobotSpec.from_dict(desc)
