@@ -287,6 +287,32 @@ def spec_by_name(name: str) -> RobotSpec:
         ROOT / "configs" / "robots" / f"{name}.yaml")
 
 
+TDCR3 = spec_by_name("tdcr_3seg_coupled")
+
+
+def max_diff(a, b) -> float:
+    """Largest absolute difference of two tensors, compared in float64."""
+    return (a.double() - b.double()).abs().max().item()
+
+
+def autograd_jacobians(model: torch.nn.Module, spec: RobotSpec, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference Jacobians (J_f, J_q) of one sample by torch.func.jacrev of q ↦ FK(q) and f ↦ FK(dec(f))
+    (``model``: an FKModel of ``spec``)."""
+    from dacr_learn.control import twist_jacobian
+    from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
+    from dacr_learn.models import actuated_selection
+
+    enc, dec, sel = ClarkeEncoder(spec).double(), ClarkeDecoder(spec).double(), actuated_selection(spec).double()
+    base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments],
+                        dtype=torch.float64).flatten()
+    pose = model(q[None])[0]
+    jac_q = twist_jacobian(pose, torch.func.jacrev(lambda x: model(x[None])[0])(q))
+    f = enc(q).flatten() @ sel.mT
+    decode = lambda x: dec((base + x @ sel).unflatten(-1, (spec.num_segments, 4)))  # noqa: E731
+    jac_f = twist_jacobian(pose, torch.func.jacrev(lambda x: model(decode(x)[None])[0])(f))
+    return jac_f, jac_q
+
+
 @pytest.fixture(scope="session")
 def labelled_robot_dir(tmp_path_factory) -> tuple[Path, Path]:
     """(data folder with train.csv only, robot YAML with its servo map next to it): a labelled synthetic

@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import TYPE1, names, truncated
+from conftest import TDCR3, TYPE1, names, truncated
 
 from dacr_learn import data as ddata
-from dacr_learn.data import SamplerOptions, generate, load_dataset, sample_features, save_dataset
+from dacr_learn.data import SamplerOptions, bending_subsets, generate, load_dataset, sample_features, save_dataset
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.layers import ClarkeEncoder
 from dacr_learn.robot import RobotSpec
@@ -80,6 +80,29 @@ def test_dataset_round_trip_and_refusals(tmp_path):
         load_dataset(tmp_path / "ds", TYPE3)
     with pytest.raises(ValueError, match="missing"):
         load_dataset(tmp_path / "nothing")
+
+
+# --------------------------------------------------------------------------------------------------
+# Combination regimes (max_bending) and segment frames
+# --------------------------------------------------------------------------------------------------
+
+
+def test_bending_subsets():
+    masks = bending_subsets(3, 2)
+    assert masks.shape == (7, 3) and set(map(tuple, masks.tolist())) == {
+        (0, 0, 0), (1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1)}
+    with pytest.raises(ValueError, match="max_bending"):
+        bending_subsets(3, 4)
+
+
+def test_generate_with_max_bending_and_segment_frames():
+    data = generate(TDCR3, 2000, seed=7, max_bending=2, segment_frames=True)
+    bending = data["features"][..., :2].abs().sum(-1) > 0                       # (N, m)
+    assert int(bending.sum(-1).max()) == 2
+    assert len({tuple(b) for b in bending.tolist()}) == 7                        # every subset occurs
+    assert bool((data["features"][..., 2] > 0).all())                           # β still sampled
+    assert torch.allclose(data["segment_frames"][:, -1], data["pose_clean"], rtol=0, atol=1e-6)
+    assert torch.equal(generate(TDCR3, 50, seed=7)["q"], generate(TDCR3, 50, seed=7, segment_frames=True)["q"])
 
 
 # --------------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
-"""Export of inference modules: folding is exact, exported == Lightning, Jacobian == autograd,
-metadata checks refuse tampered or mismatched files, NaN inputs are refused.
+"""Export of inference modules: exported == Lightning, exported Jacobian == autograd, metadata checks refuse
+tampered or mismatched files, NaN inputs are refused, broken checkpoints are refused naming the file (the folding
+itself: tests/test_inference.py).
 
 AOTInductor packages take about a minute each to build, so this file exports torch.export
 programs only (``--no-aoti``); set DACR_TEST_AOTI=1 to also build and check one AOTI package
@@ -17,20 +18,14 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
-from conftest import ROOT, TYPE1, names, roundoff_tol, spec_by_name, truncated
+from conftest import ROOT, TYPE1, autograd_jacobians, max_diff, names, roundoff_tol, truncated
 
 from dacr_learn import export as dexport
-from dacr_learn.control import twist_jacobian
 from dacr_learn.data import generate
 from dacr_learn.datamodule import KinematicsDataModule
-from dacr_learn.inference import InferenceFK, InferenceIK, InferenceJacobian
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
-from dacr_learn.models import FKModel, IKModel, actuated_selection
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule, IKModule
-
-ROBOTS = [*(p.stem for p in sorted((ROOT / "configs" / "robots").glob("*.yaml"))), "twisting"]
-
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -72,10 +67,6 @@ def samples() -> dict[str, torch.Tensor]:
     return generate(RobotSpec.from_yaml(TYPE1), 64, seed=3)
 
 
-def _max_diff(a, b) -> float:
-    return (a.double() - b.double()).abs().max().item()
-
-
 # ------------------------------------------------------------------------------------------
 # Exported modules == the Lightning model
 # ------------------------------------------------------------------------------------------
@@ -87,9 +78,9 @@ def test_exported_fk_and_jacobian_equal_lightning(ckpts, exports, samples):
     q = samples["q"]
     with torch.no_grad():
         ref = lit(q)
-    assert _max_diff(fk(q), ref) <= F32_TOL
+    assert max_diff(fk(q), ref) <= F32_TOL
     pose, jac_f, jac_q = jac(q)
-    assert _max_diff(pose, ref) <= F32_TOL
+    assert max_diff(pose, ref) <= F32_TOL
     assert jac_f.shape == (64, 6, 3) and jac_q.shape == (64, 6, 4)
     assert fk.kind == "export" and fk.metadata["robot"]["name"] == "type1"
 
@@ -100,7 +91,7 @@ def test_exported_ik_equals_lightning_and_satisfies_constraint(ckpts, exports, s
     with torch.no_grad():
         ref = lit(samples["pose"])
     q = ik(samples["pose"])
-    assert _max_diff(q, ref) <= F32_TOL
+    assert max_diff(q, ref) <= F32_TOL
     spec = RobotSpec.from_yaml(TYPE1)
     q64 = q.double()
     residual = (q64 - ClarkeDecoder(spec).double()(ClarkeEncoder(spec).double()(q64))).abs().max().item()
@@ -111,11 +102,11 @@ def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
     fk = dexport.load(exports["fk"], "fk")
     q = samples["q"][:6]
     batched = fk(q)
-    assert fk(q[0]).shape == (4, 4) and _max_diff(fk(q[0]), batched[0]) <= F32_TOL # GEMV vs GEMM rounding
+    assert fk(q[0]).shape == (4, 4) and max_diff(fk(q[0]), batched[0]) <= F32_TOL # GEMV vs GEMM rounding
     assert fk(q.reshape(2, 3, 4)).shape == (2, 3, 4, 4)
-    assert _max_diff(fk(q.reshape(2, 3, 4)).reshape(6, 4, 4), batched) <= F32_TOL
+    assert max_diff(fk(q.reshape(2, 3, 4)).reshape(6, 4, 4), batched) <= F32_TOL
     out64 = fk(q.double())
-    assert out64.dtype == torch.float64 and _max_diff(out64, batched) <= F32_TOL
+    assert out64.dtype == torch.float64 and max_diff(out64, batched) <= F32_TOL
 
 
 @pytest.mark.slow
@@ -127,7 +118,7 @@ def test_aoti_package_equals_lightning(ckpts, samples, tmp_path, autotune):
     fk = dexport.load(tmp_path, "fk")
     lit = FKModule.load_from_checkpoint(ckpts["fk"], map_location="cpu").eval()
     with torch.no_grad():
-        assert fk.kind == "aoti" and _max_diff(fk(samples["q"]), lit(samples["q"])) <= F32_TOL
+        assert fk.kind == "aoti" and max_diff(fk(samples["q"]), lit(samples["q"])) <= F32_TOL
     assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is autotune
 
 
@@ -139,63 +130,8 @@ def test_autotune_needs_the_aoti_packages(ckpts, exports, tmp_path, capsys):
 
 
 # ------------------------------------------------------------------------------------------
-# Folding is exact (float64) for every robot and feature mode
+# Exported float32 Jacobian == autograd of the FK
 # ------------------------------------------------------------------------------------------
-
-
-def _fk_model(spec: RobotSpec, features: str, rotation: str = "6d", activation: str = "silu") -> FKModel:
-    torch.manual_seed(1)
-    model = FKModel(spec, features, width=16, depth=2, activation=activation, rotation=rotation)
-    model.fit_normalization(generate(spec, 256, seed=1)["q"])
-    return model.double().eval()
-
-
-@pytest.mark.parametrize("robot", ROBOTS)
-@pytest.mark.parametrize("features", ["clarke", "raw"])
-def test_folded_fk_and_ik_equal_models_float64(robot, features):
-    spec = spec_by_name(robot)
-    data = generate(spec, 32, seed=2, dtype=torch.float64)
-    model = _fk_model(spec, features)
-    with torch.no_grad():
-        assert _max_diff(InferenceFK(model, torch.float64)(data["q"]), model(data["q"])) <= 1e-12
-        ik = IKModel(spec, features, width=16, depth=2).double()
-        ik.fit_normalization(data["q"], data["pose"])
-        assert _max_diff(InferenceIK(ik, torch.float64)(data["pose"]), ik(data["pose"])) <= 1e-12
-
-
-# ------------------------------------------------------------------------------------------
-# Jacobian module == autograd of the FK
-# ------------------------------------------------------------------------------------------
-
-
-def _autograd_jacobians(model: FKModel, spec: RobotSpec, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(J_f, J_q) of one sample by torch.func.jacrev of q ↦ FK(q) and f ↦ FK(dec(f))."""
-    enc, dec, sel = ClarkeEncoder(spec).double(), ClarkeDecoder(spec).double(), actuated_selection(spec).double()
-    base = torch.tensor([[0.0, 0.0, 0.0 if s.extends else s.length, 0.0] for s in spec.segments],
-                        dtype=torch.float64).flatten()
-    pose = model(q[None])[0]
-    jac_q = twist_jacobian(pose, torch.func.jacrev(lambda x: model(x[None])[0])(q))
-    f = enc(q).flatten() @ sel.mT
-    decode = lambda x: dec((base + x @ sel).unflatten(-1, (spec.num_segments, 4)))  # noqa: E731
-    jac_f = twist_jacobian(pose, torch.func.jacrev(lambda x: model(decode(x)[None])[0])(f))
-    return jac_f, jac_q
-
-
-@pytest.mark.parametrize("robot", ["type1", "type3", "tdcr_3seg_coupled", "asymmetric", "twisting"])
-@pytest.mark.parametrize("features,rotation,activation", [("clarke", "6d", "silu"), ("raw", "6d", "tanh"),
-                                                          ("clarke", "quaternion", "gelu"),
-                                                          ("raw", "quaternion", "relu")])
-def test_jacobian_module_equals_jacrev(robot, features, rotation, activation):
-    spec = spec_by_name(robot)
-    model = _fk_model(spec, features, rotation, activation)
-    q = generate(spec, 3, seed=4, dtype=torch.float64)["q"]
-    pose, jac_f, jac_q = InferenceJacobian(model, torch.float64)(q)
-    for i in range(len(q)):
-        ref_f, ref_q = _autograd_jacobians(model, spec, q[i])
-        scale = max(1.0, ref_q.abs().max().item())
-        assert _max_diff(jac_q[i], ref_q) <= 1e-9 * scale
-        assert _max_diff(jac_f[i], ref_f) <= 1e-9 * max(1.0, ref_f.abs().max().item())
-    assert _max_diff(pose, model(q)) <= 1e-12
 
 
 def test_exported_float32_jacobian_matches_jacrev(ckpts, exports, samples):
@@ -203,9 +139,9 @@ def test_exported_float32_jacobian_matches_jacrev(ckpts, exports, samples):
     model, spec = lit.model.double(), lit.spec
     _, jac_f, jac_q = dexport.load(exports["fk"], "jacobian")(samples["q"][:4])
     for i in range(4):
-        ref_f, ref_q = _autograd_jacobians(model, spec, samples["q"][i].double())
-        assert _max_diff(jac_q[i], ref_q) <= 1e-4 * ref_q.abs().max().item()
-        assert _max_diff(jac_f[i], ref_f) <= 1e-4 * ref_f.abs().max().item()
+        ref_f, ref_q = autograd_jacobians(model, spec, samples["q"][i].double())
+        assert max_diff(jac_q[i], ref_q) <= 1e-4 * ref_q.abs().max().item()
+        assert max_diff(jac_f[i], ref_f) <= 1e-4 * ref_f.abs().max().item()
 
 
 # ------------------------------------------------------------------------------------------

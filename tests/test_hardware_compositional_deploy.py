@@ -32,7 +32,6 @@ from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel,
 from dacr_learn.hardware.learned import cc_as_residual
 from dacr_learn.hardware.study.benchmark import fit_hardware_model, load_setup
 from dacr_learn.hardware.study.registry import REGISTRY, ModelInfo
-from dacr_learn.lie import exp_of_twist_matrix, hat_map, twist_exp, twist_exp_and_tangent
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 TIP_SCALE = 0.2                     # [m] magnitude of the tip coordinates (motion-capture frame)
@@ -163,23 +162,6 @@ def test_jacobian_matches_autograd_in_float64(setup, models, config):
     for b in range(servo.shape[0]):
         ref = torch.func.jacrev(lambda s, b=b: fk(s.unsqueeze(0))[0][0])(servo[b])
         assert (j[b] - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()), ulps=1024)
-
-
-@pytest.mark.parametrize("scale", [0.02, 1.5])            # the Taylor branch (φ² < 1e-2) and the closed form
-def test_twist_exp_tangent_matches_forward_mode_autodiff(scale):
-    xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    value, tangent = twist_exp_and_tangent(xi, torch.eye(6, dtype=torch.float64).expand(16, 6, 6))
-    ref = torch.func.vmap(torch.func.jacfwd(twist_exp))(xi).permute(0, 3, 1, 2)    # (16, 6, 4, 4)
-    assert torch.equal(value, twist_exp(xi))
-    assert (tangent - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()))
-
-
-@pytest.mark.parametrize("scale", [0.0, 0.02, 1.5])
-def test_exp_of_the_twist_matrix_is_twist_exp(scale):
-    """The FK path's exp(ξ^) = I + ξ^ + f·ξ^² + g·ξ^³ equals compositional.twist_exp (ξ = 0 included)."""
-    xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    got = exp_of_twist_matrix((xi @ hat_map()).unflatten(-1, (4, 4)))
-    assert (got - twist_exp(xi)).abs().max() <= roundoff_tol(torch.float64, 1.0 + float(xi.abs().max()))
 
 
 def test_fk_gradcheck_in_float64(setup, models):

@@ -1,10 +1,15 @@
-"""dacr_learn.lie against independent references: torch.linalg.matrix_exp, autograd, float64 gradcheck."""
+"""dacr_learn.lie against independent references: torch.linalg.matrix_exp, autograd, float64 gradcheck, the CC arc."""
 from __future__ import annotations
 
 import pytest
 import torch
+from conftest import roundoff_tol
 
 from dacr_learn import lie
+from dacr_learn.kinematics import cc_transform
+from dacr_learn.lie import exp_of_twist_matrix, hat_map, twist_exp, twist_exp_and_tangent
+
+F64 = torch.float64
 
 
 def twists(n: int, scale: float, seed: int = 0) -> torch.Tensor:
@@ -61,3 +66,55 @@ def test_chain_products_are_the_running_products():
     chained = lie.chain_products(poses)
     torch.testing.assert_close(chained[:, 2], poses[:, 0] @ poses[:, 1] @ poses[:, 2])
     torch.testing.assert_close(chained[:, 0], poses[:, 0])
+
+
+# --------------------------------------------------------------------------------------------------
+# Twist exponential: against matrix_exp of the 4×4 twist matrix, the CC arc, autodiff
+# --------------------------------------------------------------------------------------------------
+
+
+def hat(xi: torch.Tensor) -> torch.Tensor:
+    out = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype)
+    v, w = xi[..., :3], xi[..., 3:]
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    out[..., 1, 0], out[..., 2, 0], out[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    out[..., :3, 3] = v
+    return out
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-4, 0.05, 0.3, 1.0, 3.0])
+def test_twist_exp_equals_matrix_exp(scale):
+    g = torch.Generator().manual_seed(1)
+    xi = torch.randn(200, 6, generator=g, dtype=F64)
+    xi[:, 3:] *= scale
+    assert torch.allclose(twist_exp(xi), torch.linalg.matrix_exp(hat(xi)), rtol=0, atol=roundoff_tol(F64, 10.0))
+
+
+def test_twist_exp_of_cc_twist_is_the_cc_arc():
+    g = torch.Generator().manual_seed(2)
+    u, beta = torch.randn(100, 2, generator=g, dtype=F64), 0.05 + torch.rand(100, generator=g, dtype=F64)
+    xi = torch.stack([0 * beta, 0 * beta, beta, -u[:, 1], u[:, 0], 0 * beta], dim=-1)
+    assert torch.allclose(twist_exp(xi), cc_transform(u, beta), rtol=0, atol=roundoff_tol(F64))
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.05, 1.0])       # 0 and 0.05: the Taylor branch of g
+def test_twist_exp_gradcheck(scale):
+    xi = (torch.randn(4, 6, generator=torch.Generator().manual_seed(3), dtype=F64) * scale).requires_grad_()
+    assert torch.autograd.gradcheck(twist_exp, (xi,))
+
+
+@pytest.mark.parametrize("scale", [0.02, 1.5])            # the Taylor branch (φ² < 1e-2) and the closed form
+def test_twist_exp_tangent_matches_forward_mode_autodiff(scale):
+    xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    value, tangent = twist_exp_and_tangent(xi, torch.eye(6, dtype=torch.float64).expand(16, 6, 6))
+    ref = torch.func.vmap(torch.func.jacfwd(twist_exp))(xi).permute(0, 3, 1, 2)    # (16, 6, 4, 4)
+    assert torch.equal(value, twist_exp(xi))
+    assert (tangent - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()))
+
+
+@pytest.mark.parametrize("scale", [0.0, 0.02, 1.5])
+def test_exp_of_the_twist_matrix_is_twist_exp(scale):
+    """The FK path's exp(ξ^) = I + ξ^ + f·ξ^² + g·ξ^³ equals compositional.twist_exp (ξ = 0 included)."""
+    xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    got = exp_of_twist_matrix((xi @ hat_map()).unflatten(-1, (4, 4)))
+    assert (got - twist_exp(xi)).abs().max() <= roundoff_tol(torch.float64, 1.0 + float(xi.abs().max()))

@@ -1,6 +1,6 @@
 """dacr_learn.training: IK with a pose-space loss (IKModule feature_weight / pose_weight / limit_weight): the decoded
 features, the loss at a true solution, the joint-limit penalty, gradients in float64, and bad weights; the one-cycle
-learning-rate schedule."""
+learning-rate schedule; the segment-frame loss of the compositional FKModule."""
 from __future__ import annotations
 
 import math
@@ -8,19 +8,19 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from conftest import ROOT
+from conftest import ROOT, TDCR3
 
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.models import pose_to_vector
 from dacr_learn.robot import RobotSpec
-from dacr_learn.training import IKModule, limit_excess, pose_loss
+from dacr_learn.training import FKModule, IKModule, limit_excess, pose_loss
 
-TDCR3 = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
+TDCR3_YAML = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
 
 
 def ik_module(features: str, dtype=torch.float64, **kwargs) -> tuple[IKModule, dict]:
-    spec = RobotSpec.from_yaml(TDCR3)
+    spec = RobotSpec.from_yaml(TDCR3_YAML)
     data = generate(spec, 64, seed=7, dtype=dtype)
     torch.manual_seed(0)
     module = IKModule(robot=spec.to_dict(), features=features, width=16, depth=2, **kwargs).to(dtype)
@@ -90,7 +90,7 @@ def test_training_loss_combines_feature_and_pose_terms():
                                           ({"output_scale": "range"}, "output_scale: expected one of")])
 def test_bad_loss_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
-        IKModule(robot=str(TDCR3), **kwargs)
+        IKModule(robot=str(TDCR3_YAML), **kwargs)
 
 
 def test_pose_ramp_moves_from_the_feature_loss_to_the_final_weights():
@@ -108,7 +108,7 @@ def test_pose_ramp_moves_from_the_feature_loss_to_the_final_weights():
 def test_limit_excess_is_zero_inside_the_limits_and_the_relative_overshoot_squared_outside():
     """Sampled features (inside the limits, the bend reaching them) → 0; segment 1 bent to 1.5 × its limit
     → 0.5²; segment 3 half a half-range above its longest → 0.5²; both → the sum."""
-    spec = RobotSpec.from_yaml(TDCR3)
+    spec = RobotSpec.from_yaml(TDCR3_YAML)
     features = generate(spec, 256, seed=3, dtype=torch.float64)["features"]
     assert limit_excess(spec, features).abs().max() == 0
     seg1, seg3 = spec.segments[0], spec.segments[2]
@@ -178,3 +178,15 @@ def test_one_cycle_schedule_runs_short_and_long(total):
     assert max(lrs) == pytest.approx(0.1, rel=1e-6) and lrs[-1] < 0.01 * max(lrs)
     with pytest.raises(ValueError, match="at least 4 training steps"):
         one_cycle(opt, 0.1, 3)
+
+
+def test_segment_frames_enter_the_loss_only_when_weighted():
+    data = generate(TDCR3, 64, seed=8, segment_frames=True)
+    batch = {k: data[k] for k in ("q", "pose", "segment_frames")}
+    torch.manual_seed(0)
+    module = FKModule(robot=TDCR3.to_dict(), structure="compositional", rotation="twist", width=8, depth=1,
+                      segment_weight=1.0)
+    module.model.fit_normalization(data["q"])
+    with_frames = module.loss(batch)
+    tip_only = module.loss({"q": batch["q"], "pose": batch["pose"]})
+    assert with_frames > tip_only > 0
