@@ -1,6 +1,12 @@
-"""Diagnostics behind the benchmark numbers (docs/hardware.md, "Where the error comes from").
+"""Diagnostics behind the benchmark numbers (a frozen research script, formerly ``dacr_learn.hardware.study.analysis``).
 
-``python -m dacr_learn.hardware.study.analysis --data DIR --robot YAML [--run RUN_DIR]`` prints
+Numbers: docs/hardware_history.md, "2026-11-21: Where the error comes from" (hysteresis gap, static floor,
+per-family table) and "2026-11-24: Results (FTDCR v4)". It reads FTDCR v4's val.csv (``--val``); never
+point it at a hidden hold-out. Run from the repository root:
+
+    python -m research.hardware_analysis --data data/ftdcr_v4 --robot configs/robots/ftdcr_v4_calibrated.yaml
+
+(add ``--run runs/ftdcr_v4``, a benchmark run folder, for the per-family table). It prints
 
 1. the hysteresis gap: within each pattern (a run of equal labels), the rows after the largest
    command are matched to the rows before it with nearly the same command (joint displacements
@@ -21,18 +27,22 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ...console import run_cli
-from ...robot import RobotSpec
-from ..calibration import default_map_path
-from ..ccmodel import CalibratedCC, fit_cc
-from ..metrics import offset_removed_errors, tip_metrics
-from ..recording import load_recording
-from ..servo_map import ServoMap
-from .visual import label_runs
+from dacr_learn.console import run_cli
+from dacr_learn.hardware.calibration import default_map_path
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
+from dacr_learn.hardware.metrics import offset_removed_errors, tip_metrics
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.study.visual import label_runs
+from dacr_learn.robot import RobotSpec
 
 
 def family(label: str) -> str:
-    """Pattern family: the label without a trailing '_hold' and trailing digits."""
+    """Pattern family: the label without a trailing '_hold' and trailing digits.
+
+    Not :func:`dacr_learn.hardware.study.selection.pattern_family`: that one maps train's labels to the
+    coarse proxy families (single, pair<jk>) and refuses val's three-segment labels (``all3_same`` …),
+    while this table needs a row per pattern kind of val (all3_same, all3_scurve, all3_spiral)."""
     return re.sub(r"\d+$", "", label.removesuffix("_hold"))
 
 

@@ -1,7 +1,10 @@
-"""Exploration behind the IK pose loss (docs/ablation.md, "Multi-segment IK with a pose loss").
+"""Exploration behind the IK pose loss (a frozen research script).
 
-    .venv/bin/python experiments/ik_pose_loss.py --steps 8000 --n-train 1000 --loss ramp0.05_limit1 --seeds 0 1
-    .venv/bin/python experiments/ik_pose_loss.py --diagnose      # why Clarke IK overfits with little data
+Numbers: docs/ablation.md, "Multi-segment IK with a pose loss" and its subsection "Little data: why
+Clarke IK was worse at 1k, and the fix". Run from the repository root:
+
+    python -m research.ik_pose_loss --steps 8000 --n-train 1000 --loss ramp0.05_limit1 --seeds 0 1
+    python -m research.ik_pose_loss --diagnose      # why Clarke IK overfits with little data
 
 Trains the IK of the 3-segment coupled robot, with Clarke and raw features alike, for each named loss
 setting through the ablation runner's ``fit`` (fixed steps, batch 256, MLP 4x64 unless ``--set``

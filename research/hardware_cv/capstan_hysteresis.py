@@ -7,9 +7,14 @@ solution) and σ_i ∈ [−1, 1] the direction the tendon was last moved in (+1 
 opposes the pull and the distal segments see less tension; −1 paid out: more), from a play
 operator of width ``--sigma-width`` on its command. The moment balance uses the reduced
 tensions, the tendon stretch the plain path (``solve_tendon_qp`` with a force map).
-One extra parameter, μ, fitted with the CC parameters on the training rows.
-Usage: python experiments/hardware_cv/capstan_hysteresis.py [--sigma-width 1e-4 ...] [--val | --extrap]
-(--extrap: fit on the single-segment family, test on all pairs)
+One extra parameter, μ, fitted with the CC parameters on the training rows. ~1 min.
+(--extrap: fit on the single-segment family, test on all pairs; --val reads FTDCR v4's val.csv)
+
+Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+cross-validation on train" (row `capstan_hysteresis.py`: μ = 0.20, val 7.35 mm) and "2026-11-21:
+Third round: static physics and a better selection proxy" (`--extrap`).
+Run from the repository root:
+    python -m research.hardware_cv.capstan_hysteresis [--sigma-width 1e-4 ...] [--val | --extrap]
 """
 
 import argparse
@@ -18,23 +23,24 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tendon_play, tip_tr, val_data, x_tr
 from torch import nn
 
-from dacr_learn.hardware.ccmodel import fit_cc
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
 from dacr_learn.hardware.slack import solve_tendon_qp
+
+from .common import FOLDS, rmse, setup, tendon_play, val_data
 
 SCALES = {"mu": 0.05}  # extra fit_cc scale of the friction coefficient
 
 
 class CapstanCC(CalibratedCC):
-    def __init__(self, mu0=0.0):
+    def __init__(self, spec, mu0=0.0):
         super().__init__(spec)
         self.mu = nn.Parameter(torch.tensor(float(mu0), dtype=torch.float64))
         self.sigma = None  # (n, N) set before calling
 
     def clarke_with_friction(self, x):
-        enc = self.encoder
+        enc, m = self.encoder, self.spec.num_segments
         d = enc.effective_radius()
         bend_w, tendon_w = enc.bend_weights(), 1.0 / enc.path_length
         g = enc.displacement_map()  # (N, 2m)
@@ -57,9 +63,10 @@ def direction(x, width):
 
 
 def fit_capstan(x, tip, sigma, mu0=0.05):
+    spec = setup().spec
     base = CalibratedCC(spec)
     fit_cc(base, x, tip, scales=SCALES)  # start from the frictionless fit
-    cc = CapstanCC(mu0)
+    cc = CapstanCC(spec, mu0)
     cc.load_state_dict({**base.state_dict(), "mu": cc.mu.detach()})
     cc.sigma = sigma
     info = fit_cc(cc, x, tip, scales=SCALES)
@@ -68,12 +75,15 @@ def fit_capstan(x, tip, sigma, mu0=0.05):
     return cc, info
 
 
-if __name__ == "__main__":
+def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sigma-width", type=float, nargs="+", default=[2e-5, 5e-5, 1e-4, 2e-4, 4e-4])
     ap.add_argument("--val", action="store_true")
     ap.add_argument("--extrap", action="store_true")
     args = ap.parse_args()
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
     for w in args.sigma_width:
         t0 = time.time()
         sig = direction(x_tr, w)
@@ -108,3 +118,7 @@ if __name__ == "__main__":
             out.update(cv=round(float(np.mean([v[0] for v in folds.values()])), 3), folds=folds)
         out["s"] = round(time.time() - t0, 1)
         print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -3,8 +3,13 @@
 The capstan model (``capstan_hysteresis.py``, σ from a 0.02 mm play on each tendon command, μ
 fitted) couples the segments' hysteresis through the wrap angle of the proximal segments; the (g)
 residual network (``residual_memory.py``) then corrects each segment as before.
-Usage: python experiments/hardware_cv/capstan_residual.py SEEDS [CV|EXTRAP|VAL]
-(EXTRAP: fit on the single-segment family, test on all pairs, as in residual_memory.py)
+(EXTRAP: fit on the single-segment family, test on all pairs, as in residual_memory.py; VAL reads
+FTDCR v4's val.csv) ~40 s per seed (CV).
+
+Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+proxy" (row "(g) on the capstan CC model").
+Run from the repository root: python -m research.hardware_cv.capstan_residual SEEDS [CV|EXTRAP|VAL]
+e.g.   python -m research.hardware_cv.capstan_residual 0,1,2 CV
 """
 
 import json
@@ -13,10 +18,11 @@ import time
 
 import numpy as np
 import torch
-from capstan_hysteresis import direction, fit_capstan
-from common import FOLDS, fam, tip_tr, val_data, x_tr
-from residual_memory import run
 from torch import nn
+
+from .capstan_hysteresis import direction, fit_capstan
+from .common import FOLDS, setup, val_data
+from .residual_memory import run
 
 SIGMA_WIDTH = 2e-5
 CFG = {"width": 1e-4, "mem_in": True, "lin": [], "c0": False}
@@ -38,7 +44,10 @@ class CapstanView(nn.Module):
         return self.cap.tip_from_features(f)
 
 
-if __name__ == "__main__":
+def main() -> None:
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
     seeds = [int(s) for s in sys.argv[1].split(",")]
     mode = sys.argv[2] if len(sys.argv) > 2 else "CV"
     t0 = time.time()
@@ -97,3 +106,7 @@ if __name__ == "__main__":
             ),
             flush=True,
         )
+
+
+if __name__ == "__main__":
+    main()

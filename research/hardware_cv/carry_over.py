@@ -3,9 +3,13 @@
 Scores variants of (e) ``cc_clarke_residual`` and (g) ``cc_clarke_residual_history`` with the
 library's train-only selection proxies (:mod:`dacr_learn.hardware.study.selection`) on the training
 recording of one robot. Variants are passed as constructor arguments, no library global is patched.
-Usage (from the repository root):
+~15 s per fit on a quiet machine (minutes on a loaded one).
 
-    python experiments/hardware_cv/carry_over.py ROBOT VARIANTS SEEDS [PROXIES]
+Numbers: docs/hardware_history.md, "2026-11-23: Carrying Clarke-space models over between robots"
+(results/carry_over.jsonl).
+Run from the repository root:
+
+    python -m research.hardware_cv.carry_over ROBOT VARIANTS SEEDS [PROXIES]
 
 ROBOT: v4 | v6 (configs/robots/ftdcr_<robot>_calibrated.yaml, data/ftdcr_<robot>/train.csv);
 VARIANTS: comma-separated names of ``VARIANTS`` below or registered model names; SEEDS: 0,1;
@@ -15,22 +19,19 @@ PROXIES: extrap,cv (default both). One JSON line per variant on stdout. A varian
 """
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-torch.set_num_threads(1)
+from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory
+from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.study.registry import ModelInfo, model_info
+from dacr_learn.hardware.study.selection import make_folds, proxy_masks, proxy_scores
+from dacr_learn.robot import RobotSpec
 
-from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory  # noqa: E402
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
-from dacr_learn.hardware.study.registry import ModelInfo, build_model, model_info  # noqa: E402
-from dacr_learn.hardware.study.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
-from dacr_learn.robot import RobotSpec  # noqa: E402
+from .common import ROOT, build_variant, variant_scores
 
 REHEARSAL_SAMPLES = 1000
 GATE_WIDTHS = (float("inf"), 4.0, 2.0, 1.0, 0.5, 0.25, 0.0)   # [training std of the Clarke features]
@@ -57,7 +58,7 @@ def gate_scores(info: ModelInfo, folds: dict, seeds: list[int]) -> dict:
         per = {w: [] for w in GATE_WIDTHS}
         for fold in fs:
             for seed in seeds:
-                model = build_model(info, fold.ctx, seed)
+                model = build_variant(info, fold.ctx, seed)
                 model.fit(fold.ctx.train)
                 for w in GATE_WIDTHS:
                     model.gate_width = None if w == float("inf") else w
@@ -68,6 +69,7 @@ def gate_scores(info: ModelInfo, folds: dict, seeds: list[int]) -> dict:
 
 
 def main() -> None:
+    torch.set_num_threads(1)
     robot, names, seeds = sys.argv[1], sys.argv[2].split(","), [int(s) for s in sys.argv[3].split(",")]
     proxies = sys.argv[4].split(",") if len(sys.argv) > 4 else ["extrap", "cv"]
     spec = RobotSpec.from_yaml(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml")
@@ -81,8 +83,8 @@ def main() -> None:
             scores = gate_scores(info, folds, seeds)
             print(json.dumps({"robot": robot, "model": name, "seeds": seeds, **scores}), flush=True)
             continue
-        info = VARIANTS.get(name) or model_info(name)
-        print(json.dumps({"robot": robot, "model": name, **proxy_scores(info, folds, seeds)}), flush=True)
+        scores = variant_scores(VARIANTS[name], folds, seeds) if name in VARIANTS else proxy_scores(name, folds, seeds)
+        print(json.dumps({"robot": robot, "model": name, **scores}), flush=True)
 
 
 if __name__ == "__main__":

@@ -1,26 +1,26 @@
 """Static CC model with the tip-marker offset fixed (not fitted), scored with the library's train-only
 proxies on one robot (FTDCR v6's free fit puts the marker 25 mm *behind* the tip: unphysical).
+One JSON line per offset: train RMSE, family CV, singles→pairs extrapolation [mm], fitted parameters;
+~6 CC fits per offset.
 
-Usage: python experiments/hardware_cv/cc_marker.py ROBOT OFFSETS_MM   (e.g. v6 free,0,10,20)
-One JSON line per offset: train RMSE, family CV, singles→pairs extrapolation [mm], fitted parameters.
+Numbers: docs/hardware_history.md, "2026-11-23: FTDCR v6, the second robot" (marker offset fixed at
+0 / 15 mm).
+Run from the repository root: python -m research.hardware_cv.cc_marker ROBOT OFFSETS_MM   (e.g. v6 free,0,15)
 """
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-torch.set_num_threads(1)
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
+from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.study.selection import proxy_masks
+from dacr_learn.robot import RobotSpec
 
-from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
-from dacr_learn.hardware.study.selection import proxy_masks  # noqa: E402
-from dacr_learn.robot import RobotSpec  # noqa: E402
+from .common import ROOT
 
 
 def fitted(spec, x, tip, offset):
@@ -35,6 +35,7 @@ def fitted(spec, x, tip, offset):
 
 
 def main() -> None:
+    torch.set_num_threads(1)
     robot, offsets = sys.argv[1], sys.argv[2].split(",")
     spec = RobotSpec.from_yaml(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml")
     smap = ServoMap.from_yaml(ROOT / f"configs/robots/servo_maps/ftdcr_{robot}_calibrated.yaml")

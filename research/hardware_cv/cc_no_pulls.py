@@ -1,29 +1,30 @@
 """Static CC model fitted without the single-tendon pull rows (``tendon<k>`` labels), scored with the
 library's train-only proxies on the same test rows as the package model (pull rows stay in the tests).
+JSON lines for the fits with / without pulls; 12 CC fits.
 
-Usage: python experiments/hardware_cv/cc_no_pulls.py ROBOT   → JSON lines for fits with / without pulls.
+Numbers: docs/hardware_history.md, "2026-11-23: Carrying Clarke-space models over between robots"
+(row "static CC fitted without the tendon-pull rows").
+Run from the repository root: python -m research.hardware_cv.cc_no_pulls ROBOT   (ROBOT: v4 | v6)
 """
 import json
 import re
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-torch.set_num_threads(1)
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
+from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.study.selection import proxy_masks
+from dacr_learn.robot import RobotSpec
 
-from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
-from dacr_learn.hardware.study.selection import proxy_masks  # noqa: E402
-from dacr_learn.robot import RobotSpec  # noqa: E402
+from .common import ROOT
 
 
 def main() -> None:
+    torch.set_num_threads(1)
     robot = sys.argv[1]
     spec = RobotSpec.from_yaml(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml")
     smap = ServoMap.from_yaml(ROOT / f"configs/robots/servo_maps/ftdcr_{robot}_calibrated.yaml")

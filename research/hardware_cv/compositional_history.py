@@ -10,37 +10,34 @@ singles → pairs score (seed 0, the robot's CC variant as the benchmark chooses
 on one robot and not more than 0.1 mm above on the other.
 
 The variant is now the library's ``CCCompositionalResidual(history=True)``, registry (k)
-``cc_compositional_history`` (it passed: results/compositional_history.jsonl, docs/hardware.md).
+``cc_compositional_history`` (it passed: results/compositional_history.jsonl).
+One JSON line per model and proxy appended to results/compositional_history.jsonl; ~2 min per robot
+(singles → pairs), ~3 min with the CV.
 
-Usage: python experiments/hardware_cv/compositional_history.py ROBOT [PROXIES]      (ROBOT: v4 | v6)
-One JSON line per model and proxy appended to results/compositional_history.jsonl.
+Numbers: docs/hardware_history.md, "2026-11-24: The compositional model with memory (k)".
+Run from the repository root: python -m research.hardware_cv.compositional_history ROBOT [PROXIES]
+(ROBOT: v4 | v6; PROXIES: extrap,cv, default extrap)
 """
 import json
 import sys
 import time
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-torch.set_num_threads(1)
+from dacr_learn.hardware.study.selection import proxy_scores
 
-from folds import train_folds  # noqa: E402  (experiments/hardware_cv/folds.py)
+from .common import RESULTS
+from .folds import train_folds
 
-from dacr_learn.hardware.study.registry import REGISTRY  # noqa: E402
-from dacr_learn.hardware.study.selection import proxy_scores  # noqa: E402
-
-OUT = ROOT / "experiments/hardware_cv/results/compositional_history.jsonl"
-MODELS = {name: REGISTRY[name] for name in ("cc_compositional_residual", "cc_compositional_history")}
+OUT = RESULTS / "compositional_history.jsonl"
+MODELS = ("cc_compositional_residual", "cc_compositional_history")
 
 
-def main(robot: str, proxies: tuple[str, ...]) -> None:
+def run(robot: str, proxies: tuple[str, ...]) -> None:
     folds, variant = train_folds(robot, proxies)
-    for name, info in MODELS.items():
+    for name in MODELS:
         start = time.perf_counter()
-        scores = proxy_scores(info, folds, [0])
+        scores = proxy_scores(name, folds, [0])
         line = {"robot": robot, "cc_variant": variant, "model": name,
                 **{p: scores[p] for p in proxies}, **{p + "_folds": scores[p + "_folds"] for p in proxies},
                 "seconds": round(time.perf_counter() - start, 1)}
@@ -49,5 +46,10 @@ def main(robot: str, proxies: tuple[str, ...]) -> None:
             fh.write(json.dumps(line) + "\n")
 
 
+def main() -> None:
+    torch.set_num_threads(1)
+    run(sys.argv[1], tuple(sys.argv[2].split(",")) if len(sys.argv) > 2 else ("extrap",))
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], tuple(sys.argv[2].split(",")) if len(sys.argv) > 2 else ("extrap",))
+    main()

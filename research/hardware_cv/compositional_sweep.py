@@ -1,30 +1,31 @@
 """Compositional hardware model (issue 13, item 7): hyperparameters scored with the library's train-only proxies.
 
-    python experiments/hardware_cv/compositional_sweep.py ROBOT PROXIES VARIANT [VARIANT ...]
-
 ROBOT: v4 | v6 (configs/robots/ftdcr_<robot>_calibrated.yaml, data/ftdcr_<robot>/train.csv; no val is read).
 PROXIES: extrap,cv (each proxy is scored for every variant before the next proxy starts).
 VARIANT: comma-separated key=value arguments of ``CCCompositionalResidual`` (context, width, depth,
 weight_decay, torsion, steps, lr), e.g. ``context=distal,weight_decay=1e-3``; ``default`` for the defaults.
-One JSON line per (variant, proxy) on stdout, seed 0.
+One JSON line per (variant, proxy) on stdout, seed 0 (the docs' lines are in results/compositional_sweep.jsonl);
+~100–230 s per fit on a loaded machine.
+
+Numbers: docs/compositional.md, "On the real robots: hardware model `cc_compositional_residual`"
+(the design chosen on the singles → pairs proxy).
+Run from the repository root: python -m research.hardware_cv.compositional_sweep ROBOT PROXIES VARIANT [VARIANT ...]
+e.g.   python -m research.hardware_cv.compositional_sweep v4 extrap default context=distal,weight_decay=1e-3
 """
 import json
 import sys
 import time
-from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-torch.set_num_threads(1)
+from dacr_learn.hardware.compositional_model import CCCompositionalResidual
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.study.registry import ModelInfo
+from dacr_learn.hardware.study.selection import make_folds, proxy_masks
+from dacr_learn.robot import RobotSpec
 
-from dacr_learn.hardware.compositional_model import CCCompositionalResidual  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
-from dacr_learn.hardware.study.registry import ModelInfo  # noqa: E402
-from dacr_learn.hardware.study.selection import make_folds, proxy_masks, proxy_scores  # noqa: E402
-from dacr_learn.robot import RobotSpec  # noqa: E402
+from .common import ROOT, variant_scores
 
 CASTS = {"context": str, "width": int, "depth": int, "weight_decay": float, "steps": int, "lr": float,
          "torsion": lambda v: v.lower() in ("1", "true")}
@@ -42,7 +43,7 @@ def info(variant: str) -> ModelInfo:
     return ModelInfo(variant, "?", lambda c, s: CCCompositionalResidual(c.train, c.cc, **kwargs), "clarke")
 
 
-def main(robot: str, proxies: str, variants: list[str]) -> None:
+def run(robot: str, proxies: str, variants: list[str]) -> None:
     path = ROOT / "configs" / "robots" / f"ftdcr_{robot}_calibrated.yaml"
     spec = RobotSpec.from_yaml(path)
     smap = ServoMap.from_yaml(path.parent / "servo_maps" / path.name)
@@ -52,11 +53,16 @@ def main(robot: str, proxies: str, variants: list[str]) -> None:
         folds = {proxy: make_folds(rec, spec, smap, masks[proxy])}
         for v in variants:
             start = time.perf_counter()
-            scores = proxy_scores(info(v), folds, [0])
+            scores = variant_scores(info(v), folds, [0])
             print(json.dumps({"robot": robot, "variant": v, "proxy": proxy, "mm": scores[proxy],
                               "folds": scores[proxy + "_folds"], "seconds": round(time.perf_counter() - start, 1)}),
                   flush=True)
 
 
+def main() -> None:
+    torch.set_num_threads(1)
+    run(sys.argv[1], sys.argv[2], sys.argv[3:])
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], sys.argv[3:])
+    main()

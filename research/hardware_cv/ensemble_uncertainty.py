@@ -1,7 +1,10 @@
 """σ models of the default hardware model (g) on ftdcr_v4: chosen on held-out train folds, reported on val.
 
-    .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --members 4 --out /tmp/unc.pt   # ~30 min loaded
-    .venv/bin/python experiments/hardware_cv/ensemble_uncertainty.py --load /tmp/unc.pt               # analysis only
+Numbers: docs/hardware_history.md, "2026-11-23: Uncertainty: σ per prediction and out-of-support score"
+(the table of 13 σ models and the v4 val report). Run from the repository root:
+
+    python -m research.hardware_cv.ensemble_uncertainty --members 4 --out /tmp/unc.pt   # ~30 min loaded
+    python -m research.hardware_cv.ensemble_uncertainty --load /tmp/unc.pt               # analysis only, 20 s
 
 1. Collect (``--out``): for every fold of :func:`dacr_learn.hardware.study.selection.proxy_masks` (family
    CV: single, pair12, pair13, pair23; extrap: singles → pairs) the CC model is refitted on the
@@ -19,19 +22,17 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
+from dacr_learn.hardware.deploy.uncertainty import coverage, spearman
+from dacr_learn.hardware.study.benchmark import load_setup
+from dacr_learn.hardware.study.heldout import HeldOut, fit_sigma_model, held_out, held_out_folds
 
-from dacr_learn.hardware.deploy.uncertainty import coverage, spearman  # noqa: E402
-from dacr_learn.hardware.study.benchmark import load_setup  # noqa: E402
-from dacr_learn.hardware.study.heldout import HeldOut, fit_sigma_model, held_out, held_out_folds  # noqa: E402
+from .common import ROOT
 
 DATA = ROOT / "data" / "ftdcr_v4"
 ROBOT = ROOT / "configs" / "robots" / "ftdcr_v4_calibrated.yaml"
@@ -55,7 +56,8 @@ CANDIDATES = {          # name → SigmaModel terms (see uncertainty.TERMS)
 
 
 def collect(k: int) -> dict:
-    setup = load_setup(ROBOT, DATA / "train.csv", DATA / "val.csv", Path(tempfile.mkdtemp()))
+    with tempfile.TemporaryDirectory() as tmp:    # only written to when calibrating from pulls, never here
+        setup = load_setup(ROBOT, DATA / "train.csv", DATA / "val.csv", Path(tmp))
     start = time.perf_counter()
     log = lambda msg: print(f"{msg} ({time.perf_counter() - start:.0f} s)", flush=True)  # noqa: E731
     blocks = held_out_folds(setup, MODEL, range(k), log=log)

@@ -10,8 +10,11 @@ evaluated at the gravity-free solution ρ₀ and added to the force balance (one
 γ [m, same units as the encoder's energy, divided by EA] is fitted with the CC parameters; γ > 0
 lowers the points along mocap −z, γ < 0 along +z (the sign is not assumed: it is fitted).
 Static CC only. Reports train RMSE, leave-one-family-out CV RMSE and the singles → pairs
-extrapolation RMSE.
-Usage: python experiments/hardware_cv/gravity.py [--tip-mass 0 1] [--val]
+extrapolation RMSE (--val: also FTDCR v4's val.csv). ~25 s per mass.
+
+Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+proxy" (row `gravity.py`, tip mass 0 / 1).
+Run from the repository root: python -m research.hardware_cv.gravity [--tip-mass 0 1] [--val]
 """
 
 import argparse
@@ -20,32 +23,34 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, val_data, x_tr
 from torch import nn
 
-from dacr_learn.hardware.ccmodel import fit_cc
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
 from dacr_learn.hardware.slack import solve_tendon_qp
 from dacr_learn.kinematics import backbone_points
+
+from .common import FOLDS, rmse, setup, val_data
 
 SCALES = {"gravity": 1e-5}  # extra fit_cc scale of the gravity load
 POINTS = 8  # backbone points per segment
 
 
 class GravityCC(CalibratedCC):
-    def __init__(self, tip_mass: float):
+    def __init__(self, spec, tip_mass: float):
         super().__init__(spec)
         self.tip_mass = tip_mass
         self.gravity = nn.Parameter(torch.zeros((), dtype=torch.float64))
 
     def height(self, rho):
         """(B,) summed mocap-z of the backbone points (+ tip_mass × tip) for ρ (B, 2m)."""
+        m = self.spec.num_segments
         pts = self.to_world(
             backbone_points(self.spec, self.encoder.features_from_clarke(rho.unflatten(-1, (m, 2))), POINTS)
         )[..., 1:, :]
         return pts[..., 2].sum(-1) / pts.shape[-2] + self.tip_mass * pts[..., -1, 2]
 
     def encode(self, x):
-        enc = self.encoder
+        enc, m = self.encoder, self.spec.num_segments
         bend_w, tendon_w, g, xp = enc.bend_weights(), 1.0 / enc.path_length, enc.displacement_map(), x + enc.pretension
         rho0 = solve_tendon_qp(xp, g, bend_w, tendon_w)
         with torch.enable_grad():
@@ -59,16 +64,19 @@ class GravityCC(CalibratedCC):
 
 
 def fitted(tip_mass, x, tip):
-    cc = GravityCC(tip_mass)
+    cc = GravityCC(setup().spec, tip_mass)
     fit_cc(cc, x, tip, scales=SCALES)
     return cc
 
 
-if __name__ == "__main__":
+def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--tip-mass", type=float, nargs="+", default=[0.0])
     ap.add_argument("--val", action="store_true")
     a = ap.parse_args()
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
     for tm in a.tip_mass:
         t0 = time.time()
         cc = fitted(tm, x_tr, tip_tr)
@@ -96,3 +104,7 @@ if __name__ == "__main__":
                 out["VAL"] = round(rmse(cc(x_va), tip_va), 3)
         out["s"] = round(time.time() - t0, 1)
         print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -7,8 +7,11 @@ three segments), pairs bending the same / opposite way.
 - static CC fitted on all of train (in-sample), and on single segments only (tested on pairs);
 - model (g) fitted on single segments only (2 seeds, prediction averaged), tested on pairs;
 - with --val: the static CC fitted on train, on val's all3_same / scurve / spiral (a diagnosis
-  after the fact; used for no choice).
-Usage: python experiments/hardware_cv/loading_bias.py [--val]
+  after the fact; used for no choice). 25 s.
+
+Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+proxy" (radial bias while loading; output in results/loading_bias.txt).
+Run from the repository root: python -m research.hardware_cv.loading_bias [--val]
 """
 
 import argparse
@@ -16,22 +19,29 @@ import re
 
 import numpy as np
 import torch
-from common import DATA, bend_angles, fam, fit, load_recording, spec, tip_tr, train_rec, val_data, x_tr
-from residual_memory import fit_predict
+
+from dacr_learn.hardware.recording import load_recording
+
+from .common import bend_angles, fit, setup, val_data
+from .residual_memory import fit_predict
 
 BINS = [(0, 0.5), (0.5, 1), (1, 1.5), (1.5, 2), (2, 3)]
-train_kind = np.array(
-    [
-        "pull_distal"
-        if re.search(r"tendon[678]_", s)
-        else "pull"
-        if "tendon" in s
-        else "single"
-        if "_seg" in s
-        else ("same" if "same" in s else "opp")
-        for s in train_rec.labels
-    ]
-)  # tendons 6-8: segment 3
+
+
+def kinds_of(labels) -> np.ndarray:
+    """Row kinds of train: pull_distal (tendons 6-8: segment 3), pull, single, same, opp."""
+    return np.array(
+        [
+            "pull_distal"
+            if re.search(r"tendon[678]_", s)
+            else "pull"
+            if "tendon" in s
+            else "single"
+            if "_seg" in s
+            else ("same" if "same" in s else "opp")
+            for s in labels
+        ]
+    )
 
 
 def table(title, cc, x, tip, kinds, pred):
@@ -55,10 +65,14 @@ def table(title, cc, x, tip, kinds, pred):
             print(f"  {k:11s} {name:6s} " + "  ".join(cells))
 
 
-if __name__ == "__main__":
+def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--val", action="store_true")
     a = ap.parse_args()
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
+    train_kind = kinds_of(d.train_rec.labels)
     cc = fit(x_tr, tip_tr)
     with torch.no_grad():
         table("static CC fitted on train, in-sample", cc, x_tr, tip_tr, train_kind, cc(x_tr))
@@ -86,7 +100,11 @@ if __name__ == "__main__":
     )
     if a.val:
         x_va, tip_va = val_data()
-        labels = load_recording(DATA / "val.csv", spec).labels
+        labels = load_recording(d.data / "val.csv", d.spec).labels
         kinds = np.array(["all3_same" if "same" in s else "scurve" if "scurve" in s else "spiral" for s in labels])
         with torch.no_grad():
             table("VAL (diagnosis only): static CC fitted on train", cc, x_va, tip_va, kinds, cc(x_va))
+
+
+if __name__ == "__main__":
+    main()

@@ -9,29 +9,27 @@ average tip is scored with the same offset-removed RMSE [mm] as the proxies.
 One JSON line per robot and combination (single models and pairwise averages) appended to
 results/model_average.jsonl: {"robot", "models", "extrap", "cv", "cv_folds"}.
 
-Usage: python experiments/hardware_cv/model_average.py ROBOT MODELS [PROXIES]   (ROBOT: v4 | v6)
-e.g.   python experiments/hardware_cv/model_average.py v6 cc,cc_compositional_residual,pretrained_raw,mlp_raw extrap
+~2 min per robot for singles → pairs, ~10 min with the family CV.
+
+Numbers: docs/hardware_history.md, "2026-11-24: Fifth round: averaging two models' tips (tried, not adopted)".
+Run from the repository root: python -m research.hardware_cv.model_average ROBOT MODELS [PROXIES]   (ROBOT: v4 | v6)
+e.g.   python -m research.hardware_cv.model_average v6 cc,cc_compositional_residual,pretrained_raw,mlp_raw extrap
 """
 import itertools
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-torch.set_num_threads(1)
+from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.hardware.study.registry import build_model
 
-from folds import train_folds  # noqa: E402  (experiments/hardware_cv/folds.py)
+from .common import RESULTS
+from .folds import train_folds
 
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.study.registry import build_model  # noqa: E402
-
-OUT = ROOT / "experiments/hardware_cv/results/model_average.jsonl"
+OUT = RESULTS / "model_average.jsonl"
 
 
 def fold_tips(model: str, fold, seed: int = 0) -> torch.Tensor:
@@ -42,7 +40,7 @@ def fold_tips(model: str, fold, seed: int = 0) -> torch.Tensor:
         return net(fold.test).detach()
 
 
-def main(robot: str, models: list[str], proxies: tuple[str, ...]) -> None:
+def run(robot: str, models: list[str], proxies: tuple[str, ...]) -> None:
     folds, variant = train_folds(robot, proxies)
     tips: dict[str, dict[str, dict[str, torch.Tensor]]] = {p: {} for p in proxies}   # proxy → fold → model → tips
     for model in models:
@@ -65,5 +63,10 @@ def main(robot: str, models: list[str], proxies: tuple[str, ...]) -> None:
             fh.write(json.dumps(line) + "\n")
 
 
+def main() -> None:
+    torch.set_num_threads(1)
+    run(sys.argv[1], sys.argv[2].split(","), tuple(sys.argv[3].split(",")) if len(sys.argv) > 3 else ("extrap",))
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2].split(","), tuple(sys.argv[3].split(",")) if len(sys.argv) > 3 else ("extrap",))
+    main()

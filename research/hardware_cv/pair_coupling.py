@@ -1,6 +1,6 @@
 """Why a held distal segment bends back more on FTDCR v6 than the CC model allows (issue 12, research).
 
-Finding 3 of the fourth round (docs/hardware.md): on v6 the single-segment patterns and pair12 want
+Finding 3 of the fourth round (docs/hardware_history.md): on v6 the single-segment patterns and pair12 want
 different CC parameters. In ``pair12_opp_*`` segment 1's tendons are pulled while segment 2's and 3's
 are held near 0: segment 2 is bent back only by the coupled routing (its tendons pass through the
 bent segment 1), an S-curve. The singles fit predicts a much larger tip excursion than measured.
@@ -41,23 +41,24 @@ Rule fixed before scoring (brief): a candidate counts only if it improves v6's s
 (``extrap``) by ≥ 0.20 mm AND worsens neither v4's singles → pairs nor v4's family CV (``cv``) by more
 than 0.10 mm, each robot on its chosen CC variant. Both proxies are reported on both robots.
 
-Usage: python experiments/hardware_cv/pair_coupling.py ROBOT VARIANTS [--diag | --reconcile | --extrap-only]
-       [--extra-scale=S]  (the fit scale of the extra parameter, default 0.05; the results use 1)
+Numbers: docs/hardware_history.md, "v6's pair12 inconsistency (same round, no change)" in "2026-11-23:
+Fourth round: pretension that grows with the tendon length, chosen per robot" (results/pair_coupling.jsonl).
+Run from the repository root:
+
+    python -m research.hardware_cv.pair_coupling ROBOT VARIANTS [--diag | --reconcile | --extrap-only]
+        [--extra-scale=S]  (the fit scale of the extra parameter, default 0.05; the results use 1)
+
 → one JSON line per variant and robot (train, cv, extrap [mm], per fold, fitted extra parameter on
-all of train and on the singles fold) appended to results/pair_coupling.jsonl.
+all of train and on the singles fold) appended to results/pair_coupling.jsonl. ~30 s per variant and
+robot, loaded.
 """
 import json
 import re
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from tendon_zero import ROOT, AxialCC, load, rmse  # also puts the repository root on sys.path
-from tendon_zero import SCALES as TENDON_ZERO_SCALES
 
 from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
 from dacr_learn.hardware.slack import solve_tendon_qp
@@ -65,12 +66,15 @@ from dacr_learn.hardware.study.selection import pattern_family, proxy_masks
 from dacr_learn.kinematics import backbone_points, forward_kinematics
 from dacr_learn.robot import RobotSpec
 
-torch.set_num_threads(1)
-OUT = ROOT / "experiments/hardware_cv/results/pair_coupling.jsonl"
+from .common import RESULTS
+from .tendon_zero import SCALES as TENDON_ZERO_SCALES
+from .tendon_zero import AxialCC, load, rmse
+
+OUT = RESULTS / "pair_coupling.jsonl"
 CHOSEN = {"v4": {"pretension_strain": True}, "v6": {}}          # selection.choose_cc_variant's picks
 SCALES = {"extra": 0.05, "gravity": 1e-5}
 GRAVITY_POINTS = 4                                                 # backbone points per sub-arc
-EXTRA_SCALE = next((float(a.split("=")[1]) for a in sys.argv if a.startswith("--extra-scale=")), None)
+EXTRA_SCALE: float | None = None                                   # --extra-scale=S, set by main()
 
 
 def split_spec(spec: RobotSpec, parts: int) -> RobotSpec:
@@ -277,7 +281,10 @@ def reconcile(robot, variants):
             f.write(json.dumps(out) + "\n")
 
 
-if __name__ == "__main__":
+def main() -> None:
+    global EXTRA_SCALE
+    torch.set_num_threads(1)
+    EXTRA_SCALE = next((float(a.split("=")[1]) for a in sys.argv if a.startswith("--extra-scale=")), None)
     robot, variants = sys.argv[1], sys.argv[2].split(",")
     if "--diag" in sys.argv:
         diag(robot, variants)
@@ -286,3 +293,7 @@ if __name__ == "__main__":
     else:
         for v in variants:
             score(robot, v, ("extrap",) if "--extrap-only" in sys.argv else ("cv", "extrap"))
+
+
+if __name__ == "__main__":
+    main()

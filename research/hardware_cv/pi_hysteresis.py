@@ -1,9 +1,13 @@
 """Prandtl-Ishlinskii (PI) variants of the per-segment residual model, cross-validated on the
-training families (docs/hardware.md, "Tried after the first results"). cfg keys: "mem" (memory
-input widths [m]), "hidden", "pi" (play widths whose softmax-weighted sum is the CC input),
-"pi_seg", "lin" (widths of the stop-operator term sum_j c_kj (rho - play_wj(rho))), "lin_mat".
-Usage: python experiments/hardware_cv/pi_hysteresis.py '{"lin6": {"mem": [], "hidden": 64, "pi": [],
-"lin": [5e-5, 1e-4, 2e-4, 4e-4, 8e-4]}}' 0,1,2"""
+training families. cfg keys: "mem" (memory input widths [m]), "hidden", "pi" (play widths whose
+softmax-weighted sum is the CC input), "pi_seg", "lin" (widths of the stop-operator term
+sum_j c_kj (rho - play_wj(rho))), "lin_mat". ~45 s per config and seed.
+(results/pi_hysteresis.jsonl was produced by an earlier copy of this script with the same model code.)
+
+Numbers: docs/hardware_history.md, "2026-11-21: Tried after the first results".
+Run from the repository root: python -m research.hardware_cv.pi_hysteresis '{"lin6": {"mem": [], "hidden": 64,
+"pi": [], "lin": [5e-5, 1e-4, 2e-4, 4e-4, 8e-4]}}' 0,1,2
+"""
 
 import json
 import sys
@@ -11,11 +15,13 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, fam, offset_removed_rmse, smap, spec, train_rec
-from common import fit as cc_for
 from torch import nn
 
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
+from dacr_learn.hardware.metrics import offset_removed_rmse
+
+from .common import FOLDS, setup
+from .common import fit as cc_for
 
 
 def plays(rho, widths):
@@ -98,11 +104,14 @@ def run(cfg, cc, x_all, tip_all, tr, te, seed, steps=1500):
     return out
 
 
-if __name__ == "__main__":
+def main() -> None:
+    torch.set_num_threads(1)
+    d = setup()
+    fam = d.fam
     cfgs = json.loads(sys.argv[1])
     seeds = [int(s) for s in sys.argv[2].split(",")]
-    x_all = smap.displacements(spec, train_rec)
-    tip = train_rec.tip
+    x_all = d.smap.displacements(d.spec, d.train_rec)
+    tip = d.train_rec.tip
     ccs = {}
     for f in FOLDS:
         tr = torch.from_numpy(fam != f)
@@ -131,3 +140,7 @@ if __name__ == "__main__":
             ),
             flush=True,
         )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,10 +1,17 @@
-"""CC + per-segment Clarke residual network with a play-operator memory input (model (g) of
-docs/hardware.md) and optional linear hysteresis terms whose gain grows with the bends of the
+"""CC + per-segment Clarke residual network with a play-operator memory input (model (g)
+``cc_clarke_residual_history``) and optional linear hysteresis terms whose gain grows with the bends of the
 other segments (features 'own', 'prox', 'dist', 'own*prox', 'total'). With "equivariant": true the
 network sees ρ and the memory in each segment's bending-direction frame (radial, tangential) and
 outputs the correction in it: a correction that is the same for every bending direction.
-Usage: python experiments/hardware_cv/residual_memory.py '{"name": {"width": 1e-4, "mem_in": true,
-"lin": ["total"], "c0": true}}' 0,1 [CV|EXTRAP|VAL] [tendon_play=5e-5]"""
+CV (default), EXTRAP (fit on single segments, test on all pairs) or VAL (FTDCR v4's val.csv);
+~80 s per config (2 seeds).
+
+Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+cross-validation on train" (rows `residual_memory.py`) and "2026-11-21: Third round: static physics and
+a better selection proxy" (equivariant, 32 / 128 units; EXTRAP of (g)).
+Run from the repository root: python -m research.hardware_cv.residual_memory '{"name": {"width": 1e-4,
+"mem_in": true, "lin": ["total"], "c0": true}}' 0,1 [CV|EXTRAP|VAL] [tendon_play=5e-5]
+"""
 
 import json
 import sys
@@ -12,10 +19,11 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, fam, fit, m, radius, rmse, tendon_play, tip_tr, val_data, x_tr
 from torch import nn
 
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
+
+from .common import FOLDS, fit, rmse, setup, tendon_play, val_data
 
 EQUI_EPS = 1e-4  # [m] below this bend (in ρ units) the bending-direction frame fades out
 
@@ -24,6 +32,7 @@ class Model(nn.Module):
     def __init__(self, cc, feats_tr, cfg):
         super().__init__()
         self.cc, self.cfg = cc, cfg
+        m = feats_tr.shape[-2]
         self.register_buffer("rho_std", feats_tr[..., :2].float().std())
         self.register_buffer("onehot", torch.eye(m))
         self.net = mlp(2 + 2 * bool(cfg["mem_in"]) + m, 2, hidden=cfg.get("hidden", 64))
@@ -61,6 +70,7 @@ class Model(nn.Module):
 
 
 def prep(cc, x, cfg):
+    radius = setup().radius
     with torch.no_grad():
         feats = cc.encoder(x)
         rho = feats[..., :2]
@@ -103,7 +113,10 @@ def run(cfg, cc, x_all, tip_all, tr, te, seed, steps=1500):
     return rmse(pred, tip_all[te]), model.c0.tolist() + model.c.tolist() + model.cs.flatten().tolist()
 
 
-if __name__ == "__main__":
+def main() -> None:
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
     cfgs = json.loads(sys.argv[1])
     seeds = [int(s) for s in sys.argv[2].split(",")]
     do_val = len(sys.argv) > 3 and sys.argv[3] == "VAL"
@@ -174,3 +187,7 @@ if __name__ == "__main__":
             ),
             flush=True,
         )
+
+
+if __name__ == "__main__":
+    main()

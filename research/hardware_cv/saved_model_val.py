@@ -1,25 +1,24 @@
 """Evaluate a saved hardware model (``python -m dacr_learn.hardware --save``) on a validation recording.
 
 Prints one JSON line: offset-removed RMSE [mm], ±2σ coverage and Spearman(‖σ‖, ‖r‖) of its σ model,
-and the same for its ensemble-only σ calibration (docs/hardware.md, "Uncertainty"). Evaluation only:
-FTDCR v4's val.csv; never point it at a hidden hold-out.
+and the same for its ensemble-only σ calibration. Evaluation only: FTDCR v4's val.csv; never point it
+at a hidden hold-out. Seconds.
 
-Usage: python experiments/hardware_cv/saved_model_val.py CKPT VAL_CSV
-e.g.   python experiments/hardware_cv/saved_model_val.py runs/ftdcr_v4_model/model.pt data/ftdcr_v4/val.csv
+Numbers: docs/hardware_history.md, "2026-11-23: Uncertainty: σ per prediction and out-of-support
+score" (the re-measurement on the `--save runs/ftdcr_v4_model` model), docs/results.md and README.md
+(uncertainty on v4 val: 92.3 %, 0.56).
+Run from the repository root: python -m research.hardware_cv.saved_model_val CKPT VAL_CSV
+e.g.   python -m research.hardware_cv.saved_model_val runs/ftdcr_v4_model/model.pt data/ftdcr_v4/val.csv
 """
 import json
 import sys
-from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-torch.set_num_threads(1)
-
-from dacr_learn.hardware.deploy.checkpoint import load_hardware_model  # noqa: E402
-from dacr_learn.hardware.deploy.uncertainty import coverage, spearman  # noqa: E402
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
+from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
+from dacr_learn.hardware.deploy.uncertainty import coverage, spearman
+from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.hardware.recording import load_recording
 
 
 def scores(residual: torch.Tensor, sigma: torch.Tensor) -> dict:
@@ -27,7 +26,7 @@ def scores(residual: torch.Tensor, sigma: torch.Tensor) -> dict:
             "spearman": round(spearman(sigma.norm(dim=-1), residual.norm(dim=-1)), 3)}
 
 
-def main(ckpt: str, val: str) -> dict:
+def evaluate(ckpt: str, val: str) -> dict:
     model = load_hardware_model(ckpt)
     rec = load_recording(val, model.spec)
     split = model.split(1e3 * rec.servo)
@@ -42,5 +41,13 @@ def main(ckpt: str, val: str) -> dict:
     return out
 
 
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 2:
+        sys.exit("usage: python -m research.hardware_cv.saved_model_val CKPT VAL_CSV")
+    torch.set_num_threads(1)
+    print(json.dumps(evaluate(args[0], args[1])))
+
+
 if __name__ == "__main__":
-    print(json.dumps(main(sys.argv[1], sys.argv[2])))
+    main()

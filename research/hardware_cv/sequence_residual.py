@@ -2,8 +2,13 @@
 runs along the recording on that segment's Clarke coordinates and their step changes, and its
 output is added to the static per-segment Clarke correction before the CC kinematics. Trained on
 windows (warm-up rows without loss, then loss rows of the training families), evaluated by
-running the GRU causally along the whole recording.
-Usage: python experiments/hardware_cv/sequence_residual.py HIDDEN SEEDS [CV|VAL]"""
+running the GRU causally along the whole recording (VAL: FTDCR v4's val.csv). ~6 min (1 seed).
+
+Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+cross-validation on train" (row `sequence_residual.py`: 16 / 32 units).
+Run from the repository root: python -m research.hardware_cv.sequence_residual HIDDEN SEEDS [CV|VAL]
+e.g.   python -m research.hardware_cv.sequence_residual 16 0 CV
+"""
 
 import json
 import sys
@@ -11,10 +16,11 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, fam, fit, m, rmse, tip_tr, val_data, x_tr
 from torch import nn
 
 from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp
+
+from .common import FOLDS, fit, rmse, setup, val_data
 
 WARMUP, WINDOW, STEPS, LR = 32, 64, 1500, 3e-3
 
@@ -23,6 +29,7 @@ class SeqResidual(nn.Module):
     def __init__(self, cc, feats_tr, hidden):
         super().__init__()
         self.cc = cc
+        m = feats_tr.shape[-2]
         rho = feats_tr[..., :2].float()
         self.register_buffer("rho_std", rho.std())
         self.register_buffer("step_std", rho.diff(dim=0).std())
@@ -40,7 +47,7 @@ class SeqResidual(nn.Module):
         hot = self.onehot.expand(*rho.shape[:-1], -1)
         static = self.static(torch.cat([rho / self.rho_std, hot], -1))
         seq_in = torch.cat([rho / self.rho_std, step / self.step_std, hot], -1)  # (B, T, m, 4+m)
-        b, t = seq_in.shape[:2]
+        b, t, m = seq_in.shape[:3]
         out, _ = self.gru(seq_in.transpose(1, 2).reshape(b * m, t, -1))
         dyn = self.head(out).reshape(b, m, t, 2).transpose(1, 2)
         delta = (static + dyn) * RESIDUAL_RHO_SCALE
@@ -79,7 +86,10 @@ def train_and_predict(cc, x_all, tip_all, train_mask, hidden, seed):
         return model(feats.unsqueeze(0))[0]
 
 
-if __name__ == "__main__":
+def main() -> None:
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
     hidden = int(sys.argv[1])
     seeds = [int(s) for s in sys.argv[2].split(",")]
     mode = sys.argv[3] if len(sys.argv) > 3 else "CV"
@@ -120,3 +130,7 @@ if __name__ == "__main__":
             ),
             flush=True,
         )
+
+
+if __name__ == "__main__":
+    main()

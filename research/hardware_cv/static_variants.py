@@ -12,9 +12,14 @@ distal tendon pulls bend several segments at once):
 Static CC only (no residual network). Reports in-sample train RMSE, leave-one-family-out CV RMSE,
 the singles → pairs extrapolation RMSE (fit on the single-segment family, test on all pairs), the
 radial bias of loading rows by family (positive = over-bends) and the marker offset [mm] fitted in
-each fold.
-Usage: python experiments/hardware_cv/static_variants.py VARIANT[,VARIANT...] [--val]
+each fold (--val: also FTDCR v4's val.csv; never with HW_ROBOT=v6). ~6 s per variant.
+
+Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+proxy" (the static rows), "2026-11-23: FTDCR v6, the second robot" (HW_ROBOT=v6,
+results/static_variants_v6.jsonl) and "2026-11-23: Lateral marker offset" (`marker3`, key `marker_mm`).
+Run from the repository root: [HW_ROBOT=v6] python -m research.hardware_cv.static_variants VARIANT[,VARIANT...] [--val]
   VARIANT: base | pass1 | pass | stiff | marker3, or several joined by '+'
+e.g.   HW_ROBOT=v6 python -m research.hardware_cv.static_variants base,stiff,pass1,marker3
 """
 
 import argparse
@@ -23,19 +28,21 @@ import time
 
 import numpy as np
 import torch
-from common import FOLDS, CalibratedCC, fam, m, rmse, spec, tip_tr, train_rec, val_data, x_tr
 from torch import nn
 
-from dacr_learn.hardware.ccmodel import fit_cc
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
 from dacr_learn.hardware.slack import SlackAwareEncoder
+
+from .common import FOLDS, rmse, setup, val_data
 
 SCALES = {"encoder.pass_log_scale": 0.1, "encoder.log_stiffness": 0.1}  # extra fit_cc scales
 
 
 class CoupledEncoder(SlackAwareEncoder):
-    def __init__(self, variant: str):
+    def __init__(self, spec, variant: str):
         super().__init__(spec, compliance=1e-6)
         self.variant = variant
+        m = spec.num_segments
         owner = self.segment_of_joint
         self.register_buffer("passing", (torch.arange(m)[None, :] < owner[:, None]).double())  # (N, m)
         n_pass = 1 if "pass1" in variant else m
@@ -46,7 +53,7 @@ class CoupledEncoder(SlackAwareEncoder):
         g = super().displacement_map()
         if "pass" not in self.variant:
             return g
-        scale = self.pass_log_scale.expand(m).exp()  # (m,)
+        scale = self.pass_log_scale.expand(self.spec.num_segments).exp()  # (m,)
         factor = 1 + self.passing * (scale - 1)  # (N, m)
         return g * factor.repeat_interleave(2, dim=-1)
 
@@ -58,10 +65,10 @@ class CoupledEncoder(SlackAwareEncoder):
 
 
 class VariantCC(CalibratedCC):
-    def __init__(self, variant: str):
+    def __init__(self, spec, variant: str):
         super().__init__(spec, lateral_marker="marker3" in variant)
         self.variant = variant
-        self.encoder = CoupledEncoder(variant)
+        self.encoder = CoupledEncoder(spec, variant)
 
 
 def marker_mm(cc) -> list[float]:
@@ -70,7 +77,7 @@ def marker_mm(cc) -> list[float]:
 
 
 def make(variant):
-    return VariantCC(variant)
+    return VariantCC(setup().spec, variant)
 
 
 def fitted(variant, x, tip):
@@ -79,10 +86,11 @@ def fitted(variant, x, tip):
     return cc
 
 
-labels = np.array(train_rec.labels)
-kind = np.array(
-    ["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp") for s in labels]
-)
+def kinds_of(labels) -> np.ndarray:
+    """Row kinds of train: pull, single, same, opp."""
+    return np.array(
+        ["pull" if "tendon" in s else "single" if "_seg" in s else ("same" if "same" in s else "opp") for s in labels]
+    )
 
 
 def loading_bias(cc, x, tip, kinds):
@@ -94,11 +102,15 @@ def loading_bias(cc, x, tip, kinds):
     return {k: round(r[load & torch.from_numpy(kinds == k)].mean().item(), 2) for k in sorted(set(kinds))}
 
 
-if __name__ == "__main__":
+def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("variants")
     ap.add_argument("--val", action="store_true")
     a = ap.parse_args()
+    torch.set_num_threads(1)
+    d = setup()
+    x_tr, tip_tr, fam = d.x_tr, d.tip_tr, d.fam
+    kind = kinds_of(d.train_rec.labels)
     for v in a.variants.split(","):
         t0 = time.time()
         cc = fitted(v, x_tr, tip_tr)
@@ -128,3 +140,7 @@ if __name__ == "__main__":
             out["VAL"] = round(rmse(cc(x_va).detach(), tip_va), 3)
         out["s"] = round(time.time() - t0, 1)
         print(json.dumps(out), flush=True)
+
+
+if __name__ == "__main__":
+    main()

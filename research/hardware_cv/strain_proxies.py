@@ -3,10 +3,13 @@
 For each CC variant (``selection.CC_VARIANTS``: base, strain) the folds are built with that CC model
 (refitted per fold) and every model named gets its family CV and singles → pairs scores (seed 0).
 One JSON line per (variant, model) appended to results/strain_proxies.jsonl.
-
-Usage: python experiments/hardware_cv/strain_proxies.py ROBOT MODELS      (ROBOT: v4 | v6; MODELS: a,b,…)
-e.g.   python experiments/hardware_cv/strain_proxies.py v4 cc,cc_clarke_residual_history,cc_clarke_residual
 About 1.5 min per learned model and variant on a quiet core.
+
+Numbers: docs/hardware_history.md, "2026-11-23: Fourth round: pretension that grows with the tendon
+length, chosen per robot" (the proxies of the CC-based models with the strain variant).
+Run from the repository root: python -m research.hardware_cv.strain_proxies ROBOT MODELS   (ROBOT: v4 | v6;
+MODELS: a,b,…)
+e.g.   python -m research.hardware_cv.strain_proxies v4 cc,cc_clarke_residual_history,cc_clarke_residual
 """
 import json
 import sys
@@ -15,20 +18,19 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-torch.set_num_threads(1)
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.study.benchmark import resolve_robot
+from dacr_learn.hardware.study.selection import CC_VARIANTS, make_folds, proxy_masks, proxy_scores
 
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.study.benchmark import resolve_robot  # noqa: E402
-from dacr_learn.hardware.study.selection import CC_VARIANTS, make_folds, proxy_masks, proxy_scores  # noqa: E402
+from .common import RESULTS, ROOT
 
-OUT = ROOT / "experiments/hardware_cv/results/strain_proxies.jsonl"
+OUT = RESULTS / "strain_proxies.jsonl"
 
 
-def main(robot: str, models: list[str]) -> None:
-    spec, smap, _ = resolve_robot(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml", None, None,
-                                  Path(tempfile.mkdtemp()), "mm")
+def run(robot: str, models: list[str]) -> None:
+    with tempfile.TemporaryDirectory() as tmp:    # only written to when calibrating from pulls, never here
+        spec, smap, _ = resolve_robot(ROOT / f"configs/robots/ftdcr_{robot}_calibrated.yaml", None, None,
+                                      Path(tmp), "mm")
     rec = load_recording(ROOT / f"data/ftdcr_{robot}/train.csv", spec)      # train only, never val
     masks = proxy_masks(list(rec.labels))
     for variant, options in CC_VARIANTS.items():
@@ -42,5 +44,10 @@ def main(robot: str, models: list[str]) -> None:
                 f.write(json.dumps(line) + "\n")
 
 
+def main() -> None:
+    torch.set_num_threads(1)
+    run(sys.argv[1], sys.argv[2].split(","))
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2].split(","))
+    main()

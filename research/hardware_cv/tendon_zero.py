@@ -26,36 +26,39 @@ Selection rule, fixed before scoring (brief of issue 12): a candidate counts onl
 FTDCR v4 and v6, neither proxy (family CV, singles → pairs) is worse than ``base`` by more than
 0.10 mm ("neutral"), and on at least one robot both proxies are ≥ 0.20 mm better ("clearly better").
 
-Usage: python experiments/hardware_cv/tendon_zero.py ROBOT VARIANTS [--diag | --subsets | --no-pull-test]
+Numbers: docs/hardware_history.md, "2026-11-23: Fourth round: pretension that grows with the tendon
+length, chosen per robot" (results/tendon_zero.jsonl, results/tendon_zero_subsets.jsonl).
+Run from the repository root:
+
+    python -m research.hardware_cv.tendon_zero ROBOT VARIANTS [--diag | --subsets | --no-pull-test]
+
 → one JSON line per variant (train, cv, extrap [mm], per fold, fitted offsets) appended to
 results/tendon_zero.jsonl; --diag prints per-label RMSE of the fits on all train; --subsets fits
 on parts of train (pulls, single-segment patterns, pair12, …) → results/tendon_zero_subsets.jsonl;
 --no-pull-test drops the pull rows from every test set (information only, not a selection proxy).
 About 10 s per variant and robot on a quiet core (6 CC fits), 30–60 s loaded.
+e.g.   python -m research.hardware_cv.tendon_zero v6 base,zero,strain
 """
 import json
 import re
 import sys
-from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
-ROOT = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(ROOT))
-torch.set_num_threads(1)
+from dacr_learn.clarke import joint_space_maps
+from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc
+from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.hardware.recording import load_recording
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.hardware.slack import solve_tendon_qp
+from dacr_learn.hardware.study.selection import pattern_family, proxy_masks
+from dacr_learn.robot import RobotSpec
 
-from dacr_learn.clarke import joint_space_maps  # noqa: E402
-from dacr_learn.hardware.ccmodel import CalibratedCC, fit_cc  # noqa: E402
-from dacr_learn.hardware.metrics import offset_removed_rmse  # noqa: E402
-from dacr_learn.hardware.recording import load_recording  # noqa: E402
-from dacr_learn.hardware.servo_map import ServoMap  # noqa: E402
-from dacr_learn.hardware.slack import solve_tendon_qp  # noqa: E402
-from dacr_learn.hardware.study.selection import pattern_family, proxy_masks  # noqa: E402
-from dacr_learn.robot import RobotSpec  # noqa: E402
+from .common import RESULTS, ROOT
 
-OUT = ROOT / "experiments/hardware_cv/results/tendon_zero.jsonl"
+OUT = RESULTS / "tendon_zero.jsonl"
 
 
 class TendonCC(CalibratedCC):
@@ -304,7 +307,8 @@ def subsets(robot, variants):
                 f.write(json.dumps(out) + "\n")
 
 
-if __name__ == "__main__":
+def main() -> None:
+    torch.set_num_threads(1)
     robot, variants = sys.argv[1], sys.argv[2].split(",")
     if "--diag" in sys.argv:
         diag(robot, variants)
@@ -313,3 +317,7 @@ if __name__ == "__main__":
     else:
         for v in variants:
             score(robot, v, pull_test="--no-pull-test" not in sys.argv)
+
+
+if __name__ == "__main__":
+    main()
