@@ -8,9 +8,11 @@ separately. Test modules import them with ``from conftest import ...``.
 """
 from __future__ import annotations
 
+import importlib.util
 import math
 import os
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -381,3 +383,41 @@ def truncated(path: Path, keep: int) -> Path:
     data = path.read_bytes()
     path.write_bytes(data[:keep] if keep >= 0 else data[:len(data) + keep])
     return path
+
+
+# --------------------------------------------------------------------------------------------
+# Examples and a small trained model
+# --------------------------------------------------------------------------------------------
+
+
+def load_example(name: str):
+    """examples/<name>.py imported as module ``name`` (registered in sys.modules: its dataclasses look it up)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def learned_jacobian(tmp_path_factory):
+    """A small FK model of the type-1 robot trained for a few seconds, exported (torch.export program) and loaded
+    (test_control.py and the tracking example's test)."""
+    import lightning.pytorch as pl
+
+    from dacr_learn import export as dexport
+    from dacr_learn.datamodule import KinematicsDataModule
+    from dacr_learn.training import FKModule
+
+    d = tmp_path_factory.mktemp("learned")
+    torch.manual_seed(0)
+    module = FKModule(robot=str(TYPE1), width=32, depth=2, lr=1e-2, rot_weight=0.1)
+    dm = KinematicsDataModule(robot=str(TYPE1), n_train=6000, n_val=200, n_test=200, batch_size=256)
+    trainer = pl.Trainer(max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, accelerator="cpu", devices=1)
+    trainer.fit(module, datamodule=dm)
+    trainer.save_checkpoint(d / "fk.ckpt")
+    dexport.export_checkpoint(d / "fk.ckpt", d / "export", aoti=False)
+    jacobian = dexport.load(d / "export", "jacobian")
+    jacobian.run_dir = d                    # for the example test: checkpoint and export live here
+    return jacobian

@@ -2,23 +2,14 @@
 commands joints outside the limits or off the displacement constraint, saturates correctly."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
-import lightning.pytorch as pl
 import pytest
 import torch
 from conftest import roundoff_tol, spec_by_name
 
-from dacr_learn import export as dexport
-from dacr_learn.control import ClarkeSpace, ControllerConfig, ResolvedRateController, analytic_jacobian
-from dacr_learn.datamodule import KinematicsDataModule
+from dacr_learn.control import ClarkeSpace, ControllerConfig, ResolvedRateController, analytic_jacobian, scaled_dls_step
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.robot import RobotSpec
-from dacr_learn.training import FKModule
 
-ROOT = Path(__file__).resolve().parents[1]
-TYPE1 = ROOT / "configs" / "robots" / "type1.yaml"
 F64 = torch.float64
 
 
@@ -132,23 +123,6 @@ def test_config_validation():
             ControllerConfig(**kwargs)
 
 
-@pytest.fixture(scope="module")
-def learned_jacobian(tmp_path_factory):
-    """A small FK model trained for a few seconds, exported (torch.export program) and loaded."""
-    d = tmp_path_factory.mktemp("learned")
-    torch.manual_seed(0)
-    module = FKModule(robot=str(TYPE1), width=32, depth=2, lr=1e-2, rot_weight=0.1)
-    dm = KinematicsDataModule(robot=str(TYPE1), n_train=6000, n_val=200, n_test=200, batch_size=256)
-    trainer = pl.Trainer(max_epochs=3, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                         enable_model_summary=False, accelerator="cpu", devices=1)
-    trainer.fit(module, datamodule=dm)
-    trainer.save_checkpoint(d / "fk.ckpt")
-    dexport.export_checkpoint(d / "fk.ckpt", d / "export", aoti=False)
-    jacobian = dexport.load(d / "export", "jacobian")
-    jacobian.run_dir = d                    # for the example test: checkpoint and export live here
-    return jacobian
-
-
 def test_converges_with_learned_jacobian(learned_jacobian):
     spec = RobotSpec.from_dict(learned_jacobian.metadata["robot"])
     space = ClarkeSpace(spec)
@@ -162,14 +136,45 @@ def test_converges_with_learned_jacobian(learned_jacobian):
     assert torch.linalg.vector_norm(model_tip - target).item() <= 1e-5           # float32 model
 
 
-def test_tracking_example_runs_and_logs(learned_jacobian):
-    """examples/track_trajectory.py end to end (coarse: 50 Hz, one 1-s lap) with the small model."""
-    spec = importlib.util.spec_from_file_location("track_trajectory", ROOT / "examples" / "track_trajectory.py")
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
-    d = learned_jacobian.run_dir
-    summary = example.main(["--ckpt", str(d / "fk.ckpt"), "--out", str(d), "--rate", "50", "--period", "2",
-                            "--laps", "1", "--joint-noise", "1e-5", "--radius-scale", "1.03"])
-    for kind in ("circle", "figure8"):
-        assert summary["results"][kind]["rms_pct"] <= 1.0
-    assert (d / "track.rrd").stat().st_size > 0 and (d / "summary.json").is_file()
+# --------------------------------------------------------------------------------------------------
+# The scaled damped-least-squares step of servo-space control (examples/control_hardware_model.py)
+# --------------------------------------------------------------------------------------------------
+
+
+def test_scaled_dls_step_solves_the_task_and_respects_the_step_limit():
+    g = torch.Generator().manual_seed(0)
+    jac = torch.randn(4, 3, 8, generator=g, dtype=torch.float64)
+    task = 1e-3 * torch.randn(4, 3, generator=g, dtype=torch.float64)
+    scale = 0.5 + torch.rand(8, generator=g, dtype=torch.float64)
+    step = scaled_dls_step(jac, task, scale, damping=0.0, max_step=1e3)       # undamped, unlimited: J·Δu = Δx
+    assert ((jac @ step.unsqueeze(-1)).squeeze(-1) - task).abs().max() <= roundoff_tol(torch.float64, 1e-3, 1024)
+    # minimum norm in z = u / s: Δz lies in the row space of J̃ = J·diag(s)
+    dz, jt = step / scale, jac * scale
+    proj = jt.mT @ torch.linalg.solve(jt @ jt.mT, jt @ dz.unsqueeze(-1))
+    assert (proj.squeeze(-1) - dz).abs().max() <= roundoff_tol(torch.float64, float(dz.abs().max()), 1024)
+    short = scaled_dls_step(jac, task, scale, damping=1e-2, max_step=1e-5)
+    assert torch.allclose(torch.linalg.vector_norm(short / scale, dim=-1), torch.full((4,), 1e-5, dtype=torch.float64))
+
+
+def test_scaled_dls_step_adds_the_secondary_step_in_the_null_space():
+    g = torch.Generator().manual_seed(1)
+    jac = torch.randn(3, 8, generator=g, dtype=torch.float64)
+    task = 1e-3 * torch.randn(3, generator=g, dtype=torch.float64)
+    scale = 0.5 + torch.rand(8, generator=g, dtype=torch.float64)
+    z2 = 1e-2 * torch.randn(8, generator=g, dtype=torch.float64)
+    plain = scaled_dls_step(jac, task, scale, damping=0.0, max_step=1e3)
+    both = scaled_dls_step(jac, task, scale, damping=0.0, max_step=1e3, secondary=z2)
+    tol = roundoff_tol(torch.float64, 1e-2, 1024)
+    assert (jac @ both - task).abs().max() <= tol                        # the task is still solved exactly
+    jt = jac * scale                                                     # the rest is z₂ minus its row-space part
+    null_part = z2 - jt.mT @ torch.linalg.solve(jt @ jt.mT, jt @ z2)
+    assert ((both - plain) / scale - null_part).abs().max() <= tol
+    assert float(null_part.norm()) > 1e-3                                # not a vacuous check
+    zero_column = jac.clone()
+    zero_column[:, 2] = 0.0                                              # a slack tendon: J does not see it
+    e2 = torch.zeros(8, dtype=torch.float64)
+    e2[2] = 1e-2
+    step = scaled_dls_step(zero_column, torch.zeros(3, dtype=torch.float64), scale, 1e-3, 1e3, secondary=e2)
+    assert torch.allclose(step, e2 * scale, rtol=0, atol=tol)           # passes unchanged, even damped
+    with pytest.raises(ValueError, match=r"secondary: expected shape \(8,\)"):
+        scaled_dls_step(jac, task, scale, 0.0, 1.0, secondary=torch.zeros(7, dtype=torch.float64))

@@ -433,15 +433,3 @@ def test_cli_on_ftdcr_v4_writes_results_and_visuals(tmp_path):
     assert report["rows"] == {"train": 1620, "val": 443}
     assert (out / "val_tip_paths.png").stat().st_size > 10_000
     assert (out / "val_tip_paths.rrd").stat().st_size > 10_000
-
-
-def test_every_registered_model_gets_its_own_plot_colour():
-    """The PNG and the Rerun recording colour model k (registry order, from 1) by _color(name, k): no two
-    models of the registry (and not the measured path) may share a colour."""
-    from dacr_learn.hardware.study.registry import MODELS
-    from dacr_learn.hardware.study.visual import _color
-
-    colours = [_color("measured", 0)] + [_color(name, k) for k, name in enumerate(MODELS, start=1)]
-    assert len(set(colours)) == len(colours), dict(zip(["measured", *MODELS], colours, strict=True))
-    # the PNG shows a few models, the recording all: a model's colour does not depend on its plot position
-    assert all(_color(name, 1) == _color(name, k) for k, name in enumerate(MODELS, start=1))

@@ -1,0 +1,65 @@
+"""examples/track_trajectory.py: end to end with a small learned model, and the layout (Rerun blueprint) of the
+track.rrd it writes: a named full-range plot per trajectory, one 3D view, opening at the end."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT, load_example
+from rerun_testkit import FOLLOWING, WHOLE_RANGE, rrd_data, rrd_time_panel, rrd_views
+
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_tracking_example_runs_and_logs(learned_jacobian):
+    """examples/track_trajectory.py end to end (coarse: 50 Hz, one 1-s lap) with the small model."""
+    example = load_example("track_trajectory")
+    d = learned_jacobian.run_dir
+    summary = example.main(["--ckpt", str(d / "fk.ckpt"), "--out", str(d), "--rate", "50", "--period", "2",
+                            "--laps", "1", "--joint-noise", "1e-5", "--radius-scale", "1.03"])
+    for kind in ("circle", "figure8"):
+        assert summary["results"][kind]["rms_pct"] <= 1.0
+    assert (d / "track.rrd").stat().st_size > 0 and (d / "summary.json").is_file()
+
+
+def _tracking_results(example, robot) -> dict[str, dict]:
+    """What run_scenario returns, without a controller: the robot stays straight, the 'actual' tip is
+    the reference plus a known offset (10 µm for the circle, 20 µm for the figure-8)."""
+    from dacr_learn.control import ClarkeSpace
+
+    spec, n = robot.spec, 40
+    q = ClarkeSpace(spec).joints(torch.tensor(example._straight(spec), dtype=torch.float64))
+    features = robot.features(q).numpy()
+    results = {}
+    for k, kind in enumerate(example.TRAJECTORIES, start=1):
+        desired = example.trajectory(kind, spec, n, n // 2).numpy()
+        results[kind] = {"desired": desired, "actual": desired + [0.0, 0.0, 1e-5 * k], "q": np.tile(q.numpy(), (n, 1)),
+                         "features": np.repeat(features[None], n, axis=0), "step_us": np.full(n, 100.0)}
+    return results
+
+
+def test_tracking_recording_has_a_named_full_range_plot_per_trajectory_and_opens_at_the_end(tmp_path):
+    example = load_example("track_trajectory")
+    robot = example.SimulatedRobot(RobotSpec.from_yaml(ROOT / "configs" / "robots" / "type1.yaml"))
+    path = tmp_path / "track.rrd"
+    example.write_recording(path, robot, _tracking_results(example, robot), every=5)
+    views = rrd_views(path).values()
+    plots = sorted((v for v in views if v["class"] == "TimeSeries"), key=lambda v: v["origin"])
+    # one plot per trajectory, each titled with its own name (not two plots called …/tracking_error_mm)
+    assert [v["origin"] for v in plots] == ["metrics/circle", "metrics/figure8"]
+    assert plots[0]["name"].startswith("circle: tracking error [mm]")
+    assert plots[1]["name"].startswith("figure-8: tracking error [mm]")
+    assert "RMS 0.0100" in plots[0]["name"] and "RMS 0.0200" in plots[1]["name"]
+    assert all(v["ranges"] == [{"timeline": "step", "range": WHOLE_RANGE}] for v in plots)  # every step
+    # one 3D view of the reference and actual paths and the robot, for both trajectories
+    (scene,) = [v for v in views if v["class"] == "3D"]
+    assert scene["origin"] == "scene" and not scene["hidden"]
+    assert all(w in scene["name"] for w in ("reference", "actual", "robot", "circle", "figure-8"))
+    data = rrd_data(path)
+    assert {"/scene/circle/desired", "/scene/circle/actual", "/scene/figure8/robot/backbone",
+            "/scene/figure8/title"} <= set(data)
+    assert data["/metrics/figure8/tracking_error_mm"]["SeriesLines:names"][0][0].startswith("|actual − reference|")
+    panel = rrd_time_panel(path)
+    assert panel["TimePanelBlueprint:timeline"] == ["step"] and panel["TimePanelBlueprint:play_state"] == [FOLLOWING]
