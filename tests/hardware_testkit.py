@@ -47,7 +47,7 @@ def command_recording(n: int, seed: int, amplitude: float = 3e-3) -> Recording:
                      torch.arange(n, dtype=torch.float64), "synthetic")
 
 
-def synthetic_model(history: bool, clamp: bool = False, gate: float | None = None, members: int = 3) -> HardwareModel:
+def synthetic_model(history: bool, members: int = 3) -> HardwareModel:
     spec = synthetic_spec()
     smap = ServoMap(spec.name, tuple(ServoAssignment(i, c // 4, c % 4, (-1) ** c, 1e-4 * c)
                                      for i, c in zip(IDS, COLS, strict=True)), -8e-3)
@@ -65,11 +65,9 @@ def synthetic_model(history: bool, clamp: bool = False, gate: float | None = Non
     nets = []
     for seed in range(members):
         torch.manual_seed(seed)
-        member = cls(train, cc, support=clamp, gate_width=gate)
+        member = cls(train, cc)
         with torch.no_grad():
             member.net[-1].weight.mul_(20.0)
-            if clamp:
-                member.rho_max.mul_(0.5)                # so that some commands are clamped
         nets.append(member.eval())
     support = SupportModel(train.features[..., :2], ["p"] * 100 + ["q"] * 100)
     return HardwareModel("cc_clarke_residual_history" if history else "cc_clarke_residual", spec, smap, IDS, cc,

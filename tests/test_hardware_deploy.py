@@ -30,20 +30,19 @@ def _causal(fk, servo_mm: torch.Tensor, history: bool) -> torch.Tensor:
     return torch.cat(tips)
 
 
-@pytest.mark.parametrize(("history", "gate"), [(False, None), (True, None), (True, 1.0)])
-def test_inference_module_equals_the_library_model_run_causally(history, gate):
-    model = synthetic_model(history, gate=gate)
-    rec = command_recording(120, 5, amplitude=4e-3)          # partly outside the training commands (gate < 1)
+@pytest.mark.parametrize("history", [False, True])
+def test_inference_module_equals_the_library_model_run_causally(history):
+    model = synthetic_model(history)
+    rec = command_recording(120, 5, amplitude=4e-3)          # partly outside the training commands
     fk = HardwareFK(model, torch.float64)
     got = _causal(fk, 1e3 * rec.servo, history)
     # The library model runs its kinematics in float32: agreement to float32 rounding at tip scale.
     assert (got - batch_prediction(model, rec)).abs().max() <= roundoff_tol(torch.float32, TIP_SCALE)
 
 
-@pytest.mark.parametrize(("history", "clamp", "gate"), [(False, False, None), (True, False, None),
-                                                        (True, True, None), (True, False, 1.0)])
-def test_jacobian_matches_autograd_in_float64(history, clamp, gate):
-    model = synthetic_model(history, clamp, gate)
+@pytest.mark.parametrize("history", [False, True])
+def test_jacobian_matches_autograd_in_float64(history):
+    model = synthetic_model(history)
     with torch.no_grad():                                # a marker off the tip axis (CalibratedCC's default kind)
         model.cc.marker_lateral.copy_(torch.tensor([4e-3, -3e-3], dtype=torch.float64))
     fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
@@ -56,16 +55,16 @@ def test_jacobian_matches_autograd_in_float64(history, clamp, gate):
     for b in range(servo.shape[0]):
         ref = torch.func.jacrev(lambda s, b=b: fk(s.unsqueeze(0), *(a[b:b + 1] for a in args))[0][0])(servo[b])
         assert (j[b] - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()), ulps=4096)
-    if clamp:
-        rho = fk.clarke(servo)[0]
-        assert bool((rho.norm(dim=-1) > fk.rho_max.squeeze(-1)).any()), "the clamp is exercised"
 
 
 def test_checkpoint_round_trip_loads_weights_only(tmp_path):
-    model = synthetic_model(history=True, clamp=True, gate=1.0)
+    model = synthetic_model(history=True)
     path = save_hardware_model(model, tmp_path / "model.pt")
     raw = torch.load(path, weights_only=True)
-    assert raw["format"] == "dacr_learn.hardware_model/1" and len(raw["members"]) == 3
+    assert raw["format"] == "dacr_learn.hardware_model/3" and len(raw["members"]) == 3
+    assert "clamp" not in raw and "gate_width" not in raw
+    assert set(raw["members"][0]) == {"rho_std", "onehot", "net.0.weight", "net.0.bias", "net.2.weight", "net.2.bias",
+                                      "net.4.weight", "net.4.bias"}
     loaded = load_hardware_model(path)
     assert loaded.servo_ids == IDS and loaded.spec == model.spec and loaded.history
     rec = command_recording(50, 9)
@@ -73,6 +72,27 @@ def test_checkpoint_round_trip_loads_weights_only(tmp_path):
     rho = make_split(rec, model.spec, model.smap, model.cc).features[..., :2]
     assert torch.equal(loaded.support(rho), model.support(rho))
     assert float(loaded.sigma.scale) == 1.5 and float(loaded.sigma.floor) == 2e-4
+
+
+def _format_1(blob: dict, clamp: bool = False, gate_width: float | None = None) -> dict:
+    """A checkpoint as format /1 wrote it: the research options' entries and member buffers added."""
+    members = [{**state, "rho_max": torch.full((2,), 3e-3), "train_clarke": torch.randn(200, 4)}
+               for state in blob["members"]]
+    return {**blob, "format": "dacr_learn.hardware_model/1", "clamp": clamp, "gate_width": gate_width,
+            "members": members}
+
+
+def test_format_1_checkpoints_load_with_the_default_options_and_refuse_research_ones(tmp_path):
+    model = synthetic_model(history=True)
+    blob = torch.load(save_hardware_model(model, tmp_path / "new.pt"), weights_only=True)
+    torch.save(_format_1(blob), tmp_path / "old.pt")
+    loaded = load_hardware_model(tmp_path / "old.pt")
+    rec = command_recording(50, 9)
+    assert torch.equal(batch_prediction(loaded, rec), batch_prediction(model, rec))
+    for options in ({"clamp": True}, {"gate_width": 1.0}, {"gate_width": 0.0}):
+        torch.save(_format_1(blob, **options), tmp_path / "research.pt")
+        with pytest.raises(ValueError, match=r"research.pt: the members were fitted with the research options"):
+            load_hardware_model(tmp_path / "research.pt")
 
 
 def test_bad_checkpoints_are_value_errors(tmp_path):

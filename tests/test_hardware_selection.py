@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
-from dacr_learn.hardware.learned import CCClarkeResidual, make_split
+from dacr_learn.hardware.learned import make_split
 from dacr_learn.hardware.recording import load_recording
 from dacr_learn.hardware.servo_map import ServoMap
 from dacr_learn.hardware.study.pool import TaskPool
@@ -38,6 +38,8 @@ def test_registry_has_unique_letters_and_flags():
     assert not model_info("mlp_raw").clarke_space and model_info("pretrained_clarke").clarke_space
     with pytest.raises(ValueError, match="expected one of"):
         model_info("mlp")
+    with pytest.raises(ValueError, match="expected one of"):      # no ad-hoc variants: only what can ship is scored
+        model_info(REGISTRY["cc"])
 
 
 def test_pattern_families_and_proxy_masks():
@@ -139,69 +141,6 @@ def _context(labelled_robot_dir) -> FitContext:
     for p in cc.parameters():
         p.requires_grad_(False)
     return FitContext(cc, smap, rec.servo_ids, make_split(rec, spec, smap, cc))
-
-
-def test_support_clamp_holds_the_correction_beyond_the_training_range(labelled_robot_dir):
-    ctx = _context(labelled_robot_dir)
-    torch.manual_seed(0)
-    model = CCClarkeResidual(ctx.train, ctx.cc, support=True)
-    rows = ctx.train.rows(torch.arange(5))
-    far = ctx.train.rows(torch.arange(5))
-    scale = 3 * model.rho_max.max() / far.features[..., :2].norm(dim=-1).clamp_min(1e-9)   # every segment outside
-    far.features = torch.cat([far.features[..., :2] * scale.unsqueeze(-1), far.features[..., 2:]], -1)
-    edge = ctx.train.rows(torch.arange(5))
-    unit = far.features[..., :2] / far.features[..., :2].norm(dim=-1, keepdim=True)
-    edge.features = torch.cat([unit * model.rho_max.unsqueeze(-1).double(), far.features[..., 2:]], -1)
-    with torch.no_grad():
-        delta = lambda s: model.corrected_features(s)[..., :2] - s.features[..., :2].float()  # noqa: E731
-        assert torch.allclose(delta(far), delta(edge), atol=1e-6 * float(model.rho_max.max()))
-        assert not torch.allclose(delta(rows), delta(edge), atol=1e-9)
-    free = CCClarkeResidual(ctx.train, ctx.cc)
-    free.net.load_state_dict(model.net.state_dict())
-    with torch.no_grad():
-        assert not torch.allclose(free.corrected_features(far), model.corrected_features(far), atol=1e-7)
-
-
-def test_rehearsal_adds_the_cc_models_synthetic_tips_to_the_objective(labelled_robot_dir):
-    ctx = _context(labelled_robot_dir)
-    synth = ctx.synthetic(0, 50)
-    torch.manual_seed(0)
-    plain = CCClarkeResidual(ctx.train, ctx.cc)
-    torch.manual_seed(0)
-    model = CCClarkeResidual(ctx.train, ctx.cc, rehearsal=synth, rehearsal_weight=0.3)
-    sq = lambda m, s: (m(s) - s.tip).pow(2).mean() / 1e-6  # noqa: E731  [mm²]
-    with torch.no_grad():
-        assert torch.allclose(plain.objective(ctx.train), sq(plain, ctx.train))
-        assert torch.allclose(model.objective(ctx.train), sq(model, ctx.train) + 0.3 * sq(model, synth))
-        assert torch.allclose(plain(synth), model(synth))            # same seed, same network
-        assert sq(model, synth) > 0                                    # the untrained correction moves off the CC tips
-    rehearsal_only = model.rehearsal_weight * sq(model, synth)
-    rehearsal_only.backward()
-    assert model.net[-1].weight.grad.abs().sum() > 0                  # the rehearsal term trains the correction
-
-
-def test_support_gate_falls_back_to_the_cc_model_away_from_the_training_rows(labelled_robot_dir):
-    ctx = _context(labelled_robot_dir)
-    torch.manual_seed(0)
-    model = CCClarkeResidual(ctx.train, ctx.cc)
-    with torch.no_grad():
-        model.net[-1].weight.zero_()
-        model.net[-1].bias.fill_(0.5)                     # a constant correction (0.25 mm on every ρ)
-    rows = ctx.train.rows(torch.arange(6))
-    far = ctx.train.rows(torch.arange(6))
-    far.features = torch.cat([far.features[..., :2] + 3e-3, far.features[..., 2:]], -1)   # 3 mm off the rows
-    with torch.no_grad():
-        free = model.corrected_features(far)
-        model.gate_width = 1.0
-        assert torch.equal(model.support_distance(rows), torch.zeros(6))
-        assert torch.allclose(model.corrected_features(rows)[..., :2] - rows.features[..., :2].float(),
-                              torch.full((6, 2, 2), 0.5 * 5e-4), atol=1e-9)     # on the training rows: ungated
-        delta = model.corrected_features(far)[..., :2] - far.features[..., :2].float()
-        gate = model.support_gate(far)
-        assert (model.support_distance(far) > 1.0).all() and (gate < torch.exp(torch.tensor(-1.0))).all()
-        assert torch.allclose(delta, (free[..., :2] - far.features[..., :2].float()) * gate[:, None, None], atol=1e-9)
-        model.gate_width = 0.0                            # τ = 0: the calibrated CC model itself
-        assert torch.allclose(model(far), ctx.cc.tip_from_features(far.features.float()).double(), atol=1e-9)
 
 
 def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reported(labelled_robot_dir, tmp_path):

@@ -208,60 +208,24 @@ class CCTipResidual(nn.Module):
 
 
 class CCClarkeResidual(nn.Module):
-    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics.
-
-    Options for carrying over to commands outside the training support (docs/hardware.md):
-
-    - ``support``: the network sees ρ⁽ᵏ⁾ radially clamped to the largest bend of segment k in
-      the training split, ρ⁽ᵏ⁾·min(1, r_k/‖ρ⁽ᵏ⁾‖): beyond the training range the correction stays
-      at its value on the boundary instead of extrapolating the network; the CC kinematics
-      carry the rest.
-    - ``rehearsal`` (a synthetic split of the calibrated CC robot, all segments at once) with
-      weight ``rehearsal_weight``: the loss also asks the corrected model to reproduce the CC
-      model's tips there, so the correction fades where the recording has no data.
-    - ``gate_width`` τ: the correction is multiplied by exp(−(δ/τ)²), δ the distance of the
-      command's Clarke features (all segments, in units of their training std) to the nearest
-      training row (:meth:`support_distance`): the model falls back to the calibrated CC model
-      outside the training support. Training rows have δ = 0, so training is unaffected.
-    """
+    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics."""
 
     history = False
 
-    def __init__(self, train: Split, cc: CalibratedCC, support: bool = False, rehearsal: Split | None = None,
-                 rehearsal_weight: float = 0.0, gate_width: float | None = None):
+    def __init__(self, train: Split, cc: CalibratedCC):
         super().__init__()
-        self.cc, self.support, self.gate_width = cc, support, gate_width
-        self.rehearsal, self.rehearsal_weight = rehearsal, rehearsal_weight
+        self.cc = cc
         m = train.features.shape[-2]
         rho = train.features[..., :2].float()
         self.register_buffer("rho_std", rho.std())
-        self.register_buffer("rho_max", rho.norm(dim=-1).amax(0))                  # (m,) [m]
         self.register_buffer("onehot", torch.eye(m))
-        self.register_buffer("train_clarke", train.clarke / rho.std())             # (n_train, 2m)
         self.net = mlp(2 + 2 * self.history + m, 2, hidden=RESIDUAL_HIDDEN)
-
-    training_fit = False   # True while fit() runs: the gate is for predictions (training rows have δ = 0)
-
-    def support_distance(self, split: Split) -> Tensor:
-        """(n,) distance of each row's Clarke features to the nearest training row [training std]."""
-        return torch.cdist(split.clarke / self.rho_std, self.train_clarke).amin(-1)
-
-    def support_gate(self, split: Split) -> Tensor:
-        """(n,) weight exp(−(δ/τ)²) of the correction (τ = gate_width; τ = 0: no correction)."""
-        if self.gate_width == 0:
-            return split.clarke.new_zeros(len(split))
-        return torch.exp(-(self.support_distance(split) / self.gate_width).pow(2))
 
     def corrected_features(self, split: Split) -> Tensor:
         rho = split.features[..., :2].float()
-        rho_in = rho
-        if self.support:
-            rho_in = rho * (self.rho_max.unsqueeze(-1) / rho.norm(dim=-1, keepdim=True).clamp_min(1e-12)).clamp(max=1.0)
-        parts = [rho_in / self.rho_std] + ([split.memory.float()] if self.history else [])
+        parts = [rho / self.rho_std] + ([split.memory.float()] if self.history else [])
         inp = torch.cat(parts + [self.onehot.expand(*rho.shape[:-1], -1)], -1)
         delta = self.net(inp) * RESIDUAL_RHO_SCALE
-        if self.gate_width is not None and not self.training_fit:
-            delta = delta * self.support_gate(split)[:, None, None]
         features = split.features.float()
         return torch.cat([features[..., :2] + delta, features[..., 2:]], -1)
 
@@ -270,20 +234,13 @@ class CCClarkeResidual(nn.Module):
         return self.cc.tip_from_features(self.corrected_features(split)).double()
 
     def objective(self, train: Split) -> Tensor:
-        """Mean squared tip error [mm²] on ``train`` + rehearsal_weight × the same on the rehearsal split."""
-        loss = (self(train) - train.tip).pow(2).mean() / 1e-6
-        if self.rehearsal is not None and self.rehearsal_weight != 0:
-            loss = loss + self.rehearsal_weight * (self(self.rehearsal) - self.rehearsal.tip).pow(2).mean() / 1e-6
-        return loss
+        """Mean squared tip error [mm²] on ``train``."""
+        return (self(train) - train.tip).pow(2).mean() / 1e-6
 
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
             p.requires_grad_(False)
-        self.training_fit = True
-        try:
-            train_full_batch(self.net.parameters(), lambda: self.objective(train))
-        finally:
-            self.training_fit = False
+        train_full_batch(self.net.parameters(), lambda: self.objective(train))
 
 
 class CCClarkeResidualHistory(CCClarkeResidual):

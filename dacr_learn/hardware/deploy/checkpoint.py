@@ -3,16 +3,15 @@
 A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, so it
 loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
 
-    format: "dacr_learn.hardware_model/1" (CC Clarke-residual family) or "dacr_learn.hardware_model/2"
-        (compositional members; /2 = /1 plus the ``structure`` and ``compositional`` entries: see below)
+    format: "dacr_learn.hardware_model/3" (CC Clarke-residual family) or "dacr_learn.hardware_model/2"
+        (compositional members: the ``structure`` and ``compositional`` entries below)
     model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m];
-    clamp: the members were fitted with ``support=True`` (network input clamped to the training range);
-    gate_width: the members' fallback gate width τ (``gate_width``) or None
     robot: the calibrated RobotSpec as a dict; servo_map: ServoMap.to_dict(); servo_ids: column order
     units: "mm" (unit of the servo commands a user passes in; tips are metres)
     cc: CalibratedCC state dict (fitted physical parameters)
-    members: [state dict of each ensemble member's residual network (cc.* keys left out)]
-    structure (/2 only): "compositional"; a /1 file is the structure "clarke_residual"
+    members: [state dict of each ensemble member (cc.* keys left out)]: /3 ``rho_std``, ``onehot``
+        and the residual network ``net.*``
+    structure (/2 only): "compositional"; a /3 (or /1) file is the structure "clarke_residual"
     compositional (/2 only): {"context", "width", "depth", "torsion"} of the members'
         :class:`~.compositional_model.CCCompositionalResidual` (their state dicts hold the network
         weights and the feature normaliser's buffers)
@@ -24,10 +23,15 @@ loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
 
 Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
 history variant :class:`~.learned.CCClarkeResidualHistory`; registry ``cc``, ``cc_clarke_residual``,
-``cc_clarke_residual_history``), written as format /1, and the compositional CC model
+``cc_clarke_residual_history``), written as format /3, and the compositional CC model
 (:class:`~.compositional_model.CCCompositionalResidual`, registry ``cc_compositional_residual``), written
-as format /2. The loader reads both; a Clarke-residual checkpoint stays /1, so older code still reads it,
-and older code rejects a compositional one by its format instead of misreading it.
+as format /2. Older code rejects a format it does not know instead of misreading it.
+
+Format /1 (written until 2026-11-25) is /3 plus two entries of research options that no registered model
+used, ``clamp`` (False) and ``gate_width`` (None), and two member buffers only those options read
+(``rho_max``, ``train_clarke``). The loader still reads it: with those defaults the buffers are dropped and
+the model is the same; a file with the options set (a research variant) is a ValueError naming it. A /2 file
+written then also has the two entries (always the defaults).
 """
 from __future__ import annotations
 
@@ -46,9 +50,11 @@ from ..recording import Recording
 from ..servo_map import ServoMap
 from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
-FORMAT = "dacr_learn.hardware_model/1"                       # the CC Clarke-residual family
-FORMAT_COMPOSITIONAL = "dacr_learn.hardware_model/2"         # /1 + structure "compositional"
-FORMATS = (FORMAT, FORMAT_COMPOSITIONAL)
+FORMAT = "dacr_learn.hardware_model/3"                       # the CC Clarke-residual family
+FORMAT_COMPOSITIONAL = "dacr_learn.hardware_model/2"         # structure "compositional"
+FORMAT_V1 = "dacr_learn.hardware_model/1"                    # /3 + research options (read, not written)
+FORMATS = (FORMAT, FORMAT_COMPOSITIONAL, FORMAT_V1)
+_V1_BUFFERS = ("rho_max", "train_clarke")                    # member buffers of the /1 research options
 _KEYS = ("format", "model", "history", "play_width", "robot", "servo_map", "servo_ids", "units", "cc", "members")
 
 
@@ -160,8 +166,6 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
             {"scale": float(model.sigma.scale), "floor": float(model.sigma.floor)},
             "sigma_model": None if model.sigma_model is None else model.sigma_model.to_dict(),
             "support": None if model.support is None else dict(model.support.state_dict()),
-            "clamp": bool(getattr(model.members[0], "support", False)),
-            "gate_width": getattr(model.members[0], "gate_width", None),
             "examples": None if model.examples is None else model.examples.detach().double().clone(),
             "info": model.info}
     path = Path(path)
@@ -217,6 +221,10 @@ def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
     missing = [k for k in keys if k not in blob]
     if missing:
         raise ValueError(f"{path}: hardware model checkpoint lacks the entries {missing}")
+    research = {k: blob[k] for k, off in (("clamp", False), ("gate_width", None)) if blob.get(k, off) != off}
+    if research:
+        raise ValueError(f"{path}: the members were fitted with the research options {research} (support clamp, "
+                         f"fallback gate), which this version no longer runs; refit the model without them")
     try:
         return _build(blob)
     except (RuntimeError, KeyError, TypeError, IndexError) as err:
@@ -253,11 +261,9 @@ def _member(blob: dict, state: dict, cc: CalibratedCC) -> nn.Module:
         member = CCCompositionalResidual(_placeholder_split(m), cc, steps=1, **blob["compositional"])
     else:
         cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
-        rows = state["train_clarke"].shape[0] if "train_clarke" in state else 2
-        options = {"support": bool(blob.get("clamp", False))}
-        if blob.get("gate_width") is not None:
-            options["gate_width"] = float(blob["gate_width"])
-        member = cls(_placeholder_split(m, rows), cc, **options)
+        member = cls(_placeholder_split(m), cc)
+        if blob["format"] == FORMAT_V1:
+            state = {k: v for k, v in state.items() if k not in _V1_BUFFERS}
     member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})
     return member.eval()
 

@@ -173,13 +173,6 @@ class HardwareFK(nn.Module):
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
             buffers.update(segment_twists(buffers["radius"], buffers["length"]))
             buffers.update(_stacked_members(model.members))
-            self.clamp = bool(getattr(model.members[0], "support", False))   # CCClarkeResidual(support=True)
-            if self.clamp:
-                buffers["rho_max"] = model.members[0].rho_max.unsqueeze(-1)
-            self.gate_width = getattr(model.members[0], "gate_width", None)   # CCClarkeResidual(gate_width=τ)
-            if self.gate_width is not None:
-                buffers["gate_points"] = model.members[0].train_clarke * model.members[0].rho_std
-                buffers["rho_std"] = model.members[0].rho_std
             buffers["sigma_coefficients"] = sigma_coefficients(model)
         for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
             self.register_buffer(name, value.detach().to(dtype).contiguous())
@@ -218,21 +211,6 @@ class HardwareFK(nn.Module):
         drag = (eye - unit.unsqueeze(-1) * unit.unsqueeze(-2)) / norm.unsqueeze(-1)
         return memory, new, torch.where(inside.unsqueeze(-1), eye / self.play_width, drag)
 
-    def network_input(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
-        """ρ as the networks see it: radially clamped to the training range when the model was fitted
-        with ``support=True`` (ρ·min(1, r/‖ρ‖)), and its tangents."""
-        if not self.clamp:
-            return rho, drho
-        norm = torch.linalg.vector_norm(rho, dim=-1, keepdim=True).clamp_min(1e-30)
-        inside = norm <= self.rho_max
-        out = torch.where(inside, rho, rho * (self.rho_max / norm))
-        if drho is None:
-            return out, None
-        unit = rho / norm
-        proj = torch.eye(2, dtype=rho.dtype) - unit.unsqueeze(-1) * unit.unsqueeze(-2)
-        proj = proj * (self.rho_max / norm).unsqueeze(-1)
-        return out, torch.where(inside.unsqueeze(-1), drho, proj @ drho)
-
     def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None]):
         """Corrected ρ' (B, K, m, 2) of every member and its tangents (B, K, m, 2, T), from the tangents
         (∂ρ (B, m, 2, T), ∂memory or None) of the inputs (the FK path without tangents: :meth:`members_only`).
@@ -241,9 +219,8 @@ class HardwareFK(nn.Module):
         through the same products (the bias on the value row only; after each SiLU the tangent rows are
         scaled by SiLU'(value)), so each layer is one product for all members — the first layer shared, the
         others batched over the members (K, B·m·(1 + T), ·) (v4 default's AOTI Jacobian runner 94.9 → 79.3 µs)."""
-        rho_in, drho_in = self.network_input(rho, tangent[0])
-        x = rho_in if memory is None else torch.cat([rho_in, memory], -1)                  # (B, m, I)
-        dx = drho_in if memory is None else torch.cat([drho_in, tangent[1]], -2)           # (B, m, I, T)
+        x = rho if memory is None else torch.cat([rho, memory], -1)                        # (B, m, I)
+        dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)     # (B, m, I, T)
         b, m, t = rho.shape[0], rho.shape[1], dx.shape[-1]
         k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
         rows = torch.cat([x.unsqueeze(2), dx.transpose(-1, -2)], 2)                        # (B, m, 1 + T, I)
@@ -253,44 +230,20 @@ class HardwareFK(nn.Module):
             a = silu_linear_rows(a, w, bias)
         a = a.view(k, b, m, 1 + t, 2).transpose(0, 1)                                     # (B, K, m, 1 + T, 2)
         out, dout = a[:, :, :, 0], a[:, :, :, 1:].transpose(-1, -2)                        # (B,K,m,2), (B,K,m,2,T)
-        if self.gate_width is not None:
-            gate, dgate = self.gate(rho, tangent[0])
-            dout = dout * gate[:, None, None, None, None] + out.unsqueeze(-1) * dgate[:, None, None, None, :]
-            out = out * gate[:, None, None, None]
         return rho.unsqueeze(1) + out, tangent[0].unsqueeze(1) + dout
 
     def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
         """Corrected ρ' (B, K, m, 2) of every member: the shared input through all K first layers in one
         product, then the K hidden and output layers as batched products over the members (bmm: a third
         of the work of one block-diagonal product; v4 model's AOTI runner of this part 23.0 → 14.7 µs)."""
-        x = self.network_input(rho, None)[0]
-        x = x if memory is None else torch.cat([x, memory], -1)
+        x = rho if memory is None else torch.cat([rho, memory], -1)
         k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
         a = x @ self.first_all + self.b_first_all                            # (B, m, K·H)
         a = nn.functional.silu(a).reshape(-1, k, h).transpose(0, 1)          # (K, B·m, H)
         a = torch.baddbmm(self.b_hidden, a, self.w_hidden)
         a = torch.baddbmm(self.b_last, nn.functional.silu(a), self.w_last)   # (K, B·m, 2)
         a = a.reshape(k, -1, self.num_segments, 2).transpose(0, 1)           # (B, K, m, 2)
-        if self.gate_width is not None:
-            a = a * self.gate(rho, None)[0][:, None, None, None]
         return rho.unsqueeze(1) + a
-
-    def gate(self, rho: Tensor, drho: Tensor | None) -> tuple[Tensor, Tensor | None]:
-        """Fallback weight exp(−(δ/τ)²) of the correction (B,), δ the distance of ρ to the nearest training
-        row in units of the training std (learned.CCClarkeResidual.support_gate), and ∂/∂servo (B, T)."""
-        z = rho.flatten(-2)
-        diff = z.unsqueeze(-2) - self.gate_points                             # (B, n, 2m)
-        dist2 = (diff * diff).sum(-1)
-        nearest = dist2.argmin(-1)
-        d = diff[torch.arange(z.shape[0]), nearest]                           # (B, 2m) [m]
-        delta2 = (d * d).sum(-1) / self.rho_std**2
-        if self.gate_width == 0:
-            return torch.zeros_like(delta2), None if drho is None else torch.zeros_like(drho[:, 0, 0])
-        gate = torch.exp(-delta2 / self.gate_width**2)
-        if drho is None:
-            return gate, None
-        ddelta2 = 2 * torch.einsum("bi,bit->bt", d, drho.flatten(1, 2)) / self.rho_std**2
-        return gate, -gate.unsqueeze(-1) * ddelta2 / self.gate_width**2
 
     def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., m, 2, 3) from ρ (..., m, 2)

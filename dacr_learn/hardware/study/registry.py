@@ -3,7 +3,7 @@
 Every model is built from a :class:`FitContext` (the fitted CC model, the servo map and the
 training split) and a seed, then trained with ``model.fit(train)`` and evaluated with
 ``model(split)`` → tip (n, 3) [m] (:mod:`dacr_learn.hardware.learned`). The benchmark, the
-train-only selection proxies (:mod:`.selection`) and research scripts all build models here.
+train-only selection proxies (:mod:`.selection`) and the held-out σ fits build models here.
 """
 from __future__ import annotations
 
@@ -87,17 +87,15 @@ MODELS: tuple[str, ...] = tuple(REGISTRY)
 assert len({m.letter for m in _MODELS}) == len(_MODELS), "model letters must be unique"
 
 
-def model_info(model: str | ModelInfo) -> ModelInfo:
-    """The registry entry of a model name (a :class:`ModelInfo` is returned as it is: research variants)."""
-    if isinstance(model, ModelInfo):
-        return model
+def model_info(model: str) -> ModelInfo:
+    """The registry entry of a model name (only registered models: what the study scores is what can ship)."""
     if model not in REGISTRY:
         raise ValueError(f"model: got {model!r}, expected one of {MODELS}")
     return REGISTRY[model]
 
 
-def build_model(model: str | ModelInfo, ctx: FitContext, seed: int) -> nn.Module:
-    """A fresh, untrained model (a registered name or a :class:`ModelInfo`), torch seeded with ``seed`` first."""
+def build_model(model: str, ctx: FitContext, seed: int) -> nn.Module:
+    """A fresh, untrained registered model, torch seeded with ``seed`` first."""
     info = model_info(model)
     torch.manual_seed(seed)
     return info.build(ctx, seed)

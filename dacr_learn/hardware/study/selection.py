@@ -41,7 +41,7 @@ from ..learned import Split, make_split
 from ..metrics import offset_removed_rmse
 from ..recording import Recording
 from ..servo_map import ServoMap
-from .registry import FitContext, ModelInfo, build_model, model_info
+from .registry import FitContext, build_model, model_info
 
 CC_VARIANTS: dict[str, dict] = {"base": {}, "strain": {"pretension_strain": True}}   # name → CalibratedCC options
 PROXIES = ("cv", "extrap")
@@ -105,7 +105,7 @@ def make_folds(rec: Recording, spec: RobotSpec, smap: ServoMap,
     return folds
 
 
-def fold_rmse(model_name: str | ModelInfo, fold: Fold, seed: int) -> float:
+def fold_rmse(model_name: str, fold: Fold, seed: int) -> float:
     """Offset-removed RMSE [mm] of a model trained on the fold's rows, on its test rows."""
     model = build_model(model_name, fold.ctx, seed)
     model.fit(fold.ctx.train)
@@ -113,7 +113,7 @@ def fold_rmse(model_name: str | ModelInfo, fold: Fold, seed: int) -> float:
         return float(offset_removed_rmse(model(fold.test), fold.test.tip)) * 1e3
 
 
-def model_seeds(name: str | ModelInfo, seeds: Sequence[int]) -> list[int]:
+def model_seeds(name: str, seeds: Sequence[int]) -> list[int]:
     """The seeds a model is fitted with: the first only for a deterministic model (the same for every seed)."""
     return list(seeds)[:1] if model_info(name).deterministic else list(seeds)
 
@@ -131,7 +131,7 @@ def summarize_scores(rmse: dict[str, dict[str, list[float]]], seeds: list[int], 
     return out
 
 
-def proxy_scores(name: str | ModelInfo, folds: dict[str, list[Fold]], seeds: Sequence[int]) -> dict:
+def proxy_scores(name: str, folds: dict[str, list[Fold]], seeds: Sequence[int]) -> dict:
     """{proxy: mean RMSE [mm], proxy + "_folds": {fold: RMSE averaged over seeds}, "seeds", "seconds"}
     for every proxy in ``folds``, fitted in this process (the benchmark spreads the fits over cores)."""
     start = time.perf_counter()
