@@ -324,6 +324,61 @@ def labelled_robot_dir(tmp_path_factory) -> tuple[Path, Path]:
     return write_labelled_robot(tmp_path_factory.mktemp("labelled"))
 
 
+@pytest.fixture(scope="module")
+def v4_spec() -> RobotSpec:
+    """FTDCR v4's nominal robot (configs/robots/ftdcr_v4.yaml)."""
+    from hardware_testkit import V4_ROBOT
+
+    return RobotSpec.from_yaml(V4_ROBOT)
+
+
+@pytest.fixture(scope="module")
+def v4_pulls(v4_spec):
+    """FTDCR v4's single-tendon pulls (data/ftdcr_v4/tendon_pull.csv) with the nominal robot."""
+    from hardware_testkit import V4_DATA
+
+    from dacr_learn.hardware.recording import load_recording
+
+    return load_recording(V4_DATA / "tendon_pull.csv", v4_spec)
+
+
+@pytest.fixture(scope="module")
+def v4_train_head(tmp_path_factory):
+    """(spec, servo map, the first 240 rows of FTDCR v4's train.csv) of the calibrated robot."""
+    from hardware_testkit import load_v4_train_head
+
+    return load_v4_train_head(tmp_path_factory.mktemp("v4_train_head"))
+
+
+@pytest.fixture(scope="session")
+def v4_slice(tmp_path_factory):
+    """The benchmark setup of every 8th row of FTDCR v4's train.csv (hardware_testkit.load_v4_slice), shared
+    read-only by the compositional hardware model's deploy tests. Sets torch to one thread."""
+    from hardware_testkit import load_v4_slice
+
+    root = tmp_path_factory.mktemp("v4_slice")
+    torch.set_num_threads(1)
+    return load_v4_slice(root)
+
+
+@pytest.fixture(scope="session")
+def compositional_models(v4_slice):
+    """config → an ensemble of 2 CCCompositionalResidual members of v4_slice trained for 20 steps, for each of
+    hardware_testkit.COMPOSITIONAL_CONFIGS (no context; distal with torsion; segment): shared read-only."""
+    from hardware_testkit import COMPOSITIONAL_CONFIGS, compositional_ensemble
+
+    return {config: compositional_ensemble(v4_slice, config) for config in COMPOSITIONAL_CONFIGS}
+
+
+@pytest.fixture(scope="module")
+def compositional_split():
+    """(frozen calibrated CC model, synthetic split of 64 rows) of the labelled synthetic robot
+    (hardware_testkit.synthetic_compositional_split)."""
+    from hardware_testkit import synthetic_compositional_split
+
+    return synthetic_compositional_split()
+
+
 @pytest.fixture()
 def one_thread():
     """The suite's thread count (``DACR_TEST_THREADS``, default 1), restored after the test."""

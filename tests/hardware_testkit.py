@@ -1,13 +1,17 @@
-"""Shared pieces of the hardware deploy tests (not collected: no ``test_`` prefix).
+"""Shared pieces of the hardware tests (not collected: no ``test_`` prefix).
 
-A small synthetic 2-segment robot (the same kind as tests/test_hardware.py's second robot): a
-CalibratedCC with non-trivial physical parameters and an ensemble of untrained residual networks
-(with enlarged output weights, so that the correction matters). Used by test_hardware_deploy,
-test_hardware_control, test_hardware_marker and test_hardware_uncertainty.
+FTDCR v4 / v6: the recordings and robot files (V4_*, V6_*) and the tip magnitude of the motion-capture frame
+(V4_TIP_SCALE); slices of v4 for the CC model and the compositional hardware model (fixtures ``v4_train_head``,
+``v4_slice`` and ``compositional_models`` in tests/conftest.py).
+
+A small synthetic 2-segment robot: a CalibratedCC with non-trivial physical parameters and an ensemble of untrained
+residual networks (with enlarged output weights, so that the correction matters), for the deploy tests
+(checkpoint, inference, export, uncertainty) and the control example.
 
 :func:`write_labelled_robot`: a labelled synthetic recording folder (single-segment and pair patterns,
 no val.csv, like data/ftdcr_v6) for the selection-proxy and CLI tests (fixture ``labelled_robot_dir``
-in tests/conftest.py).
+in tests/conftest.py); the same robot's servo map and a synthetic split of it for the compositional model
+(fixture ``compositional_split``).
 """
 from __future__ import annotations
 
@@ -16,15 +20,26 @@ import math
 from pathlib import Path
 
 import torch
+from conftest import ROOT
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
+from dacr_learn.hardware.compositional_model import CCCompositionalResidual
 from dacr_learn.hardware.deploy.checkpoint import HardwareModel
-from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SupportModel, ensemble_predict
-from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, make_split
-from dacr_learn.hardware.recording import Recording
+from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, ensemble_predict
+from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, Split, make_split, synthetic_split
+from dacr_learn.hardware.recording import Recording, load_recording
 from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
+from dacr_learn.hardware.study.benchmark import Setup, load_setup, resolve_robot
 from dacr_learn.layers import ClarkeDecoder
 from dacr_learn.robot import RobotSpec
+
+V4_DATA = ROOT / "data" / "ftdcr_v4"
+V4_ROBOT = ROOT / "configs" / "robots" / "ftdcr_v4.yaml"
+V4_CALIBRATED = ROOT / "configs" / "robots" / "ftdcr_v4_calibrated.yaml"
+V6_DATA = ROOT / "data" / "ftdcr_v6"
+V6_ROBOT = ROOT / "configs" / "robots" / "ftdcr_v6.yaml"
+V6_CALIBRATED = ROOT / "configs" / "robots" / "ftdcr_v6_calibrated.yaml"
+V4_TIP_SCALE = 0.2                                  # [m] magnitude of FTDCR v4's tip coordinates (motion-capture frame)
 
 IDS = ("B7", "A2", "C1", "A9", "B3", "C5", "A4", "B1")
 COLS = (3, 6, 0, 5, 1, 7, 2, 4)                     # joint driven by each column
@@ -86,6 +101,11 @@ LABELLED_ROBOT = {"name": "synthetic-2seg", "routing": "coupled", "segments": [
 LABELLED_IDS = ("s4", "s1", "s6", "s2", "s5", "s3")
 
 
+def labelled_servo_map(spec: RobotSpec) -> ServoMap:
+    """The servo map of LABELLED_ROBOT: servo LABELLED_IDS[j] drives segment j // 3, joint j % 3."""
+    return ServoMap(spec.name, tuple(ServoAssignment(s, j // 3, j % 3) for j, s in enumerate(LABELLED_IDS)), -8e-3)
+
+
 def _bent_features(g: torch.Generator, n: int, moving: tuple[int, ...], reach: float) -> torch.Tensor:
     """(n, 2, 4) features with only the segments in ``moving`` bent (|ρ| ≤ reach [m])."""
     feat = torch.zeros(n, 2, 4, dtype=torch.float64)
@@ -105,8 +125,7 @@ def write_labelled_robot(root: Path) -> tuple[Path, Path]:
     robot = root / "robot.yaml"
     spec.to_yaml(robot)
     (root / "servo_maps").mkdir()
-    assignments = tuple(ServoAssignment(s, j // 3, j % 3) for j, s in enumerate(LABELLED_IDS))
-    ServoMap(spec.name, assignments, -8e-3).to_yaml(root / "servo_maps" / "robot.yaml")
+    labelled_servo_map(spec).to_yaml(root / "servo_maps" / "robot.yaml")
     g = torch.Generator().manual_seed(3)
     parts = [("rep1_seg1_dir0", (0,)), ("rep1_seg2_dir0", (1,)), ("rep1_pair12_same_dir0", (0, 1))]
     feat = torch.cat([_bent_features(g, 40, moving, 0.004) for _, moving in parts])
@@ -123,3 +142,85 @@ def write_labelled_robot(root: Path) -> tuple[Path, Path]:
         w.writerows([[1000.0 + 0.5 * k, labels[k]] + [f"{v * 1e3:.5f}" for v in x[k].tolist() + tip[k].tolist()]
                      for k in range(len(x))])
     return data, robot
+
+
+# --------------------------------------------------------------------------------------------------
+# FTDCR v4 slices, the compositional hardware model, CSV files
+# --------------------------------------------------------------------------------------------------
+
+
+def synthetic_compositional_split() -> tuple[CalibratedCC, Split]:
+    """The calibrated CC model of LABELLED_ROBOT at its nominal parameters (frozen) and a synthetic split of 64
+    rows of it (fixture ``compositional_split``)."""
+    spec = RobotSpec.from_dict(LABELLED_ROBOT)
+    smap = labelled_servo_map(spec)
+    cc = CalibratedCC(spec, compliance=1e-7)
+    for p in cc.parameters():
+        p.requires_grad_(False)
+    return cc, synthetic_split(cc, smap, LABELLED_IDS, 64, seed=0)
+
+
+def load_v4_train_head(root: Path) -> tuple[RobotSpec, ServoMap, Recording]:
+    """(spec, servo map, the first 240 rows of FTDCR v4's train.csv) of the calibrated robot (fixture
+    ``v4_train_head``); ``root``: an empty folder for resolve_robot."""
+    spec, smap, _ = resolve_robot(V4_CALIBRATED, None, None, root, "mm")
+    rec = load_recording(V4_DATA / "train.csv", spec)
+    return spec, smap, rec.select(torch.arange(len(rec)) < 240)
+
+
+def load_v4_slice(root: Path) -> Setup:
+    """The benchmark setup (calibrated robot, servo map, CC model fitted) of every 8th row of FTDCR v4's train.csv,
+    written to ``root``/train.csv."""
+    rows = (V4_DATA / "train.csv").read_text().splitlines()
+    (root / "train.csv").write_text("\n".join(rows[:1] + rows[1::8]) + "\n")
+    return load_setup(V4_CALIBRATED, root / "train.csv", None, root)
+
+
+COMPOSITIONAL_CONFIGS = {"none": {}, "distal": {"context": "distal", "torsion": True},
+                         "segment": {"context": "segment"}}
+
+
+def compositional_ensemble(setup, config: str = "none", members: int = 2, steps: int = 20) -> HardwareModel:
+    """An ensemble of CCCompositionalResidual members (context and torsion of COMPOSITIONAL_CONFIGS[config]) trained
+    for ``steps`` steps on the setup's rows, with a support model, a σ calibration and a σ model."""
+    nets = []
+    for seed in range(members):
+        torch.manual_seed(seed)
+        member = CCCompositionalResidual(setup.train, setup.cc, steps=max(steps, 1), **COMPOSITIONAL_CONFIGS[config])
+        if steps:
+            member.fit(setup.train)
+        nets.append(member.eval())
+    support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
+    return HardwareModel("cc_compositional_residual", setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc,
+                         nets, sigma=SigmaCalibration(1.5, 2e-4), support=support,
+                         examples=1e3 * setup.train_rec.servo[:64],
+                         sigma_model=SigmaModel(("ensemble", "bend"), (1.3, 0.05), 3e-4))
+
+
+def v4_commands(setup, n: int = 24) -> torch.Tensor:
+    """Commands [mm]: training rows spread over the recording (all three segments' patterns)."""
+    servo = 1e3 * setup.train_rec.servo
+    return servo[torch.linspace(0, servo.shape[0] - 1, n).long()]
+
+
+def strained_cc(spec, strain: bool, p: float = 3e-4, s: float = 5e-4) -> CalibratedCC:
+    """A CalibratedCC with non-trivial parameters, a common pretension ``p`` and, with ``strain``, the pretension
+    strain ``s`` (tendon i stretched by p + s·(L_i/L̄ − 1))."""
+    cc = CalibratedCC(spec, compliance=1e-6, pretension_strain=strain)
+    with torch.no_grad():
+        cc.encoder.log_radius_scale.copy_(torch.tensor([0.05, -0.03, 0.02]))
+        cc.encoder.rotation.copy_(torch.tensor([0.02, -0.04, 0.03]))
+        cc.encoder.pretension.fill_(p)
+        cc.base_translation.copy_(torch.tensor([0.01, -0.02, 0.005]))
+        cc.tip_offset.fill_(8e-3)
+        if strain:
+            cc.encoder.pretension_strain.fill_(s)
+    return cc
+
+
+def write_csv(path: Path, header: list[str], rows: list[list]) -> Path:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        w.writerows(rows)
+    return path

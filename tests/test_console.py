@@ -98,40 +98,6 @@ def test_warning_filters_hide_nothing_else(module, message, category):
     assert shown(lambda: warnings.warn_explicit(message, category, "m.py", 5, module=module), quiet=True) == []
 
 
-def _residual_model(tmp: Path):
-    """A small residual ensemble of the synthetic robot (exported through HardwareFK)."""
-    from hardware_testkit import synthetic_model
-
-    return synthetic_model(history=False, members=2)
-
-
-def _compositional_model(tmp: Path):
-    """An untrained compositional ensemble on a slice of FTDCR v4 (exported through CompositionalHardwareFK)."""
-    from dacr_learn.hardware.compositional_model import CCCompositionalResidual
-    from dacr_learn.hardware.deploy.checkpoint import HardwareModel
-    from dacr_learn.hardware.study.benchmark import load_setup
-
-    rows = (ROOT / "data" / "ftdcr_v4" / "train.csv").read_text().splitlines()
-    (tmp / "train.csv").write_text("\n".join(rows[:1] + rows[1::8]) + "\n")
-    s = load_setup(V4_ROBOT, tmp / "train.csv", None, tmp)
-    members = [CCCompositionalResidual(s.train, s.cc, steps=1).eval() for _ in range(2)]
-    return HardwareModel("cc_compositional_residual", s.spec, s.smap, s.train_rec.servo_ids, s.cc, members)
-
-
-@pytest.mark.parametrize("build", [_residual_model, _compositional_model])
-def test_hardware_export_stores_whole_tensors(tmp_path, build):
-    """torch.export.save warned "No complete tensor found in the group!" for every exported hardware module:
-    their stacked weights were transposed views. Fixed at the source: the modules' buffers are contiguous."""
-    from dacr_learn import export as dexport
-    from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
-
-    ckpt = save_hardware_model(build(tmp_path), tmp_path / "model.pt")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        dexport.export_checkpoint(ckpt, tmp_path / "export", aoti=False)
-    assert not [str(w.message) for w in caught if "complete tensor" in str(w.message)]
-
-
 @pytest.fixture
 def lightning_records():
     """INFO records that reach the handlers of Lightning's rank-zero logger; the advert filter removed after."""

@@ -1,41 +1,19 @@
 """The compositional hardware model: calibrated CC segment transforms × learned per-segment twists.
 
 A synthetic recording of a small two-segment robot (the calibrated CC model at its nominal
-parameters, :func:`~dacr_learn.hardware.learned.synthetic_split`) stands in for hardware data.
+parameters, :func:`~dacr_learn.hardware.learned.synthetic_split`; fixture ``compositional_split`` in
+tests/conftest.py) stands in for hardware data.
 """
 from __future__ import annotations
 
 import pytest
 import torch
 
-from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.compositional_model import TWIST_SCALE, CCCompositionalResidual
-from dacr_learn.hardware.learned import Split, synthetic_split
-from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
-from dacr_learn.hardware.study.registry import REGISTRY, FitContext, build_model
+from dacr_learn.hardware.learned import Split
 from dacr_learn.kinematics import segment_poses
-from dacr_learn.robot import RobotSpec
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-ROBOT = {"name": "synthetic-2seg", "routing": "coupled", "segments": [
-    {"type": "0", "length": 0.08, "radius": 0.005, "joints": 3, "offset": 0.3, "limits": {"bend": 0.8}},
-    {"type": "0", "length": 0.07, "radius": 0.005, "joints": 3, "offset": -0.5, "limits": {"bend": 0.8}}]}
-IDS = ("s4", "s1", "s6", "s2", "s5", "s3")
-NAME = "cc_compositional_residual"
-
-
-def _servo_map(spec: RobotSpec) -> ServoMap:
-    return ServoMap(spec.name, tuple(ServoAssignment(s, j // 3, j % 3) for j, s in enumerate(IDS)), -8e-3)
-
-
-@pytest.fixture(scope="module")
-def setup() -> tuple[CalibratedCC, Split]:
-    spec = RobotSpec.from_dict(ROBOT)
-    smap = _servo_map(spec)
-    cc = CalibratedCC(spec, compliance=1e-7)
-    for p in cc.parameters():
-        p.requires_grad_(False)
-    return cc, synthetic_split(cc, smap, IDS, 64, seed=0)
 
 
 def _randomised(model: CCCompositionalResidual, seed: int = 1) -> CCCompositionalResidual:
@@ -47,8 +25,8 @@ def _randomised(model: CCCompositionalResidual, seed: int = 1) -> CCCompositiona
     return model
 
 
-def test_untrained_model_is_the_calibrated_cc_model(setup):
-    cc, split = setup
+def test_untrained_model_is_the_calibrated_cc_model(compositional_split):
+    cc, split = compositional_split
     model = CCCompositionalResidual(split, cc)
     with torch.no_grad():
         tip, ends = model(split), model.segment_ends(split)
@@ -57,9 +35,9 @@ def test_untrained_model_is_the_calibrated_cc_model(setup):
     assert torch.allclose(tip, split.cc_tip, atol=64 * torch.finfo(torch.float32).eps * scale)
 
 
-def test_composition_matches_an_independent_product_of_exponentials(setup):
+def test_composition_matches_an_independent_product_of_exponentials(compositional_split):
     """Segment ends = ∏_k T_k^CC · expm(ξ_k^) with torch.linalg.matrix_exp, float64, to round-off."""
-    cc, split = setup
+    cc, split = compositional_split
     model = _randomised(CCCompositionalResidual(split, cc, context="distal", torsion=True)).double()
     with torch.no_grad():
         ends = model.segment_ends(split)
@@ -77,10 +55,10 @@ def test_composition_matches_an_independent_product_of_exponentials(setup):
     assert torch.allclose(ends, expected, atol=1e3 * torch.finfo(torch.float64).eps)
 
 
-def test_without_torsion_the_corrections_do_not_roll_about_the_segment_axis(setup):
+def test_without_torsion_the_corrections_do_not_roll_about_the_segment_axis(compositional_split):
     """torsion=False: ω_z = 0, so each correction's rotation axis lies in the end frame's xy plane
     (the skew part of R, sin φ · n^, has n_z = 0: R_10 = R_01)."""
-    cc, split = setup
+    cc, split = compositional_split
     rolled = _randomised(CCCompositionalResidual(split, cc, torsion=True)).double()
     plain = _randomised(CCCompositionalResidual(split, cc, torsion=False)).double()
     with torch.no_grad():
@@ -90,8 +68,8 @@ def test_without_torsion_the_corrections_do_not_roll_about_the_segment_axis(setu
     assert (r_rolled[..., 1, 0] - r_rolled[..., 0, 1]).abs().max() > 1e-3
 
 
-def test_fit_reduces_the_training_error_of_a_non_cc_robot(setup):
-    cc, split = setup
+def test_fit_reduces_the_training_error_of_a_non_cc_robot(compositional_split):
+    cc, split = compositional_split
     bend = split.features[..., :2].norm(dim=-1).sum(-1, keepdim=True) / 5e-3     # total bend [rad]
     target = Split(split.servo, split.x, split.features, split.cc_tip,
                    split.cc_tip + 4e-3 * bend * torch.tensor([1.0, -0.5, 0.3], dtype=torch.float64),
@@ -107,8 +85,8 @@ def test_fit_reduces_the_training_error_of_a_non_cc_robot(setup):
     assert not any(p.requires_grad for p in cc.parameters())
 
 
-def test_gradients_wrt_the_features_and_the_weights(setup):
-    cc, split = setup
+def test_gradients_wrt_the_features_and_the_weights(compositional_split):
+    cc, split = compositional_split
     rows = split.rows(torch.arange(4))
     model = _randomised(CCCompositionalResidual(rows, cc, context="segment")).double()
 
@@ -122,8 +100,8 @@ def test_gradients_wrt_the_features_and_the_weights(setup):
     assert all(g is not None and torch.isfinite(g).all() for g in grads) and any(g.abs().max() > 0 for g in grads)
 
 
-def test_weight_decay_adds_the_squared_weights(setup):
-    cc, split = setup
+def test_weight_decay_adds_the_squared_weights(compositional_split):
+    cc, split = compositional_split
     plain = _randomised(CCCompositionalResidual(split, cc, weight_decay=0.0))
     decayed = _randomised(CCCompositionalResidual(split, cc, weight_decay=0.5))
     with torch.no_grad():
@@ -132,8 +110,8 @@ def test_weight_decay_adds_the_squared_weights(setup):
     assert diff == pytest.approx(0.5 * squares, rel=1e-5)
 
 
-def test_bad_input_raises(setup):
-    cc, split = setup
+def test_bad_input_raises(compositional_split):
+    cc, split = compositional_split
     with pytest.raises(ValueError, match="weight_decay"):
         CCCompositionalResidual(split, cc, weight_decay=-1.0)
     with pytest.raises(ValueError, match="context"):
@@ -146,14 +124,6 @@ def test_bad_input_raises(setup):
         model(short)
 
 
-def test_registered_with_clarke_inputs(setup):
-    cc, split = setup
-    info = REGISTRY[NAME]
-    assert info.clarke_space and info.static and not info.deterministic and info.letter == "j"
-    ctx = FitContext(cc, _servo_map(cc.spec), IDS, split)
-    assert isinstance(build_model(NAME, ctx, 0), CCCompositionalResidual)
-
-
 def _with_memory(split: Split, seed: int = 2) -> Split:
     """The split with a random play memory (n, m, 2) in the unit disc (synthetic splits carry zeros)."""
     g = torch.Generator().manual_seed(seed)
@@ -161,10 +131,10 @@ def _with_memory(split: Split, seed: int = 2) -> Split:
     return Split(split.servo, split.x, split.features, split.cc_tip, split.tip, memory / 2)
 
 
-def test_history_variant_feeds_each_segment_its_own_memory(setup):
+def test_history_variant_feeds_each_segment_its_own_memory(compositional_split):
     """history=True: untrained it is the CC model whatever the memory; trained weights make each segment's
     correction depend on its own memory (segment k's correction moves only when memory[:, k] does)."""
-    cc, split = setup
+    cc, split = compositional_split
     moved = _with_memory(split)
     untrained = CCCompositionalResidual(split, cc, history=True)
     assert untrained.history and not CCCompositionalResidual(split, cc).history
@@ -181,9 +151,9 @@ def test_history_variant_feeds_each_segment_its_own_memory(setup):
         assert (model(moved) - model(split)).abs().max() > 1e-4
 
 
-def test_history_variant_fits_a_direction_dependent_offset(setup):
+def test_history_variant_fits_a_direction_dependent_offset(compositional_split):
     """A tip offset proportional to the memory (hysteresis) is learnt by the history variant, not the static one."""
-    cc, split = setup
+    cc, split = compositional_split
     moved = _with_memory(split)
     target = Split(moved.servo, moved.x, moved.features, moved.cc_tip,
                    moved.cc_tip + 4e-3 * moved.memory.sum(1) @ torch.tensor([[1.0, 0.0, 0.2], [0.0, 1.0, -0.3]],
@@ -198,13 +168,3 @@ def test_history_variant_fits_a_direction_dependent_offset(setup):
     assert errors[True] < 0.5 * errors[False], errors
 
 
-def test_history_variant_is_scored_but_cannot_be_saved_yet(setup, tmp_path):
-    from dacr_learn.hardware.deploy.checkpoint import HardwareModel, save_hardware_model
-
-    cc, split = setup
-    info = REGISTRY["cc_compositional_history"]
-    assert info.clarke_space and not info.static and not info.deployable and info.letter == "k"
-    member = build_model("cc_compositional_history", FitContext(cc, _servo_map(cc.spec), IDS, split), 0)
-    model = HardwareModel("cc_compositional_history", cc.spec, _servo_map(cc.spec), IDS, cc, [member])
-    with pytest.raises(ValueError, match="history inputs .* cannot be saved yet"):
-        save_hardware_model(model, tmp_path / "model.pt")

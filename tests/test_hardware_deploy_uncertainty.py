@@ -1,10 +1,11 @@
-"""σ models of hardware tip predictions: the heteroscedastic likelihood fit, its features, the scores
-(coverage, Spearman) and the round trip through a weights-only checkpoint."""
+"""σ models of hardware tip predictions (dacr_learn.hardware.deploy.uncertainty): the heteroscedastic likelihood
+fit, its features, the scores (coverage, Spearman) and the round trip of its dict through a weights-only torch file."""
 from __future__ import annotations
 
 import pytest
 import torch
 from conftest import roundoff_tol
+from hardware_testkit import command_recording, synthetic_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import spearmanr
@@ -14,9 +15,11 @@ from dacr_learn.hardware.deploy.uncertainty import (
     SigmaCalibration,
     SigmaModel,
     coverage,
+    ensemble_predict,
     sigma_terms,
     spearman,
 )
+from dacr_learn.hardware.learned import make_split
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 N = 20000
@@ -111,73 +114,31 @@ def test_bad_input_is_named():
         spearman(torch.zeros(4), torch.zeros(5))
 
 
-def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
-    from hardware_testkit import command_recording, synthetic_model
-
-    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
-
-    model = synthetic_model(history=True)
-    model.sigma_model = SigmaModel(TERMS, [1.2, 0.3, 2e-4, 0.1], 3e-4)
-    servo_mm = 1e3 * command_recording(50, 5, amplitude=4e-3).servo
-    tip, sigma = model.predict(servo_mm)
-    loaded = load_hardware_model(save_hardware_model(model, tmp_path / "model.pt"))
-    assert loaded.sigma_model.to_dict() == model.sigma_model.to_dict()
-    tip2, sigma2 = loaded.predict(servo_mm)
-    assert torch.allclose(tip2, tip, rtol=0, atol=1e-12) and torch.allclose(sigma2, sigma, rtol=1e-12, atol=0)
-    # σ is the σ model of the features: floor ≤ σ, and σ² − σ₀² the sum of the terms' squares
-    split = model.split(servo_mm)
-    preds = torch.stack([m(split) for m in model.members]).detach()
-    feats = sigma_terms(preds, split.cc_tip, split.features[..., :2], model.support.distance(split.features[..., :2]))
-    assert torch.allclose(sigma, model.sigma_model(feats), rtol=1e-12, atol=0)
-    assert bool((sigma >= 3e-4).all())
-    assert torch.allclose(loaded.support_score(servo_mm), model.support(split.features[..., :2]), rtol=1e-12, atol=0)
-    model.sigma_model = None                                   # without one: the calibrated ensemble std
-    assert torch.allclose(model.predict(split)[1], model.sigma(preds.std(0)), rtol=1e-12, atol=0)
-    with pytest.raises(ValueError, match=r"servo_mm: expected shape \(n, 8\)"):
-        model.predict(servo_mm[:, :5])
+# --------------------------------------------------------------------------------------------------
+# The ensemble σ calibration and the support score
+# --------------------------------------------------------------------------------------------------
 
 
-def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(labelled_robot_dir, tmp_path):
-    """On the synthetic robot whose CC model is the truth (0.1 mm noise per axis), the held-out residuals
-    of the CC model are the noise: the fitted σ is ≈ 0.1 mm everywhere and the bend term negligible."""
-    from dacr_learn.hardware.study.benchmark import fit_hardware_model, load_setup
-    from dacr_learn.hardware.study.heldout import SIGMA_TERMS, held_out_folds, sigma_models
-
-    data, robot = labelled_robot_dir
-    setup = load_setup(robot, data / "train.csv", None, tmp_path)
-    blocks = held_out_folds(setup, "cc", [0, 1])
-    assert [(b.fold, b.preds.shape[0], len(b.tip)) for b in blocks] == [
-        ("cv:single", 1, 80), ("cv:pair12", 1, 40), ("extrap:singles_to_pairs", 1, 40)]   # deterministic: one run
-    assert all(bool((b.support >= 0).all()) for b in blocks)
-    cal, model = sigma_models(setup, "cc", [0, 1])
-    assert model.terms == SIGMA_TERMS
-    assert float(model.floor) == pytest.approx(1e-4, rel=0.35)             # 40 rows × 3 axes of 0.1 mm noise
-    assert float(cal.floor) == pytest.approx(float(model.floor), rel=0.35)
-    hw = fit_hardware_model(setup, "cc", [0], sigma=cal)
-    hw.sigma_model = model
-    tip, sigma = hw.predict(setup.train)
-    assert (tip - setup.train.cc_tip).abs().max() <= roundoff_tol(torch.float32, 0.15)   # member kinematics in float32
-    assert float(sigma.max()) < 2e-4 and float(sigma.min()) >= float(model.floor) * (1 - 1e-12)
+def test_sigma_calibration_recovers_a_known_scale_and_floor():
+    g = torch.Generator().manual_seed(0)
+    std = 1e-3 * torch.rand(20000, 3, generator=g, dtype=torch.float64)
+    true = ((2.0 * std) ** 2 + 5e-4 ** 2).sqrt()
+    residual = true * torch.randn(20000, 3, generator=g, dtype=torch.float64)
+    cal = SigmaCalibration.fit(residual, std)
+    assert float(cal.scale) == pytest.approx(2.0, rel=0.05)
+    assert float(cal.floor) == pytest.approx(5e-4, rel=0.05)
+    assert torch.equal(ensemble_predict([lambda x: x], torch.ones(2, 3))[1], torch.zeros(2, 3))
 
 
-def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
-    """HardwareFK (what dacr_learn.export exports) gives predict's σ for a σ model of the ensemble and bend
-    terms (float64), and refuses terms it cannot compute instead of silently returning another σ."""
-    from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
-
-    from dacr_learn.hardware.deploy.inference import HardwareFK
-
+def test_support_score_is_larger_outside_the_training_box():
     model = synthetic_model(history=False)
-    model.sigma_model = SigmaModel(("ensemble", "bend"), [1.7, 0.4], 2e-4)
-    servo_mm = 1e3 * command_recording(40, 7, amplitude=4e-3).servo
-    tip, sigma = model.predict(servo_mm)
-    tip_fk, sigma_fk = HardwareFK(model, torch.float64)(servo_mm.double())
-    # The library model runs its kinematics in float32: tips agree to float32 rounding at tip scale, and σ
-    # to that times the ensemble coefficient (the members' std is a difference of such tips).
-    tol = roundoff_tol(torch.float32, TIP_SCALE)
-    assert torch.allclose(tip_fk, tip, rtol=0, atol=tol)
-    assert torch.allclose(sigma_fk, sigma, rtol=0, atol=2 * tol)
-    assert not torch.allclose(sigma_fk, HardwareFK(synthetic_model(history=False), torch.float64)(servo_mm.double())[1])
-    model.sigma_model = SigmaModel(("support",), [0.1], 2e-4)
-    with pytest.raises(ValueError, match="unsupported: \\['support'\\]"):
-        HardwareFK(model)
+    inside = make_split(command_recording(200, 0), model.spec, model.smap, model.cc).features[..., :2]   # training rows
+    outside = inside.clone()
+    coord = inside[:, 0, 0]
+    outside[:, 0, 0] += (coord.max() - coord.min()) + 6 * coord.std()    # every row beyond the range by 6 std
+    assert bool(model.support.outside_box(outside).all()) and not bool(model.support.outside_box(inside).any())
+    score_in, score_out = model.support(inside), model.support(outside)
+    assert float(score_in.max()) <= roundoff_tol(torch.float64, 10.0)      # a training row is its own neighbour
+    assert float(score_out.min()) > 1.0
+    between = 0.5 * (inside[:-1] + inside[1:])                             # between neighbouring training rows
+    assert float(model.support(between).max()) <= 1.0

@@ -1,0 +1,203 @@
+"""The hardware benchmark's command (dacr_learn.hardware.study.cli, python -m dacr_learn.hardware).
+
+FTDCR v4 (results and visuals); FTDCR v6 (a folder without val.csv by design, a hidden hold-out: the models are
+scored with the train-only proxies); the labelled synthetic robot of ``labelled_robot_dir`` (no val.csv: the
+default model chosen on the proxies; ``--save`` bundles the final runs' models); and a synthetic second robot
+(other servo ids, column order, joint count and routing) that checks that nothing depends on one robot's files.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from hardware_testkit import V4_CALIBRATED, V4_DATA, V6_CALIBRATED, V6_DATA, write_csv
+
+from dacr_learn.hardware.ccmodel import CalibratedCC
+from dacr_learn.hardware.servo_map import ServoMap
+from dacr_learn.layers import ClarkeDecoder
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+TRUE_OFFSETS = (0.4, -1.1)
+
+
+def _second_robot(tmp_path: Path) -> tuple[Path, RobotSpec]:
+    nominal = {"name": "synthetic-2seg", "routing": "coupled", "segments": [
+        {"type": "0", "length": 0.08, "radius": 0.005, "joints": 4, "offset": 0.0, "limits": {"bend": 0.8}},
+        {"type": "0", "length": 0.07, "radius": 0.005, "joints": 4, "offset": 0.0, "limits": {"bend": 0.8}}]}
+    path = tmp_path / "synthetic_2seg.yaml"
+    RobotSpec.from_dict(nominal).to_yaml(path)
+    true = {**nominal, "segments": [s | {"offset": o} for s, o in zip(nominal["segments"], TRUE_OFFSETS, strict=True)]}
+    return path, RobotSpec.from_dict(true)
+
+
+def _write_recording(path: Path, ids, cols, model, spec, x: torch.Tensor, labels) -> None:
+    with torch.no_grad():
+        tip = model(x) + 1e-4 * torch.randn(x.shape[0], 3, generator=torch.Generator().manual_seed(1),
+                                            dtype=torch.float64)
+    servo = x[:, cols]                                           # column c shows joint cols[c]
+    rows = [[1000.0 + 0.5 * k, labels[k]] + [f"{v * 1e3:.5f}" for v in servo[k].tolist()]
+            + [f"{v * 1e3:.5f}" for v in tip[k].tolist()] for k in range(x.shape[0])]
+    write_csv(path, ["timestamp", "pattern_label"] + [f"servo_{i}_mm" for i in ids] + ["tip_x", "tip_y", "tip_z"], rows)
+
+
+def test_second_robot_runs_through_the_same_command(tmp_path):
+    from dacr_learn.hardware.study.cli import main
+
+    robot_yaml, true_spec = _second_robot(tmp_path)
+    ids = ["B7", "A2", "C1", "A9", "B3", "C5", "A4", "B1"]
+    cols = [3, 6, 0, 5, 1, 7, 2, 4]                               # joint shown by each column
+    model = CalibratedCC(true_spec, compliance=1e-7)
+    data = tmp_path / "data"
+    data.mkdir()
+    ramp = torch.cat([torch.linspace(-2e-3, 3e-3, 8), torch.linspace(3e-3, -2e-3, 8)[1:]]).double()
+    pulls = torch.full((8 * len(ramp), 8), -8e-3, dtype=torch.float64)
+    for c in range(8):
+        pulls[c * len(ramp):(c + 1) * len(ramp), cols[c]] = ramp
+    _write_recording(data / "tendon_pull.csv", ids, cols, model, true_spec, pulls, ["pull"] * len(pulls))
+    g = torch.Generator().manual_seed(2)
+    for name, n in (("train.csv", 300), ("val.csv", 120)):
+        feat = torch.zeros(n, 2, 4, dtype=torch.float64)
+        feat[..., :2] = (torch.rand(n, 2, 2, generator=g, dtype=torch.float64) - 0.5) * 0.006
+        feat[..., 2] = torch.tensor([0.08, 0.07], dtype=torch.float64)
+        dec = ClarkeDecoder(true_spec)
+        x = dec(torch.cat([torch.zeros_like(feat[..., :2]), feat[..., 2:]], -1)) - dec(feat)
+        _write_recording(data / name, ids, cols, model, true_spec, x, ["random"] * n)
+    out = tmp_path / "run"
+    report = main(["--data", str(data), "--robot", str(robot_yaml), "--out", str(out),
+                   "--models", "linear_raw", "cc", "--seeds", "0", "--no-visuals"])
+    smap = ServoMap.from_yaml(out / "servo_maps" / "calibrated_robot.yaml")
+    cal = RobotSpec.from_yaml(out / "calibrated_robot.yaml")
+    # Symmetric joints are only defined up to a cyclic relabelling: compare segment and angle.
+    for a in smap.servos:
+        true_joint = cols[ids.index(a.servo)]
+        true_seg, true_i = divmod(true_joint, 4)
+        assert a.segment == true_seg
+        true_angle = true_spec.segments[true_seg].joint_angles[true_i]
+        got_angle = cal.segments[a.segment].joint_angles[a.joint]
+        assert math.remainder(got_angle - true_angle, 2 * math.pi) == pytest.approx(0.0, abs=math.radians(3))
+    results = json.loads((out / "results.json").read_text())
+    assert results["models"]["cc"]["val"]["rmse_mm"]["mean"] < 0.5
+    assert report["best_clarke_model"] == "cc"
+
+
+def test_cli_on_ftdcr_v4_writes_results_and_visuals(tmp_path):
+    from dacr_learn.hardware.study.cli import main
+
+    out = tmp_path / "run"
+    report = main(["--data", str(V4_DATA), "--robot", str(V4_CALIBRATED), "--out", str(out),
+                   "--models", "linear_raw", "cc", "--seeds", "0", "--no-proxies"])
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["models"]) == {"linear_raw", "cc"} and results["default_model"] is None
+    # README reference: linear least squares reaches 41 mm on val.csv
+    assert results["models"]["linear_raw"]["val"]["rmse_mm"]["mean"] == pytest.approx(41.0, abs=1.0)
+    assert results["models"]["cc"]["val"]["rmse_mm"]["mean"] < 9.0
+    assert report["rows"] == {"train": 1620, "val": 443}
+    assert (out / "val_tip_paths.png").stat().st_size > 10_000
+    assert (out / "val_tip_paths.rrd").stat().st_size > 10_000
+
+
+def test_ftdcr_v6_folder_has_no_validation_recording():
+    assert sorted(p.name for p in V6_DATA.iterdir()) == ["LICENSE", "README.md", "tendon_pull.csv", "train.csv"]
+
+
+@pytest.mark.slow
+def test_cli_on_ftdcr_v6_without_val_chooses_a_default_on_train(tmp_path):
+    from dacr_learn.hardware.study.cli import main
+
+    out = tmp_path / "run"
+    report = main(["--data", str(V6_DATA), "--robot", str(V6_CALIBRATED), "--out", str(out),
+                   "--models", "cc", "--seeds", "0", "--proxies", "cv", "extrap"])
+    results = json.loads((out / "results.json").read_text())
+    assert report["rows"] == {"train": 1019, "val": 0} and results["val"] is None
+    assert results["default_model"] == "cc"
+    scores = results["selection"]["scores"]["cc"]
+    assert set(scores["cv_folds"]) == {"single", "pair12", "pair13", "pair23"}
+    assert 3.0 < scores["extrap"] < 20.0 and 3.0 < scores["cv"] < 20.0   # mm: a fit, not a failure
+    assert not (out / "val_predictions.csv").exists()
+
+
+# --------------------------------------------------------------------------------------------------
+# The labelled synthetic robot: no val.csv
+# --------------------------------------------------------------------------------------------------
+
+
+def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path):
+    from dacr_learn.hardware.study.cli import main
+
+    data, robot = labelled_robot_dir
+    out = tmp_path / "run"
+    report = main(["--data", str(data), "--robot", str(robot), "--out", str(out),
+                   "--models", "linear_raw", "cc", "--seeds", "0"])
+    results = json.loads((out / "results.json").read_text())
+    assert results["default_model"] == report["default_model"] == "cc"
+    assert results["selection"]["candidates"] == ["cc"] and results["val"] is None
+    assert set(results["selection"]["scores"]) == {"linear_raw", "cc"}
+    assert results["selection"]["proxies"] == ["extrap"]                   # the family CV only on request
+    assert "cv" not in results["selection"]["scores"]["cc"] and "| – |" in (out / "results.md").read_text()
+    assert "val" not in results["models"]["cc"] and results["models"]["cc"]["train"]["rmse_mm"]["mean"] < 0.3
+    assert not (out / "val_predictions.csv").exists()
+    assert "**`cc`** (default)" in (out / "results.md").read_text()
+
+
+def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, tmp_path):
+    from dacr_learn.hardware.study.cli import main, parse_args
+
+    data, robot = labelled_robot_dir
+    args = ["--data", str(data), "--robot", str(robot), "--models", "linear_raw", "cc", "--seeds", "0"]
+    full = main(args + ["--out", str(tmp_path / "full"), "--proxies", "cv", "extrap"])
+    short = main(args + ["--out", str(tmp_path / "short")])
+    assert full["default_model"] == short["default_model"] == "cc" and full["selection"]["proxies"] == ["cv", "extrap"]
+    for name in ("linear_raw", "cc"):
+        f, s = full["selection"]["scores"][name], short["selection"]["scores"][name]
+        assert set(f["cv_folds"]) == {"single", "pair12"} and f["extrap"] == pytest.approx(s["extrap"], rel=1e-9)
+    with pytest.raises(SystemExit):
+        parse_args(args + ["--out", str(tmp_path), "--proxies", "cv"])    # the default is chosen on extrap
+
+
+def test_save_bundles_the_final_runs_models_instead_of_training_them_again(labelled_robot_dir, tmp_path,
+                                                                            monkeypatch):
+    """``--save`` (two worker processes): the saved ensemble is the benchmark's own final-run models, returned
+    from the workers, and the σ model's held-out fits run in the workers too — nothing is trained in this
+    process (fit_model / the held-out build_model here raise). The members predict like the same model
+    trained here per seed, the reported train RMSE per seed is the saved member's, and the σ model equals
+    sigma_models computed here."""
+    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
+    from dacr_learn.hardware.metrics import tip_metrics
+    from dacr_learn.hardware.study import benchmark, heldout
+    from dacr_learn.hardware.study.cli import main
+
+    data, robot = labelled_robot_dir
+    out, save = tmp_path / "run", tmp_path / "model"
+    fit_model = benchmark.fit_model
+
+    def no_fit_here(*args):
+        raise AssertionError(f"{args[0]} trained in the main process by --save (the default again, or its σ folds)")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(benchmark, "fit_model", no_fit_here)      # the spawned workers import their own, unpatched
+        patch.setattr(heldout, "build_model", no_fit_here)
+        report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), "--models",
+                       "cc_clarke_residual", "--seeds", "0", "1", "--jobs", "2", "--save", str(save)])
+    assert report["default_model"] == "cc_clarke_residual"
+    saved = load_hardware_model(save / "model.pt")
+    setup = benchmark.load_setup(robot, data / "train.csv", None, tmp_path / "setup",
+                       cc_variant=report["cc_fit"]["variant"]["chosen"])
+    per_seed = report["models"]["cc_clarke_residual"]["train"]["rmse_mm"]["per_seed"]
+    assert len(saved.members) == 2
+    for seed, member in zip((0, 1), saved.members, strict=True):
+        reference = fit_model("cc_clarke_residual", setup, seed).eval()
+        with torch.no_grad():
+            want, got = reference(setup.train), member(setup.train)
+            assert torch.allclose(got, want, rtol=0, atol=1e-9)               # [m]: the same fit
+            assert tip_metrics(got, setup.train.tip)["rmse_mm"] == pytest.approx(per_seed[seed], abs=1e-3)
+    calibration, sigma_model = heldout.sigma_models(setup, "cc_clarke_residual", [0, 1])
+    assert saved.sigma_model.terms == sigma_model.terms
+    assert torch.allclose(saved.sigma_model.coefficients, sigma_model.coefficients, rtol=1e-6, atol=1e-12)
+    assert float(saved.sigma_model.floor) == pytest.approx(float(sigma_model.floor), rel=1e-6)
+    assert float(saved.sigma.scale) == pytest.approx(float(calibration.scale), rel=1e-6)

@@ -1,0 +1,33 @@
+"""The model registry (dacr_learn.hardware.study.registry): letters, flags, what builds and what ships."""
+from __future__ import annotations
+
+import pytest
+from hardware_testkit import LABELLED_IDS, labelled_servo_map
+
+from dacr_learn.hardware.compositional_model import CCCompositionalResidual
+from dacr_learn.hardware.study.registry import MODELS, REGISTRY, FitContext, build_model, model_info
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+NAME = "cc_compositional_residual"
+
+
+def test_registry_has_unique_letters_and_flags():
+    letters = [REGISTRY[m].letter for m in MODELS]
+    assert len(set(letters)) == len(letters) == len(MODELS)
+    assert {m for m in MODELS if REGISTRY[m].deterministic} == {"linear_raw", "cc"}
+    assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history", "cc_compositional_history"]
+    history = model_info("cc_compositional_history")
+    assert history.letter == "k" and history.clarke_space and not history.deployable
+    assert not model_info("mlp_raw").clarke_space and model_info("pretrained_clarke").clarke_space
+    with pytest.raises(ValueError, match="expected one of"):
+        model_info("mlp")
+    with pytest.raises(ValueError, match="expected one of"):      # no ad-hoc variants: only what can ship is scored
+        model_info(REGISTRY["cc"])
+
+
+def test_registered_with_clarke_inputs(compositional_split):
+    cc, split = compositional_split
+    info = REGISTRY[NAME]
+    assert info.clarke_space and info.static and not info.deterministic and info.letter == "j"
+    ctx = FitContext(cc, labelled_servo_map(cc.spec), LABELLED_IDS, split)
+    assert isinstance(build_model(NAME, ctx, 0), CCCompositionalResidual)
