@@ -129,6 +129,9 @@ def robots(**kw):
     return robot_dicts(**kw).map(RobotSpec.from_dict)
 
 
+seeds = st.integers(0, 2**31 - 1)       # a generator seed
+
+
 # --------------------------------------------------------------------------------------------
 # Random features within the robot's limits
 # --------------------------------------------------------------------------------------------

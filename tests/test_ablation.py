@@ -7,13 +7,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import ROOT
 
 from dacr_learn.ablation import COLUMNS, load_config, main, make_jobs, report, runner
 from dacr_learn.data import SamplerOptions, generate
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule
 
-ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "ablation" / "default.yaml"
 
 

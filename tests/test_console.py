@@ -12,11 +12,11 @@ import warnings
 from pathlib import Path
 
 import pytest
+from conftest import ROOT
+from hardware_testkit import V4_CALIBRATED
 
 from dacr_learn import console
 
-ROOT = Path(__file__).resolve().parents[1]
-V4_ROBOT = ROOT / "configs" / "robots" / "ftdcr_v4_calibrated.yaml"
 TYPO = 'segments:\n  - {type: "0", lenght: 0.1, radius: 0.008, joints: 4}\n'
 LEAFSPEC = ("`isinstance(treespec, LeafSpec)` is deprecated, use `isinstance(treespec, TreeSpec) and "
             "treespec.is_leaf()` instead.")
@@ -274,7 +274,7 @@ def _cli_cases(tmp: Path, typo: Path) -> dict[str, tuple[list[str], str]]:
         "hardware, typo in the robot": (["-m", "dacr_learn.hardware", "--data", str(ROOT / "data" / "ftdcr_v4"),
                                          "--robot", str(typo), "--out", str(tmp / "run")], f"{typo}: segments[0]"),
         "hardware, missing data": (["-m", "dacr_learn.hardware", "--data", str(tmp / "nodata"), "--robot",
-                                    str(V4_ROBOT), "--out", str(tmp / "run")], str(tmp / "nodata" / "train.csv")),
+                                    str(V4_CALIBRATED), "--out", str(tmp / "run")], str(tmp / "nodata" / "train.csv")),
         "ablation, typo in a robot": (["-m", "dacr_learn.ablation", "--config", str(ablation), "--quick",
                                        "--out", str(tmp / "abl")], f"{typo}: segments[0]"),
         "control example, missing export": ([str(ROOT / "examples" / "control_hardware_model.py"), "--export",

@@ -23,6 +23,7 @@ from conftest import (
     robots,
     rot_z,
     roundoff_tol,
+    seeds,
     urdf_chain_string,
     urdf_end_link,
 )
@@ -39,7 +40,6 @@ from dacr_learn.kinematics import (
 )
 from dacr_learn.robot import RobotSpec
 
-seeds = st.integers(0, 2**31 - 1)
 F64 = torch.float64
 
 

@@ -15,14 +15,13 @@ from conftest import (
     robot_dicts,
     robots,
     roundoff_tol,
+    seeds,
 )
 from hypothesis import given
-from hypothesis import strategies as st
 
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.robot import RobotSpec
 
-seeds = st.integers(0, 2**31 - 1)
 F64 = torch.float64
 
 

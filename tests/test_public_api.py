@@ -6,13 +6,11 @@ import doctest
 import subprocess
 import sys
 from importlib.metadata import version
-from pathlib import Path
 
-from conftest import readme_sections
+from conftest import ROOT, readme_sections
 
 import dacr_learn
 
-ROOT = Path(__file__).resolve().parents[1]
 FLAGS = doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE
 OWN_ROBOT = "Your own robot"
 
