@@ -50,8 +50,10 @@ class Standardizer(nn.Module):
         self.register_buffer("mean", torch.zeros(dim))
         self.register_buffer("std", torch.ones(dim))
 
-    def fit(self, x: Tensor) -> None:
-        x = x.reshape(-1, x.shape[-1]).double()
+    def fit(self, x: Tensor, dtype: torch.dtype = torch.float64) -> None:
+        """Mean and std over all leading dims of x (..., D), computed in ``dtype`` and stored in the buffers' dtype
+        (std clamped at 1e-6 of the largest + 1e-12)."""
+        x = x.reshape(-1, x.shape[-1]).to(dtype)
         self.mean.copy_(x.mean(0))
         self.std.copy_(x.std(0).clamp_min(1e-12 + 1e-6 * x.std(0).max().item()))
 

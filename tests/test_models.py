@@ -5,7 +5,7 @@ import torch
 
 from dacr_learn.data import generate
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
-from dacr_learn.models import FEATURE_MODES, FeatureFrontEnd, FKModel, IKModel, actuated_selection
+from dacr_learn.models import FEATURE_MODES, FeatureFrontEnd, FKModel, IKModel, Standardizer, actuated_selection
 from dacr_learn.robot import RobotSpec
 
 ROBOTS = ["default", "type1", "type3", "tdcr_3seg_coupled", "asymmetric"]
@@ -86,3 +86,15 @@ def test_quaternion_head_and_bad_options():
         FKModel(spec, activation="swish")
     with pytest.raises(ValueError, match="joint vector"):
         FKModel(spec)(torch.zeros(3, 5))
+
+
+def test_standardizer_fits_in_float64_unless_asked_and_stores_in_its_buffers_dtype():
+    g = torch.Generator().manual_seed(0)
+    x = (torch.randn(5000, 3, generator=g) * torch.tensor([1e-3, 1.0, 30.0]) + torch.tensor([0.02, -3.0, 1e3])).float()
+    exact, single = Standardizer(3), Standardizer(3)
+    exact.fit(x)
+    single.fit(x, dtype=torch.float32)                # the hardware baselines' statistics (float32 sums)
+    assert exact.mean.dtype == single.mean.dtype == torch.float32
+    assert torch.equal(exact.mean, x.double().mean(0).float()) and torch.equal(exact.std, x.double().std(0).float())
+    assert torch.equal(single.mean, x.mean(0)) and torch.equal(single.std, x.std(0))
+    assert torch.allclose(exact.inverse(exact(x)), x, rtol=1e-6, atol=1e-4)

@@ -21,8 +21,9 @@ Every model maps a :class:`Split` (one recording, with inputs precomputed by the
                        uses the command history (rows in time order), not a static map
 =====================  ==============================================================
 
-Networks are 2×128 SiLU MLPs (2×64 for the per-segment Clarke corrections) trained full batch
-with Adam and a cosine schedule (float32).
+Networks are 2×128 SiLU MLPs (2×64 for the per-segment Clarke corrections; :func:`dacr_learn.models.mlp`,
+inputs standardised by :class:`dacr_learn.models.Standardizer`) trained full batch with Adam and a cosine
+schedule (float32).
 """
 from __future__ import annotations
 
@@ -33,6 +34,7 @@ import torch
 from torch import Tensor, nn
 
 from ..layers import ClarkeDecoder
+from ..models import Standardizer, mlp
 from ..robot import RobotSpec
 from .ccmodel import CalibratedCC
 from .recording import Recording
@@ -46,6 +48,9 @@ RESIDUAL_HIDDEN = 64  # the per-segment correction network sees m rows per sampl
 # family-out cross-validation on the training recording only (experiments/hardware_cv: CV 4.94 mm at
 # 0.1 mm against 5.11 mm at 0.2 mm, the width an earlier version picked while looking at val).
 PLAY_WIDTH = 1e-4
+# Input statistics of the standardised networks computed in float32, as the benchmark's scores were: in float64
+# (1 ulp apart) the unstable fits move, e.g. cc_tip_residual's seed-0 v4 val RMSE 14.34 → 14.56 mm.
+NORM_DTYPE = torch.float32
 
 
 def play_operator(values: Tensor, width: float | Tensor) -> Tensor:
@@ -112,14 +117,6 @@ def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC
         return Split(rec.servo, x, features, cc.tip_from_features(features), rec.tip, memory)
 
 
-def mlp(n_in: int, n_out: int, hidden: int = HIDDEN) -> nn.Sequential:
-    layers, width = [], n_in
-    for _ in range(DEPTH):
-        layers += [nn.Linear(width, hidden), nn.SiLU()]
-        width = hidden
-    return nn.Sequential(*layers, nn.Linear(width, n_out))
-
-
 def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> None:
     opt = torch.optim.Adam(params, lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
@@ -130,18 +127,6 @@ def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> Non
         sched.step()
 
 
-class Standardize(nn.Module):
-    """(x − mean)/std with statistics from the training inputs (buffers)."""
-
-    def __init__(self, data: Tensor):
-        super().__init__()
-        self.register_buffer("mean", data.mean(0))
-        self.register_buffer("std", data.std(0).clamp_min(1e-6 * float(data.std(0).max()) + 1e-12))
-
-    def forward(self, x: Tensor) -> Tensor:
-        return (x - self.mean) / self.std
-
-
 class TipMLP(nn.Module):
     """MLP from raw servo values or Clarke features to the tip; inputs and outputs standardised."""
 
@@ -149,8 +134,9 @@ class TipMLP(nn.Module):
         super().__init__()
         self.inputs = inputs
         data = self._input(train)
-        self.norm = Standardize(data)
-        self.net = mlp(data.shape[-1], 3)
+        self.norm = Standardizer(data.shape[-1])
+        self.norm.fit(data, dtype=NORM_DTYPE)
+        self.net = mlp(data.shape[-1], 3, HIDDEN, DEPTH, "silu")
         self.register_buffer("tip_mean", train.tip.float().mean(0))
         self.register_buffer("tip_std", train.tip.float().std(0))
 
@@ -197,8 +183,9 @@ class CCTipResidual(nn.Module):
 
     def __init__(self, train: Split):
         super().__init__()
-        self.norm = Standardize(train.clarke)
-        self.net = mlp(train.clarke.shape[-1], 3)
+        self.norm = Standardizer(train.clarke.shape[-1])
+        self.norm.fit(train.clarke, dtype=NORM_DTYPE)
+        self.net = mlp(train.clarke.shape[-1], 3, HIDDEN, DEPTH, "silu")
 
     def forward(self, split: Split) -> Tensor:
         return split.cc_tip + (self.net(self.norm(split.clarke)) * RESIDUAL_TIP_SCALE).double()
@@ -219,7 +206,7 @@ class CCClarkeResidual(nn.Module):
         rho = train.features[..., :2].float()
         self.register_buffer("rho_std", rho.std())
         self.register_buffer("onehot", torch.eye(m))
-        self.net = mlp(2 + 2 * self.history + m, 2, hidden=RESIDUAL_HIDDEN)
+        self.net = mlp(2 + 2 * self.history + m, 2, RESIDUAL_HIDDEN, DEPTH, "silu")
 
     def corrected_features(self, split: Split) -> Tensor:
         rho = split.features[..., :2].float()
