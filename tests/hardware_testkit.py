@@ -80,11 +80,12 @@ def synthetic_model(history: bool, members: int = 3) -> HardwareModel:
     nets = []
     for seed in range(members):
         torch.manual_seed(seed)
-        member = cls(train, cc)
+        member = cls(cc)
+        member.fit_normalization(train)
         with torch.no_grad():
             member.net[-1].weight.mul_(20.0)
         nets.append(member.eval())
-    support = SupportModel(train.features[..., :2], ["p"] * 100 + ["q"] * 100)
+    support = SupportModel(spec.num_segments).fit(train.features[..., :2], ["p"] * 100 + ["q"] * 100)
     return HardwareModel("cc_clarke_residual_history" if history else "cc_clarke_residual", spec, smap, IDS, cc,
                          nets, sigma=SigmaCalibration(1.5, 2e-4), support=support,
                          examples=1e3 * command_recording(64, 3).servo)
@@ -186,11 +187,13 @@ def compositional_ensemble(setup, config: str = "none", members: int = 2, steps:
     nets = []
     for seed in range(members):
         torch.manual_seed(seed)
-        member = CCCompositionalResidual(setup.train, setup.cc, steps=max(steps, 1), **COMPOSITIONAL_CONFIGS[config])
+        member = CCCompositionalResidual(setup.cc, steps=max(steps, 1), **COMPOSITIONAL_CONFIGS[config])
         if steps:
             member.fit(setup.train)
+        else:
+            member.fit_normalization(setup.train)
         nets.append(member.eval())
-    support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
+    support = SupportModel(setup.spec.num_segments).fit(setup.train.features[..., :2], list(setup.train_rec.labels))
     return HardwareModel("cc_compositional_residual", setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc,
                          nets, sigma=SigmaCalibration(1.5, 2e-4), support=support,
                          examples=1e3 * setup.train_rec.servo[:64],

@@ -16,6 +16,13 @@ from dacr_learn.kinematics import segment_poses
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
+def _built(split: Split, cc, **options) -> CCCompositionalResidual:
+    """The model built from its shape, its feature standardiser fitted on ``split`` (the first step of fit)."""
+    model = CCCompositionalResidual(cc, **options)
+    model.fit_normalization(split)
+    return model
+
+
 def _randomised(model: CCCompositionalResidual, seed: int = 1) -> CCCompositionalResidual:
     """The model with every network weight drawn at random (the output layers start at zero)."""
     g = torch.Generator().manual_seed(seed)
@@ -27,7 +34,7 @@ def _randomised(model: CCCompositionalResidual, seed: int = 1) -> CCCompositiona
 
 def test_untrained_model_is_the_calibrated_cc_model(compositional_split):
     cc, split = compositional_split
-    model = CCCompositionalResidual(split, cc)
+    model = CCCompositionalResidual(cc)
     with torch.no_grad():
         tip, ends = model(split), model.segment_ends(split)
     assert tip.shape == (64, 3) and tip.dtype == torch.float64 and ends.shape == (64, 2, 4, 4)
@@ -38,7 +45,7 @@ def test_untrained_model_is_the_calibrated_cc_model(compositional_split):
 def test_composition_matches_an_independent_product_of_exponentials(compositional_split):
     """Segment ends = ∏_k T_k^CC · expm(ξ_k^) with torch.linalg.matrix_exp, float64, to round-off."""
     cc, split = compositional_split
-    model = _randomised(CCCompositionalResidual(split, cc, context="distal", torsion=True)).double()
+    model = _randomised(_built(split, cc, context="distal", torsion=True)).double()
     with torch.no_grad():
         ends = model.segment_ends(split)
         fk, front = model.fk, model.fk.front
@@ -59,8 +66,8 @@ def test_without_torsion_the_corrections_do_not_roll_about_the_segment_axis(comp
     """torsion=False: ω_z = 0, so each correction's rotation axis lies in the end frame's xy plane
     (the skew part of R, sin φ · n^, has n_z = 0: R_10 = R_01)."""
     cc, split = compositional_split
-    rolled = _randomised(CCCompositionalResidual(split, cc, torsion=True)).double()
-    plain = _randomised(CCCompositionalResidual(split, cc, torsion=False)).double()
+    rolled = _randomised(_built(split, cc, torsion=True)).double()
+    plain = _randomised(_built(split, cc, torsion=False)).double()
     with torch.no_grad():
         r_plain, r_rolled = plain.corrections(split)[..., :3, :3], rolled.corrections(split)[..., :3, :3]
     tol = 64 * torch.finfo(torch.float64).eps
@@ -75,7 +82,7 @@ def test_fit_reduces_the_training_error_of_a_non_cc_robot(compositional_split):
                    split.cc_tip + 4e-3 * bend * torch.tensor([1.0, -0.5, 0.3], dtype=torch.float64),
                    split.memory)
     torch.manual_seed(0)
-    model = CCCompositionalResidual(target, cc, steps=25, lr=2e-2)
+    model = CCCompositionalResidual(cc, steps=25, lr=2e-2)
     rmse = lambda: float((model(target) - target.tip).pow(2).sum(-1).mean().sqrt())  # noqa: E731
     with torch.no_grad():
         before = rmse()
@@ -88,7 +95,7 @@ def test_fit_reduces_the_training_error_of_a_non_cc_robot(compositional_split):
 def test_gradients_wrt_the_features_and_the_weights(compositional_split):
     cc, split = compositional_split
     rows = split.rows(torch.arange(4))
-    model = _randomised(CCCompositionalResidual(rows, cc, context="segment")).double()
+    model = _randomised(_built(rows, cc, context="segment")).double()
 
     def tip(features):
         return model(Split(rows.servo, rows.x, features, rows.cc_tip, rows.tip, rows.memory))
@@ -102,8 +109,8 @@ def test_gradients_wrt_the_features_and_the_weights(compositional_split):
 
 def test_weight_decay_adds_the_squared_weights(compositional_split):
     cc, split = compositional_split
-    plain = _randomised(CCCompositionalResidual(split, cc, weight_decay=0.0))
-    decayed = _randomised(CCCompositionalResidual(split, cc, weight_decay=0.5))
+    plain = _randomised(_built(split, cc, weight_decay=0.0))
+    decayed = _randomised(_built(split, cc, weight_decay=0.5))
     with torch.no_grad():
         squares = sum(float(m.weight.pow(2).sum()) for m in decayed.fk.modules() if isinstance(m, torch.nn.Linear))
         diff = float(decayed.objective(split) - plain.objective(split))
@@ -113,10 +120,10 @@ def test_weight_decay_adds_the_squared_weights(compositional_split):
 def test_bad_input_raises(compositional_split):
     cc, split = compositional_split
     with pytest.raises(ValueError, match="weight_decay"):
-        CCCompositionalResidual(split, cc, weight_decay=-1.0)
+        CCCompositionalResidual(cc, weight_decay=-1.0)
     with pytest.raises(ValueError, match="context"):
-        CCCompositionalResidual(split, cc, context="proximal")
-    model = CCCompositionalResidual(split, cc)
+        CCCompositionalResidual(cc, context="proximal")
+    model = CCCompositionalResidual(cc)
     with pytest.raises(ValueError, match="hardware Split"):
         model(split.features)
     short = Split(split.servo, split.x, split.features[:, :1], split.cc_tip, split.tip, split.memory)
@@ -136,11 +143,11 @@ def test_history_variant_feeds_each_segment_its_own_memory(compositional_split):
     correction depend on its own memory (segment k's correction moves only when memory[:, k] does)."""
     cc, split = compositional_split
     moved = _with_memory(split)
-    untrained = CCCompositionalResidual(split, cc, history=True)
-    assert untrained.history and not CCCompositionalResidual(split, cc).history
+    untrained = CCCompositionalResidual(cc, history=True)
+    assert untrained.history and not CCCompositionalResidual(cc).history
     with torch.no_grad():
         assert torch.allclose(untrained(moved), split.cc_tip, atol=64 * torch.finfo(torch.float32).eps * 0.15)
-    model = _randomised(CCCompositionalResidual(split, cc, history=True)).double()
+    model = _randomised(_built(split, cc, history=True)).double()
     assert model.fk.skip.in_features == model.fk.front.dim + 2
     one = Split(*(getattr(moved, f) for f in ("servo", "x", "features", "cc_tip", "tip")),
                 torch.cat([moved.memory[:, :1], split.memory[:, 1:]], 1))     # only segment 0's memory set
@@ -161,7 +168,7 @@ def test_history_variant_fits_a_direction_dependent_offset(compositional_split):
     errors = {}
     for history in (False, True):
         torch.manual_seed(0)
-        model = CCCompositionalResidual(target, cc, steps=60, lr=2e-2, weight_decay=0.0, history=history)
+        model = CCCompositionalResidual(cc, steps=60, lr=2e-2, weight_decay=0.0, history=history)
         model.fit(target)
         with torch.no_grad():
             errors[history] = float((model(target) - target.tip).pow(2).sum(-1).mean().sqrt())

@@ -96,6 +96,15 @@ def test_bad_checkpoints_are_value_errors(tmp_path):
         load_hardware_model(tmp_path / "shapes.pt")
 
 
+def test_model_inputs_of_servo_commands_need_no_recording():
+    model = synthetic_model(history=True)
+    rec = command_recording(40, 4)
+    split, ref = model.split(1e3 * rec.servo), make_split(rec, model.spec, model.smap, model.cc)
+    for name in ("servo", "x", "features", "cc_tip", "memory"):
+        assert torch.allclose(getattr(split, name), getattr(ref, name), rtol=1e-13, atol=0), name
+    assert split.tip.shape == (40, 3) and bool(split.tip.isnan().all())       # commands carry no measured tip
+
+
 def test_the_cc_model_saves_as_a_zero_residual_member(tmp_path):
     from dacr_learn.hardware.learned import cc_as_residual
 
@@ -135,7 +144,7 @@ def test_round_trip_is_weights_only_and_predicts_the_same(v4_slice, compositiona
     assert loaded.sigma_of().terms == ("ensemble", "bend")
 
 
-def test_clarke_residual_checkpoints_keep_format_1(v4_slice, tmp_path):
+def test_clarke_residual_checkpoints_are_not_compositional(v4_slice, tmp_path):
     member = cc_as_residual(v4_slice.train, v4_slice.cc)
     model = HardwareModel("cc", v4_slice.spec, v4_slice.smap, v4_slice.train_rec.servo_ids, v4_slice.cc, [member])
     path = save_hardware_model(model, tmp_path / "cc.pt")

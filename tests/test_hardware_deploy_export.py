@@ -105,7 +105,10 @@ def _compositional_model(tmp: Path):
     from dacr_learn.hardware.deploy.checkpoint import HardwareModel
 
     s = load_v4_slice(tmp)
-    members = [CCCompositionalResidual(s.train, s.cc, steps=1).eval() for _ in range(2)]
+    members = [CCCompositionalResidual(s.cc) for _ in range(2)]
+    for member in members:
+        member.fit_normalization(s.train)
+        member.eval()
     return HardwareModel("cc_compositional_residual", s.spec, s.smap, s.train_rec.servo_ids, s.cc, members)
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import pytest
+import torch
 from hardware_testkit import LABELLED_IDS, labelled_servo_map
 
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual
@@ -31,3 +32,20 @@ def test_registered_with_clarke_inputs(compositional_split):
     assert info.clarke_space and info.static and not info.deterministic and info.letter == "j"
     ctx = FitContext(cc, labelled_servo_map(cc.spec), LABELLED_IDS, split)
     assert isinstance(build_model(NAME, ctx, 0), CCCompositionalResidual)
+
+
+def test_models_are_built_from_shapes_and_fit_sets_their_statistics(compositional_split):
+    """No training data in a constructor: every registered model builds from a context without a training split;
+    the data-dependent statistics are set by fit (its first step, fit_normalization)."""
+    cc, split = compositional_split
+    shapes_only = FitContext(cc, labelled_servo_map(cc.spec), LABELLED_IDS, None)
+    models = {name: build_model(name, shapes_only, 0) for name in MODELS}
+    tip_mlp, residual, compositional = models["mlp_clarke"], models["cc_clarke_residual"], models[NAME]
+    assert not tip_mlp.norm.mean.any() and float(residual.rho_std) == 1.0
+    for model in (tip_mlp, residual, compositional):
+        model.fit_normalization(split)
+    assert torch.equal(tip_mlp.norm.mean, split.clarke.mean(0)) and torch.equal(tip_mlp.norm.std, split.clarke.std(0))
+    assert torch.equal(tip_mlp.tip_mean, split.tip.float().mean(0))
+    assert torch.equal(residual.rho_std, split.features[..., :2].float().std())
+    features = compositional.segment_features(split).flatten(0, 1).double()
+    assert torch.allclose(compositional.fk.front.norm.mean, features.mean(0).float(), rtol=0, atol=0)

@@ -48,9 +48,12 @@ CONTEXT, DEPTH, WEIGHT_DECAY, TORSION = "none", 2, 3.0, False   # chosen on the 
 
 
 class CCCompositionalResidual(nn.Module):
-    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists."""
+    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists.
 
-    def __init__(self, train: Split, cc: CalibratedCC, context: str = CONTEXT, width: int = RESIDUAL_HIDDEN,
+    Built from the calibrated CC model and the network's shape; :meth:`fit` standardises the features with
+    the training split's statistics (:meth:`fit_normalization`) and trains the network."""
+
+    def __init__(self, cc: CalibratedCC, context: str = CONTEXT, width: int = RESIDUAL_HIDDEN,
                  depth: int = DEPTH, weight_decay: float = WEIGHT_DECAY, torsion: bool = TORSION, steps: int = STEPS,
                  lr: float = LR, history: bool = False):
         super().__init__()
@@ -62,7 +65,6 @@ class CCCompositionalResidual(nn.Module):
         self.weight_decay, self.steps, self.lr = weight_decay, steps, lr
         self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context,
                                   extra_inputs=MEMORY_INPUTS if self.history else 0)   # + segment k's play memory
-        self.fk.front.norm.fit(self.segment_features(train))
         for layer in (self.fk.net[-1], self.fk.skip):
             nn.init.zeros_(layer.weight)
         nn.init.zeros_(self.fk.net[-1].bias)
@@ -102,8 +104,13 @@ class CCCompositionalResidual(nn.Module):
         """Mean squared tip error [mm²] + weight_decay × :meth:`penalty`."""
         return (self(train) - train.tip).pow(2).mean() / 1e-6 + self.weight_decay * self.penalty()
 
+    def fit_normalization(self, train: Split) -> None:
+        """The feature standardiser's statistics from the training split."""
+        self.fk.front.norm.fit(self.segment_features(train))
+
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
             p.requires_grad_(False)
+        self.fit_normalization(train)
         params = [p for n, p in self.fk.named_parameters() if not n.startswith("front.")]
         train_full_batch(params, lambda: self.objective(train), steps=self.steps, lr=self.lr)

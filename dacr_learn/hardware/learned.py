@@ -24,6 +24,11 @@ Every model maps a :class:`Split` (one recording, with inputs precomputed by the
 Networks are 2×128 SiLU MLPs (2×64 for the per-segment Clarke corrections; :func:`dacr_learn.models.mlp`,
 inputs standardised by :class:`dacr_learn.models.Standardizer`) trained full batch with Adam and a cosine
 schedule (float32).
+
+A model is built from shapes and configuration only (numbers of inputs, the fitted CC model, …), then
+trained with ``fit(train)``, whose first step sets its data-dependent statistics (``fit_normalization``:
+the standardisers, the Clarke scale σ). A checkpoint loads into a model built the same way.
+:func:`command_split` makes the inputs of servo commands without a recording.
 """
 from __future__ import annotations
 
@@ -108,13 +113,23 @@ class Split:
         return self.features[..., :2].flatten(-2).float()
 
 
-def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC) -> Split:
-    x = smap.displacements(spec, rec)
+def command_split(servo: Tensor, servo_ids: tuple[str, ...], spec: RobotSpec, smap: ServoMap, cc: CalibratedCC,
+                  tip: Tensor | None = None) -> Split:
+    """The model inputs of servo commands (n, S) [m, ``servo_ids`` column order; time order for the motion
+    memory] through the calibration (servo map, fitted CC model); ``tip``: their measured tips (n, 3) [m], or
+    None for commands without a measurement (the split's tip is then NaN)."""
+    x = smap.command_displacements(spec, servo_ids, servo)
     with torch.no_grad():
         features = cc.encoder(x)
         rho = features[..., :2]
         memory = (rho - play_operator(rho, PLAY_WIDTH)) / PLAY_WIDTH
-        return Split(rec.servo, x, features, cc.tip_from_features(features), rec.tip, memory)
+        tip = servo.new_full((servo.shape[0], 3), float("nan")) if tip is None else tip
+        return Split(servo, x, features, cc.tip_from_features(features), tip, memory)
+
+
+def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC) -> Split:
+    """The model inputs and measured tips of a recording (:func:`command_split`)."""
+    return command_split(rec.servo, rec.servo_ids, spec, smap, cc, rec.tip)
 
 
 def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> None:
@@ -128,20 +143,27 @@ def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> Non
 
 
 class TipMLP(nn.Module):
-    """MLP from raw servo values or Clarke features to the tip; inputs and outputs standardised."""
+    """MLP from raw servo values (``inputs="raw"``, n_inputs = number of servos) or Clarke features
+    (``"clarke"``, n_inputs = 2m) to the tip; inputs and outputs standardised with statistics of the
+    training split (:meth:`fit_normalization`, part of :meth:`fit`)."""
 
-    def __init__(self, inputs: str, train: Split):
+    def __init__(self, inputs: str, n_inputs: int):
         super().__init__()
+        if inputs not in ("raw", "clarke"):
+            raise ValueError(f"inputs: expected 'raw' or 'clarke', got {inputs!r}")
         self.inputs = inputs
-        data = self._input(train)
-        self.norm = Standardizer(data.shape[-1])
-        self.norm.fit(data, dtype=NORM_DTYPE)
-        self.net = mlp(data.shape[-1], 3, HIDDEN, DEPTH, "silu")
-        self.register_buffer("tip_mean", train.tip.float().mean(0))
-        self.register_buffer("tip_std", train.tip.float().std(0))
+        self.norm = Standardizer(n_inputs)
+        self.net = mlp(n_inputs, 3, HIDDEN, DEPTH, "silu")
+        self.register_buffer("tip_mean", torch.zeros(3))
+        self.register_buffer("tip_std", torch.ones(3))
 
     def _input(self, split: Split) -> Tensor:
         return split.servo.float() if self.inputs == "raw" else split.clarke
+
+    def fit_normalization(self, train: Split) -> None:
+        self.norm.fit(self._input(train), dtype=NORM_DTYPE)
+        self.tip_mean.copy_(train.tip.float().mean(0))
+        self.tip_std.copy_(train.tip.float().std(0))
 
     def from_input(self, inp: Tensor) -> Tensor:
         return self.net(self.norm(inp)) * self.tip_std + self.tip_mean
@@ -150,6 +172,7 @@ class TipMLP(nn.Module):
         return self.from_input(self._input(split)).double()
 
     def fit(self, train: Split) -> None:
+        self.fit_normalization(train)
         inp, tip = self._input(train), train.tip.float()
         train_full_batch(self.net.parameters(), lambda: self._loss(self.from_input(inp), tip))
 
@@ -158,11 +181,15 @@ class TipMLP(nn.Module):
 
 
 class LinearRaw(nn.Module):
-    """tip = W·servo + b, least squares."""
+    """tip = W·servo + b of the n_servos raw servo values, least squares."""
+
+    def __init__(self, n_servos: int):
+        super().__init__()
+        self.register_buffer("coef", torch.zeros(n_servos + 1, 3, dtype=torch.float64))
 
     def fit(self, train: Split) -> None:
         a = torch.cat([train.servo, torch.ones_like(train.servo[:, :1])], 1)
-        self.register_buffer("coef", torch.linalg.lstsq(a, train.tip).solution)
+        self.coef = torch.linalg.lstsq(a, train.tip).solution
 
     def forward(self, split: Split) -> Tensor:
         return torch.cat([split.servo, torch.ones_like(split.servo[:, :1])], 1) @ self.coef
@@ -179,34 +206,40 @@ class CCOnly(nn.Module):
 
 
 class CCTipResidual(nn.Module):
-    """tip = CC(x) + MLP(Clarke features)·5 mm."""
+    """tip = CC(x) + MLP(Clarke features (n_inputs = 2m))·5 mm."""
 
-    def __init__(self, train: Split):
+    def __init__(self, n_inputs: int):
         super().__init__()
-        self.norm = Standardizer(train.clarke.shape[-1])
-        self.norm.fit(train.clarke, dtype=NORM_DTYPE)
-        self.net = mlp(train.clarke.shape[-1], 3, HIDDEN, DEPTH, "silu")
+        self.norm = Standardizer(n_inputs)
+        self.net = mlp(n_inputs, 3, HIDDEN, DEPTH, "silu")
 
     def forward(self, split: Split) -> Tensor:
         return split.cc_tip + (self.net(self.norm(split.clarke)) * RESIDUAL_TIP_SCALE).double()
 
+    def fit_normalization(self, train: Split) -> None:
+        self.norm.fit(train.clarke, dtype=NORM_DTYPE)
+
     def fit(self, train: Split) -> None:
+        self.fit_normalization(train)
         train_full_batch(self.net.parameters(), lambda: (self(train) - train.tip).pow(2).mean() / 1e-6)
 
 
 class CCClarkeResidual(nn.Module):
-    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics."""
+    """Per-segment Clarke correction ρ⁽ᵏ⁾ + f([ρ⁽ᵏ⁾/σ, onehot(k)])·0.5 mm, then the CC kinematics of ``cc``
+    (σ: the std of the training split's ρ, :meth:`fit_normalization`, part of :meth:`fit`)."""
 
     history = False
 
-    def __init__(self, train: Split, cc: CalibratedCC):
+    def __init__(self, cc: CalibratedCC):
         super().__init__()
         self.cc = cc
-        m = train.features.shape[-2]
-        rho = train.features[..., :2].float()
-        self.register_buffer("rho_std", rho.std())
+        m = cc.spec.num_segments
+        self.register_buffer("rho_std", torch.tensor(1.0))
         self.register_buffer("onehot", torch.eye(m))
         self.net = mlp(2 + 2 * self.history + m, 2, RESIDUAL_HIDDEN, DEPTH, "silu")
+
+    def fit_normalization(self, train: Split) -> None:
+        self.rho_std.copy_(train.features[..., :2].float().std())
 
     def corrected_features(self, split: Split) -> Tensor:
         rho = split.features[..., :2].float()
@@ -227,6 +260,7 @@ class CCClarkeResidual(nn.Module):
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
             p.requires_grad_(False)
+        self.fit_normalization(train)
         train_full_batch(self.net.parameters(), lambda: self.objective(train))
 
 
@@ -258,14 +292,20 @@ def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...]
 
 
 class Pretrained(TipMLP):
-    """TipMLP pre-trained on a synthetic CC split, fine-tuned on the recording with rehearsal."""
+    """TipMLP pre-trained on a synthetic split of the calibrated CC robot (:func:`synthetic_split` of ``cc``,
+    ``smap``, ``servo_ids`` with ``samples`` rows and seed ``synthetic_seed``, drawn in :meth:`fit`), then
+    fine-tuned on the recording with the synthetic set kept in the loss (rehearsal)."""
 
-    def __init__(self, inputs: str, train: Split, synthetic: Split):
-        super().__init__(inputs, train)
-        self.synthetic = synthetic
+    def __init__(self, inputs: str, n_inputs: int, cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...],
+                 synthetic_seed: int, samples: int = PRETRAIN_SAMPLES):
+        super().__init__(inputs, n_inputs)
+        self.synthetic_source = (cc, smap, tuple(servo_ids), samples, synthetic_seed)   # not a submodule
 
     def fit(self, train: Split) -> None:
-        s_inp, s_tip = self._input(self.synthetic), self.synthetic.tip.float()
+        self.fit_normalization(train)
+        cc, smap, servo_ids, samples, seed = self.synthetic_source
+        synthetic = synthetic_split(cc, smap, servo_ids, samples, seed)
+        s_inp, s_tip = self._input(synthetic), synthetic.tip.float()
         r_inp, r_tip = self._input(train), train.tip.float()
         train_full_batch(self.net.parameters(), lambda: self._loss(self.from_input(s_inp), s_tip))
         train_full_batch(self.net.parameters(),
@@ -274,11 +314,12 @@ class Pretrained(TipMLP):
                          steps=FINETUNE_STEPS, lr=LR / 3)
 
 
-def cc_as_residual(train: Split, cc) -> CCClarkeResidual:
+def cc_as_residual(train: Split, cc: CalibratedCC) -> CCClarkeResidual:
     """The calibrated CC model (registry name ``cc``) in the CC Clarke-residual form: a correction network
     whose output layer is zero, so it predicts exactly the CC model's tips — and saves, exports and runs in
-    a controller like the learned members."""
-    model = CCClarkeResidual(train, cc)
+    a controller like the learned members (its input scale from ``train``, as a fitted member's)."""
+    model = CCClarkeResidual(cc)
+    model.fit_normalization(train)
     with torch.no_grad():
         model.net[-1].weight.zero_()
         model.net[-1].bias.zero_()

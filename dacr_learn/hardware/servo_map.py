@@ -131,10 +131,15 @@ class ServoMap:
         return sign, zero
 
     def displacements(self, spec: RobotSpec, rec: Recording) -> Tensor:
-        """Joint displacements (N, num_length_joints) [m] in spec order: sign·(value − zero)."""
-        cols = self.column_order(spec, rec.servo_ids)
-        sign, zero = self._sign_zero(spec, rec.servo)
-        return sign * (rec.servo[:, cols] - zero)
+        """Joint displacements (N, num_length_joints) [m] in spec order of a recording's servo values."""
+        return self.command_displacements(spec, rec.servo_ids, rec.servo)
+
+    def command_displacements(self, spec: RobotSpec, servo_ids: tuple[str, ...], servo: Tensor) -> Tensor:
+        """Joint displacements (..., num_length_joints) [m] in spec order of servo values (..., S) [m] in
+        ``servo_ids`` column order: sign·(value − zero)."""
+        cols = self.column_order(spec, tuple(servo_ids))
+        sign, zero = self._sign_zero(spec, servo)
+        return sign * (servo[..., cols] - zero)
 
     def servo_values(self, spec: RobotSpec, servo_ids: tuple[str, ...], x: Tensor) -> Tensor:
         """Inverse of :meth:`displacements`: joint displacements (..., N) → servo values in column order."""

@@ -45,8 +45,7 @@ from torch import nn
 from ...robot import RobotSpec
 from ..ccmodel import CalibratedCC
 from ..compositional_model import CCCompositionalResidual
-from ..learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, make_split
-from ..recording import Recording
+from ..learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, command_split
 from ..servo_map import ServoMap
 from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 
@@ -86,13 +85,12 @@ class HardwareModel:
         return isinstance(self.members[0], CCCompositionalResidual)
 
     def split(self, servo_mm: torch.Tensor) -> Split:
-        """The model inputs of commands servo (n, S) [mm, ``servo_ids`` order; time order for a history model]."""
+        """The model inputs of commands servo (n, S) [mm, ``servo_ids`` order; time order for a history model]
+        (:func:`~.learned.command_split`; no measured tips: the split's tip is NaN)."""
         servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
         if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
             raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
-        n = servo.shape[0]
-        rec = Recording(self.servo_ids, servo, servo.new_zeros(n, 3), ("",) * n, servo.new_zeros(n), "commands")
-        return make_split(rec, self.spec, self.smap, self.cc)
+        return command_split(servo, self.servo_ids, self.spec, self.smap, self.cc)
 
     def predict(self, commands: torch.Tensor | Split) -> tuple[torch.Tensor, torch.Tensor]:
         """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split.
@@ -174,21 +172,6 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
     return path
 
 
-def _placeholder_split(m: int, n: int = 2) -> Split:
-    """A Split of n rows a residual model can be constructed from (its buffers are then loaded)."""
-    z = torch.zeros(n, m, 4, dtype=torch.float64)
-    return Split(z[:, 0, :0], z[:, 0, :0], z, z[:, 0, :3], z[:, 0, :3], z[..., :2])
-
-
-def _support_from_state(state: dict, m: int) -> SupportModel:
-    support = SupportModel.__new__(SupportModel)
-    nn.Module.__init__(support)
-    support.num_segments = m
-    for k, v in state.items():
-        support.register_buffer(k, v)
-    return support
-
-
 def load_hardware_model(path: str | Path) -> HardwareModel:
     """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``).
 
@@ -232,6 +215,12 @@ def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
                          f"{str(err)[:300]})") from None
 
 
+def _support_from_state(state: dict, m: int) -> SupportModel:
+    support = SupportModel(m)
+    support.load_state_dict(state)
+    return support
+
+
 def _build(blob: dict) -> HardwareModel:
     spec = RobotSpec.from_dict(blob["robot"])
     smap = ServoMap.from_dict(blob["servo_map"])
@@ -252,16 +241,15 @@ def _build(blob: dict) -> HardwareModel:
 
 
 def _member(blob: dict, state: dict, cc: CalibratedCC) -> nn.Module:
-    """One ensemble member of a checkpoint, rebuilt around the shared CC model and loaded (strict)."""
-    m = cc.spec.num_segments
+    """One ensemble member of a checkpoint, built from the stored shapes around the shared CC model and loaded
+    (strict: the state dict holds every buffer a fit sets)."""
     if blob["format"] == FORMAT_COMPOSITIONAL:
         if blob["structure"] != "compositional" or blob["history"]:
             raise ValueError(f"structure: expected 'compositional' without history, got {blob['structure']!r} "
                              f"with history={blob['history']!r}")
-        member = CCCompositionalResidual(_placeholder_split(m), cc, steps=1, **blob["compositional"])
+        member = CCCompositionalResidual(cc, **blob["compositional"])
     else:
-        cls = CCClarkeResidualHistory if blob["history"] else CCClarkeResidual
-        member = cls(_placeholder_split(m), cc)
+        member = (CCClarkeResidualHistory if blob["history"] else CCClarkeResidual)(cc)
         if blob["format"] == FORMAT_V1:
             state = {k: v for k, v in state.items() if k not in _V1_BUFFERS}
     member.load_state_dict({**state, **{f"cc.{k}": v for k, v in cc.state_dict().items()}})

@@ -304,8 +304,8 @@ def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
     give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
-    a0 = model.smap.displacements(spec, _Rows(model.servo_ids, torch.zeros(1, s, dtype=_F64)))[0]
-    a = model.smap.displacements(spec, _Rows(model.servo_ids, 1e-3 * torch.eye(s, dtype=_F64))) - a0   # (S, N)
+    a0 = model.smap.command_displacements(spec, model.servo_ids, torch.zeros(1, s, dtype=_F64))[0]
+    a = model.smap.command_displacements(spec, model.servo_ids, 1e-3 * torch.eye(s, dtype=_F64)) - a0   # (S, N)
     a0 = a0 + enc.tendon_pretension()
     g, tendon_w = enc.displacement_map(), 1.0 / enc.path_length
     sets, gain = active_set_gains(g, enc.bend_weights(), tendon_w)                    # (2ᴺ, N), (2ᴺ, 2m, N)
@@ -315,13 +315,6 @@ def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     return {"rho_gain": (scale * gain @ a.mT).mT.contiguous(), "rho_offset": ((scale * gain) @ a0).unsqueeze(-2),
             "violation_map": torch.einsum("sij,kj->ksi", keep, a).mul(weight).flatten(-2),
             "violation_offset": ((keep @ a0) * weight).flatten()}
-
-
-class _Rows:
-    """Duck-typed Recording (servo ids + servo rows [m]) for ServoMap.displacements."""
-
-    def __init__(self, servo_ids, servo):
-        self.servo_ids, self.servo = servo_ids, servo
 
 
 def _stacked_members(members) -> dict[str, Tensor]:

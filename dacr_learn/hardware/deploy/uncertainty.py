@@ -210,31 +210,49 @@ def _groups_from_labels(labels: Sequence[str]) -> Tensor:
 class SupportModel(nn.Module):
     """Out-of-support score of commands from their Clarke coordinates (see the module docstring).
 
+    Built for ``num_segments`` segments, fitted on the training commands with :meth:`fit`.
+
     Args:
-        train_rho: (n, m, 2) Clarke coordinates of the training commands [m].
-        labels: the n pattern labels of the training rows (a row's own pattern is excluded when the
-            threshold is set); None: every row is its own pattern (plain leave-one-out).
+        num_segments: m, the number of segments (ρ has shape (..., m, 2)).
         quantile: the quantile of the training rows' cross-pattern distances used as threshold.
     """
 
-    def __init__(self, train_rho: Tensor, labels: Sequence[str] | None = None, quantile: float = SUPPORT_QUANTILE):
+    def __init__(self, num_segments: int, quantile: float = SUPPORT_QUANTILE):
         super().__init__()
-        check_tensor(train_rho, "train_rho", (2,))
+        self.num_segments, self.quantile = int(num_segments), float(quantile)
+        dim = 2 * self.num_segments
+        self.register_buffer("mean", torch.zeros(dim, dtype=torch.float64))
+        self.register_buffer("std", torch.ones(dim, dtype=torch.float64))
+        self.register_buffer("points", torch.zeros(0, dim, dtype=torch.float64))   # standardised training rows
+        self.register_buffer("threshold", torch.tensor(1.0, dtype=torch.float64))
+
+    def fit(self, train_rho: Tensor, labels: Sequence[str] | None = None) -> SupportModel:
+        """Fit on the Clarke coordinates (n, m, 2) [m] of the training commands and their n pattern labels
+        (a row's own pattern is excluded when the threshold is set; None: every row is its own pattern,
+        plain leave-one-out); returns the model."""
+        check_tensor(train_rho, "train_rho", (self.num_segments, 2))
         if train_rho.dim() != 3 or train_rho.shape[0] < 2:
-            raise ValueError(f"train_rho: expected shape (n, m, 2) with n >= 2, got {tuple(train_rho.shape)}")
-        self.num_segments = train_rho.shape[1]
+            raise ValueError(f"train_rho: expected shape (n, {self.num_segments}, 2) with n >= 2, got "
+                             f"{tuple(train_rho.shape)}")
         points = train_rho.flatten(1).double()
         if labels is not None and len(labels) != points.shape[0]:
             raise ValueError(f"labels: expected {points.shape[0]} labels (one per row), got {len(labels)}")
-        self.register_buffer("mean", points.mean(0))
-        self.register_buffer("std", points.std(0).clamp_min(1e-12))
-        self.register_buffer("points", (points - self.mean) / self.std)
+        self.mean.copy_(points.mean(0))
+        self.std.copy_(points.std(0).clamp_min(1e-12))
+        self.points = (points - self.mean) / self.std
         groups = torch.arange(points.shape[0]) if labels is None else _groups_from_labels(labels)
         if int(groups.max()) == 0:                    # one pattern only: leave-one-out
             groups = torch.arange(points.shape[0])
         dist = torch.cdist(self.points, self.points, compute_mode=_EXACT)
         dist[groups[:, None] == groups[None, :]] = float("inf")
-        self.register_buffer("threshold", torch.quantile(dist.min(1).values, quantile))
+        self.threshold.copy_(torch.quantile(dist.min(1).values, self.quantile))
+        return self
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        points = state_dict.get(prefix + "points")
+        if isinstance(points, Tensor):                # the number of training rows is the stored one
+            self.points = torch.empty_like(points, dtype=self.points.dtype)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def _standardised(self, rho: Tensor) -> Tensor:
         check_tensor(rho, "rho", (self.num_segments, 2))

@@ -289,7 +289,7 @@ def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibrati
         members = [m.eval() for m in members]
     else:
         members = [fit_model(name, setup, seed).eval() for seed in seeds]
-    support = SupportModel(setup.train.features[..., :2], list(setup.train_rec.labels))
+    support = SupportModel(setup.spec.num_segments).fit(setup.train.features[..., :2], list(setup.train_rec.labels))
     return HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, members,
                          sigma=sigma, support=support, examples=1e3 * setup.train_rec.servo[:256],
                          info=dict(info or {}))

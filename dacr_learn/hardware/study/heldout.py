@@ -61,7 +61,7 @@ def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[
         model.fit(ctx.train)
         with torch.no_grad():
             preds.append(model.eval()(test))
-    support = SupportModel(ctx.train.features[..., :2], list(train_labels))
+    support = SupportModel(ctx.cc.spec.num_segments).fit(ctx.train.features[..., :2], list(train_labels))
     rho = test.features[..., :2]
     return HeldOut(fold, torch.stack(preds), test.cc_tip, test.tip, rho, support.distance(rho))
 

@@ -1,9 +1,10 @@
 """The registry of hardware tip models: name → builder, letter and flags (one place, unique letters).
 
-Every model is built from a :class:`FitContext` (the fitted CC model, the servo map and the
-training split) and a seed, then trained with ``model.fit(train)`` and evaluated with
-``model(split)`` → tip (n, 3) [m] (:mod:`dacr_learn.hardware.learned`). The benchmark, the
-train-only selection proxies (:mod:`.selection`) and the held-out σ fits build models here.
+Every model is built from a :class:`FitContext` and a seed — from shapes and configuration only (the
+number of servos or segments, the fitted CC model, the servo map): no training data goes into a
+constructor — then trained with ``model.fit(ctx.train)`` (which also sets its data-dependent
+statistics) and evaluated with ``model(split)`` → tip (n, 3) [m] (:mod:`dacr_learn.hardware.learned`). The
+benchmark, the train-only selection proxies (:mod:`.selection`) and the held-out σ fits build models here.
 """
 from __future__ import annotations
 
@@ -29,19 +30,31 @@ from ..learned import (
 )
 from ..servo_map import ServoMap
 
+SYNTHETIC_SEED = 1000   # the pre-trained models' synthetic data of seed s is drawn with seed SYNTHETIC_SEED + s
+
 
 @dataclass(frozen=True)
 class FitContext:
-    """What a model is built from: the CC model fitted on ``train``, the servo map and the servo ids."""
+    """What a model is built and fitted from: the CC model fitted on ``train``, the servo map and the servo ids
+    (the builders read these), and the training split (the callers fit on it)."""
 
     cc: CalibratedCC
     smap: ServoMap
     servo_ids: tuple[str, ...]
     train: Split
 
+    def n_inputs(self, inputs: str) -> int:
+        """Width of a network input: the number of servos ("raw") or 2m Clarke coordinates ("clarke")."""
+        return len(self.servo_ids) if inputs == "raw" else 2 * self.cc.spec.num_segments
+
     def synthetic(self, seed: int, n: int = PRETRAIN_SAMPLES) -> Split:
-        """Synthetic all-segment data of the calibrated CC robot (:func:`~.learned.synthetic_split`)."""
-        return synthetic_split(self.cc, self.smap, self.servo_ids, n, seed=1000 + seed)
+        """Synthetic all-segment data of the calibrated CC robot (:func:`~.learned.synthetic_split`), as the
+        pre-trained models of seed ``seed`` draw it."""
+        return synthetic_split(self.cc, self.smap, self.servo_ids, n, seed=SYNTHETIC_SEED + seed)
+
+
+def _pretrained(inputs: str) -> Callable[[FitContext, int], nn.Module]:
+    return lambda c, s: Pretrained(inputs, c.n_inputs(inputs), c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s)
 
 
 @dataclass(frozen=True)
@@ -66,21 +79,20 @@ class ModelInfo:
 
 
 _MODELS = (
-    ModelInfo("linear_raw", "a", lambda c, s: LinearRaw(), "raw", deterministic=True),
-    ModelInfo("mlp_raw", "b", lambda c, s: TipMLP("raw", c.train), "raw"),
-    ModelInfo("mlp_clarke", "c", lambda c, s: TipMLP("clarke", c.train), "clarke"),
+    ModelInfo("linear_raw", "a", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True),
+    ModelInfo("mlp_raw", "b", lambda c, s: TipMLP("raw", c.n_inputs("raw")), "raw"),
+    ModelInfo("mlp_clarke", "c", lambda c, s: TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
     ModelInfo("cc", "d", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True),
-    ModelInfo("cc_clarke_residual", "e", lambda c, s: CCClarkeResidual(c.train, c.cc), "clarke",
-              deployable=True),
-    ModelInfo("pretrained_clarke", "f", lambda c, s: Pretrained("clarke", c.train, c.synthetic(s)), "clarke"),
-    ModelInfo("cc_clarke_residual_history", "g", lambda c, s: CCClarkeResidualHistory(c.train, c.cc), "clarke",
+    ModelInfo("cc_clarke_residual", "e", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True),
+    ModelInfo("pretrained_clarke", "f", _pretrained("clarke"), "clarke"),
+    ModelInfo("cc_clarke_residual_history", "g", lambda c, s: CCClarkeResidualHistory(c.cc), "clarke",
               static=False, deployable=True),
-    ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.train), "clarke"),
-    ModelInfo("pretrained_raw", "i", lambda c, s: Pretrained("raw", c.train, c.synthetic(s)), "raw"),
-    ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.train, c.cc), "clarke",
+    ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.n_inputs("clarke")), "clarke"),
+    ModelInfo("pretrained_raw", "i", _pretrained("raw"), "raw"),
+    ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.cc), "clarke",
               deployable=True),
-    ModelInfo("cc_compositional_history", "k",
-              lambda c, s: CCCompositionalResidual(c.train, c.cc, history=True), "clarke", static=False),
+    ModelInfo("cc_compositional_history", "k", lambda c, s: CCCompositionalResidual(c.cc, history=True), "clarke",
+              static=False),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)
@@ -95,7 +107,8 @@ def model_info(model: str) -> ModelInfo:
 
 
 def build_model(model: str, ctx: FitContext, seed: int) -> nn.Module:
-    """A fresh, untrained registered model, torch seeded with ``seed`` first."""
+    """A fresh, untrained registered model, torch seeded with ``seed`` first (its initial weights); the caller
+    fits it, ``model.fit(ctx.train)``."""
     info = model_info(model)
     torch.manual_seed(seed)
     return info.build(ctx, seed)
