@@ -17,8 +17,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
+from dacr_learn.hardware.learned import DEPTH, RESIDUAL_RHO_SCALE, play_operator, train_full_batch
 from dacr_learn.hardware.metrics import offset_removed_rmse
+from dacr_learn.models import mlp
 
 from .common import FOLDS, setup
 from .common import fit as cc_for
@@ -38,7 +39,7 @@ class Model(nn.Module):
         self.register_buffer("rho_std", feats[..., :2].float().std())
         self.register_buffer("onehot", torch.eye(m))
         nmem = len(cfg["mem"])
-        self.net = mlp(2 + 2 * nmem + m, 2, hidden=cfg["hidden"])
+        self.net = mlp(2 + 2 * nmem + m, 2, cfg["hidden"], DEPTH, "silu")
         if cfg["pi"]:
             J = len(cfg["pi"])
             self.logit = nn.Parameter(torch.zeros(m if cfg.get("pi_seg", True) else 1, J))

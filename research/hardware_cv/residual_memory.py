@@ -21,7 +21,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp, play_operator, train_full_batch
+from dacr_learn.hardware.learned import DEPTH, RESIDUAL_RHO_SCALE, play_operator, train_full_batch
+from dacr_learn.models import mlp
 
 from .common import FOLDS, fit, rmse, setup, tendon_play, val_data
 
@@ -35,7 +36,7 @@ class Model(nn.Module):
         m = feats_tr.shape[-2]
         self.register_buffer("rho_std", feats_tr[..., :2].float().std())
         self.register_buffer("onehot", torch.eye(m))
-        self.net = mlp(2 + 2 * bool(cfg["mem_in"]) + m, 2, hidden=cfg.get("hidden", 64))
+        self.net = mlp(2 + 2 * bool(cfg["mem_in"]) + m, 2, cfg.get("hidden", 64), DEPTH, "silu")
         self.c0 = nn.Parameter(torch.zeros(m))
         self.c = nn.Parameter(torch.zeros(len(cfg["lin"])))
         self.cs = nn.Parameter(torch.zeros(m, len(cfg.get("lin_static", []))))

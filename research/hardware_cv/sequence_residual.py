@@ -18,7 +18,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from dacr_learn.hardware.learned import RESIDUAL_RHO_SCALE, mlp
+from dacr_learn.hardware.learned import DEPTH, RESIDUAL_RHO_SCALE
+from dacr_learn.models import mlp
 
 from .common import FOLDS, fit, rmse, setup, val_data
 
@@ -34,7 +35,7 @@ class SeqResidual(nn.Module):
         self.register_buffer("rho_std", rho.std())
         self.register_buffer("step_std", rho.diff(dim=0).std())
         self.register_buffer("onehot", torch.eye(m))
-        self.static = mlp(2 + m, 2, hidden=64)
+        self.static = mlp(2 + m, 2, 64, DEPTH, "silu")
         self.gru = nn.GRU(4 + m, hidden, batch_first=True)
         self.head = nn.Linear(hidden, 2)
         nn.init.zeros_(self.head.weight)
