@@ -389,4 +389,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    sys.exit(run_cli(main))       # a bad --ckpt: its one-line message, not a traceback
+    # run the package's own module, not this __main__ copy of it: exporters register into
+    # dacr_learn.export's registry and are instances of its Exporter class
+    from dacr_learn.export import main as package_main
+
+    sys.exit(run_cli(package_main))       # a bad --ckpt: its one-line message, not a traceback

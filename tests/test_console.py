@@ -108,12 +108,15 @@ def lightning_records():
     handler.emit = lambda record: records.append(record.getMessage())
     logger = logging.getLogger("lightning.pytorch.utilities.rank_zero")
     logger.removeFilter(console._DROP_ADVERTS)           # installed by an earlier test of this process
+    level = logger.level
+    logger.setLevel(logging.INFO)     # an earlier test may have raised lightning.pytorch's level (ablation runner)
     logger.addHandler(handler)
     try:
         yield records
     finally:
         logger.removeHandler(handler)
         logger.removeFilter(console._DROP_ADVERTS)
+        logger.setLevel(level)
 
 
 def _trainer():
