@@ -184,7 +184,7 @@ def test_history_variant_is_scored_but_cannot_be_saved_yet(compositional_split, 
 
     cc, split = compositional_split
     info = REGISTRY["cc_compositional_history"]
-    assert info.clarke_space and not info.static and not info.deployable and info.letter == "k"
+    assert info.clarke_space and not info.static and not info.deployable
     member = build_model("cc_compositional_history", FitContext(cc, labelled_servo_map(cc.spec), LABELLED_IDS, split),
                          0)
     model = HardwareModel("cc_compositional_history", cc.spec, labelled_servo_map(cc.spec), LABELLED_IDS, cc, [member])

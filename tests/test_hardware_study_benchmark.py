@@ -27,7 +27,7 @@ def test_load_setup_records_the_cc_variant_and_refuses_an_unknown_one(tmp_path):
 
 
 def test_fit_hardware_model_trains_a_compositional_ensemble(v4_slice, monkeypatch, tmp_path):
-    quick = ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.cc, steps=5),
+    quick = ModelInfo("cc_compositional_residual", lambda c, s: CCCompositionalResidual(c.cc, steps=5),
                       "clarke", deployable=True)
     monkeypatch.setitem(REGISTRY, "cc_compositional_residual", quick)
     model = fit_hardware_model(v4_slice, "cc_compositional_residual", [0, 1])

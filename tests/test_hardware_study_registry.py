@@ -1,4 +1,4 @@
-"""The model registry (dacr_learn.hardware.study.registry): letters, flags, what builds and what ships."""
+"""The model registry (dacr_learn.hardware.study.registry): names, flags, what builds and what ships."""
 from __future__ import annotations
 
 import pytest
@@ -12,13 +12,12 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 NAME = "cc_compositional_residual"
 
 
-def test_registry_has_unique_letters_and_flags():
-    letters = [REGISTRY[m].letter for m in MODELS]
-    assert len(set(letters)) == len(letters) == len(MODELS)
+def test_registry_has_unique_names_and_flags():
+    assert len(set(MODELS)) == len(MODELS) == 11 and all(REGISTRY[m].name == m for m in MODELS)
     assert {m for m in MODELS if REGISTRY[m].deterministic} == {"linear_raw", "cc"}
     assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history", "cc_compositional_history"]
     history = model_info("cc_compositional_history")
-    assert history.letter == "k" and history.clarke_space and not history.deployable
+    assert history.clarke_space and not history.deployable
     assert not model_info("mlp_raw").clarke_space and model_info("pretrained_clarke").clarke_space
     with pytest.raises(ValueError, match="expected one of"):
         model_info("mlp")
@@ -29,7 +28,7 @@ def test_registry_has_unique_letters_and_flags():
 def test_registered_with_clarke_inputs(compositional_split):
     cc, split = compositional_split
     info = REGISTRY[NAME]
-    assert info.clarke_space and info.static and not info.deterministic and info.letter == "j"
+    assert info.clarke_space and info.static and not info.deterministic
     ctx = FitContext(cc, labelled_servo_map(cc.spec), LABELLED_IDS, split)
     assert isinstance(build_model(NAME, ctx, 0), CCCompositionalResidual)
 

@@ -7,7 +7,7 @@
 - :mod:`.ccmodel`     calibrated constant-curvature model with a handful of physical parameters (variants:
                       lateral marker, pretension ∝ tendon length)
 - :mod:`.learned`     baselines, Clarke-feature networks, CC residuals, synthetic pre-training
-- :mod:`.registry`    the model registry: name → builder, letter, flags
+- :mod:`.registry`    the model registry: name → builder, flags
 - :mod:`.selection`   train-only selection proxies (family CV, singles → pairs) and the default model
 - :mod:`.metrics`     offset-removed tip RMSE (the lab's metric), mean and p95 error
 - :mod:`.benchmark`   all of the above on a train (+ optional val) recording; ``python -m dacr_learn.hardware``

@@ -109,7 +109,7 @@ def variant(name: str, history: bool, support: bool, weight: float) -> ModelInfo
     def build(ctx, seed):
         synth = ctx.synthetic(seed, REHEARSAL_SAMPLES) if weight else None
         return cls(ctx.cc).set_options(support=support, rehearsal=synth, rehearsal_weight=weight)
-    return ModelInfo(name, "?", build, "clarke", static=not history)
+    return ModelInfo(name, build, "clarke", static=not history)
 
 
 VARIANTS = {f"{base}{'_support' if s else ''}{f'_reh{w:g}' if w else ''}": variant(

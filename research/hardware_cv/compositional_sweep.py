@@ -40,7 +40,7 @@ def parse(variant: str) -> dict:
 
 def info(variant: str) -> ModelInfo:
     kwargs = parse(variant)
-    return ModelInfo(variant, "?", lambda c, s: CCCompositionalResidual(c.cc, **kwargs), "clarke")
+    return ModelInfo(variant, lambda c, s: CCCompositionalResidual(c.cc, **kwargs), "clarke")
 
 
 def run(robot: str, proxies: str, variants: list[str]) -> None:

@@ -168,7 +168,7 @@ def submit_benchmark(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Seq
 def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
     """(summary over seeds, val predictions of the first seed or None) from [((run, pred, model), seconds)]."""
     info = model_info(name)
-    summary = {"letter": info.letter, "clarke_space": info.clarke_space, "static": info.static,
+    summary = {"clarke_space": info.clarke_space, "static": info.static,
                "seeds": seeds[:len(runs)], "seconds_per_run": float(np.mean([sec for _, sec in runs]))}
     first = runs[0][0][0]
     for split in ("val", "train"):
@@ -259,15 +259,15 @@ def _pm(d: dict | None) -> str:
 def markdown_table(results: dict, scores: dict | None = None, default: str | None = None) -> str:
     """Results table in Markdown: proxies (train only), val metrics when present (mean ± std over seeds)."""
     scores = scores or {}
-    lines = ["| | model | inputs | family CV [mm] | singles→pairs [mm] | val RMSE, offset removed [mm] | "
+    lines = ["| model | inputs | family CV [mm] | singles→pairs [mm] | val RMSE, offset removed [mm] | "
              "val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, r in results.items():
         v, t, p = r.get("val", {}), r["train"], scores.get(name, {})
         inputs = ("Clarke" if r["clarke_space"] else "raw servo") + ("" if r["static"] else " + history")
         proxy = [f"{p[k]:.2f}" if k in p else "–" for k in ("cv", "extrap")]
         shown = f"**`{name}`** (default)" if name == default else f"`{name}`"
-        lines.append(f"| {r['letter']} | {shown} | {inputs} | {proxy[0]} | {proxy[1]} | {_pm(v.get('rmse_mm'))} | "
+        lines.append(f"| {shown} | {inputs} | {proxy[0]} | {proxy[1]} | {_pm(v.get('rmse_mm'))} | "
                      f"{_pm(v.get('mean_mm'))} | {_pm(v.get('p95_mm'))} | {_pm(t['rmse_mm'])} | {len(r['seeds'])} |")
     return "\n".join(lines)
 

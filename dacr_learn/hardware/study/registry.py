@@ -1,4 +1,4 @@
-"""The registry of hardware tip models: name → builder, letter and flags (one place, unique letters).
+"""The registry of hardware tip models: name → builder and flags (one place, unique names).
 
 Every model is built from a :class:`FitContext` and a seed — from shapes and configuration only (the
 number of servos or segments, the fitted CC model, the servo map): no training data goes into a
@@ -66,7 +66,6 @@ class ModelInfo:
     :mod:`.checkpoint`)."""
 
     name: str
-    letter: str
     build: Callable[[FitContext, int], nn.Module]
     inputs: str
     static: bool = True
@@ -79,24 +78,24 @@ class ModelInfo:
 
 
 _MODELS = (
-    ModelInfo("linear_raw", "a", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True),
-    ModelInfo("mlp_raw", "b", lambda c, s: TipMLP("raw", c.n_inputs("raw")), "raw"),
-    ModelInfo("mlp_clarke", "c", lambda c, s: TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
-    ModelInfo("cc", "d", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True),
-    ModelInfo("cc_clarke_residual", "e", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True),
-    ModelInfo("pretrained_clarke", "f", _pretrained("clarke"), "clarke"),
-    ModelInfo("cc_clarke_residual_history", "g", lambda c, s: CCClarkeResidualHistory(c.cc), "clarke",
+    ModelInfo("linear_raw", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True),
+    ModelInfo("mlp_raw", lambda c, s: TipMLP("raw", c.n_inputs("raw")), "raw"),
+    ModelInfo("mlp_clarke", lambda c, s: TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
+    ModelInfo("cc", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True),
+    ModelInfo("cc_clarke_residual", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True),
+    ModelInfo("pretrained_clarke", _pretrained("clarke"), "clarke"),
+    ModelInfo("cc_clarke_residual_history", lambda c, s: CCClarkeResidualHistory(c.cc), "clarke",
               static=False, deployable=True),
-    ModelInfo("cc_tip_residual", "h", lambda c, s: CCTipResidual(c.n_inputs("clarke")), "clarke"),
-    ModelInfo("pretrained_raw", "i", _pretrained("raw"), "raw"),
-    ModelInfo("cc_compositional_residual", "j", lambda c, s: CCCompositionalResidual(c.cc), "clarke",
+    ModelInfo("cc_tip_residual", lambda c, s: CCTipResidual(c.n_inputs("clarke")), "clarke"),
+    ModelInfo("pretrained_raw", _pretrained("raw"), "raw"),
+    ModelInfo("cc_compositional_residual", lambda c, s: CCCompositionalResidual(c.cc), "clarke",
               deployable=True),
-    ModelInfo("cc_compositional_history", "k", lambda c, s: CCCompositionalResidual(c.cc, history=True), "clarke",
+    ModelInfo("cc_compositional_history", lambda c, s: CCCompositionalResidual(c.cc, history=True), "clarke",
               static=False),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)
-assert len({m.letter for m in _MODELS}) == len(_MODELS), "model letters must be unique"
+assert len({m.name for m in _MODELS}) == len(_MODELS), "model names must be unique"
 
 
 def model_info(model: str) -> ModelInfo:
