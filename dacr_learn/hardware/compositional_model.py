@@ -21,9 +21,9 @@ extrapolate it freely to the pairs, where it turns the distal bending planes.
 Training: full-batch Adam on the mean squared tip error [mm²] plus ``weight_decay`` × the sum of
 squared network weights (biases excluded), the CC parameters frozen.
 
-With ``history=True`` (registry (k) ``cc_compositional_history``) the network also sees segment k's
-play memory (ρ_k − play(ρ_k))/PLAY_WIDTH, the motion-direction input of model (g), so each correction
-depends on how the segment got there (hysteresis) as well as where it is.
+With ``history=True`` (registry name ``cc_compositional_history``) the network also sees segment k's
+play memory (ρ_k − play(ρ_k))/PLAY_WIDTH, the motion-direction input of ``cc_clarke_residual_history``,
+so each correction depends on how the segment got there (hysteresis) as well as where it is.
 
 Deployable: :mod:`.checkpoint` saves and loads it (format /2), :mod:`.compositional_inference` has its
 exportable FK and Jacobian modules (``python -m dacr_learn.export``) — without history; the history
@@ -41,10 +41,10 @@ from ..lie import chain_products
 from .ccmodel import CalibratedCC
 from .learned import LR, RESIDUAL_HIDDEN, STEPS, Split, train_full_batch
 
-MEMORY_INPUTS = 2    # with history=True: segment k's play memory (ρ_k − play(ρ_k))/PLAY_WIDTH, as model (g) sees it
+MEMORY_INPUTS = 2    # with history=True: segment k's play memory (ρ_k − play(ρ_k))/PLAY_WIDTH (as the history model)
 TWIST_SCALE = 0.05   # network output 1 ↔ 0.05·L_s translation, 0.05 rad (≈ 2.9°) rotation per segment
 CONTEXT, DEPTH, WEIGHT_DECAY, TORSION = "none", 2, 3.0, False   # chosen on the train-only proxies
-# (docs/compositional.md, experiments/hardware_cv/compositional_sweep.py)
+# (docs/compositional.md, python -m research.hardware_cv.compositional_sweep)
 
 
 class CCCompositionalResidual(nn.Module):

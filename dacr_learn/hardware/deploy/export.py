@@ -42,7 +42,7 @@ class InitialState(nn.Module):
 
 
 def modules(model: HardwareModel, dtype: torch.dtype) -> dict[str, nn.Module]:
-    if model.compositional:                        # the compositional CC model (j): static, no state
+    if model.compositional:                        # the compositional CC model: static, no state
         return {"fk": CompositionalHardwareFK(model, dtype).eval(),
                 "jacobian": CompositionalHardwareJacobian(model, dtype).eval()}
     fk = HardwareFK(model, dtype).eval()

@@ -23,7 +23,7 @@ from .selection import PROXIES, make_folds, model_seeds, proxy_masks
 
 # The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
 # training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,
-# experiments/hardware_cv/ensemble_uncertainty.py), fitted on the singles → pairs fold (the cheapest:
+# research/hardware_cv/ensemble_uncertainty.py), fitted on the singles → pairs fold (the cheapest:
 # one fold, trained on the single-segment rows).
 SIGMA_TERMS = ("bend",)
 SIGMA_PROXIES = ("extrap",)
