@@ -15,7 +15,8 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
 - ``fk_torch_compile`` (with ``--compile``): torch.compile(InferenceFK, mode="max-autotune-no-cudagraphs");
 - ``fk_compositional_{eager_lightning, eager_folded, export_program, aoti}``: the compositional FK of
   configs/fk_tdcr3_compositional.yaml (3-segment robot: per-segment network, twist head, products),
-  exported the same way (``--no-compositional`` skips these rows).
+  exported the same way, and ``jacobian_compositional_{export_program, aoti}``: its Jacobian module
+  (pose, J_f, J_q; ``--no-compositional`` skips these rows).
 - ``hardware_{fk_eager, fk_export_program, jacobian_export_program, fk_aoti, fk_aoti_runner,
   jacobian_aoti}``: a hardware model (servo commands [mm] + play state → tip, tip_std, new state;
   dacr_learn.hardware.deploy.inference) of FTDCR v4's shape — the registry's
@@ -135,8 +136,10 @@ def compositional_candidates(config: Path, out: Path, aoti: bool, autotune: bool
     folded = InferenceCompositionalFK(fk.model).eval()
     fns = {"fk_compositional_eager_lightning": _bound(fk.model, q), "fk_compositional_eager_folded": _bound(folded, q),
            "fk_compositional_export_program": _bound(dexport.load(out / "fk_compositional" / "fk.pt2"), q)}
+    fns["jacobian_compositional_export_program"] = _bound(dexport.load(out / "fk_compositional" / "jacobian.pt2"), q)
     if aoti:
         fns["fk_compositional_aoti"] = _bound(dexport.load(out / "fk_compositional", "fk"), q)
+        fns["jacobian_compositional_aoti"] = _bound(dexport.load(out / "fk_compositional", "jacobian"), q)
     return fns
 
 

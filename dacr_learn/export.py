@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from .checks import check_tensor, load_torch_file, read_json_object, short_error
 from .console import run_cli
 from .inference import InferenceFK, InferenceIK, InferenceJacobian
-from .inference_compositional import InferenceCompositionalFK
+from .inference_compositional import InferenceCompositionalFK, InferenceCompositionalJacobian
 from .robot import RobotSpec
 from .runs import CHECKPOINT, find_checkpoint, load_lightning_checkpoint
 
@@ -67,9 +67,12 @@ def metadata_digest(meta: dict) -> str:
 
 def inference_modules(task: str, model: nn.Module, dtype: torch.dtype = torch.float32) -> dict[str, nn.Module]:
     """The plain nn.Modules of a trained models.FKModel ("fk") or models.IKModel ("ik"), in eval mode.
-    A compositional FK model (compositional.CompositionalFK) gives ``fk`` only (no Jacobian module yet)."""
+    A compositional FK model (compositional.CompositionalFK) gives ``fk``, and ``jacobian`` with the twist head."""
     if task == "fk" and getattr(model, "structure", "monolithic") == "compositional":
-        return {"fk": InferenceCompositionalFK(model, dtype).eval()}
+        modules = {"fk": InferenceCompositionalFK(model, dtype).eval()}
+        if model.rotation == "twist":
+            modules["jacobian"] = InferenceCompositionalJacobian(model, dtype).eval()
+        return modules
     if task == "fk":
         return {"fk": InferenceFK(model, dtype).eval(), "jacobian": InferenceJacobian(model, dtype).eval()}
     if task == "ik":

@@ -1,7 +1,14 @@
-"""Folded inference module of the compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`):
+"""Folded inference modules of the compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`):
 the Clarke front-end, the per-segment standardisation, the context and the first layer folded into one affine
 map (as :mod:`dacr_learn.inference` does for the monolithic FK), then the shared MLP, the twist (or 6D) head
-and the products of the segment transforms. Joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m]."""
+and the products of the segment transforms.
+
+- :class:`InferenceCompositionalFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
+- :class:`InferenceCompositionalJacobian` (twist head): joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D),
+  J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.inference.InferenceJacobian`: the segment twists and
+  their tangents along the D actuated features in forward mode through the MLP, the tangent of each segment's
+  exponential (:func:`~dacr_learn.lie.twist_exp_and_tangent`), and the product rule over the chain
+  (∂T_tip = Σ_k T_1⋯T_{k−1} · ∂T_k · T_{k+1}⋯T_m, prefix and suffix products)."""
 from __future__ import annotations
 
 import torch
@@ -9,11 +16,12 @@ from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
 from .compositional import HEADS
+from .control import twist_jacobian
 from .inference import ClarkeFold, FoldedMLP, linear_layers
-from .lie import pose_from_parts, twist_exp
+from .lie import pose_from_parts, twist_exp, twist_exp_and_tangent
 from .models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 
-__all__ = ["InferenceCompositionalFK", "compositional_first_layer"]
+__all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer"]
 
 _F64 = torch.float64
 
@@ -62,6 +70,50 @@ class InferenceCompositionalFK(nn.Module):
         for k in range(1, self.num_segments):
             tip = tip @ t[:, k]
         return tip
+
+
+class InferenceCompositionalJacobian(nn.Module):
+    """Compositional learned FK and its Jacobians: q (B, N) → (pose (B, 4, 4), J_f (B, 6, D), J_q (B, 6, N)).
+
+    Rows of J: tip linear velocity [m] and angular velocity [rad] in the base frame per unit of actuated
+    feature (J_f) or joint (J_q = J_f·∂f/∂q), as :class:`~dacr_learn.inference.InferenceJacobian`. Twist head
+    only (``rotation="twist"``; a ValueError otherwise)."""
+
+    def __init__(self, model, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        if model.rotation != "twist":
+            raise ValueError("rotation: the compositional Jacobian module needs the 'twist' head, "
+                             f"got {model.rotation!r}")
+        self.num_segments, self.num_joints = model.spec.num_segments, model.spec.num_joints
+        self.width, self.out = linear_layers(model.net)[0].out_features, HEADS[model.rotation]
+        self.fold = ClarkeFold(model.spec)
+        scale = torch.ones(self.out, dtype=_F64)
+        scale[:3] = model.length_scale.to(_F64)
+        k, k0 = compositional_first_layer(model, scale)                   # acts on actuated features f
+        d = k.shape[1]
+        # ∂(pre-activations | skip part) / ∂f per segment: (m, D, W + O), the tangents the MLP carries forward
+        self.register_buffer("seed", k.view(self.num_segments, self.width + self.out, d).mT.contiguous().to(dtype))
+        self.fold.to(dtype)
+        self.mlp = FoldedMLP(model.net, (k, k0), scale, torch.zeros_like(scale), dtype)
+        self.register_buffer("eye", torch.eye(4, dtype=dtype))
+
+    def forward(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        u = self.fold.inputs(q)
+        f = self.fold.features(u)
+        pre = self.mlp.first(f).unflatten(-1, (self.num_segments, self.width + self.out))      # (B, m, W + O)
+        seed = self.seed.expand(q.shape[0], -1, -1, -1)                                         # (B, m, D, W + O)
+        out, dout = self.mlp.forward_with_tangents(pre[..., :self.width], seed[..., :self.width])
+        xi, dxi = out + pre[..., self.width:], dout + seed[..., self.width:]          # (B, m, 6), (B, m, D, 6)
+        t, dt = twist_exp_and_tangent(xi, dxi)                                        # (B, m, 4, 4), (B, m, D, 4, 4)
+        m = self.num_segments
+        prefix, suffix = [self.eye.expand(q.shape[0], 4, 4)], [self.eye.expand(q.shape[0], 4, 4)]
+        for k in range(m):                                                  # T_1⋯T_k and T_{m−k}⋯T_m
+            prefix.append(prefix[-1] @ t[:, k])
+            suffix.append(t[:, m - 1 - k] @ suffix[-1])
+        dpose = sum(prefix[k].unsqueeze(1) @ dt[:, k] @ suffix[m - 1 - k].unsqueeze(1) for k in range(m))
+        pose = prefix[m]
+        jac_f = twist_jacobian(pose, dpose.permute(0, 2, 3, 1))                                  # (B, 6, D)
+        return pose, jac_f, jac_f @ self.fold.jacobian(q, u)
 
 
 def compositional_first_layer(model, scale: Tensor) -> tuple[Tensor, Tensor]:

@@ -16,6 +16,7 @@ from conftest import TDCR3, roundoff_tol
 
 from dacr_learn import export as dexport
 from dacr_learn.compositional import CompositionalFK, build_fk_model, transfer
+from dacr_learn.control import ResolvedRateController
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics, segment_tip_poses
 from dacr_learn.robot import RobotSpec
@@ -160,9 +161,19 @@ def test_export_round_trip(trained, tmp_path):
     module, path = trained
     aoti = os.environ.get("DACR_TEST_AOTI") == "1"
     meta = dexport.export_checkpoint(path, tmp_path, aoti=aoti)
-    assert set(meta["modules"]) == {"fk"} and meta.get("structure") == "compositional"
+    assert set(meta["modules"]) == {"fk", "jacobian"} and meta.get("structure") == "compositional"
     loaded = dexport.load(tmp_path, "fk")
     q = generate(TDCR3, 40, seed=12)["q"]
     with torch.no_grad():
         assert torch.allclose(loaded(q.reshape(4, 10, -1)).reshape(40, 4, 4), module(q), rtol=0,
                               atol=dexport.VERIFY_TOLERANCE)
+    pose, jac_f, jac_q = dexport.load(tmp_path, "jacobian")(q[:3])
+    assert jac_f.shape == (3, 6, TDCR3.num_actuated_features) and jac_q.shape == (3, 6, TDCR3.num_joints)
+    assert torch.allclose(pose, module(q[:3]), rtol=0, atol=dexport.VERIFY_TOLERANCE)
+    controller = ResolvedRateController(TDCR3, dexport.load(tmp_path, "jacobian"))   # drives a controller
+    target = module(q[:1])[0, :3, 3] + torch.tensor([0.002, -0.001, 0.0])
+    command = q[:1].double()
+    for _ in range(30):
+        command = controller.step(command, target)
+    with torch.no_grad():
+        assert float((module(command.float())[0, :3, 3] - target).norm()) < 2e-4
