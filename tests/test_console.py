@@ -285,6 +285,7 @@ def _cli_cases(tmp: Path, typo: Path) -> dict[str, tuple[list[str], str]]:
     }
 
 
+@pytest.mark.slow            # one CLI subprocess per case: behaviour, not float order
 @pytest.mark.parametrize("case", ["export, missing checkpoint", "hardware, typo in the robot",
                                   "hardware, missing data", "ablation, typo in a robot",
                                   "control example, missing export"])

@@ -9,6 +9,7 @@ import shlex
 import subprocess
 import sys
 
+import pytest
 from conftest import ROOT, readme_sections
 
 SHORTER = {"train.py": ["--trainer.max_epochs", "3", "--data.n_train", "5000", "--data.n_val", "500",
@@ -20,6 +21,7 @@ def blocks(text: str, language: str) -> list[str]:
     return re.findall(rf"```{language}\n(.*?)```", text, flags=re.S)
 
 
+@pytest.mark.slow            # trains and exports in subprocesses: run once per make test
 def test_own_robot_section_runs_end_to_end(tmp_path, monkeypatch):
     section = readme_sections()["Your own robot"]
     (yaml_text,), commands, (python_text,) = blocks(section, "yaml"), blocks(section, "bash"), blocks(section, "python")

@@ -191,6 +191,7 @@ def _resume_command(stderr: str) -> list[str]:
     return words[2:]
 
 
+@pytest.mark.slow            # subprocess trainings: behaviour, not float order; make test runs them once
 @pytest.mark.parametrize("signal_callback, code", [("SigtermAt", 143), ("InterruptAt", 130)])
 def test_interrupt_mid_epoch_prints_the_resume_command_and_resume_keeps_the_whole_recording(
         tmp_path, signal_callback, code):
@@ -218,6 +219,7 @@ def test_interrupt_mid_epoch_prints_the_resume_command_and_resume_keeps_the_whol
 
 # ---- what the terminal shows ----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_typo_in_the_robot_file_is_one_line_naming_the_file(tmp_path):
     robot = tmp_path / "typo.yaml"
     robot.write_text((ROOT / "configs/robots/type1.yaml").read_text().replace("length: 0.10", "lenght: 0.10"))
@@ -231,6 +233,7 @@ def test_a_typo_in_the_robot_file_is_one_line_naming_the_file(tmp_path):
     assert not (tmp_path / "runs").exists()                     # no run folder for a run that never started
 
 
+@pytest.mark.slow
 def test_a_fit_prints_no_warning_a_user_cannot_act_on(tmp_path):
     config = write_run_config(tmp_path, epochs=1, n_train=512)
     fresh = run_train(["fit", "--config", str(config)], tmp_path)
