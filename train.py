@@ -114,6 +114,12 @@ class SaveConfigToRunDir(SaveConfigCallback):
         self.already_saved = trainer.strategy.broadcast(True)
 
 
+def launched_rank() -> int:
+    """Rank of this process when Lightning's DDP launcher (or torchrun) started it, else 0: worker processes
+    re-run this script after rank 0 has created the run folders, and must not create their own."""
+    return max(int(os.environ.get(name, "0") or 0) for name in ("LOCAL_RANK", "NODE_RANK", "RANK"))
+
+
 class DacrCLI(LightningCLI):
     def __init__(self, *args, argv: list[str] | None = None, **kwargs) -> None:
         self._argv = list(sys.argv[1:] if argv is None else argv)
@@ -165,6 +171,11 @@ class DacrCLI(LightningCLI):
         """(run folder, folder this command writes to, run info) — creating a new folder where needed."""
         ckpt = self.run_config.get("ckpt_path")
         run = runs.checkpoint_run_dir(ckpt) if ckpt is not None else None
+        if launched_rank() > 0:   # a DDP worker process: rank 0 made this command's folders before launching it
+            run = run if run is not None else runs.versions(self.run_root)[-1]
+            if self.subcommand in (None, "fit"):
+                return run, run, runs.read_run_info(run)
+            return run, runs.numbered(run, f"{self.subcommand}_")[-1], {"recording_id": None}
         if self.subcommand in (None, "fit"):
             if run is None:   # a new run (or fine-tuning from a checkpoint outside any run folder)
                 run = runs.new_numbered_dir(self.run_root, "version_")

@@ -33,7 +33,7 @@ from .robot import RobotSpec
 __all__ = [
     "ARCHITECTURE", "CHECKPOINT", "RUN_INFO", "SCHEDULE", "check_checkpoint_fits", "check_same_schedule",
     "checkpoint_run_dir", "checkpoint_task",
-    "describe_model", "find_checkpoint", "load_lightning_checkpoint", "load_model", "new_numbered_dir",
+    "describe_model", "find_checkpoint", "load_lightning_checkpoint", "load_model", "new_numbered_dir", "numbered",
     "read_run_info", "versions", "write_run_info",
 ]
 
@@ -53,7 +53,12 @@ def _numbered(parent: Path, prefix: str) -> list[tuple[int, Path]]:
 
 def versions(run_root: str | Path) -> list[Path]:
     """The ``version_<n>`` folders of a run name's folder, by increasing ``n`` (empty if none)."""
-    return [p for _, p in _numbered(Path(run_root), "version_")]
+    return numbered(run_root, "version_")
+
+
+def numbered(parent: str | Path, prefix: str) -> list[Path]:
+    """The ``<prefix><n>`` folders of ``parent`` (e.g. ``test_0``, ``test_1``), by increasing ``n``."""
+    return [p for _, p in _numbered(Path(parent), prefix)]
 
 
 def new_numbered_dir(parent: str | Path, prefix: str) -> Path:

@@ -103,6 +103,7 @@ def test_ddp_with_two_cpu_processes_matches_single_process_evaluation(tmp_path):
                            "--trainer.strategy", "ddp"], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     run = tmp_path / "runs" / "smoke" / "version_0"
+    assert [p.name for p in (tmp_path / "runs" / "smoke").iterdir()] == ["version_0"]   # one run, not one per rank
     summary = json.loads((run / "metrics.json").read_text())
     # the all-gathered DDP test metrics equal a single-process evaluation of the same checkpoint
     module = FKModule.load_from_checkpoint(run / "checkpoints" / "last.ckpt", weights_only=True)
