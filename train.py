@@ -31,7 +31,8 @@ from lightning.pytorch.cli import LightningCLI, SaveConfigCallback
 from lightning.pytorch.utilities.exceptions import SIGTERMException
 
 from dacr_learn import runs
-from dacr_learn.console import first_user_error, quiet_third_party_warnings
+from dacr_learn.checks import load_torch_file
+from dacr_learn.console import run_cli
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
 from dacr_learn.rerun_callback import RerunVisualCallback
@@ -106,10 +107,7 @@ class SaveConfigToRunDir(SaveConfigCallback):
         if trainer.is_global_zero:
             folder = Path(trainer.default_root_dir)
             folder.mkdir(parents=True, exist_ok=True)
-            path, k = folder / self.config_filename, 0
-            while path.exists():
-                k += 1
-                path = folder / f"{Path(self.config_filename).stem}_{k}.yaml"
+            path = runs.free_path(folder, self.config_filename)
             self.parser.save(self.config, path, skip_unset=False, multifile=self.multifile)
         self.already_saved = trainer.strategy.broadcast(True)
 
@@ -209,10 +207,11 @@ class DacrCLI(LightningCLI):
     def instantiate_trainer(self, **kwargs):
         cfg = self.run_config
         if cfg.get("ckpt_path") is not None:
-            runs.check_checkpoint_fits(cfg.ckpt_path, type(self.model).__name__, dict(self.model.hparams),
+            blob = load_torch_file(cfg.ckpt_path, runs.CHECKPOINT)
+            runs.check_checkpoint_fits(cfg.ckpt_path, blob, type(self.model).__name__, dict(self.model.hparams),
                                        self.model.state_dict())
             if self.subcommand == "fit":
-                runs.check_same_schedule(cfg.ckpt_path, cfg.as_dict())
+                runs.check_same_schedule(cfg.ckpt_path, blob, cfg.as_dict())
         run, out, info = self._run_folders()
         self.run_dir, self.out_dir = run, out
         ckpt_dir = run / "checkpoints"
@@ -253,11 +252,7 @@ class DacrCLI(LightningCLI):
         h = model.hparams
         summary = {**model.test_summary, **extra, "task": type(model).__name__.removesuffix("Module").lower(),
                    "features": h.features, "robot": model.spec.name, "n_test": len(self.datamodule.splits["test"]["q"])}
-        path = self.out_dir / "metrics.json"
-        k = 0
-        while path.exists():   # a resumed fit that finishes keeps the first summary too
-            k += 1
-            path = self.out_dir / f"metrics_{k}.json"
+        path = runs.free_path(self.out_dir, "metrics.json")   # a resumed fit keeps the first summary too
         path.write_text(json.dumps(summary, indent=2))
         print(format_table(model.test_summary, f"\nTest metrics of {summary['task'].upper()} ({h.features} features, "
                                                f"robot {model.spec.name}) → {path}"))
@@ -272,27 +267,24 @@ def main(args: list[str] | None = None, run: bool = True) -> DacrCLI:
                    save_config_callback=SaveConfigToRunDir, argv=args, run=run)
 
 
-def run_command_line(argv: list[str] | None = None) -> int:
-    """``python train.py …``: the exit status. A mistake in the user's files or arguments is one line
-    ``error: …`` (no traceback; ``DACR_DEBUG=1`` shows it); SIGTERM exits with 143 and Ctrl-C with 130,
-    after the interrupted fit printed how to resume it."""
-    quiet_third_party_warnings()
-    quiet_lightning_chatter()
+def train_command(argv: list[str] | None = None) -> None:
+    """:func:`main` as a command: SIGTERM exits with 143 and Ctrl-C with 130 (Lightning exits with 1 after
+    the interrupted fit printed how to resume it)."""
     try:
         main(argv)
     except SIGTERMException:
-        return 143
-    except SystemExit as stop:
-        if InterruptCheckpoint.stopped_by is KeyboardInterrupt:   # Lightning exits with 1 after a Ctrl-C
-            return 130
-        raise stop
-    except Exception as err:
-        user_error = first_user_error(err)
-        if user_error is None or os.environ.get("DACR_DEBUG"):
-            raise
-        print(f"error: {user_error}", file=sys.stderr)
-        return 2
-    return 0
+        raise SystemExit(143) from None
+    except SystemExit:
+        if InterruptCheckpoint.stopped_by is KeyboardInterrupt:
+            raise SystemExit(130) from None
+        raise
+
+
+def run_command_line(argv: list[str] | None = None) -> int:
+    """``python train.py …``: the exit status. Through :func:`dacr_learn.console.run_cli`, a mistake in the
+    user's files or arguments is one line ``error: …``; Lightning's start-up chatter is dropped."""
+    quiet_lightning_chatter()
+    return run_cli(train_command, argv)
 
 
 if __name__ == "__main__":

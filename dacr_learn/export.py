@@ -113,7 +113,7 @@ AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATE
 
 
 def write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
-                  aoti: bool, autotune: bool = False) -> dict[str, str]:
+                 aoti: bool, autotune: bool = False) -> dict[str, str]:
     """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2`` (with
     :data:`AUTOTUNE_CONFIGS` when ``autotune``)."""
     program = export_program(module, example)

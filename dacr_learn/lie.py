@@ -134,12 +134,15 @@ def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
     dwwv = torch.linalg.cross(dw, wv.unsqueeze(-2)) + torch.linalg.cross(w.unsqueeze(-2), dwv)
     dp = (dv + (at(df) * dphi).unsqueeze(-1) * wv.unsqueeze(-2) + at(f).unsqueeze(-1) * dwv
           + (at(dg) * dphi).unsqueeze(-1) * wwv.unsqueeze(-2) + at(g).unsqueeze(-1) * dwwv)
-    w_hat, dhat = hat(w).unsqueeze(-3), hat(dw)
+    w_hat = hat(w)
     hat2 = w_hat @ w_hat
+    rot = torch.eye(3, dtype=xi.dtype, device=xi.device) + s[..., None, None] * w_hat + f[..., None, None] * hat2
+    value = pose_from_parts(rot, v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * wwv)        # = twist_exp(xi)
+    w_hat, hat2, dhat = w_hat.unsqueeze(-3), hat2.unsqueeze(-3), hat(dw)
     k = lambda c: c[..., None, None]  # noqa: E731   (..., T) → (..., T, 1, 1)
     drot = (k(at(ds) * dphi) * w_hat + k(at(s)) * dhat + k(at(df) * dphi) * hat2
             + k(at(f)) * (dhat @ w_hat + w_hat @ dhat))
-    return twist_exp(xi), pose_from_parts(drot, dp, dp.new_zeros(1, 4))
+    return value, pose_from_parts(drot, dp, dp.new_zeros(1, 4))
 
 
 def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:

@@ -182,11 +182,6 @@ class RerunLogger(Logger):
         """Alias of :attr:`experiment`."""
         return self.experiment
 
-    @property
-    def recording_id(self) -> str:
-        """The Rerun recording id every part of this logger's recording is written with."""
-        return self._recording_id
-
     def _next_part(self) -> int:
         """The first part index after the current one whose file does not exist yet."""
         part = self._part + 1

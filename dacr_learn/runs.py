@@ -32,15 +32,14 @@ from .robot import RobotSpec
 
 __all__ = [
     "ARCHITECTURE", "CHECKPOINT", "RUN_INFO", "SCHEDULE", "check_checkpoint_fits", "check_same_schedule",
-    "checkpoint_run_dir", "checkpoint_task",
-    "describe_model", "find_checkpoint", "load_lightning_checkpoint", "load_model", "new_numbered_dir", "numbered",
-    "read_run_info", "versions", "write_run_info",
+    "checkpoint_run_dir", "checkpoint_task", "describe_model", "find_checkpoint", "free_path",
+    "load_lightning_checkpoint", "load_model", "new_numbered_dir", "numbered", "read_run_info", "versions",
+    "write_run_info",
 ]
 
 RUN_INFO = "run.json"
 CHECKPOINT = "an FKModule/IKModule checkpoint written by train.py or a Lightning Trainer"
 LAST = "last.ckpt"
-_VERSION = re.compile(r"^version_(\d+)$")
 
 
 def _numbered(parent: Path, prefix: str) -> list[tuple[int, Path]]:
@@ -76,6 +75,17 @@ def new_numbered_dir(parent: str | Path, prefix: str) -> Path:
             return path
         except FileExistsError:
             n += 1
+
+
+def free_path(folder: str | Path, name: str) -> Path:
+    """``folder/name`` if no such file exists, else the first free ``folder/<stem>_<k><suffix>`` (k = 1, 2, …):
+    where a file a run wrote before stays untouched (a resumed fit's second config.yaml or metrics.json)."""
+    path, stem, suffix = Path(folder) / name, Path(name).stem, Path(name).suffix
+    k = 0
+    while path.exists():
+        k += 1
+        path = Path(folder) / f"{stem}_{k}{suffix}"
+    return path
 
 
 def write_run_info(run_dir: str | Path, **fields: Any) -> dict[str, Any]:
@@ -194,17 +204,13 @@ def describe_model(kind: str, hparams: dict[str, Any]) -> str:
     return f"{kind} for {robot_text}, {arch}"
 
 
-def check_checkpoint_fits(ckpt: str | Path, kind: str, hparams: dict[str, Any],
+def check_checkpoint_fits(ckpt: str | Path, blob: Any, kind: str, hparams: dict[str, Any],
                           state_dict: dict[str, torch.Tensor]) -> None:
-    """ValueError (one line, naming both) unless the checkpoint ``ckpt`` holds a model of class ``kind``
-    for the same robot, with the same architecture hyper-parameters and weight shapes as the model the
-    config builds (``kind``, ``hparams``, ``state_dict``: that model's)."""
-    blob = load_torch_file(ckpt, "a checkpoint written by train.py")
-    saved = blob.get("hyper_parameters") if isinstance(blob, dict) else None
-    weights = blob.get("state_dict") if isinstance(blob, dict) else None
-    if not isinstance(saved, dict) or not isinstance(weights, dict):
-        raise ValueError(f"{ckpt}: expected a checkpoint written by train.py (with hyper_parameters and state_dict)")
+    """ValueError (one line, naming both) unless the checkpoint ``ckpt`` (``blob``: its loaded content) holds a
+    model of class ``kind`` for the same robot, with the same architecture hyper-parameters and weight shapes as
+    the model the config builds (``kind``, ``hparams``, ``state_dict``: that model's)."""
     saved_kind = {"fk": "FKModule", "ik": "IKModule"}[checkpoint_task(Path(ckpt), blob)]
+    saved, weights = blob["hyper_parameters"], blob["state_dict"]
     same = (saved_kind == kind and saved.get("robot") == hparams.get("robot")
             and all(saved.get(k) == hparams.get(k) for k in ARCHITECTURE)
             and {k: tuple(v.shape) for k, v in weights.items()}
@@ -220,13 +226,12 @@ SCHEDULE = (("trainer", "max_epochs"), ("trainer", "max_steps"), ("trainer", "ac
             ("data", "n_train"), ("data", "batch_size"))
 
 
-def check_same_schedule(ckpt: str | Path, config: dict[str, Any]) -> None:
-    """ValueError (one line, naming both values) when a fit resumed from ``ckpt`` would change the length of
-    the run whose learning-rate schedule the checkpoint carries (:data:`SCHEDULE`). ``config``: the CLI
-    config of the resumed fit as a nested dict. A checkpoint without the CLI config passes."""
+def check_same_schedule(ckpt: str | Path, blob: Any, config: dict[str, Any]) -> None:
+    """ValueError (one line, naming both values) when a fit resumed from ``ckpt`` (``blob``: its loaded content)
+    would change the length of the run whose learning-rate schedule the checkpoint carries (:data:`SCHEDULE`).
+    ``config``: the CLI config of the resumed fit as a nested dict. A checkpoint without the CLI config passes."""
     import yaml
 
-    blob = load_torch_file(ckpt, "a checkpoint written by train.py")
     text = blob.get("dacr_config") if isinstance(blob, dict) else None
     saved = yaml.safe_load(text) if isinstance(text, str) else None
     if isinstance(saved, dict) and isinstance(saved.get("fit"), dict):
