@@ -16,6 +16,14 @@ Output heads ("rotation"):
   learns it from tip poses. On a real segment ξ(x) is non-linear and the same head represents any SE(3).
 - "6d": position (· L_s) and a 6D rotation (models.pose_from_parts, rotation_6d_to_matrix).
 
+Units ("units"): "strain" (default) feeds the network x_k = (ρ_re/d_k, ρ_im/d_k, β/l_k, α), the bending
+vector [rad], the stretch β/l and the roll [rad] of segment k, and scales the twist's translation by the
+segment's own nominal length l_k: a CC segment's twist is then ξ = (0, 0, (β/l)·l; −ρ_im/d, ρ_re/d, 0), the
+same map for every segment whatever its length, radius, type or joint layout, so one network serves
+segments of any geometry and transfers to robots it was not trained on (:func:`transfer`). "metric" feeds
+the features in metres and scales by the mean segment length L_s of the training robot (segments of one
+geometry; the hardware residual models use it).
+
 Context c_k ("context"): "none" (CC data: a segment's shape depends on its own features only;
 the network then runs on any number of segments, see :func:`transfer`), "segment" (a one-hot
 segment index: per-segment first-layer bias, not transferable), "distal" (the sum of the
@@ -38,17 +46,39 @@ from .robot import RobotSpec
 STRUCTURES = ("monolithic", "compositional")
 CONTEXTS = ("none", "segment", "distal")
 HEADS = {"twist": 6, "6d": 9}
+UNITS = ("strain", "metric")
+
+
+def feature_units(spec: RobotSpec, units: str) -> Tensor:
+    """(m, 4) divisors taking per-segment features (ρ_re, ρ_im, β, α) [m, m, m, rad] to network units:
+    (d_k, d_k, l_k, 1) for "strain", ones for "metric". float64 (the model keeps these buffers in float64
+    unless cast, so a float64 model's units are not float32-rounded; they are cast to the input's dtype)."""
+    if units not in UNITS:
+        raise ValueError(f"units: expected one of {UNITS}, got {units!r}")
+    if units == "metric":
+        return torch.ones(spec.num_segments, 4, dtype=torch.float64)
+    return torch.tensor([[s.radius, s.radius, s.length, 1.0] for s in spec.segments], dtype=torch.float64)
+
+
+def translation_units(spec: RobotSpec, units: str) -> Tensor:
+    """(m,) length [m] the twist's translation part is scaled by: l_k ("strain") or the mean length ("metric")."""
+    if units not in UNITS:
+        raise ValueError(f"units: expected one of {UNITS}, got {units!r}")
+    if units == "metric":
+        return torch.full((spec.num_segments,), spec.total_length / spec.num_segments, dtype=torch.float64)
+    return torch.tensor([s.length for s in spec.segments], dtype=torch.float64)
 
 
 class SegmentFrontEnd(nn.Module):
     """Joint vector (..., N) → per-segment network inputs (..., m, C): standardised x_k (4) and context."""
 
-    def __init__(self, spec: RobotSpec, context: str = "none"):
+    def __init__(self, spec: RobotSpec, context: str = "none", units: str = "strain"):
         super().__init__()
         if context not in CONTEXTS:
             raise ValueError(f"context: expected one of {CONTEXTS}, got {context!r}")
-        self.spec, self.context, m = spec, context, spec.num_segments
+        self.spec, self.context, self.units, m = spec, context, units, spec.num_segments
         self.encoder = ClarkeEncoder(spec)
+        self.register_buffer("unit", feature_units(spec, units))    # x_k = features / unit
         self.norm = Standardizer(4)                       # shared by all segments (pooled statistics)
         self.dim = 4 + {"none": 0, "segment": m, "distal": 4}[context]
         self.register_buffer("context_matrix", self.context_operator(m, context))
@@ -59,9 +89,10 @@ class SegmentFrontEnd(nn.Module):
         return torch.eye(m) if context == "segment" else torch.ones(m, m).triu(1)
 
     def segment_features(self, q: Tensor) -> Tensor:
-        """Unstandardised per-segment features (..., m, 4) [m, rad] (fixed columns at β = l, α = 0)."""
+        """Unstandardised per-segment features x_k (..., m, 4) in the network's units (fixed columns at β = l,
+        α = 0): (ρ/d [rad], β/l, α [rad]) for "strain", (ρ [m], β [m], α [rad]) for "metric"."""
         check_tensor(q, "joint vector", (self.spec.num_joints,))
-        return effective_features(self.spec, self.encoder(q))
+        return effective_features(self.spec, self.encoder(q)) / self.unit.to(q.dtype)
 
     def fit(self, q: Tensor) -> None:
         self.norm.fit(self.segment_features(q))
@@ -91,7 +122,8 @@ class CompositionalFK(nn.Module):
     structure = "compositional"
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 64, depth: int = 3,
-                 activation: str = "silu", rotation: str = "twist", context: str = "none", extra_inputs: int = 0):
+                 activation: str = "silu", rotation: str = "twist", context: str = "none", extra_inputs: int = 0,
+                 units: str = "strain"):
         super().__init__()
         if features != "clarke":
             raise ValueError(f"features: the compositional structure needs 'clarke' features (a raw joint "
@@ -102,18 +134,32 @@ class CompositionalFK(nn.Module):
         if extra_inputs < 0:
             raise ValueError(f"extra_inputs: expected a number of columns >= 0, got {extra_inputs}")
         self.spec, self.rotation, self.length = spec, rotation, spec.total_length
-        self.front = SegmentFrontEnd(spec, context)
+        self.front = SegmentFrontEnd(spec, context, units)
         dim = self.front.dim + extra_inputs
         self.net = mlp(dim, HEADS[rotation], width, depth, activation)
         self.skip = nn.Linear(dim, HEADS[rotation], bias=False)              # learned linear part of f_θ
-        self.register_buffer("length_scale", torch.tensor(spec.total_length / spec.num_segments))
+        self.register_buffer("length_scale", translation_units(spec, units))   # (m,) [m], float64
+
+    @property
+    def units(self) -> str:
+        return self.front.units
+
+    def _load_from_state_dict(self, state, prefix, *args, **kwargs):
+        """State dicts saved before the per-segment units (a scalar ``length_scale``, no ``front.unit``) load as
+        "metric" models: the scalar is repeated per segment and the feature units are ones."""
+        key = prefix + "length_scale"
+        if key in state and state[key].dim() == 0:
+            state[key] = state[key].expand(self.spec.num_segments).clone()
+            state.setdefault(prefix + "front.unit", torch.ones_like(self.front.unit))
+            self.front.units = "metric"
+        super()._load_from_state_dict(state, prefix, *args, **kwargs)
 
     def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:
         self.front.fit(q)
 
     def head(self, out: Tensor) -> Tensor:
-        """Network outputs (..., 6 | 9) → segment transforms (..., 4, 4)."""
-        scale = self.length_scale.to(out.dtype)
+        """Network outputs (..., m, 6 | 9) → segment transforms (..., m, 4, 4)."""
+        scale = self.length_scale.to(out.dtype).unsqueeze(-1)
         if self.rotation == "twist":
             return twist_exp(torch.cat([out[..., :3] * scale, out[..., 3:]], dim=-1))
         return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3] * scale)
@@ -131,16 +177,19 @@ class CompositionalFK(nn.Module):
         return self.segment_ends(q)[..., -1, :, :]
 
 
-def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str = "none",
+def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str = "none", units: str = "strain",
                    **kwargs) -> FKModel | CompositionalFK:
     """An FK model of the given ``structure`` ("monolithic" | "compositional"); ``kwargs`` are the shared
-    model arguments (features, width, depth, activation, rotation)."""
+    model arguments (features, width, depth, activation, rotation). ``context`` and ``units`` are the
+    compositional model's (the monolithic model takes their defaults only)."""
     if structure not in STRUCTURES:
         raise ValueError(f"structure: expected one of {STRUCTURES}, got {structure!r}")
     if structure == "compositional":
-        return CompositionalFK(spec, context=context, **kwargs)
+        return CompositionalFK(spec, context=context, units=units, **kwargs)
     if context != "none":
         raise ValueError(f"context: only the compositional structure takes a context, got {context!r}")
+    if units != "strain":
+        raise ValueError(f"units: only the compositional structure takes units, got {units!r}")
     return FKModel(spec, **kwargs)
 
 
@@ -148,28 +197,41 @@ def _geometry(seg) -> tuple:
     return seg.type, seg.length, seg.radius, seg.bend, seg.length_range, seg.twist_range
 
 
+ROBOT_BUFFERS = ("front.encoder.", "front.context_matrix", "front.unit", "length_scale")   # built from the spec
+
+
 def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
     """The trained per-segment network of ``model``, unchanged, composed over the segments of ``target``.
 
-    Each target segment must have the geometry (type, length, radius, limits) of some segment of the
-    source robot; the number of segments and of joints may differ. Context "segment" cannot transfer.
+    "strain" units: the target's segments may have any type, length, radius and joint layout (the network
+    sees each segment in its own units; its error grows where the target's features leave the training
+    range, e.g. a stretch β/l the source robot never had; a target segment that extends or twists needs a
+    source segment that does, or a ValueError says so). "metric" units: each target segment must have
+    the geometry (type, length, radius, limits) of some source segment. The number of segments and of
+    joints may differ. Context "segment" cannot transfer.
     """
     if model.front.context == "segment":
         raise ValueError("transfer: a model with context 'segment' has one input per source segment index; "
                          "train with context 'none' or 'distal' to transfer to another number of segments")
-    known = {_geometry(s) for s in model.spec.segments}
-    unknown = [k for k, s in enumerate(target.segments) if _geometry(s) not in known]
-    if unknown:
-        raise ValueError(f"transfer: segments {unknown} of {target.name!r} have a geometry none of the "
-                         f"training robot {model.spec.name!r} has (type, length, radius, limits); "
-                         f"expected one of {sorted(known, key=str)}")
+    for flag, what in (("extends", "extend (type I/III)"), ("twists", "twist (type II/III)")):
+        new_axes = [k for k, s in enumerate(target.segments) if getattr(s, flag)]
+        if new_axes and not any(getattr(s, flag) for s in model.spec.segments):
+            raise ValueError(f"transfer: segments {new_axes} of {target.name!r} {what}, but no segment of the "
+                             f"training robot {model.spec.name!r} does, so the network never saw that feature "
+                             f"vary; train on a robot with such a segment")
+    if model.units == "metric":
+        known = {_geometry(s) for s in model.spec.segments}
+        unknown = [k for k, s in enumerate(target.segments) if _geometry(s) not in known]
+        if unknown:
+            raise ValueError(f"transfer: segments {unknown} of {target.name!r} have a geometry none of the "
+                             f"training robot {model.spec.name!r} has (type, length, radius, limits); "
+                             f"expected one of {sorted(known, key=str)}, or a model trained with units 'strain'")
     net = model.net
     new = CompositionalFK(target, "clarke", net[0].out_features, len(net) // 2, _activation(net),
-                          model.rotation, model.front.context).to(next(model.parameters()).dtype)
-    state = {k: v for k, v in model.state_dict().items()
-             if not k.startswith("front.encoder.") and k != "front.context_matrix"}
+                          model.rotation, model.front.context, units=model.units).to(next(model.parameters()).dtype)
+    state = {k: v for k, v in model.state_dict().items() if not k.startswith(ROBOT_BUFFERS)}
     missing, unexpected = new.load_state_dict(state, strict=False)
-    if unexpected or any(not k.startswith("front.encoder.") and k != "front.context_matrix" for k in missing):
+    if unexpected or any(not k.startswith(ROBOT_BUFFERS) for k in missing):
         raise RuntimeError(f"transfer: state-dict mismatch: missing {missing}, unexpected {unexpected}")
     return new
 

@@ -21,7 +21,7 @@ from .inference import ClarkeFold, FoldedMLP, linear_layers
 from .lie import pose_from_parts, twist_exp, twist_exp_and_tangent
 from .models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 
-__all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer"]
+__all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
 
 _F64 = torch.float64
 
@@ -34,8 +34,9 @@ class InferenceCompositionalFK(nn.Module):
     standardised features) and the first layer together with the learned linear skip are affine in
     u = [q − q_ref, g], so one matrix gives every segment's pre-activations at once,
     (B, m·(W + O)); for type-III segments it acts on the exact features f instead (β = sqrt(h² − (αr)²)).
-    The translation scale L_s is folded into the output rows. Then the shared MLP runs on (B, m, W),
-    the head gives T_k and the products compose the tip.
+    Feature units (ρ/d, β/l) are folded in; the outputs are scaled by each segment's translation unit
+    (``out_scale``, (m, O)). Then the shared MLP runs on (B, m, W), the head gives T_k and the products
+    compose the tip.
     """
 
     def __init__(self, model, dtype: torch.dtype = torch.float32):
@@ -44,14 +45,14 @@ class InferenceCompositionalFK(nn.Module):
         self.num_joints, self.features_mode = model.spec.num_joints, "clarke"
         self.width, self.out = linear_layers(model.net)[0].out_features, HEADS[model.rotation]
         self.fold = ClarkeFold(model.spec)
-        scale = torch.ones(self.out, dtype=_F64)
-        scale[:3] = model.length_scale.to(_F64)
-        k, k0 = compositional_first_layer(model, scale)                        # acts on actuated features f
+        ones = torch.ones(self.out, dtype=_F64)
+        k, k0 = compositional_first_layer(model)                                # acts on actuated features f
         self.on_features = self.fold.has_type3
         if not self.on_features:
             k, k0 = k @ self.fold.E, k0 + k @ self.fold.e0
         self.fold.to(dtype)
-        self.mlp = FoldedMLP(model.net, (k, k0), scale, torch.zeros_like(scale), dtype)
+        self.mlp = FoldedMLP(model.net, (k, k0), ones, torch.zeros_like(ones), dtype)
+        self.register_buffer("out_scale", output_scale(model).to(dtype))
         self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
 
     def segment_transforms(self, q: Tensor) -> Tensor:
@@ -59,7 +60,7 @@ class InferenceCompositionalFK(nn.Module):
         u = self.fold.inputs(q)
         pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
         pre = pre.unflatten(-1, (self.num_segments, self.width + self.out))
-        out = self.mlp(pre[..., :self.width]) + pre[..., self.width:]
+        out = (self.mlp(pre[..., :self.width]) + pre[..., self.width:]) * self.out_scale
         if self.rotation == "twist":
             return twist_exp(out)
         return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
@@ -87,14 +88,14 @@ class InferenceCompositionalJacobian(nn.Module):
         self.num_segments, self.num_joints = model.spec.num_segments, model.spec.num_joints
         self.width, self.out = linear_layers(model.net)[0].out_features, HEADS[model.rotation]
         self.fold = ClarkeFold(model.spec)
-        scale = torch.ones(self.out, dtype=_F64)
-        scale[:3] = model.length_scale.to(_F64)
-        k, k0 = compositional_first_layer(model, scale)                   # acts on actuated features f
+        ones = torch.ones(self.out, dtype=_F64)
+        k, k0 = compositional_first_layer(model)                          # acts on actuated features f
         d = k.shape[1]
         # ∂(pre-activations | skip part) / ∂f per segment: (m, D, W + O), the tangents the MLP carries forward
         self.register_buffer("seed", k.view(self.num_segments, self.width + self.out, d).mT.contiguous().to(dtype))
         self.fold.to(dtype)
-        self.mlp = FoldedMLP(model.net, (k, k0), scale, torch.zeros_like(scale), dtype)
+        self.mlp = FoldedMLP(model.net, (k, k0), ones, torch.zeros_like(ones), dtype)
+        self.register_buffer("out_scale", output_scale(model).to(dtype))
         self.register_buffer("eye", torch.eye(4, dtype=dtype))
 
     def forward(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -103,7 +104,9 @@ class InferenceCompositionalJacobian(nn.Module):
         pre = self.mlp.first(f).unflatten(-1, (self.num_segments, self.width + self.out))      # (B, m, W + O)
         seed = self.seed.expand(q.shape[0], -1, -1, -1)                                         # (B, m, D, W + O)
         out, dout = self.mlp.forward_with_tangents(pre[..., :self.width], seed[..., :self.width])
-        xi, dxi = out + pre[..., self.width:], dout + seed[..., self.width:]          # (B, m, 6), (B, m, D, 6)
+        scale = self.out_scale.unsqueeze(-2)                                                    # (m, 1, 6)
+        xi = (out + pre[..., self.width:]) * self.out_scale                                      # (B, m, 6)
+        dxi = (dout + seed[..., self.width:]) * scale                                            # (B, m, D, 6)
         t, dt = twist_exp_and_tangent(xi, dxi)                                        # (B, m, 4, 4), (B, m, D, 4, 4)
         m = self.num_segments
         prefix, suffix = [self.eye.expand(q.shape[0], 4, 4)], [self.eye.expand(q.shape[0], 4, 4)]
@@ -116,22 +119,31 @@ class InferenceCompositionalJacobian(nn.Module):
         return pose, jac_f, jac_f @ self.fold.jacobian(q, u)
 
 
-def compositional_first_layer(model, scale: Tensor) -> tuple[Tensor, Tensor]:
-    """(K, k₀) float64 with [a₁ | scale·skip] of every segment = K·f + k₀, f the actuated features (D,).
+def output_scale(model) -> Tensor:
+    """(m, O) float64 factors of the network outputs: the segment's translation unit on the twist's (or
+    position's) first three columns, ones elsewhere."""
+    scale = torch.ones(model.spec.num_segments, HEADS[model.rotation], dtype=_F64)
+    scale[:, :3] = model.length_scale.to(_F64).unsqueeze(-1)
+    return scale
+
+
+def compositional_first_layer(model) -> tuple[Tensor, Tensor]:
+    """(K, k₀) float64 with [a₁ | skip] of every segment = K·f + k₀, f the actuated features (D,).
 
     Found by probing the (affine) map with unit vectors, through the model's own modules.
     """
     spec, front = model.spec, model.front
     sel, fixed = actuated_selection(spec).to(_F64), fixed_features(spec, _F64)
     first, skip = linear_layers(model.net)[0], model.skip
-    w = torch.cat([first.weight, scale[:, None] * skip.weight]).detach().to(_F64)
+    unit = front.unit.to(_F64)
+    w = torch.cat([first.weight, skip.weight]).detach().to(_F64)
     b = torch.cat([first.bias.detach().to(_F64), torch.zeros(skip.out_features, dtype=_F64)])
     norm = Standardizer(4).to(_F64)
     norm.load_state_dict({k: v.to(_F64) for k, v in front.norm.state_dict().items()})
     context = front.context_matrix.to(_F64)
 
     def affine(f: Tensor) -> Tensor:
-        x = norm(actuated_to_features(f, sel, fixed))                    # (P, m, 4)
+        x = norm(actuated_to_features(f, sel, fixed) / unit)             # (P, m, 4)
         if front.context == "segment":
             x = torch.cat([x, context.expand(x.shape[0], -1, -1)], dim=-1)
         elif front.context == "distal":

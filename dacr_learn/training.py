@@ -167,22 +167,24 @@ class FKModule(KinematicsModule):
     ``structure``: "monolithic" (one network maps all features to the tip; ``rotation`` "6d" |
     "quaternion") or "compositional" (one network per segment transform, composed by products:
     :mod:`dacr_learn.compositional`; ``rotation`` "twist" | "6d", ``context`` "none" | "segment" |
-    "distal"). ``segment_weight``: weight of the loss on the end frames of the segments before the
-    tip when batches carry ``segment_frames`` (compositional only; the datamodule's ``segment_frames``).
+    "distal", ``units`` "strain" | "metric"). ``segment_weight``: weight of the loss on the end frames of the
+    segments before the tip when batches carry ``segment_frames`` (compositional only; the datamodule's
+    ``segment_frames``).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0,
-                 structure: str = "monolithic", context: str = "none", segment_weight: float = 0.0):
+                 structure: str = "monolithic", context: str = "none", segment_weight: float = 0.0,
+                 units: str = "strain"):
         # save_hyperparameters() in the base class also records the FK-only arguments
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
     def build_model(self) -> torch.nn.Module:
         h = self.hparams
         return build_fk_model(self.spec, h.get("structure", "monolithic"), h.get("context", "none"),
-                              features=h.features, width=h.width, depth=h.depth, activation=h.activation,
-                              rotation=h.rotation)
+                              h.get("units", "strain"), features=h.features, width=h.width, depth=h.depth,
+                              activation=h.activation, rotation=h.rotation)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.model(q)

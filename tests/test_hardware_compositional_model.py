@@ -51,7 +51,7 @@ def test_composition_matches_an_independent_product_of_exponentials(compositiona
         fk, front = model.fk, model.fk.front
         z = front.with_context(front.norm(model.segment_features(split)))
         xi = (fk.net(z) + fk.skip(z)) * TWIST_SCALE
-        v, w = xi[..., :3] * fk.length_scale, xi[..., 3:]
+        v, w = xi[..., :3] * fk.length_scale.unsqueeze(-1), xi[..., 3:]
         hat = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype)
         hat[..., 0, 1], hat[..., 0, 2], hat[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
         hat[..., 1, 0], hat[..., 2, 0], hat[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]

@@ -16,11 +16,14 @@ F64 = torch.float64
 
 @pytest.mark.parametrize("robot,context,rotation", [("tdcr_3seg_coupled", "none", "twist"),
                                                     ("tdcr_3seg_coupled", "segment", "6d"),
-                                                    ("type3", "distal", "twist"), ("twisting", "none", "6d")])
-def test_folded_equals_model_float64(robot, context, rotation):
+                                                    ("type3", "distal", "twist"), ("twisting", "none", "6d"),
+                                                    ("hetero_4seg_types", "distal", "twist"),
+                                                    ("hetero_3seg_coupled", "none", "6d")])
+@pytest.mark.parametrize("units", ["strain", "metric"])
+def test_folded_equals_model_float64(robot, context, rotation, units):
     spec = spec_by_name(robot)
     torch.manual_seed(2)
-    model = CompositionalFK(spec, width=8, depth=2, rotation=rotation, context=context).to(F64)
+    model = CompositionalFK(spec, width=8, depth=2, rotation=rotation, context=context, units=units).to(F64)
     q = generate(spec, 64, seed=11, dtype=F64)["q"]
     model.fit_normalization(q)
     folded = InferenceCompositionalFK(model, F64)
@@ -29,7 +32,8 @@ def test_folded_equals_model_float64(robot, context, rotation):
 
 
 @pytest.mark.parametrize("robot,context", [("tdcr_3seg_coupled", "none"), ("tdcr_3seg_coupled", "distal"),
-                                           ("type3", "segment"), ("twisting", "none")])
+                                           ("type3", "segment"), ("twisting", "none"),
+                                           ("hetero_4seg_types", "none"), ("hetero_5seg_coupled", "distal")])
 def test_jacobian_module_equals_jacrev_float64(robot, context):
     spec = spec_by_name(robot)
     torch.manual_seed(3)

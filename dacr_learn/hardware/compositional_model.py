@@ -63,7 +63,7 @@ class CCCompositionalResidual(nn.Module):
                              f"{weight_decay}, steps={steps}, lr={lr}")
         self.cc, self.spec = cc, cc.spec
         self.weight_decay, self.steps, self.lr = weight_decay, steps, lr
-        self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context,
+        self.fk = CompositionalFK(cc.spec, width=width, depth=depth, context=context, units="metric",
                                   extra_inputs=MEMORY_INPUTS if self.history else 0)   # + segment k's play memory
         for layer in (self.fk.net[-1], self.fk.skip):
             nn.init.zeros_(layer.weight)

@@ -62,10 +62,12 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
     the translation rows, the segment length unit L_s, so that ξ = a_last + z·skip directly."""
     fks = [m.fk for m in members]
     context, acts = fks[0].front.context, {type(l) for fk in fks for l in fk.net if not isinstance(l, nn.Linear)}
-    if len(acts) != 1 or any(fk.front.context != context or fk.rotation != "twist" for fk in fks):
-        raise ValueError(f"members: expected one activation, one context and the twist head, got activations "
-                         f"{sorted(a.__name__ for a in acts)}, contexts {[fk.front.context for fk in fks]}, heads "
-                         f"{[fk.rotation for fk in fks]}")
+    if len(acts) != 1 or any(fk.front.context != context or fk.rotation != "twist" or fk.units != "metric"
+                             for fk in fks):
+        raise ValueError(f"members: expected one activation, one context, the twist head and metric units, got "
+                         f"activations {sorted(a.__name__ for a in acts)}, contexts "
+                         f"{[fk.front.context for fk in fks]}, heads {[fk.rotation for fk in fks]}, "
+                         f"units {[fk.units for fk in fks]}")
     spec = members[0].spec
     out: dict[str, Tensor] = {}
     with torch.no_grad():
@@ -76,7 +78,7 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], nn.Module, str]:
         out["rho_std"] = torch.stack([fk.front.norm.std[:2] for fk in fks]).to(_F64).unsqueeze(1)
         out["context_matrix"] = fks[0].front.context_matrix.to(_F64)
         unit = torch.stack([m.twist_mask.to(_F64) for m in members])                      # (K, 6)
-        unit[:, :3] *= torch.stack([fk.length_scale.to(_F64) for fk in fks]).unsqueeze(-1)
+        unit[:, :3] *= torch.stack([fk.length_scale[:1].to(_F64) for fk in fks])     # metric: one L_s per member
         layers = [[l for l in fk.net if isinstance(l, nn.Linear)] for fk in fks]
         for i in range(len(layers[0])):
             scale = unit.unsqueeze(1) if i == len(layers[0]) - 1 else 1.0
