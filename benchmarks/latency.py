@@ -25,7 +25,9 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
   ``dacr_learn.export`` (AOTInductor for ``fk`` and ``jacobian``). ``hardware_fk_vs_fk`` in the JSON
   and the side-by-side table: each hardware FK row's p50 next to the synthetic FK's row of the same
   kind (eager: ``fk_eager_folded``), measured in the same run, and their ratio (target ≤ 2 for the
-  exported rows). ``--no-hardware`` skips these rows.
+  exported rows). ``--no-hardware`` skips these rows. Beside them ``hardware_fk_generated_{export_program,
+  aoti}``: the same model's FK generated from its eager code (dacr_learn.hardware.deploy.generated), the
+  same inputs (its package called through the C++ runner, like ``hardware_fk_aoti_runner``).
 
 Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs].
 The machine may be shared and noisy: compare medians, run it twice.
@@ -185,7 +187,26 @@ def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = Fals
         fns["hardware_fk_aoti_runner"] = lambda: package.runner(inputs)
         jacobian = dexport.load(out / "hardware" / "jacobian.aoti.pt2")
         fns["hardware_jacobian_aoti"] = lambda: jacobian(*args)
+    fns.update(generated_candidates(model, args, out / "hardware", aoti))
     return fns
+
+
+def generated_candidates(model, args: tuple, out: Path, aoti: bool) -> dict:
+    """Rows ``hardware_fk_generated_{export_program, aoti}``: GeneratedHardwareFK (the eager model's code
+    traced, dacr_learn.hardware.deploy.generated) exported like the folded FK, the same inputs."""
+    from dacr_learn.hardware.deploy.generated import GeneratedHardwareFK
+
+    fk = GeneratedHardwareFK(model).eval()
+    servo = model.examples[:2].float() if model.examples is not None else torch.zeros(2, len(model.servo_ids))
+    files = dexport.write_module("fk_generated", fk, (servo, fk.initial_state(servo)) if model.history else (servo,),
+                                 out, aoti)
+    runners = {kind: dexport.module_runner(out / f, kind, {"torch_version": torch.__version__})
+               for kind, f in files.items()}
+    inputs = [a.contiguous() for a in args]
+    rows = {"hardware_fk_generated_export_program": lambda: runners["export"](inputs)}
+    if "aoti" in runners:
+        rows["hardware_fk_generated_aoti"] = lambda: runners["aoti"](inputs)
+    return rows
 
 
 HARDWARE_PAIRS = {"eager": ("hardware_fk_eager", "fk_eager_folded"),

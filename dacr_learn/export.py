@@ -115,14 +115,15 @@ AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATE
 def write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
                  aoti: bool, autotune: bool = False) -> dict[str, str]:
     """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2`` (with
-    :data:`AUTOTUNE_CONFIGS` when ``autotune``)."""
+    :data:`AUTOTUNE_CONFIGS` when ``autotune``, and the module's ``inductor_configs`` if it has them)."""
     program = export_program(module, example)
     files = {"export": f"{name}.pt2"}
     torch.export.save(program, out / files["export"])
     if aoti:
+        configs = {**(AUTOTUNE_CONFIGS if autotune else {}), **getattr(module, "inductor_configs", {})} or None
         try:
             torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"),
-                                                     inductor_configs=AUTOTUNE_CONFIGS if autotune else None)
+                                                     inductor_configs=configs)
             files["aoti"] = f"{name}.aoti.pt2"
         except Exception as err:  # no compiler, unsupported platform, …: keep the program
             warnings.warn(f"export {name}: the AOTInductor package did not build ({short_error(err)}); "

@@ -80,11 +80,17 @@ def play_operator(values: Tensor, width: float | Tensor) -> Tensor:
     out = torch.empty_like(values)
     state = values[0].clone()
     for t in range(values.shape[0]):
-        diff = state - values[t]
-        norm = diff.norm(dim=-1, keepdim=True).clamp_min(1e-300)
-        state = values[t] + diff * (w[t] / norm).clamp(max=1.0)
+        state = play_step(state, values[t], w[t])
         out[t] = state
     return out
+
+
+def play_step(state: Tensor, value: Tensor, width: float | Tensor) -> Tensor:
+    """One step of :func:`play_operator`: the new state (..., k) of state (..., k) and input value (..., k),
+    width (..., 1) or a number [unit of the values]: value + (state − value)·min(1, width/‖state − value‖)."""
+    diff = state - value
+    norm = diff.norm(dim=-1, keepdim=True).clamp_min(1e-300)
+    return value + diff * (width / norm).clamp(max=1.0)
 
 
 @dataclass
@@ -121,10 +127,18 @@ def command_split(servo: Tensor, servo_ids: tuple[str, ...], spec: RobotSpec, sm
     x = smap.command_displacements(spec, servo_ids, servo)
     with torch.no_grad():
         features = cc.encoder(x)
-        rho = features[..., :2]
-        memory = (rho - play_operator(rho, PLAY_WIDTH)) / PLAY_WIDTH
-        tip = servo.new_full((servo.shape[0], 3), float("nan")) if tip is None else tip
-        return Split(servo, x, features, cc.tip_from_features(features), tip, memory)
+        played = play_operator(features[..., :2], PLAY_WIDTH)
+        return encoded_split(servo, x, features, played, cc.tip_from_features(features), tip)
+
+
+def encoded_split(servo: Tensor, x: Tensor, features: Tensor, played: Tensor, cc_tip: Tensor,
+                  tip: Tensor | None = None) -> Split:
+    """The Split of n encoded commands: servo (n, S) [m], displacements x (n, N) [m], encoder features
+    (n, m, 4), the play state of their ρ (n, m, 2) [m] (:func:`play_operator`; the memory is
+    (ρ − played)/PLAY_WIDTH), the CC tips (n, 3) [m] and measured tips (n, 3) [m] or None (NaN)."""
+    memory = (features[..., :2] - played) / PLAY_WIDTH
+    tip = servo.new_full((servo.shape[0], 3), float("nan")) if tip is None else tip
+    return Split(servo, x, features, cc_tip, tip, memory)
 
 
 def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC) -> Split:

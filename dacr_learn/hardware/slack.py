@@ -131,10 +131,21 @@ def solve_tendon_qp_enumerated(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: T
     """:func:`solve_tendon_qp` (energy form, no force map or load) by enumerating the active sets:
     x (B, N) [m] → ρ (B, D). The same minimiser; differentiable in x (not in the weights)."""
     sets, gain = active_set_gains(g, bend_w, tendon_w)
-    rho = torch.einsum("sdn,bn->bsd", gain.to(x.dtype), x)                      # (B, 2ᴺ, D)
-    residual = x.unsqueeze(-2) - rho @ g.to(x.dtype).mT
+    return enumerated_solution(x, sets, gain, residual_maps(g, gain), tendon_w)
+
+
+def residual_maps(g: Tensor, gain: Tensor) -> Tensor:
+    """(2ᴺ, N, N): I − G K_S of every set, the map x ↦ x − Gρ_S (gains K_S (2ᴺ, D, N) of :func:`active_set_gains`)."""
+    return torch.eye(g.shape[0], dtype=gain.dtype, device=gain.device) - g @ gain
+
+
+def enumerated_solution(x: Tensor, sets: Tensor, gain: Tensor, residual_map: Tensor, tendon_w: Tensor) -> Tensor:
+    """ρ (B, D) of x (B, N) [m] from the sets and gains of :func:`active_set_gains` and their
+    :func:`residual_maps` (all computed once for fixed weights): every set's residual x − Gρ_S (B, 2ᴺ, N) in
+    one product, the consistent set (:func:`select_active_set`), its solution ρ_S = K_S x."""
+    residual = torch.einsum("sin,bn->bsi", residual_map.to(x.dtype), x)
     best = select_active_set(residual, sets, tendon_w)
-    return rho[torch.arange(x.shape[0], device=x.device), best]
+    return (gain.to(x.dtype)[best] @ x.unsqueeze(-1)).squeeze(-1)
 
 
 class SlackAwareEncoder(nn.Module):
@@ -200,9 +211,14 @@ class SlackAwareEncoder(nn.Module):
         """Displacements (..., N) [m] → Clarke coordinates ρ (..., m, 2) [m] (at the effective radii)."""
         check_tensor(x, "displacements", (self.g_nominal.shape[0],))
         flat = x.reshape(-1, x.shape[-1]).to(torch.float64)
-        tendon_w = 1.0 / self.path_length
-        rho = solve_tendon_qp(flat + self.tendon_pretension(), self.displacement_map(), self.bend_weights(), tendon_w)
+        pretension, g, bend_w, tendon_w = self.qp_terms()
+        rho = solve_tendon_qp(flat + pretension, g, bend_w, tendon_w)
         return rho.reshape(*x.shape[:-1], -1, 2).to(x.dtype)
+
+    def qp_terms(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The QP of :meth:`clarke` (float64): pretension stretch (N,) [m] added to the displacements, G (N, 2m),
+        the bend weights (2m,) and the tendon weights 1/L_i (N,) of :func:`solve_tendon_qp`."""
+        return self.tendon_pretension(), self.displacement_map(), self.bend_weights(), 1.0 / self.path_length
 
     def features_from_clarke(self, rho: Tensor) -> Tensor:
         """Clarke coordinates ρ (..., m, 2) [m] at the effective radii → features (..., m, 4) in the

@@ -47,7 +47,7 @@ from ..ccmodel import CalibratedCC
 from ..compositional_model import CCCompositionalResidual
 from ..learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, command_split
 from ..servo_map import ServoMap
-from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
+from .uncertainty import SigmaCalibration, SigmaModel, SupportModel, mean_and_sigma
 
 FORMAT = "dacr_learn.hardware_model/3"                       # the CC Clarke-residual family
 FORMAT_COMPOSITIONAL = "dacr_learn.hardware_model/2"         # structure "compositional"
@@ -100,15 +100,7 @@ class HardwareModel:
         split = commands if isinstance(commands, Split) else self.split(commands)
         with torch.no_grad():
             preds = torch.stack([m(split) for m in self.members])
-        sigma = self.sigma_of()
-        rho = split.features[..., :2]
-        if "support" not in sigma.terms:
-            dist = rho.new_zeros(rho.shape[0])
-        elif self.support is None:
-            raise ValueError("sigma_model: its 'support' term needs the support model, which this model lacks")
-        else:
-            dist = self.support.distance(rho)
-        return preds.mean(0), sigma(sigma_terms(preds, split.cc_tip, rho, dist))
+        return mean_and_sigma(preds, split.cc_tip, split.features[..., :2], self.sigma_of(), self.support)
 
     def sigma_of(self) -> SigmaModel:
         """The σ this model reports: the stored σ model, else the σ calibration (an ``ensemble``-term σ

@@ -76,6 +76,20 @@ def sigma_terms(preds: Tensor, cc_tip: Tensor, rho: Tensor, support_distance: Te
             "bend": rho.flatten(-2).norm(dim=-1, keepdim=True).to(preds.dtype)}
 
 
+def mean_and_sigma(preds: Tensor, cc_tip: Tensor, rho: Tensor, sigma: SigmaModel,
+                   support: SupportModel | None) -> tuple[Tensor, Tensor]:
+    """(tip (n, 3) [m] = the mean of the K members' tips preds (K, n, 3) [m], σ (n, 3) [m] of ``sigma``) at
+    commands of CC tips cc_tip (n, 3) [m] and Clarke coordinates rho (n, m, 2) [m] (:func:`sigma_terms`;
+    the support distance from ``support`` when ``sigma`` has that term, a ValueError when it is None)."""
+    if "support" not in sigma.terms:
+        dist = rho.new_zeros(rho.shape[0])
+    elif support is None:
+        raise ValueError("sigma_model: its 'support' term needs the support model, which this model lacks")
+    else:
+        dist = support.distance(rho)
+    return preds.mean(0), sigma(sigma_terms(preds, cc_tip, rho, dist))
+
+
 class SigmaModel(nn.Module):
     """σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over the chosen terms t of :data:`TERMS`.
 
