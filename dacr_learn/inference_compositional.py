@@ -6,9 +6,9 @@ and the products of the segment transforms.
 - :class:`InferenceCompositionalFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
 - :class:`InferenceCompositionalJacobian` (twist head): joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D),
   J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.inference.InferenceJacobian`: the segment twists and
-  their tangents along the D actuated features in forward mode through the MLP, the tangent of each segment's
-  exponential (:func:`~dacr_learn.lie.twist_exp_and_tangent`), and the product rule over the chain
-  (∂T_tip = Σ_k T_1⋯T_{k−1} · ∂T_k · T_{k+1}⋯T_m, prefix and suffix products)."""
+  their tangents along the actuated features each segment depends on, in forward mode through the MLP (value
+  and tangent rows stacked), then in closed form each segment's spatial velocity and its effect on the tip
+  through the prefix rotations and suffix positions of the chain (no 4 × 4 tangent products)."""
 from __future__ import annotations
 
 import torch
