@@ -6,19 +6,26 @@ and the products of the segment transforms.
 - :class:`InferenceCompositionalFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
 - :class:`InferenceCompositionalJacobian` (twist head): joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D),
   J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.inference.InferenceJacobian`: the segment twists and
-  their tangents along the D actuated features in forward mode through the MLP, the tangent of each segment's
-  exponential (:func:`~dacr_learn.lie.twist_exp_and_tangent`), and the product rule over the chain
-  (∂T_tip = Σ_k T_1⋯T_{k−1} · ∂T_k · T_{k+1}⋯T_m, prefix and suffix products)."""
+  their tangents along the actuated features each segment depends on, in forward mode through the MLP (value
+  and tangent rows stacked), then in closed form each segment's spatial velocity and its effect on the tip
+  through the prefix rotations and suffix positions of the chain (no 4 × 4 tangent products)."""
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
 from .compositional import HEADS
-from .control import twist_jacobian
-from .inference import ClarkeFold, FoldedMLP, linear_layers
-from .lie import pose_from_parts, twist_exp, twist_exp_and_tangent
+from .inference import ClarkeFold, FoldedMLP, activation_and_derivative, linear_layers
+from .lie import (
+    TAYLOR_BELOW,
+    bending_coefficients_and_derivatives,
+    hat,
+    pose_from_parts,
+    third_coefficient,
+    twist_exp,
+)
 from .models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
@@ -78,45 +85,142 @@ class InferenceCompositionalJacobian(nn.Module):
 
     Rows of J: tip linear velocity [m] and angular velocity [rad] in the base frame per unit of actuated
     feature (J_f) or joint (J_q = J_f·∂f/∂q), as :class:`~dacr_learn.inference.InferenceJacobian`. Twist head
-    only (``rotation="twist"``; a ValueError otherwise)."""
+    only (``rotation="twist"``; a ValueError otherwise).
+
+    Built for few operations (the control-loop case, batch 1):
+
+    - Forward mode as stacked rows: per segment the value row and its T tangent rows go through each layer
+      in one product, (B, m, 1 + T, W) (the bias on the value row only; the tangent rows scaled by σ' of the
+      value). T counts only the features segment k's first layer depends on (``columns`` (m, T), padded with
+      zero seeds): 2 per type-I segment without context, instead of all D.
+    - The segment transforms and everything after them are pointwise: R_k = I + s·ω^ + f·ω^², with ω^² =
+      ωωᵀ − φ²I; the spatial angular velocity of R_k along a tangent is b = J_l(ω)·dω = dω + f·ω×dω +
+      g·ω×(ω×dω) (the left Jacobian of SO(3)), and a change of segment k moves the tip point by
+      R_{P_{k−1}}·(dp_k + b × R_k·s_{k+1}), where R_{P_{k−1}} = R_1⋯R_{k−1} is the prefix rotation and s_{k+1}
+      the tip's position in frame k (the suffix T_{k+1}⋯T_m applied to the origin); the angular rows are
+      R_{P_{k−1}}·b. No 4 × 4 products and no tangent of the full transform.
+    - The per-segment columns (B, 6, m·T) become J_f and J_q in one product with a constant map
+      [selection | selection·∂f/∂q] when ∂f/∂q is constant (no twisting segment); otherwise J_q =
+      J_f·∂f/∂q(q).
+    """
 
     def __init__(self, model, dtype: torch.dtype = torch.float32):
         super().__init__()
         if model.rotation != "twist":
             raise ValueError("rotation: the compositional Jacobian module needs the 'twist' head, "
                              f"got {model.rotation!r}")
-        self.num_segments, self.num_joints = model.spec.num_segments, model.spec.num_joints
+        m = self.num_segments = model.spec.num_segments
+        self.num_joints = model.spec.num_joints
         self.width, self.out = linear_layers(model.net)[0].out_features, HEADS[model.rotation]
         self.fold = ClarkeFold(model.spec)
         ones = torch.ones(self.out, dtype=_F64)
         k, k0 = compositional_first_layer(model)                          # acts on actuated features f
-        d = k.shape[1]
-        # ∂(pre-activations | skip part) / ∂f per segment: (m, D, W + O), the tangents the MLP carries forward
-        self.register_buffer("seed", k.view(self.num_segments, self.width + self.out, d).mT.contiguous().to(dtype))
+        d = self.num_features = k.shape[1]
+        seed = k.view(m, self.width + self.out, d).mT                     # ∂(pre-activations | skip)/∂f (m, D, W + O)
+        used = [torch.nonzero(seed[j].abs().sum(-1) > 0).flatten().tolist() for j in range(m)]
+        t = max(1, *map(len, used))
+        local = torch.zeros(m, t, self.width + self.out, dtype=_F64)      # the T tangent rows of each segment
+        pick = torch.zeros(m, t, d, dtype=_F64)                           # (segment, row) → feature column
+        for j, cols in enumerate(used):
+            local[j, :len(cols)] = seed[j, cols]
+            pick[j, range(len(cols)), cols] = 1.0
+        self.on_features = self.fold.has_type3
+        if not self.on_features:
+            k, k0 = k @ self.fold.E, k0 + k @ self.fold.e0
+        self.constant_dfdq = not (self.fold.has_g or self.fold.has_type3)
+        pick = pick.flatten(0, 1)                                          # (m·T, D)
+        if self.constant_dfdq:                                             # [J_f | J_q] in one product
+            pick = torch.cat([pick, pick @ self.fold.E[:, :self.num_joints]], dim=-1)
+        self.register_buffer("seed", local.to(dtype))
+        self.register_buffer("pick", pick.to(dtype))
+        self.register_buffer("value_row", (torch.arange(1 + t) == 0).to(dtype).unsqueeze(-1))   # (1 + T, 1)
         self.fold.to(dtype)
         self.mlp = FoldedMLP(model.net, (k, k0), ones, torch.zeros_like(ones), dtype)
         self.register_buffer("out_scale", output_scale(model).to(dtype))
-        self.register_buffer("eye", torch.eye(4, dtype=dtype))
+        self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
+
+    def segment_twists(self, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Twists ξ_k (B, m, 6) and their tangents (B, m, T, 6) along each segment's tangent rows."""
+        pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
+        pre = pre.unflatten(-1, (self.num_segments, self.width + self.out)).unsqueeze(-2)   # (B, m, 1, W + O)
+        rows = torch.cat([pre, self.seed.expand(pre.shape[0], -1, -1, -1)], dim=-2)      # (B, m, 1 + T, W + O)
+        a, mask = rows[..., :self.width], self.value_row
+        for layer in [*self.mlp.hidden, self.mlp.last]:
+            v = a[..., :1, :]
+            s, ds = activation_and_derivative(self.mlp.act, v)
+            a = F.linear(torch.cat([s, a[..., 1:, :] * ds], dim=-2), layer.weight) + layer.bias * mask
+        xi = (a + rows[..., self.width:]) * self.out_scale.unsqueeze(-2)                  # (B, m, 1 + T, 6)
+        return xi[..., 0, :], xi[..., 1:, :]
 
     def forward(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         u = self.fold.inputs(q)
-        f = self.fold.features(u)
-        pre = self.mlp.first(f).unflatten(-1, (self.num_segments, self.width + self.out))      # (B, m, W + O)
-        seed = self.seed.expand(q.shape[0], -1, -1, -1)                                         # (B, m, D, W + O)
-        out, dout = self.mlp.forward_with_tangents(pre[..., :self.width], seed[..., :self.width])
-        scale = self.out_scale.unsqueeze(-2)                                                    # (m, 1, 6)
-        xi = (out + pre[..., self.width:]) * self.out_scale                                      # (B, m, 6)
-        dxi = (dout + seed[..., self.width:]) * scale                                            # (B, m, D, 6)
-        t, dt = twist_exp_and_tangent(xi, dxi)                                        # (B, m, 4, 4), (B, m, D, 4, 4)
+        xi, dxi = self.segment_twists(u)
+        rot, pos, ang, lin = _exp_and_spatial_tangents(xi, dxi)
+        # chain: prefix rotations R_1⋯R_{k−1} and tip positions s_{k+1} in frame k, k = 1 … m
         m = self.num_segments
-        prefix, suffix = [self.eye.expand(q.shape[0], 4, 4)], [self.eye.expand(q.shape[0], 4, 4)]
-        for k in range(m):                                                  # T_1⋯T_k and T_{m−k}⋯T_m
-            prefix.append(prefix[-1] @ t[:, k])
-            suffix.append(t[:, m - 1 - k] @ suffix[-1])
-        dpose = sum(prefix[k].unsqueeze(1) @ dt[:, k] @ suffix[m - 1 - k].unsqueeze(1) for k in range(m))
-        pose = prefix[m]
-        jac_f = twist_jacobian(pose, dpose.permute(0, 2, 3, 1))                                  # (B, 6, D)
-        return pose, jac_f, jac_f @ self.fold.jacobian(q, u)
+        prefix, suffix = [None], [None]
+        for j in range(1, m):
+            prefix.append(rot[:, 0] if j == 1 else _mat3(prefix[-1], rot[:, j - 1]))
+            suffix.append(pos[:, m - 1] if j == 1 else _matvec3(rot[:, m - j], suffix[-1]) + pos[:, m - j])
+        tip_rot = rot[:, 0] if m == 1 else _mat3(prefix[-1], rot[:, m - 1])
+        tip_pos = pos[:, 0] if m == 1 else _matvec3(rot[:, 0], suffix[-1]) + pos[:, 0]
+        cols = []
+        for j in range(m):
+            rest = suffix[m - 1 - j]                                      # s_{j+2}: the tip in frame j + 1
+            lin_j = lin[:, j] if rest is None else lin[:, j] + torch.linalg.cross(
+                ang[:, j], _matvec3(rot[:, j], rest).unsqueeze(-2))
+            both = torch.cat([lin_j, ang[:, j]], dim=-1)                  # (B, T, 6) in frame j
+            cols.append((both if prefix[j] is None else _rotate_pairs(prefix[j], both)).mT)
+        jac = (torch.cat(cols, dim=-1).flatten(0, 1) @ self.pick).view(q.shape[0], 6, -1)   # (B, 6, D [+ N])
+        pose = torch.cat([torch.cat([tip_rot, tip_pos.unsqueeze(-1)], dim=-1),
+                          self.bottom.expand(q.shape[0], 1, 4)], dim=-2)
+        if self.constant_dfdq:
+            return pose, jac[..., :self.num_features], jac[..., self.num_features:]
+        return pose, jac, jac @ self.fold.jacobian(q, u)
+
+
+def _mat3(a: Tensor, b: Tensor) -> Tensor:
+    """a·b of 3 × 3 matrices (..., 3, 3) as pointwise products (no batched GEMM call)."""
+    return a[..., :, 0:1] * b[..., 0:1, :] + a[..., :, 1:2] * b[..., 1:2, :] + a[..., :, 2:3] * b[..., 2:3, :]
+
+
+def _matvec3(a: Tensor, x: Tensor) -> Tensor:
+    """a·x for a (..., 3, 3), x (..., 3), pointwise."""
+    return a[..., 0] * x[..., 0:1] + a[..., 1] * x[..., 1:2] + a[..., 2] * x[..., 2:3]
+
+
+def _rotate_pairs(rot: Tensor, rows: Tensor) -> Tensor:
+    """rows (B, T, 6) = (x, y) pairs of 3-vectors → (R·x, R·y), R (B, 3, 3)."""
+    r = rot.unsqueeze(-3).unsqueeze(-3)                                   # (B, 1, 1, 3, 3)
+    return _matvec3(r, rows.unflatten(-1, (2, 3))).flatten(-2)
+
+
+def _exp_and_spatial_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """exp of twists ξ = (v, ω) (..., 6) as R (..., 3, 3), p (..., 3) (:func:`~dacr_learn.lie.twist_exp`) and,
+    along dξ (..., T, 6), the spatial angular velocity b = vee(dR·Rᵀ) = J_l(ω)·dω and dp (..., T, 3)."""
+    v, w, dv, dw = xi[..., :3], xi[..., 3:], dxi[..., :3], dxi[..., 3:]
+    phi_sq = (w * w).sum(-1)
+    s, f, ds, df = bending_coefficients_and_derivatives(phi_sq)
+    g = third_coefficient(phi_sq, s)
+    small = phi_sq < TAYLOR_BELOW
+    y = torch.where(small, phi_sq, 0.0)
+    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
+    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
+    w1, f1, g1 = w.unsqueeze(-2), f[..., None, None], g[..., None, None]
+    dphi = 2 * (w1 * dw).sum(-1, keepdim=True)                                            # (..., T, 1)
+    wv = torch.linalg.cross(w, v)
+    wwv = torch.linalg.cross(w, wv)
+    wdw = torch.linalg.cross(w1, dw)
+    dwv = torch.linalg.cross(dw, v.unsqueeze(-2)) + torch.linalg.cross(w1, dv)
+    dwwv = torch.linalg.cross(dw, wv.unsqueeze(-2)) + torch.linalg.cross(w1, dwv)
+    dp = (dv + (df[..., None, None] * dphi) * wv.unsqueeze(-2) + f1 * dwv
+          + (dg[..., None, None] * dphi) * wwv.unsqueeze(-2) + g1 * dwwv)
+    ang = dw + f1 * wdw + g1 * torch.linalg.cross(w1, wdw)
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
+    # R = I + s·ω^ + f·ω^², ω^² = ωωᵀ − φ²I
+    rot = (1 - f * phi_sq)[..., None, None] * eye + s[..., None, None] * hat(w) \
+        + f[..., None, None] * (w.unsqueeze(-1) * w.unsqueeze(-2))
+    return rot, v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * wwv, ang, dp
 
 
 def output_scale(model) -> Tensor:
