@@ -160,6 +160,7 @@ def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_ro
         parse_args(args + ["--out", str(tmp_path), "--proxies", "cv"])    # the default is chosen on extrap
 
 
+@pytest.mark.slow                    # two spawned worker processes train the models: run once, in the first pass
 def test_save_bundles_the_final_runs_models_instead_of_training_them_again(labelled_robot_dir, tmp_path,
                                                                             monkeypatch):
     """``--save`` (two worker processes): the saved ensemble is the benchmark's own final-run models, returned
