@@ -181,3 +181,12 @@ def test_structure_grid_runs_compositional_fk(tmp_path):
         ("clarke", "compositional"), ("clarke", "monolithic"), ("raw", "monolithic")]
     assert len(rows) == 3 * 3 and all(math.isfinite(float(r["pos_err_mean_mm"])) for r in rows)
     assert "clarke/compositional" in (tmp_path / "summary.md").read_text()
+
+
+@pytest.mark.parametrize("robots", [1, 4, 5])
+def test_plot_curves_draws_one_panel_per_robot_with_a_short_last_row(robots, tmp_path):
+    rows = [{"robot": f"r{k}", "task": "fk", "features": "clarke", "n_train": str(n), "seed": "0",
+             "condition": "clean", "pos_err_mean_mm": str(1.0 + k), "rot_err_mean_deg": "0.5"}
+            for k in range(robots) for n in (10, 100)]
+    paths = report.plot_curves(rows, tmp_path)
+    assert [p.name for p in paths] == ["fk_clean.png"] and paths[0].stat().st_size > 0

@@ -118,7 +118,7 @@ def plot_curves(rows: list[dict], out: Path, robots_order: list[str] | None = No
         cols = min(4, len(present))
         nrows = math.ceil(len(present) / cols)
         fig, axes = plt.subplots(nrows, cols, figsize=(3.4 * cols, 2.9 * nrows), squeeze=False)
-        for ax, robot in zip(axes.flat, present, strict=True):
+        for ax, robot in zip(list(axes.flat)[:len(present)], present, strict=True):   # a last row may be short
             for feat, style in FEATURE_STYLE.items():
                 pts = sorted((k[3], s["pos_err_mean_mm"]) for k, s in agg.items() if k[:3] == (robot, task, cond)
                              and k[4] == feat and not math.isnan(s["pos_err_mean_mm"][0]))
