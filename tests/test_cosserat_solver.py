@@ -32,7 +32,7 @@ def test_newton_residual_reaches_1e_10_and_rounding_level():
     for tol in (1e-10, 1e-13):
         sol = solve_statics(spec, tension, **loads, steps_per_segment=16, tol=tol)
         assert bool(sol.converged.all()) and float(sol.residual.max()) <= tol
-        assert int(sol.iterations.max()) <= 8                         # quadratic: 4 steps here
+        assert int(sol.iterations.max()) <= 12                        # Broyden: 9 steps here for 1e-13
         assert sol.tip[..., :2, 3].norm(dim=-1).min() > 0.15 * spec.total_length   # a large deflection
 
 

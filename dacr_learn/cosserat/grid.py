@@ -16,12 +16,17 @@ from torch import Tensor
 @dataclass(frozen=True)
 class ArcGrid:
     """intervals: (s_a, s_b, segment index) of each RK4 step [m]; ends: segment boundaries (m + 1) [m];
-    load_arcs: arc of each point load, snapped onto its node [m]; nodes: (K,) float64 arc of every node
-    [m], K = len(intervals) + 1."""
+    load_arcs: arc of each point load, snapped onto its node [m]; steps: uniform steps per segment;
+    nodes: (K,) float64 arc of every node [m], K = len(intervals) + 1."""
 
     intervals: tuple[tuple[float, float, int], ...]
     ends: tuple[float, ...]
     load_arcs: tuple[float, ...]
+    steps: int
+
+    def coarsened(self, factor: int) -> ArcGrid:
+        """The grid with ``steps // factor`` (at least 1) steps per segment and the same loads, no stations."""
+        return arc_grid(self.ends, max(1, self.steps // factor), self.load_arcs)
 
     @property
     def nodes(self) -> Tensor:
@@ -65,4 +70,4 @@ def arc_grid(ends: Sequence[float], steps: int, load_arcs: Sequence[float] = (),
             if near:
                 snapped[x] = near[0]
         intervals += [(s0, s1, k) for s0, s1 in zip([a, *nodes[:-1]], nodes, strict=True)]
-    return ArcGrid(tuple(intervals), tuple(ends), tuple(snapped[x] for x in load_arcs))
+    return ArcGrid(tuple(intervals), tuple(ends), tuple(snapped[x] for x in load_arcs), steps)

@@ -20,6 +20,7 @@ their relative precision: with v itself, n would carry an absolute error of EA·
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -63,57 +64,95 @@ def unpack(y: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     return y[:, 0:3], y[:, 3:12].reshape(-1, 3, 3), y[:, 12:15] + y.new_tensor([0.0, 0.0, 1.0]), y[:, 15:18]
 
 
-def tendon_wrench_directions(v: Tensor, u: Tensor, offsets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Per tendon: s_i = v + u × r_i (B, Ta, 3), ‖s_i‖ (B, Ta) and the unit wrench w_i = [t_i; r_i × t_i]
-    (B, Ta, 6) that a tension τ_i exerts on the rod where the tendon ends (body frame)."""
-    r = offsets.expand(v.shape[0], -1, -1)
-    s = v.unsqueeze(1) + torch.linalg.cross(u.unsqueeze(1).expand_as(r), r)
-    norm = torch.linalg.vector_norm(s, dim=-1)
-    t = s / norm.unsqueeze(-1)
-    return s, norm, torch.cat([t, torch.linalg.cross(offsets.expand_as(t), t)], dim=-1)
+def cross(a: Tensor, b: Tensor) -> Tensor:
+    """a × b for (..., 3) tensors, by components (torch.linalg.cross is several times slower on CPU)."""
+    ax, ay, az = a.unbind(-1)
+    bx, by, bz = b.unbind(-1)
+    return torch.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], dim=-1)
 
 
-def tendon_outer_products(offsets: Tensor) -> Tensor:
-    """E_i E_iᵀ = [[I, r̂_iᵀ], [r̂_i, r̂_i r̂_iᵀ]] (Ta, 36), the constant part of the tendon block."""
-    e = torch.cat([torch.eye(3, dtype=offsets.dtype).expand(offsets.shape[0], 3, 3), hat(offsets)], dim=-2)
-    return (e @ e.transpose(-1, -2)).reshape(-1, 36)
+def tendon_wrench_directions(v: Tensor, u: Tensor, offsets: Tensor) -> tuple[Tensor, Tensor]:
+    """Per tendon at offset r_i = (x_i, y_i, 0) (offsets (Ta, 3)): ‖s_i‖ (B, Ta) of s_i = v + u × r_i and the
+    unit wrench w_i = [t_i; r_i × t_i] (B, Ta, 6) that a tension τ_i exerts where the tendon ends (body
+    frame), t_i = s_i/‖s_i‖. Written by components for speed (r_z = 0 by tendon.py)."""
+    rx, ry = offsets[:, 0], offsets[:, 1]
+    vx, vy, vz = v[:, 0:1], v[:, 1:2], v[:, 2:3]
+    ux, uy, uz = u[:, 0:1], u[:, 1:2], u[:, 2:3]
+    sx, sy, sz = vx - uz * ry, vy + uz * rx, vz + ux * ry - uy * rx
+    norm = torch.sqrt(sx * sx + sy * sy + sz * sz)
+    tx, ty, tz = sx / norm, sy / norm, sz / norm
+    return norm, torch.stack([tx, ty, tz, ry * tz, -rx * tz, rx * ty - ry * tx], dim=-1)
+
+
+@functools.lru_cache(maxsize=8)
+def _block_map(dtype: torch.dtype) -> Tensor:
+    """(36, 36): E(r) X E(r)ᵀ, E(r) = [I; r̂], flattened, for X symmetric 3×3 and r = (x, y, 0), is bilinear in
+    the 6 entries (xx, xy, xz, yy, yz, zz) of X and the monomials (1, x, y, x², xy, y²) of r; row 6·e + g
+    holds the coefficient of entry e times monomial g. Fitted exactly at 6 points (degree ≤ 2)."""
+    pts = torch.tensor([[0, 0], [1, 0], [0, 1], [-1, 0], [0, -1], [1, 1]], dtype=torch.float64)
+    mono = torch.stack([torch.ones(6, dtype=torch.float64), pts[:, 0], pts[:, 1], pts[:, 0] ** 2,
+                        pts[:, 0] * pts[:, 1], pts[:, 1] ** 2], dim=-1)                    # (6 points, 6)
+    e = torch.cat([torch.eye(3, dtype=torch.float64).expand(6, 3, 3),
+                   hat(torch.cat([pts, torch.zeros(6, 1, dtype=torch.float64)], -1))], dim=-2)   # (6, 6, 3)
+    rows = []
+    for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):
+        x = torch.zeros(3, 3, dtype=torch.float64)
+        x[i, j] = x[j, i] = 1.0
+        rows.append(torch.linalg.solve(mono, (e @ x @ e.transpose(-1, -2)).reshape(6, 36)))   # (6 mono, 36)
+    return torch.cat(rows).to(dtype)
+
+
+def tendon_monomials(offsets: Tensor) -> Tensor:
+    """(Ta, 6) monomials (1, x, y, x², xy, y²) of the tendon offsets, the constant part of the tendon block."""
+    x, y = offsets[:, 0], offsets[:, 1]
+    return torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y], dim=-1)
 
 
 def tendon_block(v: Tensor, u: Tensor, tension: Tensor, offsets: Tensor,
-                 outer: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Σ_i E_i A_i E_iᵀ (B, 6, 6) of the tendons at offsets (Ta, 3) with tensions (B, Ta), and per tendon
-    ‖s_i‖ (B, Ta) and the unit wrench w_i (B, Ta, 6); ``outer`` = tendon_outer_products(offsets)."""
-    _, norm, w = tendon_wrench_directions(v, u, offsets)
+                 monomials: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Σ_i E_i A_i E_iᵀ (B, 6, 6), A_i = (τ_i/‖s_i‖)(I − t_i t_iᵀ), for tendons at offsets (Ta, 3) with tensions
+    (B, Ta), and per tendon ‖s_i‖ (B, Ta) and w_i (B, Ta, 6); ``monomials`` = tendon_monomials(offsets).
+    I − t tᵀ is formed without cancellation (1 − t_z² = t_x² + t_y²), then contracted with the monomials
+    and mapped by ``_block_map``: two small GEMMs instead of B·Ta outer products."""
+    norm, w = tendon_wrench_directions(v, u, offsets)
+    tx, ty, tz = w[..., 0], w[..., 1], w[..., 2]
     coef = tension / norm
-    block = (coef @ outer).reshape(-1, 6, 6) - (w * coef.unsqueeze(-1)).transpose(-1, -2) @ w
-    return block, norm, w
+    x = torch.stack([ty * ty + tz * tz, -tx * ty, -tx * tz, tx * tx + tz * tz, -ty * tz, tx * tx + ty * ty], 1)
+    moments = (x * coef.unsqueeze(1)) @ monomials                                      # (B, 6, 6)
+    return (moments.reshape(-1, 36) @ _block_map(v.dtype)).reshape(-1, 6, 6), norm, w
 
 
-def derivative(y: Tensor, tension: Tensor, offsets: Tensor, outer: Tensor, active: Tensor, section: Section,
+def derivative(y: Tensor, tension: Tensor, offsets: Tensor, monomials: Tensor, active: Tensor, section: Section,
                weight: Tensor | None) -> Tensor:
     """dy/ds (B, 18 + T) of the flat state y (B, 18 + T) along a stretch where the tendons ``active`` (Ta,)
-    run, with tensions ``tension`` (B, Ta) [N] at offsets (Ta, 3) [m], ``outer`` = tendon_outer_products
-    (Ta, 36), and weight per length f_e (B, 3) [N/m] in the base frame (None: weightless)."""
+    run, with tensions ``tension`` (B, Ta) [N] at offsets (Ta, 3) [m], ``monomials`` = tendon_monomials
+    (Ta, 6), and weight per length f_e (B, 3) [N/m] in the base frame (None: weightless)."""
     _, rot, v, u = unpack(y)
     kse, kbt = section.kse.to(y.dtype), section.kbt.to(y.dtype)
     n, m = kse * y[:, 12:15], kbt * u
-    d = -torch.linalg.cross(u, n)
-    c = -torch.linalg.cross(u, m) - torch.linalg.cross(v, n)
+    d = -cross(u, n)
+    c = -cross(u, m) - cross(v, n)
     if weight is not None:
-        d = d - (rot.transpose(-1, -2) @ weight.unsqueeze(-1)).squeeze(-1)
+        d = d - (rot * weight.unsqueeze(-1)).sum(-2)                                   # Rᵀ f_e
     system = torch.diag_embed(torch.cat([kse, kbt])).expand(y.shape[0], 6, 6)
     lengths = y.new_zeros(y.shape[0], y.shape[1] - STATE)
     if active.numel():
-        block, norm, w = tendon_block(v, u, tension, offsets, outer)
+        block, norm, w = tendon_block(v, u, tension, offsets, monomials)
         system = system + block
-        ut = torch.linalg.cross(u.unsqueeze(1).expand_as(w[..., :3]), w[..., :3]) * tension.unsqueeze(-1)
-        d = d - ut.sum(1)
-        c = c - torch.linalg.cross(offsets.expand_as(ut), ut).sum(1)
+        # Σ τ u × t_i = u × Σ τ t_i;  Σ τ r_i × (u × t_i) = u Σ τ (r_i·t_i) − Σ τ (r_i·u) t_i
+        r_dot_u = u[:, :2] @ offsets[:, :2].T
+        sums = torch.stack([tension, tension * r_dot_u], 1) @ w[..., :3]               # (B, 2, 3)
+        r_dot_t = (tension * (w[..., 0] * offsets[:, 0] + w[..., 1] * offsets[:, 1])).sum(-1, keepdim=True)
+        d = d - cross(u, sums[:, 0])
+        c = c - (u * r_dot_t - sums[:, 1])
         lengths = lengths.index_copy(1, active, norm)
-    dvu = torch.linalg.solve_ex(system, torch.cat([d, c], dim=-1))[0]
-    dp = (rot @ v.unsqueeze(-1)).squeeze(-1)
-    drot = (rot @ hat(u)).reshape(-1, 9)
-    return torch.cat([dp, drot, dvu, lengths], dim=-1)
+    lu, pivots, _ = torch.linalg.lu_factor_ex(system)
+    dvu = torch.linalg.lu_solve(lu, pivots, torch.cat([d, c], dim=-1).unsqueeze(-1)).squeeze(-1)
+    dp = (rot * v.unsqueeze(-2)).sum(-1)                                                 # R v
+    r0, r1, r2 = rot.unbind(-1)                                                          # columns of R
+    ux, uy, uz = u[:, 0:1], u[:, 1:2], u[:, 2:3]
+    drot = torch.stack([uz * r1 - uy * r2, ux * r2 - uz * r0, uy * r0 - ux * r1], dim=-1)   # R û
+    return torch.cat([dp, drot.reshape(-1, 9), dvu, lengths], dim=-1)
 
 
 def total_wrench(y: Tensor, tension: Tensor, offsets: Tensor, section: Section) -> Tensor:
@@ -123,7 +162,7 @@ def total_wrench(y: Tensor, tension: Tensor, offsets: Tensor, section: Section) 
     if not offsets.shape[0]:
         return rod
     _, _, v, u = unpack(y)
-    return rod + (tension.unsqueeze(-1) * tendon_wrench_directions(v, u, offsets)[2]).sum(1)
+    return rod + (tension.unsqueeze(-1) * tendon_wrench_directions(v, u, offsets)[1]).sum(1)
 
 
 def match_total_wrench(y: Tensor, total: Tensor, tension: Tensor, offsets: Tensor, section: Section,
@@ -137,12 +176,12 @@ def match_total_wrench(y: Tensor, total: Tensor, tension: Tensor, offsets: Tenso
     kk = torch.cat([section.kse, section.kbt]).to(y.dtype)
     if not offsets.shape[0]:
         return torch.cat([y[:, :12], total / kk, y[:, 18:]], dim=-1)
-    outer = tendon_outer_products(offsets)
+    monomials = tendon_monomials(offsets)
     y = torch.cat([y[:, :12], (total - (total_wrench(y, tension, offsets, section) - kk * y[:, 12:18])) / kk,
                    y[:, 18:]], dim=-1)
     for _ in range(iterations):
         _, _, v, u = unpack(y)
-        block, _, _ = tendon_block(v, u, tension, offsets, outer)
+        block, _, _ = tendon_block(v, u, tension, offsets, monomials)
         step = torch.linalg.solve_ex(torch.diag_embed(kk) + block,
                                      total_wrench(y, tension, offsets, section) - total)[0]
         y = torch.cat([y[:, :12], y[:, 12:18] - step, y[:, 18:]], dim=-1)

@@ -10,15 +10,19 @@ The residual is the wrench beyond the tip scaled to a dimensionless bending meas
 (n·L²/EI, m·L/EI), L the rod length; a sample has converged when its largest entry is ≤ ``tol``.
 Newton's unknowns are scaled the same way, so both are of order one.
 
-Jacobian (6×6 per sample): central differences, all 13 evaluations in one batch, step 2e-5 of
-the scale (error ≈ 1e-10 relative). The residual itself is exact; J only steers Newton, whose
-convergence stays quadratic down to the rounding level (about 1e-15 here). Damped by halving the
-step until ‖r‖ decreases.
+Jacobian (6×6 per sample): forward differences (7 evaluations in one batch) on a grid with a quarter
+of the steps at the start (its O(h⁴) error only slows the iteration slightly, at a quarter of the
+cost), Broyden updates with the fine residuals after each step, differences again where progress is
+slow (``newton``). The residual itself
+is exact; J only steers the iteration, which still reaches the rounding level (about 1e-15).
+Damped by halving the step until ‖r‖ decreases. For the gradient, J is recomputed at the solution
+by central differences (error ≈ 1e-10).
 
 Gradient: Newton runs without a graph; at the solution z* one more Newton step
 z = z* − J⁻¹·r(z*, θ) is taken with the graph on and J held fixed. Its value is z* (r ≈ 0) and its
 derivative −J⁻¹ ∂r/∂θ is the implicit-function gradient (accurate to J's ≈ 1e-10), at the cost of
-one integration with a graph instead of back-propagating through every iteration.
+a 13-fold batch without a graph and one integration with a graph, instead of back-propagating
+through every iteration.
 """
 from __future__ import annotations
 
@@ -35,12 +39,13 @@ from .rod import (
     derivative,
     match_total_wrench,
     rk4,
-    tendon_outer_products,
+    tendon_monomials,
     total_wrench,
 )
 from .tendon import TendonRouting
 
-FD_STEP = 2e-5
+FD_FORWARD, FD_CENTRAL = 1e-7, 2e-5   # difference steps of the dimensionless unknowns
+REFRESH = 0.3                          # recompute J where a Newton step reduced ‖r‖ by less than this
 
 
 class Loads:
@@ -68,7 +73,7 @@ def integrate(x: Tensor, tension: Tensor, loads: Loads, routing: TendonRouting, 
         if k not in plans:
             idx = routing.active(k)
             off = routing.offsets[idx].to(x.dtype)
-            plans[k] = (idx, off, tendon_outer_products(off))
+            plans[k] = (idx, off, tendon_monomials(off))
         idx, off, outer = plans[k]
         tau = tension[:, idx]
 
@@ -113,53 +118,78 @@ def residual(end: Tensor, section: Section, length: float) -> Tensor:
 
 
 def residual_and_jacobian(fun: Callable[[Tensor, Tensor], Tensor], x: Tensor, idx: Tensor,
-                          step: float = FD_STEP) -> tuple[Tensor, Tensor]:
-    """r = fun(x, idx) (B, 6) and the per-sample Jacobian ∂r/∂x (B, 6, 6) by central differences, all 13
-    evaluations in one batch. x and r are dimensionless (base wrench and tip wrench over (EI/L², EI/L)),
-    of order one, so the truncation error ~ step² and the rounding error ~ eps/step are both ≈ 1e-10."""
-    b = x.shape[0]
-    eye = torch.eye(6, dtype=x.dtype)
-    offsets = torch.cat([torch.zeros(1, 6, dtype=x.dtype), step * eye, -step * eye])   # (13, 6)
-    r = fun((x.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1, 6), idx.repeat(13)).reshape(13, b, 6)
-    return r[0], (r[1:7] - r[7:]).permute(1, 2, 0) / (2 * step)
+                          central: bool = False) -> tuple[Tensor, Tensor]:
+    """r = fun(x, idx) (B, 6) and the per-sample Jacobian ∂r/∂x (B, 6, 6) by finite differences, all
+    evaluations in one batch (7 forward, 13 central). x and r are dimensionless, of order one: forward
+    steps of 1e-7 leave an error ≈ 1e-7 (enough to steer Newton), central steps of 2e-5 ≈ 1e-10."""
+    b, step = x.shape[0], (FD_CENTRAL if central else FD_FORWARD)
+    eye = step * torch.eye(6, dtype=x.dtype)
+    offsets = torch.cat([torch.zeros(1, 6, dtype=x.dtype), eye] + ([-eye] if central else []))
+    r = fun((x.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1, 6), idx.repeat(offsets.shape[0]))
+    r = r.reshape(offsets.shape[0], b, 6)
+    diff = (r[1:7] - r[7:]) / (2 * step) if central else (r[1:7] - r[0]) / step
+    return r[0], diff.permute(1, 2, 0)
 
 
-def newton(fun: Callable[[Tensor, Tensor], Tensor], x0: Tensor, tol: float, max_iter: int,
-           halvings: int = 10) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Damped Newton on fun(x, idx) = 0 per sample (idx: the samples' rows), each sample on its own and
-    only while it has not converged. Step x − α·J⁻¹r with α = 1, 1/2, … (``halvings`` tries, one plain
-    evaluation each) until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); without a decrease the smallest
-    α is taken. Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), Newton steps (B,),
-    Jacobian at x (B, 6, 6))."""
+Residual = Callable[[Tensor, Tensor], Tensor]
+
+
+def newton(fun: Residual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
+           halvings: int = 10) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped quasi-Newton on fun(x, idx) = 0, each sample on its own and only while it has not converged.
+
+    J from forward differences of ``coarse`` (the same residual on a coarser grid, default ``fun``) at x0,
+    then Broyden's rank-one update with ``fun``'s residuals after every step, refreshed by differences
+    where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, …
+    (``halvings`` tries, one evaluation each) until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); the
+    accepted trial's residual is the next residual, so a step costs one integration. Returns
+    (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,))."""
     x = x0.clone()
-    res = torch.full((x.shape[0],), torch.inf, dtype=x.dtype)
+    every = torch.arange(x.shape[0])
+    coarse = fun if coarse is None else coarse
+    r, jac = fun(x, every), residual_and_jacobian(coarse, x, every)[1]
+    res = _max_abs(r)
     iters = torch.zeros(x.shape[0], dtype=torch.long)
-    jac = torch.eye(6, dtype=x.dtype).repeat(x.shape[0], 1, 1)
-    todo = torch.arange(x.shape[0])
-    for _ in range(max_iter + 1):
-        r, j = residual_and_jacobian(fun, x[todo], todo)
-        norm = r.abs().amax(-1)
-        res[todo], jac[todo] = torch.where(torch.isfinite(norm), norm, torch.inf), j
-        keep = torch.isfinite(norm) & (norm > tol) & (iters[todo] < max_iter)
-        todo, r, j = todo[keep], r[keep], j[keep]
+    todo = every[torch.isfinite(res) & (res > tol)]
+    for _ in range(max_iter):
         if not todo.numel():
             break
-        step, info = torch.linalg.solve_ex(j, r)
+        j, r0 = jac[todo], r[todo]
+        step, info = torch.linalg.solve_ex(j, r0)
         step = torch.where((info == 0).unsqueeze(-1), step, torch.nan)
-        x[todo] = _line_search(fun, x[todo], step, r.norm(dim=-1), todo, halvings)
+        x1, r1 = _line_search(fun, x[todo], step, r0, todo, halvings)
+        dx, dr = x1 - x[todo], r1 - r0
+        j = j + ((dr - (j @ dx.unsqueeze(-1)).squeeze(-1)) / (dx * dx).sum(-1, keepdim=True)).unsqueeze(-1) \
+            * dx.unsqueeze(-2)                                                         # Broyden ("good")
+        slow = (r1.norm(dim=-1) > REFRESH * r0.norm(dim=-1)) & torch.isfinite(r1).all(-1)
+        if slow.any():
+            j[slow] = residual_and_jacobian(coarse, x1[slow], todo[slow])[1]
+        x[todo], r[todo], jac[todo] = x1, r1, j
         iters[todo] += 1
-    return x, res, iters, jac
+        res[todo] = _max_abs(r1)
+        todo = todo[torch.isfinite(res[todo]) & (res[todo] > tol)]   # NaN/inf: given up, reported as inf
+    return x, res, iters
 
 
-def _line_search(fun, x: Tensor, step: Tensor, norm: Tensor, idx: Tensor, halvings: int) -> Tensor:
-    """x − α·step per sample with the first α = 2^-k (k < halvings) that decreases ‖fun‖₂ (see newton)."""
-    alpha = torch.ones_like(norm)
+def _max_abs(r: Tensor) -> Tensor:
+    norm = r.abs().amax(-1)
+    return torch.where(torch.isfinite(norm), norm, torch.inf)
+
+
+def _line_search(fun, x: Tensor, step: Tensor, r: Tensor, idx: Tensor, halvings: int) -> tuple[Tensor, Tensor]:
+    """(x − α·step, its residual) per sample, with the first α = 2^-k (k < halvings) that decreases ‖fun‖₂
+    (see newton); the last trial where none does."""
+    alpha = torch.ones(x.shape[0], 1, dtype=x.dtype)
+    out_r = torch.full_like(r, torch.nan)
+    norm = r.norm(dim=-1)
     pending = torch.arange(x.shape[0])
     for k in range(halvings):
-        trial = fun(x[pending] - alpha[pending, None] * step[pending], idx[pending]).norm(dim=-1)
-        ok = torch.isfinite(trial) & (trial <= (1 - 1e-4 * alpha[pending]) * norm[pending])
+        trial = fun(x[pending] - alpha[pending] * step[pending], idx[pending])
+        out_r[pending] = trial
+        tn = trial.norm(dim=-1)
+        ok = torch.isfinite(tn) & (tn <= (1 - 1e-4 * alpha[pending, 0]) * norm[pending])
         pending = pending[~ok]
         if not pending.numel() or k == halvings - 1:
             break
         alpha[pending] = alpha[pending] / 2
-    return x - alpha.unsqueeze(-1) * step
+    return x - alpha * step, out_r

@@ -16,8 +16,11 @@ from ..lie import pose_from_parts
 from ..robot import RobotSpec
 from .grid import ArcGrid, arc_grid
 from .rod import Section, unpack
-from .shooting import Loads, integrate, newton, residual, wrench_scale
+from .shooting import Loads, integrate, newton, residual, residual_and_jacobian, wrench_scale
 from .tendon import tendon_routing
+
+CHUNK = 2048  # samples solved together: bounds memory; per-sample time was flat from 1024 to 4096 (docs)
+COARSE_JACOBIAN = 4   # Newton's finite-difference Jacobian is taken on a grid with 1/4 of the steps
 
 
 class ConvergenceError(RuntimeError):
@@ -97,15 +100,15 @@ def _initial_guess(tension: Tensor, offsets: Tensor, loads: Loads, arcs: list[fl
 
 
 def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = None, tip_wrench: Tensor | None = None,
-                  point_wrenches: Sequence[tuple[float, Tensor]] = (), steps_per_segment: int = 32,
-                  stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 25,
-                  on_failure: str = "raise") -> CosseratSolution:
+                  point_wrenches: Sequence[tuple[float, Tensor]] = (), steps_per_segment: int = 16,
+                  stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
+                  on_failure: str = "raise", chunk_size: int = CHUNK) -> CosseratSolution:
     """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame:
     ``gravity`` (3,) or (..., 3) [m/s²] (acts through ``mechanics.density``), ``tip_wrench`` (..., 6)
     (F [N], M [N·m]) at the tip, ``point_wrenches`` [(arc [m], wrench (..., 6))] at the backbone.
-    Computed in float64 (inputs are cast); differentiable w.r.t. tensions and loads (implicit
-    gradient, see shooting.py). ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs
-    and converged = False for those samples)."""
+    Computed in float64 (inputs are cast), ``chunk_size`` samples at a time (the arrays then stay in
+    cache); differentiable w.r.t. tensions and loads (implicit gradient, see shooting.py).
+    ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False)."""
     if spec.mechanics is None:
         raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
     if on_failure not in ("raise", "flag"):
@@ -116,23 +119,9 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
     arcs, loads = _loads(spec, batch, section, gravity, tip_wrench, point_wrenches)
     grid = arc_grid(routing.ends.tolist(), steps_per_segment, arcs, stations)
     tau = tension.to(torch.float64).reshape(-1, routing.num_tendons)
-    length = spec.total_length
-
-    scale = wrench_scale(section, length)
-
-    def fun(z, idx, tau=tau, loads=loads):   # dimensionless base wrench z = x / scale → residual
-        end = integrate(z * scale, tau[idx], loads.select(idx), routing, section, grid, keep_nodes=False)[1]
-        return residual(end, section, length)
-
-    with torch.no_grad():
-        detached = Loads(None if loads.weight is None else loads.weight.detach(), [w.detach() for w in loads.wrenches])
-        x0 = _initial_guess(tau.detach(), routing.offsets, detached, list(grid.load_arcs), length)
-        z, res, iters, jac = newton(lambda z, idx: fun(z, idx, tau.detach(), detached), x0 / scale, tol, max_iter)
-    if torch.is_grad_enabled() and (tau.requires_grad or any(w.requires_grad for w in loads.wrenches)
-                                    or (loads.weight is not None and loads.weight.requires_grad)):
-        z = z - torch.linalg.solve_ex(jac, fun(z, torch.arange(z.shape[0])))[0]   # value z*, gradient −J⁻¹ ∂r/∂θ
-    x = z * scale
-    states = torch.stack(integrate(x, tau, loads, routing, section, grid)[0], dim=1)   # (B, K, 18 + T)
+    parts = [_solve_flat(tau[i:i + chunk_size], loads.select(slice(i, i + chunk_size)), routing, section, grid,
+                         spec.total_length, tol, max_iter) for i in range(0, max(tau.shape[0], 1), chunk_size)]
+    states, x, res, iters = (torch.cat(z) for z in zip(*parts, strict=True))
     converged = res <= tol
     admissible = _admissible(states, routing.offsets)
     ok = converged & admissible
@@ -144,6 +133,32 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
             "or the rod compressed to zero, see docs/cosserat.md); reduce the tensions or loads, raise max_iter, "
             "or pass on_failure='flag' to reject them")
     return _solution(states, x, res, ok, iters, grid, tau, spec.mechanics.tendon_compliance, batch)
+
+
+def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcGrid, length: float, tol: float,
+                max_iter: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(states at the nodes (B, K, 18 + T), base wrench x (B, 6), residual (B,), Newton steps (B,)) of B problems."""
+    scale = wrench_scale(section, length)
+
+    coarse = grid.coarsened(COARSE_JACOBIAN)
+
+    def fun(z, idx, tau=tau, loads=loads, grid=grid):   # dimensionless base wrench z = x / scale → residual
+        end = integrate(z * scale, tau[idx], loads.select(idx), routing, section, grid, keep_nodes=False)[1]
+        return residual(end, section, length)
+
+    with torch.no_grad():
+        detached = Loads(None if loads.weight is None else loads.weight.detach(), [w.detach() for w in loads.wrenches])
+        x0 = _initial_guess(tau.detach(), routing.offsets, detached, list(grid.load_arcs), length)
+        z, res, iters = newton(lambda z, idx: fun(z, idx, tau.detach(), detached), x0 / scale, tol, max_iter,
+                               coarse=lambda z, idx: fun(z, idx, tau.detach(), detached, coarse))
+    if torch.is_grad_enabled() and (tau.requires_grad or any(w.requires_grad for w in loads.wrenches)
+                                    or (loads.weight is not None and loads.weight.requires_grad)):
+        every = torch.arange(z.shape[0])
+        with torch.no_grad():
+            jac = residual_and_jacobian(lambda z, idx: fun(z, idx, tau.detach(), detached), z, every, central=True)[1]
+        z = z - torch.linalg.solve_ex(jac, fun(z, every))[0]   # value z*, gradient −J⁻¹ ∂r/∂θ
+    x = z * scale
+    return torch.stack(integrate(x, tau, loads, routing, section, grid)[0], dim=1), x, res, iters
 
 
 def _admissible(states: Tensor, offsets: Tensor) -> Tensor:
