@@ -15,6 +15,7 @@ import math
 
 import pytest
 import torch
+from conftest import ROOT
 
 from dacr_learn.cosserat import solve_statics
 from dacr_learn.kinematics import cc_transform, forward_kinematics
@@ -81,7 +82,7 @@ def test_one_segment_tendon_lengths_are_the_clarke_decoder_joint_lengths():
 
 
 def test_coupled_three_segments_are_piecewise_cc_with_coupled_joint_lengths():
-    spec = RobotSpec.from_yaml("configs/robots/tdcr_3seg_cosserat.yaml")
+    spec = RobotSpec.from_yaml(ROOT / "configs" / "robots" / "tdcr_3seg_cosserat.yaml")
     tension = torch.zeros(2, 12, dtype=torch.float64)
     tension[0, [0, 5, 10]] = torch.tensor([4.0, 3.2, 2.4], dtype=torch.float64)   # one tendon per segment
     tension[1, [1, 2, 7, 11]] = torch.tensor([1.6, 3.6, 4.4, 2.0], dtype=torch.float64)

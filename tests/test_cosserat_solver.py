@@ -7,13 +7,14 @@ import math
 
 import pytest
 import torch
+from conftest import ROOT
 
 from dacr_learn.cosserat import ConvergenceError, solve_statics
 from dacr_learn.robot import RobotSpec
 
 F64 = torch.float64
 EPS = torch.finfo(F64).eps
-COUPLED = "configs/robots/tdcr_3seg_cosserat.yaml"
+COUPLED = ROOT / "configs" / "robots" / "tdcr_3seg_cosserat.yaml"
 
 
 def loaded_problem():
@@ -174,4 +175,4 @@ def test_bad_inputs_name_the_argument():
     with pytest.raises(ValueError, match="steps_per_segment"):
         solve_statics(spec, torch.zeros(12, dtype=F64), steps_per_segment=0)
     with pytest.raises(ValueError, match="mechanics"):
-        solve_statics(RobotSpec.from_yaml("configs/robots/tdcr_3seg_coupled.yaml"), torch.zeros(12, dtype=F64))
+        solve_statics(RobotSpec.from_yaml(COUPLED.with_name("tdcr_3seg_coupled.yaml")), torch.zeros(12, dtype=F64))
