@@ -1,6 +1,10 @@
 """Cosserat model, checks (c) and (d) and the solver's contracts: Newton's residual, the integrator's
 order, global equilibrium, textbook cantilevers, gradients (gradcheck through the Newton solve),
-batching, and failures that are reported instead of returned as garbage."""
+batching, and failures that are reported instead of returned as garbage.
+
+The solver checks are marked slow: `make test` runs them once, in its one-thread pass. In its
+two-thread pass on a loaded machine OpenMP's actively waiting worker made them 10-20x slower
+(test_batched_equals_per_sample: 1.9 s with OMP_WAIT_POLICY=PASSIVE, 25 s without)."""
 from __future__ import annotations
 
 import math
@@ -28,6 +32,7 @@ def loaded_problem():
     return spec, tension, loads
 
 
+@pytest.mark.slow
 def test_newton_residual_reaches_1e_10_and_rounding_level():
     spec, tension, loads = loaded_problem()
     for tol in (1e-10, 1e-13):
@@ -37,7 +42,7 @@ def test_newton_residual_reaches_1e_10_and_rounding_level():
         assert sol.tip[..., :2, 3].norm(dim=-1).min() > 0.15 * spec.total_length   # a large deflection
 
 
-@pytest.mark.parametrize("case", ["cc_arc", "loaded"])
+@pytest.mark.parametrize("case", ["cc_arc", pytest.param("loaded", marks=pytest.mark.slow)])
 def test_integrator_error_falls_at_fourth_order(case):
     if case == "cc_arc":       # exact reference: the closed-form arc of one tendon (see test_cosserat_cc.py)
         spec = RobotSpec.from_dict({"segments": [{"type": "I", "length": 0.12, "radius": 0.006, "joints": 4}],
@@ -58,6 +63,7 @@ def test_integrator_error_falls_at_fourth_order(case):
     assert errors[-1] <= 1e-6 * spec.total_length                     # measured 5.9e-7 / 8e-9 at 16 steps
 
 
+@pytest.mark.slow
 def test_whole_robot_is_in_equilibrium():
     """Independent of the shooting residual: the total (rod + tendon) wrench at the base equals the external
     loads carried there along the solved shape (tip and point wrenches, the weight by Simpson's rule)."""
@@ -110,6 +116,7 @@ def test_textbook_cantilevers_in_the_linear_range():
         assert x[:, 1].abs().max() <= 100 * EPS * length
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("straight", [False, True])
 def test_gradcheck_tip_pose_through_the_newton_solve(straight):
     spec = RobotSpec.from_yaml(COUPLED)
@@ -130,6 +137,7 @@ def test_gradcheck_tip_pose_through_the_newton_solve(straight):
     assert torch.autograd.gradcheck(tip, (tension, *extra), eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_batched_equals_per_sample():
     spec, tension, loads = loaded_problem()
     tension = torch.stack([tension, tension.flip(-1) * 0.5, tension * 0.3])       # (3, 2, 12)
@@ -141,6 +149,7 @@ def test_batched_equals_per_sample():
             assert torch.allclose(one.frames, sol.frames[i, j], rtol=0, atol=1e-11 * spec.total_length)
 
 
+@pytest.mark.slow
 def test_failures_raise_or_are_flagged_with_nan():
     spec = RobotSpec.from_yaml(COUPLED)
     tension = torch.zeros(3, 12, dtype=F64)

@@ -57,6 +57,7 @@ def to_ours(v: torch.Tensor) -> torch.Tensor:
     return v @ FILE_TO_OURS.T
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("csv_name,json_name", CASES)
 def test_sorosim_shapes_within_one_percent_of_length(csv_name, json_name):
     spec, shapes, stations = load(csv_name, json_name)
