@@ -12,6 +12,12 @@ Schema (docs/design.md §4)::
         offset: 0.0             #   ... starting at this angle [rad]
         # or: joint_angles: [...] [rad] and optional joint_radii: [...] [m]
         limits: {bend: 1.57, length: [0.08, 0.12], twist: [-1.0, 1.0]}
+    mechanics:                  # optional, for the Cosserat-rod model (dacr_learn.cosserat)
+      youngs_modulus: 2.0e+11   # E [Pa] (PyYAML reads 2.0e11 as a string: write the exponent sign)
+      poisson_ratio: 0.3        # ν in (-1, 0.5]; or shear_modulus: G [Pa] (exactly one of the two)
+      outer_radius: 0.0008      # backbone cross-section [m]; inner_radius [m] (default 0, a tube if > 0)
+      density: 7870             # [kg/m³], default 0 (weightless); the weight needs a gravity load
+      tendon_compliance: 0.0    # tendon strain per newton of tension, 1/(E_t A_t) [1/N], default 0
 
 Default sampling limits (used when ``limits`` or one of its keys is absent):
 ``bend = pi/2`` rad (maximum bending angle), ``length = [0.8 l, 1.2 l]`` m for extending
@@ -37,9 +43,11 @@ DEFAULT_BEND = math.pi / 2
 DEFAULT_LENGTH_RATIO = (0.8, 1.2)
 DEFAULT_TWIST = (-math.pi / 2, math.pi / 2)
 
-_ROBOT_KEYS = {"name", "routing", "segments"}
+_ROBOT_KEYS = {"name", "routing", "segments", "mechanics"}
 _SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles", "joint_radii", "limits"}
 _LIMIT_KEYS = {"bend", "length", "twist"}
+_MECHANICS_KEYS = {"youngs_modulus", "shear_modulus", "poisson_ratio", "outer_radius", "inner_radius", "density",
+                   "tendon_compliance"}
 # Largest accepted condition number of a segment's joint layout A ([A, 1] when it extends). The Clarke
 # encoder solves q → features by least squares in the training/export dtype float32, whose relative
 # error grows like cond·eps(float32) = cond·1.2e-7; at 1e4 that is ≈ 1e-3 (three significant digits
@@ -70,6 +78,12 @@ def _float_list(field: str, value: Any) -> tuple[float, ...]:
             _fail(f"{field}[{i}]", v, "a finite number")
         out.append(float(v))
     return tuple(out)
+
+
+def _nonnegative_float(field: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+        _fail(field, value, "a finite number >= 0")
+    return float(value)
 
 
 def _range(field: str, value: Any, positive: bool) -> tuple[float, float]:
@@ -224,12 +238,64 @@ def _check_rank(seg: SegmentSpec, where: str) -> None:
 
 
 @dataclass(frozen=True)
+class MechanicsSpec:
+    """Backbone material and cross-section (one rod through all segments) and tendon compliance.
+
+    E, G [Pa]; radii [m]; density [kg/m³]; tendon_compliance 1/(E_t·A_t) [1/N]. ``poisson_ratio``
+    remembers which of ν / G the YAML gave (None: G given), so :meth:`to_dict` writes it back.
+    """
+
+    youngs_modulus: float
+    shear_modulus: float
+    outer_radius: float
+    inner_radius: float = 0.0
+    density: float = 0.0
+    tendon_compliance: float = 0.0
+    poisson_ratio: float | None = None
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], where: str = "mechanics") -> MechanicsSpec:
+        if not isinstance(d, Mapping):
+            _fail(where, d, "a mapping with keys " + ", ".join(sorted(_MECHANICS_KEYS)))
+        unknown = set(d) - _MECHANICS_KEYS
+        if unknown:
+            _fail(where, sorted(unknown), "only keys " + ", ".join(sorted(_MECHANICS_KEYS)))
+        e = _positive_float(f"{where}.youngs_modulus", d.get("youngs_modulus"))
+        if ("shear_modulus" in d) == ("poisson_ratio" in d):
+            _fail(where, sorted(set(d) & {"shear_modulus", "poisson_ratio"}),
+                  "exactly one of shear_modulus [Pa] and poisson_ratio")
+        nu = d.get("poisson_ratio")
+        if "poisson_ratio" in d and (isinstance(nu, bool) or not isinstance(nu, (int, float)) or not -1 < nu <= 0.5):
+            _fail(f"{where}.poisson_ratio", nu, "a number in (-1, 0.5]")
+        g = e / (2 * (1 + nu)) if nu is not None else _positive_float(f"{where}.shear_modulus", d["shear_modulus"])
+        outer = _positive_float(f"{where}.outer_radius", d.get("outer_radius"))
+        inner = _nonnegative_float(f"{where}.inner_radius", d.get("inner_radius", 0.0))
+        if inner >= outer:
+            _fail(f"{where}.inner_radius", inner, f"a radius < outer_radius = {outer} m")
+        return cls(e, g, outer, inner, _nonnegative_float(f"{where}.density", d.get("density", 0.0)),
+                   _nonnegative_float(f"{where}.tendon_compliance", d.get("tendon_compliance", 0.0)),
+                   None if nu is None else float(nu))
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"youngs_modulus": self.youngs_modulus}
+        d.update({"shear_modulus": self.shear_modulus} if self.poisson_ratio is None
+                 else {"poisson_ratio": self.poisson_ratio})
+        return d | {"outer_radius": self.outer_radius, "inner_radius": self.inner_radius, "density": self.density,
+                    "tendon_compliance": self.tendon_compliance}
+
+
+@dataclass(frozen=True)
 class RobotSpec:
-    """A chain of segments with a routing mode. Construct with :meth:`from_dict`/:meth:`from_yaml`."""
+    """A chain of segments with a routing mode. Construct with :meth:`from_dict`/:meth:`from_yaml`.
+
+    ``mechanics`` (optional, None when the YAML has no ``mechanics:`` block) parameterises the
+    Cosserat-rod model; the kinematic code ignores it.
+    """
 
     name: str
     routing: str
     segments: tuple[SegmentSpec, ...]
+    mechanics: MechanicsSpec | None = None
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RobotSpec:
@@ -237,7 +303,7 @@ class RobotSpec:
             _fail("robot", d, "a mapping with keys name, routing, segments")
         unknown = set(d) - _ROBOT_KEYS
         if unknown:
-            _fail("robot", sorted(unknown), "only keys name, routing, segments")
+            _fail("robot", sorted(unknown), "only keys name, routing, segments, mechanics")
         name = d.get("name", "robot")
         if not isinstance(name, str) or not name:
             _fail("name", name, "a non-empty string")
@@ -253,7 +319,8 @@ class RobotSpec:
                 if seg.twists:
                     _fail(f"segments[{j}].type", seg.type, "a non-twisting segment: coupled routing through a "
                           "twisting segment (type II/III) is not modelled")
-        return cls(name, routing, segments)
+        mechanics = MechanicsSpec.from_dict(d["mechanics"]) if "mechanics" in d else None
+        return cls(name, routing, segments, mechanics)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> RobotSpec:
@@ -281,7 +348,8 @@ class RobotSpec:
         _fail("robot", robot, "a RobotSpec, a robot description dict or the path of a robot YAML file")
 
     def to_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "routing": self.routing, "segments": [s.to_dict() for s in self.segments]}
+        d = {"name": self.name, "routing": self.routing, "segments": [s.to_dict() for s in self.segments]}
+        return d if self.mechanics is None else d | {"mechanics": self.mechanics.to_dict()}
 
     def to_yaml(self, path: str | Path) -> None:
         import yaml

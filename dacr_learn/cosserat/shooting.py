@@ -1,0 +1,195 @@
+"""Shooting for the static Cosserat rod: Newton on the base wrench, implicit gradient.
+
+The unknowns are the rod's internal force n(0) [N] and moment m(0) [N·m] at the base (body frame =
+robot base frame, z along the straight backbone). Integrating the ODE of ``rod.derivative`` from the
+base leaves the internal wrench beyond the tip, which must vanish. At a disk where tendons end, and
+where a point load acts, the total wrench carried by rod and tendons together is continuous except
+for the point load (−Rᵀ[F; M]); the rod's strains beyond the disk follow from it
+(``rod.match_total_wrench``, which includes the kink force of the tendons that pass through).
+The residual is the wrench beyond the tip scaled to a dimensionless bending measure,
+(n·L²/EI, m·L/EI), L the rod length; a sample has converged when its largest entry is ≤ ``tol``.
+Newton's unknowns are scaled the same way, so both are of order one.
+
+Jacobian (6×6 per sample): forward differences (7 evaluations in one batch) on a grid with a quarter
+of the steps at the start (its O(h⁴) error only slows the iteration slightly, at a quarter of the
+cost), Broyden updates with the fine residuals after each step, differences again where progress is
+slow (``newton``). The residual itself
+is exact; J only steers the iteration, which still reaches the rounding level (about 1e-15).
+Damped by halving the step until ‖r‖ decreases. For the gradient, J is recomputed at the solution
+by central differences (error ≈ 1e-10).
+
+Gradient: Newton runs without a graph; at the solution z* one more Newton step
+z = z* − J⁻¹·r(z*, θ) is taken with the graph on and J held fixed. Its value is z* (r ≈ 0) and its
+derivative −J⁻¹ ∂r/∂θ is the implicit-function gradient (accurate to J's ≈ 1e-10), at the cost of
+a 13-fold batch without a graph and one integration with a graph, instead of back-propagating
+through every iteration.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from .grid import ArcGrid
+from .rod import (
+    STATE,
+    Section,
+    add_body_wrench,
+    derivative,
+    match_total_wrench,
+    rk4,
+    tendon_monomials,
+    total_wrench,
+)
+from .tendon import TendonRouting
+
+FD_FORWARD, FD_CENTRAL = 1e-7, 2e-5   # difference steps of the dimensionless unknowns
+REFRESH = 0.3                          # recompute J where a Newton step reduced ‖r‖ by less than this
+
+
+class Loads:
+    """Flattened loads of a batch of B problems, base frame: weight per length (B, 3) [N/m] or None and
+    point wrenches (F [N], M [N·m]) (B, 6), one per ``grid.load_arcs`` entry."""
+
+    def __init__(self, weight: Tensor | None, wrenches: list[Tensor]):
+        self.weight, self.wrenches = weight, wrenches
+
+    def select(self, idx: Tensor) -> Loads:
+        return Loads(None if self.weight is None else self.weight[idx], [w[idx] for w in self.wrenches])
+
+
+def integrate(x: Tensor, tension: Tensor, loads: Loads, routing: TendonRouting, section: Section,
+              grid: ArcGrid, keep_nodes: bool = True) -> tuple[list[Tensor], Tensor]:
+    """States at every grid node (list of (B, 18 + T), before the jumps there; empty unless ``keep_nodes``)
+    and the state beyond the tip (after all jumps), from the base wrench x = (n(0), m(0)) (B, 6) [N, N·m]
+    and tensions (B, T) [N]."""
+    b, t = tension.shape
+    y = x.new_zeros(b, STATE + t)
+    y[:, 3:12] = torch.eye(3, dtype=x.dtype).reshape(9)
+    y = add_body_wrench(y, x, section)
+    nodes, plans = [y] if keep_nodes else [], {}
+    for a, s, k in grid.intervals:
+        if k not in plans:
+            idx = routing.active(k)
+            off = routing.offsets[idx].to(x.dtype)
+            plans[k] = (idx, off, tendon_monomials(off))
+        idx, off, outer = plans[k]
+        tau = tension[:, idx]
+
+        def f(z, tau=tau, off=off, outer=outer, idx=idx):
+            return derivative(z, tau, off, outer, idx, section, loads.weight)
+
+        y = rk4(f, y, s - a, 1)[0]
+        if keep_nodes:
+            nodes.append(y)
+        y = _jumps(y, s, k, tension, loads, routing, section, grid)
+    return nodes, y
+
+
+def _jumps(y: Tensor, s: float, k: int, tension: Tensor, loads: Loads, routing: TendonRouting, section: Section,
+           grid: ArcGrid) -> Tensor:
+    """The state after arc s (in segment k), where tendons may end (s = end of segment k) and point loads
+    may act: the total (rod + tendon) wrench drops by the point loads, −Rᵀ[F; M], and is otherwise
+    continuous; the rod's strains follow from it with the tendons that continue (``match_total_wrench``)."""
+    end = s == grid.ends[k + 1]
+    arcs = [w for arc, w in zip(grid.load_arcs, loads.wrenches, strict=True) if arc == s]
+    if not arcs and not (end and routing.terminating(k).numel()):
+        return y
+    before = routing.active(k)
+    total = total_wrench(y, tension[:, before], routing.offsets[before].to(y.dtype), section)
+    rt = y[:, 3:12].reshape(-1, 3, 3).transpose(-1, -2)
+    for wrench in arcs:
+        total = total - torch.cat([rt @ wrench[:, :3, None], rt @ wrench[:, 3:, None]], dim=1).squeeze(-1)
+    after = routing.active(k + 1) if end else before
+    return match_total_wrench(y, total, tension[:, after], routing.offsets[after].to(y.dtype), section)
+
+
+def wrench_scale(section: Section, length: float) -> Tensor:
+    """(6,) float64 (EI/L² [N] ×3, EI/L [N·m] ×3): the scale of the base unknowns and of the residual."""
+    ei = section.bending_stiffness
+    return torch.tensor([ei / length**2] * 3 + [ei / length] * 3, dtype=torch.float64)
+
+
+def residual(end: Tensor, section: Section, length: float) -> Tensor:
+    """Internal wrench beyond the tip (B, 6) over ``wrench_scale``, i.e. (n·L²/EI, m·L/EI) (dimensionless)."""
+    wrench = torch.cat([section.kse.to(end.dtype) * end[:, 12:15], section.kbt.to(end.dtype) * end[:, 15:18]], -1)
+    return wrench / wrench_scale(section, length).to(end.dtype)
+
+
+def residual_and_jacobian(fun: Callable[[Tensor, Tensor], Tensor], x: Tensor, idx: Tensor,
+                          central: bool = False) -> tuple[Tensor, Tensor]:
+    """r = fun(x, idx) (B, 6) and the per-sample Jacobian ∂r/∂x (B, 6, 6) by finite differences, all
+    evaluations in one batch (7 forward, 13 central). x and r are dimensionless, of order one: forward
+    steps of 1e-7 leave an error ≈ 1e-7 (enough to steer Newton), central steps of 2e-5 ≈ 1e-10."""
+    b, step = x.shape[0], (FD_CENTRAL if central else FD_FORWARD)
+    eye = step * torch.eye(6, dtype=x.dtype)
+    offsets = torch.cat([torch.zeros(1, 6, dtype=x.dtype), eye] + ([-eye] if central else []))
+    r = fun((x.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1, 6), idx.repeat(offsets.shape[0]))
+    r = r.reshape(offsets.shape[0], b, 6)
+    diff = (r[1:7] - r[7:]) / (2 * step) if central else (r[1:7] - r[0]) / step
+    return r[0], diff.permute(1, 2, 0)
+
+
+Residual = Callable[[Tensor, Tensor], Tensor]
+
+
+def newton(fun: Residual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
+           halvings: int = 10) -> tuple[Tensor, Tensor, Tensor]:
+    """Damped quasi-Newton on fun(x, idx) = 0, each sample on its own and only while it has not converged.
+
+    J from forward differences of ``coarse`` (the same residual on a coarser grid, default ``fun``) at x0,
+    then Broyden's rank-one update with ``fun``'s residuals after every step, refreshed by differences
+    where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, …
+    (``halvings`` tries, one evaluation each) until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); the
+    accepted trial's residual is the next residual, so a step costs one integration. Returns
+    (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,))."""
+    x = x0.clone()
+    every = torch.arange(x.shape[0])
+    coarse = fun if coarse is None else coarse
+    r, jac = fun(x, every), residual_and_jacobian(coarse, x, every)[1]
+    res = _max_abs(r)
+    iters = torch.zeros(x.shape[0], dtype=torch.long)
+    todo = every[torch.isfinite(res) & (res > tol)]
+    for _ in range(max_iter):
+        if not todo.numel():
+            break
+        j, r0 = jac[todo], r[todo]
+        step, info = torch.linalg.solve_ex(j, r0)
+        step = torch.where((info == 0).unsqueeze(-1), step, torch.nan)
+        x1, r1 = _line_search(fun, x[todo], step, r0, todo, halvings)
+        dx, dr = x1 - x[todo], r1 - r0
+        j = j + ((dr - (j @ dx.unsqueeze(-1)).squeeze(-1)) / (dx * dx).sum(-1, keepdim=True)).unsqueeze(-1) \
+            * dx.unsqueeze(-2)                                                         # Broyden ("good")
+        slow = (r1.norm(dim=-1) > REFRESH * r0.norm(dim=-1)) & torch.isfinite(r1).all(-1)
+        if slow.any():
+            j[slow] = residual_and_jacobian(coarse, x1[slow], todo[slow])[1]
+        x[todo], r[todo], jac[todo] = x1, r1, j
+        iters[todo] += 1
+        res[todo] = _max_abs(r1)
+        todo = todo[torch.isfinite(res[todo]) & (res[todo] > tol)]   # NaN/inf: given up, reported as inf
+    return x, res, iters
+
+
+def _max_abs(r: Tensor) -> Tensor:
+    norm = r.abs().amax(-1)
+    return torch.where(torch.isfinite(norm), norm, torch.inf)
+
+
+def _line_search(fun, x: Tensor, step: Tensor, r: Tensor, idx: Tensor, halvings: int) -> tuple[Tensor, Tensor]:
+    """(x − α·step, its residual) per sample, with the first α = 2^-k (k < halvings) that decreases ‖fun‖₂
+    (see newton); the last trial where none does."""
+    alpha = torch.ones(x.shape[0], 1, dtype=x.dtype)
+    out_r = torch.full_like(r, torch.nan)
+    norm = r.norm(dim=-1)
+    pending = torch.arange(x.shape[0])
+    for k in range(halvings):
+        trial = fun(x[pending] - alpha[pending] * step[pending], idx[pending])
+        out_r[pending] = trial
+        tn = trial.norm(dim=-1)
+        ok = torch.isfinite(tn) & (tn <= (1 - 1e-4 * alpha[pending, 0]) * norm[pending])
+        pending = pending[~ok]
+        if not pending.numel() or k == halvings - 1:
+            break
+        alpha[pending] = alpha[pending] / 2
+    return x - alpha * step, out_r

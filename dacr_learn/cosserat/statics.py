@@ -1,0 +1,183 @@
+"""Public entry point: static shapes of a tendon-driven robot by the Cosserat-rod model (docs/cosserat.md).
+
+>>> sol = solve_statics(spec, tension)          # tension (..., T) [N], spec with a mechanics block
+>>> sol.frames.shape, sol.tip.shape, sol.tendon_lengths.shape   # (..., K, 4, 4), (..., 4, 4), (..., T)
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..checks import check_tensor
+from ..lie import pose_from_parts
+from ..robot import RobotSpec
+from .grid import ArcGrid, arc_grid
+from .rod import Section, unpack
+from .shooting import Loads, integrate, newton, residual, residual_and_jacobian, wrench_scale
+from .tendon import tendon_routing
+
+CHUNK = 2048  # samples solved together: bounds memory; per-sample time was flat from 1024 to 4096 (docs)
+COARSE_JACOBIAN = 4   # Newton's finite-difference Jacobian is taken on a grid with 1/4 of the steps
+
+
+class ConvergenceError(RuntimeError):
+    """Raised by :func:`solve_statics` when samples did not converge (``on_failure="raise"``)."""
+
+
+@dataclass(frozen=True)
+class CosseratSolution:
+    """The static equilibrium of a batch (...,) of problems, all in the robot base frame, SI units.
+
+    frames (..., K, 4, 4): backbone pose at every grid node; arc (K,): the nodes' reference arc [m].
+    tendon_lengths (..., T): each tendon's path length from the base to its termination [m];
+    tendon_rest_lengths (..., T): the unstretched tendon length that spans it, L/(1 + c·τ) [m].
+    curvature u, stretch v (..., K, 3): body-frame strains [1/m], [-] (proximal value at a jump).
+    base_wrench (..., 6): the rod's internal (n [N], m [N·m]) at the base. residual (...,): scaled
+    max-abs shooting residual; converged (...,) bool (residual <= tol and an admissible shape);
+    iterations (...,) Newton steps. Samples that did not converge hold NaN in frames, lengths, strains
+    and base_wrench.
+    """
+
+    frames: Tensor
+    arc: Tensor
+    tendon_lengths: Tensor
+    tendon_rest_lengths: Tensor
+    curvature: Tensor
+    stretch: Tensor
+    base_wrench: Tensor
+    residual: Tensor
+    converged: Tensor
+    iterations: Tensor
+    grid: ArcGrid
+
+    @property
+    def tip(self) -> Tensor:
+        """Tip pose (..., 4, 4)."""
+        return self.frames[..., -1, :, :]
+
+    def at(self, arcs: Sequence[float]) -> Tensor:
+        """Frames (..., S, 4, 4) at reference arcs [m] that are grid nodes (``stations`` of the solve)."""
+        return self.frames[..., self.grid.index(arcs), :, :]
+
+
+def _loads(spec: RobotSpec, batch: torch.Size, section: Section, gravity, tip_wrench, point_wrenches):
+    """(grid load arcs, Loads flattened to B) with inputs checked; base-frame vectors broadcast to batch."""
+    dtype = torch.float64
+    weight = None
+    if gravity is not None:
+        check_tensor(gravity, "gravity", (3,))
+        if section.mass_per_length > 0:
+            weight = (section.mass_per_length * gravity.to(dtype)).expand(*batch, 3).reshape(-1, 3)
+    arcs, wrenches = [], []
+    for j, item in enumerate(point_wrenches):
+        if not (isinstance(item, (tuple, list)) and len(item) == 2):
+            raise ValueError(f"point_wrenches[{j}]: got {item!r}, expected a pair (arc [m], wrench (..., 6))")
+        arcs.append(float(item[0]))
+        wrenches.append(item[1])
+    if tip_wrench is not None:
+        arcs.append(spec.total_length)
+        wrenches.append(tip_wrench)
+    for j, w in enumerate(wrenches):
+        check_tensor(w, "tip_wrench" if tip_wrench is w else f"point_wrenches[{j}]", (6,))
+    return arcs, Loads(weight, [w.to(dtype).expand(*batch, 6).reshape(-1, 6) for w in wrenches])
+
+
+def _initial_guess(tension: Tensor, offsets: Tensor, loads: Loads, arcs: list[float], length: float) -> Tensor:
+    """Base wrench (B, 6) of the straight rod: external loads carried to the base minus Σ τ_i [e3; r_i × e3]."""
+    e3 = tension.new_tensor([0.0, 0.0, 1.0])
+    n = tension.new_zeros(tension.shape[0], 3)
+    m = torch.zeros_like(n)
+    for s, w in zip(arcs, loads.wrenches, strict=True):
+        n, m = n + w[:, :3], m + w[:, 3:] + torch.linalg.cross((s * e3).expand_as(n), w[:, :3])
+    if loads.weight is not None:
+        n = n + length * loads.weight
+        m = m + torch.linalg.cross((length**2 / 2 * e3).expand_as(n), loads.weight)
+    tendon = torch.cat([e3.expand_as(offsets), torch.linalg.cross(offsets, e3.expand_as(offsets))], dim=-1)
+    return torch.cat([n, m], dim=-1) - tension @ tendon
+
+
+def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = None, tip_wrench: Tensor | None = None,
+                  point_wrenches: Sequence[tuple[float, Tensor]] = (), steps_per_segment: int = 16,
+                  stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
+                  on_failure: str = "raise", chunk_size: int = CHUNK) -> CosseratSolution:
+    """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame:
+    ``gravity`` (3,) or (..., 3) [m/s²] (acts through ``mechanics.density``), ``tip_wrench`` (..., 6)
+    (F [N], M [N·m]) at the tip, ``point_wrenches`` [(arc [m], wrench (..., 6))] at the backbone.
+    Computed in float64 (inputs are cast), ``chunk_size`` samples at a time (the arrays then stay in
+    cache); differentiable w.r.t. tensions and loads (implicit gradient, see shooting.py).
+    ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False)."""
+    if spec.mechanics is None:
+        raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
+    if on_failure not in ("raise", "flag"):
+        raise ValueError(f"on_failure: got {on_failure!r}, expected 'raise' or 'flag'")
+    routing, section = tendon_routing(spec), Section.from_mechanics(spec.mechanics)
+    check_tensor(tension, "tension", (routing.num_tendons,))
+    batch = tension.shape[:-1]
+    arcs, loads = _loads(spec, batch, section, gravity, tip_wrench, point_wrenches)
+    grid = arc_grid(routing.ends.tolist(), steps_per_segment, arcs, stations)
+    tau = tension.to(torch.float64).reshape(-1, routing.num_tendons)
+    parts = [_solve_flat(tau[i:i + chunk_size], loads.select(slice(i, i + chunk_size)), routing, section, grid,
+                         spec.total_length, tol, max_iter) for i in range(0, max(tau.shape[0], 1), chunk_size)]
+    states, x, res, iters = (torch.cat(z) for z in zip(*parts, strict=True))
+    converged = res <= tol
+    admissible = _admissible(states, routing.offsets)
+    ok = converged & admissible
+    if on_failure == "raise" and not bool(ok.all()):
+        raise ConvergenceError(
+            f"solve_statics: of {ok.numel()} samples {int((~converged).sum())} did not converge to residual <= "
+            f"{tol:g} in {max_iter} Newton steps (worst {float(res.max()):.3g}; inf = NaN) and "
+            f"{int((converged & ~admissible).sum())} converged to an inadmissible shape (a tendon folding back "
+            "or the rod compressed to zero, see docs/cosserat.md); reduce the tensions or loads, raise max_iter, "
+            "or pass on_failure='flag' to reject them")
+    return _solution(states, x, res, ok, iters, grid, tau, spec.mechanics.tendon_compliance, batch)
+
+
+def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcGrid, length: float, tol: float,
+                max_iter: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(states at the nodes (B, K, 18 + T), base wrench x (B, 6), residual (B,), Newton steps (B,)) of B problems."""
+    scale = wrench_scale(section, length)
+
+    coarse = grid.coarsened(COARSE_JACOBIAN)
+
+    def fun(z, idx, tau=tau, loads=loads, grid=grid):   # dimensionless base wrench z = x / scale → residual
+        end = integrate(z * scale, tau[idx], loads.select(idx), routing, section, grid, keep_nodes=False)[1]
+        return residual(end, section, length)
+
+    with torch.no_grad():
+        detached = Loads(None if loads.weight is None else loads.weight.detach(), [w.detach() for w in loads.wrenches])
+        x0 = _initial_guess(tau.detach(), routing.offsets, detached, list(grid.load_arcs), length)
+        z, res, iters = newton(lambda z, idx: fun(z, idx, tau.detach(), detached), x0 / scale, tol, max_iter,
+                               coarse=lambda z, idx: fun(z, idx, tau.detach(), detached, coarse))
+    if torch.is_grad_enabled() and (tau.requires_grad or any(w.requires_grad for w in loads.wrenches)
+                                    or (loads.weight is not None and loads.weight.requires_grad)):
+        every = torch.arange(z.shape[0])
+        with torch.no_grad():
+            jac = residual_and_jacobian(lambda z, idx: fun(z, idx, tau.detach(), detached), z, every, central=True)[1]
+        z = z - torch.linalg.solve_ex(jac, fun(z, every))[0]   # value z*, gradient −J⁻¹ ∂r/∂θ
+    x = z * scale
+    return torch.stack(integrate(x, tau, loads, routing, section, grid)[0], dim=1), x, res, iters
+
+
+def _admissible(states: Tensor, offsets: Tensor) -> Tensor:
+    """(B,) bool: at every node each tendon advances along the backbone, v_z − ‖u_xy‖·max d_i > 0 (no folded
+    tendon path, no rod compressed to zero length); the straight-routing model has no meaning otherwise."""
+    v_z = states[..., 14] + 1
+    kappa = torch.linalg.vector_norm(states[..., 15:17], dim=-1)
+    return (v_z - kappa * float(offsets.norm(dim=-1).max()) > 0).all(-1)
+
+
+def _solution(states, x, res, converged, iters, grid, tau, compliance, batch) -> CosseratSolution:
+    bad = ~converged
+    states = torch.where(bad[:, None, None], torch.nan, states)
+    p, rot, v, u = unpack(states.reshape(-1, states.shape[-1]))
+    frames = pose_from_parts(rot, p).reshape(*batch, -1, 4, 4)
+    lengths = states[:, -1, 18:]
+    return CosseratSolution(
+        frames=frames, arc=grid.nodes, tendon_lengths=lengths.reshape(*batch, -1),
+        tendon_rest_lengths=(lengths / (1 + compliance * tau)).reshape(*batch, -1),
+        curvature=u.reshape(*batch, -1, 3), stretch=v.reshape(*batch, -1, 3),
+        base_wrench=torch.where(bad[:, None], torch.nan, x).reshape(*batch, 6), residual=res.reshape(batch),
+        converged=converged.reshape(batch), iterations=iters.reshape(batch), grid=grid)

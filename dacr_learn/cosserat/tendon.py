@@ -1,0 +1,64 @@
+"""Tendon routing geometry of a tendon-driven robot for the Cosserat-rod model (docs/cosserat.md).
+
+Tendon i is joint i of the joint vector (segment 1's joints first, docs/design.md §3). It runs
+straight (parallel to the backbone) at the constant body-frame offset r_i = d_i·(cos ψ_i, sin ψ_i, 0)
+[m], with (ψ_i, d_i) its joint angle and radius from the RobotSpec, from the robot base to the distal
+end of its own segment, where it terminates. With ``routing: coupled`` the tendons of segment k pass
+through segments 1..k at their own angle (as in ``clarke.joint_space_maps``); a one-segment robot has
+no routing choice. Independent routing of several segments would need a model of how a distal
+tendon bypasses the proximal segments (sheath, central channel) and is refused.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..robot import RobotSpec
+
+
+@dataclass(frozen=True)
+class TendonRouting:
+    """Float64 constants of the routing; T tendons, m segments.
+
+    offsets: (T, 3) body-frame offsets r_i [m].
+    segment: (T,) index of the segment at whose distal end tendon i terminates.
+    ends: (m + 1,) reference arc length of the segment boundaries, ends[0] = 0 [m].
+    """
+
+    offsets: Tensor
+    segment: Tensor
+    ends: Tensor
+
+    @property
+    def num_tendons(self) -> int:
+        return self.offsets.shape[0]
+
+    def active(self, k: int) -> Tensor:
+        """Indices (long) of the tendons that run along segment k (those terminating at k or beyond)."""
+        return torch.nonzero(self.segment >= k).flatten()
+
+    def terminating(self, k: int) -> Tensor:
+        """Indices (long) of the tendons that terminate at the distal end of segment k."""
+        return torch.nonzero(self.segment == k).flatten()
+
+
+def tendon_routing(spec: RobotSpec) -> TendonRouting:
+    """The routing of ``spec`` (types "0"/"I" only; coupled routing or one segment)."""
+    for j, seg in enumerate(spec.segments):
+        if seg.twists:
+            raise ValueError(f"segments[{j}].type: got {seg.type!r}, expected a tendon-driven segment of type "
+                             '"0" or "I" (twist actuation is not part of the Cosserat-rod model)')
+    if spec.num_segments > 1 and spec.routing != "coupled":
+        raise ValueError(f"routing: got {spec.routing!r}, expected 'coupled' for a multi-segment robot in the "
+                         "Cosserat-rod model (independent routing needs a model of how distal tendons bypass "
+                         "the proximal segments)")
+    offsets, segment = [], []
+    for k, seg in enumerate(spec.segments):
+        for psi, d in zip(seg.joint_angles, seg.joint_radii, strict=True):
+            psi_t = torch.tensor(psi, dtype=torch.float64)
+            offsets.append(torch.stack([d * torch.cos(psi_t), d * torch.sin(psi_t), psi_t.new_zeros(())]))
+            segment.append(k)
+    lengths = torch.tensor([0.0] + [s.length for s in spec.segments], dtype=torch.float64)
+    return TendonRouting(torch.stack(offsets), torch.tensor(segment), torch.cumsum(lengths, 0))
