@@ -3,9 +3,9 @@
 Every cell (features, n_train, seed) is one ``train.py fit`` of the same config, changed only by
 ``--model.init_args.features``, ``--data.n_train`` and the seed (``--seed_everything`` and ``--data.seed``:
 initialisation and dataset), run one after another with one torch thread. Numbers: docs/ablation.md,
-"Multi-segment IK with a pose loss". From the repository root:
+"One configuration for every training size". From the repository root:
 
-    python -m research.ik_tdcr3_grid --n-train 1000 10000 100000 --seeds 0 1 --out runs/ik_tdcr3_grid
+    python -m research.ik_tdcr3_grid --n-train 100000 10000 1000 --seeds 0 1 --out runs/ik_tdcr3_grid
 
 Writes ``results.csv`` (one row per training: the test metrics of train.py's metrics.json, the last
 validation metrics and the fit time; a finished cell is skipped on a rerun) and ``summary.md`` (mean ± std
