@@ -18,7 +18,7 @@ from torch import Tensor
 from .compositional import CompositionalFK, build_fk_model
 from .kinematics import backbone_points, forward_kinematics
 from .metrics import pose_errors, summarize
-from .models import IKModel
+from .models import IKModel, pose_to_vector
 from .robot import RobotSpec
 
 
@@ -220,30 +220,51 @@ class IKModule(KinematicsModule):
 
     ``output_scale``: the standardisation of the network output (:class:`~dacr_learn.models.IKModel`).
     ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps predictions inside
-    the sampled joint limits (a loss that accepts any solution otherwise drifts out of them).
+    the sampled joint limits (a loss that accepts any solution otherwise drifts out of them) at the
+    training poses. ``limit_noise`` > 0 adds the same penalty at the training inputs plus Gaussian noise
+    of that std (standardised input units; no target and no FK there), which keeps the predictions
+    between the training poses inside the limits too; with ``limit_noise_reference_n`` that term has weight
+    ``limit_weight`` at that many training samples and falls as 1/n_train² (:meth:`noise_weight`).
 
     ``pose_ramp`` (a fraction of the training steps) is a curriculum: the loss starts as the pure
     feature term (weights 1, 0) and moves linearly to (``feature_weight``, ``pose_weight``) over
     that fraction, then stays there. The network first learns the smooth conditional mean, and the
     pose term then pulls it onto the nearest solution branch; a pose loss from a random start
     converges much more slowly and leaves more predictions outside the joint limits.
+    ``pose_ramp_max_epochs`` caps that phase at so many passes over the training set (the steps per
+    epoch of the fit), so one config serves every data size: with few samples a long feature phase
+    memorises the pose-undetermined targets (docs/ablation.md, "Multi-segment IK with a pose loss").
+
+    Validation/test summaries add ``out_of_limits_pct``: the share of predictions beyond the joint limits
+    (:func:`limit_excess` above 1e-6, i.e. about 0.1 % relative overshoot).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, feature_weight: float = 1.0,
                  pose_weight: float = 0.0, rot_weight: float = 1.0, pose_ramp: float = 0.0,
-                 limit_weight: float = 0.0, output_scale: str = "std"):
+                 limit_weight: float = 0.0, output_scale: str = "std", pose_ramp_max_epochs: float | None = None,
+                 limit_noise: float = 0.0, limit_noise_reference_n: int | None = None):
         for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight),
                         ("limit_weight", limit_weight)):
             if not w >= 0:
                 raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
         if not 0 <= pose_ramp <= 1:
             raise ValueError(f"pose_ramp: expected a fraction of the training steps in [0, 1], got {pose_ramp!r}")
+        if pose_ramp_max_epochs is not None and not pose_ramp_max_epochs > 0:
+            raise ValueError("pose_ramp_max_epochs: expected a number of epochs > 0 or null, "
+                             f"got {pose_ramp_max_epochs!r}")
+        if limit_noise_reference_n is not None and not (isinstance(limit_noise_reference_n, int)
+                                                        and limit_noise_reference_n >= 1):
+            raise ValueError("limit_noise_reference_n: expected a number of training samples >= 1 or null, "
+                             f"got {limit_noise_reference_n!r}")
+        if not limit_noise >= 0:
+            raise ValueError(f"limit_noise: expected a standard deviation >= 0, got {limit_noise!r}")
         if feature_weight == 0 and pose_weight == 0:
             raise ValueError("feature_weight, pose_weight: expected at least one > 0, got both 0")
         # save_hyperparameters() in the base class also records the loss weights
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
+        self.n_train: int | None = None            # training set size, known from setup("fit")
 
     def build_model(self) -> IKModel:
         h = self.hparams
@@ -252,13 +273,35 @@ class IKModule(KinematicsModule):
     def forward(self, pose: Tensor) -> Tensor:
         return self.model(pose)
 
+    def setup(self, stage: str) -> None:
+        super().setup(stage)
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if dm is not None and hasattr(dm, "splits") and "train" in dm.splits:
+            self.n_train = len(dm.splits["train"]["q"])
+
+    def noise_weight(self) -> float:
+        """Weight of the limit penalty at the noisy inputs: ``limit_weight``, × (``limit_noise_reference_n`` /
+        n_train)² with a reference: needed where the training poses are sparse, and off where they are dense
+        (at 100k samples a 1/n fall still cost accuracy: docs/ablation.md)."""
+        h = self.hparams
+        weight, ref = h.get("limit_weight", 0.0), h.get("limit_noise_reference_n")
+        if not h.get("limit_noise", 0.0) or ref is None:
+            return weight
+        if self.n_train is None:
+            raise ValueError("limit_noise_reference_n: needs the training set size (a fit with a datamodule that "
+                             "has splits['train'])")
+        return weight * (ref / self.n_train) ** 2
+
     def loss_weights(self) -> tuple[float, float]:
         """(feature weight, pose weight) at the current step (see ``pose_ramp``); the final ones outside a fit."""
         h = self.hparams
         ramp = h.get("pose_ramp", 0.0)
         if not ramp or self._trainer is None or not self.training:
             return h.feature_weight, h.pose_weight
-        t = min(1.0, self.global_step / max(1.0, ramp * self.trainer.estimated_stepping_batches))
+        steps = ramp * self.trainer.estimated_stepping_batches
+        if h.get("pose_ramp_max_epochs") is not None:
+            steps = min(steps, h.pose_ramp_max_epochs * self.trainer.num_training_batches)
+        t = min(1.0, self.global_step / max(1.0, steps))
         return (1 - t) + t * h.feature_weight, t * h.pose_weight
 
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
@@ -274,6 +317,11 @@ class IKModule(KinematicsModule):
             loss = loss + wp * pose_loss(pred, batch["pose"], self.spec.total_length, self.hparams.rot_weight)
         if lw:
             loss = loss + lw * limit_excess(self.spec, features).mean()
+            noise = self.hparams.get("limit_noise", 0.0)
+            if noise:
+                x = self.model.in_norm(pose_to_vector(batch["pose"], self.spec.total_length))
+                noisy = self.model.decode_features(self.model.net(x + noise * torch.randn_like(x)))
+                loss = loss + self.noise_weight() * limit_excess(self.spec, noisy).mean()
         return loss
 
     def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:
@@ -281,4 +329,6 @@ class IKModule(KinematicsModule):
         return forward_kinematics(self.spec, self.model.encoder(self.model(pose)))
 
     def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        return ik_errors(self.model, self.spec, batch["pose"], batch["pose"], batch["q"])
+        errors = ik_errors(self.model, self.spec, batch["pose"], batch["pose"], batch["q"])
+        features = self.model.encoder(self.model(batch["pose"]))
+        return {**errors, "out_of_limits": (limit_excess(self.spec, features) > 1e-6).to(features.dtype)}

@@ -87,7 +87,12 @@ def test_training_loss_combines_feature_and_pose_terms():
                                           ({"rot_weight": float("nan")}, "rot_weight"),
                                           ({"pose_ramp": 1.5}, "pose_ramp: expected a fraction"),
                                           ({"limit_weight": -0.1}, "limit_weight: expected a number >= 0"),
-                                          ({"output_scale": "range"}, "output_scale: expected one of")])
+                                          ({"pose_ramp_max_epochs": 0}, "pose_ramp_max_epochs: expected"),
+                                          ({"pose_ramp_max_epochs": float("nan")}, "pose_ramp_max_epochs"),
+                                          ({"output_scale": "range"}, "output_scale: expected one of"),
+                                          ({"limit_noise": -0.1}, "limit_noise: expected a standard deviation"),
+                                          ({"limit_noise_reference_n": 0}, "limit_noise_reference_n: expected"),
+                                          ({"limit_noise_reference_n": 1e3}, "limit_noise_reference_n: expected")])
 def test_bad_loss_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         IKModule(robot=str(TDCR3_YAML), **kwargs)
@@ -103,6 +108,78 @@ def test_pose_ramp_moves_from_the_feature_loss_to_the_final_weights():
     for step, (wf, wp) in expected.items():
         module._trainer.global_step = step
         assert module.loss_weights() == pytest.approx((wf, wp), rel=1e-12), step
+
+
+@pytest.mark.parametrize("batches_per_epoch,ramp_steps", [(4, 20), (40, 50)])
+def test_pose_ramp_max_epochs_caps_the_ramp_at_so_many_epochs(batches_per_epoch, ramp_steps):
+    """pose_ramp 0.5 of 100 steps, at most 5 epochs: 4 batches per epoch → the ramp ends at step 20 (halfway
+    at 10); 40 batches per epoch → the cap (200 steps) is above the fraction, which rules (50 steps)."""
+    module, _ = ik_module("clarke", feature_weight=0.0, pose_weight=1.0, pose_ramp=0.5, pose_ramp_max_epochs=5)
+    module._trainer = SimpleNamespace(global_step=0, estimated_stepping_batches=100,
+                                      num_training_batches=batches_per_epoch)
+    module.train()
+    for step, (wf, wp) in {0: (1.0, 0.0), ramp_steps // 2: (0.5, 0.5), ramp_steps: (0.0, 1.0),
+                           99: (0.0, 1.0)}.items():
+        module._trainer.global_step = step
+        assert module.loss_weights() == pytest.approx((wf, wp), rel=1e-12), step
+
+
+def test_ik_errors_count_the_predictions_outside_the_joint_limits():
+    """IKModule.errors flags a prediction whose decoded features exceed the limits (limit_excess > 1e-6):
+    none for a fresh network's near-mean outputs; some, exactly those, once the output layer is scaled up;
+    summarize reports their share in percent."""
+    from dacr_learn.metrics import summarize
+
+    module, data = ik_module("clarke")
+    batch = {"q": data["q"], "pose": data["pose"]}
+    assert module.errors(batch)["out_of_limits"].sum() == 0
+    with torch.no_grad():
+        module.model.net[-1].weight.mul_(20.0)
+    flags = module.errors(batch)["out_of_limits"]
+    excess = limit_excess(module.spec, module.model.encoder(module.model(data["pose"])))
+    assert 0 < flags.sum() < len(flags)
+    assert torch.equal(flags.bool(), excess > 1e-6)
+    share = summarize({"out_of_limits": flags}, module.spec.total_length)["out_of_limits_pct"]
+    assert share == pytest.approx(100 * flags.mean().item())
+
+
+def test_limit_noise_adds_the_penalty_at_noisy_inputs():
+    """limit_noise σ: loss = loss(σ = 0) + limit_weight · mean limit_excess of the prediction at the standardised
+    input plus σ·N(0, 1) (the same draw reproduced here), with predictions pushed out of the limits."""
+    losses = {}
+    for noise in (0.0, 0.5):
+        module, data = ik_module("clarke", feature_weight=0.0, pose_weight=1.0, limit_weight=2.0, limit_noise=noise)
+        model = module.model
+        with torch.no_grad():
+            model.net[-1].weight.mul_(20.0)
+        torch.manual_seed(5)
+        losses[noise] = module.loss({"q": data["q"], "pose": data["pose"]})
+    x = model.in_norm(pose_to_vector(data["pose"], module.spec.total_length))
+    torch.manual_seed(5)
+    noisy = model.decode_features(model.net(x + 0.5 * torch.randn_like(x)))
+    extra = 2.0 * limit_excess(module.spec, noisy).mean()
+    assert extra > 0.01
+    assert torch.allclose(losses[0.5], losses[0.0] + extra, rtol=1e3 * torch.finfo(torch.float64).eps)
+
+
+@pytest.mark.parametrize("reference,n_train,expected", [(None, 100000, 2.0), (1000, 1000, 2.0), (1000, 10000, 0.02),
+                                                        (1000, 100000, 2e-4), (1000, 500, 8.0)])
+def test_limit_noise_weight_falls_with_the_training_set_size(reference, n_train, expected):
+    """limit_weight 2 at limit_noise_reference_n samples: the noisy-input penalty of a fit on n_train samples
+    (setup reads the size from the datamodule) weighs 2 · (reference / n_train)²; 2 at every size without a
+    reference."""
+    module, data = ik_module("clarke", limit_weight=2.0, limit_noise=0.5, limit_noise_reference_n=reference)
+    train = {"q": data["q"][:1].expand(n_train, -1), "pose": data["pose"][:1].expand(n_train, 4, 4)}
+    module._trainer = SimpleNamespace(datamodule=SimpleNamespace(splits={"train": train}))
+    module.setup("fit")
+    assert module.n_train == n_train
+    assert module.noise_weight() == pytest.approx(expected, rel=1e-12)
+
+
+def test_limit_noise_reference_needs_the_training_set_size():
+    module, _ = ik_module("clarke", limit_weight=1.0, limit_noise=0.3, limit_noise_reference_n=1000)
+    with pytest.raises(ValueError, match="limit_noise_reference_n: needs the training set size"):
+        module.noise_weight()
 
 
 def test_limit_excess_is_zero_inside_the_limits_and_the_relative_overshoot_squared_outside():
