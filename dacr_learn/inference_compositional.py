@@ -18,14 +18,7 @@ from torch import Tensor, nn
 
 from .compositional import HEADS
 from .inference import ClarkeFold, FoldedMLP, activation_and_derivative, linear_layers
-from .lie import (
-    TAYLOR_BELOW,
-    bending_coefficients_and_derivatives,
-    hat,
-    pose_from_parts,
-    third_coefficient,
-    twist_exp,
-)
+from .lie import exp_coefficients_and_derivatives, hat, pose_from_parts, twist_exp
 from .models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
@@ -200,12 +193,7 @@ def _exp_and_spatial_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, 
     along dξ (..., T, 6), the spatial angular velocity b = vee(dR·Rᵀ) = J_l(ω)·dω and dp (..., T, 3)."""
     v, w, dv, dw = xi[..., :3], xi[..., 3:], dxi[..., :3], dxi[..., 3:]
     phi_sq = (w * w).sum(-1)
-    s, f, ds, df = bending_coefficients_and_derivatives(phi_sq)
-    g = third_coefficient(phi_sq, s)
-    small = phi_sq < TAYLOR_BELOW
-    y = torch.where(small, phi_sq, 0.0)
-    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
-    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
+    s, f, g, ds, df, dg = exp_coefficients_and_derivatives(phi_sq)
     w1, f1, g1 = w.unsqueeze(-2), f[..., None, None], g[..., None, None]
     dphi = 2 * (w1 * dw).sum(-1, keepdim=True)                                            # (..., T, 1)
     wv = torch.linalg.cross(w, v)

@@ -65,6 +65,18 @@ def third_coefficient(phi_sq: Tensor, s: Tensor) -> Tensor:
     return torch.where(small, g_small, (1 - s) / torch.where(small, 1.0, phi_sq))
 
 
+def exp_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """(s, f, g, ds, df, dg) of φ² (...): the coefficients of exp of a twist (:func:`twist_exp`) and their
+    φ²-derivatives (Taylor polynomials below ``TAYLOR_BELOW``)."""
+    s, f, ds, df = bending_coefficients_and_derivatives(phi_sq)
+    g = third_coefficient(phi_sq, s)
+    small = phi_sq < TAYLOR_BELOW
+    y = torch.where(small, phi_sq, 0.0)
+    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
+    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
+    return s, f, g, ds, df, dg
+
+
 def hat(w: Tensor) -> Tensor:
     """Skew matrices ω^ (..., 3, 3) of vectors ω (..., 3): ω^·x = ω × x."""
     zero = torch.zeros_like(w[..., 0])
@@ -120,12 +132,7 @@ def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
     functions of φ² = ‖ω‖² (their φ²-derivatives: Taylor series below the same threshold)."""
     v, w, dv, dw = xi[..., :3], xi[..., 3:], dxi[..., :3], dxi[..., 3:]
     phi_sq = (w * w).sum(-1)
-    s, f, ds, df = bending_coefficients_and_derivatives(phi_sq)
-    g = third_coefficient(phi_sq, s)
-    small = phi_sq < TAYLOR_BELOW
-    y = torch.where(small, phi_sq, 0.0)
-    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
-    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
+    s, f, g, ds, df, dg = exp_coefficients_and_derivatives(phi_sq)
     dphi = 2 * (w.unsqueeze(-2) * dw).sum(-1)                                              # (..., T)
     at = lambda c: c.unsqueeze(-1)  # noqa: E731   coefficient (...) → (..., T) broadcast
     wv = torch.linalg.cross(w, v)
