@@ -15,7 +15,8 @@ from conftest import roundoff_tol
 from hardware_testkit import TIP_SCALE, V4_TIP_SCALE, command_recording, synthetic_model, v4_commands
 
 from dacr_learn import export as dexport
-from dacr_learn.hardware.deploy.generated import GeneratedHardwareFK, GeneratedInitialState
+from dacr_learn.hardware.deploy.generated import GeneratedHardwareFK
+from dacr_learn.hardware.deploy.inference import InitialState
 from dacr_learn.hardware.deploy.uncertainty import SigmaModel
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -81,7 +82,7 @@ def test_the_exported_generated_program_equals_the_eager_model():
     servo = model.examples.float()
     state = fk.initial_state(servo)
     program = dexport.export_program(fk, (servo[:2], state[:2])).module()
-    init = dexport.export_program(GeneratedInitialState(fk), servo[:2]).module()
+    init = dexport.export_program(InitialState(fk), servo[:2]).module()
     with torch.no_grad():
         got, want = program(servo, state), ref(servo.double(), state.double())
         assert (init(servo).double() - ref.initial_state(servo.double())).abs().max() <= roundoff_tol(

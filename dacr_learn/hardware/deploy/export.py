@@ -21,24 +21,13 @@ from torch import Tensor, nn
 from ... import export as dexport
 from .checkpoint import HardwareModel, hardware_model_from_blob, is_hardware_blob, load_hardware_model
 from .compositional_inference import CompositionalHardwareFK, CompositionalHardwareJacobian
-from .inference import HardwareFK, HardwareJacobian
+from .inference import HardwareFK, HardwareJacobian, InitialState
 
 TASK = "hardware_fk"
 UNITS = {"servo": "mm (commanded tendon displacement, columns in servo_ids order)",
          "tip": "m (motion-capture frame)", "tip_std": "m (ensemble spread, calibrated if the checkpoint says so)",
          "jacobian": "m/mm, d tip / d servo (rows x, y, z; columns servo_ids)",
          "state": "m (play operator state per segment, Clarke coordinates)"}
-
-
-class InitialState(nn.Module):
-    """servo (B, S) [mm] → play state (B, m, 2) [m] to start a sequence with (history models)."""
-
-    def __init__(self, fk: HardwareFK):
-        super().__init__()
-        self.fk = fk
-
-    def forward(self, servo: Tensor) -> Tensor:
-        return self.fk.initial_state(servo)
 
 
 def modules(model: HardwareModel, dtype: torch.dtype) -> dict[str, nn.Module]:

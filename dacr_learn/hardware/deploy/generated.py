@@ -101,14 +101,3 @@ class GeneratedHardwareFK(nn.Module):
         tip, std = mean_and_sigma(preds, split.cc_tip, rho, self.sigma, self.support)
         out = (tip.to(self.dtype), std.to(self.dtype))
         return out + (played.to(self.dtype),) if self.history else out
-
-
-class GeneratedInitialState(nn.Module):
-    """servo (B, S) [mm] → play state (B, m, 2) [m] (:meth:`GeneratedHardwareFK.initial_state`)."""
-
-    def __init__(self, fk: GeneratedHardwareFK):
-        super().__init__()
-        self.fk = fk
-
-    def forward(self, servo: Tensor) -> Tensor:
-        return self.fk.initial_state(servo)

@@ -298,6 +298,18 @@ class HardwareJacobian(nn.Module):
         return (tip, jac, new_state) if fk.history else (tip, jac)
 
 
+class InitialState(nn.Module):
+    """servo (B, S) [mm] → play state (B, m, 2) [m] to start a sequence with (history models): the
+    ``initial_state`` of an FK module (:class:`HardwareFK`, or the generated one), as a module to export."""
+
+    def __init__(self, fk: nn.Module):
+        super().__init__()
+        self.fk = fk
+
+    def forward(self, servo: Tensor) -> Tensor:
+        return self.fk.initial_state(servo)
+
+
 def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
     with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, S, 2m) and ``rho_offset`` (2ᴺ, 1, 2m) give
