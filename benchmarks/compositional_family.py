@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 
-from dacr_learn import load_model
+from dacr_learn import load_model, runs
 from dacr_learn.compositional import transfer
 from dacr_learn.data import generate
 from dacr_learn.metrics import pose_errors
@@ -54,7 +54,7 @@ def train(robot: str, variant: str, seed: int, runs_dir: Path) -> dict:
     start = time.perf_counter()
     subprocess.run(cmd, cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     wall = time.perf_counter() - start
-    run = sorted((runs_dir / name).glob("version_*"), key=lambda p: int(p.name.split("_")[1]))[-1]
+    run = runs.versions(runs_dir / name)[-1]
     metrics = json.loads((run / "metrics.json").read_text())
     return {"robot": robot, "variant": variant, "seed": seed, "pos_pct": metrics["pos_err_mean_pct"],
             "pos_mm": metrics["pos_err_mean_mm"], "rot_deg": metrics["rot_err_mean_deg"], "wall_s": wall,
