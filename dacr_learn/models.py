@@ -213,9 +213,13 @@ class IKModel(nn.Module):
         scale = 1 / gain.clamp_min(1e-12 * gain.max().item())
         return (scale * torch.exp(torch.log(std / scale).mean())).to(self.out_norm.std.dtype)
 
-    def forward_normalized(self, pose: Tensor) -> Tensor:
+    def normalized_input(self, pose: Tensor) -> Tensor:
+        """Poses (..., 4, 4) [m] → the network's standardised input vectors (..., 9)."""
         check_tensor(pose, "pose", (4, 4))
-        return self.net(self.in_norm(pose_to_vector(pose, self.length)))
+        return self.in_norm(pose_to_vector(pose, self.length))
+
+    def forward_normalized(self, pose: Tensor) -> Tensor:
+        return self.net(self.normalized_input(pose))
 
     def decode(self, z: Tensor) -> Tensor:
         """Standardised network output (..., D) → joint vector (..., num_joints)."""

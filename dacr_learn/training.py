@@ -18,7 +18,7 @@ from torch import Tensor
 from .compositional import CompositionalFK, build_fk_model
 from .kinematics import backbone_points, forward_kinematics
 from .metrics import pose_errors, summarize
-from .models import IKModel, pose_to_vector
+from .models import IKModel
 from .robot import RobotSpec
 
 
@@ -305,7 +305,8 @@ class IKModule(KinematicsModule):
         return (1 - t) + t * h.feature_weight, t * h.pose_weight
 
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
-        (wf, wp), z = self.loss_weights(), self.model.forward_normalized(batch["pose"])
+        x = self.model.normalized_input(batch["pose"])
+        (wf, wp), z = self.loss_weights(), self.model.net(x)
         loss = z.new_zeros(())
         if wf:
             loss = loss + wf * (z - self.model.out_norm(self.model.target(batch["q"]))).square().mean()
@@ -319,7 +320,6 @@ class IKModule(KinematicsModule):
             loss = loss + lw * limit_excess(self.spec, features).mean()
             noise = self.hparams.get("limit_noise", 0.0)
             if noise:
-                x = self.model.in_norm(pose_to_vector(batch["pose"], self.spec.total_length))
                 noisy = self.model.decode_features(self.model.net(x + noise * torch.randn_like(x)))
                 loss = loss + self.noise_weight() * limit_excess(self.spec, noisy).mean()
         return loss
