@@ -5,8 +5,10 @@ configs/robots/tdcr_3seg_cosserat.yaml (12 tendons, coupled routing, NiTi backbo
 antagonist-free pair of neighbouring tendons per segment (the others slack), and gravity along −x
 (the robot horizontal). One timed call is ``solve_statics`` on the whole batch (default 10 000):
 Newton to residual 1e-10, then the backbone frames and tendon lengths at every node. Reports the
-median and best of ``--repeats`` calls in configurations per second, the Newton steps, the one-minute
-load average (the machine is shared), and the tip error of this step count against 64 steps.
+median and best of ``--repeats`` calls in configurations per second (chunks solved in ``--threads``
+threads, the default; beside it, interleaved, the same solve with its chunks one after another), the
+Newton steps, the one-minute load average (the machine is shared), and the tip error of this step
+count against 64 steps.
 
     .venv/bin/python benchmarks/cosserat.py                       # batch 10 000, 8 steps per segment
     .venv/bin/python benchmarks/cosserat.py --steps 4 --json      # also one JSON line
@@ -66,21 +68,25 @@ def main(argv: list[str] | None = None) -> dict:
     tension = random_tensions(spec, args.batch, args.tau_max, seed=0)
     gravity = torch.tensor([-9.81, 0.0, 0.0], dtype=torch.float64)
 
-    def solve(t: torch.Tensor, steps: int = args.steps):
-        return solve_statics(spec, t, gravity=gravity, steps_per_segment=steps)
+    def solve(t: torch.Tensor, steps: int = args.steps, workers: int | None = None):
+        return solve_statics(spec, t, gravity=gravity, steps_per_segment=steps, workers=workers)
 
     solve(tension[:256])                                   # warm-up
-    times, sol = [], None
-    for _ in range(args.repeats):
+    times, serial, sol = [], [], None
+    for _ in range(args.repeats):                          # interleaved: both see the same machine load
         t0 = time.perf_counter()
         sol = solve(tension)
         times.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        solve(tension, workers=1)
+        serial.append(time.perf_counter() - t0)
     fine = solve(tension[:500], 64)
     err = (sol.tip[:500, :3, 3] - fine.tip[:, :3, 3]).norm(dim=-1).max() / spec.total_length
     deflection = sol.tip[:, :2, 3].norm(dim=-1) / spec.total_length
     result = {
         "configs_per_s_median": args.batch / statistics.median(times),
         "configs_per_s_best": args.batch / min(times),
+        "serial_configs_per_s_median": args.batch / statistics.median(serial),
         "target": TARGET, "batch": args.batch, "steps_per_segment": args.steps, "threads": args.threads,
         "newton_steps_mean": float(sol.iterations.double().mean()), "newton_steps_max": int(sol.iterations.max()),
         "residual_max": float(sol.residual.max()), "tip_error_vs_64_steps_of_length": float(err),
@@ -91,7 +97,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"Cosserat statics, {spec.name}, batch {args.batch}, {args.steps} RK4 steps/segment, "
           f"{args.threads} threads, float64", file=sys.stderr)
     print(f"  {result['configs_per_s_median']:.0f} configurations/s (median of {args.repeats}; best "
-          f"{result['configs_per_s_best']:.0f}; target {TARGET:.0f})", file=sys.stderr)
+          f"{result['configs_per_s_best']:.0f}; target {TARGET:.0f}); chunks one after another "
+          f"(workers=1): {result['serial_configs_per_s_median']:.0f}/s", file=sys.stderr)
     print(f"  Newton steps mean {result['newton_steps_mean']:.2f}, max {result['newton_steps_max']}; "
           f"residual max {result['residual_max']:.1e}; tip error vs 64 steps {err:.1e} of length; "
           f"median tip deflection {result['tip_deflection_median_of_length']:.2f} of length", file=sys.stderr)

@@ -150,6 +150,29 @@ def test_batched_equals_per_sample():
 
 
 @pytest.mark.slow
+def test_chunks_in_threads_equal_one_serial_solve():
+    """Uneven chunks solved in two threads give the serial solve's samples in the input order, a failing
+    sample flagged in its own chunk only; a solve carrying a gradient still gets one."""
+    spec, tension, loads = loaded_problem()
+    scales = torch.linspace(0.1, 1.0, 7, dtype=F64)
+    batch = torch.cat([tension * s for s in scales])                                # (14, 12), all different
+    batch[9, 0] = 1.0e5                                                             # inadmissible: flagged
+    serial = solve_statics(spec, batch, **loads, steps_per_segment=4, tol=1e-13, on_failure="flag", workers=1)
+    threaded = solve_statics(spec, batch, **loads, steps_per_segment=4, tol=1e-13, on_failure="flag",
+                             chunk_size=3, workers=2)
+    assert serial.converged.tolist() == threaded.converged.tolist() == [i != 9 for i in range(14)]
+    ok = serial.converged
+    assert torch.allclose(threaded.frames[ok], serial.frames[ok], rtol=0, atol=1e-11 * spec.total_length)
+    assert torch.allclose(threaded.tendon_lengths[ok], serial.tendon_lengths[ok], rtol=0, atol=1e-13)
+    assert torch.isnan(threaded.tip[9, :3]).all()
+    tau = tension[:1].clone().requires_grad_(True)
+    solve_statics(spec, tau, **loads, steps_per_segment=4, workers=2).tip[..., :3, 3].sum().backward()
+    assert tau.grad is not None and torch.isfinite(tau.grad).all() and tau.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="workers"):
+        solve_statics(spec, tension, workers=0)
+
+
+@pytest.mark.slow
 def test_failures_raise_or_are_flagged_with_nan():
     spec = RobotSpec.from_yaml(COUPLED)
     tension = torch.zeros(3, 12, dtype=F64)

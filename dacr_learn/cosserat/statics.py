@@ -5,7 +5,9 @@
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -102,25 +104,36 @@ def _initial_guess(tension: Tensor, offsets: Tensor, loads: Loads, arcs: list[fl
 def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = None, tip_wrench: Tensor | None = None,
                   point_wrenches: Sequence[tuple[float, Tensor]] = (), steps_per_segment: int = 16,
                   stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
-                  on_failure: str = "raise", chunk_size: int = CHUNK) -> CosseratSolution:
+                  on_failure: str = "raise", chunk_size: int = CHUNK, workers: int | None = None) -> CosseratSolution:
     """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame:
     ``gravity`` (3,) or (..., 3) [m/s²] (acts through ``mechanics.density``), ``tip_wrench`` (..., 6)
     (F [N], M [N·m]) at the tip, ``point_wrenches`` [(arc [m], wrench (..., 6))] at the backbone.
     Computed in float64 (inputs are cast), ``chunk_size`` samples at a time (the arrays then stay in
     cache); differentiable w.r.t. tensions and loads (implicit gradient, see shooting.py).
-    ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False)."""
+    ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False).
+    ``workers``: chunks solved at once in threads (default ``torch.get_num_threads()``); a solve that must
+    carry a gradient runs its chunks one after another."""
     if spec.mechanics is None:
         raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
     if on_failure not in ("raise", "flag"):
         raise ValueError(f"on_failure: got {on_failure!r}, expected 'raise' or 'flag'")
+    for name, value in (("chunk_size", chunk_size), ("workers", workers)):
+        if value is not None and (not isinstance(value, int) or value < 1):
+            raise ValueError(f"{name}: got {value!r}, expected a positive integer")
     routing, section = tendon_routing(spec), Section.from_mechanics(spec.mechanics)
     check_tensor(tension, "tension", (routing.num_tendons,))
     batch = tension.shape[:-1]
     arcs, loads = _loads(spec, batch, section, gravity, tip_wrench, point_wrenches)
     grid = arc_grid(routing.ends.tolist(), steps_per_segment, arcs, stations)
     tau = tension.to(torch.float64).reshape(-1, routing.num_tendons)
-    parts = [_solve_flat(tau[i:i + chunk_size], loads.select(slice(i, i + chunk_size)), routing, section, grid,
-                         spec.total_length, tol, max_iter) for i in range(0, max(tau.shape[0], 1), chunk_size)]
+    needs_grad = torch.is_grad_enabled() and (tension.requires_grad or any(
+        t is not None and t.requires_grad for t in (gravity, tip_wrench, *(w for _, w in point_wrenches))))
+    workers = 1 if needs_grad else (workers or torch.get_num_threads())
+
+    def solve(rows: slice):
+        return _solve_flat(tau[rows], loads.select(rows), routing, section, grid, spec.total_length, tol, max_iter)
+
+    parts = _map_chunks(solve, tau.shape[0], chunk_size, workers)
     states, x, res, iters = (torch.cat(z) for z in zip(*parts, strict=True))
     converged = res <= tol
     admissible = _admissible(states, routing.offsets)
@@ -133,6 +146,27 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
             "or the rod compressed to zero, see docs/cosserat.md); reduce the tensions or loads, raise max_iter, "
             "or pass on_failure='flag' to reject them")
     return _solution(states, x, res, ok, iters, grid, tau, spec.mechanics.tendon_compliance, batch)
+
+
+def _map_chunks(solve, n: int, chunk_size: int, workers: int) -> list:
+    """``solve(rows)`` over slices of n rows, at most ``chunk_size`` each, in order. With workers > 1 the
+    chunks run in that many threads (torch releases the GIL inside its kernels; the per-kernel arrays of a
+    chunk are too small for torch's own intra-op threads) and their number is a multiple of ``workers``,
+    of equal size, so the threads finish together. Gradient-free only: grad mode is per thread."""
+    count = max(math.ceil(n / chunk_size), 1)
+    if workers > 1 and n > 1:
+        count = min(math.ceil(count / workers) * workers, n)
+    size = max(math.ceil(n / count), 1)
+    rows = [slice(i, i + size) for i in range(0, max(n, 1), size)]
+    if workers == 1 or len(rows) == 1:
+        return [solve(r) for r in rows]
+
+    def solve_without_grad(r: slice):
+        with torch.no_grad():
+            return solve(r)
+
+    with ThreadPoolExecutor(min(workers, len(rows))) as pool:
+        return list(pool.map(solve_without_grad, rows))
 
 
 def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcGrid, length: float, tol: float,
