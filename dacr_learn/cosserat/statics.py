@@ -180,18 +180,30 @@ def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcG
         end = integrate(z * scale, tau[idx], loads.select(idx), routing, section, grid, keep_nodes=False)[1]
         return residual(end, section, length)
 
+    nodes = None   # (B, K, 18 + T): each sample's latest fine integration, i.e. its accepted Newton iterate
+
+    def fine(z, idx):     # ``fun`` (no graph) on the fine grid that also keeps the states at the nodes
+        nonlocal nodes
+        states, end = integrate(z * scale, tau.detach()[idx], detached.select(idx), routing, section, grid)
+        states = torch.stack(states, dim=1)
+        if nodes is None:
+            nodes = states.new_full((tau.shape[0], *states.shape[1:]), torch.nan)
+        nodes[idx] = states
+        return residual(end, section, length)
+
     with torch.no_grad():
         detached = Loads(None if loads.weight is None else loads.weight.detach(), [w.detach() for w in loads.wrenches])
         x0 = _initial_guess(tau.detach(), routing.offsets, detached, list(grid.load_arcs), length)
-        z, res, iters = newton(lambda z, idx: fun(z, idx, tau.detach(), detached), x0 / scale, tol, max_iter,
+        z, res, iters = newton(fine, x0 / scale, tol, max_iter,
                                coarse=lambda z, idx: fun(z, idx, tau.detach(), detached, coarse))
-    if torch.is_grad_enabled() and (tau.requires_grad or any(w.requires_grad for w in loads.wrenches)
-                                    or (loads.weight is not None and loads.weight.requires_grad)):
-        every = torch.arange(z.shape[0])
-        with torch.no_grad():
-            jac = residual_and_jacobian(lambda z, idx: fun(z, idx, tau.detach(), detached), z, every, central=True)[1]
-        z = z - torch.linalg.solve_ex(jac, fun(z, every))[0]   # value z*, gradient −J⁻¹ ∂r/∂θ
     x = z * scale
+    if not (torch.is_grad_enabled() and (tau.requires_grad or any(w.requires_grad for w in loads.wrenches)
+                                         or (loads.weight is not None and loads.weight.requires_grad))):
+        return nodes, x, res, iters          # the last Newton evaluation already integrated x (no extra pass)
+    every = torch.arange(z.shape[0])
+    with torch.no_grad():
+        jac = residual_and_jacobian(lambda z, idx: fun(z, idx, tau.detach(), detached), z, every, central=True)[1]
+    x = (z - torch.linalg.solve_ex(jac, fun(z, every))[0]) * scale   # value z*, gradient −J⁻¹ ∂r/∂θ
     return torch.stack(integrate(x, tau, loads, routing, section, grid)[0], dim=1), x, res, iters
 
 
