@@ -252,6 +252,7 @@ def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
                           twist_roll=model.rolls or not any(s.twists for s in model.spec.segments),
                           ).to(next(model.parameters()).dtype)
     state = {k: v for k, v in model.state_dict().items() if not k.startswith(ROBOT_BUFFERS)}
+    state["roll"] = new.roll                          # the target's (a missing key means a state dict before it)
     missing, unexpected = new.load_state_dict(state, strict=False)
     if unexpected or any(not k.startswith(ROBOT_BUFFERS) for k in missing):
         raise RuntimeError(f"transfer: state-dict mismatch: missing {missing}, unexpected {unexpected}")
