@@ -20,9 +20,9 @@ from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
 from .compositional import HEADS
-from .inference import ClarkeFold, FoldedMLP, _columns, activation_and_derivative, linear_layers
+from .inference import ClarkeFold, FoldedMLP, activation_and_derivative, linear_layers
 from .lie import exp_coefficients_and_derivatives, hat, pose_from_parts, roll_z, twist_exp
-from .models import Standardizer, actuated_selection, actuated_to_features, fixed_features
+from .models import Standardizer, actuated_columns, actuated_selection, actuated_to_features, fixed_features
 
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
 
@@ -120,7 +120,7 @@ class InferenceCompositionalJacobian(nn.Module):
         used = [torch.nonzero(seed[j].abs().sum(-1) > 0).flatten().tolist() for j in range(m)]
         self.rolls = bool(model.rolls)
         rolled = torch.nonzero(model.roll).flatten().tolist()
-        for j, col in zip(rolled, _columns(model.spec, "alpha", rolled), strict=True):
+        for j, col in zip(rolled, alpha_columns(model.spec, rolled), strict=True):
             if col not in used[j]:                                          # the roll depends on α in any case
                 used[j].append(col)
         t = max(1, *map(len, used))
@@ -140,7 +140,7 @@ class InferenceCompositionalJacobian(nn.Module):
         self.register_buffer("pick", pick.to(dtype))
         self.register_buffer("value_row", (torch.arange(1 + t) == 0).to(dtype).unsqueeze(-1))   # (1 + T, 1)
         roll_row = torch.zeros(m, t, 1, dtype=_F64)                        # 1 on the α row of a rolled segment
-        for j, col in zip(rolled, _columns(model.spec, "alpha", rolled), strict=True):
+        for j, col in zip(rolled, alpha_columns(model.spec, rolled), strict=True):
             roll_row[j, used[j].index(col)] = 1.0
         self.register_buffer("roll_row", roll_row.to(dtype) if self.rolls else None)
         self.register_buffer("roll_select", roll_selection(model).to(dtype) if self.rolls else None)
@@ -247,6 +247,12 @@ def _exp_and_spatial_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, 
     rot = (1 - f * phi_sq)[..., None, None] * eye + s[..., None, None] * hat(w) \
         + f[..., None, None] * (w.unsqueeze(-1) * w.unsqueeze(-2))
     return rot, v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * wwv, ang, dp
+
+
+def alpha_columns(spec, segments: list[int]) -> list[int]:
+    """Indices of the α columns of ``segments`` among the actuated features."""
+    index = {col: i for i, col in enumerate(actuated_columns(spec))}
+    return [index[(k, "alpha")] for k in segments]
 
 
 def roll_selection(model) -> Tensor:
