@@ -172,22 +172,8 @@ class CompositionalFK(nn.Module):
             self.front.units = "metric"
         super()._load_from_state_dict(state, prefix, *args, **kwargs)
 
-    def input_mask(self) -> Tensor:
-        """(m, 4) float64: 1, and 0 on the α column of a rolled segment (the network sees it without its roll)."""
-        mask = torch.ones(self.spec.num_segments, 4, dtype=torch.float64)
-        mask[:, 3] = (~self.roll.cpu()).to(torch.float64)
-        return mask
-
-    def network_features(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """(x, x_net) (..., m, 4): the segment features in the network's units, and the network's share of them
-        (x with α = 0 for a rolled segment; x itself when no segment is rolled)."""
-        x = self.front.segment_features(q)
-        if not self.rolls:
-            return x, x
-        return x, torch.cat([x[..., :3], torch.where(self.roll, 0.0, x[..., 3]).unsqueeze(-1)], dim=-1)
-
     def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:
-        self.front.norm.fit(self.network_features(q)[1])
+        self.front.fit(q)
 
     def head(self, out: Tensor) -> Tensor:
         """Network outputs (..., m, 6 | 9) → segment transforms (..., m, 4, 4)."""
@@ -198,8 +184,8 @@ class CompositionalFK(nn.Module):
 
     def segment_transforms(self, q: Tensor) -> Tensor:
         """T_k, base of segment k → its end: (..., N) → (..., m, 4, 4); Rz(α_k)·head for a rolled segment."""
-        x, x_net = self.network_features(q)
-        z = self.front.with_context(self.front.norm(x_net))
+        x = self.front.segment_features(q)
+        z = self.front.with_context(self.front.norm(x))
         t = self.head(self.net(z) + self.skip(z))
         return roll_z(t, torch.where(self.roll, x[..., 3], 0.0)) if self.rolls else t
 

@@ -283,7 +283,7 @@ def compositional_first_layer(model) -> tuple[Tensor, Tensor]:
     spec, front = model.spec, model.front
     sel, fixed = actuated_selection(spec).to(_F64), fixed_features(spec, _F64)
     first, skip = linear_layers(model.net)[0], model.skip
-    unit, keep = front.unit.to(_F64), model.input_mask()               # keep: 0 on the α of a rolled segment
+    unit = front.unit.to(_F64)
     w = torch.cat([first.weight, skip.weight]).detach().to(_F64)
     b = torch.cat([first.bias.detach().to(_F64), torch.zeros(skip.out_features, dtype=_F64)])
     norm = Standardizer(4).to(_F64)
@@ -291,7 +291,7 @@ def compositional_first_layer(model) -> tuple[Tensor, Tensor]:
     context = front.context_matrix.to(_F64)
 
     def affine(f: Tensor) -> Tensor:
-        x = norm(actuated_to_features(f, sel, fixed) / unit * keep)      # (P, m, 4)
+        x = norm(actuated_to_features(f, sel, fixed) / unit)             # (P, m, 4)
         if front.context == "segment":
             x = torch.cat([x, context.expand(x.shape[0], -1, -1)], dim=-1)
         elif front.context == "distal":
