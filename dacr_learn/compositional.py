@@ -22,6 +22,9 @@ the roll α the twist actuator commands, T_k = Rz(α_k)·h(f_θ(x_k)), the order
 exp of a twist linear in the features; without the roll the map to exp(ξ) is far from linear (log of
 Rz(α)·exp(ξ_cc), research/twist_head/representation.py). Any rigid transform stays representable (exp(ξ)
 spans SE(3)); segments that do not twist are not rolled (their α is 0), so their transforms are unchanged.
+With a rolled segment the weights of the α inputs (the first layer's and the skip's) start at zero, so the
+untrained network does not depend on α: a CC segment does not in its rolled frame, and random initial weights
+on α were the error left after the roll (docs/compositional.md); training may still make it depend on α.
 
 Units ("units"): "strain" (default) feeds the network x_k = (ρ_re/d_k, ρ_im/d_k, β/l_k, α), the bending
 vector [rad], the stretch β/l and the roll [rad] of segment k, and scales the twist's translation by the
@@ -79,6 +82,11 @@ def translation_units(spec: RobotSpec, units: str) -> Tensor:
 def roll_mask(spec: RobotSpec, twist_roll: bool = True) -> Tensor:
     """(m,) bool: the segments whose transform is rolled by their α first (the twisting ones, if ``twist_roll``)."""
     return torch.tensor([bool(twist_roll and s.twists) for s in spec.segments])
+
+
+def alpha_inputs(context: str) -> list[int]:
+    """Network input columns that carry a segment's α: its own, and the distal sum's with context "distal"."""
+    return [3, 7] if context == "distal" else [3]
 
 
 class SegmentFrontEnd(nn.Module):
@@ -153,6 +161,10 @@ class CompositionalFK(nn.Module):
         self.register_buffer("length_scale", translation_units(spec, units))   # (m,) [m], float64
         self.register_buffer("roll", roll_mask(spec, twist_roll))               # (m,) bool: rolled by α first
         self.rolls = bool(self.roll.any())
+        if self.rolls:                    # start the network independent of α: the roll is the head's (see above)
+            with torch.no_grad():
+                for layer in (self.net[0], self.skip):
+                    layer.weight[:, alpha_inputs(context)] = 0.0
 
     @property
     def units(self) -> str:

@@ -19,6 +19,7 @@ from dacr_learn.compositional import ROBOT_BUFFERS, CompositionalFK, build_fk_mo
 from dacr_learn.control import ResolvedRateController
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics, segment_tip_poses
+from dacr_learn.layers import ClarkeDecoder
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule
 
@@ -95,6 +96,26 @@ def test_a_twisting_segment_is_exact_only_when_rolled_first(robot):
     assert torch.allclose(rolled(data["q"]), truth, rtol=0, atol=roundoff_tol(F64, spec.total_length, ulps=4096))
     err = (plain(data["q"])[:, :3, 3] - truth[:, :3, 3]).norm(dim=-1)
     assert err.mean() > 1e-3 * spec.total_length
+
+
+@pytest.mark.parametrize("context", ["none", "distal"])
+def test_the_untrained_network_does_not_depend_on_a_rolled_segments_alpha(context):
+    """With a rolled segment the α inputs start at zero weight: changing α_k alone (same ρ, β) turns T_k into
+    Rz(Δα_k)·T_k and leaves every other segment's transform as it was."""
+    spec = spec_by_name("hetero_4seg_types")
+    torch.manual_seed(0)
+    model = CompositionalFK(spec, width=16, depth=2, context=context).to(F64)
+    data = generate(spec, 64, seed=3, dtype=F64)
+    model.fit_normalization(data["q"])
+    delta = torch.tensor([0.0, 0.0, 0.3, -0.5], dtype=F64)
+    moved = data["features"] + torch.cat([torch.zeros(4, 3, dtype=F64), delta.unsqueeze(-1)], -1)
+    with torch.no_grad():
+        before = model.segment_transforms(data["q"])
+        after = model.segment_transforms(ClarkeDecoder(spec).to(F64)(moved))
+    c, s = torch.cos(delta), torch.sin(delta)
+    rz = torch.eye(4, dtype=F64).repeat(4, 1, 1)
+    rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1] = c, -s, s, c
+    torch.testing.assert_close(after, rz @ before, rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("robot", ["tdcr_3seg_coupled", "hetero_5seg_coupled"])
