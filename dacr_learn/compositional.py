@@ -20,7 +20,7 @@ Roll of a twisting segment (types II/III, ``twist_roll``, on by default): the he
 the roll α the twist actuator commands, T_k = Rz(α_k)·h(f_θ(x_k)), the order of the CC model
 (kinematics.cc_transform). The network then learns the segment in its rolled frame, where a CC segment is again
 exp of a twist linear in the features; without the roll the map to exp(ξ) is far from linear (log of
-Rz(α)·exp(ξ_cc), research/twist_head/representation.py). Any rigid transform stays representable (exp(ξ)
+Rz(α)·exp(ξ_cc); docs/compositional.md, "Twisting segments"). Any rigid transform stays representable (exp(ξ)
 spans SE(3)); segments that do not twist are not rolled (their α is 0), so their transforms are unchanged.
 With a rolled segment the weights of the α inputs (the first layer's and the skip's) start at zero, so the
 untrained network does not depend on α: a CC segment does not in its rolled frame, and random initial weights

@@ -1,6 +1,7 @@
-"""Diagnosis (issue 22): which segment's transform is wrong in a trained compositional model.
+"""Diagnosis (issue 22): which segment's transform is wrong in a trained compositional model. Numbers:
+docs/compositional.md, "Twisting segments: the roll (2026-11-26)" (runs of the user's command on hetero_4seg_types).
 
-    PYTHONPATH=. .venv/bin/python research/twist_head/segment_errors.py RUN_DIR [RUN_DIR ...]
+    .venv/bin/python -m research.twist_head.segment_errors RUN_DIR [RUN_DIR ...]
 
 For 10 000 fresh samples (seed 10 000) of the run's robot: per segment k, the error of the learned T_k
 (base of k → its end) against the CC model's, position in mm and % of l_k, rotation in degrees; and the error
@@ -34,6 +35,10 @@ def report(run: str) -> None:
           f"{torch.rad2deg(tip['rot_err']).mean():.4f}°")
 
 
-if __name__ == "__main__":
+def main() -> None:
     for run in sys.argv[1:]:
         report(run)
+
+
+if __name__ == "__main__":
+    main()
