@@ -16,6 +16,16 @@ Output heads ("rotation"):
   learns it from tip poses. On a real segment ξ(x) is non-linear and the same head represents any SE(3).
 - "6d": position (· L_s) and a 6D rotation (models.pose_from_parts, rotation_6d_to_matrix).
 
+Roll of a twisting segment (types II/III, ``twist_roll``, on by default): the head's transform is applied after
+the roll α the twist actuator commands, T_k = Rz(α_k)·h(f_θ(x_k)), the order of the CC model
+(kinematics.cc_transform). The network then learns the segment in its rolled frame, where a CC segment is again
+exp of a twist linear in the features; without the roll the map to exp(ξ) is far from linear (log of
+Rz(α)·exp(ξ_cc); docs/compositional.md, "Twisting segments"). Any rigid transform stays representable (exp(ξ)
+spans SE(3)); segments that do not twist are not rolled (their α is 0), so their transforms are unchanged.
+With a rolled segment the weights of the α inputs (the first layer's and the skip's) start at zero, so the
+untrained network does not depend on α: a CC segment does not in its rolled frame, and random initial weights
+on α were the error left after the roll (docs/compositional.md); training may still make it depend on α.
+
 Units ("units"): "strain" (default) feeds the network x_k = (ρ_re/d_k, ρ_im/d_k, β/l_k, α), the bending
 vector [rad], the stretch β/l and the roll [rad] of segment k, and scales the twist's translation by the
 segment's own nominal length l_k: a CC segment's twist is then ξ = (0, 0, (β/l)·l; −ρ_im/d, ρ_re/d, 0), the
@@ -39,7 +49,7 @@ from torch import Tensor, nn
 from .checks import check_tensor
 from .kinematics import effective_features
 from .layers import ClarkeEncoder
-from .lie import chain_products, pose_from_parts, twist_exp
+from .lie import chain_products, pose_from_parts, roll_z, twist_exp
 from .models import FKModel, Standardizer, mlp
 from .robot import RobotSpec
 
@@ -67,6 +77,16 @@ def translation_units(spec: RobotSpec, units: str) -> Tensor:
     if units == "metric":
         return torch.full((spec.num_segments,), spec.total_length / spec.num_segments, dtype=torch.float64)
     return torch.tensor([s.length for s in spec.segments], dtype=torch.float64)
+
+
+def roll_mask(spec: RobotSpec, twist_roll: bool = True) -> Tensor:
+    """(m,) bool: the segments whose transform is rolled by their α first (the twisting ones, if ``twist_roll``)."""
+    return torch.tensor([bool(twist_roll and s.twists) for s in spec.segments])
+
+
+def alpha_inputs(context: str) -> list[int]:
+    """Network input columns that carry a segment's α: its own, and the distal sum's with context "distal"."""
+    return [3, 7] if context == "distal" else [3]
 
 
 class SegmentFrontEnd(nn.Module):
@@ -123,7 +143,7 @@ class CompositionalFK(nn.Module):
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 64, depth: int = 3,
                  activation: str = "silu", rotation: str = "twist", context: str = "none", extra_inputs: int = 0,
-                 units: str = "strain"):
+                 units: str = "strain", twist_roll: bool = True):
         super().__init__()
         if features != "clarke":
             raise ValueError(f"features: the compositional structure needs 'clarke' features (a raw joint "
@@ -139,6 +159,12 @@ class CompositionalFK(nn.Module):
         self.net = mlp(dim, HEADS[rotation], width, depth, activation)
         self.skip = nn.Linear(dim, HEADS[rotation], bias=False)              # learned linear part of f_θ
         self.register_buffer("length_scale", translation_units(spec, units))   # (m,) [m], float64
+        self.register_buffer("roll", roll_mask(spec, twist_roll))               # (m,) bool: rolled by α first
+        self.rolls = bool(self.roll.any())
+        if self.rolls:                    # start the network independent of α: the roll is the head's (see above)
+            with torch.no_grad():
+                for layer in (self.net[0], self.skip):
+                    layer.weight[:, alpha_inputs(context)] = 0.0
 
     @property
     def units(self) -> str:
@@ -147,6 +173,10 @@ class CompositionalFK(nn.Module):
     def _load_from_state_dict(self, state, prefix, *args, **kwargs):
         """State dicts saved before the per-segment units (a scalar ``length_scale``, no ``front.unit``) load as
         "metric" models: the scalar is repeated per segment and the feature units are ones."""
+        roll = prefix + "roll"
+        if roll not in state:                       # saved before the roll of twisting segments: none rolled
+            state[roll] = torch.zeros_like(self.roll)
+        self.rolls = bool(state[roll].any())
         key = prefix + "length_scale"
         if key in state and state[key].dim() == 0:
             state[key] = state[key].expand(self.spec.num_segments).clone()
@@ -165,9 +195,11 @@ class CompositionalFK(nn.Module):
         return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3] * scale)
 
     def segment_transforms(self, q: Tensor) -> Tensor:
-        """T_k, base of segment k → its end: (..., N) → (..., m, 4, 4)."""
-        z = self.front(q)
-        return self.head(self.net(z) + self.skip(z))
+        """T_k, base of segment k → its end: (..., N) → (..., m, 4, 4); Rz(α_k)·head for a rolled segment."""
+        x = self.front.segment_features(q)
+        z = self.front.with_context(self.front.norm(x))
+        t = self.head(self.net(z) + self.skip(z))
+        return roll_z(t, torch.where(self.roll, x[..., 3], 0.0)) if self.rolls else t
 
     def segment_ends(self, q: Tensor) -> Tensor:
         """End frame of every segment in the robot base frame: (..., N) → (..., m, 4, 4); [..., -1] is the tip."""
@@ -197,7 +229,7 @@ def _geometry(seg) -> tuple:
     return seg.type, seg.length, seg.radius, seg.bend, seg.length_range, seg.twist_range
 
 
-ROBOT_BUFFERS = ("front.encoder.", "front.context_matrix", "front.unit", "length_scale")   # built from the spec
+ROBOT_BUFFERS = ("front.encoder.", "front.context_matrix", "front.unit", "length_scale", "roll")   # from the spec
 
 
 def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
@@ -228,8 +260,11 @@ def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
                              f"expected one of {sorted(known, key=str)}, or a model trained with units 'strain'")
     net = model.net
     new = CompositionalFK(target, "clarke", net[0].out_features, len(net) // 2, _activation(net),
-                          model.rotation, model.front.context, units=model.units).to(next(model.parameters()).dtype)
+                          model.rotation, model.front.context, units=model.units,
+                          twist_roll=model.rolls or not any(s.twists for s in model.spec.segments),
+                          ).to(next(model.parameters()).dtype)
     state = {k: v for k, v in model.state_dict().items() if not k.startswith(ROBOT_BUFFERS)}
+    state["roll"] = new.roll                          # the target's (a missing key means a state dict before it)
     missing, unexpected = new.load_state_dict(state, strict=False)
     if unexpected or any(not k.startswith(ROBOT_BUFFERS) for k in missing):
         raise RuntimeError(f"transfer: state-dict mismatch: missing {missing}, unexpected {unexpected}")

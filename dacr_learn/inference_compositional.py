@@ -8,7 +8,10 @@ and the products of the segment transforms.
   J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.inference.InferenceJacobian`: the segment twists and
   their tangents along the actuated features each segment depends on, in forward mode through the MLP (value
   and tangent rows stacked), then in closed form each segment's spatial velocity and its effect on the tip
-  through the prefix rotations and suffix positions of the chain (no 4 × 4 tangent products)."""
+  through the prefix rotations and suffix positions of the chain (no 4 × 4 tangent products).
+
+Both roll a twisting segment by its α first, T_k = Rz(α_k)·head (``CompositionalFK.roll``): α_k is a joint of the
+vector, picked by ``roll_select`` (N, m)."""
 from __future__ import annotations
 
 import torch
@@ -18,8 +21,8 @@ from torch import Tensor, nn
 
 from .compositional import HEADS
 from .inference import ClarkeFold, FoldedMLP, activation_and_derivative, linear_layers
-from .lie import exp_coefficients_and_derivatives, hat, pose_from_parts, twist_exp
-from .models import Standardizer, actuated_selection, actuated_to_features, fixed_features
+from .lie import exp_coefficients_and_derivatives, hat, pose_from_parts, roll_z, twist_exp
+from .models import Standardizer, actuated_columns, actuated_selection, actuated_to_features, fixed_features
 
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
 
@@ -54,6 +57,8 @@ class InferenceCompositionalFK(nn.Module):
         self.mlp = FoldedMLP(model.net, (k, k0), ones, torch.zeros_like(ones), dtype)
         self.register_buffer("out_scale", output_scale(model).to(dtype))
         self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
+        self.rolls = bool(model.rolls)
+        self.register_buffer("roll_select", roll_selection(model).to(dtype) if self.rolls else None)
 
     def segment_transforms(self, q: Tensor) -> Tensor:
         """T_k (B, m, 4, 4) of every segment."""
@@ -62,8 +67,10 @@ class InferenceCompositionalFK(nn.Module):
         pre = pre.unflatten(-1, (self.num_segments, self.width + self.out))
         out = (self.mlp(pre[..., :self.width]) + pre[..., self.width:]) * self.out_scale
         if self.rotation == "twist":
-            return twist_exp(out)
-        return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
+            t = twist_exp(out)
+        else:
+            t = pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
+        return roll_z(t, q @ self.roll_select) if self.rolls else t
 
     def forward(self, q: Tensor) -> Tensor:
         t = self.segment_transforms(q)
@@ -111,6 +118,11 @@ class InferenceCompositionalJacobian(nn.Module):
         d = self.num_features = k.shape[1]
         seed = k.view(m, self.width + self.out, d).mT                     # ∂(pre-activations | skip)/∂f (m, D, W + O)
         used = [torch.nonzero(seed[j].abs().sum(-1) > 0).flatten().tolist() for j in range(m)]
+        self.rolls = bool(model.rolls)
+        rolled = torch.nonzero(model.roll).flatten().tolist()
+        for j, col in zip(rolled, alpha_columns(model.spec, rolled), strict=True):
+            if col not in used[j]:                                          # the roll depends on α in any case
+                used[j].append(col)
         t = max(1, *map(len, used))
         local = torch.zeros(m, t, self.width + self.out, dtype=_F64)      # the T tangent rows of each segment
         pick = torch.zeros(m, t, d, dtype=_F64)                           # (segment, row) → feature column
@@ -127,6 +139,11 @@ class InferenceCompositionalJacobian(nn.Module):
         self.register_buffer("seed", local.to(dtype))
         self.register_buffer("pick", pick.to(dtype))
         self.register_buffer("value_row", (torch.arange(1 + t) == 0).to(dtype).unsqueeze(-1))   # (1 + T, 1)
+        roll_row = torch.zeros(m, t, 1, dtype=_F64)                        # 1 on the α row of a rolled segment
+        for j, col in zip(rolled, alpha_columns(model.spec, rolled), strict=True):
+            roll_row[j, used[j].index(col)] = 1.0
+        self.register_buffer("roll_row", roll_row.to(dtype) if self.rolls else None)
+        self.register_buffer("roll_select", roll_selection(model).to(dtype) if self.rolls else None)
         self.fold.to(dtype)
         self.mlp = FoldedMLP(model.net, (k, k0), ones, torch.zeros_like(ones), dtype)
         self.register_buffer("out_scale", output_scale(model).to(dtype))
@@ -149,6 +166,8 @@ class InferenceCompositionalJacobian(nn.Module):
         u = self.fold.inputs(q)
         xi, dxi = self.segment_twists(u)
         rot, pos, ang, lin = _exp_and_spatial_tangents(xi, dxi)
+        if self.rolls:                                                      # Rz(α)·exp(ξ) and its tangents
+            rot, pos, ang, lin = _rolled(q @ self.roll_select, self.roll_row, rot, pos, ang, lin)
         # chain: prefix rotations R_1⋯R_{k−1} and tip positions s_{k+1} in frame k, k = 1 … m
         m = self.num_segments
         prefix, suffix = [None], [None]
@@ -170,6 +189,25 @@ class InferenceCompositionalJacobian(nn.Module):
         if self.constant_dfdq:
             return pose, jac[..., :self.num_features], jac[..., self.num_features:]
         return pose, jac, jac @ self.fold.jacobian(q, u)
+
+
+def _rolled(alpha: Tensor, roll_row: Tensor, rot: Tensor, pos: Tensor, ang: Tensor, lin: Tensor):
+    """R, p (B, m, 3[, 3]) and the spatial tangents b, dp (B, m, T, 3) of exp(ξ_k), rolled to those of
+    Rz(α_k)·exp(ξ_k): every vector rotated by Rz(α_k), plus on the α row (``roll_row`` (m, T, 1)) the roll's own
+    velocity, b += e_z, dp += e_z × (Rz·p)."""
+    c, s = torch.cos(alpha), torch.sin(alpha)
+
+    def rz(v: Tensor, c: Tensor, s: Tensor) -> Tensor:                    # Rz·v along dim −1, pointwise
+        return torch.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1], v[..., 2]], dim=-1)
+
+    c1, s1 = c.unsqueeze(-1), s.unsqueeze(-1)
+    rot = rz(rot.mT, c1, s1).mT                                           # rows of Rz·R
+    pos = rz(pos, c, s)
+    ang, lin = rz(ang, c1, s1), rz(lin, c1, s1)
+    zero = torch.zeros_like(pos[..., :1])
+    spin = torch.cat([-pos[..., 1:2], pos[..., 0:1], zero], dim=-1).unsqueeze(-2)          # e_z × p (B, m, 1, 3)
+    unit_z = torch.cat([zero, zero, torch.ones_like(zero)], dim=-1).unsqueeze(-2)
+    return rot, pos, ang + roll_row * unit_z, lin + roll_row * spin
 
 
 def _mat3(a: Tensor, b: Tensor) -> Tensor:
@@ -209,6 +247,24 @@ def _exp_and_spatial_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, 
     rot = (1 - f * phi_sq)[..., None, None] * eye + s[..., None, None] * hat(w) \
         + f[..., None, None] * (w.unsqueeze(-1) * w.unsqueeze(-2))
     return rot, v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * wwv, ang, dp
+
+
+def alpha_columns(spec, segments: list[int]) -> list[int]:
+    """Indices of the α columns of ``segments`` among the actuated features."""
+    index = {col: i for i, col in enumerate(actuated_columns(spec))}
+    return [index[(k, "alpha")] for k in segments]
+
+
+def roll_selection(model) -> Tensor:
+    """(N, m) float64 picking each rolled segment's α (a twist joint) out of the joint vector; zero columns for
+    the segments that are not rolled."""
+    spec = model.spec
+    twist_joint = {k: spec.num_length_joints + i for i, k in enumerate(k for k, s in enumerate(spec.segments)
+                                                                       if s.twists)}
+    sel = torch.zeros(spec.num_joints, spec.num_segments, dtype=_F64)
+    for k in torch.nonzero(model.roll).flatten().tolist():
+        sel[twist_joint[k], k] = 1.0
+    return sel
 
 
 def output_scale(model) -> Tensor:

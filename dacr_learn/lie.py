@@ -19,7 +19,7 @@ from torch import Tensor
 __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
     "exp_of_twist_matrix", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_exp",
-    "twist_exp_and_tangent", "vee",
+    "roll_z", "twist_exp_and_tangent", "vee",
 ]
 
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
@@ -172,3 +172,11 @@ def chain_products(poses: Tensor) -> Tensor:
     for j in range(1, poses.shape[-3]):
         out.append(out[-1] @ poses[..., j, :, :])
     return torch.stack(out, dim=-3)
+
+
+def roll_z(poses: Tensor, alpha: Tensor) -> Tensor:
+    """Rz(α)·T: poses (..., 4, 4) rolled by α (...) [rad] about the z axis of the frame they are expressed in
+    (rows 0 and 1 rotated pointwise; α = 0 returns the poses' values unchanged)."""
+    c, s = torch.cos(alpha)[..., None], torch.sin(alpha)[..., None]
+    r0, r1 = poses[..., 0, :], poses[..., 1, :]
+    return torch.cat([(c * r0 - s * r1).unsqueeze(-2), (s * r0 + c * r1).unsqueeze(-2), poses[..., 2:, :]], dim=-2)

@@ -19,6 +19,7 @@ from dacr_learn.compositional import ROBOT_BUFFERS, CompositionalFK, build_fk_mo
 from dacr_learn.control import ResolvedRateController
 from dacr_learn.data import generate
 from dacr_learn.kinematics import forward_kinematics, segment_tip_poses
+from dacr_learn.layers import ClarkeDecoder
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule
 
@@ -32,12 +33,14 @@ def equal_segments(m: int, joints: int = 4) -> RobotSpec:
     return RobotSpec.from_dict({"name": f"equal{m}", "routing": "coupled", "segments": segs})
 
 
-def exact_cc_model(spec: RobotSpec, context: str = "none", units: str = "strain") -> CompositionalFK:
-    """A float64 CompositionalFK whose network is the exact CC twist map (types 0/I; "metric": one radius).
+def exact_cc_model(spec: RobotSpec, context: str = "none", units: str = "strain", twist_roll: bool = True
+                   ) -> CompositionalFK:
+    """A float64 CompositionalFK whose network is the exact CC twist map ("metric": one radius).
 
     "strain": x = (ρ_re/d, ρ_im/d, β/l, α) and the translation is scaled by l, so the map is the same for
-    every segment: ξ = (0, 0, x₃; −x₂, x₁, 0). "metric": x = (ρ, β, α), translation scaled by L_s."""
-    model = CompositionalFK(spec, width=8, depth=1, context=context, units=units).to(F64)
+    every segment: ξ = (0, 0, x₃; −x₂, x₁, 0). "metric": x = (ρ, β, α), translation scaled by L_s. A twisting
+    segment (types II/III) is exact because the model rolls it by α first (Rz(α)·exp(ξ), ``twist_roll``)."""
+    model = CompositionalFK(spec, width=8, depth=1, context=context, units=units, twist_roll=twist_roll).to(F64)
     model.fit_normalization(generate(spec, 512, seed=0, dtype=F64)["q"])
     d, ls = (1.0, 1.0) if units == "strain" else (spec.segments[0].radius, model.length_scale[0].item())
     a = torch.zeros(6, 4, dtype=F64)                                  # twist = A · x
@@ -69,7 +72,7 @@ def test_composed_frames_equal_cc_kinematics(context):
 HETERO = ["hetero_2seg_coupled", "hetero_3seg_coupled", "hetero_5seg_coupled"]   # types 0/I (exact twist map)
 
 
-@pytest.mark.parametrize("robot", HETERO)
+@pytest.mark.parametrize("robot", [*HETERO, "hetero_4seg_types", "type3", "twisting"])
 def test_strain_units_make_one_exact_map_for_every_segment_geometry(robot):
     """In strain units the exact CC map is the same for segments of any length, radius, type and joint layout:
     one network (set to it) reproduces every segment end of a robot whose segments all differ."""
@@ -79,6 +82,73 @@ def test_strain_units_make_one_exact_map_for_every_segment_geometry(robot):
     ends = exact_cc_model(spec).segment_ends(data["q"])
     tol = roundoff_tol(F64, spec.total_length, ulps=4096)
     assert torch.allclose(ends, segment_tip_poses(spec, data["features"]), rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("robot", ["hetero_4seg_types", "type3", "twisting"])
+def test_a_twisting_segment_is_exact_only_when_rolled_first(robot):
+    """Rz(α)·T_cc is the exp of a linear twist only in the rolled frame: the same exact map without the roll
+    misses the CC kinematics of a twisting robot by millimetres (the map a network had to learn before)."""
+    spec = spec_by_name(robot)
+    data = generate(spec, 300, seed=4, dtype=F64)
+    truth = forward_kinematics(spec, data["features"])
+    rolled, plain = exact_cc_model(spec), exact_cc_model(spec, twist_roll=False)
+    assert rolled.roll.tolist() == [s.twists for s in spec.segments] and not plain.roll.any()
+    assert torch.allclose(rolled(data["q"]), truth, rtol=0, atol=roundoff_tol(F64, spec.total_length, ulps=4096))
+    err = (plain(data["q"])[:, :3, 3] - truth[:, :3, 3]).norm(dim=-1)
+    assert err.mean() > 1e-3 * spec.total_length
+
+
+@pytest.mark.parametrize("context", ["none", "distal"])
+def test_the_untrained_network_does_not_depend_on_a_rolled_segments_alpha(context):
+    """With a rolled segment the α inputs start at zero weight: changing α_k alone (same ρ, β) turns T_k into
+    Rz(Δα_k)·T_k and leaves every other segment's transform as it was."""
+    spec = spec_by_name("hetero_4seg_types")
+    torch.manual_seed(0)
+    model = CompositionalFK(spec, width=16, depth=2, context=context).to(F64)
+    data = generate(spec, 64, seed=3, dtype=F64)
+    model.fit_normalization(data["q"])
+    delta = torch.tensor([0.0, 0.0, 0.3, -0.5], dtype=F64)
+    moved = data["features"] + torch.cat([torch.zeros(4, 3, dtype=F64), delta.unsqueeze(-1)], -1)
+    with torch.no_grad():
+        before = model.segment_transforms(data["q"])
+        after = model.segment_transforms(ClarkeDecoder(spec).to(F64)(moved))
+    c, s = torch.cos(delta), torch.sin(delta)
+    rz = torch.eye(4, dtype=F64).repeat(4, 1, 1)
+    rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1] = c, -s, s, c
+    torch.testing.assert_close(after, rz @ before, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("robot", ["tdcr_3seg_coupled", "hetero_5seg_coupled"])
+def test_the_roll_leaves_a_robot_that_does_not_twist_unchanged(robot):
+    """Same seed, with and without the roll: identical parameters and bit-identical outputs (float32)."""
+    spec = spec_by_name(robot)
+    torch.manual_seed(0)
+    rolled = CompositionalFK(spec, width=16, depth=2)
+    torch.manual_seed(0)
+    plain = CompositionalFK(spec, width=16, depth=2, twist_roll=False)
+    assert not rolled.rolls and rolled.state_dict().keys() == plain.state_dict().keys()
+    for name, value in rolled.state_dict().items():
+        assert torch.equal(plain.state_dict()[name], value), name
+    q = generate(spec, 64, seed=3)["q"]
+    rolled.fit_normalization(q)
+    plain.fit_normalization(q)
+    with torch.no_grad():
+        assert torch.equal(rolled(q), plain(q))
+
+
+def test_a_state_dict_from_before_the_roll_loads_without_it():
+    """A twisting robot's state dict without the ``roll`` buffer is a model of the earlier head (no roll)."""
+    spec = spec_by_name("hetero_4seg_types")
+    torch.manual_seed(0)
+    plain = CompositionalFK(spec, width=8, depth=2, twist_roll=False)
+    plain.fit_normalization(generate(spec, 64, seed=3)["q"])
+    old = {k: v for k, v in plain.state_dict().items() if k != "roll"}
+    fresh = CompositionalFK(spec, width=8, depth=2)
+    fresh.load_state_dict(old)
+    assert not fresh.rolls and not fresh.roll.any()
+    q = generate(spec, 16, seed=1)["q"]
+    with torch.no_grad():
+        assert torch.equal(fresh(q), plain(q))
 
 
 def test_metric_units_cannot_share_one_map_across_radii():
@@ -95,7 +165,8 @@ def test_metric_units_cannot_share_one_map_across_radii():
 
 
 @pytest.mark.parametrize("source,target", [("hetero_3seg_coupled", "hetero_5seg_coupled"),
-                                           ("hetero_5seg_coupled", "hetero_2seg_coupled")])
+                                           ("hetero_5seg_coupled", "hetero_2seg_coupled"),
+                                           ("type3", "hetero_4seg_types"), ("hetero_4seg_types", "twisting")])
 def test_transfer_in_strain_units_runs_any_geometry(source, target):
     moved = transfer(exact_cc_model(spec_by_name(source)), spec_by_name(target))
     spec = spec_by_name(target)
