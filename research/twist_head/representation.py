@@ -9,7 +9,7 @@ import torch
 
 from dacr_learn.data import generate
 from dacr_learn.kinematics import effective_features, segment_poses
-from dacr_learn.lie import hat, twist_exp, bending_coefficients, third_coefficient
+from dacr_learn.lie import bending_coefficients, hat, third_coefficient, twist_exp
 from dacr_learn.robot import RobotSpec
 
 F64 = torch.float64
@@ -61,8 +61,9 @@ def main():
         t = poses[:, k]
         check = (twist_exp(twist_log(t)) - t).abs().max().item()
         pos, ang, _ = fit_error(x, t, seg.length)
-        line = (f"segment {k} type {seg.type:3s}: affine twist -> T_k: pos {pos.mean() / seg.length * 100:.4f} % of l_k "
-                f"({pos.mean() * 1e3:.4f} mm, max {pos.max() * 1e3:.3f}), rot {ang.mean():.4f} deg (max {ang.max():.3f})")
+        line = (f"segment {k} type {seg.type:3s}: affine twist -> T_k: "
+                f"pos {pos.mean() / seg.length * 100:.4f} % of l_k ({pos.mean() * 1e3:.4f} mm, "
+                f"max {pos.max() * 1e3:.3f}), rot {ang.mean():.4f} deg (max {ang.max():.3f})")
         if seg.twists:
             pos2, ang2, _ = fit_error(x, rz(-x[:, 3]) @ t, seg.length)
             line += f"; Rz(alpha)*exp(affine twist): pos {pos2.mean() * 1e3:.2e} mm, rot {ang2.mean():.2e} deg"
