@@ -33,11 +33,12 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from dacr_learn import runs
 from dacr_learn.checks import load_torch_file
 from dacr_learn.console import run_cli
+from dacr_learn.cosserat.dataset import cc_baseline
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
 from dacr_learn.rerun_callback import RerunVisualCallback
 from dacr_learn.rerun_log import RerunLogger
-from dacr_learn.training import KinematicsModule
+from dacr_learn.training import FKModule, KinematicsModule
 
 
 def quiet_run_handling_warnings() -> None:
@@ -250,11 +251,17 @@ class DacrCLI(LightningCLI):
             return
         model: KinematicsModule = self.model
         h = model.hparams
+        test = self.datamodule.splits["test"]
         summary = {**model.test_summary, **extra, "task": type(model).__name__.removesuffix("Module").lower(),
-                   "features": h.features, "robot": model.spec.name, "n_test": len(self.datamodule.splits["test"]["q"])}
+                   "features": h.features, "robot": model.spec.name, "n_test": len(test["q"])}
+        if getattr(self.datamodule, "source", "cc") != "cc" and isinstance(model, FKModule):
+            # the analytic CC model on the same split, from the Clarke features of the same joint lengths
+            summary["source"] = self.datamodule.source
+            summary.update(cc_baseline(model.spec, test["q"], test["pose"]))
         path = runs.free_path(self.out_dir, "metrics.json")   # a resumed fit keeps the first summary too
         path.write_text(json.dumps(summary, indent=2))
-        print(format_table(model.test_summary, f"\nTest metrics of {summary['task'].upper()} ({h.features} features, "
+        shown = {**model.test_summary, **{k: v for k, v in summary.items() if k.startswith("cc_")}}
+        print(format_table(shown, f"\nTest metrics of {summary['task'].upper()} ({h.features} features, "
                                                f"robot {model.spec.name}) → {path}"))
         parts = sorted(self.out_dir.glob("rerun*.rrd"))
         target = parts[0] if len(parts) == 1 else self.out_dir / "*.rrd"

@@ -20,8 +20,10 @@ from __future__ import annotations
 import hashlib
 import itertools
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -43,6 +45,7 @@ class SamplerOptions:
     component; common_offset [m]: the same constant added to every joint length (drift).
     """
 
+    source: ClassVar[str] = "cc"     # recorded in meta.json (the Cosserat options say "cosserat")
     joint_noise: float = 0.0
     pose_noise_pos: float = 0.0
     pose_noise_rot: float = 0.0
@@ -132,12 +135,20 @@ def tensors_sha256(tensors: dict[str, Tensor]) -> str:
     return h.hexdigest()
 
 
+def options_record(options: Any) -> dict:
+    """The options dataclass as meta.json stores it (JSON types: tuples become lists)."""
+    return json.loads(json.dumps(asdict(options)))
+
+
 def save_dataset(directory: str | Path, spec: RobotSpec, tensors: dict[str, Tensor], seed: int,
-                 options: SamplerOptions) -> Path:
-    """Write ``tensors.pt`` + ``meta.json`` (spec, options, seed, sha256) to ``directory``."""
+                 options: Any) -> Path:
+    """Write ``tensors.pt`` + ``meta.json`` (spec, source, options, seed, sha256) to ``directory``.
+
+    ``options``: the dataclass the tensors were generated with (:class:`SamplerOptions`, or
+    ``cosserat.dataset.CosseratOptions``); its ``source`` ("cc", "cosserat") is recorded too."""
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    meta = {"robot": spec.to_dict(), "options": asdict(options), "seed": int(seed),
+    meta = {"robot": spec.to_dict(), "source": options.source, "options": options_record(options), "seed": int(seed),
             "num_samples": int(next(iter(tensors.values())).shape[0]), "sha256": tensors_sha256(tensors)}
     tmp = directory / (TENSOR_FILE + ".tmp")
     torch.save(tensors, tmp)
@@ -193,13 +204,17 @@ def _saved_spec(directory: Path, meta: dict) -> RobotSpec:
 
 
 def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
-                     options: SamplerOptions = SamplerOptions()) -> dict[str, Tensor]:
-    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, options), else generate and save it."""
+                     options: Any = SamplerOptions(),
+                     make: Callable[[RobotSpec, int, int, Any], dict[str, Tensor]] | None = None) -> dict[str, Tensor]:
+    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, source, options), else generate
+    it with ``make(spec, n, seed, options)`` (default :func:`generate`) and save it. A dataset written
+    before sources existed (no ``source`` in meta.json) counts as "cc"."""
     directory = Path(directory)
     if (directory / META_FILE).is_file():
         meta = _read_meta(directory)
-        if (meta.get("seed"), meta.get("num_samples"), meta.get("options")) == (seed, n, asdict(options)):
+        if ((meta.get("seed"), meta.get("num_samples"), meta.get("source", "cc"), meta.get("options"))
+                == (seed, n, options.source, options_record(options))):
             return load_dataset(directory, spec)[0]
-    tensors = generate(spec, n, seed, options)
+    tensors = (make or generate)(spec, n, seed, options)
     save_dataset(directory, spec, tensors, seed, options)
     return tensors

@@ -1,4 +1,7 @@
-"""LightningDataModule serving synthetic CC datasets as in-memory tensor batches.
+"""LightningDataModule serving synthetic datasets as in-memory tensor batches.
+
+``source``: "cc" (constant-curvature samples, :mod:`dacr_learn.data`) or "cosserat" (tension-driven
+static shapes of the Cosserat-rod model, :mod:`dacr_learn.cosserat.dataset`; options in ``cosserat``).
 
 Batches are dicts {"q": (B, num_joints), "pose": (B, 4, 4), "valid": (B,) bool} drawn by
 index from tensors held in memory: no per-sample ``__getitem__``, no worker processes. Under
@@ -14,6 +17,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
+from .cosserat import dataset as cosserat_dataset
 from .data import SamplerOptions, generate, generate_or_load, with_segment_frames
 from .robot import RobotSpec
 
@@ -62,6 +66,22 @@ class TensorBatches:
         return math.ceil(math.ceil(self.n / _rank_world()[1]) / self.batch_size)
 
 
+def _options(spec: RobotSpec, source: str, cosserat: dict | None, sampler: SamplerOptions):
+    """The generation options of a source: ``sampler`` for "cc", CosseratOptions for "cosserat"."""
+    if source == "cc":
+        if cosserat is not None:
+            raise ValueError("cosserat: options of the Cosserat source given with source 'cc'; set source: cosserat")
+        return sampler
+    if source != "cosserat":
+        raise ValueError(f"source: expected 'cc' or 'cosserat', got {source!r}")
+    if spec.mechanics is None:
+        raise ValueError(f"robot {spec.name!r}: source 'cosserat' needs a robot description with a mechanics: "
+                         "block (e.g. configs/robots/tdcr_3seg_cosserat.yaml, docs/cosserat.md §1)")
+    if sampler != SamplerOptions():
+        raise ValueError(f"source 'cosserat': the noise options are not supported, got {sampler}")
+    return cosserat_dataset.CosseratOptions.from_dict(cosserat)
+
+
 class KinematicsDataModule(pl.LightningDataModule):
     """Synthetic dataset of a robot, split into train / val / test.
 
@@ -72,12 +92,16 @@ class KinematicsDataModule(pl.LightningDataModule):
         joint_noise, pose_noise_pos, pose_noise_rot, common_offset: see SamplerOptions [m, rad].
         cache_dir: if set, the dataset is written there (tensors.pt + meta.json) and re-used.
         segment_frames: also serve every segment's end frame ("segment_frames", (B, m, 4, 4)) in batches.
+        source: "cc" (default) or "cosserat" (needs a robot with a ``mechanics:`` block; no noise options).
+        cosserat: options of the Cosserat source (:class:`~dacr_learn.cosserat.dataset.CosseratOptions`:
+            tension_max, tendons_pulled, gravity, tip_force_max, steps_per_segment, tol, max_iter).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", n_train: int = 100_000,
                  n_val: int = 5_000, n_test: int = 10_000, batch_size: int = 1024, seed: int = 0,
                  joint_noise: float = 0.0, pose_noise_pos: float = 0.0, pose_noise_rot: float = 0.0,
-                 common_offset: float = 0.0, cache_dir: str | None = None, segment_frames: bool = False):
+                 common_offset: float = 0.0, cache_dir: str | None = None, segment_frames: bool = False,
+                 source: str = "cc", cosserat: dict | None = None):
         super().__init__()
         self.spec = RobotSpec.coerce(robot)
         for name, v in (("n_train", n_train), ("n_val", n_val), ("n_test", n_test)):
@@ -86,22 +110,30 @@ class KinematicsDataModule(pl.LightningDataModule):
         self.sizes = (n_train, n_val, n_test)
         self.batch_size, self.seed, self.cache_dir = batch_size, seed, cache_dir
         self.segment_frames = segment_frames
-        self.options = SamplerOptions(joint_noise, pose_noise_pos, pose_noise_rot, common_offset)
+        self.source = source
+        self.options = _options(self.spec, source, cosserat,
+                                SamplerOptions(joint_noise, pose_noise_pos, pose_noise_rot, common_offset))
         self.splits: dict[str, dict[str, Tensor]] = {}
+
+    def _data(self) -> dict[str, Tensor]:
+        n, cosserat = sum(self.sizes), self.source == "cosserat"
+        if self.cache_dir is not None:
+            load = cosserat_dataset.generate_or_load if cosserat else generate_or_load
+            return load(Path(self.cache_dir), self.spec, n, self.seed, self.options)
+        return (cosserat_dataset.generate if cosserat else generate)(self.spec, n, self.seed, self.options)
 
     def prepare_data(self) -> None:
         if self.cache_dir is not None:
-            generate_or_load(Path(self.cache_dir), self.spec, sum(self.sizes), self.seed, self.options)
+            self._data()
 
     def setup(self, stage: str | None = None) -> None:
         if self.splits:
             return
         n = sum(self.sizes)
-        if self.cache_dir is not None:
-            data = generate_or_load(Path(self.cache_dir), self.spec, n, self.seed, self.options)
-        else:
-            data = generate(self.spec, n, self.seed, self.options)
-        if self.segment_frames:
+        data = self._data()
+        if self.source == "cosserat":     # the solver's segment frames, served only when asked for
+            data = data if self.segment_frames else {k: v for k, v in data.items() if k != "segment_frames"}
+        elif self.segment_frames:
             data = with_segment_frames(self.spec, data)
         bounds = [0, self.sizes[0], self.sizes[0] + self.sizes[1], n]
         for name, lo, hi in zip(("train", "val", "test"), bounds[:-1], bounds[1:], strict=True):

@@ -1,0 +1,167 @@
+"""Displacement-actuated datasets from the Cosserat-rod model (docs/cosserat.md, "Datasets").
+
+Sampling: per segment, ``tendons_pulled`` neighbouring tendons (a random first one) get a tension
+uniform in [0, ``tension_max``] N, the others are slack; optionally a tip force of random direction and
+magnitude uniform in [0, ``tip_force_max``] N. :func:`~dacr_learn.cosserat.solve_statics` gives the
+static shape under these tensions, the robot's weight (``gravity``) and the load. The joint vector is
+what a displacement actuator sets: the unstretched tendon lengths (``tendon_rest_lengths``), so a
+dataset maps joint lengths to the pose that the mechanics CC ignores (sag, compression, coupling)
+produce. Deterministic for a seed (tensions drawn up front by a private generator, then solved in chunks).
+
+Tensors (SI units; names as the CC datasets of :mod:`dacr_learn.data`, so the datamodule serves both):
+  q, q_clean (N, T) [m] — unstretched tendon lengths (equal: no measurement noise),
+  features (N, m, 4) — the Clarke features of q (what the CC model reads from these lengths),
+  pose, pose_clean (N, 4, 4) — tip pose, segment_frames (N, m, 4, 4) — end frame of every segment,
+  backbone (N, K, 3) [m] — backbone positions at the solver's grid nodes, tension (N, T) [N],
+  tip_force (N, 3) [N] (only with ``tip_force_max`` > 0), residual (N,) — the shooting residual.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from ..data import generate_or_load as _generate_or_load_any
+from ..kinematics import forward_kinematics
+from ..layers import ClarkeEncoder
+from ..metrics import pose_errors, summarize
+from ..robot import RobotSpec
+from .statics import ConvergenceError, solve_statics
+
+PROGRESS_CHUNK = 1024   # samples per solve call, i.e. per progress-bar update
+
+
+@dataclass(frozen=True)
+class CosseratOptions:
+    """Sampling and solver options of a Cosserat dataset (the ``data.cosserat`` block of a config).
+
+    tension_max [N]: largest tension of a pulled tendon. tendons_pulled: neighbouring tendons pulled per
+    segment (1 … its number of tendons). gravity (3,) [m/s²]: in the base frame ((-9.81, 0, 0): the
+    robot horizontal, sagging along −x; (0, 0, 0): no weight). tip_force_max [N]: random tip force
+    (0: none; it is not part of q, so it is an unobserved disturbance for a q → pose model).
+    steps_per_segment: RK4 steps per segment (8: tip within ≈ 1.4e-5 of the length of 64 steps).
+    tol, max_iter: Newton's residual tolerance and step limit (solve_statics).
+    """
+
+    source: ClassVar[str] = "cosserat"
+    tension_max: float = 2.0
+    tendons_pulled: int = 2
+    gravity: tuple[float, float, float] = field(default=(-9.81, 0.0, 0.0))
+    tip_force_max: float = 0.0
+    steps_per_segment: int = 8
+    tol: float = 1e-10
+    max_iter: int = 40
+
+    def __post_init__(self):
+        g = self.gravity
+        if not (isinstance(g, (list, tuple)) and len(g) == 3
+                and all(isinstance(x, (int, float)) and math.isfinite(x) for x in g)):
+            raise ValueError(f"gravity: expected 3 finite numbers [m/s²] in the base frame, got {g!r}")
+        object.__setattr__(self, "gravity", tuple(float(x) for x in g))
+        for name in ("tension_max", "tip_force_max", "tol"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite number >= 0, got {v!r}")
+        for name in ("tendons_pulled", "steps_per_segment", "max_iter"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and not isinstance(v, bool) and v >= 1):
+                raise ValueError(f"{name}: expected an integer >= 1, got {v!r}")
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> CosseratOptions:
+        """Options from a config mapping; unknown keys are a ValueError naming them and the known ones."""
+        d = dict(d or {})
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise ValueError(f"data.cosserat: unknown option(s) {unknown}, expected some of {sorted(known)}")
+        return cls(**d)
+
+
+def sample_tensions(spec: RobotSpec, n: int, options: CosseratOptions, generator: torch.Generator) -> Tensor:
+    """(n, T) [N] float64: per segment ``tendons_pulled`` neighbouring tendons uniform in [0, tension_max]."""
+    out = []
+    for j, seg in enumerate(spec.segments):
+        k = seg.num_joints
+        if options.tendons_pulled > k:
+            raise ValueError(f"tendons_pulled: got {options.tendons_pulled}, expected at most {k} (the tendons "
+                             f"of segment {j})")
+        first = torch.randint(k, (n, 1), generator=generator)
+        cols = (first + torch.arange(options.tendons_pulled)) % k
+        tau = torch.zeros(n, k, dtype=torch.float64)
+        values = options.tension_max * torch.rand(n, options.tendons_pulled, generator=generator, dtype=torch.float64)
+        out.append(tau.scatter(1, cols, values))
+    return torch.cat(out, dim=-1)
+
+
+def _tip_forces(n: int, force_max: float, generator: torch.Generator) -> Tensor:
+    """(n, 3) [N]: uniform random directions, magnitudes uniform in [0, force_max]."""
+    direction = torch.nn.functional.normalize(torch.randn(n, 3, generator=generator, dtype=torch.float64), dim=-1)
+    return direction * force_max * torch.rand(n, 1, generator=generator, dtype=torch.float64)
+
+
+def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = CosseratOptions(),
+             dtype=torch.float32, *, progress: bool = True, chunk: int = PROGRESS_CHUNK) -> dict[str, Tensor]:
+    """n samples (tensors of the module docstring), solved ``chunk`` at a time with a progress bar.
+
+    Raises ConvergenceError (after trying every sample, before anything is returned) naming how many
+    samples failed, the worst residual and the options to change; ValueError for a robot without a
+    ``mechanics:`` block.
+    """
+    if spec.mechanics is None:
+        raise ValueError(f"robot {spec.name!r}: data source 'cosserat' needs a mechanics: block in the robot "
+                         "description (docs/cosserat.md §1)")
+    if n < 1:
+        raise ValueError(f"n: expected a positive number of samples, got {n}")
+    g = torch.Generator().manual_seed(int(seed))
+    tension = sample_tensions(spec, n, options, g)
+    force = _tip_forces(n, options.tip_force_max, g) if options.tip_force_max > 0 else None
+    gravity = torch.tensor(options.gravity, dtype=torch.float64)
+    ends = torch.cumsum(torch.tensor([s.length for s in spec.segments], dtype=torch.float64), 0).tolist()
+    parts = []
+    with tqdm(total=n, desc=f"Cosserat dataset ({spec.name})", unit="sample", disable=not progress,
+              dynamic_ncols=True) as bar:
+        for i in range(0, n, chunk):
+            wrench = None if force is None else torch.cat([force[i:i + chunk], torch.zeros_like(force[i:i + chunk])], -1)
+            sol = solve_statics(spec, tension[i:i + chunk], gravity=gravity, tip_wrench=wrench,
+                                steps_per_segment=options.steps_per_segment, tol=options.tol,
+                                max_iter=options.max_iter, on_failure="flag")
+            parts.append({"q": sol.tendon_rest_lengths, "pose": sol.tip, "segment_frames": sol.at(ends),
+                          "backbone": sol.frames[..., :3, 3], "residual": sol.residual, "ok": sol.converged})
+            bar.update(min(chunk, n - i))
+    data = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+    ok = data.pop("ok") & torch.stack([v.flatten(1).isfinite().all(-1) for k, v in data.items() if k != "residual"]).all(0)
+    if not bool(ok.all()):
+        worst = torch.nan_to_num(data["residual"][~ok], nan=math.inf).max()
+        raise ConvergenceError(
+            f"Cosserat dataset: {int((~ok).sum())} of {n} samples failed (worst shooting residual {float(worst):.3g}, "
+            f"tol {options.tol:g}; inf = NaN; a converged but inadmissible shape also counts); nothing was written. "
+            "Lower data.cosserat.tension_max or tip_force_max, or raise data.cosserat.max_iter or steps_per_segment")
+    out = {k: v.to(dtype) for k, v in data.items()}
+    out["q_clean"], out["pose_clean"], out["tension"] = out["q"].clone(), out["pose"].clone(), tension.to(dtype)
+    out["features"] = ClarkeEncoder(spec)(data["q"]).to(dtype)
+    if force is not None:
+        out["tip_force"] = force.to(dtype)
+    return out
+
+
+def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
+                     options: CosseratOptions = CosseratOptions(), *, progress: bool = True) -> dict[str, Tensor]:
+    """Load ``directory`` if it holds exactly this Cosserat dataset (spec, n, seed, source, options), else
+    generate and save it (as :func:`dacr_learn.data.generate_or_load`; a failed generation writes nothing)."""
+    return _generate_or_load_any(directory, spec, n, seed, options,
+                                 make=lambda s, k, sd, o: generate(s, k, sd, o, progress=progress))
+
+
+def cc_baseline(spec: RobotSpec, q: Tensor, pose: Tensor) -> dict[str, float]:
+    """Summary of the analytic CC model's errors on samples (q (N, T), pose (N, 4, 4)), prefixed "cc_":
+    CC evaluated on the Clarke features of the same joint lengths (float64), e.g. cc_pos_err_mean_pct."""
+    q64 = q.detach().to(torch.float64)
+    predicted = forward_kinematics(spec, ClarkeEncoder(spec)(q64))
+    summary = summarize(pose_errors(predicted, pose.detach().to(torch.float64)), spec.total_length)
+    return {f"cc_{k}": v for k, v in summary.items()}
