@@ -38,7 +38,9 @@ Context c_k ("context"): "none" (CC data: a segment's shape depends on its own f
 the network then runs on any number of segments, see :func:`transfer`), "segment" (a one-hot
 segment index: per-segment first-layer bias, not transferable), "distal" (the sum of the
 standardised features of the segments beyond k, whose tendons pass through segment k and load it:
-the context for real tendon robots; transferable).
+the context for real tendon robots; transferable), "full" (the one-hot segment index and the
+standardised features of every segment: a segment under gravity bends with its orientation, which the
+proximal segments set, and with the weight beyond it; Cosserat data, docs/cosserat.md; not transferable).
 """
 from __future__ import annotations
 
@@ -54,7 +56,7 @@ from .models import FKModel, Standardizer, mlp
 from .robot import RobotSpec
 
 STRUCTURES = ("monolithic", "compositional")
-CONTEXTS = ("none", "segment", "distal")
+CONTEXTS = ("none", "segment", "distal", "full")
 HEADS = {"twist": 6, "6d": 9}
 UNITS = ("strain", "metric")
 
@@ -100,13 +102,14 @@ class SegmentFrontEnd(nn.Module):
         self.encoder = ClarkeEncoder(spec)
         self.register_buffer("unit", feature_units(spec, units))    # x_k = features / unit
         self.norm = Standardizer(4)                       # shared by all segments (pooled statistics)
-        self.dim = 4 + {"none": 0, "segment": m, "distal": 4}[context]
+        self.dim = 4 + {"none": 0, "segment": m, "distal": 4, "full": m + 4 * m}[context]
         self.register_buffer("context_matrix", self.context_operator(m, context))
 
     @staticmethod
     def context_operator(m: int, context: str) -> Tensor:
-        """(m, m): one-hot rows ("segment") or the strictly-upper ones summing the distal segments ("distal")."""
-        return torch.eye(m) if context == "segment" else torch.ones(m, m).triu(1)
+        """(m, m): one-hot rows ("segment", "full") or the strictly-upper ones summing the distal segments
+        ("distal")."""
+        return torch.eye(m) if context in ("segment", "full") else torch.ones(m, m).triu(1)
 
     def segment_features(self, q: Tensor) -> Tensor:
         """Unstandardised per-segment features x_k (..., m, 4) in the network's units (fixed columns at β = l,
@@ -122,8 +125,12 @@ class SegmentFrontEnd(nn.Module):
         if self.context == "none":
             return x
         ctx = self.context_matrix.to(x.dtype)
-        extra = ctx.expand(*x.shape[:-2], -1, -1) if self.context == "segment" else ctx @ x
-        return torch.cat([x, extra], dim=-1)
+        if self.context == "distal":
+            return torch.cat([x, ctx @ x], dim=-1)
+        extra = [ctx.expand(*x.shape[:-2], -1, -1)]
+        if self.context == "full":
+            extra.append(x.flatten(-2).unsqueeze(-2).expand(*x.shape[:-2], x.shape[-2], -1))
+        return torch.cat([x, *extra], dim=-1)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.with_context(self.norm(self.segment_features(q)))
@@ -240,10 +247,10 @@ def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
     range, e.g. a stretch β/l the source robot never had; a target segment that extends or twists needs a
     source segment that does, or a ValueError says so). "metric" units: each target segment must have
     the geometry (type, length, radius, limits) of some source segment. The number of segments and of
-    joints may differ. Context "segment" cannot transfer.
+    joints may differ. Contexts "segment" and "full" cannot transfer.
     """
-    if model.front.context == "segment":
-        raise ValueError("transfer: a model with context 'segment' has one input per source segment index; "
+    if model.front.context in ("segment", "full"):
+        raise ValueError(f"transfer: a model with context {model.front.context!r} has inputs per source segment index; "
                          "train with context 'none' or 'distal' to transfer to another number of segments")
     for flag, what in (("extends", "extend (type I/III)"), ("twists", "twist (type II/III)")):
         new_axes = [k for k, s in enumerate(target.segments) if getattr(s, flag)]

@@ -33,8 +33,9 @@ class InferenceCompositionalFK(nn.Module):
     """Compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`) with the front-end
     folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
 
-    Encoder, per-segment standardisation, context ("segment": a constant, "distal": a sum of
-    standardised features) and the first layer together with the learned linear skip are affine in
+    Encoder, per-segment standardisation, context (front.with_context: "segment" a constant, "distal" a
+    sum of standardised features, "full" both kinds) and the first layer together with the learned
+    linear skip are affine in
     u = [q − q_ref, g], so one matrix gives every segment's pre-activations at once,
     (B, m·(W + O)); for type-III segments it acts on the exact features f instead (β = sqrt(h² − (αr)²)).
     Feature units (ρ/d, β/l) are folded in; the outputs are scaled by each segment's translation unit
@@ -288,15 +289,10 @@ def compositional_first_layer(model) -> tuple[Tensor, Tensor]:
     b = torch.cat([first.bias.detach().to(_F64), torch.zeros(skip.out_features, dtype=_F64)])
     norm = Standardizer(4).to(_F64)
     norm.load_state_dict({k: v.to(_F64) for k, v in front.norm.state_dict().items()})
-    context = front.context_matrix.to(_F64)
 
     def affine(f: Tensor) -> Tensor:
         x = norm(actuated_to_features(f, sel, fixed) / unit)             # (P, m, 4)
-        if front.context == "segment":
-            x = torch.cat([x, context.expand(x.shape[0], -1, -1)], dim=-1)
-        elif front.context == "distal":
-            x = torch.cat([x, context @ x], dim=-1)
-        return (x @ w.mT + b).flatten(-2)                                 # (P, m·(W + O))
+        return (front.with_context(x) @ w.mT + b).flatten(-2)                                 # (P, m·(W + O))
 
     d = sel.shape[0]
     probe = affine(torch.cat([torch.zeros(1, d, dtype=_F64), torch.eye(d, dtype=_F64)]))

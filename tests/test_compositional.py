@@ -240,6 +240,8 @@ def test_transfer_keeps_the_network_unchanged():
 def test_transfer_refuses_segment_context_and_unknown_geometry():
     with pytest.raises(ValueError, match="segment"):
         transfer(CompositionalFK(equal_segments(2), context="segment"), equal_segments(3))
+    with pytest.raises(ValueError, match="context 'full'"):
+        transfer(CompositionalFK(equal_segments(2), context="full"), equal_segments(3))
     with pytest.raises(ValueError, match="geometry"):
         transfer(CompositionalFK(equal_segments(2), units="metric"), TDCR3)
 

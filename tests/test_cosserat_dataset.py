@@ -41,6 +41,9 @@ def test_generation_is_deterministic_for_a_seed_and_has_the_documented_tensors(s
     assert float(a["residual"].max()) <= FAST.tol
     pulled = (a["tension"] > 0).unflatten(-1, (3, 4)).sum(-1)
     assert bool((pulled <= FAST.tendons_pulled).all()) and float(a["tension"].max()) <= FAST.tension_max
+    loaded = cd.generate(spec, 4, seed=3, options=cd.CosseratOptions(steps_per_segment=4, tip_force_max=0.05),
+                         progress=False)
+    assert float(loaded["tip_force"].norm(dim=-1).max()) <= 0.05 and not torch.equal(loaded["pose"], a["pose"][:4])
 
 
 def test_cache_is_reused_and_regenerated_when_an_option_changes(spec, tmp_path, monkeypatch):

@@ -18,7 +18,8 @@ F64 = torch.float64
                                                     ("tdcr_3seg_coupled", "segment", "6d"),
                                                     ("type3", "distal", "twist"), ("twisting", "none", "6d"),
                                                     ("hetero_4seg_types", "distal", "twist"),
-                                                    ("hetero_3seg_coupled", "none", "6d")])
+                                                    ("hetero_3seg_coupled", "none", "6d"),
+                                                    ("hetero_3seg_coupled", "full", "twist")])
 @pytest.mark.parametrize("units", ["strain", "metric"])
 def test_folded_equals_model_float64(robot, context, rotation, units):
     spec = spec_by_name(robot)

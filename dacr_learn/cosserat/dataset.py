@@ -127,7 +127,7 @@ def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = Coss
     with tqdm(total=n, desc=f"Cosserat dataset ({spec.name})", unit="sample", disable=not progress,
               dynamic_ncols=True) as bar:
         for i in range(0, n, chunk):
-            wrench = None if force is None else torch.cat([force[i:i + chunk], torch.zeros_like(force[i:i + chunk])], -1)
+            wrench = None if force is None else torch.nn.functional.pad(force[i:i + chunk], (0, 3))   # (F, M = 0)
             sol = solve_statics(spec, tension[i:i + chunk], gravity=gravity, tip_wrench=wrench,
                                 steps_per_segment=options.steps_per_segment, tol=options.tol,
                                 max_iter=options.max_iter, on_failure="flag")
@@ -135,7 +135,8 @@ def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = Coss
                           "backbone": sol.frames[..., :3, 3], "residual": sol.residual, "ok": sol.converged})
             bar.update(min(chunk, n - i))
     data = {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
-    ok = data.pop("ok") & torch.stack([v.flatten(1).isfinite().all(-1) for k, v in data.items() if k != "residual"]).all(0)
+    finite = [v.flatten(1).isfinite().all(-1) for k, v in data.items() if k not in ("ok", "residual")]
+    ok = data.pop("ok") & torch.stack(finite).all(0)
     if not bool(ok.all()):
         worst = torch.nan_to_num(data["residual"][~ok], nan=math.inf).max()
         raise ConvergenceError(
