@@ -10,8 +10,14 @@ threads, the default; beside it, interleaved, the same solve with its chunks one
 Newton steps, the one-minute load average (the machine is shared), and the tip error of this step
 count against 64 steps.
 
+``--model CKPT``: also the learned surrogate of a ``train.py`` run on Cosserat data (an FKModule
+checkpoint, e.g. of configs/fk_cosserat.yaml) on the same batch, side by side: its configurations per
+second from the batch's joint vector (the unstretched tendon lengths the solve gives), in float32 and
+float64, and its tip error against the solver on this batch.
+
     .venv/bin/python benchmarks/cosserat.py                       # batch 10 000, 8 steps per segment
     .venv/bin/python benchmarks/cosserat.py --steps 4 --json      # also one JSON line
+    .venv/bin/python benchmarks/cosserat.py --model runs/fk_cosserat/version_0/checkpoints/last.ckpt
 """
 from __future__ import annotations
 
@@ -32,6 +38,7 @@ from pathlib import Path
 import torch
 
 from dacr_learn.cosserat import solve_statics
+from dacr_learn.cosserat.dataset import CosseratOptions, sample_tensions
 from dacr_learn.robot import RobotSpec
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,18 +47,31 @@ TARGET = 1000.0   # configurations per second on 2 cores
 
 
 def random_tensions(spec: RobotSpec, n: int, tau_max: float, seed: int) -> torch.Tensor:
-    """(n, T) [N]: per segment two neighbouring tendons pulled (uniform in [0, τ_max]), the others slack."""
-    g = torch.Generator().manual_seed(seed)
-    out = []
-    for seg in spec.segments:
-        k = seg.num_joints
-        pick = torch.randint(k, (n,), generator=g)
-        tau = torch.zeros(n, k, dtype=torch.float64)
-        rows = torch.arange(n)
-        tau[rows, pick] = tau_max * torch.rand(n, generator=g, dtype=torch.float64)
-        tau[rows, (pick + 1) % k] = tau_max * torch.rand(n, generator=g, dtype=torch.float64)
-        out.append(tau)
-    return torch.cat(out, dim=-1)
+    """(n, T) [N]: per segment two neighbouring tendons pulled (uniform in [0, τ_max]), the others slack
+    (the sampler of the Cosserat datasets)."""
+    return sample_tensions(spec, n, CosseratOptions(tension_max=tau_max), torch.Generator().manual_seed(seed))
+
+
+def time_surrogate(checkpoint: str, q: torch.Tensor, repeats: int) -> dict:
+    """Median configurations/s of the FK network of ``checkpoint`` on joint vectors q (B, T), float32 and
+    float64 (no autograd), and its float32 tip poses (B, 4, 4)."""
+    from dacr_learn.training import FKModule
+
+    module = FKModule.load_from_checkpoint(checkpoint, map_location="cpu", weights_only=True).eval()
+    out, pose = {}, None
+    for dtype, name in ((torch.float32, "float32"), (torch.float64, "float64")):
+        model, x = module.model.to(dtype), q.to(dtype)
+        times = []
+        with torch.inference_mode():
+            model(x[:256])
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                result = model(x)
+                times.append(time.perf_counter() - t0)
+        out[f"surrogate_configs_per_s_{name}"] = len(q) / statistics.median(times)
+        pose = result.double() if pose is None else pose
+    return {**out, "surrogate_structure": module.hparams.get("structure", "monolithic"),
+            "surrogate_context": module.hparams.get("context", "none"), "surrogate_width": module.hparams.width}, pose
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -62,6 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--tau-max", type=float, default=2.0, help="largest tension [N]")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--json", action="store_true", help="print one JSON line on stdout")
+    p.add_argument("--model", help="FKModule checkpoint trained on Cosserat data: time it on the same batch")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     spec = RobotSpec.from_yaml(CONFIG)
@@ -102,6 +123,17 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"  Newton steps mean {result['newton_steps_mean']:.2f}, max {result['newton_steps_max']}; "
           f"residual max {result['residual_max']:.1e}; tip error vs 64 steps {err:.1e} of length; "
           f"median tip deflection {result['tip_deflection_median_of_length']:.2f} of length", file=sys.stderr)
+    if args.model:
+        stats, pose = time_surrogate(args.model, sol.tendon_rest_lengths, args.repeats)
+        tip = (pose[:, :3, 3] - sol.tip[:, :3, 3]).norm(dim=-1) / spec.total_length
+        result.update(stats, surrogate_tip_error_mean_of_length=float(tip.mean()),
+                      surrogate_speedup_float32=stats["surrogate_configs_per_s_float32"]
+                      / result["configs_per_s_median"])
+        print(f"  surrogate ({stats['surrogate_structure']}, context {stats['surrogate_context']}, width "
+              f"{stats['surrogate_width']}): {stats['surrogate_configs_per_s_float32']:.3g} configurations/s float32, "
+              f"{stats['surrogate_configs_per_s_float64']:.3g} float64 ({result['surrogate_speedup_float32']:.0f}x the "
+              f"solver); tip error mean {100 * float(tip.mean()):.3f} % of length on this batch", file=sys.stderr)
+    result["load_average_1min_end"] = os.getloadavg()[0]
     print(f"  load average {result['load_average_1min']:.1f} on {result['cpus']} CPUs", file=sys.stderr)
     if args.json:
         print(json.dumps(result))
