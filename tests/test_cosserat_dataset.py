@@ -137,3 +137,18 @@ def test_the_datamodule_and_train_py_serve_a_cosserat_dataset_and_report_the_cc_
     assert summary["cc_pos_err_mean_pct"] == pytest.approx(expected["cc_pos_err_mean_pct"]) and expected[
         "cc_pos_err_mean_pct"] > 0.05
     assert "cc_rot_err_mean_deg" in summary
+
+
+def test_the_ablation_runner_trains_and_tests_on_cached_cosserat_data(tmp_path):
+    from dacr_learn.ablation.runner import Job, conditions, run_job
+
+    cfg = {"robots": {"cos": str(ROBOT)}, "tasks": ["fk"], "features": ["clarke"], "n_train": [64], "seeds": [0],
+           "model": {"width": 16, "depth": 2, "lr": 1e-2}, "train": {"steps": 4, "batch_size": 32},
+           "test": {"n": 32, "seed": 7}, "conditions": {},
+           "data": {"source": "cosserat", "cosserat": {"steps_per_segment": 2}, "cache_dir": str(tmp_path)}}
+    job = Job("cos", "fk", "clarke", 64, 0)
+    assert conditions(cfg, job) == ["clean"]
+    (row,) = run_job(cfg, job)
+    assert row["condition"] == "clean" and row["pos_err_mean_pct"] > 0 and row["cc_pos_err_mean_pct"] > 0.05
+    cached = sorted(p.name for p in tmp_path.iterdir())
+    assert cached == ["tdcr-3seg-cosserat_n32_seed7", "tdcr-3seg-cosserat_n64_seed1"]

@@ -11,6 +11,11 @@ test-time *condition*; every condition gives one CSV row:
 - both, for the robot named ``transfer.from``: ``transfer_n6`` — the trained network evaluated on
   the robot ``transfer.to`` of the same geometry with a different number of joints, through that
   robot's Clarke layers. Raw models cannot take that input: their row has NaN metrics and a note.
+
+``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and
+tests on Cosserat-rod datasets (:mod:`dacr_learn.cosserat.dataset`, the robots need a ``mechanics:``
+block), cached under DIR per robot, size and seed; only the ``clean`` condition (the noise conditions are
+the CC sampler's), and FK rows gain ``cc_pos_err_mean_pct``: the CC model on the same test set.
 """
 from __future__ import annotations
 
@@ -31,6 +36,7 @@ from torch import Tensor
 
 from ..checks import read_yaml
 from ..console import quiet_third_party_warnings
+from ..cosserat import dataset as cosserat_dataset
 from ..data import SamplerOptions, generate
 from ..metrics import pose_errors, summarize
 from ..robot import RobotSpec
@@ -39,13 +45,13 @@ from ..training import FKModule, IKModule, ik_errors
 ROOT = Path(__file__).resolve().parents[2]
 COLUMNS = ["robot", "task", "features", "structure", "n_train", "condition", "seed", "pos_err_mean_mm",
            "pos_err_mean_pct", "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m", "train_seconds",
-           "steps", "n_test", "note"]
+           "steps", "n_test", "note", "cc_pos_err_mean_pct"]
 KEY = ("robot", "task", "features", "n_train", "seed", "structure")
 STRUCTURES = ("monolithic", "compositional")
 METRICS = ("pos_err_mean_mm", "pos_err_mean_pct", "rot_err_mean_deg", "joint_err_mean_mm", "constraint_residual_max_m")
 MODULES = {"fk": FKModule, "ik": IKModule}
 # Settings that change the numbers of a finished row: resuming with different values is refused.
-FROZEN_KEYS = ("model", "model_by_task", "model_by_structure", "train", "test", "conditions", "transfer")
+FROZEN_KEYS = ("model", "model_by_task", "model_by_structure", "train", "test", "conditions", "transfer", "data")
 
 
 @dataclass(frozen=True)
@@ -124,6 +130,8 @@ def make_jobs(cfg: dict) -> list[Job]:
 
 def conditions(cfg: dict, job: Job) -> list[str]:
     """Names of the test-time conditions (CSV rows) of a job."""
+    if is_cosserat(cfg):
+        return ["clean"]
     names = ["clean", "joint_noise", "offset"] if job.task == "fk" else ["clean", "pose_noise"]
     transfer = cfg.get("transfer")
     if transfer and job.robot == transfer["from"]:
@@ -175,9 +183,25 @@ def test_options(cfg: dict, condition: str) -> SamplerOptions:
             }.get(condition, SamplerOptions())
 
 
+def is_cosserat(cfg: dict) -> bool:
+    return (cfg.get("data") or {}).get("source", "cc") == "cosserat"
+
+
+def dataset(cfg: dict, spec: RobotSpec, n: int, seed: int, options: SamplerOptions | None = None):
+    """n samples of the config's source: CC (generated with ``options``) or Cosserat (cached in
+    ``data.cache_dir``)."""
+    if not is_cosserat(cfg):
+        return generate(spec, n, seed, options or SamplerOptions())
+    data = cfg["data"]
+    cache = resolve_path(data.get("cache_dir", "data/synthetic/ablation_cosserat")) / f"{spec.name}_n{n}_seed{seed}"
+    return cosserat_dataset.generate_or_load(cache, spec, n, seed,
+                                             cosserat_dataset.CosseratOptions.from_dict(data.get("cosserat")))
+
+
 def test_set(cfg: dict, spec: RobotSpec, condition: str) -> dict[str, Tensor]:
     """The fixed test set of a robot and condition: the same samples for every run (and seed)."""
-    return generate(spec, int(cfg["test"]["n"]), int(cfg["test"]["seed"]), test_options(cfg, condition))
+    options = None if is_cosserat(cfg) else test_options(cfg, condition)
+    return dataset(cfg, spec, int(cfg["test"]["n"]), int(cfg["test"]["seed"]), options)
 
 
 # ------------------------------------------------------------------------------------------
@@ -245,7 +269,7 @@ def fit(cfg: dict, job: Job, spec: RobotSpec) -> tuple[pl.LightningModule, float
     """Train one module for ``cfg.train.steps`` steps; returns it and the fit time [s]."""
     quiet_lightning()
     steps, bs = int(cfg["train"]["steps"]), int(cfg["train"]["batch_size"])
-    data = generate(spec, job.n_train, seed=1 + job.seed)
+    data = dataset(cfg, spec, job.n_train, seed=1 + job.seed)
     pl.seed_everything(job.seed, verbose=False)
     module = build_module(cfg, job.task, spec.to_dict(), job.features, job.structure)
     trainer = pl.Trainer(max_steps=steps, max_epochs=1, accelerator="cpu", devices=1, logger=False,
@@ -276,7 +300,11 @@ def run_job(cfg: dict, job: Job) -> list[dict]:
                                    test_set(cfg, target, "clean"))
                 row["note"] = f"trained on {spec.name}, evaluated on {target.name} through its Clarke layers"
         else:
-            summary = evaluate(module, job.task, test_set(cfg, spec, cond))
+            test = test_set(cfg, spec, cond)
+            summary = evaluate(module, job.task, test)
+            if is_cosserat(cfg) and job.task == "fk":
+                row["cc_pos_err_mean_pct"] = cosserat_dataset.cc_baseline(spec, test["q"], test["pose"])[
+                    "cc_pos_err_mean_pct"]
         row.update({k: summary.get(k, math.nan) for k in METRICS})
         rows.append(row)
     return rows
