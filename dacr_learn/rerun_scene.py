@@ -17,11 +17,14 @@ from matplotlib import colormaps
 __all__ = ["DEFAULT_ERROR_RANGE", "VISUAL_KEYS", "colour_note", "error_colours", "log_colour_scale", "log_frames",
            "log_path", "log_scene", "log_workspace"]
 
-VISUAL_KEYS = ("backbone", "pose_true", "pose_pred", "workspace_points", "workspace_error")
+VISUAL_KEYS = ("backbone", "backbone_true", "backbone_pred", "pose_true", "pose_pred", "workspace_points",
+               "workspace_error")
 
 AXIS_COLORS = np.array([[230, 40, 40], [40, 180, 40], [40, 90, 230]], dtype=np.uint8)
 AXIS_COLORS_LIGHT = np.array([[255, 165, 165], [165, 235, 165], [165, 190, 255]], dtype=np.uint8)
 BACKBONE_COLOR = (90, 90, 90)
+BACKBONE_TRUE_COLOR = (30, 110, 220)     # the data's own backbone where it is not the CC one (Cosserat)
+BACKBONE_PRED_COLOR = (235, 150, 40)     # the learned segment ends, joined
 TIP_ERROR_COLOR = (255, 120, 0)
 DEFAULT_ERROR_RANGE = (1e-6, 1e-2)  # [m]: workspace colours run over log10(error) from 1 µm to 10 mm
 
@@ -148,7 +151,9 @@ def log_scene(
     """Log a visual batch under ``prefix`` at the recording's current time.
 
     ``visual`` may hold any subset of (tensors or arrays, metres):
-    ``backbone`` (k, P, 3), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
+    ``backbone`` (k, P, 3) (grey: the CC backbone of the samples' features), ``backbone_true`` (k, P', 3)
+    (blue: the data's own backbone where it is not CC, e.g. Cosserat), ``backbone_pred`` (k, P'', 3)
+    (orange: the learned base and segment ends), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
     ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,).
     The workspace cloud uses :func:`log_workspace` (``error_range``, ``max_points``) and gets a
     static colour bar at ``<prefix>/workspace/colour_scale`` the first time.
@@ -158,10 +163,13 @@ def log_scene(
     unknown = sorted(set(visual) - set(VISUAL_KEYS))
     if unknown:
         raise ValueError(f"unknown visual keys {unknown}; expected a subset of {list(VISUAL_KEYS)}")
-    shapes = {"backbone": ((3,), 3), "pose_true": ((4, 4), 3), "pose_pred": ((4, 4), 3)}
+    shapes = {"backbone": ((3,), 3), "backbone_true": ((3,), 3), "backbone_pred": ((3,), 3), "pose_true": ((4, 4), 3),
+              "pose_pred": ((4, 4), 3)}
     arrays = {k: _checked(f"visual[{k!r}]", visual[k], *shapes[k]) for k in shapes if k in visual}
-    if "backbone" in arrays:
-        log_path(recording, f"{prefix}/backbone", arrays["backbone"])
+    for key, color in (("backbone", BACKBONE_COLOR), ("backbone_true", BACKBONE_TRUE_COLOR),
+                       ("backbone_pred", BACKBONE_PRED_COLOR)):
+        if key in arrays:
+            log_path(recording, f"{prefix}/{key}", arrays[key], color=color)
     for key, colors in (("pose_true", AXIS_COLORS), ("pose_pred", AXIS_COLORS_LIGHT)):
         if key in arrays:
             entity = f"{prefix}/tip_{key.removeprefix('pose_')}"

@@ -151,14 +151,22 @@ class KinematicsModule(pl.LightningModule):
 
     @torch.no_grad()
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
-        """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres)."""
+        """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres; keys of
+        :func:`dacr_learn.rerun_scene.log_scene`): the CC backbone of the samples' features, the dataset's
+        own backbone where it has one (Cosserat), the learned segment ends of a compositional model."""
         val = self.trainer.datamodule.splits["val"]
         k, n = min(self.hparams.visual_samples, len(val["q"])), min(num_workspace, len(val["q"]))
         q, pose = val["q"][:n].to(self.device), val["pose"][:n].to(self.device)
         pred = self.predicted_pose(q, pose)
-        return {"backbone": backbone_points(self.spec, val["features"][:k]).cpu(),
-                "pose_true": pose[:k].cpu(), "pose_pred": pred[:k].cpu(),
-                "workspace_points": pose[:, :3, 3].cpu(), "workspace_error": pose_errors(pred, pose)["pos_err"].cpu()}
+        visual = {"backbone": backbone_points(self.spec, val["features"][:k]).cpu(),
+                  "pose_true": pose[:k].cpu(), "pose_pred": pred[:k].cpu(),
+                  "workspace_points": pose[:, :3, 3].cpu(), "workspace_error": pose_errors(pred, pose)["pos_err"].cpu()}
+        if "backbone" in val:        # a dataset with its own backbone (Cosserat): "backbone" above is then CC's
+            visual["backbone_true"] = val["backbone"][:k].cpu()
+        if isinstance(getattr(self, "model", None), CompositionalFK):
+            ends = self.model.segment_ends(q[:k])[..., :3, 3]
+            visual["backbone_pred"] = torch.cat([torch.zeros_like(ends[..., :1, :]), ends], dim=-2).cpu()
+        return visual
 
 
 class FKModule(KinematicsModule):

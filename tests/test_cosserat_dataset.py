@@ -137,6 +137,9 @@ def test_the_datamodule_and_train_py_serve_a_cosserat_dataset_and_report_the_cc_
     assert summary["cc_pos_err_mean_pct"] == pytest.approx(expected["cc_pos_err_mean_pct"]) and expected[
         "cc_pos_err_mean_pct"] > 0.05
     assert "cc_rot_err_mean_deg" in summary
+    visual = cli.model.visual_batch()      # the Rerun scene: CC backbone of the features and the Cosserat one
+    assert visual["backbone_true"].shape == (8, 7, 3) and visual["backbone"].shape[0] == 8
+    assert torch.equal(visual["backbone_true"], dm.splits["val"]["backbone"][:8])
 
 
 def test_the_ablation_runner_trains_and_tests_on_cached_cosserat_data(tmp_path):
