@@ -85,6 +85,16 @@ def test_failed_samples_are_rejected_and_nothing_is_written(spec, tmp_path, opti
     assert not target.exists() or list(target.iterdir()) == []
 
 
+def test_train_py_shows_a_failed_generation_as_one_error_line(tmp_path, capsys):
+    config = write_run_config(tmp_path, robot="configs/robots/tdcr_3seg_cosserat.yaml", epochs=1, n_train=8, n_val=4,
+                              n_test=4, source="cosserat", cosserat={"steps_per_segment": 2, "max_iter": 1},
+                              cache_dir=str(tmp_path / "data"))
+    assert train.run_command_line(["fit", "--config", str(config)]) != 0
+    err = capsys.readouterr().err
+    assert "error:" in err and "samples failed" in err and "Traceback" not in err
+    assert not (tmp_path / "data" / TENSOR_FILE).exists()
+
+
 def test_bad_options_and_a_robot_without_mechanics_are_refused(spec):
     with pytest.raises(ValueError, match=r"data.cosserat: unknown option\(s\) \['tension'\]"):
         cd.CosseratOptions.from_dict({"tension": 1.0})

@@ -36,6 +36,11 @@ from .statics import ConvergenceError, solve_statics
 PROGRESS_CHUNK = 1024   # samples per solve call, i.e. per progress-bar update
 
 
+class DatasetConvergenceError(ConvergenceError, ValueError):
+    """Samples of a dataset failed to solve: a ConvergenceError caused by the options, so also a ValueError
+    (train.py shows it as one ``error:`` line naming the options to change, not as a traceback)."""
+
+
 @dataclass(frozen=True)
 class CosseratOptions:
     """Sampling and solver options of a Cosserat dataset (the ``data.cosserat`` block of a config).
@@ -109,9 +114,9 @@ def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = Coss
              dtype=torch.float32, *, progress: bool = True, chunk: int = PROGRESS_CHUNK) -> dict[str, Tensor]:
     """n samples (tensors of the module docstring), solved ``chunk`` at a time with a progress bar.
 
-    Raises ConvergenceError (after trying every sample, before anything is returned) naming how many
-    samples failed, the worst residual and the options to change; ValueError for a robot without a
-    ``mechanics:`` block.
+    Raises DatasetConvergenceError (a ConvergenceError and a ValueError; after trying every sample, before
+    anything is returned) naming how many samples failed, the worst residual and the options to change;
+    ValueError for a robot without a ``mechanics:`` block.
     """
     if spec.mechanics is None:
         raise ValueError(f"robot {spec.name!r}: data source 'cosserat' needs a mechanics: block in the robot "
@@ -139,7 +144,7 @@ def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = Coss
     ok = data.pop("ok") & torch.stack(finite).all(0)
     if not bool(ok.all()):
         worst = torch.nan_to_num(data["residual"][~ok], nan=math.inf).max()
-        raise ConvergenceError(
+        raise DatasetConvergenceError(
             f"Cosserat dataset: {int((~ok).sum())} of {n} samples failed (worst shooting residual {float(worst):.3g}, "
             f"tol {options.tol:g}; inf = NaN; a converged but inadmissible shape also counts); nothing was written. "
             "Lower data.cosserat.tension_max or tip_force_max, or raise data.cosserat.max_iter or steps_per_segment")
