@@ -86,8 +86,11 @@ def roll_mask(spec: RobotSpec, twist_roll: bool = True) -> Tensor:
     return torch.tensor([bool(twist_roll and s.twists) for s in spec.segments])
 
 
-def alpha_inputs(context: str) -> list[int]:
-    """Network input columns that carry a segment's α: its own, and the distal sum's with context "distal"."""
+def alpha_inputs(context: str, num_segments: int) -> list[int]:
+    """Network input columns that carry a segment's α: its own, the distal sum's with context "distal", every
+    segment's with context "full" (after the m one-hot columns)."""
+    if context == "full":
+        return [3] + [4 + num_segments + 4 * j + 3 for j in range(num_segments)]
     return [3, 7] if context == "distal" else [3]
 
 
@@ -171,7 +174,7 @@ class CompositionalFK(nn.Module):
         if self.rolls:                    # start the network independent of α: the roll is the head's (see above)
             with torch.no_grad():
                 for layer in (self.net[0], self.skip):
-                    layer.weight[:, alpha_inputs(context)] = 0.0
+                    layer.weight[:, alpha_inputs(context, spec.num_segments)] = 0.0
 
     @property
     def units(self) -> str:

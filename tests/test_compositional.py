@@ -98,7 +98,7 @@ def test_a_twisting_segment_is_exact_only_when_rolled_first(robot):
     assert err.mean() > 1e-3 * spec.total_length
 
 
-@pytest.mark.parametrize("context", ["none", "distal"])
+@pytest.mark.parametrize("context", ["none", "distal", "full"])
 def test_the_untrained_network_does_not_depend_on_a_rolled_segments_alpha(context):
     """With a rolled segment the α inputs start at zero weight: changing α_k alone (same ρ, β) turns T_k into
     Rz(Δα_k)·T_k and leaves every other segment's transform as it was."""
