@@ -218,6 +218,13 @@ class IKModel(nn.Module):
         check_tensor(pose, "pose", (4, 4))
         return self.in_norm(pose_to_vector(pose, self.length))
 
+    def input_pose(self, x: Tensor) -> Tensor:
+        """Standardised input vectors (..., 9) → the poses (..., 4, 4) [m] they encode: the position, and the
+        rotation whose first two rows are the Gram–Schmidt orthonormalisation of the 6D part (exact inverse of
+        :meth:`normalized_input` on its image; any vector, e.g. a perturbed input, maps to a valid pose)."""
+        v = self.in_norm.inverse(x)
+        return pose_from_parts(rotation_6d_to_matrix(v[..., 3:]), v[..., :3] * self.length)
+
     def forward_normalized(self, pose: Tensor) -> Tensor:
         return self.net(self.normalized_input(pose))
 

@@ -234,6 +234,14 @@ class IKModule(KinematicsModule):
     between the training poses inside the limits too; with ``limit_noise_reference_n`` that term has weight
     ``limit_weight`` at that many training samples and falls as 1/n_train² (:meth:`noise_weight`).
 
+    ``pose_noise`` > 0 is input-noise augmentation of the pose term: the training inputs plus Gaussian noise of
+    that std (standardised input units, an independent draw), mapped back to valid poses
+    (:meth:`~dacr_learn.models.IKModel.input_pose`: position, Gram–Schmidt rotation), are fed to the network and
+    its analytic FK is compared with those perturbed poses — the pose loss needs no joint target, so a perturbed
+    training pose is a training example of its own (only the n_train training poses are perturbed; no other pose
+    is drawn). Weight: the current pose weight × ``pose_noise_weight`` × the same fall with the training set size
+    as the noisy limit term, (``limit_noise_reference_n`` / n_train)² (:meth:`noise_scale`).
+
     ``pose_ramp`` (a fraction of the training steps) is a curriculum: the loss starts as the pure
     feature term (weights 1, 0) and moves linearly to (``feature_weight``, ``pose_weight``) over
     that fraction, then stays there. The network first learns the smooth conditional mean, and the
@@ -252,9 +260,10 @@ class IKModule(KinematicsModule):
                  weight_decay: float = 0.0, visual_samples: int = 8, feature_weight: float = 1.0,
                  pose_weight: float = 0.0, rot_weight: float = 1.0, pose_ramp: float = 0.0,
                  limit_weight: float = 0.0, output_scale: str = "std", pose_ramp_max_epochs: float | None = None,
-                 limit_noise: float = 0.0, limit_noise_reference_n: int | None = None):
+                 limit_noise: float = 0.0, limit_noise_reference_n: int | None = None, pose_noise: float = 0.0,
+                 pose_noise_weight: float = 1.0):
         for name, w in (("feature_weight", feature_weight), ("pose_weight", pose_weight), ("rot_weight", rot_weight),
-                        ("limit_weight", limit_weight)):
+                        ("limit_weight", limit_weight), ("pose_noise_weight", pose_noise_weight)):
             if not w >= 0:
                 raise ValueError(f"{name}: expected a number >= 0, got {w!r}")
         if not 0 <= pose_ramp <= 1:
@@ -266,8 +275,9 @@ class IKModule(KinematicsModule):
                                                         and limit_noise_reference_n >= 1):
             raise ValueError("limit_noise_reference_n: expected a number of training samples >= 1 or null, "
                              f"got {limit_noise_reference_n!r}")
-        if not limit_noise >= 0:
-            raise ValueError(f"limit_noise: expected a standard deviation >= 0, got {limit_noise!r}")
+        for name, std in (("limit_noise", limit_noise), ("pose_noise", pose_noise)):
+            if not std >= 0:
+                raise ValueError(f"{name}: expected a standard deviation >= 0, got {std!r}")
         if feature_weight == 0 and pose_weight == 0:
             raise ValueError("feature_weight, pose_weight: expected at least one > 0, got both 0")
         # save_hyperparameters() in the base class also records the loss weights
@@ -287,18 +297,25 @@ class IKModule(KinematicsModule):
         if dm is not None and hasattr(dm, "splits") and "train" in dm.splits:
             self.n_train = len(dm.splits["train"]["q"])
 
+    def noise_scale(self) -> float:
+        """Factor of the noisy-input terms: (``limit_noise_reference_n`` / n_train)² with a reference, else 1."""
+        ref = self.hparams.get("limit_noise_reference_n")
+        if ref is None:
+            return 1.0
+        if self.n_train is None:
+            raise ValueError("limit_noise_reference_n: needs the training set size (a fit with a datamodule that "
+                             "has splits['train'])")
+        return (ref / self.n_train) ** 2
+
     def noise_weight(self) -> float:
         """Weight of the limit penalty at the noisy inputs: ``limit_weight``, × (``limit_noise_reference_n`` /
         n_train)² with a reference: needed where the training poses are sparse, and off where they are dense
         (at 100k samples a 1/n fall still cost accuracy: docs/ablation.md)."""
         h = self.hparams
-        weight, ref = h.get("limit_weight", 0.0), h.get("limit_noise_reference_n")
-        if not h.get("limit_noise", 0.0) or ref is None:
+        weight = h.get("limit_weight", 0.0)
+        if not h.get("limit_noise", 0.0):
             return weight
-        if self.n_train is None:
-            raise ValueError("limit_noise_reference_n: needs the training set size (a fit with a datamodule that "
-                             "has splits['train'])")
-        return weight * (ref / self.n_train) ** 2
+        return weight * self.noise_scale()
 
     def loss_weights(self) -> tuple[float, float]:
         """(feature weight, pose weight) at the current step (see ``pose_ramp``); the final ones outside a fit."""
@@ -330,6 +347,13 @@ class IKModule(KinematicsModule):
             if noise:
                 noisy = self.model.decode_features(self.model.net(x + noise * torch.randn_like(x)))
                 loss = loss + self.noise_weight() * limit_excess(self.spec, noisy).mean()
+        pose_noise = self.hparams.get("pose_noise", 0.0)
+        if wp and pose_noise:
+            target = self.model.input_pose(x + pose_noise * torch.randn_like(x))
+            pred = forward_kinematics(self.spec, self.model.decode_features(
+                self.model.net(self.model.normalized_input(target))))
+            weight = wp * self.hparams.get("pose_noise_weight", 1.0) * self.noise_scale()
+            loss = loss + weight * pose_loss(pred, target, self.spec.total_length, self.hparams.rot_weight)
         return loss
 
     def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:

@@ -92,7 +92,9 @@ def test_training_loss_combines_feature_and_pose_terms():
                                           ({"output_scale": "range"}, "output_scale: expected one of"),
                                           ({"limit_noise": -0.1}, "limit_noise: expected a standard deviation"),
                                           ({"limit_noise_reference_n": 0}, "limit_noise_reference_n: expected"),
-                                          ({"limit_noise_reference_n": 1e3}, "limit_noise_reference_n: expected")])
+                                          ({"limit_noise_reference_n": 1e3}, "limit_noise_reference_n: expected"),
+                                          ({"pose_noise": -0.1}, "pose_noise: expected a standard deviation"),
+                                          ({"pose_noise_weight": -1.0}, "pose_noise_weight: expected a number")])
 def test_bad_loss_weights_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
         IKModule(robot=str(TDCR3_YAML), **kwargs)
@@ -180,6 +182,46 @@ def test_limit_noise_reference_needs_the_training_set_size():
     module, _ = ik_module("clarke", limit_weight=1.0, limit_noise=0.3, limit_noise_reference_n=1000)
     with pytest.raises(ValueError, match="limit_noise_reference_n: needs the training set size"):
         module.noise_weight()
+
+
+def test_input_pose_inverts_the_standardised_input_and_maps_any_vector_to_a_pose():
+    """IKModel.input_pose: the poses back from their standardised inputs (to round-off); a perturbed input gives a
+    rotation matrix (orthonormal, det 1) and the perturbed position."""
+    module, data = ik_module("raw")
+    model = module.model
+    x = model.normalized_input(data["pose"])
+    assert torch.allclose(model.input_pose(x), data["pose"], atol=1e3 * torch.finfo(x.dtype).eps, rtol=0)
+    noisy = model.input_pose(x + 0.5 * torch.randn(x.shape, generator=torch.Generator().manual_seed(3),
+                                                   dtype=x.dtype))
+    rot = noisy[..., :3, :3]
+    assert torch.allclose(rot @ rot.mT, torch.eye(3, dtype=x.dtype).expand_as(rot), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(rot), torch.ones(len(rot), dtype=x.dtype), atol=1e-12)
+    assert (noisy[..., :3, 3] - data["pose"][..., :3, 3]).abs().max() > 1e-4
+    assert torch.equal(noisy[..., 3, :], data["pose"][..., 3, :])
+
+
+@pytest.mark.parametrize("features", ["clarke", "raw"])
+def test_pose_noise_adds_the_pose_loss_at_perturbed_training_poses(features):
+    """pose_noise σ, pose_noise_weight w, pose weight 2 at (reference / n_train)² = 1/4: loss = loss(σ = 0) +
+    2 · w / 4 · pose loss of the prediction at the training inputs plus σ·N(0, 1) (the same draw reproduced
+    here), against the poses those perturbed inputs encode (not the training poses)."""
+    losses = {}
+    for noise in (0.0, 0.4):
+        module, data = ik_module(features, feature_weight=0.0, pose_weight=2.0, rot_weight=0.5, pose_noise=noise,
+                                 pose_noise_weight=3.0, limit_noise_reference_n=32)
+        module.n_train = 64
+        torch.manual_seed(5)
+        losses[noise] = module.loss({"q": data["q"], "pose": data["pose"]})
+    model = module.model
+    x = model.normalized_input(data["pose"])
+    torch.manual_seed(5)
+    target = model.input_pose(x + 0.4 * torch.randn_like(x))
+    pred = forward_kinematics(module.spec, model.decode_features(model.net(model.normalized_input(target))))
+    extra = 2.0 * 3.0 / 4 * pose_loss(pred, target, module.spec.total_length, 0.5)
+    assert extra > 1e-3
+    assert torch.allclose(losses[0.4], losses[0.0] + extra, rtol=1e3 * torch.finfo(torch.float64).eps)
+    against_training_poses = 2.0 * 3.0 / 4 * pose_loss(pred, data["pose"], module.spec.total_length, 0.5)
+    assert not torch.allclose(losses[0.4], losses[0.0] + against_training_poses, rtol=1e-3)
 
 
 def test_limit_excess_is_zero_inside_the_limits_and_the_relative_overshoot_squared_outside():
