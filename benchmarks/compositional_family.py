@@ -15,7 +15,8 @@ The test-split error comes from each run's ``metrics.json``; the wall time is th
 generation, training, validation and test). Then the strain-unit network trained on the first robot
 (per seed) is transferred unchanged (:func:`dacr_learn.compositional.transfer`) to every other robot and
 evaluated on 10 000 fresh samples of it. Writes ``<out>.csv`` (one row per run), ``<out>_transfer.csv``
-and ``<out>.md`` (mean ± sample std over seeds).
+and ``<out>.md`` (mean ± sample std over seeds). ``--variants compositional compositional_metric --keep
+monolithic`` reruns the compositional models and keeps the monolithic rows of ``<out>.csv``.
 """
 from __future__ import annotations
 
@@ -117,7 +118,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--runs-dir", type=Path, default=ROOT / "runs" / "compositional_family")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "compositional" / "family")
+    parser.add_argument("--keep", nargs="+", default=[], choices=list(VARIANTS),
+                        help="variants not rerun: their rows are kept from <out>.csv (their config unchanged)")
     args = parser.parse_args(argv)
+    kept = []
+    if args.keep:
+        with args.out.with_suffix(".csv").open(newline="") as f:
+            numbers = ("pos_pct", "pos_mm", "rot_deg", "wall_s")
+            kept = [{**r, "seed": int(r["seed"]), **{k: float(r[k]) for k in numbers}}
+                    for r in csv.DictReader(f) if r["variant"] in args.keep and r["variant"] not in args.variants]
     rows, moved = [], []
     for seed in args.seeds:
         for robot in args.robots:
@@ -130,6 +139,7 @@ def main(argv: list[str] | None = None) -> None:
         if source is not None:
             moved += [e for robot in args.robots[1:] if (e := transfer_error(source, robot, seed)) is not None]
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    rows += kept
     write_csv(args.out.with_suffix(".csv"), rows)
     if moved:
         write_csv(args.out.parent / f"{args.out.name}_transfer.csv", moved)
