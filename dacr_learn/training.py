@@ -296,6 +296,11 @@ class IKModule(KinematicsModule):
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
         if dm is not None and hasattr(dm, "splits") and "train" in dm.splits:
             self.n_train = len(dm.splits["train"]["q"])
+        if dm is not None and getattr(dm, "source", "cc") != "cc" and self.hparams.pose_weight > 0:
+            raise ValueError(
+                f"model.pose_weight: the IK pose loss compares the analytic CC FK of the predicted joints with the "
+                f"target pose, but this dataset's poses come from the {dm.source!r} model; got pose_weight "
+                f"{self.hparams.pose_weight}, expected 0 (the joint-space loss only) for data source {dm.source!r}")
 
     def noise_scale(self) -> float:
         """Factor of the noisy-input terms: (``limit_noise_reference_n`` / n_train)² with a reference, else 1."""

@@ -165,3 +165,22 @@ def test_the_ablation_runner_trains_and_tests_on_cached_cosserat_data(tmp_path):
     assert row["condition"] == "clean" and row["pos_err_mean_pct"] > 0 and row["cc_pos_err_mean_pct"] > 0.05
     cached = sorted(p.name for p in tmp_path.iterdir())
     assert cached == ["tdcr-3seg-cosserat_n32_seed7", "tdcr-3seg-cosserat_n64_seed1"]
+
+
+def test_ik_with_the_cc_pose_loss_is_refused_on_cosserat_data(tmp_path, capsys):
+    """IK's pose loss is the CC FK of the predicted joints: on Cosserat poses it would train towards the wrong
+    model, so a pose_weight > 0 is refused in one line; the joint-space loss alone trains."""
+    import yaml
+
+    config = write_run_config(tmp_path, task="IKModule", robot="configs/robots/tdcr_3seg_cosserat.yaml", epochs=1,
+                              n_train=128, n_val=16, n_test=16, batch_size=32, source="cosserat",
+                              cosserat={"steps_per_segment": 2, "tension_max": 1.0}, cache_dir=str(tmp_path / "data"))
+    cfg = yaml.safe_load(config.read_text())
+    cfg["model"]["init_args"]["pose_weight"] = 1.0
+    config.write_text(yaml.safe_dump(cfg))
+    assert train.run_command_line(["fit", "--config", str(config)]) != 0
+    err = capsys.readouterr().err
+    assert "error:" in err and "pose_weight" in err and "'cosserat'" in err and "Traceback" not in err
+    cfg["model"]["init_args"]["pose_weight"] = 0.0
+    config.write_text(yaml.safe_dump(cfg))
+    assert train.run_command_line(["fit", "--config", str(config)]) == 0
