@@ -73,8 +73,8 @@ def quiet_lightning_chatter() -> None:
 
 
 class InterruptCheckpoint(Callback):
-    """Saves ``last.ckpt`` when a fit stops on an exception (Ctrl-C, SIGTERM, an error) and prints the
-    exact command that resumes it.
+    """Saves ``last.ckpt`` when a fit stops on an exception (Ctrl-C, SIGTERM, an error) after its first
+    training step and prints the exact command that resumes it.
 
     Not Lightning's ``OnExceptionCheckpoint``: with one of those among the callbacks, ``fit`` without a
     ``ckpt_path`` silently resumes from ``last`` (Lightning 2.6), which is how a second run used to
@@ -88,6 +88,11 @@ class InterruptCheckpoint(Callback):
 
     def on_exception(self, trainer, pl_module, exception: BaseException) -> None:
         InterruptCheckpoint.stopped_by = type(exception)
+        if trainer.global_step == 0:
+            # stopped before the first step (a bad config, Ctrl-C during set-up; in a resumed fit: before its
+            # checkpoint was restored): nothing to keep, and saving would replace a resumed run's last.ckpt
+            # with untrained weights
+            return
         trainer.save_checkpoint(self.ckpt_path, weights_only=False)   # a full state: fit resumes from it
         if trainer.is_global_zero:
             what = {KeyboardInterrupt: "interrupted (Ctrl-C)", SIGTERMException: "stopped by SIGTERM"}.get(

@@ -103,6 +103,24 @@ def test_second_fit_is_a_new_run_and_leaves_the_first_byte_identical(tmp_path):
     assert recording(first)[0] != recording(second)[0]         # two recordings, not one
 
 
+def test_a_resume_that_fails_before_its_first_step_keeps_the_runs_checkpoint(tmp_path, monkeypatch):
+    """An error in set-up (before the checkpoint is restored) used to save the untrained model over the run's
+    last.ckpt; now nothing is saved before the first step, and a fresh run that fails there leaves none."""
+    config = str(write_run_config(tmp_path, epochs=1))
+    train.main(["fit", "--config", config])
+    last = tmp_path / "runs" / "smoke" / "version_0" / "checkpoints" / "last.ckpt"
+    before = hashlib.sha256(last.read_bytes()).hexdigest()
+
+    def failing_setup(self, stage):
+        raise ValueError("model.lr: a set-up error for this test")
+
+    monkeypatch.setattr(FKModule, "setup", failing_setup)
+    assert train.run_command_line(["fit", "--config", config, "--ckpt_path", "last"]) == 2
+    assert hashlib.sha256(last.read_bytes()).hexdigest() == before
+    assert train.run_command_line(["fit", "--config", config]) == 2          # a fresh run: version_1
+    assert not (tmp_path / "runs" / "smoke" / "version_1" / "checkpoints" / "last.ckpt").exists()
+
+
 def test_another_robot_under_the_same_run_name_does_not_touch_the_first(tmp_path):
     train.main(["fit", "--config", str(write_run_config(tmp_path, epochs=1))])
     first = tmp_path / "runs" / "smoke" / "version_0"
