@@ -58,6 +58,13 @@ class Loads:
     def select(self, idx: Tensor) -> Loads:
         return Loads(None if self.weight is None else self.weight[idx], [w[idx] for w in self.wrenches])
 
+    def tensors(self) -> list[Tensor]:
+        """The weight (if any) and the wrenches."""
+        return ([] if self.weight is None else [self.weight]) + list(self.wrenches)
+
+    def detached(self) -> Loads:
+        return Loads(None if self.weight is None else self.weight.detach(), [w.detach() for w in self.wrenches])
+
 
 def integrate(x: Tensor, tension: Tensor, loads: Loads, routing: TendonRouting, section: Section,
               grid: ArcGrid, keep_nodes: bool = True) -> tuple[list[Tensor], Tensor]:

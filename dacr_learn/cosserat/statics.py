@@ -126,12 +126,12 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
     arcs, loads = _loads(spec, batch, section, gravity, tip_wrench, point_wrenches)
     grid = arc_grid(routing.ends.tolist(), steps_per_segment, arcs, stations)
     tau = tension.to(torch.float64).reshape(-1, routing.num_tendons)
-    needs_grad = torch.is_grad_enabled() and (tension.requires_grad or any(
-        t is not None and t.requires_grad for t in (gravity, tip_wrench, *(w for _, w in point_wrenches))))
-    workers = 1 if needs_grad else (workers or torch.get_num_threads())
+    graph = torch.is_grad_enabled() and any(t.requires_grad for t in (tau, *loads.tensors()))
+    workers = 1 if graph else (workers or torch.get_num_threads())
 
     def solve(rows: slice):
-        return _solve_flat(tau[rows], loads.select(rows), routing, section, grid, spec.total_length, tol, max_iter)
+        return _solve_flat(tau[rows], loads.select(rows), routing, section, grid, spec.total_length, tol, max_iter,
+                           graph)
 
     parts = _map_chunks(solve, tau.shape[0], chunk_size, workers)
     states, x, res, iters = (torch.cat(z) for z in zip(*parts, strict=True))
@@ -170,21 +170,22 @@ def _map_chunks(solve, n: int, chunk_size: int, workers: int) -> list:
 
 
 def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcGrid, length: float, tol: float,
-                max_iter: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """(states at the nodes (B, K, 18 + T), base wrench x (B, 6), residual (B,), Newton steps (B,)) of B problems."""
+                max_iter: int, graph: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(states at the nodes (B, K, 18 + T), base wrench x (B, 6), residual (B,), Newton steps (B,)) of B problems;
+    ``graph``: the outputs carry the implicit gradient w.r.t. the tensions and loads."""
     scale = wrench_scale(section, length)
-
     coarse = grid.coarsened(COARSE_JACOBIAN)
+    tau_d, loads_d = tau.detach(), loads.detached()
 
-    def fun(z, idx, tau=tau, loads=loads, grid=grid):   # dimensionless base wrench z = x / scale → residual
+    def fun(z, idx, tau=tau_d, loads=loads_d, grid=grid):   # dimensionless base wrench z = x / scale → residual
         end = integrate(z * scale, tau[idx], loads.select(idx), routing, section, grid, keep_nodes=False)[1]
         return residual(end, section, length)
 
     nodes = None   # (B, K, 18 + T): each sample's latest fine integration, i.e. its accepted Newton iterate
 
-    def fine(z, idx):     # ``fun`` (no graph) on the fine grid that also keeps the states at the nodes
+    def fine(z, idx):     # ``fun`` on the fine grid that also keeps the states at the nodes
         nonlocal nodes
-        states, end = integrate(z * scale, tau.detach()[idx], detached.select(idx), routing, section, grid)
+        states, end = integrate(z * scale, tau_d[idx], loads_d.select(idx), routing, section, grid)
         states = torch.stack(states, dim=1)
         if nodes is None:
             nodes = states.new_full((tau.shape[0], *states.shape[1:]), torch.nan)
@@ -192,18 +193,14 @@ def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcG
         return residual(end, section, length)
 
     with torch.no_grad():
-        detached = Loads(None if loads.weight is None else loads.weight.detach(), [w.detach() for w in loads.wrenches])
-        x0 = _initial_guess(tau.detach(), routing.offsets, detached, list(grid.load_arcs), length)
-        z, res, iters = newton(fine, x0 / scale, tol, max_iter,
-                               coarse=lambda z, idx: fun(z, idx, tau.detach(), detached, coarse))
-    x = z * scale
-    if not (torch.is_grad_enabled() and (tau.requires_grad or any(w.requires_grad for w in loads.wrenches)
-                                         or (loads.weight is not None and loads.weight.requires_grad))):
-        return nodes, x, res, iters          # the last Newton evaluation already integrated x (no extra pass)
+        x0 = _initial_guess(tau_d, routing.offsets, loads_d, list(grid.load_arcs), length)
+        z, res, iters = newton(fine, x0 / scale, tol, max_iter, coarse=lambda z, idx: fun(z, idx, grid=coarse))
+    if not graph:
+        return nodes, z * scale, res, iters          # the last Newton evaluation already integrated x (no extra pass)
     every = torch.arange(z.shape[0])
     with torch.no_grad():
-        jac = residual_and_jacobian(lambda z, idx: fun(z, idx, tau.detach(), detached), z, every, central=True)[1]
-    x = (z - torch.linalg.solve_ex(jac, fun(z, every))[0]) * scale   # value z*, gradient −J⁻¹ ∂r/∂θ
+        jac = residual_and_jacobian(fun, z, every, central=True)[1]
+    x = (z - torch.linalg.solve_ex(jac, fun(z, every, tau, loads))[0]) * scale   # value z*, gradient −J⁻¹ ∂r/∂θ
     return torch.stack(integrate(x, tau, loads, routing, section, grid)[0], dim=1), x, res, iters
 
 
