@@ -121,7 +121,8 @@ class InferenceCompositionalJacobian(nn.Module):
         used = [torch.nonzero(seed[j].abs().sum(-1) > 0).flatten().tolist() for j in range(m)]
         self.rolls = bool(model.rolls)
         rolled = torch.nonzero(model.roll).flatten().tolist()
-        for j, col in zip(rolled, alpha_columns(model.spec, rolled), strict=True):
+        rolled_alpha = list(zip(rolled, alpha_columns(model.spec, rolled), strict=True))   # (segment, α column)
+        for j, col in rolled_alpha:
             if col not in used[j]:                                          # the roll depends on α in any case
                 used[j].append(col)
         t = max(1, *map(len, used))
@@ -141,7 +142,7 @@ class InferenceCompositionalJacobian(nn.Module):
         self.register_buffer("pick", pick.to(dtype))
         self.register_buffer("value_row", (torch.arange(1 + t) == 0).to(dtype).unsqueeze(-1))   # (1 + T, 1)
         roll_row = torch.zeros(m, t, 1, dtype=_F64)                        # 1 on the α row of a rolled segment
-        for j, col in zip(rolled, alpha_columns(model.spec, rolled), strict=True):
+        for j, col in rolled_alpha:
             roll_row[j, used[j].index(col)] = 1.0
         self.register_buffer("roll_row", roll_row.to(dtype) if self.rolls else None)
         self.register_buffer("roll_select", roll_selection(model).to(dtype) if self.rolls else None)
@@ -292,7 +293,7 @@ def compositional_first_layer(model) -> tuple[Tensor, Tensor]:
 
     def affine(f: Tensor) -> Tensor:
         x = norm(actuated_to_features(f, sel, fixed) / unit)             # (P, m, 4)
-        return (front.with_context(x) @ w.mT + b).flatten(-2)                                 # (P, m·(W + O))
+        return (front.with_context(x) @ w.mT + b).flatten(-2)            # (P, m·(W + O))
 
     d = sel.shape[0]
     probe = affine(torch.cat([torch.zeros(1, d, dtype=_F64), torch.eye(d, dtype=_F64)]))
