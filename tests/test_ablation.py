@@ -149,6 +149,15 @@ def test_unknown_structure_is_refused(tmp_path):
         load_config(tmp_path / "c.yaml")
 
 
+@pytest.mark.parametrize("data,match", [("{source: cosserrat}", "data: expected source"),
+                                        ("{source: cosserat, cache: x}", "data: expected source"),
+                                        ("{source: cosserat, cosserat: {tension: 1.0}}", "unknown option")])
+def test_a_bad_data_block_is_refused_before_the_first_job(tmp_path, data, match):
+    (tmp_path / "c.yaml").write_text(CONFIG.read_text() + f"\ndata: {data}\n")
+    with pytest.raises(ValueError, match=match):
+        load_config(tmp_path / "c.yaml")
+
+
 def test_model_kwargs_merge_task_then_structure():
     cfg = {"model": {"width": 8, "lr": 1.0}, "model_by_task": {"ik": {"pose_weight": 1.0}},
            "model_by_structure": {"compositional": {"rotation": "twist", "width": 4}}}

@@ -101,6 +101,12 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
     if bad_structures:
         raise ValueError(f"ablation config {path}: structures: unknown {sorted(bad_structures)}, "
                          f"expected a subset of {list(STRUCTURES)}")
+    data = cfg.get("data") or {}
+    if data.get("source", "cc") not in ("cc", "cosserat") or set(data) - {"source", "cosserat", "cache_dir"}:
+        raise ValueError(f"ablation config {path}: data: expected source 'cc' or 'cosserat' and the keys cosserat, "
+                         f"cache_dir, got {data}")
+    if data.get("source") == "cosserat":
+        cosserat_dataset.CosseratOptions.from_dict(data.get("cosserat"))     # bad options fail before the first job
     bad = set(cfg["tasks"]) - set(MODULES)
     if bad:
         raise ValueError(f"ablation config {path}: tasks: unknown {sorted(bad)}, "
