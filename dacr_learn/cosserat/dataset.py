@@ -32,6 +32,7 @@ from ..layers import ClarkeEncoder
 from ..metrics import pose_errors, summarize
 from ..robot import RobotSpec
 from .statics import ConvergenceError, solve_statics
+from .tendon import tendon_routing
 
 PROGRESS_CHUNK = 1024   # samples per solve call, i.e. per progress-bar update
 
@@ -127,7 +128,7 @@ def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = Coss
     tension = sample_tensions(spec, n, options, g)
     force = _tip_forces(n, options.tip_force_max, g) if options.tip_force_max > 0 else None
     gravity = torch.tensor(options.gravity, dtype=torch.float64)
-    ends = torch.cumsum(torch.tensor([s.length for s in spec.segments], dtype=torch.float64), 0).tolist()
+    ends = tendon_routing(spec).ends[1:].tolist()             # the segments' distal ends [m]
     parts = []
     with tqdm(total=n, desc=f"Cosserat dataset ({spec.name})", unit="sample", disable=not progress,
               dynamic_ncols=True) as bar:
