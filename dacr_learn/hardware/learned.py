@@ -284,10 +284,13 @@ class CCClarkeResidualHistory(CCClarkeResidual):
     history = True
 
 
-def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], n: int, seed: int) -> Split:
+def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], n: int, seed: int,
+                    tip_fn=None) -> Split:
     """Synthetic recording of the calibrated CC robot: Clarke features drawn uniformly in each
     segment's bending disc (|ρ| ≤ bend·d, the YAML's limits), joint lengths from the
-    ClarkeDecoder, displacements x = path length − q, then the same pipeline as real data."""
+    ClarkeDecoder, displacements x = path length − q, then the same pipeline as real data.
+    ``tip_fn``: displacements (n, N) [m] → tips (n, 3) [m] of another model of the robot (e.g. the calibrated
+    Cosserat rod) in place of the CC model's; the features stay the CC encoder's (the networks' input)."""
     spec = cc.spec
     g = torch.Generator().manual_seed(seed)
     m = spec.num_segments
@@ -300,7 +303,7 @@ def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...]
     x = decoder(torch.cat([torch.zeros_like(feat[..., :2]), feat[..., 2:]], -1)) - decoder(feat)
     with torch.no_grad():
         features = cc.encoder(x)
-        tip = cc.tip_from_features(features)
+        tip = cc.tip_from_features(features) if tip_fn is None else tip_fn(x).to(features.dtype)
     servo = smap.servo_values(spec, servo_ids, x)
     return Split(servo, x, features, tip, tip, torch.zeros_like(features[..., :2]))
 

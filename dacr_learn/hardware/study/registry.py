@@ -16,6 +16,7 @@ from torch import nn
 
 from ..ccmodel import CalibratedCC
 from ..compositional_model import CCCompositionalResidual
+from ..cosserat_learned import CCClarkeResidualCosserat, CosseratOnly
 from ..learned import (
     PRETRAIN_SAMPLES,
     CCClarkeResidual,
@@ -92,6 +93,10 @@ _MODELS = (
               deployable=True),
     ModelInfo("cc_compositional_history", lambda c, s: CCCompositionalResidual(c.cc, history=True), "clarke",
               static=False),
+    ModelInfo("cosserat", lambda c, s: CosseratOnly(c.cc), "clarke", deterministic=True),
+    ModelInfo("cc_clarke_residual_cosserat",
+              lambda c, s: CCClarkeResidualCosserat(c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s), "clarke",
+              deployable=True),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)

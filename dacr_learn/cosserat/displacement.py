@@ -1,0 +1,264 @@
+"""Displacement-controlled statics: the shape of a tendon robot whose actuators set tendon lengths.
+
+A displacement actuator (a servo winding a tendon) fixes each tendon's *unstretched* length ℓ_i between
+its anchor and the actuator, not its tension. Tendon i is then either taut, its path stretched to
+ℓ_i: L_i(τ) = ℓ_i (1 + c τ_i), or slack with τ_i = 0 and a path no longer than ℓ_i. With
+R_i(τ) = ``tendon_rest_lengths`` of :func:`~.statics.solve_statics` (= L_i/(1 + c τ_i)) and
+F_i(τ) = R_i(τ) − ℓ_i (positive: the path needs more tendon than the actuator gives), the tensions
+solve the complementarity problem
+
+    τ ≥ 0,   F(τ) ≤ 0,   τ_i F_i(τ) = 0 for every i.
+
+Method (per sample, batched): with A = −∂R/∂τ (T × T), symmetric positive definite for an elastic rod
+with elastic tendons (reciprocity: the path length is work-conjugate to the tension), each step solves
+the linearised problem
+
+    τ' ≥ 0,   w = −F(τ) + A (τ' − τ) ≥ 0,   τ'·w = 0
+
+exactly (a linear complementarity problem; primal-dual active-set iterations, projected Gauss–Seidel
+where they cycle), then evaluates F(τ') by one Cosserat solve. A is taken by central differences at
+the first iterate (2T solves; once for the whole batch when every sample starts from zero tension; or
+passed in from an earlier, nearby solve) and kept (a chord method):
+the map τ → R is close to linear (in the CC limit it is linear), so the steps contract fast. Where a
+step does not reduce the violation, A is retaken at the current iterate and the step is halved.
+
+The solve is gradient-free (no autograd through it); its inputs are data, not parameters.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..checks import check_tensor
+from ..robot import RobotSpec
+from .rod import Section
+from .statics import ConvergenceError, CosseratSolution, solve_statics
+from .tendon import tendon_routing
+
+LCP_ACTIVE_SET_STEPS = 25
+LCP_GAUSS_SEIDEL_SWEEPS = 400
+
+
+@dataclass(frozen=True)
+class DisplacementSolution:
+    """Statics under commanded tendon lengths, batch (...,), SI units.
+
+    statics: the :class:`~.statics.CosseratSolution` at the tensions found. tension (..., T) [N].
+    compliance (..., T, T) [m/N]: A = −∂R/∂τ, the symmetric chord matrix used (pass it back as
+    ``compliance_guess`` to warm-start a nearby solve). violation (...,) [m]: max over tendons of |F_i|
+    on taut tendons and max(F_i, 0) on slack ones. converged (...,) bool; iterations (...,) Cosserat
+    solves per sample after the Jacobian.
+    """
+
+    statics: CosseratSolution
+    tension: Tensor
+    compliance: Tensor
+    violation: Tensor
+    converged: Tensor
+    iterations: Tensor
+
+    @property
+    def tip(self) -> Tensor:
+        return self.statics.tip
+
+
+def tension_scale(spec: RobotSpec) -> float:
+    """Tension [N] that bends the whole robot by about one radian: EI / (max tendon radius · length)."""
+    routing = tendon_routing(spec)
+    ei = Section.from_mechanics(spec.mechanics).bending_stiffness
+    return ei / (float(routing.offsets.norm(dim=-1).max()) * spec.total_length)
+
+
+def solve_lcp(a: Tensor, q: Tensor) -> Tensor:
+    """τ (B, T) with τ ≥ 0, w = Aτ + q ≥ 0, τ·w = 0 for symmetric positive definite A (B, T, T), q (B, T).
+
+    Primal-dual active-set iterations (each an exact solve on the set of positive τ), which end when the
+    set repeats; samples whose set has not settled after ``LCP_ACTIVE_SET_STEPS`` are finished by projected
+    Gauss–Seidel sweeps (convergent for SPD A)."""
+    active = q < 0
+    tau = torch.zeros_like(q)
+    done = torch.zeros(q.shape[0], dtype=torch.bool)
+    eye = torch.eye(q.shape[-1], dtype=q.dtype)
+    for _ in range(LCP_ACTIVE_SET_STEPS):
+        f = active.to(q.dtype)
+        # rows/columns outside the set become identity: τ_S = −A_SS⁻¹ q_S, τ_rest = 0
+        mat = a * f.unsqueeze(-1) * f.unsqueeze(-2) + eye * (1 - f).unsqueeze(-1)
+        new_tau = torch.linalg.solve(mat, -(q * f).unsqueeze(-1)).squeeze(-1)
+        w = (a @ new_tau.unsqueeze(-1)).squeeze(-1) + q
+        tau = torch.where(done.unsqueeze(-1), tau, new_tau)
+        new_active = torch.where(active, new_tau > 0, w < 0)
+        settled = (new_active == active).all(-1)
+        done = done | settled
+        active = torch.where(done.unsqueeze(-1), active, new_active)
+        if bool(done.all()):
+            break
+    if not bool(done.all()):
+        rows = ~done
+        t, aa, qq = tau[rows].clamp(min=0), a[rows], q[rows]
+        diag = torch.diagonal(aa, dim1=-2, dim2=-1)
+        for _ in range(LCP_GAUSS_SEIDEL_SWEEPS):
+            for i in range(q.shape[-1]):
+                wi = (aa[:, i, :] * t).sum(-1) + qq[:, i]
+                t[:, i] = (t[:, i] - wi / diag[:, i]).clamp(min=0)
+        tau[rows] = t
+    return tau.clamp(min=0)
+
+
+def _violation(f: Tensor, tau: Tensor) -> Tensor:
+    """(B,) max over tendons of |F| where taut (τ > 0) and max(F, 0) where slack."""
+    return torch.where(tau > 0, f.abs(), f.clamp(min=0)).amax(-1)
+
+
+def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tensor | None = None,
+                        tension_guess: Tensor | None = None, compliance_guess: Tensor | None = None,
+                        spring_lengths: Tensor | None = None, steps_per_segment: int = 8, tol: float = 1e-9,
+                        max_iter: int = 30, on_failure: str = "raise",
+                        workers: int | None = None) -> DisplacementSolution:
+    """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector
+    order) and the robot's weight (``gravity`` (3,) [m/s²], base frame, as :func:`solve_statics`).
+
+    ``spring_lengths`` (T,) [m]: when given, each tendon is a linear spring of that fixed length (its
+    stretch τ·c·L_s with c = ``mechanics.tendon_compliance``: e.g. a tendon that also runs from the base to
+    its actuator, or the CC model's convention L_s = the straight path length), so R = L − c·L_s·τ instead of
+    L/(1 + cτ) (the stretch spread over the tendon's own, command-dependent unstretched length).
+    ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration
+    (e.g. from the solution of a nearby command or parameter set). ``tol`` [m]: the largest tendon-length
+    violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". Float64, no gradient."""
+    if spec.mechanics is None:
+        raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
+    if on_failure not in ("raise", "flag"):
+        raise ValueError(f"on_failure: got {on_failure!r}, expected 'raise' or 'flag'")
+    if not (isinstance(max_iter, int) and max_iter >= 1):
+        raise ValueError(f"max_iter: got {max_iter!r}, expected a positive integer")
+    if not tol > 0:
+        raise ValueError(f"tol: got {tol!r}, expected a positive length [m]")
+    routing = tendon_routing(spec)
+    t = routing.num_tendons
+    check_tensor(rest_lengths, "rest_lengths", (t,))
+    if not bool((rest_lengths > 0).all()):
+        raise ValueError("rest_lengths: got a non-positive tendon length, expected lengths > 0 [m]")
+    batch = rest_lengths.shape[:-1]
+    ell = rest_lengths.detach().to(torch.float64).reshape(-1, t)
+    n = ell.shape[0]
+    if tension_guess is not None:
+        check_tensor(tension_guess, "tension_guess", (t,))
+        if tension_guess.shape != rest_lengths.shape:
+            raise ValueError(f"tension_guess: got shape {tuple(tension_guess.shape)}, expected "
+                             f"{tuple(rest_lengths.shape)} (that of rest_lengths)")
+        tau = tension_guess.detach().to(torch.float64).reshape(-1, t).clamp(min=0).clone()
+    else:
+        tau = ell.new_zeros(n, t)
+    if spring_lengths is not None:
+        check_tensor(spring_lengths, "spring_lengths", (t,))
+        if spring_lengths.dim() != 1 or not bool((spring_lengths > 0).all()):
+            raise ValueError(f"spring_lengths: got shape {tuple(spring_lengths.shape)}, expected ({t},) positive "
+                             "lengths [m]")
+        spring = spring_lengths.detach().to(torch.float64) * spec.mechanics.tendon_compliance
+    h = 1e-4 * tension_scale(spec)
+    kw = dict(gravity=gravity, steps_per_segment=steps_per_segment, on_failure="flag", workers=workers)
+
+    def rest(tensions: Tensor) -> tuple[Tensor, CosseratSolution]:
+        with torch.no_grad():
+            sol = solve_statics(spec, tensions, **kw)
+        if spring_lengths is None:
+            return sol.tendon_rest_lengths, sol
+        return sol.tendon_lengths - spring * tensions, sol
+
+    def chord(tensions: Tensor) -> Tensor:
+        """A = −∂R/∂τ (B, T, T) by central differences (one-sided at τ_j < h), symmetrised."""
+        b = tensions.shape[0]
+        eye = torch.eye(t, dtype=torch.float64)
+        up = tensions.unsqueeze(1) + h * eye
+        down = (tensions.unsqueeze(1) - h * eye).clamp(min=0)
+        r_up, _ = rest(up.reshape(-1, t))
+        r_down, _ = rest(down.reshape(-1, t))
+        width = (up - down).diagonal(dim1=-2, dim2=-1)                                # (b, T)
+        jac = -(r_up - r_down).reshape(b, t, t) / width.unsqueeze(-1)                 # row j: ∂R/∂τ_j
+        jac = jac.mT
+        return (jac + jac.mT) / 2
+
+    if compliance_guess is not None:
+        if compliance_guess.shape != (*batch, t, t):
+            raise ValueError(f"compliance_guess: got shape {tuple(compliance_guess.shape)}, expected "
+                             f"{(*batch, t, t)}")
+        a = compliance_guess.detach().to(torch.float64).reshape(n, t, t).clone()
+    elif tension_guess is None:       # every sample starts straight and unloaded: one chord serves all
+        a = chord(tau[:1]).expand(n, t, t).clone()
+    else:
+        a = chord(tau)
+    r, sol = rest(tau)
+    f = r - ell
+    viol = _violation(f, tau)
+    viol = torch.where(torch.isfinite(viol), viol, torch.inf)
+    iters = torch.zeros(n, dtype=torch.long)
+    states = [sol]
+    index = torch.arange(n)
+    where = torch.zeros(n, dtype=torch.long)          # which entry of ``states`` holds sample i's solution
+    rows_of = [index]
+    step = torch.ones(n, dtype=torch.float64)
+    for _ in range(max_iter):
+        todo = torch.nonzero(viol > tol).flatten()
+        if not todo.numel():
+            break
+        tt, aa, ff = tau[todo], a[todo], f[todo]
+        target = solve_lcp(aa, -ff - (aa @ tt.unsqueeze(-1)).squeeze(-1))
+        trial = (tt + step[todo].unsqueeze(-1) * (target - tt)).clamp(min=0)
+        r1, sol1 = rest(trial)
+        f1 = r1 - ell[todo]
+        v1 = _violation(f1, trial)
+        v1 = torch.where(torch.isfinite(v1), v1, torch.inf)
+        better = v1 < viol[todo]
+        iters[todo] += 1
+        keep = todo[better]
+        tau[keep], f[keep], viol[keep] = trial[better], f1[better], v1[better]
+        states.append(sol1)
+        rows_of.append(todo)
+        where[keep] = len(states) - 1
+        worse = todo[~better]
+        if worse.numel():                                   # retake the chord at the iterate, shorten the step
+            a[worse] = chord(tau[worse])
+            step[worse] = step[worse] / 2
+        step[keep] = torch.clamp(step[keep] * 2, max=1.0)
+    converged = viol <= tol
+    statics = _gather(states, rows_of, where, n)
+    converged = converged & statics.converged
+    if on_failure == "raise" and not bool(converged.all()):
+        raise ConvergenceError(
+            f"solve_displacements: of {n} samples {int((~converged).sum())} did not reach tendon lengths within "
+            f"{tol:g} m in {max_iter} steps (worst {float(viol.max()):.3g} m); check that the commanded lengths "
+            "are reachable (a tendon shortened far beyond what bends the robot), or pass on_failure='flag'")
+    return DisplacementSolution(
+        statics=_reshape(statics, batch), tension=tau.reshape(*batch, t), compliance=a.reshape(*batch, t, t),
+        violation=viol.reshape(batch), converged=converged.reshape(batch), iterations=iters.reshape(batch))
+
+
+def _gather(states: list[CosseratSolution], rows_of: list[Tensor], where: Tensor, n: int) -> CosseratSolution:
+    """One flat CosseratSolution (n,) taking sample i from ``states[where[i]]`` (whose rows are rows_of[...])."""
+    first = states[0]
+    fields = {}
+    for name in ("frames", "tendon_lengths", "tendon_rest_lengths", "curvature", "stretch", "base_wrench",
+                 "residual", "converged", "iterations"):
+        out = getattr(first, name).clone()
+        for k in range(1, len(states)):
+            pick = where[rows_of[k]] == k
+            if bool(pick.any()):
+                out[rows_of[k][pick]] = getattr(states[k], name)[pick]
+        fields[name] = out
+    assert fields["frames"].shape[0] == n
+    return CosseratSolution(arc=first.arc, grid=first.grid, **fields)
+
+
+def _reshape(sol: CosseratSolution, batch: torch.Size) -> CosseratSolution:
+    def r(x: Tensor, tail: int) -> Tensor:
+        return x.reshape(*batch, *x.shape[x.dim() - tail:]) if tail else x.reshape(batch)
+
+    return CosseratSolution(
+        frames=r(sol.frames, 3), arc=sol.arc, tendon_lengths=r(sol.tendon_lengths, 1),
+        tendon_rest_lengths=r(sol.tendon_rest_lengths, 1), curvature=r(sol.curvature, 2),
+        stretch=r(sol.stretch, 2), base_wrench=r(sol.base_wrench, 1), residual=r(sol.residual, 0),
+        converged=r(sol.converged, 0), iterations=r(sol.iterations, 0), grid=sol.grid)
+
+
+__all__ = ["DisplacementSolution", "solve_displacements", "solve_lcp", "tension_scale"]

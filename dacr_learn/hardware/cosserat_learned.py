@@ -1,0 +1,62 @@
+"""Hardware tip models built on the calibrated Cosserat rod (:mod:`.cosserat_model`), for the registry.
+
+``cosserat``: the Cosserat model of the robot alone, calibrated on the training rows (starting from the
+fitted CC model of the fold). ``cc_clarke_residual_cosserat``: the CC Clarke-residual model
+(:class:`~.learned.CCClarkeResidual`, deployable and exported like it) whose correction network is first
+trained on synthetic commands that bend all segments at once, with tips from the Cosserat model
+calibrated on the same training rows in the CC model's frame, then fine-tuned on the recording with the
+synthetic set kept in the loss (rehearsal), as ``pretrained_clarke`` does with CC data.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .ccmodel import CalibratedCC
+from .cosserat_model import CalibratedCosserat
+from .learned import FINETUNE_STEPS, LR, PRETRAIN_SAMPLES, REHEARSAL, CCClarkeResidual, Split, synthetic_split, \
+    train_full_batch
+from .servo_map import ServoMap
+
+
+class CosseratOnly(nn.Module):
+    """The calibrated Cosserat model of ``cc``'s robot: ``fit`` calibrates it on the training split."""
+
+    def __init__(self, cc: CalibratedCC):
+        super().__init__()
+        self.source = (cc,)                         # not a submodule: the model holds no trained weights
+        self.model: CalibratedCosserat | None = None
+
+    def fit(self, train: Split) -> None:
+        self.model = CalibratedCosserat(self.source[0])
+        self.fit_report = self.model.fit(train.x, train.tip)
+
+    def forward(self, split: Split) -> Tensor:
+        if self.model is None:
+            raise ValueError("CosseratOnly: call fit(train) before predicting")
+        return self.model(split.x)
+
+
+class CCClarkeResidualCosserat(CCClarkeResidual):
+    """:class:`CCClarkeResidual` pre-trained on all-segment synthetic data of the calibrated Cosserat model."""
+
+    def __init__(self, cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], synthetic_seed: int,
+                 samples: int = PRETRAIN_SAMPLES):
+        super().__init__(cc)
+        self.synthetic_source = (smap, tuple(servo_ids), samples, synthetic_seed)   # not a submodule
+
+    def fit(self, train: Split) -> None:
+        for p in self.cc.parameters():
+            p.requires_grad_(False)
+        self.fit_normalization(train)
+        smap, servo_ids, samples, seed = self.synthetic_source
+        physics = CalibratedCosserat(self.cc)
+        self.fit_report = physics.fit(train.x, train.tip, free_frame=False)
+        with torch.no_grad():
+            synthetic = synthetic_split(self.cc, smap, servo_ids, samples, seed, tip_fn=physics)
+        ok = torch.isfinite(synthetic.tip).all(-1)
+        synthetic = synthetic.rows(torch.nonzero(ok).flatten())
+        train_full_batch(self.net.parameters(), lambda: self.objective(synthetic))
+        train_full_batch(self.net.parameters(),
+                         lambda: self.objective(train) + REHEARSAL * self.objective(synthetic),
+                         steps=FINETUNE_STEPS, lr=LR / 3)

@@ -1,0 +1,262 @@
+"""Calibrated Cosserat-rod model of a tendon robot: joint displacements → tip position (docs/hardware.md).
+
+    x (n, N) [m] ──rest lengths ℓ = L₀ − x − p──▶ solve_displacements ──▶ tip pose (base frame)
+    tip = R_base · (p_tip + R_tip · d_marker) + t_base      (motion-capture frame, metres)
+
+The mechanics are those of :mod:`dacr_learn.cosserat` (Rucker & Webster's rod with straight tendons,
+coupled routing, the robot's own weight), driven by displacements: the servos set each tendon's
+unstretched length, the tensions follow (:func:`~dacr_learn.cosserat.displacement.solve_displacements`).
+It starts from the calibrated CC model (:class:`~.ccmodel.CalibratedCC`), whose parameters have the same
+meaning here: effective tendon radius and joint-angle rotation per segment, the tendon compliance EI/EA_t
+(with the nominal rod's EI it sets the tendons' 1/(E_t A_t)), the pretension (per tendon with the
+``strain`` variant), the base tilt and translation and the marker offset. New: the weight per length w
+[N/m] along the motion-capture −z axis (w < 0: along +z), 0 in the CC model. With w = 0 the model is the
+CC model up to the rod's axial and shear compliance and the exact tendon paths (a test checks the two
+agree to a fraction of a millimetre).
+
+The nominal rod (:data:`NOMINAL_ROD`, a 1 mm NiTi wire) sets EI, the scale against which the fitted
+tendon compliance and weight act; the tip depends on the ratios only, except through the rod's axial
+and shear stiffness, which are large. Fitted by Levenberg–Marquardt on a subset of the training rows
+(:data:`FIT_ROWS`): the parameters that change the mechanics by finite differences of warm-started
+solves, the frame parameters (tilt, marker) exactly, the base translation in closed form (the mean
+residual). Gradient-free: this model is scored and used to generate data; it is not exported.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..cosserat.displacement import solve_displacements
+from ..robot import RobotSpec
+from .ccmodel import CalibratedCC
+
+BENDING_STIFFNESS = 6.0e10 * math.pi * 0.0005**4 / 4   # EI [N·m²] of a 1 mm NiTi wire: the scale of the tensions
+POISSON_RATIO = 0.33
+AXIAL_RADIUS = 5e-5      # [m] initial r_a: EA = 4·EI/r_a² (a 1 mm wire: 0.5 mm). Small: the start is the CC model
+STEPS_PER_SEGMENT = 6     # RK4 steps per segment: the tip within ~2 µm of 32 steps on FTDCR v4 (tests)
+FIT_ROWS = 480            # training rows the mechanics are fitted on (a seeded subset)
+FIT_ITERATIONS = 6
+SOLVE_TOL = 1e-7          # [m] tendon-length violation accepted (0.1 µm)
+FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than this fraction
+# physics parameters, re-solved for their finite differences: name → (typical scale of a step, difference)
+PHYSICS_SCALES = {"weight": 0.05, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
+                  "pretension": 1e-4, "pretension_strain": 1e-4}
+AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
+MAX_STEP = 3.0            # largest LM step per parameter, in units of its scale (a trust region)
+
+
+@dataclass
+class WarmStart:
+    """Per-row tensions (n, T) [N] and chord matrices (n, T, T) of the last solve, for the next nearby one."""
+
+    tension: Tensor
+    compliance: Tensor
+
+
+class CalibratedCosserat:
+    """Joint displacements (..., N) [m] → tip position (..., 3) [m] in the motion-capture frame, by the
+    Cosserat rod of the calibrated robot. Build from a fitted :class:`CalibratedCC` (copied, not changed)."""
+
+    def __init__(self, cc: CalibratedCC, weight: float = 0.0, axial_radius: float = AXIAL_RADIUS,
+                 steps_per_segment: int = STEPS_PER_SEGMENT):
+        self.cc = copy.deepcopy(cc)
+        for p in self.cc.parameters():
+            p.requires_grad_(False)
+        self.weight = float(weight)
+        self.log_axial_radius = math.log(axial_radius)
+        self.steps = int(steps_per_segment)
+        enc = self.cc.encoder
+        self.spec0 = cc.spec
+        self.path_length = enc.path_length.detach().clone()
+
+    # -- the mechanics ---------------------------------------------------------------------------------------
+    def physics(self) -> dict[str, Tensor]:
+        """Current values of the re-solved parameters (float64 tensors)."""
+        enc = self.cc.encoder
+        out = {"weight": torch.tensor(self.weight, dtype=torch.float64),
+               "log_axial_radius": torch.tensor(self.log_axial_radius, dtype=torch.float64),
+               "log_radius_scale": enc.log_radius_scale.detach().clone(),
+               "log_compliance": enc.log_compliance.detach().clone(), "pretension": enc.pretension.detach().clone()}
+        if enc.strain:
+            out["pretension_strain"] = enc.pretension_strain.detach().clone()
+        return out
+
+    def set_physics(self, values: dict[str, Tensor]) -> None:
+        enc = self.cc.encoder
+        with torch.no_grad():
+            for name, value in values.items():
+                if name == "weight":
+                    self.weight = float(value)
+                elif name == "log_axial_radius":
+                    self.log_axial_radius = min(max(float(value), math.log(AXIAL_RADIUS_RANGE[0])),
+                                                math.log(AXIAL_RADIUS_RANGE[1]))
+                else:
+                    getattr(enc, name).copy_(value)
+
+    def robot(self) -> RobotSpec:
+        """The robot for the solver: effective radii, rotated joint angles, the nominal rod with the fitted
+        tendon compliance, and a density giving 1 kg/m (the weight per length enters as the gravity)."""
+        enc = self.cc.encoder
+        d = self.spec0.to_dict()
+        radii = enc.effective_radius().tolist()
+        for k, seg in enumerate(d["segments"]):
+            if "joint_angles" in seg:
+                seg["joint_angles"] = [a + float(enc.rotation[k]) for a in seg["joint_angles"]]
+                seg["joint_radii"] = [radii[k]] * len(seg["joint_angles"])
+            else:
+                seg["offset"] = seg.get("offset", 0.0) + float(enc.rotation[k])
+                seg["radius"] = radii[k]
+        radius = math.exp(self.log_axial_radius)                # a solid rod of this radius with EI fixed
+        area, ei = math.pi * radius**2, BENDING_STIFFNESS
+        compliance = float(enc.log_compliance.exp())            # EI / (E_t A_t) [m²]
+        d["mechanics"] = {"youngs_modulus": 4 * ei / (math.pi * radius**4), "poisson_ratio": POISSON_RATIO,
+                          "outer_radius": radius, "density": 1.0 / area, "tendon_compliance": compliance / ei}
+        return RobotSpec.from_dict(d)
+
+    def gravity(self) -> Tensor:
+        """Gravity vector (3,) in the robot base frame whose product with 1 kg/m is the weight per length:
+        −w·e_z of the motion-capture frame, rotated into the tilted base."""
+        down = torch.tensor([0.0, 0.0, -self.weight], dtype=torch.float64)
+        return self.cc.base_rotation().detach().to(torch.float64).T @ down
+
+    def rest_lengths(self, x: Tensor) -> Tensor:
+        """Unstretched tendon lengths ℓ = L₀ − x − p (n, N) [m] of displacements x (n, N) [m]."""
+        p = self.cc.encoder.tendon_pretension().detach()
+        return self.path_length - x.to(torch.float64) - p
+
+    def tip_poses(self, x: Tensor, warm: WarmStart | None = None) -> tuple[Tensor, WarmStart]:
+        """Tip poses (n, 4, 4) [m] in the base frame of displacements x (n, N) [m], and the new warm start."""
+        kw = {} if warm is None else {"tension_guess": warm.tension, "compliance_guess": warm.compliance}
+        sol = solve_displacements(self.robot(), self.rest_lengths(x), gravity=self.gravity(),
+                                  spring_lengths=self.path_length,
+                                  steps_per_segment=self.steps, tol=SOLVE_TOL, on_failure="flag", **kw)
+        return sol.tip, WarmStart(sol.tension, sol.compliance)
+
+    def world_tip(self, pose: Tensor) -> Tensor:
+        """Tip poses (n, 4, 4) in the base frame → marker positions (n, 3) [m], motion-capture frame."""
+        with torch.no_grad():
+            return self.cc.to_world(self.cc.marker_point(pose))
+
+    def __call__(self, x: Tensor) -> Tensor:
+        """Tip positions (n, 3) [m]; NaN rows where the solve failed."""
+        return self.world_tip(self.tip_poses(x)[0])
+
+    def report(self) -> dict:
+        out = self.cc.report()
+        out["weight_per_length_N_per_m"] = round(self.weight, 5)
+        out["axial_over_bending_stiffness_per_mm2"] = round(4 / math.exp(2 * self.log_axial_radius) * 1e-6, 4)
+        return out
+
+    # -- fitting ---------------------------------------------------------------------------------------------
+    def fit(self, x: Tensor, tip: Tensor, rows: int = FIT_ROWS, iterations: int = FIT_ITERATIONS,
+            seed: int = 0, free_frame: bool = True, log=None) -> dict:
+        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows; returns
+        the RMS before and after on that subset [m], the iterations and the time. ``free_frame=False`` keeps
+        the CC model's base pose and marker (the predictions then share the CC model's frame)."""
+        start = time.perf_counter()
+        if x.shape[0] > rows:
+            pick = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:rows]
+            x, tip = x[pick], tip[pick]
+        x, tip = x.to(torch.float64), tip.to(torch.float64)
+        frame = [self.cc.base_tilt, self.cc.marker_lateral if self.cc.lateral_marker else None, self.cc.tip_offset]
+        frame = [p for p in frame if p is not None] if free_frame else []
+        names = list(self.physics())
+        lam, rms0 = 1e-2, None
+
+        def residual(poses: Tensor) -> Tensor:
+            r = self.world_tip(poses) - tip
+            return r - r.mean(0) if free_frame else r          # the translation is fitted in closed form
+
+        poses, warm = self.tip_poses(x)
+        r = residual(poses)
+        rms0 = float(r.pow(2).sum(-1).mean().sqrt())
+        done = 0
+        for _ in range(iterations):
+            rms_prev = float(r.pow(2).sum(-1).mean().sqrt())
+            cols = []
+            base = self.physics()
+            for name in names:                                  # physics: finite differences of warm solves
+                for j in range(base[name].numel()):
+                    h = PHYSICS_SCALES[name] * 1e-2
+                    trial = {k: v.clone() for k, v in base.items()}
+                    trial[name].view(-1)[j] += h
+                    self.set_physics(trial)
+                    p1, _ = self.tip_poses(x, warm)
+                    cols.append(((residual(p1) - r) / h * PHYSICS_SCALES[name]).reshape(-1))
+                    self.set_physics(base)
+            jac = torch.stack(cols, -1)
+            if frame:
+                jac = torch.cat([jac, _frame_jacobian(self.cc, frame, poses, tip)], -1)
+            if not torch.isfinite(jac).all():
+                break
+            g, hess = jac.T @ r.reshape(-1), jac.T @ jac
+            improved = False
+            for _ in range(6):
+                step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal().clamp(min=1e-12)), g)
+                step = step * min(1.0, MAX_STEP / float(step.abs().max()))
+                old_phys, old_frame = self.physics(), [p.detach().clone() for p in frame]
+                self._apply(names, base, frame, step)
+                p1, w1 = self.tip_poses(x, warm)
+                r1 = residual(p1)
+                if torch.isfinite(r1).all() and r1.pow(2).sum() < r.pow(2).sum():
+                    poses, warm, r, improved = p1, w1, r1, True
+                    lam = max(lam / 3, 1e-6)
+                    break
+                self.set_physics(old_phys)
+                with torch.no_grad():
+                    for p, v in zip(frame, old_frame, strict=True):
+                        p.copy_(v)
+                lam *= 5
+            done += 1
+            if log is not None:
+                log(f"cosserat fit {done}: {float(r.pow(2).sum(-1).mean().sqrt()) * 1e3:.3f} mm, w = {self.weight:.4f} N/m")
+            if not improved or rms_prev - float(r.pow(2).sum(-1).mean().sqrt()) < FIT_STALL * rms_prev:
+                break
+        if free_frame:
+            with torch.no_grad():
+                self.cc.base_translation += -(self.world_tip(poses) - tip).mean(0)
+        rms = float((self.world_tip(poses) - tip).pow(2).sum(-1).mean().sqrt())
+        return {"rms_before_m": rms0, "rms_m": rms, "iterations": done, "rows": int(x.shape[0]),
+                "seconds": time.perf_counter() - start}
+
+    def _apply(self, names, base, frame, step: Tensor) -> None:
+        values, k = {}, 0
+        for name in names:
+            n = base[name].numel()
+            values[name] = base[name] + PHYSICS_SCALES[name] * step[k:k + n].reshape(base[name].shape)
+            k += n
+        self.set_physics(values)
+        with torch.no_grad():
+            for p in frame:
+                n = p.numel()
+                p += FRAME_SCALE * step[k:k + n].reshape(p.shape)
+                k += n
+
+
+FRAME_SCALE = 1e-3   # [rad] or [m]: the step unit of the tilt and marker parameters
+
+
+def _frame_jacobian(cc: CalibratedCC, frame: list[Tensor], poses: Tensor, tip: Tensor) -> Tensor:
+    """∂(mean-removed residual)/∂(frame parameters / FRAME_SCALE) (3n, P) at fixed tip poses, by central
+    differences (no solve: the frame parameters act after the mechanics; the residual is smooth in them)."""
+    def res() -> Tensor:
+        r = cc.to_world(cc.marker_point(poses)) - tip
+        return r - r.mean(0)
+
+    h, cols = 1e-6, []
+    with torch.no_grad():
+        for p in frame:
+            flat = p.view(-1)
+            for j in range(flat.numel()):
+                flat[j] += h
+                up = res()
+                flat[j] -= 2 * h
+                down = res()
+                flat[j] += h
+                cols.append(((up - down) / (2 * h) * FRAME_SCALE).reshape(-1))
+    return torch.stack(cols, -1)
