@@ -68,7 +68,7 @@ def tension_scale(spec: RobotSpec) -> float:
     """Tension [N] that bends the whole robot by about one radian: EI / (max tendon radius · length)."""
     routing = tendon_routing(spec)
     ei = Section.from_mechanics(spec.mechanics).bending_stiffness
-    return ei / (float(routing.offsets.norm(dim=-1).max()) * spec.total_length)
+    return ei / (routing.max_offset * spec.total_length)
 
 
 def solve_lcp(a: Tensor, q: Tensor) -> Tensor:
@@ -114,8 +114,8 @@ def _violation(f: Tensor, tau: Tensor) -> Tensor:
 def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tensor | None = None,
                         tension_guess: Tensor | None = None, compliance_guess: Tensor | None = None,
                         spring_lengths: Tensor | None = None, steps_per_segment: int = 8, tol: float = 1e-9,
-                        max_iter: int = 30, on_failure: str = "raise",
-                        workers: int | None = None) -> DisplacementSolution:
+                        max_iter: int = 30, on_failure: str = "raise", workers: int | None = None,
+                        passing: str = "own") -> DisplacementSolution:
     """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector
     order) and the robot's weight (``gravity`` (3,) [m/s²], base frame, as :func:`solve_statics`).
 
@@ -125,7 +125,8 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
     L/(1 + cτ) (the stretch spread over the tendon's own, command-dependent unstretched length).
     ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration
     (e.g. from the solution of a nearby command or parameter set). ``tol`` [m]: the largest tendon-length
-    violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". Float64, no gradient."""
+    violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". ``passing``: as
+    :func:`solve_statics`. Float64, no gradient."""
     if spec.mechanics is None:
         raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
     if on_failure not in ("raise", "flag"):
@@ -134,7 +135,7 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
         raise ValueError(f"max_iter: got {max_iter!r}, expected a positive integer")
     if not tol > 0:
         raise ValueError(f"tol: got {tol!r}, expected a positive length [m]")
-    routing = tendon_routing(spec)
+    routing = tendon_routing(spec, passing)
     t = routing.num_tendons
     check_tensor(rest_lengths, "rest_lengths", (t,))
     if not bool((rest_lengths > 0).all()):
@@ -157,7 +158,8 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
                              "lengths [m]")
         spring = spring_lengths.detach().to(torch.float64) * spec.mechanics.tendon_compliance
     h = 1e-4 * tension_scale(spec)
-    kw = dict(gravity=gravity, steps_per_segment=steps_per_segment, on_failure="flag", workers=workers)
+    kw = dict(gravity=gravity, steps_per_segment=steps_per_segment, on_failure="flag", workers=workers,
+              passing=passing)
 
     def rest(tensions: Tensor) -> tuple[Tensor, CosseratSolution]:
         with torch.no_grad():

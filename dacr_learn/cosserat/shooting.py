@@ -79,7 +79,7 @@ def integrate(x: Tensor, tension: Tensor, loads: Loads, routing: TendonRouting, 
     for a, s, k in grid.intervals:
         if k not in plans:
             idx = routing.active(k)
-            off = routing.offsets[idx].to(x.dtype)
+            off = routing.offsets_in(k)[idx].to(x.dtype)
             plans[k] = (idx, off, tendon_monomials(off))
         idx, off, outer = plans[k]
         tau = tension[:, idx]
@@ -101,15 +101,16 @@ def _jumps(y: Tensor, s: float, k: int, tension: Tensor, loads: Loads, routing: 
     continuous; the rod's strains follow from it with the tendons that continue (``match_total_wrench``)."""
     end = s == grid.ends[k + 1]
     arcs = [w for arc, w in zip(grid.load_arcs, loads.wrenches, strict=True) if arc == s]
-    if not arcs and not (end and routing.terminating(k).numel()):
+    kinks = routing.segment_offsets is not None       # tendons change radius at every segment boundary
+    if not arcs and not (end and (routing.terminating(k).numel() or kinks)):
         return y
     before = routing.active(k)
-    total = total_wrench(y, tension[:, before], routing.offsets[before].to(y.dtype), section)
+    total = total_wrench(y, tension[:, before], routing.offsets_in(k)[before].to(y.dtype), section)
     rt = y[:, 3:12].reshape(-1, 3, 3).transpose(-1, -2)
     for wrench in arcs:
         total = total - torch.cat([rt @ wrench[:, :3, None], rt @ wrench[:, 3:, None]], dim=1).squeeze(-1)
-    after = routing.active(k + 1) if end else before
-    return match_total_wrench(y, total, tension[:, after], routing.offsets[after].to(y.dtype), section)
+    after, beyond = (routing.active(k + 1), k + 1) if end else (before, k)
+    return match_total_wrench(y, total, tension[:, after], routing.offsets_in(beyond)[after].to(y.dtype), section)
 
 
 def wrench_scale(section: Section, length: float) -> Tensor:

@@ -104,7 +104,8 @@ def _initial_guess(tension: Tensor, offsets: Tensor, loads: Loads, arcs: list[fl
 def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = None, tip_wrench: Tensor | None = None,
                   point_wrenches: Sequence[tuple[float, Tensor]] = (), steps_per_segment: int = 16,
                   stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
-                  on_failure: str = "raise", chunk_size: int = CHUNK, workers: int | None = None) -> CosseratSolution:
+                  on_failure: str = "raise", chunk_size: int = CHUNK, workers: int | None = None,
+                  passing: str = "own") -> CosseratSolution:
     """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame:
     ``gravity`` (3,) or (..., 3) [m/s²] (acts through ``mechanics.density``), ``tip_wrench`` (..., 6)
     (F [N], M [N·m]) at the tip, ``point_wrenches`` [(arc [m], wrench (..., 6))] at the backbone.
@@ -112,7 +113,8 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
     cache); differentiable w.r.t. tensions and loads (implicit gradient, see shooting.py).
     ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False).
     ``workers``: chunks solved at once in threads (default ``torch.get_num_threads()``); a solve that must
-    carry a gradient runs its chunks one after another."""
+    carry a gradient runs its chunks one after another. ``passing``: the radius of a tendon inside a segment
+    it passes, "own" or "segment" (:func:`~.tendon.tendon_routing`)."""
     if spec.mechanics is None:
         raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
     if on_failure not in ("raise", "flag"):
@@ -120,7 +122,7 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
     for name, value in (("chunk_size", chunk_size), ("workers", workers)):
         if value is not None and (not isinstance(value, int) or value < 1):
             raise ValueError(f"{name}: got {value!r}, expected a positive integer")
-    routing, section = tendon_routing(spec), Section.from_mechanics(spec.mechanics)
+    routing, section = tendon_routing(spec, passing), Section.from_mechanics(spec.mechanics)
     check_tensor(tension, "tension", (routing.num_tendons,))
     batch = tension.shape[:-1]
     arcs, loads = _loads(spec, batch, section, gravity, tip_wrench, point_wrenches)
@@ -136,7 +138,7 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
     parts = _map_chunks(solve, tau.shape[0], chunk_size, workers)
     states, x, res, iters = (torch.cat(z) for z in zip(*parts, strict=True))
     converged = res <= tol
-    admissible = _admissible(states, routing.offsets)
+    admissible = _admissible(states, routing.max_offset)
     ok = converged & admissible
     if on_failure == "raise" and not bool(ok.all()):
         raise ConvergenceError(
@@ -193,7 +195,7 @@ def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcG
         return residual(end, section, length)
 
     with torch.no_grad():
-        x0 = _initial_guess(tau_d, routing.offsets, loads_d, list(grid.load_arcs), length)
+        x0 = _initial_guess(tau_d, routing.offsets_in(0), loads_d, list(grid.load_arcs), length)
         z, res, iters = newton(fine, x0 / scale, tol, max_iter, coarse=lambda z, idx: fun(z, idx, grid=coarse))
     if not graph:
         return nodes, z * scale, res, iters          # the last Newton evaluation already integrated x (no extra pass)
@@ -204,12 +206,12 @@ def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcG
     return torch.stack(integrate(x, tau, loads, routing, section, grid)[0], dim=1), x, res, iters
 
 
-def _admissible(states: Tensor, offsets: Tensor) -> Tensor:
+def _admissible(states: Tensor, max_offset: float) -> Tensor:
     """(B,) bool: at every node each tendon advances along the backbone, v_z − ‖u_xy‖·max d_i > 0 (no folded
     tendon path, no rod compressed to zero length); the straight-routing model has no meaning otherwise."""
     v_z = states[..., 14] + 1
     kappa = torch.linalg.vector_norm(states[..., 15:17], dim=-1)
-    return (v_z - kappa * float(offsets.norm(dim=-1).max()) > 0).all(-1)
+    return (v_z - kappa * max_offset > 0).all(-1)
 
 
 def _solution(states, x, res, converged, iters, grid, tau, compliance, batch) -> CosseratSolution:

@@ -5,7 +5,10 @@ straight (parallel to the backbone) at the constant body-frame offset r_i = d_iÂ
 [m], with (Ïˆ_i, d_i) its joint angle and radius from the RobotSpec, from the robot base to the distal
 end of its own segment, where it terminates. With ``routing: coupled`` the tendons of segment k pass
 through segments 1..k at their own angle (as in ``clarke.joint_space_maps``); a one-segment robot has
-no routing choice. Independent routing of several segments would need a model of how a distal
+no routing choice. Where a tendon passes a segment other than its own it runs at its own radius (the
+default, as the Clarke maps) or, with ``passing="segment"``, at the radius of the segment it passes (at
+its own angle), kinking radially at the disk between two segments: the geometry the hardware CC model's
+per-segment effective radius describes. Independent routing of several segments would need a model of how a distal
 tendon bypasses the proximal segments (sheath, central channel) and is refused.
 """
 from __future__ import annotations
@@ -25,11 +28,25 @@ class TendonRouting:
     offsets: (T, 3) body-frame offsets r_i [m].
     segment: (T,) index of the segment at whose distal end tendon i terminates.
     ends: (m + 1,) reference arc length of the segment boundaries, ends[0] = 0 [m].
+    segment_offsets: (m, T, 3) offset of tendon i inside segment k where it differs from r_i, else None.
     """
 
     offsets: Tensor
     segment: Tensor
     ends: Tensor
+    segment_offsets: Tensor | None = None
+
+    def offsets_in(self, k: int) -> Tensor:
+        """(T, 3) body-frame offsets of every tendon inside segment k [m] (meaningful for the active ones)."""
+        if self.segment_offsets is None:
+            return self.offsets
+        return self.segment_offsets[min(k, self.segment_offsets.shape[0] - 1)]
+
+    @property
+    def max_offset(self) -> float:
+        """Largest distance of a tendon from the backbone anywhere along it [m]."""
+        every = self.offsets if self.segment_offsets is None else self.segment_offsets
+        return float(every.norm(dim=-1).max())
 
     @property
     def num_tendons(self) -> int:
@@ -44,8 +61,11 @@ class TendonRouting:
         return torch.nonzero(self.segment == k).flatten()
 
 
-def tendon_routing(spec: RobotSpec) -> TendonRouting:
-    """The routing of ``spec`` (types "0"/"I" only; coupled routing or one segment)."""
+def tendon_routing(spec: RobotSpec, passing: str = "own") -> TendonRouting:
+    """The routing of ``spec`` (types "0"/"I" only; coupled routing or one segment); ``passing``: "own" or
+    "segment", the radius of a tendon inside a segment it passes (module docstring)."""
+    if passing not in ("own", "segment"):
+        raise ValueError(f"passing: got {passing!r}, expected 'own' or 'segment'")
     for j, seg in enumerate(spec.segments):
         if seg.twists:
             raise ValueError(f"segments[{j}].type: got {seg.type!r}, expected a tendon-driven segment of type "
@@ -61,4 +81,11 @@ def tendon_routing(spec: RobotSpec) -> TendonRouting:
             offsets.append(torch.stack([d * torch.cos(psi_t), d * torch.sin(psi_t), psi_t.new_zeros(())]))
             segment.append(k)
     lengths = torch.tensor([0.0] + [s.length for s in spec.segments], dtype=torch.float64)
-    return TendonRouting(torch.stack(offsets), torch.tensor(segment), torch.cumsum(lengths, 0))
+    offsets = torch.stack(offsets)
+    per_segment = None
+    if passing == "segment":
+        direction = offsets / offsets.norm(dim=-1, keepdim=True)
+        per_segment = torch.stack([direction * seg.radius for seg in spec.segments])
+        own = torch.tensor(segment)
+        per_segment[own, torch.arange(len(segment))] = offsets        # inside its own segment: its own offset
+    return TendonRouting(offsets, torch.tensor(segment), torch.cumsum(lengths, 0), per_segment)

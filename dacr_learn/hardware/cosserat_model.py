@@ -41,12 +41,14 @@ AXIAL_RADIUS = 5e-5      # [m] initial r_a: EA = 4·EI/r_a² (a 1 mm wire: 0.5 m
 STEPS_PER_SEGMENT = 6     # RK4 steps per segment: the tip within ~2 µm of 32 steps on FTDCR v4 (tests)
 FIT_ROWS = 480            # training rows the mechanics are fitted on (a seeded subset)
 FIT_ITERATIONS = 6
-SOLVE_TOL = 1e-7          # [m] tendon-length violation accepted (0.1 µm)
+SOLVE_TOL = 1e-9          # [m] tendon-length violation accepted: far below the finite differences of the fit
 FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than this fraction
 # physics parameters, re-solved for their finite differences: name → (typical scale of a step, difference)
 PHYSICS_SCALES = {"weight": 0.05, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
                   "pretension": 1e-4, "pretension_strain": 1e-4}
+AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC model, and a compressible rod
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
+FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale
 MAX_STEP = 3.0            # largest LM step per parameter, in units of its scale (a trust region)
 
 
@@ -133,7 +135,7 @@ class CalibratedCosserat:
         """Tip poses (n, 4, 4) [m] in the base frame of displacements x (n, N) [m], and the new warm start."""
         kw = {} if warm is None else {"tension_guess": warm.tension, "compliance_guess": warm.compliance}
         sol = solve_displacements(self.robot(), self.rest_lengths(x), gravity=self.gravity(),
-                                  spring_lengths=self.path_length,
+                                  spring_lengths=self.path_length, passing="segment",
                                   steps_per_segment=self.steps, tol=SOLVE_TOL, on_failure="flag", **kw)
         return sol.tip, WarmStart(sol.tension, sol.compliance)
 
@@ -154,15 +156,32 @@ class CalibratedCosserat:
 
     # -- fitting ---------------------------------------------------------------------------------------------
     def fit(self, x: Tensor, tip: Tensor, rows: int = FIT_ROWS, iterations: int = FIT_ITERATIONS,
-            seed: int = 0, free_frame: bool = True, log=None) -> dict:
-        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows; returns
-        the RMS before and after on that subset [m], the iterations and the time. ``free_frame=False`` keeps
-        the CC model's base pose and marker (the predictions then share the CC model's frame)."""
-        start = time.perf_counter()
+            seed: int = 0, free_frame: bool = True, starts: tuple[float, ...] = AXIAL_STARTS, log=None) -> dict:
+        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows, from each
+        backbone axial radius in ``starts`` [m] (the fit cannot leave the nearly flat inextensible end on its
+        own); keeps the start with the lowest RMS on that subset. Returns the RMS before (of the model as
+        given) and after on the subset [m], each start's RMS, the iterations and the time.
+        ``free_frame=False`` keeps the CC model's base pose and marker (the predictions share its frame)."""
+        begin = time.perf_counter()
         if x.shape[0] > rows:
             pick = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:rows]
             x, tip = x[pick], tip[pick]
         x, tip = x.to(torch.float64), tip.to(torch.float64)
+        initial = (copy.deepcopy(self.cc), self.weight, self.log_axial_radius)
+        best, per_start, before = None, {}, None
+        for radius in starts:
+            self.cc, self.weight = copy.deepcopy(initial[0]), initial[1]
+            self.set_physics({"log_axial_radius": torch.tensor(math.log(radius))})
+            info = self._levenberg_marquardt(x, tip, iterations, free_frame, log)
+            before = info["rms_before_m"] if before is None else before
+            per_start[f"{radius:g}"] = info["rms_m"]
+            if best is None or info["rms_m"] < best[0]["rms_m"]:
+                best = (info, copy.deepcopy(self.cc), self.weight, self.log_axial_radius)
+        info, self.cc, self.weight, self.log_axial_radius = best
+        return {**info, "rms_before_m": before, "rms_per_start_m": per_start, "seconds": time.perf_counter() - begin}
+
+    def _levenberg_marquardt(self, x: Tensor, tip: Tensor, iterations: int, free_frame: bool, log) -> dict:
+        start = time.perf_counter()
         frame = [self.cc.base_tilt, self.cc.marker_lateral if self.cc.lateral_marker else None, self.cc.tip_offset]
         frame = [p for p in frame if p is not None] if free_frame else []
         names = list(self.physics())
@@ -182,7 +201,7 @@ class CalibratedCosserat:
             base = self.physics()
             for name in names:                                  # physics: finite differences of warm solves
                 for j in range(base[name].numel()):
-                    h = PHYSICS_SCALES[name] * 1e-2
+                    h = PHYSICS_SCALES[name] * FD_FRACTION
                     trial = {k: v.clone() for k, v in base.items()}
                     trial[name].view(-1)[j] += h
                     self.set_physics(trial)

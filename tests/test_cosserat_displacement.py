@@ -1,0 +1,140 @@
+"""Displacement-controlled Cosserat statics (dacr_learn.cosserat.displacement): commanded tendon lengths →
+tensions and shape, checked against the tension-driven solve it inverts and against the LCP's conditions."""
+from __future__ import annotations
+
+import itertools
+
+import pytest
+import torch
+
+from dacr_learn.cosserat import ConvergenceError, solve_statics
+from dacr_learn.cosserat.displacement import solve_displacements, solve_lcp, tension_scale
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+F64 = torch.float64
+GRAVITY = torch.tensor([0.0, 0.0, -9.81], dtype=F64)
+
+
+def robot() -> RobotSpec:
+    """FTDCR-v4-like: three coupled type-0 segments, three tendons each at 4.5 mm, a 1 mm NiTi rod."""
+    segs = [{"type": "0", "length": length, "radius": 0.0045, "joints": 3, "offset": offset, "limits": {"bend": 1.2}}
+            for length, offset in ((0.06, -3.03), (0.0625, -2.53), (0.064, -2.01))]
+    return RobotSpec.from_dict({"name": "v4-like", "routing": "coupled", "segments": segs, "mechanics": {
+        "youngs_modulus": 6.0e10, "poisson_ratio": 0.33, "outer_radius": 0.0005, "density": 6450,
+        "tendon_compliance": 1e-3}})
+
+
+def commanded(spec: RobotSpec, n: int, seed: int, spring: torch.Tensor | None = None):
+    """(true tensions (n, 9) with about half slack, the tension-driven solution, commanded rest lengths): taut
+    tendons get exactly the length the solve implies, slack ones up to 2 mm more."""
+    g = torch.Generator().manual_seed(seed)
+    tau = 8 * torch.rand(n, 9, generator=g, dtype=F64)
+    tau[torch.rand(n, 9, generator=g) < 0.5] = 0
+    sol = solve_statics(spec, tau, gravity=GRAVITY, steps_per_segment=8)
+    rest = sol.tendon_rest_lengths if spring is None else sol.tendon_lengths - spec.mechanics.tendon_compliance * spring * tau
+    slack = (tau == 0) * 2e-3 * torch.rand(n, 9, generator=g, dtype=F64)
+    return tau, sol, rest + slack
+
+
+@pytest.mark.parametrize("spring", [False, True])
+def test_recovers_the_tensions_that_produced_the_commanded_lengths(spring):
+    spec = robot()
+    lengths = torch.tensor([0.06] * 3 + [0.1225] * 3 + [0.1865] * 3, dtype=F64) if spring else None
+    tau, sol, ell = commanded(spec, 24, seed=0, spring=lengths)
+    out = solve_displacements(spec, ell, gravity=GRAVITY, spring_lengths=lengths, steps_per_segment=8, tol=1e-10)
+    assert bool(out.converged.all()) and float(out.violation.max()) <= 1e-10
+    scale = tension_scale(spec)
+    assert torch.allclose(out.tension, tau, rtol=0, atol=1e-5 * scale)
+    tip_err = (out.tip[..., :3, 3] - sol.tip[..., :3, 3]).norm(dim=-1)
+    assert float(tip_err.max()) < 1e-7 * spec.total_length
+
+
+def test_solution_satisfies_the_complementarity_conditions():
+    spec = robot()
+    _, _, ell = commanded(spec, 16, seed=1)
+    ell = ell + 1e-4 * torch.randn(ell.shape, generator=torch.Generator().manual_seed(5), dtype=F64)
+    out = solve_displacements(spec, ell, gravity=GRAVITY, tol=1e-10)
+    rest = out.statics.tendon_rest_lengths
+    taut = out.tension > 0
+    assert bool((out.tension >= 0).all())
+    assert float((rest - ell)[taut].abs().max()) <= 1e-10                  # taut: the path uses all the tendon
+    assert float((rest - ell)[~taut].max()) <= 1e-10                        # slack: the path needs no more
+    assert bool(taut.any()) and bool((~taut).any())
+
+
+def test_warm_start_from_a_nearby_solution_takes_fewer_steps():
+    spec = robot()
+    _, _, ell = commanded(spec, 16, seed=2)
+    cold = solve_displacements(spec, ell, gravity=GRAVITY, tol=1e-10)
+    moved = ell + 2e-5
+    warm = solve_displacements(spec, moved, gravity=GRAVITY, tension_guess=cold.tension,
+                               compliance_guess=cold.compliance, tol=1e-10)
+    again = solve_displacements(spec, moved, gravity=GRAVITY, tol=1e-10)
+    assert torch.allclose(warm.tension, again.tension, rtol=0, atol=1e-6 * tension_scale(spec))
+    assert float(warm.iterations.float().mean()) < float(again.iterations.float().mean())
+
+
+def test_batch_dims_are_kept():
+    spec = robot()
+    _, _, ell = commanded(spec, 6, seed=3)
+    out = solve_displacements(spec, ell.reshape(2, 3, 9), gravity=GRAVITY)
+    assert out.tension.shape == (2, 3, 9) and out.compliance.shape == (2, 3, 9, 9)
+    assert out.tip.shape == (2, 3, 4, 4) and out.converged.shape == (2, 3)
+
+
+def _lcp_brute_force(a: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
+    """The LCP's solution by trying every set of positive unknowns (unique for SPD A)."""
+    n = q.shape[0]
+    for k in range(n + 1):
+        for s in itertools.combinations(range(n), k):
+            tau = torch.zeros(n, dtype=a.dtype)
+            if s:
+                idx = list(s)
+                tau[idx] = torch.linalg.solve(a[idx][:, idx], -q[idx])
+            w = a @ tau + q
+            if bool((tau >= -1e-12).all()) and bool((w >= -1e-12).all()):
+                return tau
+    raise AssertionError("no solution")
+
+
+def test_lcp_matches_enumeration_on_random_spd_problems():
+    g = torch.Generator().manual_seed(0)
+    b, n = 40, 6
+    m = torch.randn(b, n, n, generator=g, dtype=F64)
+    a = m @ m.mT + 0.05 * torch.eye(n, dtype=F64)
+    q = torch.randn(b, n, generator=g, dtype=F64)
+    tau = solve_lcp(a, q)
+    expected = torch.stack([_lcp_brute_force(a[i], q[i]) for i in range(b)])
+    assert torch.allclose(tau, expected, rtol=0, atol=1e-9)
+
+
+def test_bad_inputs_are_refused_with_clear_errors():
+    spec = robot()
+    ell = torch.full((2, 9), 0.1, dtype=F64)
+    with pytest.raises(ValueError, match="rest_lengths"):
+        solve_displacements(spec, ell[:, :8])
+    with pytest.raises(ValueError, match="non-positive"):
+        solve_displacements(spec, -ell)
+    with pytest.raises(ValueError, match="tension_guess"):
+        solve_displacements(spec, ell, tension_guess=torch.zeros(3, 9, dtype=F64))
+    with pytest.raises(ValueError, match="compliance_guess"):
+        solve_displacements(spec, ell, compliance_guess=torch.zeros(2, 9, 8, dtype=F64))
+    with pytest.raises(ValueError, match="spring_lengths"):
+        solve_displacements(spec, ell, spring_lengths=torch.ones(8, dtype=F64))
+    with pytest.raises(ValueError, match="on_failure"):
+        solve_displacements(spec, ell, on_failure="ignore")
+    no_mechanics = RobotSpec.from_dict({k: v for k, v in spec.to_dict().items() if k != "mechanics"})
+    with pytest.raises(ValueError, match="mechanics"):
+        solve_displacements(no_mechanics, ell)
+
+
+def test_unreachable_command_raises_or_is_flagged():
+    """A tendon shortened by a third of its path would fold the robot: not solved, never returned as a shape."""
+    spec = robot()
+    ell = torch.tensor([0.06] * 3 + [0.1225] * 3 + [0.1865] * 3, dtype=F64).repeat(2, 1)
+    ell[1, 0] = 0.04
+    with pytest.raises(ConvergenceError, match="solve_displacements"):
+        solve_displacements(spec, ell, max_iter=4)
+    out = solve_displacements(spec, ell, max_iter=4, on_failure="flag")
+    assert bool(out.converged[0]) and not bool(out.converged[1])

@@ -1,0 +1,91 @@
+"""The calibrated Cosserat-rod model of a tendon robot (dacr_learn.hardware.cosserat_model) and the registry
+models built on it (dacr_learn.hardware.cosserat_learned)."""
+from __future__ import annotations
+
+import pytest
+import torch
+from hardware_testkit import LABELLED_IDS, LABELLED_ROBOT, labelled_servo_map
+
+from dacr_learn.hardware.ccmodel import CalibratedCC
+from dacr_learn.hardware.cosserat_learned import CCClarkeResidualCosserat, CosseratOnly
+from dacr_learn.hardware.cosserat_model import CalibratedCosserat
+from dacr_learn.hardware.deploy.checkpoint import _structure
+from dacr_learn.hardware.learned import CCClarkeResidual, synthetic_split
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def calibrated_cc(strain: bool = True) -> CalibratedCC:
+    """The labelled two-segment robot's CC model with non-trivial radius, frame, rotation and pretension
+    parameters (unequal effective radii: tendons kink where they pass into the next segment)."""
+    cc = CalibratedCC(RobotSpec.from_dict(LABELLED_ROBOT), compliance=2e-6, pretension_strain=strain)
+    with torch.no_grad():
+        cc.encoder.rotation.copy_(torch.tensor([0.03, -0.05]))
+        cc.encoder.log_radius_scale.copy_(torch.tensor([0.08, -0.06]))
+        cc.encoder.pretension.fill_(2e-4)
+        if strain:
+            cc.encoder.pretension_strain.fill_(3e-4)
+        cc.base_tilt.copy_(torch.tensor([0.02, -0.01]))
+        cc.base_translation.copy_(torch.tensor([0.01, -0.02, 0.005]))
+        cc.tip_offset.fill_(6e-3)
+        cc.marker_lateral.copy_(torch.tensor([2e-3, -1e-3]))
+    for p in cc.parameters():
+        p.requires_grad_(False)
+    return cc
+
+
+def commands(cc: CalibratedCC, n: int, seed: int) -> torch.Tensor:
+    """Displacements (n, 6) [m] bending both segments at once (the pre-training sampler)."""
+    spec = cc.spec
+    return synthetic_split(cc, labelled_servo_map(spec), LABELLED_IDS, n, seed).x
+
+
+@pytest.mark.parametrize("strain", [False, True])
+def test_weightless_and_axially_rigid_it_is_the_cc_model(strain):
+    """With no weight and an inextensible backbone, the rod's equilibrium is the slack-aware CC encoder's energy
+    minimum: the same tip to micrometres, over mixed taut/slack commands (an independent check of both)."""
+    cc = calibrated_cc(strain)
+    x = commands(cc, 48, seed=0)
+    x[::3, 1] -= 4e-3                                   # some tendons released far: slack
+    cosserat = CalibratedCosserat(cc, axial_radius=1e-5)
+    err = (cosserat(x) - cc(x)).norm(dim=-1)
+    assert float(err.max()) < 5e-6
+    # the model is not the CC one: a weight or a compressible backbone moves the tip by a lot more
+    heavy = CalibratedCosserat(cc, weight=0.5, axial_radius=1e-5)
+    soft = CalibratedCosserat(cc, axial_radius=1e-3)
+    assert float((heavy(x) - cc(x)).norm(dim=-1).max()) > 1e-4
+    assert float((soft(x) - cc(x)).norm(dim=-1).max()) > 1e-4
+
+
+def test_fit_recovers_the_weight_and_the_tips_of_a_known_robot():
+    cc = calibrated_cc()
+    truth = CalibratedCosserat(cc, weight=0.4, axial_radius=3e-4)
+    x = commands(cc, 96, seed=1)
+    tip = truth(x)
+    model = CalibratedCosserat(cc)                                # starts from w = 0 and a stiffer backbone
+    info = model.fit(x, tip, rows=96, iterations=6)
+    assert info["rms_m"] < 0.1 * info["rms_before_m"] and info["rms_m"] < 2e-5
+    assert abs(model.weight - 0.4) < 0.05
+    fresh = commands(cc, 32, seed=2)
+    assert float((model(fresh) - truth(fresh)).norm(dim=-1).max()) < 1e-4
+    assert model.report()["weight_per_length_N_per_m"] == pytest.approx(model.weight, abs=1e-5)
+
+
+def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_residual(compositional_split):
+    cc, split = compositional_split
+    physics = CosseratOnly(cc)
+    with pytest.raises(ValueError, match="fit"):
+        physics(split)
+    physics.fit(split)
+    assert physics(split).shape == (len(split.tip), 3)
+    assert float((physics(split) - split.tip).norm(dim=-1).mean()) < 1e-4   # the data are the CC model's own
+    torch.manual_seed(0)
+    residual = CCClarkeResidualCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3, samples=96)
+    residual.fit(split)
+    pred = residual(split)
+    assert pred.shape == (len(split.tip), 3) and bool(torch.isfinite(pred).all())
+    assert _structure([residual]) == "clarke_residual"
+    plain = CCClarkeResidual(cc)
+    plain.load_state_dict(residual.state_dict())                  # loads into the deployable class unchanged
+    assert torch.equal(plain(split), pred)
