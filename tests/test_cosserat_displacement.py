@@ -32,7 +32,8 @@ def commanded(spec: RobotSpec, n: int, seed: int, spring: torch.Tensor | None = 
     tau = 8 * torch.rand(n, 9, generator=g, dtype=F64)
     tau[torch.rand(n, 9, generator=g) < 0.5] = 0
     sol = solve_statics(spec, tau, gravity=GRAVITY, steps_per_segment=8)
-    rest = sol.tendon_rest_lengths if spring is None else sol.tendon_lengths - spec.mechanics.tendon_compliance * spring * tau
+    c = spec.mechanics.tendon_compliance
+    rest = sol.tendon_rest_lengths if spring is None else sol.tendon_lengths - c * spring * tau
     slack = (tau == 0) * 2e-3 * torch.rand(n, 9, generator=g, dtype=F64)
     return tau, sol, rest + slack
 

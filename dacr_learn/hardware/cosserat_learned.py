@@ -14,8 +14,16 @@ from torch import Tensor, nn
 
 from .ccmodel import CalibratedCC
 from .cosserat_model import CalibratedCosserat
-from .learned import FINETUNE_STEPS, LR, PRETRAIN_SAMPLES, REHEARSAL, CCClarkeResidual, Split, synthetic_split, \
-    train_full_batch
+from .learned import (
+    FINETUNE_STEPS,
+    LR,
+    PRETRAIN_SAMPLES,
+    REHEARSAL,
+    CCClarkeResidual,
+    Split,
+    synthetic_split,
+    train_full_batch,
+)
 from .servo_map import ServoMap
 
 

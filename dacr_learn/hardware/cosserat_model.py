@@ -233,7 +233,8 @@ class CalibratedCosserat:
                 lam *= 5
             done += 1
             if log is not None:
-                log(f"cosserat fit {done}: {float(r.pow(2).sum(-1).mean().sqrt()) * 1e3:.3f} mm, w = {self.weight:.4f} N/m")
+                rms_mm = float(r.pow(2).sum(-1).mean().sqrt()) * 1e3
+                log(f"cosserat fit {done}: {rms_mm:.3f} mm, w = {self.weight:.4f} N/m")
             if not improved or rms_prev - float(r.pow(2).sum(-1).mean().sqrt()) < FIT_STALL * rms_prev:
                 break
         if free_frame:
