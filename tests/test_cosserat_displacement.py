@@ -139,3 +139,23 @@ def test_unreachable_command_raises_or_is_flagged():
         solve_displacements(spec, ell, max_iter=4)
     out = solve_displacements(spec, ell, max_iter=4, on_failure="flag")
     assert bool(out.converged[0]) and not bool(out.converged[1])
+
+
+def test_passing_at_the_segment_radius_kinks_only_where_radii_differ():
+    """passing="segment" equals the default on equal radii, changes the shape on unequal ones, and is checked."""
+    from dacr_learn.cosserat.tendon import tendon_routing
+
+    spec = robot()
+    tau = torch.tensor([[4.0, 0, 0, 0, 3.0, 0, 0, 0, 2.0]], dtype=F64)
+    own = solve_statics(spec, tau, passing="own").tip
+    assert torch.allclose(solve_statics(spec, tau, passing="segment").tip, own, rtol=0, atol=1e-12)
+    d = spec.to_dict()
+    d["segments"][0]["radius"] = 0.006
+    wider = RobotSpec.from_dict(d)
+    routing = tendon_routing(wider, "segment")
+    assert torch.allclose(routing.offsets_in(0)[8].norm(), torch.tensor(0.006, dtype=F64))   # tendon 8 in segment 0
+    assert torch.allclose(routing.offsets_in(2)[8].norm(), torch.tensor(0.0045, dtype=F64))
+    moved = (solve_statics(wider, tau, passing="segment").tip - solve_statics(wider, tau).tip)[..., :3, 3]
+    assert float(moved.norm()) > 1e-3
+    with pytest.raises(ValueError, match="passing"):
+        tendon_routing(spec, "through")

@@ -58,13 +58,17 @@ def test_weightless_and_axially_rigid_it_is_the_cc_model(strain):
     assert float((soft(x) - cc(x)).norm(dim=-1).max()) > 1e-4
 
 
+QUICK_FIT = {"rows": 32, "iterations": 2, "starts": (5e-5,)}
+
+
+@pytest.mark.slow
 def test_fit_recovers_the_weight_and_the_tips_of_a_known_robot():
     cc = calibrated_cc()
     truth = CalibratedCosserat(cc, weight=0.4, axial_radius=3e-4)
-    x = commands(cc, 96, seed=1)
+    x = commands(cc, 48, seed=1)
     tip = truth(x)
     model = CalibratedCosserat(cc)                                # starts from w = 0 and a stiffer backbone
-    info = model.fit(x, tip, rows=96, iterations=6)
+    info = model.fit(x, tip, rows=48, iterations=6, starts=(5e-5,))
     assert info["rms_m"] < 0.1 * info["rms_before_m"] and info["rms_m"] < 2e-5
     assert abs(model.weight - 0.4) < 0.05
     fresh = commands(cc, 32, seed=2)
@@ -72,16 +76,18 @@ def test_fit_recovers_the_weight_and_the_tips_of_a_known_robot():
     assert model.report()["weight_per_length_N_per_m"] == pytest.approx(model.weight, abs=1e-5)
 
 
+@pytest.mark.slow
 def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_residual(compositional_split):
     cc, split = compositional_split
-    physics = CosseratOnly(cc)
+    physics = CosseratOnly(cc, QUICK_FIT)
     with pytest.raises(ValueError, match="fit"):
         physics(split)
     physics.fit(split)
     assert physics(split).shape == (len(split.tip), 3)
     assert float((physics(split) - split.tip).norm(dim=-1).mean()) < 1e-4   # the data are the CC model's own
     torch.manual_seed(0)
-    residual = CCClarkeResidualCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3, samples=96)
+    residual = CCClarkeResidualCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3, samples=96,
+                                        fit_options=QUICK_FIT)
     residual.fit(split)
     pred = residual(split)
     assert pred.shape == (len(split.tip), 3) and bool(torch.isfinite(pred).all())

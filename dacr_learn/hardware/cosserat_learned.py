@@ -30,14 +30,15 @@ from .servo_map import ServoMap
 class CosseratOnly(nn.Module):
     """The calibrated Cosserat model of ``cc``'s robot: ``fit`` calibrates it on the training split."""
 
-    def __init__(self, cc: CalibratedCC):
+    def __init__(self, cc: CalibratedCC, fit_options: dict | None = None):
         super().__init__()
-        self.source = (cc,)                         # not a submodule: the model holds no trained weights
+        self.source = (cc, dict(fit_options or {}))   # not a submodule: the model holds no trained weights
         self.model: CalibratedCosserat | None = None
 
     def fit(self, train: Split) -> None:
-        self.model = CalibratedCosserat(self.source[0])
-        self.fit_report = self.model.fit(train.x, train.tip)
+        cc, options = self.source
+        self.model = CalibratedCosserat(cc)
+        self.fit_report = self.model.fit(train.x, train.tip, **options)
 
     def forward(self, split: Split) -> Tensor:
         if self.model is None:
@@ -49,9 +50,10 @@ class CCClarkeResidualCosserat(CCClarkeResidual):
     """:class:`CCClarkeResidual` pre-trained on all-segment synthetic data of the calibrated Cosserat model."""
 
     def __init__(self, cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], synthetic_seed: int,
-                 samples: int = PRETRAIN_SAMPLES):
+                 samples: int = PRETRAIN_SAMPLES, fit_options: dict | None = None):
         super().__init__(cc)
         self.synthetic_source = (smap, tuple(servo_ids), samples, synthetic_seed)   # not a submodule
+        self.fit_options = dict(fit_options or {})          # CalibratedCosserat.fit options (rows, starts, …)
 
     def fit(self, train: Split) -> None:
         for p in self.cc.parameters():
@@ -59,7 +61,7 @@ class CCClarkeResidualCosserat(CCClarkeResidual):
         self.fit_normalization(train)
         smap, servo_ids, samples, seed = self.synthetic_source
         physics = CalibratedCosserat(self.cc)
-        self.fit_report = physics.fit(train.x, train.tip, free_frame=False)
+        self.fit_report = physics.fit(train.x, train.tip, free_frame=False, **self.fit_options)
         with torch.no_grad():
             synthetic = synthetic_split(self.cc, smap, servo_ids, samples, seed, tip_fn=physics)
         ok = torch.isfinite(synthetic.tip).all(-1)
