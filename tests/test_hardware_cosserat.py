@@ -85,6 +85,12 @@ def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_resi
     physics.fit(split)
     assert physics(split).shape == (len(split.tip), 3)
     assert float((physics(split) - split.tip).norm(dim=-1).mean()) < 1e-4   # the data are the CC model's own
+    again = CosseratOnly(cc, QUICK_FIT)
+    again.fit(split)                                   # the same rows and CC model: the cached calibration, a copy
+    assert again.model is not physics.model and torch.equal(again(split), physics(split))
+    other = CosseratOnly(cc, {**QUICK_FIT, "rows": 16})
+    other.fit(split)
+    assert other.fit_report["rows"] == 16
     torch.manual_seed(0)
     residual = CCClarkeResidualCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3, samples=96,
                                         fit_options=QUICK_FIT)

@@ -9,6 +9,9 @@ synthetic set kept in the loss (rehearsal), as ``pretrained_clarke`` does with C
 """
 from __future__ import annotations
 
+import copy
+import hashlib
+
 import torch
 from torch import Tensor, nn
 
@@ -26,6 +29,24 @@ from .learned import (
 )
 from .servo_map import ServoMap
 
+_CALIBRATIONS: dict[str, tuple[CalibratedCosserat, dict]] = {}   # per process: the seeds of one fold share it
+
+
+def calibrated_cosserat(cc: CalibratedCC, train: Split, **options) -> tuple[CalibratedCosserat, dict]:
+    """The Cosserat model of ``cc`` calibrated on ``train`` (a copy; CalibratedCosserat.fit ``options``), and
+    its fit report. Deterministic, so cached in the process by a checksum of the rows, the CC model and the
+    options: the pre-trained models of several seeds of one fold calibrate once."""
+    digest = hashlib.sha256()
+    for t in (train.x, train.tip, *cc.state_dict().values()):
+        digest.update(t.detach().to(torch.float64).contiguous().numpy().tobytes())
+    digest.update(repr(sorted(options.items())).encode())
+    key = digest.hexdigest()
+    if key not in _CALIBRATIONS:
+        model = CalibratedCosserat(cc)
+        _CALIBRATIONS[key] = (model, model.fit(train.x, train.tip, **options))
+    model, report = _CALIBRATIONS[key]
+    return copy.deepcopy(model), dict(report)
+
 
 class CosseratOnly(nn.Module):
     """The calibrated Cosserat model of ``cc``'s robot: ``fit`` calibrates it on the training split."""
@@ -37,8 +58,7 @@ class CosseratOnly(nn.Module):
 
     def fit(self, train: Split) -> None:
         cc, options = self.source
-        self.model = CalibratedCosserat(cc)
-        self.fit_report = self.model.fit(train.x, train.tip, **options)
+        self.model, self.fit_report = calibrated_cosserat(cc, train, **options)
 
     def forward(self, split: Split) -> Tensor:
         if self.model is None:
@@ -60,8 +80,7 @@ class CCClarkeResidualCosserat(CCClarkeResidual):
             p.requires_grad_(False)
         self.fit_normalization(train)
         smap, servo_ids, samples, seed = self.synthetic_source
-        physics = CalibratedCosserat(self.cc)
-        self.fit_report = physics.fit(train.x, train.tip, free_frame=False, **self.fit_options)
+        physics, self.fit_report = calibrated_cosserat(self.cc, train, free_frame=False, **self.fit_options)
         with torch.no_grad():
             synthetic = synthetic_split(self.cc, smap, servo_ids, samples, seed, tip_fn=physics)
         ok = torch.isfinite(synthetic.tip).all(-1)
