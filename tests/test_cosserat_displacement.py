@@ -159,3 +159,21 @@ def test_passing_at_the_segment_radius_kinks_only_where_radii_differ():
     assert float(moved.norm()) > 1e-3
     with pytest.raises(ValueError, match="passing"):
         tendon_routing(spec, "through")
+
+
+def test_a_sample_whose_warm_start_is_unusable_is_flagged_and_the_rest_solve():
+    """A NaN chord matrix in the warm start (an earlier failed difference) leaves that sample unconverged: no error,
+    no NaN fed into the next solve; NaN tensions are refused up front."""
+    spec = robot()
+    _, _, ell = commanded(spec, 4, seed=6)
+    cold = solve_displacements(spec, ell, gravity=GRAVITY)
+    chord = cold.compliance.clone()
+    chord[2] = torch.nan
+    out = solve_displacements(spec, ell + 1e-4, gravity=GRAVITY, tension_guess=cold.tension, compliance_guess=chord,
+                              on_failure="flag")
+    assert out.converged.tolist() == [True, True, False, True]
+    assert bool(torch.isfinite(out.tip[[0, 1, 3]]).all())
+    bad = cold.tension.clone()
+    bad[1, 0] = torch.nan
+    with pytest.raises(ValueError, match="tension_guess"):
+        solve_displacements(spec, ell, tension_guess=bad)

@@ -88,6 +88,17 @@ def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_resi
     again = CosseratOnly(cc, QUICK_FIT)
     again.fit(split)                                   # the same rows and CC model: the cached calibration, a copy
     assert again.model is not physics.model and torch.equal(again(split), physics(split))
+    solved = physics.model
+
+    def failing_first_row(x):                   # a command whose solve fails gets the CC model's tip, counted
+        tip = solved(x)
+        tip[0] = torch.nan
+        return tip
+
+    physics.model = failing_first_row
+    fallback = physics(split)
+    assert physics.fallbacks == 1 and torch.equal(fallback[0], split.cc_tip[0])
+    physics.model = solved
     other = CosseratOnly(cc, {**QUICK_FIT, "rows": 16})
     other.fit(split)
     assert other.fit_report["rows"] == 16

@@ -201,12 +201,16 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
     rows_of = [index]
     step = torch.ones(n, dtype=torch.float64)
     for _ in range(max_iter):
-        todo = torch.nonzero(viol > tol).flatten()
+        # a sample whose current shape failed (no finite lengths) or whose chord failed cannot take a step:
+        # it stays unconverged (flagged or raised below) instead of feeding NaN to the next solve
+        usable = torch.isfinite(f).all(-1) & torch.isfinite(a).flatten(1).all(-1)
+        todo = torch.nonzero((viol > tol) & usable).flatten()
         if not todo.numel():
             break
         tt, aa, ff = tau[todo], a[todo], f[todo]
         target = solve_lcp(aa, -ff - (aa @ tt.unsqueeze(-1)).squeeze(-1))
         trial = (tt + step[todo].unsqueeze(-1) * (target - tt)).clamp(min=0)
+        trial = torch.where(torch.isfinite(trial).all(-1, keepdim=True), trial, tt)   # no step: retake the chord
         r1, sol1 = rest(trial)
         f1 = r1 - ell[todo]
         v1 = _violation(f1, trial)

@@ -61,9 +61,14 @@ class CosseratOnly(nn.Module):
         self.model, self.fit_report = calibrated_cosserat(cc, train, **options)
 
     def forward(self, split: Split) -> Tensor:
+        """Tips (n, 3) [m]; a command whose displacement solve fails (an inadmissible shape for the fitted
+        parameters) gets the CC model's tip, and ``self.fallbacks`` counts them."""
         if self.model is None:
             raise ValueError("CosseratOnly: call fit(train) before predicting")
-        return self.model(split.x)
+        tip = self.model(split.x)
+        failed = ~torch.isfinite(tip).all(-1)
+        self.fallbacks = int(failed.sum())
+        return torch.where(failed.unsqueeze(-1), split.cc_tip, tip)
 
 
 class CCClarkeResidualCosserat(CCClarkeResidual):
