@@ -20,7 +20,8 @@ where they cycle), then evaluates F(τ') by one Cosserat solve. A is taken by ce
 the first iterate (2T solves; once for the whole batch when every sample starts from zero tension; or
 passed in from an earlier, nearby solve) and kept (a chord method):
 the map τ → R is close to linear (in the CC limit it is linear), so the steps contract fast. Where a
-step does not reduce the violation, A is retaken at the current iterate and the step is halved.
+step does not reduce the violation, A is retaken at the current iterate and the step is halved (a step
+to a failed shape is only halved); a sample whose step falls below 1/64 gives up.
 
 The solve is gradient-free (no autograd through it); its inputs are data, not parameters.
 """
@@ -38,6 +39,7 @@ from .statics import ConvergenceError, CosseratSolution, solve_statics
 from .tendon import tendon_routing
 
 LCP_ACTIVE_SET_STEPS = 25
+MIN_STEP = 1 / 64        # a sample whose step was halved below this gives up (flagged / raised)
 LCP_GAUSS_SEIDEL_SWEEPS = 400
 
 
@@ -203,7 +205,7 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
     for _ in range(max_iter):
         # a sample whose current shape failed (no finite lengths) or whose chord failed cannot take a step:
         # it stays unconverged (flagged or raised below) instead of feeding NaN to the next solve
-        usable = torch.isfinite(f).all(-1) & torch.isfinite(a).flatten(1).all(-1)
+        usable = torch.isfinite(f).all(-1) & torch.isfinite(a).flatten(1).all(-1) & (step >= MIN_STEP)
         todo = torch.nonzero((viol > tol) & usable).flatten()
         if not todo.numel():
             break
@@ -223,9 +225,10 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
         rows_of.append(todo)
         where[keep] = len(states) - 1
         worse = todo[~better]
-        if worse.numel():                                   # retake the chord at the iterate, shorten the step
-            a[worse] = chord(tau[worse])
-            step[worse] = step[worse] / 2
+        retake = todo[~better & torch.isfinite(v1)]          # a worse shape: retake the chord at the iterate
+        if retake.numel():
+            a[retake] = chord(tau[retake])
+        step[worse] = step[worse] / 2                        # a worse or failed shape: shorten the step
         step[keep] = torch.clamp(step[keep] * 2, max=1.0)
     converged = viol <= tol
     statics = _gather(states, rows_of, where, n)
