@@ -47,6 +47,9 @@ FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than t
 PHYSICS_SCALES = {"weight": 0.3, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
                   "pretension": 1e-4, "pretension_strain": 1e-4}
 AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC model, and a compressible rod
+# [N/m] bound of the fitted weight per length: a robot of this size (wire, disks, tendons) weighs well under it;
+# unbounded, the v6 singles fit ran to −1.6 N/m and beyond, into ever more nonlinear (and slower) solves
+WEIGHT_MAX = 0.5
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
 FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale
 MAX_STEP = 3.0            # largest LM step per parameter, in units of its scale (a trust region)
@@ -93,7 +96,7 @@ class CalibratedCosserat:
         with torch.no_grad():
             for name, value in values.items():
                 if name == "weight":
-                    self.weight = float(value)
+                    self.weight = min(max(float(value), -WEIGHT_MAX), WEIGHT_MAX)
                 elif name == "log_axial_radius":
                     self.log_axial_radius = min(max(float(value), math.log(AXIAL_RADIUS_RANGE[0])),
                                                 math.log(AXIAL_RADIUS_RANGE[1]))
