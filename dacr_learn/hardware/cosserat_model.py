@@ -9,17 +9,18 @@ unstretched length, the tensions follow (:func:`~dacr_learn.cosserat.displacemen
 It starts from the calibrated CC model (:class:`~.ccmodel.CalibratedCC`), whose parameters have the same
 meaning here: effective tendon radius and joint-angle rotation per segment, the tendon compliance EI/EA_t
 (with the nominal rod's EI it sets the tendons' 1/(E_t A_t)), the pretension (per tendon with the
-``strain`` variant), the base tilt and translation and the marker offset. New: the weight per length w
-[N/m] along the motion-capture −z axis (w < 0: along +z), 0 in the CC model. With w = 0 the model is the
-CC model up to the rod's axial and shear compliance and the exact tendon paths (a test checks the two
-agree to a fraction of a millimetre).
+``strain`` variant), the base tilt and translation and the marker offset; tendons pass each segment at its
+effective radius (``passing="segment"``). New: the weight per length w [N/m] along the motion-capture −z axis
+(w < 0: along +z; bounded by :data:`WEIGHT_MAX`) and the backbone's axial stiffness EA/EI (a solid rod of
+radius r_a has 4/r_a²). With w = 0 and an inextensible backbone the model is the CC model (a test checks
+the two agree to 5 µm), so the fit starts at the CC fit.
 
-The nominal rod (:data:`NOMINAL_ROD`, a 1 mm NiTi wire) sets EI, the scale against which the fitted
-tendon compliance and weight act; the tip depends on the ratios only, except through the rod's axial
-and shear stiffness, which are large. Fitted by Levenberg–Marquardt on a subset of the training rows
-(:data:`FIT_ROWS`): the parameters that change the mechanics by finite differences of warm-started
-solves, the frame parameters (tilt, marker) exactly, the base translation in closed form (the mean
-residual). Gradient-free: this model is scored and used to generate data; it is not exported.
+:data:`BENDING_STIFFNESS` (a 1 mm NiTi wire's EI) is the scale against which the fitted tendon compliance,
+axial stiffness and weight act; the tip depends on the ratios only. Fitted by Levenberg–Marquardt on a
+subset of the training rows (:data:`FIT_ROWS`) from each of :data:`AXIAL_STARTS`: the parameters that change
+the mechanics by finite differences of warm-started solves, the frame parameters (tilt, marker) at fixed
+shapes, the base translation in closed form (the mean residual). Gradient-free: this model is scored and
+used to generate data; it is not exported.
 """
 from __future__ import annotations
 
