@@ -39,6 +39,8 @@ from .statics import ConvergenceError, CosseratSolution, solve_statics
 from .tendon import tendon_routing
 
 LCP_ACTIVE_SET_STEPS = 25
+_SAMPLE_FIELDS = ("frames", "tendon_lengths", "tendon_rest_lengths", "curvature", "stretch", "base_wrench",
+                  "residual", "converged", "iterations")   # the per-sample fields of a CosseratSolution
 MIN_STEP = 1 / 64        # a sample whose step was halved below this gives up (flagged / raised)
 LCP_GAUSS_SEIDEL_SWEEPS = 400
 
@@ -109,8 +111,9 @@ def solve_lcp(a: Tensor, q: Tensor) -> Tensor:
 
 
 def _violation(f: Tensor, tau: Tensor) -> Tensor:
-    """(B,) max over tendons of |F| where taut (τ > 0) and max(F, 0) where slack."""
-    return torch.where(tau > 0, f.abs(), f.clamp(min=0)).amax(-1)
+    """(B,) max over tendons of |F| where taut (τ > 0) and max(F, 0) where slack; inf where F is not finite."""
+    v = torch.where(tau > 0, f.abs(), f.clamp(min=0)).amax(-1)
+    return torch.where(torch.isfinite(v), v, torch.inf)
 
 
 def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tensor | None = None,
@@ -195,12 +198,8 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
     r, sol = rest(tau)
     f = r - ell
     viol = _violation(f, tau)
-    viol = torch.where(torch.isfinite(viol), viol, torch.inf)
     iters = torch.zeros(n, dtype=torch.long)
-    states = [sol]
-    index = torch.arange(n)
-    where = torch.zeros(n, dtype=torch.long)          # which entry of ``states`` holds sample i's solution
-    rows_of = [index]
+    accepted = {name: getattr(sol, name).clone() for name in _SAMPLE_FIELDS}   # each sample's accepted shape
     step = torch.ones(n, dtype=torch.float64)
     for _ in range(max_iter):
         # a sample whose current shape failed (no finite lengths) or whose chord failed cannot take a step:
@@ -216,58 +215,29 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
         r1, sol1 = rest(trial)
         f1 = r1 - ell[todo]
         v1 = _violation(f1, trial)
-        v1 = torch.where(torch.isfinite(v1), v1, torch.inf)
         better = v1 < viol[todo]
         iters[todo] += 1
         keep = todo[better]
         tau[keep], f[keep], viol[keep] = trial[better], f1[better], v1[better]
-        states.append(sol1)
-        rows_of.append(todo)
-        where[keep] = len(states) - 1
+        for name, value in accepted.items():
+            value[keep] = getattr(sol1, name)[better]
         worse = todo[~better]
         retake = todo[~better & torch.isfinite(v1)]          # a worse shape: retake the chord at the iterate
         if retake.numel():
             a[retake] = chord(tau[retake])
         step[worse] = step[worse] / 2                        # a worse or failed shape: shorten the step
         step[keep] = torch.clamp(step[keep] * 2, max=1.0)
-    converged = viol <= tol
-    statics = _gather(states, rows_of, where, n)
-    converged = converged & statics.converged
+    statics = CosseratSolution(arc=sol.arc, grid=sol.grid,
+                               **{name: value.reshape(*batch, *value.shape[1:]) for name, value in accepted.items()})
+    converged = (viol <= tol).reshape(batch) & statics.converged
     if on_failure == "raise" and not bool(converged.all()):
         raise ConvergenceError(
             f"solve_displacements: of {n} samples {int((~converged).sum())} did not reach tendon lengths within "
             f"{tol:g} m in {max_iter} steps (worst {float(viol.max()):.3g} m); check that the commanded lengths "
             "are reachable (a tendon shortened far beyond what bends the robot), or pass on_failure='flag'")
     return DisplacementSolution(
-        statics=_reshape(statics, batch), tension=tau.reshape(*batch, t), compliance=a.reshape(*batch, t, t),
-        violation=viol.reshape(batch), converged=converged.reshape(batch), iterations=iters.reshape(batch))
-
-
-def _gather(states: list[CosseratSolution], rows_of: list[Tensor], where: Tensor, n: int) -> CosseratSolution:
-    """One flat CosseratSolution (n,) taking sample i from ``states[where[i]]`` (whose rows are rows_of[...])."""
-    first = states[0]
-    fields = {}
-    for name in ("frames", "tendon_lengths", "tendon_rest_lengths", "curvature", "stretch", "base_wrench",
-                 "residual", "converged", "iterations"):
-        out = getattr(first, name).clone()
-        for k in range(1, len(states)):
-            pick = where[rows_of[k]] == k
-            if bool(pick.any()):
-                out[rows_of[k][pick]] = getattr(states[k], name)[pick]
-        fields[name] = out
-    assert fields["frames"].shape[0] == n
-    return CosseratSolution(arc=first.arc, grid=first.grid, **fields)
-
-
-def _reshape(sol: CosseratSolution, batch: torch.Size) -> CosseratSolution:
-    def r(x: Tensor, tail: int) -> Tensor:
-        return x.reshape(*batch, *x.shape[x.dim() - tail:]) if tail else x.reshape(batch)
-
-    return CosseratSolution(
-        frames=r(sol.frames, 3), arc=sol.arc, tendon_lengths=r(sol.tendon_lengths, 1),
-        tendon_rest_lengths=r(sol.tendon_rest_lengths, 1), curvature=r(sol.curvature, 2),
-        stretch=r(sol.stretch, 2), base_wrench=r(sol.base_wrench, 1), residual=r(sol.residual, 0),
-        converged=r(sol.converged, 0), iterations=r(sol.iterations, 0), grid=sol.grid)
+        statics=statics, tension=tau.reshape(*batch, t), compliance=a.reshape(*batch, t, t),
+        violation=viol.reshape(batch), converged=converged, iterations=iters.reshape(batch))
 
 
 __all__ = ["DisplacementSolution", "solve_displacements", "solve_lcp", "tension_scale"]
