@@ -40,11 +40,11 @@ BENDING_STIFFNESS = 6.0e10 * math.pi * 0.0005**4 / 4   # EI [N·m²] of a 1 mm N
 POISSON_RATIO = 0.33
 AXIAL_RADIUS = 5e-5      # [m] initial r_a: EA = 4·EI/r_a² (a 1 mm wire: 0.5 mm). Small: the start is the CC model
 STEPS_PER_SEGMENT = 4     # RK4 steps per segment: tips within 3 µm of 32 steps on v4 / v6 training commands
-FIT_ROWS = 240            # training rows the mechanics are fitted on (a seeded subset; 480 gave the same v4 proxy)
+FIT_ROWS = 240            # training rows the mechanics are fitted on (a seeded subset; half the solves of 480)
 FIT_ITERATIONS = 6
 SOLVE_TOL = 1e-8          # [m] tendon-length violation accepted: far below the finite differences of the fit
 FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than this fraction
-# physics parameters, re-solved for their finite differences: name → (typical scale of a step, difference)
+# physics parameters, re-solved for their finite differences: name → the unit of an LM step in it
 PHYSICS_SCALES = {"weight": 0.3, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
                   "pretension": 1e-4, "pretension_strain": 1e-4}
 AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC model, and a compressible rod
@@ -54,6 +54,7 @@ WEIGHT_MAX = 0.5
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
 FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale
 MAX_STEP = 3.0            # largest LM step per parameter, in units of its scale (a trust region)
+FRAME_SCALE = 1e-3        # [rad] or [m]: the step unit of the tilt and marker parameters
 
 
 @dataclass
@@ -189,7 +190,7 @@ class CalibratedCosserat:
         frame = [self.cc.base_tilt, self.cc.marker_lateral if self.cc.lateral_marker else None, self.cc.tip_offset]
         frame = [p for p in frame if p is not None] if free_frame else []
         names = list(self.physics())
-        lam, rms0 = 1e-2, None
+        lam = 1e-2
 
         def residual(poses: Tensor) -> Tensor:
             r = self.world_tip(poses) - tip
@@ -197,10 +198,10 @@ class CalibratedCosserat:
 
         poses, warm = self.tip_poses(x)
         r = residual(poses)
-        rms0 = float(r.pow(2).sum(-1).mean().sqrt())
+        rms0 = _rms(r)
         done = 0
         for _ in range(iterations):
-            rms_prev = float(r.pow(2).sum(-1).mean().sqrt())
+            rms_prev = _rms(r)
             cols = []
             base = self.physics()
             for name in names:                                  # physics: finite differences of warm solves
@@ -219,36 +220,35 @@ class CalibratedCosserat:
                 break
             g, hess = jac.T @ r.reshape(-1), jac.T @ jac
             improved = False
+            frame_before = [p.detach().clone() for p in frame]
             for _ in range(6):
                 step = -torch.linalg.solve(hess + lam * torch.diag(hess.diagonal().clamp(min=1e-12)), g)
                 step = step * min(1.0, MAX_STEP / float(step.abs().max()))
-                old_phys, old_frame = self.physics(), [p.detach().clone() for p in frame]
-                self._apply(names, base, frame, step)
+                self._apply(names, base, frame_before, frame, step)
                 p1, w1 = self.tip_poses(x, warm)
                 r1 = residual(p1)
                 if torch.isfinite(r1).all() and r1.pow(2).sum() < r.pow(2).sum():
                     poses, warm, r, improved = p1, w1, r1, True
                     lam = max(lam / 3, 1e-6)
                     break
-                self.set_physics(old_phys)
+                self.set_physics(base)
                 with torch.no_grad():
-                    for p, v in zip(frame, old_frame, strict=True):
+                    for p, v in zip(frame, frame_before, strict=True):
                         p.copy_(v)
                 lam *= 5
             done += 1
             if log is not None:
-                rms_mm = float(r.pow(2).sum(-1).mean().sqrt()) * 1e3
-                log(f"cosserat fit {done}: {rms_mm:.3f} mm, w = {self.weight:.4f} N/m")
-            if not improved or rms_prev - float(r.pow(2).sum(-1).mean().sqrt()) < FIT_STALL * rms_prev:
+                log(f"cosserat fit {done}: {_rms(r) * 1e3:.3f} mm, w = {self.weight:.4f} N/m")
+            if not improved or rms_prev - _rms(r) < FIT_STALL * rms_prev:
                 break
         if free_frame:
             with torch.no_grad():
                 self.cc.base_translation += -(self.world_tip(poses) - tip).mean(0)
-        rms = float((self.world_tip(poses) - tip).pow(2).sum(-1).mean().sqrt())
-        return {"rms_before_m": rms0, "rms_m": rms, "iterations": done, "rows": int(x.shape[0]),
-                "seconds": time.perf_counter() - start}
+        return {"rms_before_m": rms0, "rms_m": _rms(self.world_tip(poses) - tip), "iterations": done,
+                "rows": int(x.shape[0]), "seconds": time.perf_counter() - start}
 
-    def _apply(self, names, base, frame, step: Tensor) -> None:
+    def _apply(self, names, base, frame_base, frame, step: Tensor) -> None:
+        """Set the physics to ``base`` and the frame parameters to ``frame_base`` plus the scaled LM ``step``."""
         values, k = {}, 0
         for name in names:
             n = base[name].numel()
@@ -256,13 +256,16 @@ class CalibratedCosserat:
             k += n
         self.set_physics(values)
         with torch.no_grad():
-            for p in frame:
+            for p, p0 in zip(frame, frame_base, strict=True):
                 n = p.numel()
-                p += FRAME_SCALE * step[k:k + n].reshape(p.shape)
+                p.copy_(p0 + FRAME_SCALE * step[k:k + n].reshape(p.shape))
                 k += n
 
 
-FRAME_SCALE = 1e-3   # [rad] or [m]: the step unit of the tilt and marker parameters
+
+def _rms(r: Tensor) -> float:
+    """Root-mean-square length of residual vectors r (n, 3) [m]."""
+    return float(r.pow(2).sum(-1).mean().sqrt())
 
 
 def _frame_jacobian(cc: CalibratedCC, frame: list[Tensor], poses: Tensor, tip: Tensor) -> Tensor:
