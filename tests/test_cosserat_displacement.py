@@ -148,7 +148,8 @@ def test_passing_at_the_segment_radius_kinks_only_where_radii_differ():
     spec = robot()
     tau = torch.tensor([[4.0, 0, 0, 0, 3.0, 0, 0, 0, 2.0]], dtype=F64)
     own = solve_statics(spec, tau, passing="own").tip
-    assert torch.allclose(solve_statics(spec, tau, passing="segment").tip, own, rtol=0, atol=1e-12)
+    # equal to the shooting tolerance (1e-10, scaled by the length): the extra disk jumps change only rounding
+    assert torch.allclose(solve_statics(spec, tau, passing="segment").tip, own, rtol=0, atol=1e-9 * spec.total_length)
     d = spec.to_dict()
     d["segments"][0]["radius"] = 0.006
     wider = RobotSpec.from_dict(d)
