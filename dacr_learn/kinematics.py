@@ -17,7 +17,16 @@ import torch
 from torch import Tensor
 
 from .checks import check_tensor
-from .lie import chain_jacobian, chain_products, roll_z, roll_z_and_tangents, twist_exp, twist_exp_and_tangents
+from .lie import (
+    chain_components,
+    chain_products,
+    dense,
+    exp_components_and_tangents,
+    pose_of_components,
+    roll_components,
+    roll_z,
+    twist_exp,
+)
 from .robot import RobotSpec
 
 
@@ -77,25 +86,48 @@ def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor
     return pose if alpha is None else roll_z(pose, alpha)
 
 
-def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor) -> tuple[Tensor, Tensor]:
-    """Tip pose and its Jacobian w.r.t. every feature column, in closed form (the kernel's exponential with
-    tangents and chain rule, :mod:`~.lie`): features (..., m, 4) → pose (..., 4, 4) [m],
-    J (..., 6, m, 4): the tip point's velocity [m] and angular velocity [rad] in the base frame per unit of
-    (ρ_re, ρ_im, β, α) of each segment. Columns a segment does not actuate are zero."""
+def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
+                         columns: list[tuple[int, int]] | None = None) -> tuple[Tensor, Tensor]:
+    """Tip pose and its Jacobian w.r.t. feature columns, in closed form (the kernel's exponential with
+    tangents and chain rule, :mod:`~.lie`): features (..., m, 4) → pose (..., 4, 4) [m] and J: the tip point's
+    velocity [m] and angular velocity [rad] in the base frame per unit of each column. ``columns``: None for
+    every (ρ_re, ρ_im, β, α) of every segment, J (..., 6, m, 4), columns a segment does not actuate zero; or a
+    list of (segment, column index 0–3) pairs, J (..., 6, len(columns)) (e.g. the actuated features).
+
+    Computed in the kernel's component form with the segments in front, (m, ...): the twist of segment k is
+    ξ = (0, 0, β; −u_y, u_x, 0) with u = ρ/d, so its directions along (ρ_re, ρ_im, β) are the sparse constants
+    dω_y = 1/d, dω_x = −1/d, dv_z = [extends] (a few operations each), and along α the roll's own velocity
+    (:func:`~.lie.roll_components`).
+    """
     u, beta, alpha = _segment_parameters(spec, features)
     radius, _, extends, twists = _segment_constants(spec, features.dtype, features.device)
-    m = spec.num_segments
-    dxi = torch.zeros(m, 4, 6, dtype=features.dtype, device=features.device)     # ∂ξ/∂(ρ_re, ρ_im, β, α)
-    dxi[:, 0, 4] = 1 / radius
-    dxi[:, 1, 3] = -1 / radius
-    dxi[:, 2, 2] = extends.to(features.dtype)
-    pose, ang, lin = twist_exp_and_tangents(cc_twist(u, beta), dxi.expand(*u.shape[:-1], 4, 6))
+    m, lead, dtype = spec.num_segments, beta.shape[:-1], features.dtype
+    per_seg = lambda c: c.to(dtype).view(m, *([1] * len(lead)))  # noqa: E731   (m,) → (m, 1…)
+    front = lambda x: x.movedim(-1, 0).contiguous()  # noqa: E731              (..., m) → (m, ...)
+    ux, uy, b = front(u[..., 0]), front(u[..., 1]), front(beta)
+    inv_d = per_seg(1 / radius)
+    directions = [((None, None, None), (None, inv_d, None)), ((None, None, None), (-inv_d, None, None)),
+                  ((None, None, per_seg(extends)), (None, None, None)), ((None, None, None), (None, None, None))]
+    rot, pos, tangents = exp_components_and_tangents((None, None, b), (-uy, ux, None), directions)
     if alpha is not None:
-        alpha_row = torch.zeros(m, 4, 1, dtype=features.dtype, device=features.device)
-        alpha_row[:, 3, 0] = twists.to(features.dtype)
-        pose, ang, lin = roll_z_and_tangents(pose, ang, lin, alpha, alpha_row)
-    tip, jac = chain_jacobian(pose, ang, lin)
-    return tip, jac.unflatten(-1, (m, 4))
+        rot, pos, tangents = roll_components(front(alpha), rot, pos, tangents, (3, per_seg(twists)))
+    like = b[0]
+    seg = lambda c, k: tuple(None if x is None else x[k] for x in c)  # noqa: E731
+
+    def stacked(vectors: list, k: int) -> tuple:      # segment k's vectors of the 4 directions → components (4, ...)
+        return tuple(torch.stack(dense([seg(v, k)[i] for v in vectors], like), dim=0) for i in range(3))
+
+    tip_rot, tip_pos, cols = chain_components(        # the chain rotates the 4 directions of a segment together
+        [seg(rot, k) for k in range(m)], [seg(pos, k) for k in range(m)],
+        [[(stacked([a for a, _ in tangents], k), stacked([v for _, v in tangents], k))] for k in range(m)])
+    jac = torch.stack([torch.stack([*v, *w], dim=0) for [(v, w)] in cols], dim=1)        # (6, m, 4, ...)
+    jac = jac.flatten(1, 2)                                                               # (6, m·4, ...)
+    if columns is not None:
+        jac = jac.index_select(1, torch.tensor([4 * k + c for k, c in columns], device=jac.device))
+    jac = jac.movedim(0, -1).movedim(0, -1)                                                # (..., 6, columns)
+    if columns is None:
+        jac = jac.unflatten(-1, (m, 4))
+    return pose_of_components(tip_rot, tip_pos), jac
 
 
 def segment_poses(spec: RobotSpec, features: Tensor) -> Tensor:

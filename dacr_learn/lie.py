@@ -115,58 +115,206 @@ def hat_map(dtype: torch.dtype = torch.float64) -> Tensor:
     return pose_from_parts(hat(basis[:, 3:]), basis[:, :3], basis.new_zeros(1, 4)).flatten(-2)
 
 
-def _pose_from_entries(rows: list[list[Tensor]], like: Tensor) -> Tensor:
-    """(..., 4, 4) homogeneous poses from the 3 × 4 top entries (each broadcastable to ``like``'s shape (...)).
+# ------------------------------------------------------------------------------------------------------
+# Component form: vectors as 3 tensors, rotations as 9 (row-major), any common shape (...). Elementwise
+# torch ops on contiguous tensors of one shape are several times faster on CPU than ops that broadcast a
+# (..., 3) or (..., T, 3) layout, so the kernel computes in this form; the (..., 6) / (..., 4, 4) functions
+# below convert at the boundary. Tangent components carry T directions in front, (T, ...): per-sample
+# coefficients (...) broadcast over the leading dim, which keeps the inner loop contiguous.
+# ------------------------------------------------------------------------------------------------------
 
-    Written entry by entry into one output tensor: small batched matmuls and last-dim stacking dominate the
-    run time on CPU for large batches. Under torch.func transforms (vmap, jacfwd), where writing into a new
-    tensor is not allowed, the entries are stacked instead (same values).
-    """
-    shape = torch.broadcast_shapes(like.shape, *(v.shape for row in rows for v in row))
-    if torch._C._functorch.is_functorch_wrapped_tensor(like) or torch.compiler.is_compiling():
-        zero = torch.zeros(shape, dtype=like.dtype, device=like.device)
-        flat = [v.expand(shape) for row in rows for v in row] + [zero, zero, zero, zero + 1]
-        return torch.stack(flat, dim=-1).unflatten(-1, (4, 4))
-    out = torch.empty(*shape, 4, 4, dtype=like.dtype, device=like.device)
-    for i, row in enumerate(rows):
-        for j, value in enumerate(row):
-            out[..., i, j] = value
-    out[..., 3, :3] = 0.0
-    out[..., 3, 3] = 1.0
+Vec3 = tuple  # three components; a component may be None, an exact zero that costs no operation
+Rot3 = tuple  # nine components, row-major
+
+
+_NO_FACTOR = object()
+
+
+def _prod(a, b, c=_NO_FACTOR):
+    """a·b (·c), None (exact zero) if any factor is None."""
+    if a is None or b is None or c is None:
+        return None
+    return a * b if c is _NO_FACTOR else a * b * c
+
+
+def _sum(*terms):
+    """The sum of the terms that are not None (None if all are)."""
+    out = None
+    for t in terms:
+        if t is not None:
+            out = t if out is None else out + t
     return out
 
 
-def _cross(a: tuple[Tensor, Tensor, Tensor], b: tuple[Tensor, Tensor, Tensor]) -> tuple[Tensor, Tensor, Tensor]:
-    return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+def _neg(x):
+    return None if x is None else -x
 
 
-def _exp_entries(v: tuple, w: tuple, s: Tensor, f: Tensor, g: Tensor) -> tuple[list[list[Tensor]], tuple]:
-    """The 3 × 4 top entries of exp(ξ^) from the components of v, ω and the coefficients s, f, g:
+def _dot(a: Vec3, b: Vec3):
+    return _sum(*(_prod(x, y) for x, y in zip(a, b, strict=True)))
+
+
+def _cross(a: Vec3, b: Vec3) -> Vec3:
+    return tuple(_sum(_prod(a[i], b[j]), _neg(_prod(a[j], b[i]))) for i, j in ((1, 2), (2, 0), (0, 1)))
+
+
+def _matvec(r: Rot3, x: Vec3) -> Vec3:
+    return tuple(_dot(r[3 * i:3 * i + 3], x) for i in range(3))
+
+
+def _matmul(a: Rot3, b: Rot3) -> Rot3:
+    return tuple(_dot(a[3 * i:3 * i + 3], b[j::3]) for i in range(3) for j in range(3))
+
+
+def _scaled(c, x: Vec3) -> Vec3:
+    return tuple(_prod(c, xi) for xi in x)
+
+
+def components(x: Tensor) -> tuple[Tensor, ...]:
+    """The last dim of x (..., k) as k contiguous tensors (...)."""
+    return x.movedim(-1, 0).contiguous().unbind(0)
+
+
+def exp_components(v: Vec3, w: Vec3) -> tuple[Rot3, Vec3]:
+    """exp(ξ^) of ξ = (v, ω) in component form (rotation R as 9 entries, position p as 3):
     R = cos φ·I + s·ω^ + f·ωωᵀ (ω^² = ωωᵀ − φ²I, cos φ = 1 − f·φ²), p = s·v + f·ω×v + g·(ω·v)·ω
-    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s). Also returns ω × v (the tangent reuses it)."""
-    wx, wy, wz = w
-    phi_sq = wx * wx + wy * wy + wz * wz
-    c = 1 - f * phi_sq
-    fx, fy, fz = f * wx, f * wy, f * wz
-    sx, sy, sz = s * wx, s * wy, s * wz
-    wv = _cross(w, v)
-    gwv = g * (wx * v[0] + wy * v[1] + wz * v[2])
-    p = [s * v[i] + f * wv[i] + gwv * w[i] for i in range(3)]
-    rows = [[c + fx * wx, fx * wy - sz, fx * wz + sy, p[0]],
-            [fy * wx + sz, c + fy * wy, fy * wz - sx, p[1]],
-            [fz * wx - sy, fz * wy + sx, c + fz * wz, p[2]]]
-    return rows, wv
+    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s)."""
+    return _exp_from_coefficients(v, w, *exp_coefficients(_phi_sq(v, w)))
+
+
+def _phi_sq(v: Vec3, w: Vec3) -> Tensor:
+    phi_sq = _dot(w, w)
+    return torch.zeros_like(next(c for c in v if c is not None)) if phi_sq is None else phi_sq
+
+
+def _exp_from_coefficients(v: Vec3, w: Vec3, s: Tensor, f: Tensor, g: Tensor) -> tuple[Rot3, Vec3]:
+    c = 1 - f * _phi_sq(v, w)
+    fw, sw = _scaled(f, w), _scaled(s, w)
+    rot = (_sum(c, _prod(fw[0], w[0])), _sum(_prod(fw[0], w[1]), _neg(sw[2])), _sum(_prod(fw[0], w[2]), sw[1]),
+           _sum(_prod(fw[1], w[0]), sw[2]), _sum(c, _prod(fw[1], w[1])), _sum(_prod(fw[1], w[2]), _neg(sw[0])),
+           _sum(_prod(fw[2], w[0]), _neg(sw[1])), _sum(_prod(fw[2], w[1]), sw[0]), _sum(c, _prod(fw[2], w[2])))
+    wv, gwv = _cross(w, v), _prod(g, _dot(w, v))
+    return rot, tuple(_sum(_prod(s, v[i]), _prod(f, wv[i]), _prod(gwv, w[i])) for i in range(3))
+
+
+def exp_components_and_tangents(v: Vec3, w: Vec3, directions: list[tuple[Vec3, Vec3]]) -> tuple:
+    """:func:`exp_components` and its spatial tangents along each of the ``directions`` (dv, dw).
+
+    Per direction: the angular velocity b = vee(dR·Rᵀ) = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω) (the left
+    Jacobian of SO(3)) and the velocity of the origin dp, the derivative of p = s·v + f·ω×v + g·(ω·v)·ω with
+    ds = s'·dφ², …, dφ² = 2ω·dω (s', f', g': :func:`exp_coefficients_and_derivatives`). A direction's
+    components broadcast against the twist's: shape (...) or (T, ...) for T directions at once. Returns
+    (R, p, [(b, dp) per direction]); components that are exactly zero may be None (no operation is spent on
+    them: a sparse direction such as one Clarke coordinate of a CC segment costs a few operations).
+    """
+    s, f, g, ds, df, dg = exp_coefficients_and_derivatives(_phi_sq(v, w))
+    rot, pos = _exp_from_coefficients(v, w, s, f, g)
+    wv, w_v = _cross(w, v), _dot(w, v)
+    gw_v = _prod(g, w_v)
+    tangents = []
+    for dv, dw in directions:
+        dphi = _prod(2, _dot(w, dw))
+        wdw = _cross(w, dw)
+        ang = tuple(_sum(dw[i], _prod(f, wdw[i]), _prod(g, c)) for i, c in enumerate(_cross(w, wdw)))
+        dwv = tuple(_sum(a, b) for a, b in zip(_cross(dw, v), _cross(w, dv), strict=True))
+        dsp, dfp = _prod(ds, dphi), _prod(df, dphi)
+        dg_w_v = _sum(_prod(dg, dphi, w_v), _prod(g, _sum(_dot(dw, v), _dot(w, dv))))
+        lin = tuple(_sum(_prod(s, dv[i]), _prod(dsp, v[i]), _prod(f, dwv[i]), _prod(dfp, wv[i]), _prod(dg_w_v, w[i]),
+                         _prod(gw_v, dw[i])) for i in range(3))
+        tangents.append((ang, lin))
+    return rot, pos, tangents
+
+
+def roll_components(alpha: Tensor, rot: Rot3, pos: Vec3, tangents: list[tuple[Vec3, Vec3]] | None = None,
+                    roll_direction: tuple[int, Tensor | float] | None = None) -> tuple:
+    """Rz(α)·T in component form: (R, p) → (Rz·R, Rz·p); with ``tangents`` [(b, dp), …] also the rolled tangents
+    Rz·b, Rz·dp, and on the direction that is α itself (``roll_direction`` = (its index, a weight: 1, or a
+    per-sample 0/1 where only some samples roll)) the roll's own velocity: b += e_z, dp += e_z × (Rz·p).
+    Returns (R', p'[, tangents'])."""
+    c, s = torch.cos(alpha), torch.sin(alpha)
+
+    def rz(x: tuple) -> tuple:
+        return (_sum(_prod(c, x[0]), _neg(_prod(s, x[1]))), _sum(_prod(s, x[0]), _prod(c, x[1])), *x[2:])
+
+    cols = rz(rot[0::3]), rz(rot[1::3]), rz(rot[2::3])
+    rot = tuple(cols[j][i] for i in range(3) for j in range(3))                      # back to row-major
+    pos = rz(pos)
+    if tangents is None:
+        return rot, pos
+    rolled = [(rz(ang), rz(lin)) for ang, lin in tangents]
+    if roll_direction is not None:
+        t, weight = roll_direction
+        ang, lin = rolled[t]
+        ang = (ang[0], ang[1], _sum(ang[2], weight))
+        lin = (_sum(lin[0], _neg(_prod(weight, pos[1]))), _sum(lin[1], _prod(weight, pos[0])), lin[2])
+        rolled[t] = (ang, lin)
+    return rot, pos, rolled
+
+
+def chain_components(rots: list[Rot3], poss: list[Vec3],
+                     tangents: list[list[tuple[Vec3, Vec3]]] | None = None) -> tuple[Rot3, Vec3, list]:
+    """The chain product rule in component form: factors T_1 … T_n (lists of R, p), each relative to the end
+    of the previous one, with spatial tangents [(b, dp), …] of each factor in its own base frame. Returns the
+    tip (R, p) and, per factor and direction, (v, ω): the velocity of the tip point and the angular velocity
+    in the base frame. With P_k = T_1⋯T_k, R_{k−1} the rotation of P_{k−1} and o_k the origin of P_k:
+    ω = R_{k−1}·b, v = R_{k−1}·dp + ω × (p_tip − o_k)."""
+    bases, origins = [], []
+    rot, pos = rots[0], poss[0]
+    origins.append(pos)
+    for r, p in zip(rots[1:], poss[1:], strict=True):
+        bases.append(rot)
+        pos = tuple(_sum(a, b) for a, b in zip(_matvec(rot, p), pos, strict=True))
+        rot = _matmul(rot, r)
+        origins.append(pos)
+    columns = []
+    for k, factor in enumerate(tangents or []):
+        arm = tuple(_sum(t, _neg(o)) for t, o in zip(pos, origins[k], strict=True))
+        cols = []
+        for b, dp in factor:
+            omega, vel = (b, dp) if k == 0 else (_matvec(bases[k - 1], b), _matvec(bases[k - 1], dp))
+            cols.append((tuple(_sum(a, c) for a, c in zip(vel, _cross(omega, arm), strict=True)), omega))
+        columns.append(cols)
+    return rot, pos, columns
+
+
+def dense(x: tuple, like: Tensor) -> tuple[Tensor, ...]:
+    """Components with None (exact zeros) replaced by zero tensors of ``like``'s shape."""
+    return tuple(torch.zeros_like(like) if c is None else c.expand_as(like) for c in x)
+
+
+def pose_of_components(rot: Rot3, pos: Vec3) -> Tensor:
+    """(..., 4, 4) homogeneous poses from component form."""
+    like = torch.broadcast_tensors(*(c for c in (*rot, *pos) if c is not None))[0]
+    rot, pos = dense(rot, like), dense(pos, like)
+    zero = torch.zeros_like(like)
+    entries = (*rot[0:3], pos[0], *rot[3:6], pos[1], *rot[6:9], pos[2], zero, zero, zero, zero + 1)
+    return torch.stack(entries, dim=-1).unflatten(-1, (4, 4))
+
+
+def _rot_pos(poses: Tensor) -> tuple[Rot3, Vec3]:
+    """Component form of poses (..., 4, 4)."""
+    c = components(poses[..., :3, :].flatten(-2))
+    return (*c[0:3], *c[4:7], *c[8:11]), (c[3], c[7], c[11])
+
+
+def _directions(d: Tensor) -> tuple[Tensor, ...]:
+    """(..., T, k) → k components (T, ...) (contiguous)."""
+    return d.movedim(-1, 0).movedim(-1, 1).contiguous().unbind(0)
+
+
+def _undirections(x: tuple[Tensor, ...]) -> Tensor:
+    """k components (T, ...) → (..., T, k)."""
+    return torch.stack(x, dim=-1).movedim(0, -2)
 
 
 def twist_exp(xi: Tensor) -> Tensor:
     """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4).
 
-    The one closed form of the exponential in the package (module docstring); equals
+    The one closed form of the exponential in the package (:func:`exp_components`); equals
     torch.linalg.matrix_exp of ξ^ (tested) at a fraction of its cost.
     """
-    v, w = xi[..., :3].unbind(-1), xi[..., 3:].unbind(-1)
-    s, f, g = exp_coefficients((xi[..., 3:] ** 2).sum(-1))
-    return _pose_from_entries(_exp_entries(v, w, s, f, g)[0], s)
+    c = components(xi)
+    return pose_of_components(*exp_components(c[:3], c[3:]))
 
 
 def twist_exp_and_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -174,27 +322,11 @@ def twist_exp_and_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, Ten
 
     Returns the pose T = exp(ξ^) (..., 4, 4) (:func:`twist_exp`) and, per direction, the spatial tangent of T:
     the angular velocity b = vee(dR·Rᵀ) (..., T, 3) [rad per unit] and the velocity of the frame's origin
-    dp (..., T, 3) [m per unit], so that dT = [[b^·R, dp], [0, 0]]. With φ² = ‖ω‖²:
-    b = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω) (the left Jacobian of SO(3)), and dp the derivative of
-    p = s·v + f·ω×v + g·(ω·v)·ω with ds = s'·dφ², …, dφ² = 2ω·dω (s', f', g': :func:`exp_coefficients_and_derivatives`).
+    dp (..., T, 3) [m per unit], so that dT = [[b^·R, dp], [0, 0]] (:func:`exp_components_and_tangents`).
     """
-    vt, wt = xi[..., :3], xi[..., 3:]
-    v, w = vt.unbind(-1), wt.unbind(-1)
-    s, f, g, ds, df, dg = exp_coefficients_and_derivatives((wt * wt).sum(-1))
-    rows, wv = _exp_entries(v, w, s, f, g)
-    pose = _pose_from_entries(rows, s)
-    at = lambda c: c.unsqueeze(-1)  # noqa: E731   (...) → (..., 1), broadcast over the T directions
-    dv, dw = dxi[..., :3], dxi[..., 3:]
-    w1, v1, wv1 = wt.unsqueeze(-2), vt.unsqueeze(-2), torch.stack(wv, -1).unsqueeze(-2)
-    dphi_sq = 2 * (w1 * dw).sum(-1, keepdim=True)                                              # (..., T, 1)
-    wdw = torch.linalg.cross(w1.expand_as(dw), dw)
-    ang = dw + at(at(f)) * wdw + at(at(g)) * torch.linalg.cross(w1.expand_as(dw), wdw)
-    w_dot_v = (wt * vt).sum(-1)[..., None, None]
-    dw_dot_v = (dw * v1).sum(-1, keepdim=True) + (w1 * dv).sum(-1, keepdim=True)
-    dwv = torch.linalg.cross(dw, v1.expand_as(dw)) + torch.linalg.cross(w1.expand_as(dv), dv)
-    lin = (at(at(s)) * dv + at(at(ds)) * dphi_sq * v1 + at(at(f)) * dwv + at(at(df)) * dphi_sq * wv1
-           + at(at(g)) * (dw_dot_v * w1 + w_dot_v * dw) + at(at(dg)) * dphi_sq * w_dot_v * w1)
-    return pose, ang, lin
+    c, d = components(xi), _directions(dxi.expand(*xi.shape[:-1], *dxi.shape[-2:]))
+    rot, pos, [(ang, lin)] = exp_components_and_tangents(c[:3], c[3:], [(d[:3], d[3:])])
+    return pose_of_components(rot, pos), _undirections(ang), _undirections(lin)
 
 
 def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
@@ -209,39 +341,32 @@ def roll_z_and_tangents(poses: Tensor, ang: Tensor, lin: Tensor, alpha: Tensor,
                         alpha_row: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Rz(α)·T and its spatial tangents from those of T: poses (..., 4, 4), tangents ang, lin (..., T, 3)
     (:func:`twist_exp_and_tangents`), roll α (...) [rad], ``alpha_row`` (..., T, 1): 1 on the direction that
-    is the roll angle itself, 0 elsewhere. Every vector is rotated by Rz(α); along α the roll adds its own
-    velocity, b += e_z, dp += e_z × (Rz(α)·p)."""
-    rolled = roll_z(poses, alpha)
-    c, s = torch.cos(alpha)[..., None, None], torch.sin(alpha)[..., None, None]
-
-    def rz(x: Tensor) -> Tensor:
-        return torch.cat([c * x[..., :1] - s * x[..., 1:2], s * x[..., :1] + c * x[..., 1:2], x[..., 2:]], -1)
-
-    p = rolled[..., None, :3, 3]
-    zero = torch.zeros_like(p[..., :1])
-    spin = torch.cat([-p[..., 1:2], p[..., :1], zero], -1)                                    # e_z × p
-    unit_z = torch.cat([zero, zero, torch.ones_like(zero)], -1)
-    return rolled, rz(ang) + alpha_row * unit_z, rz(lin) + alpha_row * spin
+    is the roll angle itself, 0 elsewhere (:func:`roll_components`)."""
+    rot, pos = _rot_pos(poses)
+    rows = alpha_row.expand(*poses.shape[:-2], *alpha_row.shape[-2:])[..., 0].movedim(-1, 0)
+    tangents = [(_directions(ang), _directions(lin))]
+    rot, pos, [(b, dp)] = roll_components(alpha, rot, pos, tangents, (0, rows))
+    return pose_of_components(rot, pos), _undirections(b), _undirections(dp)
 
 
 def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor) -> tuple[Tensor, Tensor]:
     """The chain product rule: tip pose and base-frame Jacobian of a product of transforms.
 
     poses (..., n, 4, 4): T_1 … T_n, each relative to the end of the previous one; ang, lin (..., n, T, 3):
-    spatial tangents of each T_k in its own base frame (b = vee(dT_k's dR·Rᵀ), dp: :func:`twist_exp_and_tangents`)
-    along T directions each. Returns the tip pose T_1⋯T_n (..., 4, 4) and J (..., 6, n·T): per factor and
-    direction, the velocity of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base
-    frame. With P_k = T_1⋯T_k, R_{k−1} the rotation of P_{k−1} and o_k the origin of P_k:
-    ω = R_{k−1}·b, v = R_{k−1}·dp + ω × (p_tip − o_k).
+    spatial tangents of each T_k in its own base frame (:func:`twist_exp_and_tangents`) along T directions
+    each. Returns the tip pose T_1⋯T_n (..., 4, 4) and J (..., 6, n·T): per factor and direction, the velocity
+    of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base frame
+    (:func:`chain_components`).
     """
-    ends = chain_products(poses)                                                          # (..., n, 4, 4)
-    tip = ends[..., -1, :, :]
-    eye = torch.eye(3, dtype=poses.dtype, device=poses.device).expand(*poses.shape[:-3], 1, 3, 3)
-    bases = torch.cat([eye, ends[..., :-1, :3, :3]], dim=-3).unsqueeze(-3)                 # (..., n, 1, 3, 3)
-    omega = (bases @ ang.unsqueeze(-1)).squeeze(-1)                                      # (..., n, T, 3)
-    arm = (tip[..., None, :3, 3] - ends[..., :3, 3]).unsqueeze(-2)                         # (..., n, 1, 3)
-    vel = (bases @ lin.unsqueeze(-1)).squeeze(-1) + torch.linalg.cross(omega, arm.expand_as(omega))
-    return tip, torch.cat([vel, omega], dim=-1).flatten(-3, -2).mT
+    n = poses.shape[-3]
+    rot, pos = _rot_pos(poses)
+    b, dp = _directions(ang), _directions(lin)                                    # components (T, ..., n)
+    at = lambda c, k: tuple(x[..., k] for x in c)  # noqa: E731
+    tip_rot, tip_pos, cols = chain_components([at(rot, k) for k in range(n)], [at(pos, k) for k in range(n)],
+                                              [[(at(b, k), at(dp, k))] for k in range(n)])
+    like = b[0][..., 0]
+    jac = torch.stack([torch.stack(dense((*v, *w), like), dim=0) for [(v, w)] in cols], dim=1)   # (6, n, T, ...)
+    return pose_of_components(tip_rot, tip_pos), jac.movedim(0, -1).movedim(0, -1).movedim(0, -1).flatten(-2)
 
 
 def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
@@ -268,7 +393,5 @@ def chain_products(poses: Tensor) -> Tensor:
 
 def roll_z(poses: Tensor, alpha: Tensor) -> Tensor:
     """Rz(α)·T: poses (..., 4, 4) rolled by α (...) [rad] about the z axis of the frame they are expressed in
-    (rows 0 and 1 rotated pointwise; α = 0 returns the poses' values unchanged)."""
-    c, s = torch.cos(alpha)[..., None], torch.sin(alpha)[..., None]
-    r0, r1 = poses[..., 0, :], poses[..., 1, :]
-    return torch.cat([(c * r0 - s * r1).unsqueeze(-2), (s * r0 + c * r1).unsqueeze(-2), poses[..., 2:, :]], dim=-2)
+    (:func:`roll_components`; α = 0 returns the poses' values unchanged)."""
+    return pose_of_components(*roll_components(alpha, *_rot_pos(poses)))

@@ -1,0 +1,17 @@
+"""Inverse kinematics as a solver: every solution, exact and inside the limits, for any model (docs/ik.md).
+
+>>> import torch, dacr_learn as dl
+>>> spec = dl.RobotSpec.from_yaml("configs/robots/tdcr_3seg_coupled.yaml")
+>>> q_true = dl.ClarkeDecoder(spec)(torch.tensor([[[0.004, 0.0, 0.10, 0.0], [0.0, -0.003, 0.09, 0.0],
+...                                                 [0.002, 0.002, 0.08, 0.0]]], dtype=torch.float64))
+>>> target = dl.forward_kinematics(spec, dl.ClarkeEncoder(spec)(q_true))          # (1, 4, 4) tip pose [m]
+>>> result = dl.solve_ik(spec, target, n_solutions=4)
+>>> result.q.shape, bool(result.success.all())
+(torch.Size([1, 4, 12]), True)
+"""
+from .limits import Limits
+from .models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model, clarke_limits
+from .solver import IKOptions, IKResult, check_targets, levenberg_marquardt, solve_ik
+
+__all__ = ["Check", "ConstantCurvature", "IKOptions", "IKResult", "LearnedFK", "Limits", "SolverModel",
+           "as_solver_model", "check_targets", "clarke_limits", "levenberg_marquardt", "solve_ik"]

@@ -1,0 +1,120 @@
+"""Admissible sets of IK variables: boxes and disks, batched (float64).
+
+An IK variable vector x (..., D) is admissible when every box coordinate lies in [lower, upper] and every
+disk pair (x_i, x_j) has ‖(x_i, x_j)‖ ≤ r. In Clarke space a segment's bending limit is a disk
+(‖ρ‖ = d·φ ≤ d·bend), its length and twist ranges are boxes; servo commands of a hardware model are a box.
+:class:`Limits` projects onto the set (the nearest admissible point: clamp, radial shrink), tells which
+constraints are active for a step, samples uniformly inside and measures violations.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+_F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Box and disk constraints on D variables.
+
+    lower, upper (D,): box bounds [variable units], ±inf where a coordinate has none (disk coordinates);
+    disks (k, 2) long: index pairs constrained to ‖(x_i, x_j)‖ ≤ radius (k,); scale (D,): a typical
+    range of each variable (the solver's unit: ρ by its disk radius, β and α by their half-ranges, a
+    servo by its half-range). ``names`` (D,) label the variables in messages.
+    """
+
+    lower: Tensor
+    upper: Tensor
+    disks: Tensor
+    radius: Tensor
+    scale: Tensor
+    names: tuple[str, ...]
+
+    def __post_init__(self):
+        d = self.lower.shape[0]
+        if self.upper.shape != (d,) or self.scale.shape != (d,) or len(self.names) != d:
+            raise ValueError(f"limits: lower, upper, scale and names must have one entry per variable ({d})")
+        if self.disks.shape != (self.radius.shape[0], 2):
+            raise ValueError(f"limits: disks must be (k, 2) index pairs with one radius each, got "
+                             f"{tuple(self.disks.shape)} and {tuple(self.radius.shape)}")
+        if not bool((self.lower < self.upper).all()) or not bool((self.radius > 0).all()):
+            raise ValueError("limits: every box needs lower < upper and every disk a radius > 0")
+        if not bool((self.scale > 0).all()):
+            raise ValueError("limits: every scale must be > 0")
+
+    @property
+    def num_variables(self) -> int:
+        return self.lower.shape[0]
+
+    def to(self, dtype: torch.dtype) -> Limits:
+        return Limits(self.lower.to(dtype), self.upper.to(dtype), self.disks, self.radius.to(dtype),
+                      self.scale.to(dtype), self.names)
+
+    def project(self, x: Tensor) -> Tensor:
+        """The nearest admissible point (..., D): box coordinates clamped, disk pairs shrunk radially."""
+        x = torch.clamp(x, self.lower, self.upper)                                        # a new tensor
+        if self.disks.numel():
+            pair = x[..., self.disks]                                                    # (..., k, 2)
+            norm = torch.linalg.vector_norm(pair, dim=-1, keepdim=True)
+            shrink = torch.clamp(self.radius.unsqueeze(-1) / norm.clamp_min(torch.finfo(x.dtype).tiny), max=1.0)
+            x[..., self.disks] = pair * shrink
+        return x
+
+    def violation(self, x: Tensor) -> Tensor:
+        """(...) the largest violation of any limit, relative to the variable's scale (0 inside)."""
+        box = torch.maximum(self.lower - x, x - self.upper) / self.scale
+        worst = box.clamp_min(0).amax(-1)
+        if self.disks.numel():
+            norm = torch.linalg.vector_norm(x[..., self.disks], dim=-1)
+            worst = torch.maximum(worst, ((norm - self.radius) / self.radius).clamp_min(0).amax(-1))
+        return worst
+
+    def inside(self, x: Tensor, tol: float = 1e-9) -> Tensor:
+        """(...) bool: within every limit up to ``tol`` of the variable's scale."""
+        return self.violation(x) <= tol
+
+    def sample(self, n: int, generator: torch.Generator, dtype: torch.dtype = _F64) -> Tensor:
+        """n points (n, D) uniform inside the set: boxes uniform, disks uniform by area (r = R·√u)."""
+        lo, hi = self.lower.to(dtype), self.upper.to(dtype)
+        u = torch.rand(n, self.num_variables, generator=generator, dtype=dtype)
+        finite = torch.isfinite(lo) & torch.isfinite(hi)
+        x = torch.where(finite, lo.nan_to_num(0.0) + u * (hi - lo).nan_to_num(0.0), torch.zeros_like(u))
+        if self.disks.numel():
+            k = self.disks.shape[0]
+            w = torch.rand(n, k, 2, generator=generator, dtype=dtype)
+            r = self.radius.to(dtype) * torch.sqrt(w[..., 0])
+            angle = 2 * torch.pi * w[..., 1]
+            x[:, self.disks] = torch.stack([r * torch.cos(angle), r * torch.sin(angle)], dim=-1)
+        return x
+
+    def blocked(self, x: Tensor, gradient: Tensor, margin: float = 1e-10) -> tuple[Tensor, Tensor | None]:
+        """The limits a descent step must not cross at x: (box (..., D) bool, disk normals (..., k, 2) or None).
+
+        A box coordinate at its bound (within ``margin`` of its scale) whose descent direction −gradient points
+        outward is blocked; a disk at its rim whose descent direction points outward blocks its radial
+        direction (the unit normal is returned, zero where the disk does not block).
+        """
+        tol = margin * self.scale
+        box = ((x <= self.lower + tol) & (gradient > 0)) | ((x >= self.upper - tol) & (gradient < 0))
+        if not self.disks.numel():
+            return box, None
+        pair = x[..., self.disks]                                                           # (..., k, 2)
+        norm = torch.linalg.vector_norm(pair, dim=-1, keepdim=True)
+        normal = pair / norm.clamp_min(torch.finfo(x.dtype).tiny)
+        outward = (normal * gradient[..., self.disks]).sum(-1, keepdim=True) < 0             # −g·n > 0
+        rim = norm >= self.radius.unsqueeze(-1) * (1 - margin)
+        return box, normal * (rim & outward).to(x.dtype)
+
+    def free_directions(self, box: Tensor, normals: Tensor | None) -> Tensor:
+        """Projector P (..., D, D) onto the directions a step may take, given what :meth:`blocked` returned:
+        P = diag(not blocked) − Σ n·nᵀ over the blocked disk normals (embedded in the disk's two coordinates)."""
+        d = self.num_variables
+        proj = torch.diag_embed((~box).to(normals.dtype if normals is not None else torch.float64))
+        if normals is not None:
+            n_full = torch.zeros(*box.shape[:-1], self.disks.shape[0], d, dtype=proj.dtype, device=box.device)
+            n_full.scatter_(-1, self.disks.expand(*box.shape[:-1], -1, -1), normals)
+            proj = proj - n_full.mT @ n_full
+        return proj

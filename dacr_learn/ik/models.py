@@ -1,0 +1,200 @@
+"""What the IK solver needs of a model: its variables, their limits, the tip and its Jacobian, and a check.
+
+The solver iterates on variables x (B, D) inside :class:`~.limits.Limits` and returns joint vectors. For a
+robot described by a :class:`~dacr_learn.robot.RobotSpec` the variables are the actuated Clarke features
+f (ρ_re, ρ_im per segment, β and α where actuated; ``models.actuated_columns`` order): the bending limit of a
+segment is then a disk and its length and twist ranges boxes, and every joint vector the decoder returns lies
+on the displacement constraint by construction.
+
+- :class:`ConstantCurvature`: the analytic CC model of a robot file (closed-form Jacobian, :mod:`~dacr_learn.lie`).
+- :class:`LearnedFK`: a trained FK model (monolithic, compositional, Cosserat-trained): the same variables,
+  the tip of the network; the Jacobian from the folded inference module where one exists, else forward-mode
+  autodiff. Its accuracy is with respect to the network, not the robot.
+
+Every model also gives :meth:`SolverModel.check`: the tip, the limits and the constraint residual of a
+joint vector computed from the joints alone (encoder → FK), not from the solver's internal variables.
+All float64.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from ..control import ClarkeSpace
+from ..kinematics import cc_pose_and_jacobian, forward_kinematics
+from ..models import actuated_columns, actuated_to_features
+from ..robot import RobotSpec
+from .limits import Limits
+
+_F64 = torch.float64
+_COLUMN = {"rho_re": 0, "rho_im": 1, "beta": 2, "alpha": 3}
+
+
+@dataclass
+class Check:
+    """Independent check of joint vectors q (B, N): tip position (B, 3) [m], rotation (B, 3, 3) or None
+    (position-only models), inside every limit (B,) bool, displacement-constraint residual (B,) [m]."""
+
+    position: Tensor
+    rotation: Tensor | None
+    inside: Tensor
+    constraint: Tensor
+
+
+class SolverModel:
+    """Interface of a model the IK solver can invert (see the module docstring).
+
+    Attributes: ``limits`` (:class:`~.limits.Limits` on the D variables), ``rest`` (D,) the rest configuration
+    (solutions nearer to it come first), ``length`` (position scale [m]: the
+    solver weighs position errors in units of it against rotation errors in rad), ``has_rotation`` (False for
+    tip-position models), ``num_joints`` N, ``spec`` (the RobotSpec, or None).
+    """
+
+    limits: Limits
+    length: float
+    rest: Tensor
+    has_rotation: bool = True
+    num_joints: int
+    spec: RobotSpec | None = None
+
+    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
+        """Variables (B, D) → tip position (B, 3) [m], rotation (B, 3, 3) or None, J (B, 6 or 3, D):
+        the tip point's velocity (and angular velocity) in the base frame per unit of each variable."""
+        raise NotImplementedError
+
+    def joints(self, x: Tensor) -> Tensor:
+        """Variables (B, D) → joint vector (B, N) [m, rad] (servo commands [mm] for a hardware model)."""
+        raise NotImplementedError
+
+    def variables(self, q: Tensor) -> Tensor:
+        """Joint vector (B, N) → variables (B, D) (a warm start)."""
+        raise NotImplementedError
+
+    def check(self, q: Tensor) -> Check:
+        raise NotImplementedError
+
+
+class _ClarkeVariables(SolverModel):
+    """Actuated Clarke features of a RobotSpec as the variables: limits, decoder and encoder."""
+
+    def __init__(self, spec: RobotSpec):
+        self.spec, self.num_joints, self.length = spec, spec.num_joints, spec.total_length
+        self.space = ClarkeSpace(spec)
+        self.limits = clarke_limits(spec)
+        self.rest = self.space.fold.e0.to(_F64)           # the straight robot at nominal lengths, no twist
+
+    def joints(self, x: Tensor) -> Tensor:
+        return self.space.joints(x)
+
+    def variables(self, q: Tensor) -> Tensor:
+        return self.space.features(q)
+
+    def _features_check(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(actuated features (B, D), inside (B,), constraint residual (B,) [m]) of joint vectors q."""
+        f = self.space.features(q)
+        residual = (self.space.joints(f) - q).abs().amax(-1)
+        return f, self.limits.inside(f), residual
+
+
+def clarke_limits(spec: RobotSpec) -> Limits:
+    """The limits of a robot's actuated features (``models.actuated_columns`` order): per segment a disk
+    ‖(ρ_re, ρ_im)‖ ≤ d·bend, boxes for β (length range) and α (twist range); scales d·bend and the half-ranges."""
+    lower, upper, scale, names, disks, radius = [], [], [], [], [], []
+    for i, (k, name) in enumerate(actuated_columns(spec)):
+        seg = spec.segments[k]
+        names.append(f"segments[{k}].{name}")
+        if name.startswith("rho"):
+            lower.append(-float("inf"))
+            upper.append(float("inf"))
+            scale.append(seg.bend * seg.radius)
+            if name == "rho_re":
+                disks.append([i, i + 1])
+                radius.append(seg.bend * seg.radius)
+            continue
+        lo, hi = seg.length_range if name == "beta" else seg.twist_range
+        lower.append(lo)
+        upper.append(hi)
+        scale.append((hi - lo) / 2)
+    t = lambda v: torch.tensor(v, dtype=_F64)  # noqa: E731
+    return Limits(t(lower), t(upper), torch.tensor(disks, dtype=torch.long).reshape(-1, 2), t(radius), t(scale),
+                  tuple(names))
+
+
+class ConstantCurvature(_ClarkeVariables):
+    """The analytic constant-curvature model of a robot: features → tip pose and its closed-form Jacobian."""
+
+    def __init__(self, spec: RobotSpec):
+        super().__init__(spec)
+        self._columns = [(k, _COLUMN[name]) for k, name in actuated_columns(spec)]
+
+    def features(self, x: Tensor) -> Tensor:
+        return actuated_to_features(x, self.space.selection, self.space.base)
+
+    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        pose, jac = cc_pose_and_jacobian(self.spec, self.features(x), self._columns)
+        return pose[..., :3, 3], pose[..., :3, :3], jac
+
+    def check(self, q: Tensor) -> Check:
+        f, inside, residual = self._features_check(q)
+        pose = forward_kinematics(self.spec, self.features(f))
+        return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
+
+
+class LearnedFK(_ClarkeVariables):
+    """A trained FK model (joint vector → tip pose) inverted in Clarke space.
+
+    ``model``: an ``FKModel`` or ``CompositionalFK`` (e.g. ``dacr_learn.load_model(run)``), evaluated in
+    float64. The Jacobian w.r.t. the features comes from the folded inference module
+    (:class:`~dacr_learn.inference.InferenceJacobian`, or the compositional one for a twist head) when it can
+    be built, else from forward-mode autodiff through ``model(decoder(f))``.
+    """
+
+    def __init__(self, model: nn.Module):
+        super().__init__(model.spec)
+        self.model = model.to(_F64).eval()
+        self.jacobian_module = _folded_jacobian(self.model)
+
+    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        if self.jacobian_module is not None:
+            pose, jac_f, _ = self.jacobian_module(self.joints(x))
+            return pose[..., :3, 3], pose[..., :3, :3], jac_f
+        with torch.no_grad():
+            pose = self.model(self.joints(x))
+        dpose = torch.func.vmap(torch.func.jacfwd(lambda f: self.model(self.joints(f.unsqueeze(0)))[0]))(x)
+        rot = pose[..., :3, :3]
+        skew = torch.einsum("bijk,blj->bilk", dpose[:, :3, :3], rot)                        # dR·Rᵀ per column
+        omega = torch.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], dim=1)
+        return pose[..., :3, 3], rot, torch.cat([dpose[:, :3, 3], omega], dim=1)
+
+    @torch.no_grad()
+    def check(self, q: Tensor) -> Check:
+        _, inside, residual = self._features_check(q)
+        pose = self.model(q.to(_F64))
+        return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
+
+
+def _folded_jacobian(model: nn.Module) -> nn.Module | None:
+    """The folded Jacobian module of a trained FK model in float64, or None where there is none."""
+    from ..compositional import CompositionalFK
+    from ..inference import InferenceJacobian
+    from ..inference_compositional import InferenceCompositionalJacobian
+    if isinstance(model, CompositionalFK):
+        return InferenceCompositionalJacobian(model, _F64) if model.rotation == "twist" else None
+    return InferenceJacobian(model, _F64)
+
+
+def as_solver_model(model) -> SolverModel:
+    """A :class:`SolverModel` of a RobotSpec (or a robot YAML path / dict: the analytic CC model), a trained FK
+    model, or a SolverModel (returned as is). ValueError for anything else."""
+    if isinstance(model, SolverModel):
+        return model
+    if isinstance(model, nn.Module) and isinstance(getattr(model, "spec", None), RobotSpec):
+        return LearnedFK(model)
+    try:
+        spec = RobotSpec.coerce(model)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"model_or_spec: expected a RobotSpec, a robot YAML file or dict, a trained FK model or "
+                         f"an ik.SolverModel, got {type(model).__name__} ({err})") from err
+    return ConstantCurvature(spec)

@@ -1,0 +1,381 @@
+"""Batched inverse kinematics: several solutions per target, exact to micrometres, inside every limit.
+
+:func:`solve_ik` returns, for each of B targets, K joint vectors. Each slot starts from a seed (a warm start,
+a learned sampler's sample, or a uniform sample of the admissible set) and is refined by
+:func:`levenberg_marquardt`; slots that fail are restarted from new seeds, and successful slots that
+duplicate another solution of the same target are restarted too, to find distinct ones (a redundant robot has
+a continuum of solutions). The verdict ``success`` comes from the model's own check of the returned joints
+(tip from the joints alone, limits, displacement constraint), not from the solver's internal state.
+
+The refinement (docs/ik.md): residual r = ((p − p*)/L, log(R·R*ᵀ)) (position in units of the robot length L,
+rotation vector [rad] in the base frame; position only with ``position_only``), Gauss–Newton matrix
+H = J̃ᵀJ̃ in scaled variables z = x/s (J̃ = J·diag(s), s the limits' scales), and the limits inside the step:
+box coordinates at a bound whose descent points outward are fixed and a disk at its rim loses its radial
+direction (:meth:`~.limits.Limits.free_directions`, projector P), the step minimises ‖r + J̃P·δz‖² + λ‖δz‖²,
+δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r (a 6 × 6 or 3 × 3 system whatever D), and the trial point is projected onto the
+admissible set. λ
+(Levenberg–Marquardt) shrinks after an accepted step and grows after a rejected one. Samples that have
+converged leave the batch.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+
+import torch
+from pytorch_kinematics.transforms import matrix_to_axis_angle
+from torch import Tensor
+
+from ..metrics import rotation_geodesic
+from .models import SolverModel, as_solver_model
+
+_F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class IKOptions:
+    """Settings of :func:`solve_ik`.
+
+    tolerance: (position [m], rotation [rad]) a solution must reach; max_iterations: LM iterations of one
+    start; restarts: new starts a slot may take when its start stalls or duplicates another solution;
+    distinct: two solutions of a target are distinct when some joint differs by at least this much
+    [joint units: m, rad; mm for a servo model]; damping: initial λ (scaled units); seed: of the random
+    starts (reproducible results).
+    """
+
+    tolerance: tuple[float, float] = (1e-6, 1e-5)
+    max_iterations: int = 25
+    restarts: int = 8
+    distinct: float = 5e-4
+    damping: float = 1e-3
+    seed: int = 0
+
+    def __post_init__(self):
+        if len(self.tolerance) != 2 or not all(t > 0 and math.isfinite(t) for t in self.tolerance):
+            raise ValueError(f"tolerance: expected (position [m], rotation [rad]), both > 0, got {self.tolerance}")
+        if self.max_iterations < 1 or self.restarts < 0:
+            raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
+                             f"{self.restarts}")
+        if not self.distinct >= 0 or not self.damping > 0:
+            raise ValueError(f"distinct >= 0 and damping > 0 expected, got {self.distinct}, {self.damping}")
+
+
+@dataclass
+class IKResult:
+    """K solutions of each of B targets, float64, ordered per target (docs/ik.md): successful first; among them
+    the one nearest the warm start q0 first when q0 was given, else the one nearest the model's rest
+    configuration (least bending); distinct solutions before duplicates.
+
+    q (B, K, N) joint vectors; success (B, K) the model's own verdict (tolerance, limits, constraint);
+    pos_err (B, K) [m]; rot_err (B, K) [rad] (0 with position_only); iterations (B, K) LM iterations spent
+    on the returned solution's slot over all rounds; distinct (B, K) True for the solutions kept as distinct.
+    """
+
+    q: Tensor
+    success: Tensor
+    pos_err: Tensor
+    rot_err: Tensor
+    iterations: Tensor
+    distinct: Tensor = field(default=None)
+
+    def numpy(self) -> dict:
+        return {f.name: getattr(self, f.name).cpu().numpy() for f in fields(self)}
+
+
+def check_targets(target: Tensor, position_only: bool) -> Tensor:
+    """Validate IK targets: (B, 4, 4) homogeneous poses with a rotation part, or (B, 3) positions with
+    ``position_only`` (a (B, 4, 4) pose is then reduced to its position). Returns float64. ValueError naming
+    what is wrong: shape, non-finite entries, a rotation that is not orthonormal with det +1, a bad last row."""
+    if not isinstance(target, Tensor):
+        target = torch.as_tensor(target)
+    if not target.is_floating_point():
+        raise ValueError(f"target: expected floating-point values, got dtype {target.dtype}")
+    target = target.to(_F64)
+    shapes = "(B, 3) positions or (B, 4, 4) poses" if position_only else "(B, 4, 4) poses"
+    is_pose = target.dim() == 3 and target.shape[-2:] == (4, 4)
+    if not (is_pose or (position_only and target.dim() == 2 and target.shape[-1] == 3)) or target.shape[0] == 0:
+        raise ValueError(f"target: expected {shapes}, got shape {tuple(target.shape)}")
+    bad = ~torch.isfinite(target.flatten(1)).all(-1)
+    if bad.any():
+        raise ValueError(f"target: {int(bad.sum())} target(s) with NaN/inf entries, first at index "
+                         f"{int(bad.nonzero()[0])}")
+    if is_pose:
+        rot = target[:, :3, :3]
+        orth = (rot @ rot.mT - torch.eye(3, dtype=_F64)).abs().amax((-2, -1))
+        det = torch.linalg.det(rot)
+        row = (target[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=_F64)).abs().amax(-1)
+        wrong = (orth > 1e-6) | ((det - 1).abs() > 1e-6) | (row > 1e-12)
+        if wrong.any():
+            i = int(wrong.nonzero()[0])
+            raise ValueError(f"target: {int(wrong.sum())} pose(s) whose rotation is not a rotation matrix "
+                             f"(RRᵀ = I to 1e-6, det +1) or whose last row is not (0, 0, 0, 1); first at index {i} "
+                             f"(|RRᵀ − I| = {float(orth[i]):.2e}, det = {float(det[i]):.6f})")
+        if position_only:
+            return target[:, :3, 3]
+    return target
+
+
+def _residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor | None):
+    """Residual r (M, 3 or 6) [units of L, rad], its Jacobian (M, 3 or 6, D), position and rotation errors (M,)."""
+    pos, rot, jac = model.tip_and_jacobian(x)
+    dp = (pos - position) / model.length
+    pos_err = torch.linalg.vector_norm(pos - position, dim=-1)
+    if rotation is None:
+        return dp, jac[:, :3] / model.length, pos_err, torch.zeros_like(pos_err)
+    rvec = matrix_to_axis_angle(rot @ rotation.mT)                     # log(R·R*ᵀ), base frame
+    r = torch.cat([dp, rvec], dim=-1)
+    jac = torch.cat([jac[:, :3] / model.length, jac[:, 3:]], dim=1)
+    return r, jac, pos_err, torch.linalg.vector_norm(rvec, dim=-1)
+
+
+class _Refinement:
+    """The LM state of M starts (module docstring): variables x (M, D), residual r and its Jacobian, cost ‖r‖²,
+    damping λ and the errors, with the targets of each row."""
+
+    def __init__(self, model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
+                 options: IKOptions):
+        self.model, self.lim, self.options = model, model.limits, options
+        self.position, self.rotation = position, rotation
+        self.scale = self.lim.scale.to(_F64)
+        self.tol = tuple(0.1 * t for t in options.tolerance)                 # aim a decade below the tolerance
+        self.x = self.lim.project(x0.to(_F64))
+        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(self.x.shape[0]))
+        self.cost = (self.r * self.r).sum(-1)
+        self.lam = torch.full_like(self.cost, options.damping)
+        self.eye = torch.eye(self.r.shape[1], dtype=_F64)
+
+    def _residual(self, x: Tensor, rows: Tensor):
+        return _residual(self.model, x, self.position[rows], None if self.rotation is None else self.rotation[rows])
+
+    def converged(self) -> Tensor:
+        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
+
+    def append(self, x0: Tensor, position: Tensor, rotation: Tensor | None) -> None:
+        """New rows: starts x0 (R, D) towards their targets (position (R, 3), rotation (R, 3, 3) or None)."""
+        first = self.x.shape[0]
+        self.position = torch.cat([self.position, position])
+        self.rotation = None if rotation is None else torch.cat([self.rotation, rotation])
+        x = self.lim.project(x0.to(_F64))
+        r, jac, pe, re = self._residual(x, torch.arange(first, first + x.shape[0]))
+        self.x, self.r, self.jac = torch.cat([self.x, x]), torch.cat([self.r, r]), torch.cat([self.jac, jac])
+        self.pos_err, self.rot_err = torch.cat([self.pos_err, pe]), torch.cat([self.rot_err, re])
+        self.cost = torch.cat([self.cost, (r * r).sum(-1)])
+        self.lam = torch.cat([self.lam, torch.full_like(pe, self.options.damping)])
+
+    def step(self, rows: Tensor) -> None:
+        """One LM iteration of the given rows: a step with the limits inside it, kept if it lowers the cost."""
+        lim, scale = self.lim, self.scale
+        xa, ra, ja, la = self.x[rows], self.r[rows], self.jac[rows] * scale, self.lam[rows]
+        box, normals = lim.blocked(xa, (ja.mT @ ra.unsqueeze(-1)).squeeze(-1))
+        held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
+        if held.any():                                               # J̃·P on the rows a limit holds
+            h = held.nonzero().squeeze(-1)
+            ja = ja.clone()
+            ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
+        # the dual form: δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖²
+        gram = ja @ ja.mT + la[:, None, None] * self.eye
+        step = -(ja.mT @ torch.linalg.solve(gram, ra.unsqueeze(-1))).squeeze(-1)
+        xt = lim.project(xa + step * scale)
+        rt, jt, pe, re = self._residual(xt, rows)
+        ct = (rt * rt).sum(-1)
+        better = ct < self.cost[rows]
+        acc = rows[better]
+        self.x[acc], self.r[acc], self.jac[acc], self.cost[acc] = xt[better], rt[better], jt[better], ct[better]
+        self.pos_err[acc], self.rot_err[acc] = pe[better], re[better]
+        self.lam[rows] = torch.where(better, torch.clamp(la / 3, min=1e-12), la * 4)
+
+
+STALL_LAMBDA = 1e6   # λ beyond which a start has no descent direction left (a local minimum, or unreachable)
+
+
+def levenberg_marquardt(model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
+                        options: IKOptions = IKOptions()) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Refine M starts x0 (M, D) towards targets (position (M, 3) [m], rotation (M, 3, 3) or None) inside the
+    limits (module docstring), at most ``options.max_iterations`` each. Returns (x (M, D), pos_err (M,) [m],
+    rot_err (M,) [rad], iterations (M,)). A start stops when both errors are below a tenth of the tolerance or
+    when λ exceeds :data:`STALL_LAMBDA`; x always stays admissible."""
+    state = _Refinement(model, x0, position, rotation, options)
+    iters = torch.zeros(state.x.shape[0], dtype=torch.long)
+    for _ in range(options.max_iterations):
+        rows = (~state.converged() & (state.lam < STALL_LAMBDA)).nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            break
+        state.step(rows)
+        iters[rows] += 1
+    return state.x, state.pos_err, state.rot_err, iters
+
+
+def _distinct_mask(q: Tensor, ok: Tensor, order: Tensor, threshold: float) -> Tensor:
+    """(B, K) True for successful slots that differ from every earlier kept one (in ``order``) by ≥ threshold
+    in some joint (greedy, in that order)."""
+    b, k, _ = q.shape
+    qs = torch.gather(q, 1, order.unsqueeze(-1).expand_as(q))
+    oks = torch.gather(ok, 1, order)
+    kept = torch.zeros(b, k, dtype=torch.bool)
+    for j in range(k):
+        diff = (qs[:, :j] - qs[:, j:j + 1]).abs().amax(-1)                              # (B, j)
+        dup = ((diff < threshold) & kept[:, :j]).any(-1)
+        kept[:, j] = oks[:, j] & ~dup
+    out = torch.zeros_like(kept)
+    return out.scatter(1, order, kept)
+
+
+def _order(q: Tensor, x: Tensor, ok: Tensor, cost: Tensor, rest: Tensor, scale: Tensor,
+           q0: Tensor | None) -> Tensor:
+    """(B, K) slot order: successful first, then by distance to q0 (joint space) or to the rest
+    configuration (scaled variables), failed slots by their residual."""
+    if q0 is not None:
+        key = (q - q0.unsqueeze(1)).abs().amax(-1)
+    else:
+        key = torch.linalg.vector_norm((x - rest) / scale, dim=-1)
+    key = torch.where(ok, key, 1e6 + cost)
+    return torch.argsort(key, dim=1, stable=True)
+
+
+def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | None = None,
+             position_only: bool = False, options: IKOptions = IKOptions(), seeds: Tensor | None = None) -> IKResult:
+    """Up to ``n_solutions`` joint vectors per target (see :class:`IKResult` for the fields and their order).
+
+    model_or_spec: a RobotSpec / robot YAML path / dict (analytic CC model), a trained FK model, or an
+    :class:`~.models.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
+    positions with ``position_only``. q0 (B, N) or (N,): a warm start (the previous command of a
+    trajectory): slot 0 starts there and the solution nearest q0 comes first. seeds (B, S, D): further starts
+    in the model's variables (e.g. from a learned sampler; used before random ones).
+    An unreachable target gets success False and the admissible configuration with the smallest residual.
+    """
+    model = as_solver_model(model_or_spec)
+    if n_solutions < 1:
+        raise ValueError(f"n_solutions: expected >= 1, got {n_solutions}")
+    if not position_only and not model.has_rotation:
+        raise ValueError("position_only: this model gives a tip position only; call with position_only=True")
+    target = check_targets(target, position_only)
+    b, k, lim = target.shape[0], n_solutions, model.limits
+    d = lim.num_variables
+    position = target[:, :3, 3] if target.dim() == 3 else target
+    rotation = None if position_only else target[:, :3, :3]
+    gen = torch.Generator().manual_seed(options.seed)
+    starts = lim.sample(b * k, gen).view(b, k, d)
+    if seeds is not None:
+        if seeds.dim() != 3 or seeds.shape[0] != b or seeds.shape[2] != d or not torch.isfinite(seeds).all():
+            raise ValueError(f"seeds: expected finite (B={b}, S, D={d}) variables, got {tuple(seeds.shape)}")
+        s = min(k, seeds.shape[1])
+        starts[:, :s] = seeds[:, :s].to(_F64)
+    if q0 is not None:
+        q0 = _check_q0(q0, b, model.num_joints)
+        starts[:, 0] = model.variables(q0)
+
+    state = _Refinement(model, starts.view(-1, d), position.repeat_interleave(k, 0),
+                        None if rotation is None else rotation.repeat_interleave(k, 0), options)
+    x, iters = _multi_start(state, gen, b, k, keep_first=q0 is not None)
+    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
+                            lim.project(model.rest.to(_F64)), options)
+
+
+FAN_OUT = 4   # new starts a slot takes at once when its starts have stalled, doubled at each further restart
+MAX_FAN_OUT = 64
+DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live starts than this fraction of slots
+
+
+def _multi_start(state: _Refinement, gen: torch.Generator, b: int, k: int, keep_first: bool) -> tuple[Tensor, Tensor]:
+    """Run the LM iterations of the B·K slots (one start each, rows 0 … M − 1 of ``state``) together, adding
+    starts where needed. A start stalls when it has not converged after ``max_iterations`` iterations or its λ
+    passed :data:`STALL_LAMBDA`; a slot whose starts have all stalled takes :data:`FAN_OUT` new uniform starts at
+    once, twice as many at each further restart (at most ``restarts`` times, :data:`MAX_FAN_OUT` at once: at
+    the end of a batch few rows iterate, so more starts cost little more than one), and a slot is solved by
+    the first of its starts that converges (the others stop). When most slots are settled, successful slots that
+    duplicate another solution of their target take new starts the same way (twice at most).
+    Returns each slot's variables (M, D) — its converged start, or
+    the start of least residual — and the iterations spent on the slot (M,)."""
+    opts, lim, m, model = state.options, state.lim, b * k, state.model
+    slot = torch.arange(m)                                            # the slot of each row (start)
+    since = torch.zeros(m, dtype=torch.long)                          # iterations of each row
+    live = torch.ones(m, dtype=torch.bool)                            # rows still iterating
+    used = torch.zeros(m, dtype=torch.long)                           # restarts taken, per slot
+    solution = torch.full((m,), -1, dtype=torch.long)                 # the row that solved each slot
+    duplicates_checked = 0
+    redundant = state.x.shape[1] >= state.r.shape[1]    # fewer variables than residuals: isolated solutions
+    while True:
+        conv = state.converged() & live
+        first_conv = torch.full((m,), state.x.shape[0], dtype=torch.long).scatter_reduce(
+            0, slot[conv], conv.nonzero().squeeze(-1), "amin")
+        newly = (solution < 0) & (first_conv < state.x.shape[0])
+        solution[newly] = first_conv[newly]
+        live &= ~conv & (solution[slot] < 0)                          # a solved slot's other starts stop
+        live &= ~((since >= opts.max_iterations) | (state.lam >= STALL_LAMBDA))
+        alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, slot[live], True)
+        again = (solution < 0) & ~alive & (used < opts.restarts)
+        if (duplicates_checked < 2 and redundant and live.sum() <= DUPLICATE_CHECK_BELOW * m
+                and not again.any()):
+            duplicates_checked += 1                         # most slots settled: look for duplicate solutions
+            ok = (solution >= 0).view(b, k)
+            x_slot = state.x[solution.clamp_min(0)]
+            order = torch.argsort((~ok).to(torch.int8), dim=1, stable=True)
+            dup = ok & ~_distinct_mask(model.joints(x_slot).view(b, k, -1), ok, order, opts.distinct)
+            if keep_first:
+                dup[:, 0] = False
+            again = dup.flatten() & (used < opts.restarts)
+            solution[again] = -1           # reopened; the duplicate row stays a candidate (it has converged)
+            live[torch.isin(slot, again.nonzero().squeeze(-1))] = False
+        if again.any():
+            reopened = again.nonzero().squeeze(-1)
+            slots = reopened.repeat_interleave(torch.clamp(FAN_OUT * 2 ** used[reopened], max=MAX_FAN_OUT))
+            state.append(lim.sample(slots.numel(), gen), state.position[slots],
+                         None if state.rotation is None else state.rotation[slots])
+            slot = torch.cat([slot, slots])
+            since = torch.cat([since, torch.zeros_like(slots)])
+            live = torch.cat([live, torch.ones_like(slots, dtype=torch.bool)])
+            used[again] += 1
+        rows = live.nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            break
+        state.step(rows)
+        since[rows] += 1
+    return _slot_results(state, slot, solution, since, m)
+
+
+def _slot_results(state: _Refinement, slot: Tensor, solution: Tensor, since: Tensor, m: int) -> tuple[Tensor, Tensor]:
+    """Per slot: the variables of its solving row, else of its row of least cost; and the iterations of all its rows."""
+    cost = state.cost.clone()
+    best = torch.full((m,), float("inf"), dtype=_F64).scatter_reduce(0, slot, cost, "amin")
+    is_best = cost <= best[slot]
+    pick = torch.full((m,), cost.shape[0], dtype=torch.long).scatter_reduce(
+        0, slot[is_best], is_best.nonzero().squeeze(-1), "amin")
+    pick = torch.where(solution >= 0, solution, pick)
+    iters = torch.zeros(m, dtype=torch.long).index_add_(0, slot, since)
+    return state.x[pick], iters
+
+
+def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Tensor, rotation: Tensor | None,
+                     q0: Tensor | None, rest: Tensor, options: IKOptions) -> IKResult:
+    """The result of variables x (B, K, D): joints, the model's independent check, order and distinct flags."""
+    b, k, d = x.shape
+    q = model.joints(x.view(-1, d))
+    check = model.check(q)
+    q = q.view(b, k, -1)
+    rows = torch.arange(b).repeat_interleave(k)
+    pos_err = torch.linalg.vector_norm(check.position - position[rows], dim=-1).view(b, k)
+    rot_err = (torch.zeros_like(pos_err) if rotation is None
+               else rotation_geodesic(check.rotation, rotation[rows]).view(b, k))
+    tol_p, tol_r = options.tolerance
+    constraint_ok = (check.constraint <= 1e-9 * max(model.length, 1.0)).view(b, k)
+    ok = (pos_err <= tol_p) & (rot_err <= tol_r) & check.inside.view(b, k) & constraint_ok
+    order = _order(q, x, ok, pos_err / model.length + rot_err, rest, model.limits.scale, q0)
+    distinct = _distinct_mask(q, ok, order, options.distinct)
+    pick = lambda t: torch.gather(t, 1, order.view(b, k, *([1] * (t.dim() - 2))).expand_as(t))  # noqa: E731
+    return IKResult(q=pick(q), success=pick(ok), pos_err=pick(pos_err), rot_err=pick(rot_err),
+                    iterations=pick(iters), distinct=pick(distinct))
+
+
+def _check_q0(q0, b: int, n: int) -> Tensor:
+    if not isinstance(q0, Tensor):
+        q0 = torch.as_tensor(q0)
+    if not q0.is_floating_point():
+        raise ValueError(f"q0: expected floating-point joint values, got dtype {q0.dtype}")
+    q0 = q0.to(_F64)
+    if q0.dim() == 1:
+        q0 = q0.expand(b, -1)
+    if q0.shape != (b, n):
+        raise ValueError(f"q0: expected a warm start of shape ({n},) or ({b}, {n}), got {tuple(q0.shape)}")
+    if not torch.isfinite(q0).all():
+        raise ValueError("q0: expected finite joint values, got NaN/inf entries")
+    return q0
