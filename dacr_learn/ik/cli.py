@@ -1,0 +1,171 @@
+"""Solve IK for a file of targets: several verified solutions per target.
+
+    python -m dacr_learn.ik (--robot ROBOT.yaml | --ckpt CKPT) --targets T.npy --out S.npz --solutions K \
+        [--position-only]
+
+T.npy: float64 (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3) tip positions with --position-only.
+S.npz: q (B, K, N) float64 joint vectors (the robot's joint order, what ClarkeDecoder returns; servo commands
+[mm] for a hardware model), success (B, K) bool (the solver's verdict: pose within --tolerance, inside every
+limit of the robot file, on the displacement constraint), pos_err (B, K) [m], rot_err (B, K) [rad] (0 with
+--position-only), iterations (B, K), distinct (B, K) (solutions kept as distinct from the earlier ones of their
+target); for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution.
+
+--ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
+run/checkpoint or a learned IK sampler (the analytic CC model of its robot, seeded by the network), or a saved
+hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only).
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .solver import IKOptions, IKResult, check_targets, solve_ik
+
+_F64 = torch.float64
+
+
+def _load_array(path: str, flag: str) -> np.ndarray:
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{flag} {path}: no such file; expected a .npy array")
+    try:
+        return np.load(p, allow_pickle=False)
+    except (ValueError, OSError) as err:
+        raise ValueError(f"{flag} {path}: expected a .npy array (numpy.save), found a file numpy cannot read "
+                         f"({err})") from err
+
+
+def _out_path(path: str) -> Path:
+    out = Path(path)
+    if out.is_dir():
+        raise ValueError(f"--out {path}: is a folder; expected the path of the .npz file to write")
+    if out.parent.exists() and not out.parent.is_dir():
+        raise ValueError(f"--out {path}: its parent {out.parent} is a file, not a folder")
+    return out
+
+
+def _save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write atomically: a temporary file beside ``out``, then renamed (an interrupted run leaves no half file)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_solver_model(robot: str | None, ckpt: str | None):
+    """(model_or_spec, seed function or None, description) for --robot / --ckpt."""
+    if robot is not None:
+        from ..robot import RobotSpec
+        spec = RobotSpec.from_yaml(robot)
+        return spec, None, f"analytic constant-curvature model of {robot}"
+    path = Path(ckpt)
+    if path.is_file() and path.suffix == ".pt":
+        from ..hardware.deploy.checkpoint import load_hardware_model
+        return load_hardware_model(path), None, f"hardware model {ckpt} (servo commands [mm])"
+    from ..runs import load_model
+    net = load_model(path, dtype=_F64)
+    if net.task == "fk":
+        return net, None, f"learned FK {ckpt} (accuracy with respect to the network)"
+    return net.spec, _network_seeds(net), f"analytic CC model of {ckpt}'s robot, seeded by its IK network"
+
+
+def _network_seeds(net):
+    """Seeds (B, S, D) from a trained IK network (its prediction for each pose target) or a learned sampler."""
+    from ..control import ClarkeSpace
+    space = ClarkeSpace(net.spec)
+
+    def seeds(target: torch.Tensor, count: int) -> torch.Tensor | None:
+        if hasattr(net, "sample_features"):                       # a learned multi-solution sampler
+            return net.sample_features(target, count)
+        if target.dim() != 3:
+            return None                                           # an IK network needs whole poses
+        with torch.no_grad():
+            return space.features(net(target).to(_F64)).unsqueeze(1)
+    return seeds
+
+
+def main(argv: list[str] | None = None) -> IKResult:
+    p = argparse.ArgumentParser(prog="python -m dacr_learn.ik", description=__doc__.split("\n\n")[0])
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--robot", help="robot YAML file: solve on its analytic constant-curvature model")
+    src.add_argument("--ckpt", help="trained FK / IK run or checkpoint, learned sampler, or hardware model.pt")
+    p.add_argument("--targets", required=True, help="(B, 4, 4) poses or (B, 3) positions [m], float64 .npy")
+    p.add_argument("--out", required=True, help="the .npz file to write")
+    p.add_argument("--solutions", type=int, default=8, help="solutions per target, K (default 8)")
+    p.add_argument("--position-only", action="store_true", help="targets are tip positions (B, 3)")
+    p.add_argument("--tolerance", type=float, nargs=2, default=(1e-6, 1e-5), metavar=("POS", "ROT"),
+                   help="success tolerance: position [m] and rotation [rad] (default 1e-6 1e-5)")
+    p.add_argument("--q0", help="warm start (N,) or (B, N) .npy: the solution nearest it comes first")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
+    p.add_argument("--batch", type=int, default=2000, help="targets solved at once (default 2000)")
+    args = p.parse_args(argv)
+    if args.solutions < 1:
+        raise ValueError(f"--solutions: expected >= 1, got {args.solutions}")
+    if args.batch < 1:
+        raise ValueError(f"--batch: expected >= 1, got {args.batch}")
+    out = _out_path(args.out)
+    started = time.perf_counter()
+    try:
+        targets = check_targets(torch.from_numpy(_load_array(args.targets, "--targets")), args.position_only)
+    except ValueError as err:
+        raise ValueError(f"--targets {args.targets}: {err}") from err
+    q0 = None if args.q0 is None else torch.from_numpy(_load_array(args.q0, "--q0"))
+    model, seeder, description = load_solver_model(args.robot, args.ckpt)
+    options = IKOptions(tolerance=tuple(args.tolerance), seed=args.seed)
+    from .models import as_solver_model
+    solver_model = as_solver_model(model)
+    parts = []
+    chunks = range(0, targets.shape[0], args.batch)
+    progress = _progress(len(chunks))
+    for start in chunks:
+        t = targets[start:start + args.batch]
+        q0_chunk = q0 if q0 is None or q0.dim() == 1 else q0[start:start + args.batch]
+        seeds = None if seeder is None else seeder(t, args.solutions)
+        parts.append(solve_ik(solver_model, t, args.solutions, q0=q0_chunk, position_only=args.position_only,
+                              options=options, seeds=seeds))
+        progress.update()
+    progress.close()
+    result = IKResult(*(torch.cat([getattr(r, f) for r in parts]) for f in
+                        ("q", "success", "pos_err", "rot_err", "iterations", "distinct")))
+    arrays = {k: v for k, v in result.numpy().items()}
+    arrays["q"] = arrays["q"].astype(np.float64)
+    if hasattr(solver_model, "hardware"):
+        b, k, n = result.q.shape
+        _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n))
+        arrays["sigma"] = sigma.reshape(b, k, 3).to(_F64).numpy()
+    _save_npz(out, arrays)
+    ok = result.success
+    print(f"solved {int(ok.any(1).sum())}/{ok.shape[0]} targets ({int(ok.sum())}/{ok.numel()} solutions, "
+          f"{result.distinct.sum(1).double().mean():.1f} distinct per target) on the {description} "
+          f"in {time.perf_counter() - started:.1f} s → {out}")
+    return result
+
+
+class _NoProgress:
+    def update(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _progress(total: int):
+    if total < 2:
+        return _NoProgress()
+    from tqdm import tqdm
+    return tqdm(total=total, desc="IK", unit="batch", file=sys.stderr)
+
+
+def package_main(argv: list[str] | None = None) -> None:
+    """The CLI without its return value (``run_cli`` exits with the status it returns)."""
+    main(argv)
