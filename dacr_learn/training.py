@@ -152,7 +152,7 @@ class KinematicsModule(pl.LightningModule):
     @torch.no_grad()
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
         """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres; keys of
-        :func:`dacr_learn.rerun_scene.log_scene`): the CC backbone of the samples' features, the dataset's
+        :func:`dacr_learn.viz.scene.log_scene`): the CC backbone of the samples' features, the dataset's
         own backbone where it has one (Cosserat), the learned segment ends of a compositional model."""
         val = self.trainer.datamodule.splits["val"]
         k, n = min(self.hparams.visual_samples, len(val["q"])), min(num_workspace, len(val["q"]))

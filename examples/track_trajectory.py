@@ -43,10 +43,10 @@ from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
 from dacr_learn.kinematics import backbone_points, forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
-from dacr_learn.rerun_layout import full_range_plot, time_panel_at_end  # noqa: E402
-from dacr_learn.rerun_scene import log_path, log_scene  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 from dacr_learn.runs import find_checkpoint  # noqa: E402
+from dacr_learn.viz.layout import full_range_plot, time_panel_at_end  # noqa: E402
+from dacr_learn.viz.scene import log_path, log_scene  # noqa: E402
 
 DEFAULT_RUN = ROOT / "runs" / "fk_type1"
 TRAIN_COMMAND = [".venv/bin/python", "train.py", "fit", "--config", "configs/fk_type1.yaml"]
