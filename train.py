@@ -33,7 +33,7 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from dacr_learn import runs
 from dacr_learn.checks import load_torch_file
 from dacr_learn.console import run_cli
-from dacr_learn.cosserat.dataset import cc_baseline
+from dacr_learn.data.cosserat import cc_baseline
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
 from dacr_learn.training import FKModule, KinematicsModule
