@@ -20,7 +20,7 @@ torch.Size([4, 4])
 """
 from importlib.metadata import PackageNotFoundError, version
 
-from .control import ControllerConfig, ResolvedRateController, analytic_jacobian
+from .deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
 from .kinematics import analytic_inverse_kinematics, backbone_points, forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import FKModel, IKModel

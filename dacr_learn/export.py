@@ -5,7 +5,7 @@
 
 From an FK checkpoint: ``fk`` (joint vector (..., N) → pose (..., 4, 4)) and ``jacobian``
 (joint vector → pose, J_f (..., 6, D), J_q (..., 6, N)); from an IK checkpoint: ``ik``
-(pose (..., 4, 4) → joint vector (..., N)). See :mod:`dacr_learn.inference` for the modules
+(pose (..., 4, 4) → joint vector (..., N)). See :mod:`dacr_learn.deploy.inference` for the modules
 (normalisation and Clarke layers folded in, SI units). Each is written as
 
 - ``<name>.pt2``: a ``torch.export`` program (portable; runs op by op, or re-compile it), and
@@ -36,8 +36,8 @@ from torch import Tensor, nn
 
 from .checks import check_tensor, load_torch_file, read_json_object, short_error
 from .console import run_cli
-from .inference import InferenceFK, InferenceIK, InferenceJacobian
-from .inference_compositional import InferenceCompositionalFK, InferenceCompositionalJacobian
+from .deploy.inference import InferenceFK, InferenceIK, InferenceJacobian
+from .deploy.inference_compositional import InferenceCompositionalFK, InferenceCompositionalJacobian
 from .robot import RobotSpec
 from .runs import CHECKPOINT, find_checkpoint, load_lightning_checkpoint
 

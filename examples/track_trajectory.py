@@ -1,7 +1,7 @@
 """Closed-loop trajectory tracking with a learned Jacobian (resolved-rate control in Clarke space).
 
 A learned FK checkpoint is exported (dacr_learn.export) and its ``jacobian`` module drives a
-:class:`dacr_learn.control.ResolvedRateController`. The "real" robot is the analytic
+:class:`dacr_learn.deploy.control.ResolvedRateController`. The "real" robot is the analytic
 constant-curvature model, optionally with Gaussian joint noise on the executed joint lengths and
 a model mismatch (a different joint radius, a different backbone length); its measured tip
 position closes the loop. The tip tracks a circle and a figure-8; printed are the RMS / max
@@ -40,7 +40,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from dacr_learn import export as dexport  # noqa: E402
-from dacr_learn.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
+from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
 from dacr_learn.kinematics import backbone_points, forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
