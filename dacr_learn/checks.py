@@ -36,7 +36,8 @@ def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool =
     """Raise ValueError unless ``x`` is a floating tensor of shape (..., *trailing) with finite values
     (and, with ``nonempty``, at least one element).
 
-    Skipped while tracing for torch.export / torch.compile (the checks are data dependent). The
+    Skipped while tracing for torch.export / torch.compile (the checks are data dependent); under
+    torch.func transforms (vmap, jacfwd, jacrev) only the shape and dtype are checked. The
     accepting path is a few attribute reads and one sum (it sits in every exported call); the error
     messages are built only on failure (:func:`_raise_bad_tensor`).
     """
@@ -48,6 +49,8 @@ def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool =
     # slows the AOTI call after it. Above _PY_SUM_MAX elements it is one torch reduction read back.
     trailing = tuple(trailing)
     k = len(trailing)
+    if finite and isinstance(x, Tensor) and torch._C._functorch.is_functorch_wrapped_tensor(x):
+        finite = False     # under torch.func (vmap, jacfwd) the values are not readable: shapes only
     if (isinstance(x, Tensor) and x.is_floating_point() and x.dim() >= k and x.shape[x.dim() - k:] == trailing
             and (not nonempty or x.numel() > 0)
             and (not finite or _sum_is_finite(x) or bool(torch.isfinite(x).all()))):

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_tensor
-from .lie import bending_coefficients, chain_products
+from .lie import chain_jacobian, chain_products, roll_z, roll_z_and_tangents, twist_exp, twist_exp_and_tangents
 from .robot import RobotSpec
 
 
@@ -58,32 +58,44 @@ def effective_features(spec: RobotSpec, features: Tensor) -> Tensor:
     return torch.cat([features[..., :2], beta.unsqueeze(-1), alpha.unsqueeze(-1)], dim=-1)
 
 
-def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor:
-    """Rz(α)·T_cc for bending vector u (..., 2) [rad], length β (...) [m], roll α (...) [rad] → (..., 4, 4).
+def cc_twist(u: Tensor, beta: Tensor) -> Tensor:
+    """The twist ξ = (v, ω) (..., 6) of a constant-curvature segment: v = (0, 0, β), ω = (−u_y, u_x, 0), for the
+    bending vector u (..., 2) [rad] and length β (...) [m]; exp(ξ^) is the segment's pose (docs/design.md §2).
+    Linear in (u, β): a change du, dβ is the twist (0, 0, dβ, −du_y, du_x, 0)."""
+    zero = torch.zeros_like(u[..., 0]).expand(torch.broadcast_shapes(u.shape[:-1], beta.shape))
+    return torch.stack([zero, zero, beta.expand_as(zero), -u[..., 1].expand_as(zero), u[..., 0].expand_as(zero),
+                        zero], dim=-1)
 
-    ``alpha=None`` means no roll. Written entry by entry into one output tensor: small batched
-    matmuls and last-dim stacking would dominate the run time on CPU for large batches.
+
+def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor:
+    """Rz(α)·exp(ξ_cc^) for bending vector u (..., 2) [rad], length β (...) [m], roll α (...) [rad] → (..., 4, 4).
+
+    ``alpha=None`` means no roll. The kernel's exponential (:func:`~.lie.twist_exp`) of :func:`cc_twist`:
+    R = I + s·K + f·K², p = β·(f·u_x, f·u_y, s).
     """
-    ux, uy = u[..., 0], u[..., 1]
-    phi_sq = ux * ux + uy * uy
-    s, f = bending_coefficients(phi_sq)
-    fx, fy, sx, sy = f * ux, f * uy, s * ux, s * uy
-    r01 = -fx * uy
-    rows = [[1 - fx * ux, r01, sx, beta * fx],
-            [r01, 1 - fy * uy, sy, beta * fy],
-            [-sx, -sy, 1 - f * phi_sq, beta * s]]
+    pose = twist_exp(cc_twist(u, beta))
+    return pose if alpha is None else roll_z(pose, alpha)
+
+
+def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor) -> tuple[Tensor, Tensor]:
+    """Tip pose and its Jacobian w.r.t. every feature column, in closed form (the kernel's exponential with
+    tangents and chain rule, :mod:`~.lie`): features (..., m, 4) → pose (..., 4, 4) [m],
+    J (..., 6, m, 4): the tip point's velocity [m] and angular velocity [rad] in the base frame per unit of
+    (ρ_re, ρ_im, β, α) of each segment. Columns a segment does not actuate are zero."""
+    u, beta, alpha = _segment_parameters(spec, features)
+    radius, _, extends, twists = _segment_constants(spec, features.dtype, features.device)
+    m = spec.num_segments
+    dxi = torch.zeros(m, 4, 6, dtype=features.dtype, device=features.device)     # ∂ξ/∂(ρ_re, ρ_im, β, α)
+    dxi[:, 0, 4] = 1 / radius
+    dxi[:, 1, 3] = -1 / radius
+    dxi[:, 2, 2] = extends.to(features.dtype)
+    pose, ang, lin = twist_exp_and_tangents(cc_twist(u, beta), dxi.expand(*u.shape[:-1], 4, 6))
     if alpha is not None:
-        ca, sa = torch.cos(alpha), torch.sin(alpha)
-        rows[0], rows[1] = ([ca * a - sa * b for a, b in zip(rows[0], rows[1], strict=True)],
-                            [sa * a + ca * b for a, b in zip(rows[0], rows[1], strict=True)])
-    shape = torch.broadcast_shapes(phi_sq.shape, beta.shape, *(() if alpha is None else (alpha.shape,)))
-    out = torch.empty(*shape, 4, 4, dtype=phi_sq.dtype, device=phi_sq.device)
-    for i, row in enumerate(rows):
-        for j, value in enumerate(row):
-            out[..., i, j] = value
-    out[..., 3, :3] = 0.0
-    out[..., 3, 3] = 1.0
-    return out
+        alpha_row = torch.zeros(m, 4, 1, dtype=features.dtype, device=features.device)
+        alpha_row[:, 3, 0] = twists.to(features.dtype)
+        pose, ang, lin = roll_z_and_tangents(pose, ang, lin, alpha, alpha_row)
+    tip, jac = chain_jacobian(pose, ang, lin)
+    return tip, jac.unflatten(-1, (m, 4))
 
 
 def segment_poses(spec: RobotSpec, features: Tensor) -> Tensor:

@@ -33,11 +33,11 @@ from hypothesis import strategies as st
 from dacr_learn.kinematics import (
     analytic_inverse_kinematics,
     backbone_points,
-    bending_coefficients,
     forward_kinematics,
     segment_poses,
     segment_tip_poses,
 )
+from dacr_learn.lie import bending_coefficients
 from dacr_learn.robot import RobotSpec
 
 F64 = torch.float64
@@ -353,3 +353,38 @@ def test_torch_export_matches_eager_and_does_not_poison_eager_calls():
         assert np.allclose(eager[b].numpy(), classic_forward_kinematics(spec, feat[b].numpy()), atol=1e-12)
     other = random_features(spec, (4,), 13)
     assert torch.allclose(exported.module()(other), forward_kinematics(spec, other), atol=roundoff_tol(F64), rtol=0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Closed-form Jacobian of the CC FK (the kernel's tangents and chain rule) against reverse-mode autodiff
+# --------------------------------------------------------------------------------------------------
+
+
+def _random_features(spec: RobotSpec, n: int, seed: int, straight: bool = False) -> torch.Tensor:
+    from dacr_learn.data import sample_features
+    feats = sample_features(spec, n, torch.Generator().manual_seed(seed), dtype=F64)
+    if straight:
+        feats[..., :2] = 0.0
+    return feats
+
+
+@pytest.mark.parametrize("robot", ["tdcr_3seg_coupled", "hetero_4seg_types", "type3", "asymmetric"])
+@pytest.mark.parametrize("straight", [False, True])
+def test_cc_pose_and_jacobian_is_reverse_mode_autodiff(robot, straight):
+    from dacr_learn.control import twist_jacobian
+    from dacr_learn.kinematics import cc_pose_and_jacobian
+    spec = RobotSpec.from_yaml(ROBOT_CONFIGS[0].parent / f"{robot}.yaml")
+    feats = _random_features(spec, 6, 0, straight)
+    pose, jac = cc_pose_and_jacobian(spec, feats)
+    dpose = torch.func.vmap(torch.func.jacrev(lambda f: forward_kinematics(spec, f)))(feats)   # (6, 4, 4, m, 4)
+    expected = twist_jacobian(pose, dpose.flatten(-2)).unflatten(-1, (spec.num_segments, 4))
+    assert (pose - forward_kinematics(spec, feats)).abs().max() <= roundoff_tol(F64, spec.total_length)
+    assert (jac - expected).abs().max() <= roundoff_tol(F64, 10.0 * spec.total_length / min(
+        s.radius for s in spec.segments))
+
+
+def test_forward_kinematics_runs_under_torch_func_transforms():
+    spec = RobotSpec.from_yaml(ROBOT_CONFIGS[0].parent / "type1.yaml")
+    feats = _random_features(spec, 3, 1)
+    jac = torch.func.vmap(torch.func.jacfwd(lambda f: forward_kinematics(spec, f)))(feats)
+    assert jac.shape == (3, 4, 4, 1, 4) and torch.isfinite(jac).all()

@@ -118,3 +118,63 @@ def test_exp_of_the_twist_matrix_is_twist_exp(scale):
     xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
     got = exp_of_twist_matrix((xi @ hat_map()).unflatten(-1, (4, 4)))
     assert (got - twist_exp(xi)).abs().max() <= roundoff_tol(torch.float64, 1.0 + float(xi.abs().max()))
+
+
+# --------------------------------------------------------------------------------------------------
+# The kernel's spatial tangents, roll and chain rule against forward/reverse-mode autodiff
+# --------------------------------------------------------------------------------------------------
+
+
+def spatial(pose: torch.Tensor, dpose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(b = vee(dR·Rᵀ), dp) of a pose (..., 4, 4) and its derivative (..., 4, 4)."""
+    return lie.vee(dpose[..., :3, :3] @ pose[..., :3, :3].mT), dpose[..., :3, 3]
+
+
+@pytest.mark.parametrize("scale", [0.0, 1e-4, 0.05, 0.3, 2.5])   # φ = 0, the Taylor branch, the closed form
+def test_twist_exp_and_tangents_are_forward_mode_autodiff(scale):
+    xi, dxi = twists(12, scale, seed=4), twists(12 * 5, 1.0, seed=5).view(12, 5, 6)
+    pose, ang, lin = lie.twist_exp_and_tangents(xi, dxi)
+    assert torch.equal(pose, twist_exp(xi))
+    for t in range(5):
+        b, dp = spatial(pose, torch.func.jvp(twist_exp, (xi,), (dxi[:, t],))[1])
+        assert (ang[:, t] - b).abs().max() <= roundoff_tol(F64, 10.0)
+        assert (lin[:, t] - dp).abs().max() <= roundoff_tol(F64, 10.0 * (1 + float(xi[:, :3].abs().max())))
+
+
+def test_roll_z_and_tangents_are_forward_mode_autodiff():
+    xi, alpha = twists(6, 1.0, seed=6), torch.linspace(-2.0, 2.0, 6, dtype=F64)
+    dxi = torch.cat([twists(6 * 2, 1.0, seed=7).view(6, 2, 6), torch.zeros(6, 1, 6, dtype=F64)], dim=1)
+    alpha_row = torch.tensor([0.0, 0.0, 1.0], dtype=F64).view(3, 1)   # direction 2 is the roll angle
+    pose, ang, lin = lie.roll_z_and_tangents(*lie.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
+
+    def rolled(x, a):
+        return lie.roll_z(twist_exp(x), a)
+
+    assert torch.equal(pose, rolled(xi, alpha))
+    for t in range(3):
+        direction = (dxi[:, t], alpha_row[t].expand(6))
+        b, dp = spatial(pose, torch.func.jvp(rolled, (xi, alpha), direction)[1])
+        torch.testing.assert_close(ang[:, t], b, atol=roundoff_tol(F64, 10.0), rtol=0)
+        torch.testing.assert_close(lin[:, t], dp, atol=roundoff_tol(F64, 10.0), rtol=0)
+
+
+@pytest.mark.parametrize("factors", [1, 2, 5])
+def test_chain_jacobian_is_reverse_mode_autodiff_of_the_product(factors):
+    """J of T_1(x_1)⋯T_n(x_n), each T_k = exp of a twist that moves along 3 directions, against jacrev."""
+    xi, dirs = twists(4 * factors, 1.0, seed=8).view(4, factors, 6), twists(factors * 3, 1.0, seed=9)
+    dirs = dirs.view(factors, 3, 6)
+
+    def tip(x):                                               # x (factors, 3): coordinates along dirs
+        return lie.chain_products(twist_exp(xi_k + (x.unsqueeze(-1) * dirs).sum(-2)))[..., -1, :, :]
+
+    for b in range(4):
+        xi_k = xi[b]
+        pose, ang, lin = lie.twist_exp_and_tangents(xi_k, dirs)
+        got_tip, jac = lie.chain_jacobian(pose, ang, lin)
+        x0 = torch.zeros(factors, 3, dtype=F64)
+        ref = torch.func.jacrev(tip)(x0).flatten(-2)           # (4, 4, factors·3)
+        rot = got_tip[:3, :3]
+        omega = lie.vee(torch.einsum("ijk,lj->ilk", ref[:3, :3], rot).permute(2, 0, 1))   # (factors·3, 3)
+        expected = torch.cat([ref[:3, 3], omega.mT], dim=0)
+        torch.testing.assert_close(got_tip, tip(x0), atol=roundoff_tol(F64, 10.0), rtol=0)
+        torch.testing.assert_close(jac, expected, atol=roundoff_tol(F64, 100.0), rtol=0)
