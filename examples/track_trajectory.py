@@ -44,7 +44,7 @@ from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, 
 from dacr_learn.kinematics import backbone_points, forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
-from dacr_learn.runs import find_checkpoint  # noqa: E402
+from dacr_learn.runs import find_checkpoint, load_checkpoint_model  # noqa: E402
 from dacr_learn.viz.layout import full_range_plot, time_panel_at_end  # noqa: E402
 from dacr_learn.viz.scene import log_path, log_scene  # noqa: E402
 
@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> dict:
         jac = learned_jacobian(ckpt, args.out / "export", args.aoti)
         spec = RobotSpec.from_dict(jac.metadata["robot"])
     else:
-        spec = dexport.load_lightning_checkpoint(ckpt)[1].spec
+        spec = load_checkpoint_model(ckpt)[1].spec
         jac = analytic_jacobian(spec)
     ctrl = ResolvedRateController(spec, jac, ControllerConfig(gain=args.gain))
     robot = SimulatedRobot(spec, args.radius_scale, args.length_scale, args.joint_noise)

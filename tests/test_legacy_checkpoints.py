@@ -55,9 +55,11 @@ def test_hardware_model_of_main_loads_predicts_as_it_did_and_exports(recorded, t
     rec = recorded["hardware_model"]
     model = load_hardware_model(DATA / "hardware_model.pt")
     mean, sigma = model.predict(rec["input"])
-    tol = roundoff_tol(torch.float64, scale(rec["output"]), ulps=1024)
+    # part of the hardware model computes in float32 (its member networks), so rounding is float32's at the tip's
+    # scale (1.5e-8 m, 0.8 ulp, between 87f426b and the one kernel); a misread file moves the tip by millimetres
+    tol = roundoff_tol(torch.float32, scale(rec["output"]), ulps=64)
     assert (mean - rec["output"]).abs().max() <= tol
-    assert (sigma - rec["sigma"]).abs().max() <= roundoff_tol(torch.float64, scale(rec["output"]), ulps=1024)
+    assert (sigma - rec["sigma"]).abs().max() <= tol
     meta = dexport.export_checkpoint(DATA / "hardware_model.pt", tmp_path / "hw", aoti=False)
     assert meta["task"] == "hardware_fk" and set(meta["modules"]) == {"fk", "jacobian", "initial_state"}
     assert max(meta["max_abs_deviation"].values()) <= dexport.VERIFY_TOLERANCE

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ... import export as dexport
+from ...deploy import export as dexport
 from ...deploy.control import scaled_dls_step
 from ..recording import load_recording
 
