@@ -33,12 +33,12 @@ from lightning.pytorch.utilities.exceptions import SIGTERMException
 from dacr_learn import runs
 from dacr_learn.checks import load_torch_file
 from dacr_learn.console import run_cli
-from dacr_learn.cosserat.dataset import cc_baseline
+from dacr_learn.data.cosserat import cc_baseline
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.metrics import format_table
-from dacr_learn.rerun_callback import RerunVisualCallback
-from dacr_learn.rerun_log import RerunLogger
 from dacr_learn.training import FKModule, KinematicsModule
+from dacr_learn.viz.callback import RerunVisualCallback
+from dacr_learn.viz.logger import RerunLogger
 
 
 def quiet_run_handling_warnings() -> None:

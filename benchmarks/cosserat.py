@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 
 from dacr_learn.cosserat import solve_statics
-from dacr_learn.cosserat.dataset import CosseratOptions, sample_tensions
+from dacr_learn.data.cosserat import CosseratOptions, sample_tensions
 from dacr_learn.robot import RobotSpec
 
 ROOT = Path(__file__).resolve().parents[1]

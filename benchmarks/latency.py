@@ -6,7 +6,7 @@ writes them as checkpoints, exports them with ``dacr_learn.export`` (torch.expor
 AOTInductor packages) and times, interleaved round by round on one CPU thread:
 
 - ``fk_eager_lightning``: the Lightning model's FKModel (front-end + MLP + 6D head), eager;
-- ``fk_eager_folded``: dacr_learn.inference.InferenceFK (folded front-end), eager;
+- ``fk_eager_folded``: dacr_learn.deploy.inference.InferenceFK (folded front-end), eager;
 - ``fk_export_program``: the ``fk.pt2`` torch.export program as loaded by ``export.load``;
 - ``fk_aoti``: the ``fk.aoti.pt2`` AOTInductor package via ``export.load`` (input checks included);
 - ``fk_aoti_runner``: the same package's C++ runner called directly (no checks, no reshapes);
@@ -57,8 +57,8 @@ from timing import time_interleaved  # noqa: E402
 from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.console import quiet_third_party_warnings, run_cli  # noqa: E402
 from dacr_learn.data import generate  # noqa: E402
-from dacr_learn.inference import InferenceFK, InferenceJacobian  # noqa: E402
-from dacr_learn.inference_compositional import InferenceCompositionalFK  # noqa: E402
+from dacr_learn.deploy.inference import InferenceFK, InferenceJacobian  # noqa: E402
+from dacr_learn.deploy.inference_compositional import InferenceCompositionalFK  # noqa: E402
 from dacr_learn.kinematics import forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.training import FKModule, IKModule  # noqa: E402

@@ -20,7 +20,7 @@ torch.Size([4, 4])
 """
 from importlib.metadata import PackageNotFoundError, version
 
-from .control import ControllerConfig, ResolvedRateController, analytic_jacobian
+from .deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
 from .kinematics import analytic_inverse_kinematics, backbone_points, forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import FKModel, IKModel
@@ -29,10 +29,9 @@ from .runs import load_model
 
 
 def __getattr__(name: str):
-    # load_exported is imported on first use, so `python -m dacr_learn.export` does not find its own
-    # module already imported by the package (runpy's RuntimeWarning)
+    # load_exported is imported on first use: importing dacr_learn stays light (no torch.export machinery)
     if name == "load_exported":
-        from .export import load
+        from .deploy.export import load
         return load
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 

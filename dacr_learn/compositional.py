@@ -52,7 +52,7 @@ from .checks import check_tensor
 from .kinematics import effective_features
 from .layers import ClarkeEncoder
 from .lie import chain_products, pose_from_parts, roll_z, twist_exp
-from .models import FKModel, Standardizer, mlp
+from .models import FKModel, IKModel, Standardizer, mlp
 from .robot import RobotSpec
 
 STRUCTURES = ("monolithic", "compositional")
@@ -233,6 +233,26 @@ def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str 
     if units != "strain":
         raise ValueError(f"units: only the compositional structure takes units, got {units!r}")
     return FKModel(spec, **kwargs)
+
+
+# hyper-parameters a FKModule / IKModule checkpoint must hold to rebuild its network without Lightning
+REQUIRED_HPARAMS = {"fk": ("features", "width", "depth", "activation", "rotation"),
+                    "ik": ("features", "width", "depth", "activation")}
+
+
+def model_from_hparams(task: str, spec: RobotSpec, hparams) -> nn.Module:
+    """The (untrained) network of an FK / IK module with these hyper-parameters (a mapping with the keys of
+    :data:`REQUIRED_HPARAMS`; ``structure``, ``context``, ``units``, ``output_scale`` default as in training).
+    ``training.FKModule`` / ``IKModule`` build theirs with it, and :func:`dacr_learn.runs.load_checkpoint_model`
+    rebuilds a checkpoint's without Lightning."""
+    h = hparams
+    if task == "fk":
+        return build_fk_model(spec, h.get("structure", "monolithic"), h.get("context", "none"),
+                              h.get("units", "strain"), features=h["features"], width=h["width"], depth=h["depth"],
+                              activation=h["activation"], rotation=h["rotation"])
+    if task == "ik":
+        return IKModel(spec, h["features"], h["width"], h["depth"], h["activation"], h.get("output_scale", "std"))
+    raise ValueError(f"task: expected 'fk' or 'ik', got {task!r}")
 
 
 def _geometry(seg) -> tuple:

@@ -1,7 +1,7 @@
 """LightningDataModule serving synthetic datasets as in-memory tensor batches.
 
 ``source``: "cc" (constant-curvature samples, :mod:`dacr_learn.data`) or "cosserat" (tension-driven
-static shapes of the Cosserat-rod model, :mod:`dacr_learn.cosserat.dataset`; options in ``cosserat``).
+static shapes of the Cosserat-rod model, :mod:`dacr_learn.data.cosserat`; options in ``cosserat``).
 
 Batches are dicts {"q": (B, num_joints), "pose": (B, 4, 4), "valid": (B,) bool} drawn by
 index from tensors held in memory: no per-sample ``__getitem__``, no worker processes. Under
@@ -17,8 +17,8 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
-from .cosserat import dataset as cosserat_dataset
 from .data import SamplerOptions, generate, generate_or_load, with_segment_frames
+from .data import cosserat as cosserat_dataset
 from .robot import RobotSpec
 
 BATCH_KEYS = ("q", "pose")
@@ -93,7 +93,7 @@ class KinematicsDataModule(pl.LightningDataModule):
         cache_dir: if set, the dataset is written there (tensors.pt + meta.json) and re-used.
         segment_frames: also serve every segment's end frame ("segment_frames", (B, m, 4, 4)) in batches.
         source: "cc" (default) or "cosserat" (needs a robot with a ``mechanics:`` block; no noise options).
-        cosserat: options of the Cosserat source (:class:`~dacr_learn.cosserat.dataset.CosseratOptions`:
+        cosserat: options of the Cosserat source (:class:`~dacr_learn.data.cosserat.CosseratOptions`:
             tension_max, tendons_pulled, gravity, tip_force_max, steps_per_segment, tol, max_iter).
     """
 

@@ -13,7 +13,8 @@ Layout (``runs_dir`` defaults to ``runs``)::
 
 Folders are created with an exclusive ``mkdir``, so two runs started at once get two versions.
 A trained model loads with :func:`load_model` from a run folder, a version folder or a ``.ckpt`` file.
-No Lightning here: the functions only handle paths and small JSON files.
+No Lightning here: the functions handle paths, small JSON files and checkpoints read weights-only
+(:func:`load_lightning_checkpoint` alone imports Lightning, to read a checkpoint through its LightningModule).
 """
 from __future__ import annotations
 
@@ -28,13 +29,14 @@ from typing import Any
 import torch
 
 from .checks import load_torch_file, short_error
+from .compositional import REQUIRED_HPARAMS, model_from_hparams
 from .robot import RobotSpec
 
 __all__ = [
     "ARCHITECTURE", "CHECKPOINT", "RUN_INFO", "SCHEDULE", "check_checkpoint_fits", "check_same_schedule",
     "checkpoint_run_dir", "checkpoint_task", "describe_model", "find_checkpoint", "free_path",
-    "load_lightning_checkpoint", "load_model", "new_numbered_dir", "numbered", "read_run_info", "versions",
-    "write_run_info",
+    "load_checkpoint_model", "load_lightning_checkpoint", "load_model", "new_numbered_dir", "numbered",
+    "read_run_info", "versions", "write_run_info",
 ]
 
 RUN_INFO = "run.json"
@@ -188,6 +190,31 @@ def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
                          f"({short_error(err)})") from err
 
 
+def load_checkpoint_model(ckpt: str | Path, blob: Any = None) -> tuple[str, torch.nn.Module]:
+    """(task "fk" | "ik", the trained network in eval mode, float32) of a checkpoint written by train.py or a
+    Trainer, rebuilt from its hyper-parameters and weights without Lightning
+    (:func:`~dacr_learn.compositional.model_from_hparams`). A checkpoint whose hyper-parameters lack part of
+    the architecture (:data:`~dacr_learn.compositional.REQUIRED_HPARAMS`; the LightningModule's defaults fill
+    them) is read through :func:`load_lightning_checkpoint`. ``blob``: the file's content when the caller has
+    loaded it (weights-only). Errors as :func:`load_lightning_checkpoint`."""
+    ckpt = Path(ckpt)
+    blob = load_torch_file(ckpt, CHECKPOINT) if blob is None else blob
+    task = checkpoint_task(ckpt, blob)
+    hparams = blob["hyper_parameters"]
+    if not all(k in hparams for k in REQUIRED_HPARAMS[task]):
+        task, module = load_lightning_checkpoint(ckpt, blob)
+        return task, module.model
+    try:
+        model = model_from_hparams(task, RobotSpec.coerce(hparams["robot"]), hparams)
+        prefix = "model."
+        model.load_state_dict({k[len(prefix):]: v for k, v in blob["state_dict"].items() if k.startswith(prefix)})
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        name = {"fk": "FKModule", "ik": "IKModule"}[task]
+        raise ValueError(f"{ckpt}: expected {CHECKPOINT}, found one whose weights and hyper-parameters {name} "
+                         f"cannot load ({short_error(err)})") from err
+    return task, model.eval()
+
+
 # hyper-parameters that decide what a checkpoint's weights compute (not how they were trained)
 ARCHITECTURE = ("features", "structure", "context", "width", "depth", "activation", "rotation")
 
@@ -264,7 +291,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
         FileNotFoundError: nothing to load at ``path``.
         ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
     """
-    task, module = load_lightning_checkpoint(find_checkpoint(path))
-    model = module.model.to(dtype).eval()
+    task, model = load_checkpoint_model(find_checkpoint(path))
+    model = model.to(dtype).eval()
     model.task = task
     return model

@@ -15,7 +15,7 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
-from .compositional import CompositionalFK, build_fk_model
+from .compositional import CompositionalFK, model_from_hparams
 from .kinematics import backbone_points, forward_kinematics
 from .metrics import pose_errors, summarize
 from .models import IKModel
@@ -152,7 +152,7 @@ class KinematicsModule(pl.LightningModule):
     @torch.no_grad()
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
         """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres; keys of
-        :func:`dacr_learn.rerun_scene.log_scene`): the CC backbone of the samples' features, the dataset's
+        :func:`dacr_learn.viz.scene.log_scene`): the CC backbone of the samples' features, the dataset's
         own backbone where it has one (Cosserat), the learned segment ends of a compositional model."""
         val = self.trainer.datamodule.splits["val"]
         k, n = min(self.hparams.visual_samples, len(val["q"])), min(num_workspace, len(val["q"]))
@@ -189,10 +189,7 @@ class FKModule(KinematicsModule):
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
     def build_model(self) -> torch.nn.Module:
-        h = self.hparams
-        return build_fk_model(self.spec, h.get("structure", "monolithic"), h.get("context", "none"),
-                              h.get("units", "strain"), features=h.features, width=h.width, depth=h.depth,
-                              activation=h.activation, rotation=h.rotation)
+        return model_from_hparams("fk", self.spec, self.hparams)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.model(q)
@@ -285,8 +282,7 @@ class IKModule(KinematicsModule):
         self.n_train: int | None = None            # training set size, known from setup("fit")
 
     def build_model(self) -> IKModel:
-        h = self.hparams
-        return IKModel(self.spec, h.features, h.width, h.depth, h.activation, h.get("output_scale", "std"))
+        return model_from_hparams("ik", self.spec, self.hparams)
 
     def forward(self, pose: Tensor) -> Tensor:
         return self.model(pose)

@@ -1,7 +1,7 @@
 """Closed-loop trajectory tracking with a learned Jacobian (resolved-rate control in Clarke space).
 
 A learned FK checkpoint is exported (dacr_learn.export) and its ``jacobian`` module drives a
-:class:`dacr_learn.control.ResolvedRateController`. The "real" robot is the analytic
+:class:`dacr_learn.deploy.control.ResolvedRateController`. The "real" robot is the analytic
 constant-curvature model, optionally with Gaussian joint noise on the executed joint lengths and
 a model mismatch (a different joint radius, a different backbone length); its measured tip
 position closes the loop. The tip tracks a circle and a figure-8; printed are the RMS / max
@@ -40,13 +40,13 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from dacr_learn import export as dexport  # noqa: E402
-from dacr_learn.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
+from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian  # noqa: E402
 from dacr_learn.kinematics import backbone_points, forward_kinematics  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
-from dacr_learn.rerun_layout import full_range_plot, time_panel_at_end  # noqa: E402
-from dacr_learn.rerun_scene import log_path, log_scene  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
-from dacr_learn.runs import find_checkpoint  # noqa: E402
+from dacr_learn.runs import find_checkpoint, load_checkpoint_model  # noqa: E402
+from dacr_learn.viz.layout import full_range_plot, time_panel_at_end  # noqa: E402
+from dacr_learn.viz.scene import log_path, log_scene  # noqa: E402
 
 DEFAULT_RUN = ROOT / "runs" / "fk_type1"
 TRAIN_COMMAND = [".venv/bin/python", "train.py", "fit", "--config", "configs/fk_type1.yaml"]
@@ -259,7 +259,7 @@ def main(argv: list[str] | None = None) -> dict:
         jac = learned_jacobian(ckpt, args.out / "export", args.aoti)
         spec = RobotSpec.from_dict(jac.metadata["robot"])
     else:
-        spec = dexport.load_lightning_checkpoint(ckpt)[1].spec
+        spec = load_checkpoint_model(ckpt)[1].spec
         jac = analytic_jacobian(spec)
     ctrl = ResolvedRateController(spec, jac, ControllerConfig(gain=args.gain))
     robot = SimulatedRobot(spec, args.radius_scale, args.length_scale, args.joint_noise)

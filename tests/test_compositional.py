@@ -16,8 +16,8 @@ from conftest import TDCR3, roundoff_tol, spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.compositional import ROBOT_BUFFERS, CompositionalFK, build_fk_model, transfer
-from dacr_learn.control import ResolvedRateController
 from dacr_learn.data import generate
+from dacr_learn.deploy.control import ResolvedRateController
 from dacr_learn.kinematics import forward_kinematics, segment_tip_poses
 from dacr_learn.layers import ClarkeDecoder
 from dacr_learn.robot import RobotSpec

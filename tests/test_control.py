@@ -6,7 +6,8 @@ import pytest
 import torch
 from conftest import roundoff_tol, spec_by_name
 
-from dacr_learn.control import ClarkeSpace, ControllerConfig, ResolvedRateController, analytic_jacobian, scaled_dls_step
+from dacr_learn.clarke_space import ClarkeSpace
+from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian, scaled_dls_step
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.robot import RobotSpec
 

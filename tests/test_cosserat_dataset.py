@@ -1,4 +1,4 @@
-"""Cosserat datasets (dacr_learn.cosserat.dataset): determinism, cache, refusals, the datamodule and train.py
+"""Cosserat datasets (dacr_learn.data.cosserat): determinism, cache, refusals, the datamodule and train.py
 serving them, and the zero-gravity, rigid-tendon limit against the CC model of the same joint lengths."""
 import json
 
@@ -8,8 +8,8 @@ from conftest import ROOT, write_run_config
 
 import train
 from dacr_learn.cosserat import ConvergenceError
-from dacr_learn.cosserat import dataset as cd
 from dacr_learn.data import META_FILE, TENSOR_FILE, SamplerOptions, load_dataset
+from dacr_learn.data import cosserat as cd
 from dacr_learn.data import generate_or_load as cc_generate_or_load
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.kinematics import forward_kinematics

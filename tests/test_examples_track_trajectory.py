@@ -27,7 +27,7 @@ def test_tracking_example_runs_and_logs(learned_jacobian):
 def _tracking_results(example, robot) -> dict[str, dict]:
     """What run_scenario returns, without a controller: the robot stays straight, the 'actual' tip is
     the reference plus a known offset (10 µm for the circle, 20 µm for the figure-8)."""
-    from dacr_learn.control import ClarkeSpace
+    from dacr_learn.clarke_space import ClarkeSpace
 
     spec, n = robot.spec, 40
     q = ClarkeSpace(spec).joints(torch.tensor(example._straight(spec), dtype=torch.float64))

@@ -25,6 +25,7 @@ from dacr_learn.data import generate
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.robot import RobotSpec
+from dacr_learn.runs import load_checkpoint_model
 from dacr_learn.training import FKModule, IKModule
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -253,8 +254,8 @@ def _checkpoint(**changes) -> dict:
 def test_well_formed_checkpoint_loads(tmp_path):
     """Positive control for the refusals below: the same construction, unchanged, loads."""
     torch.save(_checkpoint(), tmp_path / "ok.ckpt")
-    task, module = dexport.load_lightning_checkpoint(tmp_path / "ok.ckpt")
-    assert task == "fk" and module.hparams.width == 8
+    task, model = load_checkpoint_model(tmp_path / "ok.ckpt")
+    assert task == "fk" and model.net[0].out_features == 8
 
 
 def test_checkpoint_that_is_not_a_torch_file(tmp_path):
@@ -262,15 +263,15 @@ def test_checkpoint_that_is_not_a_torch_file(tmp_path):
     garbage.write_bytes(b"not a checkpoint at all\n" * 10)
     with pytest.raises(ValueError, match=names(garbage, "expected an FKModule/IKModule checkpoint",
                                                "found a file of 240 bytes", "not a complete torch.save")):
-        dexport.load_lightning_checkpoint(garbage)
+        load_checkpoint_model(garbage)
     for keep in (0, 1, 100, -10):
         torch.save(_checkpoint(), tmp_path / "cut.ckpt")
         cut = truncated(tmp_path / "cut.ckpt", keep)
         with pytest.raises(ValueError, match=names(cut, "not a complete torch.save archive")) as err:
-            dexport.load_lightning_checkpoint(cut)
+            load_checkpoint_model(cut)
         assert err.value.__cause__ is not None
     with pytest.raises(FileNotFoundError, match=names(tmp_path / "missing.ckpt", "no such file")):
-        dexport.load_lightning_checkpoint(tmp_path / "missing.ckpt")
+        load_checkpoint_model(tmp_path / "missing.ckpt")
 
 
 def test_export_cli_prints_the_error_not_a_traceback(tmp_path):
@@ -306,7 +307,7 @@ def test_torch_file_that_is_not_our_checkpoint(tmp_path, case):
     path = tmp_path / "other.ckpt"
     torch.save(content(), path)
     with pytest.raises(ValueError, match=names(path, *parts)):
-        dexport.load_lightning_checkpoint(path)
+        load_checkpoint_model(path)
 
 
 def test_export_metadata_that_is_not_json(tmp_path):

@@ -1,4 +1,4 @@
-"""dacr_learn.inference: the folded FK / IK / Jacobian modules (what dacr_learn.export exports) equal the models
+"""dacr_learn.deploy.inference: the folded FK / IK / Jacobian modules (what dacr_learn.export exports) equal the models
 in float64 for every robot and feature mode, and the Jacobian module equals autograd of the FK."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import torch
 from conftest import ROOT, autograd_jacobians, max_diff, spec_by_name
 
 from dacr_learn.data import generate
-from dacr_learn.inference import InferenceFK, InferenceIK, InferenceJacobian
+from dacr_learn.deploy.inference import InferenceFK, InferenceIK, InferenceJacobian
 from dacr_learn.models import FKModel, IKModel
 from dacr_learn.robot import RobotSpec
 

@@ -1,4 +1,4 @@
-"""dacr_learn.inference_compositional: the folded compositional FK equals the model in float64, and its Jacobian
+"""dacr_learn.deploy.inference_compositional: the folded compositional FK equals the model in float64, and its Jacobian
 module equals torch.func.jacrev of the model (J_f through the Clarke decoder, J_q) in float64."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from conftest import autograd_jacobians, roundoff_tol, spec_by_name
 
 from dacr_learn.compositional import CompositionalFK
 from dacr_learn.data import generate
-from dacr_learn.inference_compositional import InferenceCompositionalFK, InferenceCompositionalJacobian
+from dacr_learn.deploy.inference_compositional import InferenceCompositionalFK, InferenceCompositionalJacobian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64

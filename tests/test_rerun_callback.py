@@ -1,4 +1,4 @@
-"""dacr_learn.rerun_callback: the visual callback (a visual batch per logged epoch, harmless without one or without a
+"""dacr_learn.viz.callback: the visual callback (a visual batch per logged epoch, harmless without one or without a
 RerunLogger, every_n_epochs) and the run's settings it records (run_info)."""
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import lightning.pytorch as pl
 import pytest
 from rerun_testkit import TinyModule, VisualModule, fit_module, rrd_chunks, rrd_column, rrd_verify
 
-from dacr_learn.rerun_callback import RerunVisualCallback, find_rerun_logger
-from dacr_learn.rerun_log import RerunLogger
+from dacr_learn.viz.callback import RerunVisualCallback, find_rerun_logger
+from dacr_learn.viz.logger import RerunLogger
 
 
 def test_callback_without_visual_batch_is_harmless(tmp_path):
@@ -41,7 +41,7 @@ def test_every_n_epochs(tmp_path):
 
 def test_run_info_records_seed_trainer_and_the_datamodules_settings(monkeypatch):
     from dacr_learn.datamodule import KinematicsDataModule
-    from dacr_learn.rerun_callback import run_info
+    from dacr_learn.viz.callback import run_info
 
     monkeypatch.setenv("PL_GLOBAL_SEED", "7")
     dm = KinematicsDataModule(n_train=10, n_val=2, n_test=3, batch_size=4, seed=5, joint_noise=1e-4)

@@ -1,8 +1,8 @@
-"""dacr_learn.rerun_layout: metric groups (train and val of one quantity and unit in one plot), series styles and
+"""dacr_learn.viz.layout: metric groups (train and val of one quantity and unit in one plot), series styles and
 the summary table."""
 from __future__ import annotations
 
-from dacr_learn.rerun_layout import metric_groups, series_style, summary_markdown
+from dacr_learn.viz.layout import metric_groups, series_style, summary_markdown
 
 
 def test_metric_groups_put_train_and_val_of_one_quantity_and_unit_together():

@@ -1,4 +1,4 @@
-"""Tests of dacr_learn.rerun_log: the Rerun Lightning logger (with the visual callback of a run), scene helpers
+"""Tests of dacr_learn.viz.logger: the Rerun Lightning logger (with the visual callback of a run), scene helpers
 outside Lightning, the default blueprint, spawning / connecting to a viewer.
 
 Every recording is written under pytest's tmp_path, checked with ``rerun rrd verify`` and
@@ -36,8 +36,8 @@ from rerun_testkit import (
     rrd_views,
 )
 
-from dacr_learn.rerun_callback import RerunVisualCallback
-from dacr_learn.rerun_log import (
+from dacr_learn.viz.callback import RerunVisualCallback
+from dacr_learn.viz.logger import (
     RerunLogger,
     default_blueprint,
     log_path,

@@ -1,4 +1,4 @@
-"""dacr_learn.rerun_scene: workspace error colours on a fixed log scale, the workspace point cloud thinned."""
+"""dacr_learn.viz.scene: workspace error colours on a fixed log scale, the workspace point cloud thinned."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 import rerun as rr
 from rerun_testkit import rrd_chunks, rrd_column
 
-from dacr_learn.rerun_scene import DEFAULT_ERROR_RANGE, error_colours, log_workspace
+from dacr_learn.viz.scene import DEFAULT_ERROR_RANGE, error_colours, log_workspace
 
 
 def test_workspace_colours_use_a_fixed_log_scale(tmp_path):

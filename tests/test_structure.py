@@ -1,6 +1,7 @@
 """The package's shape, read from its source (ast): no import cycles, no module reaching for another
-module's private names, no file over 400 lines, and the layers of the hardware wing depending only
-downward (core ← deploy ← study).
+module's private names, no file over 400 lines, and the layers (:data:`LAYERS`: core maths ← physics ← data ←
+learning, viz ← deploy ← hardware ← hardware.deploy ← hardware.study ← entry points) depending only downward,
+with Lightning and Rerun only where they belong.
 
 Every ``import`` statement counts, also those inside functions (a lazy import still ties two modules
 together); the implicit import of a parent package is not an edge.
@@ -146,20 +147,71 @@ def test_no_file_in_the_package_is_over_400_lines():
     assert long == {}
 
 
-def test_the_synthetic_export_imports_nothing_of_hardware():
-    edges = graph()
-    assert not {m for m in edges["dacr_learn.export"] if m.startswith("dacr_learn.hardware")}
+# Every module of the package belongs to one layer (the first whose prefixes match it, longest prefix first);
+# a module imports only modules of its own layer or of layers listed before it.
+LAYERS = {
+    "core": ["checks", "console", "robot", "clarke", "layers", "lie", "kinematics", "metrics", "models",
+             "compositional", "clarke_space"],
+    "physics": ["cosserat"],
+    "data": ["data"],
+    "learning": ["datamodule", "training", "runs", "ablation", "combination_shift"],
+    "viz": ["viz"],
+    "deploy": ["deploy", "ik"],
+    "hardware": ["hardware"],
+    "hardware.deploy": ["hardware.deploy"],
+    "hardware.study": ["hardware.study"],
+    "entry": ["", "export", "hardware.__main__", "ablation.__main__"],   # the package root and the CLIs
+}
+NO_LIGHTNING_OR_RERUN = ("core", "physics", "data", "deploy", "hardware", "hardware.deploy")
 
 
-def test_hardware_layers_depend_only_downward():
-    """dacr_learn.hardware (data, physics, models) ← .deploy (checkpoints, inference, export) ← .study
-    (model registry, selection, benchmark, CLI): a lower layer imports nothing of a higher one."""
-    rank = {"dacr_learn.hardware.study": 2, "dacr_learn.hardware.deploy": 1}
+def layer_of(module: str) -> str:
+    """The layer of a module of ours (ValueError for one that no layer claims)."""
+    rel = module.removeprefix("dacr_learn").removeprefix(".")
+    matches = [(len(p), name) for name, prefixes in LAYERS.items() for p in prefixes
+               if rel == p or (p and rel.startswith(p + "."))]
+    if not matches:
+        raise ValueError(f"{module}: no layer in LAYERS claims it; add it where it belongs")
+    return max(matches)[1]
 
-    def layer(module: str) -> int:
-        return next((r for prefix, r in rank.items() if module == prefix or module.startswith(prefix + ".")),
-                    0 if module.startswith("dacr_learn.hardware") else -1)
 
-    upward = [f"{a} → {b}" for a, targets in graph().items() for b in targets
-              if layer(a) >= 0 and layer(b) > layer(a) and a != "dacr_learn.hardware.__main__"]
+def test_every_module_has_a_layer_and_the_checker_sees_an_upward_import():
+    assert [layer_of(m) for m in ("dacr_learn", "dacr_learn.lie", "dacr_learn.data.cosserat", "dacr_learn.deploy",
+                                  "dacr_learn.hardware.deploy.export", "dacr_learn.hardware.study.cli",
+                                  "dacr_learn.export", "dacr_learn.hardware.__main__")] == [
+        "entry", "core", "data", "deploy", "hardware.deploy", "hardware.study", "entry", "entry"]
+    order = list(LAYERS)
+    assert order.index(layer_of("dacr_learn.deploy.export")) > order.index(layer_of("dacr_learn.runs"))
+    unclaimed = []
+    for m in modules():
+        try:
+            layer_of(m)
+        except ValueError as err:
+            unclaimed.append(str(err))
+    assert unclaimed == []
+
+
+def test_layers_depend_only_downward():
+    order = list(LAYERS)
+    upward = [f"{a} ({layer_of(a)}) → {b} ({layer_of(b)})" for a, targets in graph().items() for b in targets
+              if order.index(layer_of(b)) > order.index(layer_of(a))]
     assert upward == []
+
+
+def test_the_maths_deploy_and_hardware_import_no_lightning_or_rerun():
+    found = []
+    for name, path in modules().items():
+        if layer_of(name) not in NO_LIGHTNING_OR_RERUN:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            roots = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+            found += [f"{name}:{node.lineno} imports {r}" for r in roots
+                      if r.split(".")[0] in ("lightning", "pytorch_lightning", "rerun")]
+    assert found == []
+
+
+def test_the_synthetic_deploy_layer_imports_nothing_of_hardware():
+    edges = graph()
+    assert not {f"{a} → {b}" for a, targets in edges.items() if layer_of(a) == "deploy"
+                for b in targets if b.startswith("dacr_learn.hardware")}

@@ -13,7 +13,7 @@ test-time *condition*; every condition gives one CSV row:
   robot's Clarke layers. Raw models cannot take that input: their row has NaN metrics and a note.
 
 ``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and
-tests on Cosserat-rod datasets (:mod:`dacr_learn.cosserat.dataset`, the robots need a ``mechanics:``
+tests on Cosserat-rod datasets (:mod:`dacr_learn.data.cosserat`, the robots need a ``mechanics:``
 block), cached under DIR per robot, size and seed; only the ``clean`` condition (the noise conditions are
 the CC sampler's), and FK rows gain ``cc_pos_err_mean_pct``: the CC model on the same test set.
 """
@@ -36,8 +36,8 @@ from torch import Tensor
 
 from ..checks import read_yaml
 from ..console import quiet_third_party_warnings
-from ..cosserat import dataset as cosserat_dataset
 from ..data import SamplerOptions, generate
+from ..data import cosserat as cosserat_dataset
 from ..metrics import pose_errors, summarize
 from ..robot import RobotSpec
 from ..training import FKModule, IKModule, ik_errors

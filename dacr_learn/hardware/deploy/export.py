@@ -1,6 +1,7 @@
 """Export of a saved hardware model (:mod:`.checkpoint`) with ``python -m dacr_learn.export``.
 
-The same kind of files as for the synthetic FK models (:mod:`dacr_learn.export`): per module a
+The same kind of files as for the synthetic FK models, written and verified by the same code
+(:mod:`dacr_learn.deploy.export`): per module a
 ``torch.export`` program ``<name>.pt2`` (and an AOTInductor package unless ``--no-aoti``) plus
 ``metadata.json`` (task ``"hardware_fk"``, robot, servo ids, units, dtype, checksums, the
 measured deviation from the in-memory model). Modules (:mod:`.inference`):
@@ -11,15 +12,14 @@ measured deviation from the in-memory model). Modules (:mod:`.inference`):
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from ... import export as dexport
-from .checkpoint import HardwareModel, hardware_model_from_blob, is_hardware_blob, load_hardware_model
+from ...deploy import export as dexport
+from .checkpoint import HardwareModel, load_hardware_model
 from .compositional_inference import CompositionalHardwareFK, CompositionalHardwareJacobian
 from .inference import HardwareFK, HardwareJacobian, InitialState
 
@@ -74,69 +74,27 @@ def export_hardware(ckpt: str | Path, out: str | Path, *, dtype: torch.dtype = t
                     autotune: bool = False) -> dict[str, Any]:
     """Export a hardware checkpoint's modules to ``out``; returns the metadata (also written).
     ``model``: the checkpoint's model when the caller has loaded it already (not loaded again);
-    ``autotune``: AOTInductor packages with :data:`dacr_learn.export.AUTOTUNE_CONFIGS`."""
-    ckpt, out = Path(ckpt), Path(out)
+    ``autotune``: AOTInductor packages with :data:`dacr_learn.deploy.export.AUTOTUNE_CONFIGS`."""
+    ckpt = Path(ckpt)
     model = model if model is not None else load_hardware_model(ckpt)
-    out.mkdir(parents=True, exist_ok=True)
+    out = dexport.output_folder(out)
     servo, state = examples(model, dtype)
     sig = signatures(model)
     meta: dict[str, Any] = {
-        "format": dexport.FORMAT, "task": TASK, "model": model.name, "history": model.history,
+        **dexport.export_header(ckpt, TASK, dtype, autotune), "model": model.name, "history": model.history,
         "ensemble_members": len(model.members), "robot": model.spec.to_dict(), "features": "clarke",
-        "servo_ids": list(model.servo_ids), "servo_map": model.smap.to_dict(), "units": UNITS,
-        "dtype": str(dtype).removeprefix("torch."), "torch_version": torch.__version__,
-        "max_batch": dexport.MAX_BATCH, "aoti_autotune": bool(autotune), "modules": {},
-        "source_checkpoint": {"path": str(ckpt), "sha256": dexport.file_sha256(ckpt)}}
-    for name, module in modules(model, dtype).items():
-        inputs = (servo[:2],) if name == "initial_state" or state is None else (servo[:2], state[:2])
-        want_aoti = aoti if isinstance(aoti, bool) else name in aoti
-        files = dexport.write_module(name, module, inputs, out, want_aoti, autotune)
-        meta["modules"][name] = {**sig[name], "files": {k: {"file": f, "sha256": dexport.file_sha256(out / f)}
-                                                        for k, f in files.items()}}
+        "servo_ids": list(model.servo_ids), "servo_map": model.smap.to_dict(), "units": UNITS}
+    exported = modules(model, dtype)
+    meta["modules"] = {name: dict(sig[name]) for name in exported}
+    inputs = {name: (servo,) if name == "initial_state" or state is None else (servo, state) for name in exported}
     # fk / initial_state against the float64 model. The Jacobian jumps where a tendon is exactly at its
     # slack onset or the play state at its width (one-sided derivatives; float32 and float64 may pick
     # different sides), so it is compared with the same module in the export's dtype.
     reference, same_dtype = modules(model, torch.float64), modules(model, dtype)
-    worst = {}
-    for name, info in meta["modules"].items():
-        inputs = (servo,) if name == "initial_state" or state is None else (servo, state)
-        ref = same_dtype[name] if name == "jacobian" else reference[name]
-        for entry in info["files"].values():
-            worst[entry["file"]] = _deviation(ref, load_exported(out / entry["file"], meta), inputs)
-    meta["max_abs_deviation"] = worst
-    meta["metadata_sha256"] = dexport.metadata_digest(meta)
-    (out / dexport.METADATA_FILE).write_text(json.dumps(meta, indent=2))
-    bad = {f: e for f, e in worst.items() if not e <= dexport.VERIFY_TOLERANCE}
-    if bad:
-        raise RuntimeError(f"export {out}: modules deviate from the hardware model by more than "
-                           f"{dexport.VERIFY_TOLERANCE}: {bad}")
-    return meta
+    references = {name: same_dtype[name] if name == "jacobian" else _in_float64(reference[name]) for name in exported}
+    return dexport.write_export(out, meta, exported, inputs, references, aoti=aoti, autotune=autotune,
+                                against="the hardware model")
 
 
-def _deviation(reference: nn.Module, loaded: nn.Module, inputs: tuple[Tensor, ...]) -> float:
-    with torch.no_grad():
-        ref = reference(*(x.to(reference_dtype(reference)) for x in inputs))
-        got = loaded(*inputs)
-    ref, got = (ref,) if isinstance(ref, Tensor) else ref, (got,) if isinstance(got, Tensor) else got
-    return max((r.double() - g.double()).abs().max().item() for r, g in zip(ref, got, strict=True))
-
-
-def reference_dtype(module: nn.Module) -> torch.dtype:
-    return next(b for b in module.buffers() if b.is_floating_point()).dtype
-
-
-def load_exported(path: Path, meta: dict) -> dexport.ExportedModule:
-    """A file of an export being written (before its metadata is final), for verification."""
-    name, kind = next((n, k) for n, info in meta["modules"].items() for k, e in info["files"].items()
-                      if e["file"] == path.name)
-    return dexport.ExportedModule(dexport.module_runner(path, kind, meta), meta, name, kind)
-
-
-def _export_blob(ckpt: Path, out: Path, blob: Any, *, dtype: torch.dtype, aoti: bool | tuple[str, ...],
-                 autotune: bool) -> dict[str, Any]:
-    return export_hardware(ckpt, out, dtype=dtype, aoti=aoti, model=hardware_model_from_blob(blob, ckpt),
-                           autotune=autotune)
-
-
-# found by dacr_learn.export through the "dacr_learn.exporters" entry point (pyproject.toml)
-EXPORTER = dexport.register_exporter(dexport.Exporter("hardware", is_hardware_blob, _export_blob))
+def _in_float64(module: nn.Module):
+    return lambda *xs: module(*(x.double() for x in xs))

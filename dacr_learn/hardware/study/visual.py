@@ -128,7 +128,7 @@ def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown: int
     """
     import rerun.blueprint as rrb
 
-    from ...rerun_layout import full_range_plot, time_panel_at_end
+    from ...viz.layout import full_range_plot, time_panel_at_end
 
     visible = shown_models(errors, default, shown)
     hidden = [n for n in errors if n not in visible]

@@ -8,7 +8,7 @@ what a displacement actuator sets: the unstretched tendon lengths (``tendon_rest
 dataset maps joint lengths to the pose that the mechanics CC ignores (sag, compression, coupling)
 produce. Deterministic for a seed (tensions drawn up front by a private generator, then solved in chunks).
 
-Tensors (SI units; names as the CC datasets of :mod:`dacr_learn.data`, so the datamodule serves both):
+Tensors (SI units; names as the CC datasets of :mod:`.cc`, so the datamodule serves both):
   q, q_clean (N, T) [m] — unstretched tendon lengths (equal: no measurement noise),
   features (N, m, 4) — the Clarke features of q (what the CC model reads from these lengths),
   pose, pose_clean (N, 4, 4) — tip pose, segment_frames (N, m, 4, 4) — end frame of every segment,
@@ -26,13 +26,13 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ..data import generate_or_load as _generate_or_load_any
+from ..cosserat.statics import ConvergenceError, solve_statics
+from ..cosserat.tendon import tendon_routing
 from ..kinematics import forward_kinematics
 from ..layers import ClarkeEncoder
 from ..metrics import pose_errors, summarize
 from ..robot import RobotSpec
-from .statics import ConvergenceError, solve_statics
-from .tendon import tendon_routing
+from .store import generate_or_load as _generate_or_load_any
 
 PROGRESS_CHUNK = 1024   # samples per solve call, i.e. per progress-bar update
 
@@ -160,7 +160,7 @@ def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = Coss
 def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
                      options: CosseratOptions = CosseratOptions(), *, progress: bool = True) -> dict[str, Tensor]:
     """Load ``directory`` if it holds exactly this Cosserat dataset (spec, n, seed, source, options), else
-    generate and save it (as :func:`dacr_learn.data.generate_or_load`; a failed generation writes nothing)."""
+    generate and save it (as :func:`.store.generate_or_load`; a failed generation writes nothing)."""
     return _generate_or_load_any(directory, spec, n, seed, options,
                                  make=lambda s, k, sd, o: generate(s, k, sd, o, progress=progress))
 

@@ -1,4 +1,5 @@
-"""Rerun logging for Lightning: a logger and a 3D visual callback (layout: rerun_layout, scene: rerun_scene).
+"""Rerun logging for Lightning: the logger (its 3D visual callback: :mod:`.callback`; blueprints: :mod:`.layout`;
+scene helpers: :mod:`.scene`).
 
 Everything goes to a dedicated :class:`rerun.RecordingStream` (never the global one), so
 several loggers, tests or scripts can log side by side. The scene is in metres.
@@ -19,7 +20,7 @@ Layout of a recording (entity paths)::
     scene/workspace/colour_scale  static labelled points: the colour bar
     run/status               rr.TextLog written by ``finalize``
 
-The default blueprint (:func:`dacr_learn.rerun_layout.default_blueprint`) shows full-range curves,
+The default blueprint (:func:`dacr_learn.viz.layout.default_blueprint`) shows full-range curves,
 the 3D views and the metrics table, and opens at the last step. Rows are batched by the
 recording's chunk batcher and written when it is flushed (at ``finalize``; every
 ``live_flush_s`` when streaming to a viewer), so a run is a few chunks per entity, not one per row.
@@ -46,7 +47,7 @@ from lightning.fabric.utilities.logger import _convert_params
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.rank_zero import rank_zero_only, rank_zero_warn
 
-from .rerun_layout import (
+from .layout import (
     CONFIG_ENTITY,
     HPARAMS_ENTITY,
     SCENE_ROOT,
@@ -60,7 +61,7 @@ from .rerun_layout import (
     series_style,
     summary_markdown,
 )
-from .rerun_scene import (
+from .scene import (
     DEFAULT_ERROR_RANGE,
     colour_note,
     log_frames,

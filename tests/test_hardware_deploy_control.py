@@ -1,4 +1,5 @@
-"""examples/control_hardware_model.py: resolved-rate control in servo space on a hardware model.
+"""dacr_learn.hardware.deploy.control: resolved-rate control in servo space on a hardware model, and
+examples/control_hardware_model.py, the script that runs it on an export.
 
 The plant and the Jacobian are the small synthetic hardware model of tests/hardware_testkit.py (a history model:
 its play state is passed on each step), in memory and exported.
@@ -8,9 +9,10 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import load_example, roundoff_tol
-from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
+from hardware_testkit import IDS, TIP_SCALE, command_recording, synthetic_model, write_csv
 
 from dacr_learn import export as dexport
+from dacr_learn.hardware.deploy import control
 from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
 from dacr_learn.hardware.deploy.inference import HardwareFK, HardwareJacobian
 
@@ -21,25 +23,23 @@ RETENSION = 0.01                               # the slack pull of the re-tensio
 
 
 def test_slack_pull_pulls_in_only_slack_servos():
-    example = load_example("control_hardware_model")
     jac = torch.ones(3, 4, dtype=torch.float64)
     jac[:, 1] = 0.0                                                      # servos 1 and 3 slack
     jac[:, 3] = 0.0
     sign = torch.tensor([1.0, 1.0, -1.0, -1.0], dtype=torch.float64)     # servo 3 pulls in downwards
-    pull = example.slack_pull(jac, sign, 0.01)
+    pull = control.slack_pull(jac, sign, 0.01)
     assert torch.equal(pull, torch.tensor([0.0, 0.01, 0.0, -0.01], dtype=torch.float64))
     meta = {"servo_ids": ["b", "a"], "servo_map": {"servos": [{"servo": "a", "sign": -1}, {"servo": "b", "sign": 1}]}}
-    assert torch.equal(example.servo_signs(meta), torch.tensor([1.0, -1.0], dtype=torch.float64))
-    assert example.ServoControl().retension == 0.0                       # opt-in
+    assert torch.equal(control.servo_signs(meta), torch.tensor([1.0, -1.0], dtype=torch.float64))
+    assert control.ServoControl().retension == 0.0                       # opt-in
     for bad in (-0.1, 0.2):
         with pytest.raises(ValueError, match="retension"):
-            example.ServoControl(max_step=0.1, retension=bad)
+            control.ServoControl(max_step=0.1, retension=bad)
 
 
 def test_controller_re_tensions_a_slack_tendon_the_tip_task_cannot():
     """From training command 78 to the tip of command 0 the tip task alone stalls on the history test
     model (the tendons it needs are slack: their columns of J are zero); the null-space pull reaches it."""
-    example = load_example("control_hardware_model")
     model = synthetic_model(history=True)
     fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
     commands = 1e3 * command_recording(200, 0).servo
@@ -48,8 +48,8 @@ def test_controller_re_tensions_a_slack_tendon_the_tip_task_cannot():
     target = fk(goal[None], fk.initial_state(goal[None]))[0][0].double()
     final = {}
     for retension in (0.0, RETENSION):
-        res = example.run_control(fk, jac, target.expand(150, 3), start, fk.initial_state(start[None]), lower,
-                                  upper, example.ServoControl(gain=0.5, damping=1e-3, max_step=0.1,
+        res = control.run_control(fk, jac, target.expand(150, 3), start, fk.initial_state(start[None]), lower,
+                                  upper, control.ServoControl(gain=0.5, damping=1e-3, max_step=0.1,
                                                               retension=retension))
         final[retension] = float((torch.from_numpy(res["actual"][-1]) - target).norm())
         servo = torch.from_numpy(res["servo"])
@@ -66,10 +66,10 @@ def _task(model):
     return lower, upper, goal, start
 
 
-def _reach(example, fk, jac, init, lower, upper, goal, start, steps=60):
+def _reach(fk, jac, init, lower, upper, goal, start, steps=60):
     target = fk(goal[None], init(goal[None]))[0][0].double()
-    res = example.run_control(fk, jac, target.expand(steps, 3), start, init(start[None]), lower, upper,
-                              example.ServoControl(gain=0.5, damping=1e-3, max_step=0.1))
+    res = control.run_control(fk, jac, target.expand(steps, 3), start, init(start[None]), lower, upper,
+                              control.ServoControl(gain=0.5, damping=1e-3, max_step=0.1))
     err = (torch.from_numpy(res["actual"]) - target).norm(dim=-1)
     servo = torch.from_numpy(res["servo"])
     assert bool(((servo >= lower - 1e-12) & (servo <= upper + 1e-12)).all()), "commands stay in the box"
@@ -77,22 +77,38 @@ def _reach(example, fk, jac, init, lower, upper, goal, start, steps=60):
 
 
 def test_controller_reaches_a_static_target_on_the_history_model():
-    example = load_example("control_hardware_model")
     model = synthetic_model(history=True)
     fk, jac = HardwareFK(model, torch.float64), HardwareJacobian(model, torch.float64)
     lower, upper, goal, start = _task(model)
-    err = _reach(example, fk, jac, fk.initial_state, lower, upper, goal, start)
+    err = _reach(fk, jac, fk.initial_state, lower, upper, goal, start)
     assert float(err[0]) > 1e-3                                                  # a real move (> 1 mm)
     assert float(err[-1]) <= 1e-3 * float(err[0])                                # converged to < 0.1 % of it
 
 
 def test_controller_runs_the_exported_modules_causally(tmp_path):
-    example = load_example("control_hardware_model")
     model = synthetic_model(history=True, members=2)
     dexport.export_checkpoint(save_hardware_model(model, tmp_path / "model.pt"), tmp_path / "export", aoti=False)
-    fk, jac, init, meta = example.load_modules(tmp_path / "export")
+    fk, jac, init, meta = control.load_hardware_export(tmp_path / "export")
     assert meta["history"] and init is not None
     lower, upper, goal, start = _task(model)
-    err = _reach(example, fk, jac, init, lower, upper, goal, start)
+    err = _reach(fk, jac, init, lower, upper, goal, start)
     # float32 modules: converged to float32 rounding at tip scale (the DLS steps are float64)
     assert float(err[-1]) <= max(1e-3 * float(err[0]), roundoff_tol(torch.float32, TIP_SCALE, ulps=4096))
+
+
+def test_the_example_script_tracks_a_circle_on_an_export(tmp_path, capsys):
+    model = synthetic_model(history=True, members=2)
+    dexport.export_checkpoint(save_hardware_model(model, tmp_path / "model.pt"), tmp_path / "export", aoti=False)
+    commands = 1e3 * command_recording(200, 0).servo                              # [mm], columns in IDS order
+    train = write_csv(tmp_path / "train.csv", ["timestamp", "pattern_label", *(f"servo_{i}_mm" for i in IDS),
+                                               "tip_x", "tip_y", "tip_z"],
+                      [[k, "p", *row, 0.0, 0.0, 0.0] for k, row in enumerate(commands.tolist())])
+    example = load_example("control_hardware_model")
+    summary = example.main(["--export", str(tmp_path / "export"), "--train", str(train), "--radius", "0.5",
+                            "--drop", "0", "--period", "100", "--laps", "1", "--settle", "40", "--hold", "40",
+                            "--out", str(tmp_path / "out")])
+    assert (tmp_path / "out" / "summary.json").is_file() and "THE PLANT IS THE LEARNED MODEL" in capsys.readouterr().out
+    circle = summary["results"]["circle"]
+    assert circle["steps"] == 100 and circle["rms_mm"] < 0.05                      # a 0.5 mm circle, tracked
+    statics = [r for name, r in summary["results"].items() if name.startswith("static")]
+    assert len(statics) == 4 and all(r["final_error_mm"] < r["start_error_mm"] for r in statics)

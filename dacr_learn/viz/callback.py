@@ -1,5 +1,5 @@
 """Rerun in a Lightning run: the run's context and its 3D scenes, logged by a callback to a
-:class:`~dacr_learn.rerun_log.RerunLogger` (the scene helpers: :mod:`dacr_learn.rerun_scene`)."""
+:class:`~dacr_learn.viz.logger.RerunLogger` (the scene helpers: :mod:`dacr_learn.viz.scene`)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from lightning.pytorch import Callback, LightningDataModule, LightningModule, Tr
 from lightning.pytorch.utilities.rank_zero import rank_zero_warn
 from matplotlib import colormaps
 
-from .rerun_layout import SCENE_ROOT, STEP_TIMELINE
-from .rerun_log import RerunLogger
-from .rerun_scene import DEFAULT_ERROR_RANGE, log_scene
+from .layout import SCENE_ROOT, STEP_TIMELINE
+from .logger import RerunLogger
+from .scene import DEFAULT_ERROR_RANGE, log_scene
 
 __all__ = ["RerunVisualCallback", "find_rerun_logger", "run_info"]
 

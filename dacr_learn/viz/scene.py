@@ -1,7 +1,7 @@
 """Rerun 3D scene helpers for continuum robots (no Lightning): backbones, tip frames, workspace.
 
 All functions log to an explicit :class:`rerun.RecordingStream` (never the global one); the scene
-is in metres. Used by :mod:`dacr_learn.rerun_log` (the Lightning callback), the controller example
+is in metres. Used by :mod:`dacr_learn.viz.logger` (the Lightning callback), the controller example
 and the hardware evaluation.
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Synthetic constant-curvature datasets: sampling, dataset files, batching.
+"""Synthetic constant-curvature datasets: sampling of features, joint vectors and tip poses (files: :mod:`.store`).
 
 Sampling (per segment, from the robot's limits): the bending vector u = φ·(cos θ, sin θ) is
 uniform in area over the disk φ ≤ bend (φ = bend·√U₁, θ = 2πU₂), ρ = d·u; β and α are
@@ -17,23 +17,16 @@ straight (ρ = 0), their β and α still sampled. ``None`` (default) bends every
 """
 from __future__ import annotations
 
-import hashlib
 import itertools
-import json
-from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
-from .checks import load_torch_file, read_json_object
-from .kinematics import forward_kinematics, segment_tip_poses
-from .layers import ClarkeDecoder
-from .robot import RobotSpec
-
-TENSOR_FILE, META_FILE = "tensors.pt", "meta.json"
+from ..kinematics import forward_kinematics, segment_tip_poses
+from ..layers import ClarkeDecoder
+from ..robot import RobotSpec
 
 
 @dataclass(frozen=True)
@@ -123,98 +116,3 @@ def with_segment_frames(spec: RobotSpec, tensors: dict[str, Tensor]) -> dict[str
     """``tensors`` plus ``segment_frames`` (N, m, 4, 4): the noise-free end frame of every segment in
     the base frame, from the dataset's ``features`` (the last one is ``pose_clean``)."""
     return {**tensors, "segment_frames": segment_tip_poses(spec, tensors["features"])}
-
-
-def tensors_sha256(tensors: dict[str, Tensor]) -> str:
-    """sha256 over the names, dtypes, shapes and raw bytes of the tensors, in name order."""
-    h = hashlib.sha256()
-    for name in sorted(tensors):
-        t = tensors[name].detach().cpu().contiguous()
-        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
-    return h.hexdigest()
-
-
-def options_record(options: Any) -> dict:
-    """The options dataclass as meta.json stores it (JSON types: tuples become lists)."""
-    return json.loads(json.dumps(asdict(options)))
-
-
-def save_dataset(directory: str | Path, spec: RobotSpec, tensors: dict[str, Tensor], seed: int,
-                 options: Any) -> Path:
-    """Write ``tensors.pt`` + ``meta.json`` (spec, source, options, seed, sha256) to ``directory``.
-
-    ``options``: the dataclass the tensors were generated with (:class:`SamplerOptions`, or
-    ``cosserat.dataset.CosseratOptions``); its ``source`` ("cc", "cosserat") is recorded too."""
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    meta = {"robot": spec.to_dict(), "source": options.source, "options": options_record(options), "seed": int(seed),
-            "num_samples": int(next(iter(tensors.values())).shape[0]), "sha256": tensors_sha256(tensors)}
-    tmp = directory / (TENSOR_FILE + ".tmp")
-    torch.save(tensors, tmp)
-    tmp.replace(directory / TENSOR_FILE)                      # atomic: never a half-written file
-    (directory / META_FILE).write_text(json.dumps(meta, indent=2))
-    return directory
-
-
-def _read_meta(directory: Path) -> dict:
-    """meta.json of a dataset as a dict (ValueError naming the file when it is not a JSON object)."""
-    return read_json_object(directory / META_FILE, f"the {META_FILE} of a dataset written by save_dataset")
-
-
-def _read_tensors(directory: Path) -> dict[str, Tensor]:
-    """tensors.pt of a dataset: a dict of named tensors (ValueError naming the file otherwise)."""
-    path = directory / TENSOR_FILE
-    expected = f"the {TENSOR_FILE} of a dataset written by save_dataset (a dict of named tensors)"
-    tensors = load_torch_file(path, expected)
-    if not isinstance(tensors, dict):
-        raise ValueError(f"{path}: expected {expected}, found a {type(tensors).__name__}")
-    bad = {str(k): type(v).__name__ for k, v in tensors.items() if not (isinstance(k, str) and isinstance(v, Tensor))}
-    if bad:
-        raise ValueError(f"{path}: expected {expected}, found entries that are not named tensors: {bad}")
-    return tensors
-
-
-def load_dataset(directory: str | Path, spec: RobotSpec | None = None) -> tuple[dict[str, Tensor], dict]:
-    """Read a dataset written by :func:`save_dataset`; refuse a checksum or robot-spec mismatch.
-
-    Every refusal is a ValueError naming the directory or file (unreadable, truncated, modified,
-    generated for another robot).
-    """
-    directory = Path(directory)
-    for f in (TENSOR_FILE, META_FILE):
-        if not (directory / f).is_file():
-            raise ValueError(f"dataset {directory}: missing {f}")
-    meta, tensors = _read_meta(directory), _read_tensors(directory)
-    digest = tensors_sha256(tensors)
-    if digest != meta.get("sha256"):
-        raise ValueError(f"dataset {directory}: checksum mismatch (meta.json says {meta.get('sha256')}, "
-                         f"the tensors hash to {digest}); the file was modified or truncated")
-    if spec is not None and _saved_spec(directory, meta) != spec:
-        raise ValueError(f"dataset {directory}: robot spec mismatch: the dataset was generated for "
-                         f"{meta['robot']['name']!r} ({meta['robot']}), expected {spec.to_dict()}")
-    return tensors, meta
-
-
-def _saved_spec(directory: Path, meta: dict) -> RobotSpec:
-    try:
-        return RobotSpec.from_dict(meta.get("robot"))
-    except ValueError as err:
-        raise ValueError(f"{directory / META_FILE}: {err}") from err
-
-
-def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
-                     options: Any = SamplerOptions(),
-                     make: Callable[[RobotSpec, int, int, Any], dict[str, Tensor]] | None = None) -> dict[str, Tensor]:
-    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, source, options), else generate
-    it with ``make(spec, n, seed, options)`` (default :func:`generate`) and save it. A dataset written
-    before sources existed (no ``source`` in meta.json) counts as "cc"."""
-    directory = Path(directory)
-    if (directory / META_FILE).is_file():
-        meta = _read_meta(directory)
-        if ((meta.get("seed"), meta.get("num_samples"), meta.get("source", "cc"), meta.get("options"))
-                == (seed, n, options.source, options_record(options))):
-            return load_dataset(directory, spec)[0]
-    tensors = (make or generate)(spec, n, seed, options)
-    save_dataset(directory, spec, tensors, seed, options)
-    return tensors

@@ -1,11 +1,11 @@
 """Folded inference modules of the compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`):
 the Clarke front-end, the per-segment standardisation, the context and the first layer folded into one affine
-map (as :mod:`dacr_learn.inference` does for the monolithic FK), then the shared MLP, the twist (or 6D) head
+map (as :mod:`dacr_learn.deploy.inference` does for the monolithic FK), then the shared MLP, the twist (or 6D) head
 and the products of the segment transforms.
 
 - :class:`InferenceCompositionalFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
 - :class:`InferenceCompositionalJacobian` (twist head): joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D),
-  J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.inference.InferenceJacobian`: the segment twists and
+  J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.deploy.inference.InferenceJacobian`: the segment twists and
   their tangents along the actuated features each segment depends on, in forward mode through the MLP (value
   and tangent rows stacked), then in closed form each segment's spatial velocity and its effect on the tip
   through the prefix rotations and suffix positions of the chain (no 4 × 4 tangent products).
@@ -19,10 +19,11 @@ import torch.nn.functional as F
 from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
-from .compositional import HEADS
-from .inference import ClarkeFold, FoldedMLP, activation_and_derivative, linear_layers
-from .lie import exp_coefficients_and_derivatives, hat, pose_from_parts, roll_z, twist_exp
-from .models import Standardizer, actuated_columns, actuated_selection, actuated_to_features, fixed_features
+from ..clarke_space import ClarkeFold, feature_columns
+from ..compositional import HEADS
+from ..lie import exp_coefficients_and_derivatives, hat, pose_from_parts, roll_z, twist_exp
+from ..models import Standardizer, actuated_selection, actuated_to_features, fixed_features
+from .inference import FoldedMLP, activation_and_derivative, linear_layers
 
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
 
@@ -85,7 +86,7 @@ class InferenceCompositionalJacobian(nn.Module):
     """Compositional learned FK and its Jacobians: q (B, N) → (pose (B, 4, 4), J_f (B, 6, D), J_q (B, 6, N)).
 
     Rows of J: tip linear velocity [m] and angular velocity [rad] in the base frame per unit of actuated
-    feature (J_f) or joint (J_q = J_f·∂f/∂q), as :class:`~dacr_learn.inference.InferenceJacobian`. Twist head
+    feature (J_f) or joint (J_q = J_f·∂f/∂q), as :class:`~dacr_learn.deploy.inference.InferenceJacobian`. Twist head
     only (``rotation="twist"``; a ValueError otherwise).
 
     Built for few operations (the control-loop case, batch 1):
@@ -121,7 +122,7 @@ class InferenceCompositionalJacobian(nn.Module):
         used = [torch.nonzero(seed[j].abs().sum(-1) > 0).flatten().tolist() for j in range(m)]
         self.rolls = bool(model.rolls)
         rolled = torch.nonzero(model.roll).flatten().tolist()
-        rolled_alpha = list(zip(rolled, alpha_columns(model.spec, rolled), strict=True))   # (segment, α column)
+        rolled_alpha = list(zip(rolled, feature_columns(model.spec, "alpha", rolled), strict=True))  # (segment, α col)
         for j, col in rolled_alpha:
             if col not in used[j]:                                          # the roll depends on α in any case
                 used[j].append(col)
@@ -249,12 +250,6 @@ def _exp_and_spatial_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, 
     rot = (1 - f * phi_sq)[..., None, None] * eye + s[..., None, None] * hat(w) \
         + f[..., None, None] * (w.unsqueeze(-1) * w.unsqueeze(-2))
     return rot, v + f.unsqueeze(-1) * wv + g.unsqueeze(-1) * wwv, ang, dp
-
-
-def alpha_columns(spec, segments: list[int]) -> list[int]:
-    """Indices of the α columns of ``segments`` among the actuated features."""
-    index = {col: i for i, col in enumerate(actuated_columns(spec))}
-    return [index[(k, "alpha")] for k in segments]
 
 
 def roll_selection(model) -> Tensor:

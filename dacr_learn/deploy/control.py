@@ -23,11 +23,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .inference import ClarkeFold, DecoderJacobian
-from .kinematics import forward_kinematics
-from .layers import ClarkeDecoder, ClarkeEncoder
-from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
-from .robot import RobotSpec
+from ..clarke_space import ClarkeSpace
+from ..kinematics import forward_kinematics
+from ..models import actuated_to_features
+from ..robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
 _F64 = torch.float64
@@ -54,84 +53,6 @@ class ControllerConfig:
             raise ValueError(f"damping: expected >= 0 [m], got {self.damping}")
         if not self.max_step > 0:
             raise ValueError(f"max_step: expected > 0, got {self.max_step}")
-
-
-def _feature_columns(spec: RobotSpec) -> dict[str, list]:
-    """Actuated feature columns (models.actuated_columns order) with their limits and scales."""
-    cols: dict[str, list] = {"rho": [], "rho_max": [], "beta": [], "beta_range": [], "alpha": [],
-                             "alpha_range": [], "scale": []}
-    for i, (k, name) in enumerate(actuated_columns(spec)):
-        seg = spec.segments[k]
-        if name.startswith("rho"):
-            rho_max = seg.bend * seg.radius                   # ‖ρ‖ = d·φ ≤ d·bend
-            cols["scale"].append(rho_max)
-            if name == "rho_re":
-                cols["rho"].append([i, i + 1])
-                cols["rho_max"].append(rho_max)
-            continue
-        lim = seg.length_range if name == "beta" else seg.twist_range
-        cols[name].append(i)
-        cols[f"{name}_range"].append(lim)
-        cols["scale"].append((lim[1] - lim[0]) / 2)
-    return cols
-
-
-class ClarkeSpace:
-    """Actuated Clarke features f (..., D) ↔ joint vectors q (..., N) of a robot, and saturation (float64)."""
-
-    def __init__(self, spec: RobotSpec):
-        self.spec = spec
-        self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
-        self.fold = ClarkeFold(spec)                       # the encoder as one affine map (+ helix terms)
-        self.selection = actuated_selection(spec).to(_F64)
-        self.base = fixed_features(spec, _F64)
-        self.linear = not any(s.twists for s in spec.segments)   # then the decoder is affine: q = A·f + c
-        if self.linear:
-            straight = self.fold.e0                               # features of the nominal straight robot
-            self.dec_matrix = DecoderJacobian(spec)(straight)
-            self.dec_offset = self._decode(straight) - self.dec_matrix @ straight
-        c = _feature_columns(spec)
-        self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=_F64)
-        self.beta_cols = torch.tensor(c["beta"], dtype=torch.long)
-        self.alpha_cols = torch.tensor(c["alpha"], dtype=torch.long)
-        self.beta_range = torch.tensor(c["beta_range"], dtype=_F64).reshape(-1, 2)
-        self.alpha_range = torch.tensor(c["alpha_range"], dtype=_F64).reshape(-1, 2)
-        self.scale = torch.tensor(c["scale"], dtype=_F64)
-
-    def features(self, q: Tensor) -> Tensor:
-        """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
-        return self.fold.features(self.fold.inputs(_f64(q)))
-
-    def _decode(self, f: Tensor) -> Tensor:
-        return self.decoder(actuated_to_features(f, self.selection, self.base))
-
-    def joints(self, f: Tensor) -> Tensor:
-        """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
-        f = _f64(f)
-        return torch.addmm(self.dec_offset, f, self.dec_matrix.mT) if self.linear and f.dim() == 2 else (
-            self.dec_offset + f @ self.dec_matrix.mT if self.linear else self._decode(f))
-
-    def saturate(self, f: Tensor) -> Tensor:
-        """Clip features to the limits: ‖ρ‖ ≤ d·bend per segment (radially), β and α into their ranges."""
-        f = f.clone()
-        rho = f[..., self.rho_cols]                                          # (..., m, 2)
-        norm = torch.linalg.vector_norm(rho, dim=-1, keepdim=True)
-        factor = torch.clamp(self.rho_max.unsqueeze(-1) / norm.clamp_min(1e-300), max=1.0)
-        f[..., self.rho_cols] = rho * factor
-        if len(self.beta_cols):
-            f[..., self.beta_cols] = torch.clamp(f[..., self.beta_cols], self.beta_range[:, 0], self.beta_range[:, 1])
-        if len(self.alpha_cols):
-            lo, hi = self.alpha_range[:, 0], self.alpha_range[:, 1]
-            f[..., self.alpha_cols] = torch.clamp(f[..., self.alpha_cols], lo, hi)
-        return f
-
-    def within_limits(self, f: Tensor, tol: float = 1e-9) -> Tensor:
-        """(...) bool: features inside the limits up to ``tol`` (relative for ρ, absolute [m, rad] otherwise)."""
-        ok = (torch.linalg.vector_norm(f[..., self.rho_cols], dim=-1) <= self.rho_max * (1 + tol)).all(-1)
-        for cols, rng in ((self.beta_cols, self.beta_range), (self.alpha_cols, self.alpha_range)):
-            if len(cols):
-                ok = ok & ((f[..., cols] >= rng[:, 0] - tol) & (f[..., cols] <= rng[:, 1] + tol)).all(-1)
-        return ok
 
 
 class ResolvedRateController:

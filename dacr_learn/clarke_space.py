@@ -1,0 +1,233 @@
+"""The actuated Clarke feature space of a robot, for deployment, control and IK (float64 maps, docs/design.md §1).
+
+- :class:`ClarkeFold`: joint vector q (..., N) → the encoder as one affine map of u = [q − q_ref, g]
+  (q_ref the straight joint vector, subtracted first to keep float32 exact; g = √((α d)² + l²) − l the helix
+  term of type-II segments), the actuated features f (..., D) and ∂f/∂q; type III adds the correction
+  β = √(h² − (α d)²). The folded inference modules fold it into their first layer.
+- :class:`DecoderJacobian`: ∂q/∂f of the Clarke decoder.
+- :class:`ClarkeSpace`: f ↔ q (encoder, decoder on the displacement constraint), the joint limits of the robot
+  file (bend disk, length and twist ranges), saturation and an inside-the-limits test.
+
+Pure torch (no Lightning, no Rerun); built from a :class:`~dacr_learn.robot.RobotSpec`.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .layers import ClarkeDecoder, ClarkeEncoder
+from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
+from .robot import RobotSpec
+
+__all__ = ["ClarkeFold", "ClarkeSpace", "DecoderJacobian", "feature_columns"]
+
+_F64 = torch.float64
+
+
+def _f64(x: Tensor) -> Tensor:
+    return x if x.dtype == _F64 else x.to(_F64)
+
+
+def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Affine part of the actuated features, f_lin = E·u + e₀, u = [q − q_ref, g] (float64).
+
+    Returns E (D, N + n_g), e₀ (D,), q_ref (N,). For a type-III segment the β column of f_lin
+    holds the helix length h. Found by probing the affine map with unit vectors (exact).
+    """
+    enc = enc.to(_F64)
+    n, nl, m = enc.num_joints, enc.num_lengths, enc.num_segments
+    l, ext = enc.nominal_length, enc.extends.to(_F64)
+    g_select = torch.eye(m, dtype=_F64)[:, has_g]                         # (m, n_g)
+
+    def f_lin(u: Tensor) -> Tensor:
+        dl, tw, g = u[:, :nl], u[:, nl:n], u[:, n:] @ g_select.mT
+        w = (dl + (l * ext - g) @ enc.path.mT) @ enc.actuated_pinv.mT
+        rho = w[:, :2 * m].unflatten(-1, (m, 2))
+        beta = l + (w[:, 2 * m:] - l @ enc.select_ext) @ enc.select_ext.mT
+        alpha = tw @ enc.select_tw.mT
+        return torch.cat([rho, beta.unsqueeze(-1), alpha.unsqueeze(-1)], -1).flatten(-2) @ sel.mT
+
+    width = n + g_select.shape[1]
+    out = f_lin(torch.cat([torch.zeros(1, width, dtype=_F64), torch.eye(width, dtype=_F64)]))
+    q_ref = torch.cat([l @ enc.path.mT, torch.zeros(n - nl, dtype=_F64)])
+    return (out[1:] - out[0]).mT.contiguous(), out[0].clone(), q_ref
+
+
+def feature_columns(spec: RobotSpec, kind: str, segs: list[int]) -> list[int]:
+    """Indices of the actuated feature columns of ``kind`` ("beta" | "alpha") of segments ``segs``."""
+    index = {col: i for i, col in enumerate(actuated_columns(spec))}
+    return [index[(k, kind)] for k in segs]
+
+
+class ClarkeFold(nn.Module):
+    """Joint vector → folded inputs u, actuated features f and ∂f/∂q (see the module docstring)."""
+
+    def __init__(self, spec: RobotSpec):
+        super().__init__()
+        enc, segs = ClarkeEncoder(spec), spec.segments
+        self.num_joints, self.num_lengths = spec.num_joints, spec.num_length_joints
+        type2 = [k for k, s in enumerate(segs) if s.twists and not s.extends]
+        type3 = [k for k, s in enumerate(segs) if s.twists and s.extends]
+        twist_index = {k: i for i, k in enumerate(k for k, s in enumerate(segs) if s.twists)}
+        sel = actuated_selection(spec).to(_F64)
+        e, e0, q_ref = _affine_features(enc, sel, torch.tensor([k in type2 for k in range(len(segs))]))
+        self.has_g, self.has_type3 = bool(type2), bool(type3)
+        self.register_buffer("E", e)
+        self.register_buffer("e0", e0)
+        self.register_buffer("q_ref", q_ref)
+        g_index = [self.num_lengths + twist_index[k] for k in type2]
+        for name, values, dtype in (("g_index", g_index, torch.long),
+                                    ("g_radius", [segs[k].joint_radii[0] for k in type2], _F64),
+                                    ("g_length", [segs[k].length for k in type2], _F64),
+                                    ("beta3", feature_columns(spec, "beta", type3), torch.long),
+                                    ("alpha3", feature_columns(spec, "alpha", type3), torch.long),
+                                    ("radius3", [segs[k].joint_radii[0] for k in type3], _F64)):
+            # Empty index buffers are left out (None): torch.export would store them as broken groups.
+            self.register_buffer(name, torch.tensor(values, dtype=dtype) if values else None)
+
+    def inputs(self, q: Tensor) -> Tensor:
+        """u = [q − q_ref, g] (..., N + n_g)."""
+        dq = q - self.q_ref
+        if not self.has_g:
+            return dq
+        ad2 = (q[..., self.g_index] * self.g_radius) ** 2
+        return torch.cat([dq, ad2 / (torch.sqrt(ad2 + self.g_length**2) + self.g_length)], dim=-1)
+
+    def type3_beta(self, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(h, α, β) of the type-III segments (B, n₃): β = sqrt(h² − (α r)²)."""
+        h = u @ self.E[self.beta3].mT + self.e0[self.beta3]
+        alpha = u @ self.E[self.alpha3].mT + self.e0[self.alpha3]
+        ad2 = (alpha * self.radius3) ** 2
+        return h, alpha, torch.sqrt(torch.clamp(h * h - ad2, min=torch.finfo(u.dtype).tiny))
+
+    def features(self, u: Tensor) -> Tensor:
+        """Actuated Clarke features f (..., D) [m, rad] from u, exactly as the encoder + selection."""
+        f = u @ self.E.mT + self.e0
+        if self.has_type3:
+            f = f.index_copy(-1, self.beta3, self.type3_beta(u)[2])
+        return f
+
+    def jacobian(self, q: Tensor, u: Tensor) -> Tensor:
+        """∂f/∂q (B, D, N) of the encoder (constant unless the robot twists)."""
+        n = self.num_joints
+        jac = self.E[:, :n].expand(q.shape[0], -1, -1)
+        if self.has_g:
+            h = u[:, n:] + self.g_length
+            coef = q[:, self.g_index] * self.g_radius**2 / h                # ∂g/∂α
+            jac = jac.index_add(-1, self.g_index, self.E[:, n:] * coef.unsqueeze(-2))
+        if self.has_type3:
+            h, alpha, beta = self.type3_beta(u)
+            rows = (h / beta).unsqueeze(-1) * jac[:, self.beta3] \
+                - (alpha * self.radius3**2 / beta).unsqueeze(-1) * jac[:, self.alpha3]
+            jac = jac.index_copy(-2, self.beta3, rows)
+        return jac
+
+
+class DecoderJacobian(nn.Module):
+    """∂q/∂f (B, N, D) of the Clarke decoder at actuated features f (B, D)."""
+
+    def __init__(self, spec: RobotSpec):
+        super().__init__()
+        dec, sel = ClarkeDecoder(spec).to(_F64), actuated_selection(spec).to(_F64)
+        segs, m = spec.segments, spec.num_segments
+        ext, tw = [k for k, s in enumerate(segs) if s.extends], [k for k, s in enumerate(segs) if s.twists]
+        d = sel.shape[0]
+        pick_beta, pick_alpha = torch.zeros(d, m, dtype=_F64), torch.zeros(d, m, dtype=_F64)
+        pick_beta[feature_columns(spec, "beta", ext), ext] = 1.0
+        pick_alpha[feature_columns(spec, "alpha", tw), tw] = 1.0
+        const = torch.zeros(spec.num_joints, d, dtype=_F64)
+        rho_cols = [c for c in range(d) if not (pick_beta[c].any() or pick_alpha[c].any())]
+        const[:spec.num_length_joints, rho_cols] = dec.displacement
+        const[spec.num_length_joints:] = pick_alpha.mT[tw]
+        path = torch.zeros(spec.num_joints, d, dtype=_F64)
+        path[:spec.num_length_joints] = dec.path @ (pick_beta + pick_alpha).mT
+        self.register_buffer("pick_beta", pick_beta)
+        self.register_buffer("pick_alpha", pick_alpha)
+        self.register_buffer("fixed_length", dec.nominal_length * (~dec.extends))
+        self.register_buffer("radius", dec.helix_radius)
+        self.register_buffer("const", const)
+        self.register_buffer("path", path)
+
+    def forward(self, f: Tensor) -> Tensor:
+        beta, alpha = f @ self.pick_beta + self.fixed_length, f @ self.pick_alpha
+        h = torch.sqrt((alpha * self.radius) ** 2 + beta**2)
+        coef = (beta / h) @ self.pick_beta.mT + (alpha * self.radius**2 / h) @ self.pick_alpha.mT
+        return self.const + self.path * coef.unsqueeze(-2)
+
+
+def _column_limits(spec: RobotSpec) -> dict[str, list]:
+    """Actuated feature columns (models.actuated_columns order) with their limits and scales."""
+    cols: dict[str, list] = {"rho": [], "rho_max": [], "beta": [], "beta_range": [], "alpha": [],
+                             "alpha_range": [], "scale": []}
+    for i, (k, name) in enumerate(actuated_columns(spec)):
+        seg = spec.segments[k]
+        if name.startswith("rho"):
+            rho_max = seg.bend * seg.radius                   # ‖ρ‖ = d·φ ≤ d·bend
+            cols["scale"].append(rho_max)
+            if name == "rho_re":
+                cols["rho"].append([i, i + 1])
+                cols["rho_max"].append(rho_max)
+            continue
+        lim = seg.length_range if name == "beta" else seg.twist_range
+        cols[name].append(i)
+        cols[f"{name}_range"].append(lim)
+        cols["scale"].append((lim[1] - lim[0]) / 2)
+    return cols
+
+
+class ClarkeSpace:
+    """Actuated Clarke features f (..., D) ↔ joint vectors q (..., N) of a robot, and saturation (float64)."""
+
+    def __init__(self, spec: RobotSpec):
+        self.spec = spec
+        self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
+        self.fold = ClarkeFold(spec)                       # the encoder as one affine map (+ helix terms)
+        self.selection = actuated_selection(spec).to(_F64)
+        self.base = fixed_features(spec, _F64)
+        self.linear = not any(s.twists for s in spec.segments)   # then the decoder is affine: q = A·f + c
+        if self.linear:
+            straight = self.fold.e0                               # features of the nominal straight robot
+            self.dec_matrix = DecoderJacobian(spec)(straight)
+            self.dec_offset = self._decode(straight) - self.dec_matrix @ straight
+        c = _column_limits(spec)
+        self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=_F64)
+        self.beta_cols = torch.tensor(c["beta"], dtype=torch.long)
+        self.alpha_cols = torch.tensor(c["alpha"], dtype=torch.long)
+        self.beta_range = torch.tensor(c["beta_range"], dtype=_F64).reshape(-1, 2)
+        self.alpha_range = torch.tensor(c["alpha_range"], dtype=_F64).reshape(-1, 2)
+        self.scale = torch.tensor(c["scale"], dtype=_F64)
+
+    def features(self, q: Tensor) -> Tensor:
+        """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
+        return self.fold.features(self.fold.inputs(_f64(q)))
+
+    def _decode(self, f: Tensor) -> Tensor:
+        return self.decoder(actuated_to_features(f, self.selection, self.base))
+
+    def joints(self, f: Tensor) -> Tensor:
+        """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
+        f = _f64(f)
+        return torch.addmm(self.dec_offset, f, self.dec_matrix.mT) if self.linear and f.dim() == 2 else (
+            self.dec_offset + f @ self.dec_matrix.mT if self.linear else self._decode(f))
+
+    def saturate(self, f: Tensor) -> Tensor:
+        """Clip features to the limits: ‖ρ‖ ≤ d·bend per segment (radially), β and α into their ranges."""
+        f = f.clone()
+        rho = f[..., self.rho_cols]                                          # (..., m, 2)
+        norm = torch.linalg.vector_norm(rho, dim=-1, keepdim=True)
+        factor = torch.clamp(self.rho_max.unsqueeze(-1) / norm.clamp_min(1e-300), max=1.0)
+        f[..., self.rho_cols] = rho * factor
+        if len(self.beta_cols):
+            f[..., self.beta_cols] = torch.clamp(f[..., self.beta_cols], self.beta_range[:, 0], self.beta_range[:, 1])
+        if len(self.alpha_cols):
+            lo, hi = self.alpha_range[:, 0], self.alpha_range[:, 1]
+            f[..., self.alpha_cols] = torch.clamp(f[..., self.alpha_cols], lo, hi)
+        return f
+
+    def within_limits(self, f: Tensor, tol: float = 1e-9) -> Tensor:
+        """(...) bool: features inside the limits up to ``tol`` (relative for ρ, absolute [m, rad] otherwise)."""
+        ok = (torch.linalg.vector_norm(f[..., self.rho_cols], dim=-1) <= self.rho_max * (1 + tol)).all(-1)
+        for cols, rng in ((self.beta_cols, self.beta_range), (self.alpha_cols, self.alpha_range)):
+            if len(cols):
+                ok = ok & ((f[..., cols] >= rng[:, 0] - tol) & (f[..., cols] <= rng[:, 1] + tol)).all(-1)
+        return ok

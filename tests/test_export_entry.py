@@ -1,0 +1,89 @@
+"""The one export entry (dacr_learn.export): no Lightning where the checkpoint names its whole architecture,
+the Lightning fallback where it does not, one-line errors naming --out, a missing export folder named.
+
+The checkpoints are the tiny ones written by main at 87f426b (tests/data/main_87f426b).
+"""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import torch
+from conftest import ROOT, names
+
+from dacr_learn import export as dexport
+from dacr_learn.runs import load_checkpoint_model
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+DATA = ROOT / "tests" / "data" / "main_87f426b"
+
+
+def _run(code: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
+
+
+@pytest.mark.parametrize("ckpt", ["fk.ckpt", "hardware_model.pt"])
+def test_export_and_load_import_no_lightning(ckpt, tmp_path):
+    run = _run(f"""
+import sys
+from dacr_learn.export import export_checkpoint, load
+meta = export_checkpoint({str(DATA / ckpt)!r}, {str(tmp_path / 'out')!r}, aoti=False)
+load({str(tmp_path / 'out')!r}, "fk")
+print(meta["task"], sorted(m for m in sys.modules if m.split(".")[0] in ("lightning", "pytorch_lightning")))
+""")
+    assert run.returncode == 0, run.stderr
+    task, lightning = run.stdout.split(" ", 1)
+    assert task in ("fk", "hardware_fk") and lightning.strip() == "[]", run.stdout
+
+
+def test_a_checkpoint_without_its_architecture_is_read_through_lightning(tmp_path):
+    """Positive control of the test above: the fallback does import Lightning, and gives the same model."""
+    blob = torch.load(DATA / "fk.ckpt", weights_only=True)
+    del blob["hyper_parameters"]["activation"]               # the FKModule default ("silu") fills it in
+    torch.save(blob, tmp_path / "old.ckpt")
+    task, model = load_checkpoint_model(tmp_path / "old.ckpt")
+    _, direct = load_checkpoint_model(DATA / "fk.ckpt")
+    q = torch.load(DATA / "outputs.pt", weights_only=True)["fk"]["input"].float()
+    with torch.no_grad():
+        assert task == "fk" and torch.equal(model(q), direct(q))
+    run = _run(f"""
+import sys
+from dacr_learn.runs import load_checkpoint_model
+load_checkpoint_model({str(tmp_path / 'old.ckpt')!r})
+print("lightning" in sys.modules)
+""")
+    assert run.returncode == 0 and run.stdout.strip() == "True", run.stderr
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dacr_learn.export", *args], capture_output=True, text=True,
+                          cwd=ROOT, timeout=300)
+
+
+@pytest.mark.parametrize("where", ["a file", "below a file"])
+def test_out_blocked_by_a_file_is_one_line_naming_out(where, tmp_path):
+    (tmp_path / "afile").write_text("x")
+    out = tmp_path / "afile" if where == "a file" else tmp_path / "afile" / "sub"
+    run = _cli("--ckpt", str(DATA / "fk.ckpt"), "--out", str(out), "--no-aoti")
+    lines = run.stderr.strip().splitlines()
+    assert run.returncode == 2 and len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+    assert lines[0].startswith(f"error: --out {out}: ") and "expected a folder" in lines[0], run.stderr
+    assert (tmp_path / "afile").read_text() == "x"                                  # left as it was
+
+
+def test_out_with_missing_parents_is_created(tmp_path):
+    out = tmp_path / "new" / "deeper" / "export"
+    meta = dexport.main(["--ckpt", str(DATA / "ik.ckpt"), "--out", str(out), "--no-aoti"])
+    assert meta["task"] == "ik" and (out / dexport.METADATA_FILE).is_file()
+
+
+def test_loading_a_missing_export_names_the_folder(tmp_path):
+    missing = tmp_path / "exports" / "nope"
+    with pytest.raises(FileNotFoundError, match=names(missing, "no such export folder")) as err:
+        dexport.load(missing, "fk")
+    assert str(missing / dexport.METADATA_FILE) not in str(err.value)
+    (tmp_path / "empty").mkdir()                                                    # a folder, but no export
+    with pytest.raises(FileNotFoundError, match=names(tmp_path / "empty" / dexport.METADATA_FILE)):
+        dexport.load(tmp_path / "empty", "fk")
