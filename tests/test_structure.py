@@ -160,7 +160,7 @@ LAYERS = {
     "hardware": ["hardware"],
     "hardware.deploy": ["hardware.deploy"],
     "hardware.study": ["hardware.study"],
-    "entry": ["", "export", "hardware.__main__", "ablation.__main__"],   # the package root and the CLIs
+    "entry": ["", "export", "hardware.__main__", "ablation.__main__", "ik.cli", "ik.__main__"],   # root and CLIs
 }
 NO_LIGHTNING_OR_RERUN = ("core", "physics", "data", "deploy", "hardware", "hardware.deploy")
 

@@ -8,7 +8,8 @@ S.npz: q (B, K, N) float64 joint vectors (the robot's joint order, what ClarkeDe
 [mm] for a hardware model), success (B, K) bool (the solver's verdict: pose within --tolerance, inside every
 limit of the robot file, on the displacement constraint), pos_err (B, K) [m], rot_err (B, K) [rad] (0 with
 --position-only), iterations (B, K), distinct (B, K) (solutions kept as distinct from the earlier ones of their
-target); for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution.
+target); for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution (each
+command on its own, no motion memory).
 
 --ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
 run/checkpoint or a learned IK sampler (the analytic CC model of its robot, seeded by the network), or a saved
@@ -83,7 +84,7 @@ def load_solver_model(robot: str | None, ckpt: str | None):
 
 def _network_seeds(net):
     """Seeds (B, S, D) from a trained IK network (its prediction for each pose target) or a learned sampler."""
-    from ..control import ClarkeSpace
+    from ..clarke_space import ClarkeSpace
     space = ClarkeSpace(net.spec)
 
     def seeds(target: torch.Tensor, count: int) -> torch.Tensor | None:
@@ -141,9 +142,9 @@ def main(argv: list[str] | None = None) -> IKResult:
                         ("q", "success", "pos_err", "rot_err", "iterations", "distinct")))
     arrays = {k: v for k, v in result.numpy().items()}
     arrays["q"] = arrays["q"].astype(np.float64)
-    if hasattr(solver_model, "hardware"):
+    if hasattr(solver_model, "hardware"):                            # a hardware model: σ of each solution
         b, k, n = result.q.shape
-        _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n))
+        _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n), static=True)
         arrays["sigma"] = sigma.reshape(b, k, 3).to(_F64).numpy()
     _save_npz(out, arrays)
     ok = result.success

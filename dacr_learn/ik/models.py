@@ -10,7 +10,8 @@ on the displacement constraint by construction.
 - :class:`LearnedFK`: a trained FK model (monolithic, compositional, Cosserat-trained): the same variables,
   the tip of the network; the Jacobian from the folded inference module where one exists, else forward-mode
   autodiff. Its accuracy is with respect to the network, not the robot.
-- :class:`HardwareTip`: a saved hardware model: servo commands [mm] inside the recorded range → tip position.
+- a saved hardware model: servo commands [mm] inside the recorded range → tip position
+  (:class:`dacr_learn.hardware.deploy.ik.HardwareTip`, registered for ``HardwareModel`` by that module).
 
 Every model also gives :meth:`SolverModel.check`: the tip, the limits and the constraint residual of a
 joint vector computed from the joints alone (encoder → FK), not from the solver's internal variables.
@@ -18,12 +19,13 @@ All float64.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
-from ..control import ClarkeSpace
+from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
 from ..models import actuated_columns, actuated_to_features
 from ..robot import RobotSpec
@@ -179,21 +181,31 @@ class LearnedFK(_ClarkeVariables):
 def _folded_jacobian(model: nn.Module) -> nn.Module | None:
     """The folded Jacobian module of a trained FK model in float64, or None where there is none."""
     from ..compositional import CompositionalFK
-    from ..inference import InferenceJacobian
-    from ..inference_compositional import InferenceCompositionalJacobian
+    from ..deploy.inference import InferenceJacobian
+    from ..deploy.inference_compositional import InferenceCompositionalJacobian
     if isinstance(model, CompositionalFK):
         return InferenceCompositionalJacobian(model, _F64) if model.rotation == "twist" else None
     return InferenceJacobian(model, _F64)
 
 
+ADAPTERS: dict[type, Callable[[object], SolverModel]] = {}
+"""Model classes of higher layers and the SolverModel each becomes (:func:`register_solver_model`)."""
+
+
+def register_solver_model(cls: type, factory: Callable[[object], SolverModel]) -> None:
+    """Let :func:`as_solver_model` (and so ``solve_ik``) accept instances of ``cls``, turned into a SolverModel by
+    ``factory`` (modules above this layer register their models here, e.g. the hardware models)."""
+    ADAPTERS[cls] = factory
+
+
 def as_solver_model(model) -> SolverModel:
     """A :class:`SolverModel` of a RobotSpec (or a robot YAML path / dict: the analytic CC model), a trained FK
     model, a loaded hardware model, or a SolverModel (returned as is). ValueError for anything else."""
-    from ..hardware.deploy.checkpoint import HardwareModel
     if isinstance(model, SolverModel):
         return model
-    if isinstance(model, HardwareModel):
-        return HardwareTip(model)
+    for cls, factory in ADAPTERS.items():                           # e.g. a saved hardware model
+        if isinstance(model, cls):
+            return factory(model)
     if isinstance(model, nn.Module) and isinstance(getattr(model, "spec", None), RobotSpec):
         return LearnedFK(model)
     try:
@@ -202,52 +214,3 @@ def as_solver_model(model) -> SolverModel:
         raise ValueError(f"model_or_spec: expected a RobotSpec, a robot YAML file or dict, a trained FK model or "
                          f"an ik.SolverModel, got {type(model).__name__} ({err})") from err
     return ConstantCurvature(spec)
-
-
-class HardwareTip(SolverModel):
-    """A saved hardware model (``dacr_learn.hardware.deploy.load_hardware_model``) inverted in servo space.
-
-    Variables and joints are the servo commands [mm] (checkpoint column order), limited to the box of the
-    commands recorded in training (the checkpoint's ``examples``); the tip is the model's position in the
-    motion-capture frame [m] (no orientation: position-only IK), its Jacobian ∂tip/∂servo [m/mm] from the
-    folded inference module (float64). A history model is solved with its play state at the command itself
-    (no history: the static answer, the command approached from where it is held). Accuracy is with
-    respect to the model; :meth:`check` is the model's own ``predict``.
-    """
-
-    has_rotation = False
-
-    def __init__(self, model):
-        from ..hardware.deploy.inference import HardwareJacobian
-        if model.examples is None or model.examples.shape[0] < 2:
-            raise ValueError("ckpt: this hardware model was saved without its training commands (examples), so "
-                             "the recorded servo range that bounds the IK is unknown; save it again with --save")
-        self.hardware, self.spec = model, None
-        commands = model.examples.to(_F64)
-        lower, upper = commands.amin(0), commands.amax(0)
-        if not bool((upper > lower).all()):
-            raise ValueError("ckpt: a servo never moved in the recorded commands; its range is empty")
-        self.limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),
-                             (upper - lower) / 2, tuple(f"servo {s} [mm]" for s in model.servo_ids))
-        self.rest = torch.zeros(len(model.servo_ids), dtype=_F64)         # command 0: the rest posture
-        self.num_joints = len(model.servo_ids)
-        self.length = float(model.spec.total_length)
-        self.jacobian_module = HardwareJacobian(model, _F64)
-
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, None, Tensor]:
-        with torch.no_grad():
-            if self.hardware.history:
-                tip, jac, _ = self.jacobian_module(x, self.jacobian_module.fk.initial_state(x))
-            else:
-                tip, jac = self.jacobian_module(x)
-        return tip, None, jac
-
-    def joints(self, x: Tensor) -> Tensor:
-        return x
-
-    def variables(self, q: Tensor) -> Tensor:
-        return q.to(_F64)
-
-    def check(self, q: Tensor) -> Check:
-        tip, self.last_sigma = self.hardware.predict(q)
-        return Check(tip.to(_F64), None, self.limits.inside(q), torch.zeros(q.shape[0], dtype=_F64))

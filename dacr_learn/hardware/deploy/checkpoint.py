@@ -35,6 +35,7 @@ written then also has the two entries (always the defaults).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -84,20 +85,23 @@ class HardwareModel:
         """True when the members are :class:`~.compositional_model.CCCompositionalResidual` models."""
         return isinstance(self.members[0], CCCompositionalResidual)
 
-    def split(self, servo_mm: torch.Tensor) -> Split:
+    def split(self, servo_mm: torch.Tensor, static: bool = False) -> Split:
         """The model inputs of commands servo (n, S) [mm, ``servo_ids`` order; time order for a history model]
-        (:func:`~.learned.command_split`; no measured tips: the split's tip is NaN)."""
+        (:func:`~.learned.command_split`; no measured tips: the split's tip is NaN). ``static``: every command
+        on its own, as the start of a sequence (no motion memory: what a held command gives without history)."""
         servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
         if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
             raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
-        return command_split(servo, self.servo_ids, self.spec, self.smap, self.cc)
+        split = command_split(servo, self.servo_ids, self.spec, self.smap, self.cc)
+        return dataclasses.replace(split, memory=torch.zeros_like(split.memory)) if static else split
 
-    def predict(self, commands: torch.Tensor | Split) -> tuple[torch.Tensor, torch.Tensor]:
-        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split.
+    def predict(self, commands: torch.Tensor | Split, static: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split; ``static``:
+        each command on its own (:meth:`split`), e.g. the candidates of an IK solve rather than a sequence.
 
         σ is the stored σ model's (:class:`~.uncertainty.SigmaModel`) when there is one, else the
         ensemble std through the σ calibration (or raw without one): :meth:`sigma_of`."""
-        split = commands if isinstance(commands, Split) else self.split(commands)
+        split = commands if isinstance(commands, Split) else self.split(commands, static)
         with torch.no_grad():
             preds = torch.stack([m(split) for m in self.members])
         return mean_and_sigma(preds, split.cc_tip, split.features[..., :2], self.sigma_of(), self.support)

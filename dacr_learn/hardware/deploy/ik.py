@@ -1,0 +1,77 @@
+"""IK of a saved hardware model: servo commands [mm] for a tip position, through the solver of :mod:`dacr_learn.ik`.
+
+>>> from dacr_learn.hardware.deploy import load_hardware_model      # doctest: +SKIP
+>>> from dacr_learn.ik import solve_ik
+>>> model = load_hardware_model("runs/ftdcr_v4_model/model.pt")
+>>> result = solve_ik(model, tip_positions, n_solutions=4, position_only=True)   # result.q: servo commands [mm]
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ...ik.limits import Limits
+from ...ik.models import Check, SolverModel, register_solver_model
+from .checkpoint import HardwareModel
+from .inference import HardwareJacobian
+
+_F64 = torch.float64
+
+
+class HardwareTip(SolverModel):
+    """A saved hardware model (``dacr_learn.hardware.deploy.load_hardware_model``) inverted in servo space.
+
+    Variables and joints are the servo commands [mm] (checkpoint column order), limited to the box of the
+    commands recorded in training (the checkpoint's ``examples``); the tip is the model's position in the
+    motion-capture frame [m] (no orientation: position-only IK), its Jacobian ∂tip/∂servo [m/mm] from the
+    folded inference module (float64). A history model is solved with its play state at the command itself
+    (no motion memory: the static answer, each command as the start of a sequence). Accuracy is with respect
+    to the model; :meth:`check` is the model's own ``predict(q, static=True)`` (the eager ensemble, not the
+    folded module the solver iterates with).
+    """
+
+    has_rotation = False
+
+    def __init__(self, model):
+        if model.examples is None or model.examples.shape[0] < 2:
+            raise ValueError("ckpt: this hardware model was saved without its training commands (examples), so "
+                             "the recorded servo range that bounds the IK is unknown; save it again with --save")
+        self.hardware, self.spec = model, None
+        commands = model.examples.to(_F64)
+        lower, upper = commands.amin(0), commands.amax(0)
+        if not bool((upper > lower).all()):
+            raise ValueError("ckpt: a servo never moved in the recorded commands; its range is empty")
+        self.limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),
+                             (upper - lower) / 2, tuple(f"servo {s} [mm]" for s in model.servo_ids))
+        self.rest = torch.zeros(len(model.servo_ids), dtype=_F64)         # command 0: the rest posture
+        self.num_joints = len(model.servo_ids)
+        self.length = float(model.spec.total_length)
+        self.jacobian_module = HardwareJacobian(model, _F64)
+
+    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, None, Tensor]:
+        if not self.hardware.history:
+            with torch.no_grad():
+                tip, jac = self.jacobian_module(x)
+            return tip, None, jac
+        # A history model held static: the play state follows the command (memory 0 whatever the command), so
+        # the Jacobian is that of the static map, not the module's (which holds the state fixed: the effect of
+        # the next command given the history). Three reverse-mode passes through the folded FK.
+        fk = self.jacobian_module.fk
+        servo = x.detach().requires_grad_(True)
+        with torch.enable_grad():
+            tip = fk(servo, fk.initial_state(servo))[0]
+            rows = [torch.autograd.grad(tip[:, i].sum(), servo, retain_graph=i < 2)[0] for i in range(3)]
+        return tip.detach(), None, torch.stack(rows, dim=1)
+
+    def joints(self, x: Tensor) -> Tensor:
+        return x
+
+    def variables(self, q: Tensor) -> Tensor:
+        return q.to(_F64)
+
+    def check(self, q: Tensor) -> Check:
+        tip, _ = self.hardware.predict(q, static=True)
+        return Check(tip.to(_F64), None, self.limits.inside(q), torch.zeros(q.shape[0], dtype=_F64))
+
+
+register_solver_model(HardwareModel, HardwareTip)
