@@ -237,11 +237,12 @@ def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str 
 
 # hyper-parameters a FKModule / IKModule checkpoint must hold to rebuild its network without Lightning
 REQUIRED_HPARAMS = {"fk": ("features", "width", "depth", "activation", "rotation"),
-                    "ik": ("features", "width", "depth", "activation")}
+                    "ik": ("features", "width", "depth", "activation"),
+                    "sampler": ("features", "width", "depth", "activation", "transforms", "bins")}
 
 
 def model_from_hparams(task: str, spec: RobotSpec, hparams) -> nn.Module:
-    """The (untrained) network of an FK / IK module with these hyper-parameters (a mapping with the keys of
+    """The (untrained) network of an FK / IK / sampler module with these hyper-parameters (a mapping with the keys of
     :data:`REQUIRED_HPARAMS`; ``structure``, ``context``, ``units``, ``output_scale`` default as in training).
     ``training.FKModule`` / ``IKModule`` build theirs with it, and :func:`dacr_learn.runs.load_checkpoint_model`
     rebuilds a checkpoint's without Lightning."""
@@ -252,7 +253,10 @@ def model_from_hparams(task: str, spec: RobotSpec, hparams) -> nn.Module:
                               activation=h["activation"], rotation=h["rotation"])
     if task == "ik":
         return IKModel(spec, h["features"], h["width"], h["depth"], h["activation"], h.get("output_scale", "std"))
-    raise ValueError(f"task: expected 'fk' or 'ik', got {task!r}")
+    if task == "sampler":
+        from .sampler import ClarkeSampler
+        return ClarkeSampler(spec, h["features"], h["transforms"], h["width"], h["depth"], h["activation"], h["bins"])
+    raise ValueError(f"task: expected 'fk', 'ik' or 'sampler', got {task!r}")
 
 
 def _geometry(seg) -> tuple:

@@ -26,7 +26,7 @@ def summarize(errors: dict[str, Tensor], total_length: float) -> dict[str, float
     pos_err [m] → pos_err_{mean,p95,max}_mm and pos_err_mean_pct (% of total robot length);
     rot_err [rad] → rot_err_{mean,p95,max}_deg; joint_err [m] → joint_err_{mean,max}_mm;
     constraint_residual [m] → constraint_residual_{mean,max}_m; out_of_limits (1 where a prediction
-    leaves the joint limits, else 0) → out_of_limits_pct.
+    leaves the joint limits, else 0) → out_of_limits_pct; nll (a sampler's negative log-likelihood) → nll_mean.
     """
     out: dict[str, float] = {}
     e = {k: v.detach().double().flatten() for k, v in errors.items()}
@@ -46,6 +46,8 @@ def summarize(errors: dict[str, Tensor], total_length: float) -> dict[str, float
                    constraint_residual_max_m=e["constraint_residual"].max().item())
     if "out_of_limits" in e:
         out.update(out_of_limits_pct=e["out_of_limits"].mean().item() * 100)
+    if "nll" in e:
+        out.update(nll_mean=e["nll"].mean().item())
     return out
 
 

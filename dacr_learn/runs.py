@@ -40,7 +40,8 @@ __all__ = [
 ]
 
 RUN_INFO = "run.json"
-CHECKPOINT = "an FKModule/IKModule checkpoint written by train.py or a Lightning Trainer"
+CHECKPOINT = "an FKModule/IKModule/SamplerModule checkpoint written by train.py or a Lightning Trainer"
+MODULES = {"fk": "FKModule", "ik": "IKModule", "sampler": "SamplerModule"}   # task → its LightningModule
 LAST = "last.ckpt"
 
 
@@ -147,7 +148,8 @@ def find_checkpoint(path: str | Path) -> Path:
 
 
 def checkpoint_task(ckpt: Path, raw: Any) -> str:
-    """"fk" | "ik" of a loaded checkpoint dict; ValueError naming the file and the missing or wrong entry."""
+    """"fk" | "ik" | "sampler" of a loaded checkpoint dict; ValueError naming the file and the missing or wrong
+    entry."""
     def bad(found: str) -> ValueError:
         return ValueError(f"{ckpt}: expected {CHECKPOINT}, found {found}")
 
@@ -167,22 +169,25 @@ def checkpoint_task(ckpt: Path, raw: Any) -> str:
         return "fk"
     if isinstance(weights, dict) and "model.in_norm.mean" in weights:
         return "ik"
-    raise bad("a state_dict without model.front.norm / model.in_norm weights "
+    if isinstance(weights, dict) and "model.target_norm.mean" in weights:
+        return "sampler"
+    raise bad("a state_dict without model.front.norm / model.in_norm / model.target_norm weights "
               f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
 
 
 def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
-    """(task "fk" | "ik", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
+    """(task "fk" | "ik" | "sampler", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
     ``blob``: the file's content when the caller has loaded it already (weights-only).
 
     Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
     (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
     """
     from .training import FKModule, IKModule  # Lightning is imported only to read a checkpoint
+    from .training_sampler import SamplerModule
 
     ckpt = Path(ckpt)
     task = checkpoint_task(ckpt, load_torch_file(ckpt, CHECKPOINT) if blob is None else blob)
-    cls = FKModule if task == "fk" else IKModule
+    cls = {"fk": FKModule, "ik": IKModule, "sampler": SamplerModule}[task]
     try:
         return task, cls.load_from_checkpoint(ckpt, map_location="cpu").eval()
     except (KeyError, RuntimeError, TypeError, ValueError) as err:
@@ -191,8 +196,8 @@ def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
 
 
 def load_checkpoint_model(ckpt: str | Path, blob: Any = None) -> tuple[str, torch.nn.Module]:
-    """(task "fk" | "ik", the trained network in eval mode, float32) of a checkpoint written by train.py or a
-    Trainer, rebuilt from its hyper-parameters and weights without Lightning
+    """(task "fk" | "ik" | "sampler", the trained network in eval mode, float32) of a checkpoint written by train.py
+    or a Trainer, rebuilt from its hyper-parameters and weights without Lightning
     (:func:`~dacr_learn.compositional.model_from_hparams`). A checkpoint whose hyper-parameters lack part of
     the architecture (:data:`~dacr_learn.compositional.REQUIRED_HPARAMS`; the LightningModule's defaults fill
     them) is read through :func:`load_lightning_checkpoint`. ``blob``: the file's content when the caller has
@@ -209,14 +214,14 @@ def load_checkpoint_model(ckpt: str | Path, blob: Any = None) -> tuple[str, torc
         prefix = "model."
         model.load_state_dict({k[len(prefix):]: v for k, v in blob["state_dict"].items() if k.startswith(prefix)})
     except (KeyError, RuntimeError, TypeError, ValueError) as err:
-        name = {"fk": "FKModule", "ik": "IKModule"}[task]
+        name = MODULES[task]
         raise ValueError(f"{ckpt}: expected {CHECKPOINT}, found one whose weights and hyper-parameters {name} "
                          f"cannot load ({short_error(err)})") from err
     return task, model.eval()
 
 
 # hyper-parameters that decide what a checkpoint's weights compute (not how they were trained)
-ARCHITECTURE = ("features", "structure", "context", "width", "depth", "activation", "rotation")
+ARCHITECTURE = ("features", "structure", "context", "width", "depth", "activation", "rotation", "transforms", "bins")
 
 
 def describe_model(kind: str, hparams: dict[str, Any]) -> str:
@@ -236,7 +241,7 @@ def check_checkpoint_fits(ckpt: str | Path, blob: Any, kind: str, hparams: dict[
     """ValueError (one line, naming both) unless the checkpoint ``ckpt`` (``blob``: its loaded content) holds a
     model of class ``kind`` for the same robot, with the same architecture hyper-parameters and weight shapes as
     the model the config builds (``kind``, ``hparams``, ``state_dict``: that model's)."""
-    saved_kind = {"fk": "FKModule", "ik": "IKModule"}[checkpoint_task(Path(ckpt), blob)]
+    saved_kind = MODULES[checkpoint_task(Path(ckpt), blob)]
     saved, weights = blob["hyper_parameters"], blob["state_dict"]
     same = (saved_kind == kind and saved.get("robot") == hparams.get("robot")
             and all(saved.get(k) == hparams.get(k) for k in ARCHITECTURE)
@@ -284,8 +289,10 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
     Returns:
         An ``nn.Module`` with ``.spec`` (the :class:`~dacr_learn.robot.RobotSpec` it was trained for):
         an FK model maps joint lengths ``(..., N)`` [m] to tip poses ``(..., 4, 4)`` [m];
-        an IK model maps tip poses ``(..., 4, 4)`` to joint lengths ``(..., N)`` [m].
-        Its ``.task`` attribute is ``"fk"`` or ``"ik"``.
+        an IK model maps tip poses ``(..., 4, 4)`` to joint lengths ``(..., N)`` [m];
+        a learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`) draws joint configurations for tip
+        poses or positions (``sample_features(target, count)`` → ``(B, count, D)`` float64, the IK solver's seeds).
+        Its ``.task`` attribute is ``"fk"``, ``"ik"`` or ``"sampler"``.
 
     Raises:
         FileNotFoundError: nothing to load at ``path``.

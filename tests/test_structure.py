@@ -151,10 +151,10 @@ def test_no_file_in_the_package_is_over_400_lines():
 # a module imports only modules of its own layer or of layers listed before it.
 LAYERS = {
     "core": ["checks", "console", "robot", "clarke", "layers", "lie", "kinematics", "metrics", "models",
-             "compositional", "clarke_space"],
+             "compositional", "clarke_space", "sampler"],
     "physics": ["cosserat"],
     "data": ["data"],
-    "learning": ["datamodule", "training", "runs", "ablation", "combination_shift"],
+    "learning": ["datamodule", "training", "training_sampler", "runs", "ablation", "combination_shift"],
     "viz": ["viz"],
     "deploy": ["deploy", "ik"],
     "hardware": ["hardware"],

@@ -79,6 +79,9 @@ def load_solver_model(robot: str | None, ckpt: str | None):
     net = load_model(path, dtype=_F64)
     if net.task == "fk":
         return net, None, f"learned FK {ckpt} (accuracy with respect to the network)"
+    if net.task == "sampler":     # seeds need no float64 (the solver refines them in float64): float32 samples faster
+        seeds = _network_seeds(net.float())
+        return net.spec, seeds, f"analytic CC model of {ckpt}'s robot, seeded by its learned sampler"
     return net.spec, _network_seeds(net), f"analytic CC model of {ckpt}'s robot, seeded by its IK network"
 
 

@@ -1,0 +1,109 @@
+"""LightningModule of the learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`), trained by maximum
+likelihood on the synthetic dataset of its robot (``train.py fit --config configs/ik_sampler_tdcr3.yaml``).
+
+Loss: the negative log-likelihood [nats per sample, standardised flow variables] of the training joint
+configurations given their tip poses; a fraction ``position_fraction`` of the poses has its rotation hidden, so
+one model samples for poses and for positions. Validation/test: ``nll_mean`` (rotation given, no noise), and the
+tip error of one sample per target under the analytic CC model (``pos_err_*``, ``rot_err_*``: how far a seed lies
+from a solution before the solver refines it); for "raw" also the share of sampled joint vectors whose features
+leave the limits before the projection (``out_of_limits_pct``) and their distance from the displacement
+constraint (``constraint_residual_*``, 0 for "clarke" by construction).
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .compositional import model_from_hparams
+from .kinematics import backbone_points, forward_kinematics
+from .metrics import pose_errors
+from .models import actuated_to_features
+from .sampler import ClarkeSampler
+from .training import KinematicsModule
+
+_F64 = torch.float64
+
+
+class SamplerModule(KinematicsModule):
+    """Learned multi-solution IK sampler: a conditional normalizing flow of the joints given the tip pose.
+
+    Args (beyond :class:`~dacr_learn.training.KinematicsModule`'s): features "clarke" (the flow models the actuated
+    Clarke features, squashed into the limits: samples inside them by construction) | "raw" (the joint vector:
+    samples encoded, then projected onto the limits); transforms, bins: coupling spline transforms of the flow and
+    their bins; width, depth, activation: each transform's network. noise: std of the Gaussian noise added to the
+    standardised training variables (keeps the density finite on the solution manifolds; > 0 needed for "raw",
+    whose joint vectors span fewer dimensions than N). position_fraction: share of training poses whose rotation
+    is hidden (0: a pose-only sampler; > 0: it also samples for tip positions).
+    """
+
+    def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
+                 width: int = 128, depth: int = 2, activation: str = "relu", lr: float = 2e-3,
+                 weight_decay: float = 0.0, visual_samples: int = 8, transforms: int = 4, bins: int = 8,
+                 noise: float = 0.01, position_fraction: float = 0.5):
+        if not noise >= 0:
+            raise ValueError(f"noise: expected a standard deviation >= 0, got {noise!r}")
+        if features == "raw" and noise == 0:
+            raise ValueError("noise: the raw joint vectors lie on the displacement constraint (fewer dimensions than "
+                             "joints), where a flow's density is unbounded; expected noise > 0 with features 'raw'")
+        if not 0 <= position_fraction <= 1:
+            raise ValueError(f"position_fraction: expected a fraction in [0, 1], got {position_fraction!r}")
+        # save_hyperparameters() in the base class also records the sampler's arguments
+        super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
+        self.model.position_trained.fill_(position_fraction > 0)
+
+    def build_model(self) -> ClarkeSampler:
+        return model_from_hparams("sampler", self.spec, self.hparams)
+
+    def setup(self, stage: str) -> None:
+        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        if dm is not None and getattr(dm, "source", "cc") != "cc":
+            raise ValueError(f"data.source: the sampler seeds the IK solver of its robot's constant-curvature model "
+                             f"and is trained on that model's samples; got source {dm.source!r}, expected 'cc'")
+        super().setup(stage)
+
+    def loss(self, batch: dict[str, Tensor]) -> Tensor:
+        q = batch["q"]
+        hide = torch.rand(q.shape[0], device=q.device) < self.hparams.position_fraction
+        return -self.model.log_prob(q, batch["pose"], hide, self.hparams.noise).mean()
+
+    def seed_errors(self, pose: Tensor) -> dict[str, Tensor]:
+        """One sample per pose (B, 4, 4): the tip errors of its analytic CC pose (pos_err [m], rot_err [rad]) and, for
+        "raw", whether the sampled joints left the limits before the projection and their constraint residual [m]."""
+        m, space = self.model, self.model.space
+        v = m.sample_variables(pose, 1)[:, 0].to(_F64)
+        if m.features == "clarke":
+            f = m.squash(v)
+            outside, residual = torch.zeros(len(f), dtype=_F64), torch.zeros(len(f), dtype=_F64)
+        else:
+            unprojected = space.features(v)
+            f = space.saturate(unprojected)
+            outside = (~space.within_limits(unprojected)).to(_F64)
+            residual = torch.linalg.vector_norm(space.joints(unprojected) - v, dim=-1)
+        tip = forward_kinematics(self.spec, actuated_to_features(f, space.selection, space.base))
+        errors = pose_errors(tip, pose.to(_F64))
+        return {**errors, "out_of_limits": outside, "constraint_residual": residual}
+
+    def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
+        nll = -self.model.log_prob(batch["q"], batch["pose"])
+        seeds = {k: v.to(nll.dtype) for k, v in self.seed_errors(batch["pose"]).items()}
+        return {"nll": nll, **seeds}
+
+    @torch.no_grad()
+    def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
+        """Rerun scene (keys of :func:`dacr_learn.viz.scene.log_scene`): ``visual_samples`` sampled configurations of
+        the first validation pose as orange ghost backbones (``backbone_pred``) with their tip frames
+        (``pose_pred``, joined to the target frame ``pose_true`` by the tip-error lines), the dataset's own
+        configuration of that pose in grey (``backbone``), and the validation tip positions coloured by the tip
+        error of one sample each (``workspace_error``)."""
+        val, k, space = self.trainer.datamodule.splits["val"], self.hparams.visual_samples, self.model.space
+        target = val["pose"][:1].to(self.device)
+        f = self.model.sample_features(target, k)[0]
+        full = actuated_to_features(f, space.selection, space.base)
+        n = min(num_workspace, len(val["q"]))
+        workspace = val["pose"][:n].to(self.device)
+        return {"backbone": backbone_points(self.spec, val["features"][:1]).cpu(),
+                "backbone_pred": backbone_points(self.spec, full).float().cpu(),
+                "pose_true": target.expand(k, 4, 4).cpu(),
+                "pose_pred": forward_kinematics(self.spec, full).float().cpu(),
+                "workspace_points": workspace[:, :3, 3].cpu(),
+                "workspace_error": self.seed_errors(workspace)["pos_err"].float().cpu()}
