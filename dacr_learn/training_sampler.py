@@ -4,10 +4,10 @@ likelihood on the synthetic dataset of its robot (``train.py fit --config config
 Loss: the negative log-likelihood [nats per sample, standardised flow variables] of the training joint
 configurations given their tip poses; a fraction ``position_fraction`` of the poses has its rotation hidden, so
 one model samples for poses and for positions. Validation/test: ``nll_mean`` (rotation given, no noise), and the
-tip error of one sample per target under the analytic CC model (``pos_err_*``, ``rot_err_*``: how far a seed lies
-from a solution before the solver refines it); for "raw" also the share of sampled joint vectors whose features
-leave the limits before the projection (``out_of_limits_pct``) and their distance from the displacement
-constraint (``constraint_residual_*``, 0 for "clarke" by construction).
+tip error of one sample per target under the analytic CC model, the model the IK CLI solves on (``pos_err_*``,
+``rot_err_*``: how far a seed lies from a solution before the solver refines it); for "raw" also the share of
+sampled joint vectors whose features leave the limits before the projection (``out_of_limits_pct``) and their
+distance from the displacement constraint (``constraint_residual_*``; both 0 for "clarke" by construction).
 """
 from __future__ import annotations
 
@@ -53,13 +53,6 @@ class SamplerModule(KinematicsModule):
 
     def build_model(self) -> ClarkeSampler:
         return model_from_hparams("sampler", self.spec, self.hparams)
-
-    def setup(self, stage: str) -> None:
-        dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        if dm is not None and getattr(dm, "source", "cc") != "cc":
-            raise ValueError(f"data.source: the sampler seeds the IK solver of its robot's constant-curvature model "
-                             f"and is trained on that model's samples; got source {dm.source!r}, expected 'cc'")
-        super().setup(stage)
 
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
         q = batch["q"]
