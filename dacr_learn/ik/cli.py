@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .solver import IKOptions, IKResult, check_targets, solve_ik
+from .solver import IKOptions, IKResult, solve_ik
+from .targets import check_targets
 
 _F64 = torch.float64
 
