@@ -189,4 +189,5 @@ def test_levenberg_marquardt_converges_quadratically_near_a_solution():
     x_true = model.variables(ClarkeDecoder(spec).to(F64)(feats))
     x, pos_err, rot_err, iters = levenberg_marquardt(model, x_true + 1e-3 * model.limits.scale, target[:, :3, 3],
                                                      target[:, :3, :3])
+    assert model.limits.inside(x).all()
     assert (pos_err < 1e-7).all() and (rot_err < 1e-6).all() and (iters <= 6).all()

@@ -11,7 +11,9 @@
 """
 from .limits import Limits
 from .models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model, clarke_limits
-from .solver import IKOptions, IKResult, check_targets, levenberg_marquardt, solve_ik
+from .refine import levenberg_marquardt
+from .solver import IKOptions, IKResult, solve_ik
+from .targets import check_targets
 
 __all__ = ["Check", "ConstantCurvature", "IKOptions", "IKResult", "LearnedFK", "Limits", "SolverModel",
            "as_solver_model", "check_targets", "clarke_limits", "levenberg_marquardt", "solve_ik"]

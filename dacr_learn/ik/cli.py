@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .solver import IKOptions, IKResult, check_targets, solve_ik
+from .solver import IKOptions, IKResult, solve_ik
+from .targets import check_targets
 
 _F64 = torch.float64
 
@@ -59,6 +60,9 @@ def _save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             np.savez(f, **arrays)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)                 # mkstemp makes it private; a result file is a normal one
         os.replace(tmp, out)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -114,6 +118,9 @@ def main(argv: list[str] | None = None) -> IKResult:
     p.add_argument("--q0", help="warm start (N,) or (B, N) .npy: the solution nearest it comes first")
     p.add_argument("--seed", type=int, default=0, help="seed of the random starts (default 0)")
     p.add_argument("--batch", type=int, default=2000, help="targets solved at once (default 2000)")
+    p.add_argument("--rerun", metavar="FILE.rrd", help="also write a Rerun recording of the first --show targets' "
+                   "solutions (ghost backbones, target frames; robot models with an orientation)")
+    p.add_argument("--show", type=int, default=4, help="targets in the --rerun recording (default 4)")
     args = p.parse_args(argv)
     if args.solutions < 1:
         raise ValueError(f"--solutions: expected >= 1, got {args.solutions}")
@@ -150,11 +157,32 @@ def main(argv: list[str] | None = None) -> IKResult:
         _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n), static=True)
         arrays["sigma"] = sigma.reshape(b, k, 3).to(_F64).numpy()
     _save_npz(out, arrays)
+    if args.rerun:
+        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show])
     ok = result.success
     print(f"solved {int(ok.any(1).sum())}/{ok.shape[0]} targets ({int(ok.sum())}/{ok.numel()} solutions, "
           f"{result.distinct.sum(1).double().mean():.1f} distinct per target) on the {description} "
           f"in {time.perf_counter() - started:.1f} s → {out}")
     return result
+
+
+def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor) -> None:
+    """Rerun recording of a solve: target frames, solutions' backbones (:func:`dacr_learn.viz.ik.log_ik_solutions`)."""
+    import rerun as rr
+
+    from ..kinematics import backbone_points
+    from ..layers import ClarkeEncoder
+    from ..viz.ik import ik_blueprint, log_ik_solutions
+    spec = getattr(model, "spec", None)
+    if spec is None or targets.dim() != 3:
+        raise ValueError("--rerun: needs a robot model (not a hardware model) and pose targets (B, 4, 4)")
+    b, k, n = q.shape
+    lines = backbone_points(spec, ClarkeEncoder(spec).to(_F64)(q.reshape(-1, n))).view(b, k, -1, 3)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream("dacr_learn_ik")
+    rec.save(str(path), default_blueprint=ik_blueprint())
+    log_ik_solutions(rec, "ik", targets, lines, success)
+    rec.flush()
 
 
 class _NoProgress:

@@ -2,20 +2,13 @@
 
 :func:`solve_ik` returns, for each of B targets, K joint vectors. Each slot starts from a seed (a warm start,
 a learned sampler's sample, or a uniform sample of the admissible set) and is refined by
-:func:`levenberg_marquardt`; slots that fail are restarted from new seeds, and successful slots that
+:func:`~.refine.levenberg_marquardt`; slots that fail are restarted from new seeds, and successful slots that
 duplicate another solution of the same target are restarted too, to find distinct ones (a redundant robot has
 a continuum of solutions). The verdict ``success`` comes from the model's own check of the returned joints
 (tip from the joints alone, limits, displacement constraint), not from the solver's internal state.
 
-The refinement (docs/ik.md): residual r = ((p − p*)/L, log(R·R*ᵀ)) (position in units of the robot length L,
-rotation vector [rad] in the base frame; position only with ``position_only``), Gauss–Newton matrix
-H = J̃ᵀJ̃ in scaled variables z = x/s (J̃ = J·diag(s), s the limits' scales), and the limits inside the step:
-box coordinates at a bound whose descent points outward are fixed and a disk at its rim loses its radial
-direction (:meth:`~.limits.Limits.free_directions`, projector P), the step minimises ‖r + J̃P·δz‖² + λ‖δz‖²,
-δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r (a 6 × 6 or 3 × 3 system whatever D), and the trial point is projected onto the
-admissible set. λ
-(Levenberg–Marquardt) shrinks after an accepted step and grows after a rejected one. Samples that have
-converged leave the batch.
+The refinement is :mod:`.refine` (Levenberg–Marquardt with the limits inside the step, docs/ik.md); starts that
+stall restart in groups (:data:`FAN_OUT`), so the tail of hard targets costs few passes over the batch.
 """
 from __future__ import annotations
 
@@ -23,11 +16,12 @@ import math
 from dataclasses import dataclass, field, fields
 
 import torch
-from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
 from ..metrics import rotation_geodesic
 from .models import SolverModel, as_solver_model
+from .refine import STALL_LAMBDA, Refinement
+from .targets import check_q0, check_targets
 
 _F64 = torch.float64
 
@@ -80,129 +74,6 @@ class IKResult:
 
     def numpy(self) -> dict:
         return {f.name: getattr(self, f.name).cpu().numpy() for f in fields(self)}
-
-
-def check_targets(target: Tensor, position_only: bool) -> Tensor:
-    """Validate IK targets: (B, 4, 4) homogeneous poses with a rotation part, or (B, 3) positions with
-    ``position_only`` (a (B, 4, 4) pose is then reduced to its position). Returns float64. ValueError naming
-    what is wrong: shape, non-finite entries, a rotation that is not orthonormal with det +1, a bad last row."""
-    if not isinstance(target, Tensor):
-        target = torch.as_tensor(target)
-    if not target.is_floating_point():
-        raise ValueError(f"target: expected floating-point values, got dtype {target.dtype}")
-    target = target.to(_F64)
-    shapes = "(B, 3) positions or (B, 4, 4) poses" if position_only else "(B, 4, 4) poses"
-    is_pose = target.dim() == 3 and target.shape[-2:] == (4, 4)
-    if not (is_pose or (position_only and target.dim() == 2 and target.shape[-1] == 3)) or target.shape[0] == 0:
-        raise ValueError(f"target: expected {shapes}, got shape {tuple(target.shape)}")
-    bad = ~torch.isfinite(target.flatten(1)).all(-1)
-    if bad.any():
-        raise ValueError(f"target: {int(bad.sum())} target(s) with NaN/inf entries, first at index "
-                         f"{int(bad.nonzero()[0])}")
-    if is_pose:
-        rot = target[:, :3, :3]
-        orth = (rot @ rot.mT - torch.eye(3, dtype=_F64)).abs().amax((-2, -1))
-        det = torch.linalg.det(rot)
-        row = (target[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=_F64)).abs().amax(-1)
-        wrong = (orth > 1e-6) | ((det - 1).abs() > 1e-6) | (row > 1e-12)
-        if wrong.any():
-            i = int(wrong.nonzero()[0])
-            raise ValueError(f"target: {int(wrong.sum())} pose(s) whose rotation is not a rotation matrix "
-                             f"(RRᵀ = I to 1e-6, det +1) or whose last row is not (0, 0, 0, 1); first at index {i} "
-                             f"(|RRᵀ − I| = {float(orth[i]):.2e}, det = {float(det[i]):.6f})")
-        if position_only:
-            return target[:, :3, 3]
-    return target
-
-
-def _residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor | None):
-    """Residual r (M, 3 or 6) [units of L, rad], its Jacobian (M, 3 or 6, D), position and rotation errors (M,)."""
-    pos, rot, jac = model.tip_and_jacobian(x)
-    dp = (pos - position) / model.length
-    pos_err = torch.linalg.vector_norm(pos - position, dim=-1)
-    if rotation is None:
-        return dp, jac[:, :3] / model.length, pos_err, torch.zeros_like(pos_err)
-    rvec = matrix_to_axis_angle(rot @ rotation.mT)                     # log(R·R*ᵀ), base frame
-    r = torch.cat([dp, rvec], dim=-1)
-    jac = torch.cat([jac[:, :3] / model.length, jac[:, 3:]], dim=1)
-    return r, jac, pos_err, torch.linalg.vector_norm(rvec, dim=-1)
-
-
-class _Refinement:
-    """The LM state of M starts (module docstring): variables x (M, D), residual r and its Jacobian, cost ‖r‖²,
-    damping λ and the errors, with the targets of each row."""
-
-    def __init__(self, model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
-                 options: IKOptions):
-        self.model, self.lim, self.options = model, model.limits, options
-        self.position, self.rotation = position, rotation
-        self.scale = self.lim.scale.to(_F64)
-        self.tol = tuple(0.1 * t for t in options.tolerance)                 # aim a decade below the tolerance
-        self.x = self.lim.project(x0.to(_F64))
-        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(self.x.shape[0]))
-        self.cost = (self.r * self.r).sum(-1)
-        self.lam = torch.full_like(self.cost, options.damping)
-        self.eye = torch.eye(self.r.shape[1], dtype=_F64)
-
-    def _residual(self, x: Tensor, rows: Tensor):
-        return _residual(self.model, x, self.position[rows], None if self.rotation is None else self.rotation[rows])
-
-    def converged(self) -> Tensor:
-        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
-
-    def append(self, x0: Tensor, position: Tensor, rotation: Tensor | None) -> None:
-        """New rows: starts x0 (R, D) towards their targets (position (R, 3), rotation (R, 3, 3) or None)."""
-        first = self.x.shape[0]
-        self.position = torch.cat([self.position, position])
-        self.rotation = None if rotation is None else torch.cat([self.rotation, rotation])
-        x = self.lim.project(x0.to(_F64))
-        r, jac, pe, re = self._residual(x, torch.arange(first, first + x.shape[0]))
-        self.x, self.r, self.jac = torch.cat([self.x, x]), torch.cat([self.r, r]), torch.cat([self.jac, jac])
-        self.pos_err, self.rot_err = torch.cat([self.pos_err, pe]), torch.cat([self.rot_err, re])
-        self.cost = torch.cat([self.cost, (r * r).sum(-1)])
-        self.lam = torch.cat([self.lam, torch.full_like(pe, self.options.damping)])
-
-    def step(self, rows: Tensor) -> None:
-        """One LM iteration of the given rows: a step with the limits inside it, kept if it lowers the cost."""
-        lim, scale = self.lim, self.scale
-        xa, ra, ja, la = self.x[rows], self.r[rows], self.jac[rows] * scale, self.lam[rows]
-        box, normals = lim.blocked(xa, (ja.mT @ ra.unsqueeze(-1)).squeeze(-1))
-        held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
-        if held.any():                                               # J̃·P on the rows a limit holds
-            h = held.nonzero().squeeze(-1)
-            ja = ja.clone()
-            ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
-        # the dual form: δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖²
-        gram = ja @ ja.mT + la[:, None, None] * self.eye
-        step = -(ja.mT @ torch.linalg.solve(gram, ra.unsqueeze(-1))).squeeze(-1)
-        xt = lim.project(xa + step * scale)
-        rt, jt, pe, re = self._residual(xt, rows)
-        ct = (rt * rt).sum(-1)
-        better = ct < self.cost[rows]
-        acc = rows[better]
-        self.x[acc], self.r[acc], self.jac[acc], self.cost[acc] = xt[better], rt[better], jt[better], ct[better]
-        self.pos_err[acc], self.rot_err[acc] = pe[better], re[better]
-        self.lam[rows] = torch.where(better, torch.clamp(la / 3, min=1e-12), la * 4)
-
-
-STALL_LAMBDA = 1e6   # λ beyond which a start has no descent direction left (a local minimum, or unreachable)
-
-
-def levenberg_marquardt(model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
-                        options: IKOptions = IKOptions()) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Refine M starts x0 (M, D) towards targets (position (M, 3) [m], rotation (M, 3, 3) or None) inside the
-    limits (module docstring), at most ``options.max_iterations`` each. Returns (x (M, D), pos_err (M,) [m],
-    rot_err (M,) [rad], iterations (M,)). A start stops when both errors are below a tenth of the tolerance or
-    when λ exceeds :data:`STALL_LAMBDA`; x always stays admissible."""
-    state = _Refinement(model, x0, position, rotation, options)
-    iters = torch.zeros(state.x.shape[0], dtype=torch.long)
-    for _ in range(options.max_iterations):
-        rows = (~state.converged() & (state.lam < STALL_LAMBDA)).nonzero().squeeze(-1)
-        if rows.numel() == 0:
-            break
-        state.step(rows)
-        iters[rows] += 1
-    return state.x, state.pos_err, state.rot_err, iters
 
 
 def _distinct_mask(q: Tensor, ok: Tensor, order: Tensor, threshold: float) -> Tensor:
@@ -261,12 +132,13 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         s = min(k, seeds.shape[1])
         starts[:, :s] = seeds[:, :s].to(_F64)
     if q0 is not None:
-        q0 = _check_q0(q0, b, model.num_joints)
+        q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
 
-    state = _Refinement(model, starts.view(-1, d), position.repeat_interleave(k, 0),
-                        None if rotation is None else rotation.repeat_interleave(k, 0), options)
-    x, iters = _multi_start(state, gen, b, k, keep_first=q0 is not None)
+    rows = torch.arange(b).repeat_interleave(k)
+    state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
+                       options.tolerance, options.damping)
+    x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
                             lim.project(model.rest.to(_F64)), options)
 
@@ -276,7 +148,8 @@ MAX_FAN_OUT = 64
 DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live starts than this fraction of slots
 
 
-def _multi_start(state: _Refinement, gen: torch.Generator, b: int, k: int, keep_first: bool) -> tuple[Tensor, Tensor]:
+def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: IKOptions,
+                 keep_first: bool) -> tuple[Tensor, Tensor]:
     """Run the LM iterations of the B·K slots (one start each, rows 0 … M − 1 of ``state``) together, adding
     starts where needed. A start stalls when it has not converged after ``max_iterations`` iterations or its λ
     passed :data:`STALL_LAMBDA`; a slot whose starts have all stalled takes :data:`FAN_OUT` new uniform starts at
@@ -286,7 +159,7 @@ def _multi_start(state: _Refinement, gen: torch.Generator, b: int, k: int, keep_
     duplicate another solution of their target take new starts the same way (twice at most).
     Returns each slot's variables (M, D) — its converged start, or
     the start of least residual — and the iterations spent on the slot (M,)."""
-    opts, lim, m, model = state.options, state.lim, b * k, state.model
+    lim, m, model = state.lim, b * k, state.model
     slot = torch.arange(m)                                            # the slot of each row (start)
     since = torch.zeros(m, dtype=torch.long)                          # iterations of each row
     live = torch.ones(m, dtype=torch.bool)                            # rows still iterating
@@ -333,7 +206,7 @@ def _multi_start(state: _Refinement, gen: torch.Generator, b: int, k: int, keep_
     return _slot_results(state, slot, solution, since, m)
 
 
-def _slot_results(state: _Refinement, slot: Tensor, solution: Tensor, since: Tensor, m: int) -> tuple[Tensor, Tensor]:
+def _slot_results(state: Refinement, slot: Tensor, solution: Tensor, since: Tensor, m: int) -> tuple[Tensor, Tensor]:
     """Per slot: the variables of its solving row, else of its row of least cost; and the iterations of all its rows."""
     cost = state.cost.clone()
     best = torch.full((m,), float("inf"), dtype=_F64).scatter_reduce(0, slot, cost, "amin")
@@ -364,18 +237,3 @@ def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Ten
     pick = lambda t: torch.gather(t, 1, order.view(b, k, *([1] * (t.dim() - 2))).expand_as(t))  # noqa: E731
     return IKResult(q=pick(q), success=pick(ok), pos_err=pick(pos_err), rot_err=pick(rot_err),
                     iterations=pick(iters), distinct=pick(distinct))
-
-
-def _check_q0(q0, b: int, n: int) -> Tensor:
-    if not isinstance(q0, Tensor):
-        q0 = torch.as_tensor(q0)
-    if not q0.is_floating_point():
-        raise ValueError(f"q0: expected floating-point joint values, got dtype {q0.dtype}")
-    q0 = q0.to(_F64)
-    if q0.dim() == 1:
-        q0 = q0.expand(b, -1)
-    if q0.shape != (b, n):
-        raise ValueError(f"q0: expected a warm start of shape ({n},) or ({b}, {n}), got {tuple(q0.shape)}")
-    if not torch.isfinite(q0).all():
-        raise ValueError("q0: expected finite joint values, got NaN/inf entries")
-    return q0

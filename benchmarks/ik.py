@@ -1,0 +1,181 @@
+"""Benchmark of the IK solver (issue targets in docs/ik.md), side by side in one run.
+
+For each robot, 1,000 reachable targets (the FK of features uniform inside the limits), K = 8 solutions each,
+pose and position only: targets solved (at least one flagged solution), slots solved, flagged solutions that fail
+the independent NumPy check (benchmarks/ik_reference.py: no shared code), targets with ≥ K/2 distinct solutions,
+wall and CPU time, verified solutions per second. For the 3-segment robot also: the warm-started refinement of one
+target per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
+``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
+pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
+chord, ry φ/2, rz −θ — a relaxation: its solutions need not be constant-curvature shapes) on the same targets.
+
+    .venv/bin/python benchmarks/ik.py                      # every row, 2 threads (~ minutes)
+    .venv/bin/python benchmarks/ik.py --robots tdcr_3seg_coupled --json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import ik_reference
+
+from dacr_learn.data import sample_features
+from dacr_learn.ik import ConstantCurvature, solve_ik
+from dacr_learn.ik.exported import IKRefinement
+from dacr_learn.kinematics import forward_kinematics
+from dacr_learn.robot import RobotSpec
+
+ROOT = Path(__file__).resolve().parents[1]
+ROBOTS = ["tdcr_3seg_coupled", "hetero_2seg_coupled", "hetero_3seg_coupled", "hetero_4seg_types",
+          "hetero_5seg_coupled"]
+F64 = torch.float64
+
+
+def robot_path(name: str) -> Path:
+    return ROOT / "configs" / "robots" / f"{name}.yaml"
+
+
+def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
+    return forward_kinematics(spec, sample_features(spec, n, torch.Generator().manual_seed(seed), dtype=F64))
+
+
+def solve_row(name: str, n: int, k: int, position_only: bool, seed: int) -> dict:
+    spec = RobotSpec.from_yaml(robot_path(name))
+    poses = targets(spec, n, seed)
+    goal = poses[:, :3, 3] if position_only else poses
+    wall, cpu = time.perf_counter(), time.process_time()
+    result = solve_ik(spec, goal, n_solutions=k, position_only=position_only)
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    flagged = result.success.numpy()
+    rows = np.nonzero(flagged)
+    ref = ik_reference.check(robot_path(name), result.q.numpy()[rows], goal.numpy()[rows[0]])
+    verified = int(ref["ok"].sum())
+    return {"robot": name, "task": "position" if position_only else "pose", "targets": n, "solutions": k,
+            "targets_solved_pct": 100 * flagged.any(1).mean(), "slots_solved_pct": 100 * flagged.mean(),
+            "false_success": int((~ref["ok"]).sum()), "verified": verified,
+            "distinct_half_pct": 100 * float((result.distinct.sum(1) >= k / 2).double().mean()),
+            "distinct_mean": float(result.distinct.sum(1).double().mean()), "wall_s": wall, "cpu_s": cpu,
+            "verified_per_s": verified / wall, "iterations_mean": float(result.iterations.double().mean())}
+
+
+def warm_start_latency(name: str, export: str | None, rounds: int) -> dict:
+    """p50 of one warm-started refinement (batch 1): the target moved by 1 % of the joint ranges from q0."""
+    spec = RobotSpec.from_yaml(robot_path(name))
+    model = ConstantCurvature(spec)
+    g = torch.Generator().manual_seed(3)
+    x = model.limits.sample(rounds, g)
+    pos, rot, _ = model.tip_and_jacobian(x)
+    pose = torch.eye(4, dtype=F64).repeat(rounds, 1, 1)
+    pose[:, :3, :3], pose[:, :3, 3] = rot, pos
+    q0 = model.joints(model.limits.project(x + 0.01 * model.limits.scale * torch.randn(x.shape, generator=g,
+                                                                                       dtype=F64)))
+    out = {}
+    runners = {"eager": IKRefinement(spec, 4)}
+    if export:
+        from dacr_learn import load_exported
+        runners["exported"] = load_exported(export, "refine")
+    for label, fn in runners.items():
+        times, ok = [], 0
+        for i in range(rounds):
+            t0 = time.perf_counter()
+            q, pe, re = fn(pose[i:i + 1], q0[i:i + 1])
+            times.append(time.perf_counter() - t0)
+            ok += int(pe.item() <= 1e-6 and re.item() <= 1e-5)
+        out[label] = {"p50_us": 1e6 * statistics.median(times[5:]), "solved_pct": 100 * ok / rounds}
+    return out
+
+
+def cli_time(name: str, n: int, k: int) -> float:
+    spec = RobotSpec.from_yaml(robot_path(name))
+    with tempfile.TemporaryDirectory() as d:
+        np.save(Path(d) / "T.npy", targets(spec, n, 11).numpy())
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "dacr_learn.ik", "--robot", str(robot_path(name)), "--targets",
+                        str(Path(d) / "T.npy"), "--out", str(Path(d) / "S.npz"), "--solutions", str(k)], check=True,
+                       capture_output=True)
+        return time.perf_counter() - t0
+
+
+def pseudo_inverse_ik(name: str, n: int, k: int, seed: int) -> dict:
+    """pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain, K retries per target, its defaults but
+    our tolerance (1 µm, 1e-5 rad) and 200 iterations."""
+    import pytorch_kinematics as pk
+    segs, _ = ik_reference.read_robot(robot_path(name))
+    limit = '<limit lower="-100" upper="100" effort="1" velocity="1"/>'
+    kinds = [("revolute", "0 0 1"), ("revolute", "0 1 0"), ("prismatic", "0 0 1"), ("revolute", "0 1 0"),
+             ("revolute", "0 0 1")] * len(segs)
+    links = "".join(f'<link name="l{i}"/>' for i in range(len(kinds) + 1))
+    joints = "".join(f'<joint name="j{i}" type="{t}"><parent link="l{i}"/><child link="l{i + 1}"/>'
+                     f'<axis xyz="{a}"/>{limit}</joint>' for i, (t, a) in enumerate(kinds))
+    chain = pk.build_serial_chain_from_urdf(f'<robot name="cc">{links}{joints}</robot>', f"l{len(kinds)}").to(
+        dtype=F64)
+    lims = []
+    for s in segs:
+        lo, hi = s.length_range or (s.length, s.length)
+        lims += [(-math.pi, math.pi), (0.0, s.bend / 2), (lo * math.sin(s.bend / 2) / (s.bend / 2) * 0.999, hi),
+                 (0.0, s.bend / 2), (-math.pi, math.pi)]
+    spec = RobotSpec.from_yaml(robot_path(name))
+    poses = targets(spec, n, seed)
+    ik = pk.PseudoInverseIK(chain, num_retries=k, max_iterations=200, pos_tolerance=1e-6, rot_tolerance=1e-5,
+                            joint_limits=torch.tensor(lims, dtype=F64), early_stopping_any_converged=False)
+    wall = time.perf_counter()
+    sol = ik.solve(pk.Transform3d(matrix=poses))
+    wall = time.perf_counter() - wall
+    conv = sol.converged.reshape(n, k)
+    return {"robot": name, "method": "pytorch_kinematics.PseudoInverseIK (rigid chain)", "wall_s": wall,
+            "targets_solved_pct": 100 * float(conv.any(1).double().mean()),
+            "slots_solved_pct": 100 * float(conv.double().mean()), "solutions_per_s": float(conv.sum()) / wall}
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--robots", nargs="+", default=ROBOTS)
+    p.add_argument("--targets", type=int, default=1000)
+    p.add_argument("--solutions", type=int, default=8)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--export", help="an export folder with the 'refine' module of tdcr_3seg_coupled")
+    p.add_argument("--skip", nargs="*", default=[], choices=["latency", "cli", "pk"])
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = []
+    for name in args.robots:
+        for position_only in (False, True):
+            rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7))
+            r = rows[-1]
+            print(f"{name:22s} {r['task']:8s} solved {r['targets_solved_pct']:6.2f} % targets, "
+                  f"{r['slots_solved_pct']:6.2f} % slots, false flags {r['false_success']}, "
+                  f"≥K/2 distinct {r['distinct_half_pct']:6.2f} %, {r['wall_s']:.2f} s wall "
+                  f"({r['cpu_s']:.2f} s CPU), {r['verified_per_s']:.0f} verified solutions/s", flush=True)
+    extra = {}
+    if "tdcr_3seg_coupled" in args.robots:
+        if "latency" not in args.skip:
+            extra["warm_start"] = warm_start_latency("tdcr_3seg_coupled", args.export, 200)
+            print("warm-started refinement, batch 1, 4 iterations:", extra["warm_start"], flush=True)
+        if "cli" not in args.skip:
+            extra["cli_s"] = cli_time("tdcr_3seg_coupled", args.targets, args.solutions)
+            print(f"CLI end to end, {args.targets} × {args.solutions}: {extra['cli_s']:.1f} s", flush=True)
+        if "pk" not in args.skip:
+            extra["pytorch_kinematics"] = pseudo_inverse_ik("tdcr_3seg_coupled", args.targets, args.solutions, 7)
+            print("PseudoInverseIK:", extra["pytorch_kinematics"], flush=True)
+    report = {"rows": rows, **extra, "threads": args.threads, "torch": torch.__version__,
+              "machine": platform.processor() or platform.machine()}
+    if args.json:
+        print(json.dumps(report))
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,110 @@
+"""IK refinement for a controller, every tick: a fixed number of Levenberg–Marquardt iterations from a warm start,
+branch-free, so it exports with torch.export and AOTInductor like the other inference modules.
+
+:class:`IKRefinement`: (target (B, 4, 4) [m] — or (B, 3) with ``position_only`` —, q0 (B, N) [m, rad]) →
+(q (B, N), pos_err (B,) [m], rot_err (B,) [rad]). Each iteration is :func:`~.refine.limited_step` on every row (the
+limits inside the step) with the trial kept where it lowers the cost (``torch.where``: no data-dependent control
+flow), λ adapted per row as in :class:`~.refine.Refinement`. With the previous tick's solution as q0 a few
+iterations reach micrometres (docs/ik.md); far from a solution use :func:`~.solver.solve_ik`.
+
+    python -m dacr_learn.ik.exported --robot configs/robots/tdcr_3seg_coupled.yaml --out exports/ik_tdcr3
+    refine = dacr_learn.load_exported("exports/ik_tdcr3", "refine")
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..console import run_cli
+from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
+from ..robot import RobotSpec
+from .models import ConstantCurvature
+from .refine import limited_step, residual
+
+_F64 = torch.float64
+
+
+class IKRefinement(nn.Module):
+    """Fixed-iteration IK refinement on the analytic CC model of a robot (module docstring), float64."""
+
+    def __init__(self, spec: RobotSpec, iterations: int = 4, position_only: bool = False, damping: float = 1e-6):
+        super().__init__()
+        if iterations < 1:
+            raise ValueError(f"iterations: expected >= 1, got {iterations}")
+        if not damping > 0:
+            raise ValueError(f"damping: expected > 0, got {damping}")
+        self.model = ConstantCurvature(spec)
+        self.fold, self.decoder = self.model.space.fold, self.model.space.decoder    # submodules: their buffers
+        self.iterations, self.position_only, self.damping = iterations, position_only, damping
+        self.num_joints = spec.num_joints
+
+    def forward(self, target: Tensor, q0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        position = target if self.position_only else target[:, :3, 3]
+        rotation = None if self.position_only else target[:, :3, :3]
+        lim = self.model.limits
+        x = lim.project(self.model.variables(q0))
+        r, jac, pos_err, rot_err = residual(self.model, x, position, rotation)
+        cost = (r * r).sum(-1)
+        lam = torch.full_like(cost, self.damping)
+        for _ in range(self.iterations):
+            xt = limited_step(lim, x, r, jac, lam)
+            rt, jt, pe, re = residual(self.model, xt, position, rotation)
+            ct = (rt * rt).sum(-1)
+            better = ct < cost
+            keep = better.unsqueeze(-1)
+            x, r, cost = torch.where(keep, xt, x), torch.where(keep, rt, r), torch.where(better, ct, cost)
+            jac = torch.where(keep.unsqueeze(-1), jt, jac)
+            pos_err, rot_err = torch.where(better, pe, pos_err), torch.where(better, re, rot_err)
+            lam = torch.where(better, torch.clamp(lam / 3, min=1e-12), lam * 4)
+        return self.model.joints(x), pos_err, rot_err
+
+
+def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterations: int = 4,
+                      position_only: bool = False, aoti: bool = True) -> dict[str, Any]:
+    """Export :class:`IKRefinement` of a robot as the module ``refine`` (``refine.pt2`` [and ``refine.aoti.pt2``]) into
+    ``out``, verified against the eager module on 64 warm-started targets; returns the metadata. Load it with
+    ``dacr_learn.load_exported(out, "refine")``."""
+    spec = RobotSpec.coerce(robot)
+    module = IKRefinement(spec, iterations, position_only).eval()
+    out = output_folder(out)
+    g = torch.Generator().manual_seed(0)
+    x = module.model.limits.sample(64, g)
+    pos, rot, _ = module.model.tip_and_jacobian(x)
+    q0 = module.model.joints(module.model.limits.project(x + 0.02 * module.model.limits.scale * torch.randn(
+        x.shape, generator=g, dtype=_F64)))
+    target = pos if position_only else torch.cat([torch.cat([rot, pos.unsqueeze(-1)], -1),
+                                                  torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=_F64).expand(64, 1, 4)],
+                                                 -2)
+    target_shape = [3] if position_only else [4, 4]
+    source = {"path": str(robot), "sha256": file_sha256(robot)} if isinstance(robot, (str, Path)) else None
+    meta = {"format": FORMAT, "task": "ik_refinement", "dtype": "float64", "torch_version": torch.__version__,
+            "max_batch": MAX_BATCH, "aoti_autotune": False, "source_robot": source, "robot": spec.to_dict(),
+            "features": "clarke", "iterations": iterations, "position_only": position_only,
+            "modules": {"refine": {"inputs": [["target", target_shape], ["q0", [spec.num_joints]]],
+                                   "outputs": [["q", [spec.num_joints]], ["pos_err", []], ["rot_err", []]]}}}
+    return write_export(out, meta, {"refine": module}, {"refine": (target, q0)}, {"refine": module}, aoti=aoti,
+                        autotune=False, against="the eager refinement")
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    p = argparse.ArgumentParser(prog="python -m dacr_learn.ik.exported", description=__doc__.split("\n\n")[0])
+    p.add_argument("--robot", required=True, help="robot YAML file")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--iterations", type=int, default=4, help="LM iterations per call (default 4)")
+    p.add_argument("--position-only", action="store_true", help="targets are tip positions (B, 3)")
+    p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (about a minute)")
+    args = p.parse_args(argv)
+    meta = export_refinement(args.robot, args.out, iterations=args.iterations, position_only=args.position_only,
+                             aoti=not args.no_aoti)
+    for name, dev in meta["max_abs_deviation"].items():
+        print(f"{Path(args.out) / name}: max deviation from the eager refinement {dev:.2e}")
+    return meta
+
+
+if __name__ == "__main__":
+    sys.exit(run_cli(lambda argv=None: main(argv) and None))

@@ -1,0 +1,120 @@
+"""The Levenberg–Marquardt refinement of IK starts, batched, with the limits inside the step (docs/ik.md).
+
+Residual r = ((p − p*)/L, log(R·R*ᵀ)): the position error in units of the robot length L and the rotation vector
+[rad] in the base frame (the position only when the target has no rotation); its Jacobian is the model's tip
+Jacobian with the position rows divided by L. Each step holds the limits that block descent and projects the trial
+point onto the admissible set (:func:`limited_step`); λ shrinks after an accepted step and grows after a rejected
+one (:class:`Refinement`). :func:`levenberg_marquardt` refines given starts; :mod:`.solver` adds the starts.
+"""
+from __future__ import annotations
+
+import torch
+from pytorch_kinematics.transforms import matrix_to_axis_angle
+from torch import Tensor
+
+from .limits import Limits
+from .models import SolverModel
+
+_F64 = torch.float64
+
+
+def residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor | None):
+    """Residual r (M, 3 or 6) [units of L, rad], its Jacobian (M, 3 or 6, D), position and rotation errors (M,)."""
+    pos, rot, jac = model.tip_and_jacobian(x)
+    dp = (pos - position) / model.length
+    pos_err = torch.linalg.vector_norm(pos - position, dim=-1)
+    if rotation is None:
+        return dp, jac[:, :3] / model.length, pos_err, torch.zeros_like(pos_err)
+    rvec = matrix_to_axis_angle(rot @ rotation.mT)                     # log(R·R*ᵀ), base frame
+    r = torch.cat([dp, rvec], dim=-1)
+    jac = torch.cat([jac[:, :3] / model.length, jac[:, 3:]], dim=1)
+    return r, jac, pos_err, torch.linalg.vector_norm(rvec, dim=-1)
+
+
+class Refinement:
+    """The LM state of M starts (module docstring): variables x (M, D), residual r and its Jacobian, cost ‖r‖²,
+    damping λ and the errors, with the targets of each row."""
+
+    def __init__(self, model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
+                 tolerance: tuple[float, float], damping: float):
+        self.model, self.lim, self.damping = model, model.limits, damping
+        self.position, self.rotation = position, rotation
+        self.scale = self.lim.scale.to(_F64)
+        self.tol = tuple(0.1 * t for t in tolerance)                         # aim a decade below the tolerance
+        self.x = self.lim.project(x0.to(_F64))
+        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(self.x.shape[0]))
+        self.cost = (self.r * self.r).sum(-1)
+        self.lam = torch.full_like(self.cost, damping)
+
+    def _residual(self, x: Tensor, rows: Tensor):
+        return residual(self.model, x, self.position[rows], None if self.rotation is None else self.rotation[rows])
+
+    def converged(self) -> Tensor:
+        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
+
+    def append(self, x0: Tensor, position: Tensor, rotation: Tensor | None) -> None:
+        """New rows: starts x0 (R, D) towards their targets (position (R, 3), rotation (R, 3, 3) or None)."""
+        first = self.x.shape[0]
+        self.position = torch.cat([self.position, position])
+        self.rotation = None if rotation is None else torch.cat([self.rotation, rotation])
+        x = self.lim.project(x0.to(_F64))
+        r, jac, pe, re = self._residual(x, torch.arange(first, first + x.shape[0]))
+        self.x, self.r, self.jac = torch.cat([self.x, x]), torch.cat([self.r, r]), torch.cat([self.jac, jac])
+        self.pos_err, self.rot_err = torch.cat([self.pos_err, pe]), torch.cat([self.rot_err, re])
+        self.cost = torch.cat([self.cost, (r * r).sum(-1)])
+        self.lam = torch.cat([self.lam, torch.full_like(pe, self.damping)])
+
+    def step(self, rows: Tensor) -> None:
+        """One LM iteration of the given rows: a step with the limits inside it, kept if it lowers the cost."""
+        la = self.lam[rows]
+        xt = limited_step(self.lim, self.x[rows], self.r[rows], self.jac[rows], la, only_held=True)
+        rt, jt, pe, re = self._residual(xt, rows)
+        ct = (rt * rt).sum(-1)
+        better = ct < self.cost[rows]
+        acc = rows[better]
+        self.x[acc], self.r[acc], self.jac[acc], self.cost[acc] = xt[better], rt[better], jt[better], ct[better]
+        self.pos_err[acc], self.rot_err[acc] = pe[better], re[better]
+        self.lam[rows] = torch.where(better, torch.clamp(la / 3, min=1e-12), la * 4)
+
+
+def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, only_held: bool = False) -> Tensor:
+    """The LM trial point of variables x (M, D) with residual r (M, R) and Jacobian ∂r/∂x (M, R, D), damping λ (M,):
+    in scaled variables z = x/s, the limits that block descent are held (:meth:`~.limits.Limits.blocked`:
+    projector P), δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖², and x + s·δz is projected onto the
+    admissible set. ``only_held``: build P only for the rows some limit holds (data-dependent; False in
+    exported modules, where every row takes the projector)."""
+    scale = lim.scale.to(x)
+    ja = jac * scale
+    box, normals = lim.blocked(x, (ja.mT @ r.unsqueeze(-1)).squeeze(-1))
+    if only_held:
+        held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
+        if held.any():
+            h = held.nonzero().squeeze(-1)
+            ja = ja.clone()
+            ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
+    else:
+        ja = ja @ lim.free_directions(box, normals)
+    gram = ja @ ja.mT + lam[:, None, None] * torch.eye(r.shape[-1], dtype=x.dtype, device=x.device)
+    step = -(ja.mT @ torch.linalg.solve(gram, r.unsqueeze(-1))).squeeze(-1)
+    return lim.project(x + step * scale)
+
+
+STALL_LAMBDA = 1e6   # λ beyond which a start has no descent direction left (a local minimum, or unreachable)
+
+
+def levenberg_marquardt(model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
+                        tolerance: tuple[float, float] = (1e-6, 1e-5), damping: float = 1e-3,
+                        max_iterations: int = 25) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Refine M starts x0 (M, D) towards targets (position (M, 3) [m], rotation (M, 3, 3) or None) inside the
+    limits (module docstring), at most ``max_iterations`` each. Returns (x (M, D), pos_err (M,) [m],
+    rot_err (M,) [rad], iterations (M,)). A start stops when both errors are below a tenth of the tolerance or
+    when λ exceeds :data:`STALL_LAMBDA`; x always stays admissible."""
+    state = Refinement(model, x0, position, rotation, tolerance, damping)
+    iters = torch.zeros(state.x.shape[0], dtype=torch.long)
+    for _ in range(max_iterations):
+        rows = (~state.converged() & (state.lam < STALL_LAMBDA)).nonzero().squeeze(-1)
+        if rows.numel() == 0:
+            break
+        state.step(rows)
+        iters[rows] += 1
+    return state.x, state.pos_err, state.rot_err, iters
