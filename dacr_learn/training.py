@@ -108,11 +108,13 @@ class KinematicsModule(pl.LightningModule):
         sched = one_cycle(opt, self.hparams.lr, int(self.trainer.estimated_stepping_batches))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
+    loss_name = "loss"      # the training loss is logged as train/<loss_name>
+
     def training_step(self, batch: dict[str, Tensor], batch_idx: int) -> Tensor:
         loss = self.loss(batch)
         if self._trainer is None or batch_idx % max(self.trainer.log_every_n_steps, 1) == 0:
             # only on the steps the logger records: self.log costs ~15 % of a small model's step
-            self.log("train/loss", loss, prog_bar=True, batch_size=batch["q"].shape[0])
+            self.log(f"train/{self.loss_name}", loss, prog_bar=True, batch_size=batch["q"].shape[0])
         return loss
 
     def _eval_step(self, batch: dict[str, Tensor]) -> None:

@@ -51,6 +51,8 @@ class SamplerModule(KinematicsModule):
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
         self.model.position_trained.fill_(position_fraction > 0)
 
+    loss_name = "nll"       # train/nll and val/nll_mean share a plot; a log-likelihood may be of either sign
+
     def build_model(self) -> ClarkeSampler:
         return model_from_hparams("sampler", self.spec, self.hparams)
 

@@ -9,6 +9,8 @@ import pytest
 import torch
 import yaml
 from conftest import ROOT, random_features, reference_joint_vector
+from rerun.chunk import RrdReader
+from rerun_testkit import rrd_data, rrd_verify, rrd_views
 
 import train
 from dacr_learn import load_model
@@ -102,6 +104,15 @@ def test_fit_raises_the_likelihood_and_checkpoints_load_as_samplers(clarke_run):
         trained_nll = -cli.model.model.log_prob(val["q"], val["pose"]).mean()
         fresh_nll = -fresh.model.log_prob(val["q"], val["pose"]).mean()
     assert trained_nll < fresh_nll - 2.0                               # nats per sample: far beyond noise
+    rrd = run / "version_0" / "rerun.rrd"                              # the recording: NLL plotted linear (signed)
+    rrd_verify(rrd)
+    latest = max(RrdReader(rrd).blueprints(),          # the last layout sent: the one plotting the most metrics
+                 key=lambda bp: sum(len(v.get("query", [])) for v in rrd_views(rrd, bp).values()))
+    queries = {v.get("name"): " ".join(v.get("query") or []) for v in rrd_views(rrd, latest).values()}
+    assert "metrics/train/nll" in queries["negative log-likelihood"] and "metrics/val/nll_mean" in queries[
+        "negative log-likelihood"]
+    assert "metrics_log10/val/pos_err_mean_mm" in queries["tip position error [mm], log10"]
+    assert "/scene/backbone_pred" in rrd_data(rrd)                     # the sampled configurations as ghosts
     net = load_model(run)
     assert net.task == "sampler" and net.spec == cli.model.spec and isinstance(net, ClarkeSampler)
     poses = reachable_poses(net.spec, 3, 2)

@@ -35,7 +35,8 @@ WORKSPACE_ENTITY = f"{SCENE_ROOT}/workspace"
 SPLITS = ("train", "val", "test")
 NOT_PLOTTED = ("epoch",)
 QUANTITY_TITLES = {"pos_err": "tip position error", "rot_err": "tip rotation error", "joint_err": "joint error",
-                   "constraint_residual": "constraint residual", "loss": "loss"}
+                   "constraint_residual": "constraint residual", "loss": "loss", "nll": "negative log-likelihood"}
+SIGNED = ("nll",)    # quantities that may be negative: plotted with linear values in the log10 tab too
 UNIT_TITLES = {"mm": "mm", "deg": "°", "m": "m", "pct": "% of robot length", "": ""}
 UNIT_PREFERENCE = ("mm", "deg", "m", "", "pct")  # a quantity logged in several units is plotted in the first
 STAT_COLORS = {"": (255, 127, 14), "mean": (255, 127, 14), "p95": (214, 39, 40), "max": (148, 103, 189)}
@@ -146,20 +147,23 @@ def time_panel_at_end(timeline: str) -> rrb.TimePanel:
 
 
 def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesView]:
-    entity = log10_entity if log10 else metric_entity
-    return [full_range_plot(STEP_TIMELINE, contents=[entity(n) for n in names], from_zero=True,
-                            name=f"{title}, log10" if log10 else title)
-            for title, names in groups.items()]
+    plots = []
+    for title, names in groups.items():
+        log = log10 and _parse(_split_key(names[0])[1])[0] not in SIGNED
+        entity = log10_entity if log else metric_entity
+        plots.append(full_range_plot(STEP_TIMELINE, contents=[entity(n) for n in names], from_zero=True,
+                                     name=f"{title}, log10" if log else title))
+    return plots
 
 
 def default_blueprint(metric_names: Iterable[str] = (), colour_note: str = "") -> rrb.Blueprint:
     """Layout of a training recording.
 
-    Left: one full-range plot per quantity (train and val together, log10 values; a second tab
-    has the linear values). Right: the validation samples in 3D (backbones, true and predicted
-    tip frames), below it the workspace error cloud (``colour_note`` names its fixed colour
-    scale) beside a tab of the metrics table (latest train/val/test values), hparams, CLI
-    config and the text log. The time panel opens on ``step`` at the last step (follow mode).
+    Left: one full-range plot per quantity (train and val together, log10 values, linear for the
+    :data:`SIGNED` quantities; a second tab has the linear values). Right: the validation samples in
+    3D (backbones, true and predicted tip frames), below it the workspace error cloud (``colour_note``
+    names its fixed colour scale) beside a tab of the metrics table (latest train/val/test values),
+    hparams, CLI config and the text log. The time panel opens on ``step`` at the last step (follow mode).
     """
     groups = metric_groups(metric_names)
     log_plots = _plots(groups, log10=True) or [rrb.TimeSeriesView(origin=LOG10_ROOT, name="metrics, log10")]
