@@ -112,6 +112,7 @@ def test_fit_raises_the_likelihood_and_checkpoints_load_as_samplers(clarke_run):
     assert "metrics/train/nll" in queries["negative log-likelihood"] and "metrics/val/nll_mean" in queries[
         "negative log-likelihood"]
     assert "metrics_log10/val/pos_err_mean_mm" in queries["tip position error [mm], log10"]
+    assert "metrics/val/out_of_limits_pct" in queries["outside the joint limits [% of samples]"]   # 0: linear tab only
     assert "/scene/backbone_pred" in rrd_data(rrd)                     # the sampled configurations as ghosts
     net = load_model(run)
     assert net.task == "sampler" and net.spec == cli.model.spec and isinstance(net, ClarkeSampler)

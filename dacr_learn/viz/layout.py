@@ -35,9 +35,11 @@ WORKSPACE_ENTITY = f"{SCENE_ROOT}/workspace"
 SPLITS = ("train", "val", "test")
 NOT_PLOTTED = ("epoch",)
 QUANTITY_TITLES = {"pos_err": "tip position error", "rot_err": "tip rotation error", "joint_err": "joint error",
-                   "constraint_residual": "constraint residual", "loss": "loss", "nll": "negative log-likelihood"}
+                   "constraint_residual": "constraint residual", "loss": "loss", "nll": "negative log-likelihood",
+                   "out_of_limits": "outside the joint limits"}
 SIGNED = ("nll",)    # quantities that may be negative: plotted with linear values in the log10 tab too
 UNIT_TITLES = {"mm": "mm", "deg": "°", "m": "m", "pct": "% of robot length", "": ""}
+SHARE_PCT = ("out_of_limits",)      # their "pct" is a share of the samples [%], not a length
 UNIT_PREFERENCE = ("mm", "deg", "m", "", "pct")  # a quantity logged in several units is plotted in the first
 STAT_COLORS = {"": (255, 127, 14), "mean": (255, 127, 14), "p95": (214, 39, 40), "max": (148, 103, 189)}
 TRAIN_COLORS = {"": (31, 119, 180), "mean": (23, 190, 207), "p95": (44, 160, 44), "max": (140, 86, 75)}
@@ -99,7 +101,8 @@ def metric_groups(names: Iterable[str]) -> dict[str, list[str]]:
         units = by_quantity[quantity]
         unit = min(units, key=lambda u: UNIT_PREFERENCE.index(u) if u in UNIT_PREFERENCE else len(UNIT_PREFERENCE))
         title = QUANTITY_TITLES.get(quantity, quantity)
-        groups[f"{title} [{UNIT_TITLES.get(unit, unit)}]" if unit else title] = units[unit]
+        unit_title = "% of samples" if quantity in SHARE_PCT and unit == "pct" else UNIT_TITLES.get(unit, unit)
+        groups[f"{title} [{unit_title}]" if unit else title] = units[unit]
     return groups
 
 
