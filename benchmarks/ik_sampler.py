@@ -5,8 +5,8 @@ limits, a seed no training set used), K = 8 solutions each, pose and position on
 solver (:func:`dacr_learn.ik.solve_ik`, the analytic CC model):
 
 - ``random``: the solver's own uniform starts inside the limits (no seeds);
-- ``clarke``: K samples per target of a sampler trained with ``features: clarke`` (inside the limits by construction);
-- ``raw``: K samples of a sampler trained with ``features: raw`` (joints encoded, then projected onto the limits).
+- each ``--sampler NAME=RUN``: K samples per target of a trained sampler, e.g. ``clarke`` (``features: clarke``:
+  inside the limits by construction) and ``raw`` (``features: raw``: joints encoded, then projected onto the limits).
 
 The samplers run in float32, as the IK CLI runs them; their time is part of every figure. Two settings:
 
@@ -22,7 +22,8 @@ Every flagged solution is also checked by the independent NumPy checker (benchma
 medians of ``--repeats`` interleaved runs (the order rotates); the machine load (``uptime``) is printed before and
 after.
 
-    .venv/bin/python benchmarks/ik_sampler.py --clarke runs/ik_sampler_tdcr3 --raw runs/ik_sampler_tdcr3_raw
+    .venv/bin/python benchmarks/ik_sampler.py --sampler clarke=runs/ik_sampler_tdcr3 \
+        --sampler raw=runs/ik_sampler_tdcr3_raw --threads 1
 """
 from __future__ import annotations
 
@@ -70,7 +71,7 @@ def solve(spec, goal, k: int, position_only: bool, sampler, options: IKOptions, 
     return result, t1 - t0, time.perf_counter() - t0
 
 
-def summary(result, robot: Path, goal: torch.Tensor, k: int, net_s: float, total_s: float) -> dict:
+def summary(result, robot: Path, goal: torch.Tensor, k: int, net_s: float, totals: list[float]) -> dict:
     flagged = result.success.numpy()
     rows = np.nonzero(flagged)
     ref = ik_reference.check(robot, result.q.numpy()[rows], goal.numpy()[rows[0]])
@@ -79,7 +80,8 @@ def summary(result, robot: Path, goal: torch.Tensor, k: int, net_s: float, total
             "false_flags": int((~ref["ok"]).sum()), "distinct_mean": float(distinct.mean()),
             "distinct_half_pct": 100 * float((distinct >= k / 2).double().mean()),
             "iterations_mean": float(result.iterations.double().mean()), "slots": int(result.q.shape[1]),
-            "network_s": net_s, "total_s": total_s, "distinct_per_s": float(distinct.sum()) / total_s}
+            "network_s": net_s, "total_s": statistics.median(totals), "total_s_runs": totals,
+            "distinct_per_s": float(distinct.sum()) / statistics.median(totals)}
 
 
 def compare(spec, robot: Path, goal, k: int, position_only: bool, samplers: dict, options: IKOptions,
@@ -94,7 +96,7 @@ def compare(spec, robot: Path, goal, k: int, position_only: bool, samplers: dict
             times[m].append((net_s, total_s))
             results.setdefault(m, result)
     return {m: summary(results[m], robot, goal, k, statistics.median(t[0] for t in times[m]),
-                       statistics.median(t[1] for t in times[m])) for m in methods}
+                       [t[1] for t in times[m]]) for m in methods}
 
 
 def equal_time_random(spec, robot: Path, goal, k: int, position_only: bool, budget_s: float, random_s: float,
@@ -102,7 +104,7 @@ def equal_time_random(spec, robot: Path, goal, k: int, position_only: bool, budg
     """Random starts given ``budget_s``: as many slots as the time of K random slots (``random_s``) scales to."""
     slots = max(k, math.floor(k * budget_s / random_s))
     runs = [solve(spec, goal, slots, position_only, None, options, seed=r) for r in range(repeats)]
-    out = summary(runs[0][0], robot, goal, k, 0.0, statistics.median(t for _, _, t in runs))
+    out = summary(runs[0][0], robot, goal, k, 0.0, [t for _, _, t in runs])
     out["budget_s"] = budget_s
     return out
 
@@ -113,18 +115,19 @@ def load_average() -> str:
 
 def table(title: str, rows: dict[str, dict], k: int) -> str:
     lines = [f"\n{title}", "| starts | targets solved | slots solved | distinct of K | ≥ K/2 distinct | LM iter./slot "
-             "| network s | total s | distinct sol./s | false flags |", "|" + "---|" * 10]
+             "| network s | total s (min–max) | distinct sol./s | false flags |", "|" + "---|" * 10]
     for name, r in rows.items():
         lines.append(f"| {name} ({r['slots']} slots) | {r['targets_solved_pct']:.2f} % | {r['slots_solved_pct']:.2f} % "
                      f"| {r['distinct_mean']:.2f} / {k} | {r['distinct_half_pct']:.1f} % | {r['iterations_mean']:.2f} "
-                     f"| {r['network_s']:.3f} | {r['total_s']:.2f} | {r['distinct_per_s']:.0f} | {r['false_flags']} |")
+                     f"| {r['network_s']:.2f} | {r['total_s']:.2f} ({min(r['total_s_runs']):.2f}–"
+                     f"{max(r['total_s_runs']):.2f}) | {r['distinct_per_s']:.0f} | {r['false_flags']} |")
     return "\n".join(lines)
 
 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--clarke", required=True, help="run folder of a sampler trained with features: clarke")
-    p.add_argument("--raw", help="run folder of a sampler trained with features: raw")
+    p.add_argument("--sampler", action="append", required=True, metavar="NAME=RUN",
+                   help="a trained sampler (run folder or checkpoint) and its name in the tables; repeat for several")
     p.add_argument("--robot", default=str(ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"),
                    help="the samplers' robot file (read by the independent checker)")
     p.add_argument("--targets", type=int, default=1000)
@@ -136,14 +139,17 @@ def main(argv=None) -> dict:
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     load_before = load_average()
-    samplers = {"random": None, "clarke": load_sampler(args.clarke)}
-    if args.raw:
-        samplers["raw"] = load_sampler(args.raw)
+    samplers = {"random": None}
+    for item in args.sampler:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path or name in samplers:
+            raise ValueError(f"--sampler {item}: expected NAME=RUN with a new name other than 'random'")
+        samplers[name] = load_sampler(path)
     robot = Path(args.robot)
     spec = RobotSpec.from_yaml(robot)
     for name, net in samplers.items():
         if net is not None and net.spec != spec:
-            raise ValueError(f"--{name}: a sampler of robot {net.spec.name!r}, expected one of --robot {robot}")
+            raise ValueError(f"--sampler {name}: a sampler of robot {net.spec.name!r}, expected one of --robot {robot}")
     poses = forward_kinematics(spec, sample_features(spec, args.targets, torch.Generator().manual_seed(args.seed),
                                                      dtype=F64))
     report = {"robot": spec.name, "targets": args.targets, "solutions": args.solutions, "threads": args.threads,

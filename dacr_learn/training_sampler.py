@@ -7,7 +7,8 @@ one model samples for poses and for positions. Validation/test: ``nll_mean`` (ro
 tip error of one sample per target under the analytic CC model, the model the IK CLI solves on (``pos_err_*``,
 ``rot_err_*``: how far a seed lies from a solution before the solver refines it); for "raw" also the share of
 sampled joint vectors whose features leave the limits before the projection (``out_of_limits_pct``) and their
-distance from the displacement constraint (``constraint_residual_*``; both 0 for "clarke" by construction).
+distance from the displacement constraint (``constraint_residual_*``; "clarke" samples have neither, by
+construction, and do not report them).
 """
 from __future__ import annotations
 
@@ -63,20 +64,20 @@ class SamplerModule(KinematicsModule):
 
     def seed_errors(self, pose: Tensor) -> dict[str, Tensor]:
         """One sample per pose (B, 4, 4): the tip errors of its analytic CC pose (pos_err [m], rot_err [rad]) and, for
-        "raw", whether the sampled joints left the limits before the projection and their constraint residual [m]."""
+        "raw", whether the sampled joints left the limits before the projection (out_of_limits, 0/1) and their
+        constraint residual [m]."""
         m, space = self.model, self.model.space
         v = m.sample_variables(pose, 1)[:, 0].to(_F64)
+        raw = {}
         if m.features == "clarke":
-            f = m.squash(v)
-            outside, residual = torch.zeros(len(f), dtype=_F64), torch.zeros(len(f), dtype=_F64)
+            f = m.squash(v)                    # inside the limits and on the constraint by construction
         else:
             unprojected = space.features(v)
             f = space.saturate(unprojected)
-            outside = (~space.within_limits(unprojected)).to(_F64)
-            residual = torch.linalg.vector_norm(space.joints(unprojected) - v, dim=-1)
+            raw = {"out_of_limits": (~space.within_limits(unprojected)).to(_F64),
+                   "constraint_residual": torch.linalg.vector_norm(space.joints(unprojected) - v, dim=-1)}
         tip = forward_kinematics(self.spec, actuated_to_features(f, space.selection, space.base))
-        errors = pose_errors(tip, pose.to(_F64))
-        return {**errors, "out_of_limits": outside, "constraint_residual": residual}
+        return {**pose_errors(tip, pose.to(_F64)), **raw}
 
     def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         nll = -self.model.log_prob(batch["q"], batch["pose"])
