@@ -21,6 +21,7 @@ torch.Size([4, 4])
 from importlib.metadata import PackageNotFoundError, version
 
 from .deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
+from .ik import IKOptions, IKResult, solve_ik
 from .kinematics import analytic_inverse_kinematics, backbone_points, forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import FKModel, IKModel
@@ -47,6 +48,8 @@ __all__ = [
     "ControllerConfig",
     "FKModel",
     "IKModel",
+    "IKOptions",
+    "IKResult",
     "ResolvedRateController",
     "RobotSpec",
     "__version__",
@@ -56,4 +59,5 @@ __all__ = [
     "forward_kinematics",
     "load_exported",
     "load_model",
+    "solve_ik",
 ]
