@@ -24,7 +24,7 @@ from ..console import run_cli
 from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
 from ..robot import RobotSpec
 from .models import ConstantCurvature
-from .refine import limited_step, residual
+from .refine import limited_step, residual, spd_solve_unrolled
 
 _F64 = torch.float64
 
@@ -52,7 +52,7 @@ class IKRefinement(nn.Module):
         cost = (r * r).sum(-1)
         lam = torch.full_like(cost, self.damping)
         for _ in range(self.iterations):
-            xt = limited_step(lim, x, r, jac, lam)
+            xt = limited_step(lim, x, r, jac, lam, solve=spd_solve_unrolled)
             rt, jt, pe, re = residual(self.model, xt, position, rotation)
             ct = (rt * rt).sum(-1)
             better = ct < cost

@@ -77,12 +77,47 @@ class Refinement:
         self.lam[rows] = torch.where(better, torch.clamp(la / 3, min=1e-12), la * 4)
 
 
-def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, only_held: bool = False) -> Tensor:
+def spd_solve_unrolled(a: Tensor, b: Tensor) -> Tensor:
+    """x (..., n) with a·x = b for symmetric positive definite a (..., n, n), by an LDLᵀ factorisation written out
+    entry by entry (n is small: 3 or 6). For exported modules: AOTInductor fuses these elementwise operations into
+    one kernel, while torch.linalg.solve has no compiled CPU shim in torch 2.13 and runs through its slow proxy
+    executor. In eager mode prefer torch.linalg.solve."""
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]
+    diag = []
+    for j in range(n):
+        d = a[..., j, j]
+        for k in range(j):
+            d = d - low[j][k] * low[j][k] * diag[k]
+        diag.append(d)
+        for i in range(j + 1, n):
+            v = a[..., i, j]
+            for k in range(j):
+                v = v - low[i][k] * low[j][k] * diag[k]
+            low[i][j] = v / d
+    y = []
+    for i in range(n):                                                  # L·y = b
+        v = b[..., i]
+        for k in range(i):
+            v = v - low[i][k] * y[k]
+        y.append(v)
+    x = [None] * n
+    for i in reversed(range(n)):                                        # D·Lᵀ·x = y
+        v = y[i] / diag[i]
+        for k in range(i + 1, n):
+            v = v - low[k][i] * x[k]
+        x[i] = v
+    return torch.stack(x, dim=-1)
+
+
+def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, only_held: bool = False,
+                 solve=None) -> Tensor:
     """The LM trial point of variables x (M, D) with residual r (M, R) and Jacobian ∂r/∂x (M, R, D), damping λ (M,):
     in scaled variables z = x/s, the limits that block descent are held (:meth:`~.limits.Limits.blocked`:
     projector P), δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖², and x + s·δz is projected onto the
     admissible set. ``only_held``: build P only for the rows some limit holds (data-dependent; False in
-    exported modules, where every row takes the projector)."""
+    exported modules, where every row takes the projector). ``solve``: (a, b) → a⁻¹b for the SPD system
+    (default torch.linalg.solve; exported modules pass :func:`spd_solve_unrolled`)."""
     scale = lim.scale.to(x)
     ja = jac * scale
     box, normals = lim.blocked(x, (ja.mT @ r.unsqueeze(-1)).squeeze(-1))
@@ -95,7 +130,8 @@ def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, on
     else:
         ja = ja @ lim.free_directions(box, normals)
     gram = ja @ ja.mT + lam[:, None, None] * torch.eye(r.shape[-1], dtype=x.dtype, device=x.device)
-    step = -(ja.mT @ torch.linalg.solve(gram, r.unsqueeze(-1))).squeeze(-1)
+    y = torch.linalg.solve(gram, r.unsqueeze(-1)).squeeze(-1) if solve is None else solve(gram, r)
+    step = -(ja.mT @ y.unsqueeze(-1)).squeeze(-1)
     return lim.project(x + step * scale)
 
 
