@@ -106,25 +106,32 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
     front = lambda x: x.movedim(-1, 0).contiguous()  # noqa: E731              (..., m) → (m, ...)
     ux, uy, b = front(u[..., 0]), front(u[..., 1]), front(beta)
     inv_d = per_seg(1 / radius)
-    directions = [((None, None, None), (None, inv_d, None)), ((None, None, None), (-inv_d, None, None)),
-                  ((None, None, per_seg(extends)), (None, None, None)), ((None, None, None), (None, None, None))]
-    rot, pos, tangents = exp_components_and_tangents((None, None, b), (-uy, ux, None), directions)
+    basis = [((None, None, None), (None, inv_d, None)), ((None, None, None), (-inv_d, None, None)),
+             ((None, None, per_seg(extends)), (None, None, None)), ((None, None, None), (None, None, None))]
+    wanted = [(k, c) for k in range(m) for c in range(4)] if columns is None else list(columns)
+    # only the directions some wanted column uses (α only with a roll, β only where a segment extends)
+    used = [c for c in range(4) if any(cc == c for _, cc in wanted) and (c != 3 or alpha is not None)
+            and (c != 2 or any(s.extends for s in spec.segments))]
+    rot, pos, tangents = exp_components_and_tangents((None, None, b), (-uy, ux, None), [basis[c] for c in used])
     if alpha is not None:
-        rot, pos, tangents = roll_components(front(alpha), rot, pos, tangents, (3, per_seg(twists)))
+        rot, pos, tangents = roll_components(front(alpha), rot, pos, tangents, (used.index(3), per_seg(twists)))
     like = b[0]
     seg = lambda c, k: tuple(None if x is None else x[k] for x in c)  # noqa: E731
 
-    def stacked(vectors: list, k: int) -> tuple:      # segment k's vectors of the 4 directions → components (4, ...)
-        return tuple(torch.stack(dense([seg(v, k)[i] for v in vectors], like), dim=0) for i in range(3))
+    def stacked(vectors: list, k: int) -> tuple:     # segment k's vectors of the used directions → components (T, ...)
+        parts = [[seg(v, k)[i] for v in vectors] for i in range(3)]
+        return tuple(None if all(p is None for p in c) else torch.stack(dense(c, like), dim=0) for c in parts)
 
-    tip_rot, tip_pos, cols = chain_components(        # the chain rotates the 4 directions of a segment together
+    tip_rot, tip_pos, cols = chain_components(        # the chain rotates the directions of a segment together
         [seg(rot, k) for k in range(m)], [seg(pos, k) for k in range(m)],
         [[(stacked([a for a, _ in tangents], k), stacked([v for _, v in tangents], k))] for k in range(m)])
-    jac = torch.stack([torch.stack([*v, *w], dim=0) for [(v, w)] in cols], dim=1)        # (6, m, 4, ...)
-    jac = jac.flatten(1, 2)                                                               # (6, m·4, ...)
-    if columns is not None:
-        jac = jac.index_select(1, torch.tensor([4 * k + c for k, c in columns], device=jac.device))
-    jac = jac.movedim(0, -1).movedim(0, -1)                                                # (..., 6, columns)
+    zero = torch.zeros_like(like)
+    entries = []                                      # row-major (6, columns), each (...): one stack at the end
+    for i in range(6):
+        for k, c in wanted:
+            comp = (cols[k][0][0] + cols[k][0][1])[i] if c in used else None
+            entries.append(zero if comp is None else comp[used.index(c)])
+    jac = torch.stack(entries, dim=-1).unflatten(-1, (6, len(wanted)))
     if columns is None:
         jac = jac.unflatten(-1, (m, 4))
     return pose_of_components(tip_rot, tip_pos), jac

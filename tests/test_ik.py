@@ -191,3 +191,16 @@ def test_levenberg_marquardt_converges_quadratically_near_a_solution():
                                                      target[:, :3, :3])
     assert model.limits.inside(x).all()
     assert (pos_err < 1e-7).all() and (rot_err < 1e-6).all() and (iters <= 6).all()
+
+
+@pytest.mark.parametrize("n", [3, 6])
+def test_unrolled_spd_solve_equals_torch(n):
+    from dacr_learn.ik.refine import spd_solve_unrolled
+    g = torch.Generator().manual_seed(n)
+    m = torch.randn(40, n, n, generator=g, dtype=F64)
+    a = m @ m.mT + 1e-3 * torch.eye(n, dtype=F64)
+    b = torch.randn(40, n, generator=g, dtype=F64)
+    x = spd_solve_unrolled(a, b)
+    expected = torch.linalg.solve(a, b)
+    cond = torch.linalg.cond(a)                                  # the error bound scales with the conditioning
+    assert ((x - expected).abs().amax(-1) <= 64 * torch.finfo(F64).eps * cond * expected.abs().amax(-1)).all()

@@ -24,7 +24,7 @@ from ..console import run_cli
 from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
 from ..robot import RobotSpec
 from .models import ConstantCurvature
-from .refine import limited_step, residual
+from .refine import fused_matmul, limited_step, residual, spd_solve_unrolled
 
 _F64 = torch.float64
 
@@ -48,12 +48,12 @@ class IKRefinement(nn.Module):
         rotation = None if self.position_only else target[:, :3, :3]
         lim = self.model.limits
         x = lim.project(self.model.variables(q0))
-        r, jac, pos_err, rot_err = residual(self.model, x, position, rotation)
+        r, jac, pos_err, rot_err = residual(self.model, x, position, rotation, fused_matmul)
         cost = (r * r).sum(-1)
         lam = torch.full_like(cost, self.damping)
         for _ in range(self.iterations):
-            xt = limited_step(lim, x, r, jac, lam)
-            rt, jt, pe, re = residual(self.model, xt, position, rotation)
+            xt = limited_step(lim, x, r, jac, lam, solve=spd_solve_unrolled, matmul=fused_matmul)
+            rt, jt, pe, re = residual(self.model, xt, position, rotation, fused_matmul)
             ct = (rt * rt).sum(-1)
             better = ct < cost
             keep = better.unsqueeze(-1)

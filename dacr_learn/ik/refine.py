@@ -18,14 +18,22 @@ from .models import SolverModel
 _F64 = torch.float64
 
 
-def residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor | None):
-    """Residual r (M, 3 or 6) [units of L, rad], its Jacobian (M, 3 or 6, D), position and rotation errors (M,)."""
+def fused_matmul(a: Tensor, b: Tensor) -> Tensor:
+    """a·b of small matrices (..., n, k)·(..., k, p) as a broadcast multiply-sum: in an exported module Inductor
+    fuses it with its neighbours instead of calling BLAS (a library call per tiny product at batch 1); in eager
+    mode torch.matmul is faster."""
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+
+
+def residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor | None, matmul=torch.matmul):
+    """Residual r (M, 3 or 6) [units of L, rad], its Jacobian (M, 3 or 6, D), position and rotation errors (M,).
+    ``matmul``: the product of small matrices (:func:`fused_matmul` in exported modules)."""
     pos, rot, jac = model.tip_and_jacobian(x)
     dp = (pos - position) / model.length
     pos_err = torch.linalg.vector_norm(pos - position, dim=-1)
     if rotation is None:
         return dp, jac[:, :3] / model.length, pos_err, torch.zeros_like(pos_err)
-    rvec = matrix_to_axis_angle(rot @ rotation.mT)                     # log(R·R*ᵀ), base frame
+    rvec = matrix_to_axis_angle(matmul(rot, rotation.mT))              # log(R·R*ᵀ), base frame
     r = torch.cat([dp, rvec], dim=-1)
     jac = torch.cat([jac[:, :3] / model.length, jac[:, 3:]], dim=1)
     return r, jac, pos_err, torch.linalg.vector_norm(rvec, dim=-1)
@@ -77,15 +85,51 @@ class Refinement:
         self.lam[rows] = torch.where(better, torch.clamp(la / 3, min=1e-12), la * 4)
 
 
-def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, only_held: bool = False) -> Tensor:
+def spd_solve_unrolled(a: Tensor, b: Tensor) -> Tensor:
+    """x (..., n) with a·x = b for symmetric positive definite a (..., n, n), by an LDLᵀ factorisation written out
+    entry by entry (n is small: 3 or 6). For exported modules: AOTInductor fuses these elementwise operations into
+    one kernel, while torch.linalg.solve has no compiled CPU shim in torch 2.13 and runs through its slow proxy
+    executor. In eager mode prefer torch.linalg.solve."""
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]
+    diag = []
+    for j in range(n):
+        d = a[..., j, j]
+        for k in range(j):
+            d = d - low[j][k] * low[j][k] * diag[k]
+        diag.append(d)
+        for i in range(j + 1, n):
+            v = a[..., i, j]
+            for k in range(j):
+                v = v - low[i][k] * low[j][k] * diag[k]
+            low[i][j] = v / d
+    y = []
+    for i in range(n):                                                  # L·y = b
+        v = b[..., i]
+        for k in range(i):
+            v = v - low[i][k] * y[k]
+        y.append(v)
+    x = [None] * n
+    for i in reversed(range(n)):                                        # D·Lᵀ·x = y
+        v = y[i] / diag[i]
+        for k in range(i + 1, n):
+            v = v - low[k][i] * x[k]
+        x[i] = v
+    return torch.stack(x, dim=-1)
+
+
+def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, only_held: bool = False,
+                 solve=None, matmul=torch.matmul) -> Tensor:
     """The LM trial point of variables x (M, D) with residual r (M, R) and Jacobian ∂r/∂x (M, R, D), damping λ (M,):
     in scaled variables z = x/s, the limits that block descent are held (:meth:`~.limits.Limits.blocked`:
     projector P), δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖², and x + s·δz is projected onto the
     admissible set. ``only_held``: build P only for the rows some limit holds (data-dependent; False in
-    exported modules, where every row takes the projector)."""
+    exported modules, where every row takes the projector). ``solve``: (a, b) → a⁻¹b for the SPD system
+    (default torch.linalg.solve; exported modules pass :func:`spd_solve_unrolled`) and ``matmul`` the products
+    (exported modules: :func:`fused_matmul`)."""
     scale = lim.scale.to(x)
     ja = jac * scale
-    box, normals = lim.blocked(x, (ja.mT @ r.unsqueeze(-1)).squeeze(-1))
+    box, normals = lim.blocked(x, (ja.mT * r.unsqueeze(-2)).sum(-1))                       # J̃ᵀr
     if only_held:
         held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
         if held.any():
@@ -93,9 +137,10 @@ def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, on
             ja = ja.clone()
             ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
     else:
-        ja = ja @ lim.free_directions(box, normals)
-    gram = ja @ ja.mT + lam[:, None, None] * torch.eye(r.shape[-1], dtype=x.dtype, device=x.device)
-    step = -(ja.mT @ torch.linalg.solve(gram, r.unsqueeze(-1))).squeeze(-1)
+        ja = matmul(ja, lim.free_directions(box, normals))
+    gram = matmul(ja, ja.mT) + lam[:, None, None] * torch.eye(r.shape[-1], dtype=x.dtype, device=x.device)
+    y = torch.linalg.solve(gram, r.unsqueeze(-1)).squeeze(-1) if solve is None else solve(gram, r)
+    step = -(ja.mT * y.unsqueeze(-2)).sum(-1)                                                # J̃ᵀy
     return lim.project(x + step * scale)
 
 
