@@ -261,7 +261,7 @@ def test_well_formed_checkpoint_loads(tmp_path):
 def test_checkpoint_that_is_not_a_torch_file(tmp_path):
     garbage = tmp_path / "garbage.ckpt"
     garbage.write_bytes(b"not a checkpoint at all\n" * 10)
-    with pytest.raises(ValueError, match=names(garbage, "expected an FKModule/IKModule checkpoint",
+    with pytest.raises(ValueError, match=names(garbage, "expected an FKModule/IKModule/SamplerModule checkpoint",
                                                "found a file of 240 bytes", "not a complete torch.save")):
         load_checkpoint_model(garbage)
     for keep in (0, 1, 100, -10):

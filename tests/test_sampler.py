@@ -86,6 +86,7 @@ def test_samples_have_the_contract_shape_and_lie_inside_the_limits(features, rob
         f = model.sample_features(target, 5, temperature=3.0)          # a wide spread: samples reach the limits
         assert f.shape == (7, 5, spec.num_actuated_features) and f.dtype == F64
         assert limits.inside(f).all() and torch.isfinite(f).all()
+        assert ((f[:, 1:] - f[:, :1]).abs().amax(-1) > 0).all()       # independent samples per target, not copies
     q = model.sample(poses, 4)                                          # joints on the constraint (NumPy geometry)
     feats = ClarkeEncoder(spec).to(F64)(q).numpy()
     for qi, fi in zip(q.reshape(-1, spec.num_joints).numpy(), feats.reshape(-1, spec.num_segments, 4), strict=True):
