@@ -126,6 +126,10 @@ class CosseratOnly(nn.Module):
         cc, options, cache_dir = self.source
         self.model, self.fit_report = calibrated_cosserat(cc, train, cache_dir, **options)
 
+    def physics_report(self) -> dict:
+        """The calibrated physical parameters (:meth:`CalibratedCosserat.report`) and the fit's RMS [mm]."""
+        return {**self.model.report(), "fit_rms_mm": round(self.fit_report["rms_m"] * 1e3, 4)}
+
     def warmups(self, train: Split) -> list[tuple[str, Callable, tuple]]:
         """[(key, fn, args)]: the calibration, to compute ahead of the fits that need it (:func:`warmups`)."""
         cc, options, cache_dir = self.source
@@ -166,7 +170,14 @@ class CCClarkeResidualCosserat(CCClarkeResidual):
         smap, servo_ids, samples, seed = self.synthetic_source
         synthetic, self.fit_report = synthetic_cosserat_split(self.cc, train, smap, servo_ids, samples, seed,
                                                               self.cache_dir, **self.fit_options)
+        options = {"free_frame": False, **self.fit_options}
+        self.physics = calibrated_cosserat(self.cc, train, self.cache_dir, **options)[0].report()
         return synthetic
+
+    def physics_report(self) -> dict:
+        """The physical parameters of the Cosserat model it was pre-trained on (in the CC model's frame) and that
+        calibration's RMS [mm]."""
+        return {**self.physics, "fit_rms_mm": round(self.fit_report["rms_m"] * 1e3, 4)}
 
     def warmups(self, train: Split) -> list[tuple[str, Callable, tuple]]:
         """[(key, fn, args)]: the calibration, then the synthetic tips of this seed (:func:`warmups`)."""

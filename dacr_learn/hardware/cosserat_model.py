@@ -56,6 +56,9 @@ AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC
 WEIGHT_MAX = 0.5
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
 FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale
+# physics parameters that leave the robot description as it is (they change the rest lengths, the gravity or the
+# tendons' spring lengths): their finite differences are solved together, in one batch (_solve_trials)
+SHARED_SPEC = ("gravity", "log_compliance", "pretension", "pretension_strain")
 MAX_STEP = 3.0            # largest LM step per parameter, in units of its scale (a trust region)
 FRAME_SCALE = 1e-3        # [rad] or [m]: the step unit of the tilt and marker parameters
 
@@ -229,15 +232,22 @@ class CalibratedCosserat:
             rms_prev = _rms(r)
             cols = []
             base = self.physics()
-            for name in names:                                  # physics: finite differences of warm solves
+            batched, columns = [], []                           # physics: finite differences of warm solves
+            for name in names:
                 for j in range(base[name].numel()):
-                    h = PHYSICS_SCALES[name] * FD_FRACTION
                     trial = {k: v.clone() for k, v in base.items()}
-                    trial[name].view(-1)[j] += h
+                    trial[name].view(-1)[j] += PHYSICS_SCALES[name] * FD_FRACTION
+                    if name in SHARED_SPEC:                     # same robot: one solve for all of them, below
+                        batched.append(len(columns))
+                        columns.append(trial)
+                        continue
                     self.set_physics(trial)
-                    p1, _ = self.tip_poses(x, warm)
-                    cols.append(((residual(p1) - r) / h * PHYSICS_SCALES[name]).reshape(-1))
+                    columns.append(self.tip_poses(x, warm)[0])
                     self.set_physics(base)
+            for k, poses in zip(batched, self._solve_trials(x, warm, base, [columns[k] for k in batched]),
+                                strict=True):
+                columns[k] = poses
+            cols = [((residual(p1) - r) / FD_FRACTION).reshape(-1) for p1 in columns]
             jac = torch.stack(cols, -1)
             if frame:
                 jac = torch.cat([jac, _frame_jacobian(self.cc, frame, poses, tip)], -1)
@@ -271,6 +281,30 @@ class CalibratedCosserat:
                 self.cc.base_translation += -(self.world_tip(poses) - tip).mean(0)
         return {"rms_before_m": rms0, "rms_m": _rms(self.world_tip(poses) - tip), "iterations": done,
                 "rows": int(x.shape[0]), "seconds": time.perf_counter() - start}
+
+    def _solve_trials(self, x: Tensor, warm: WarmStart, base: dict[str, Tensor],
+                      trials: list[dict[str, Tensor]]) -> list[Tensor]:
+        """Tip poses (n, 4, 4) of displacements x (n, N) under each of ``trials`` (physics that differ from ``base``
+        only in :data:`SHARED_SPEC` parameters), all in one solve of the robot at ``base``: per sample their rest
+        lengths, gravities and spring lengths (a compliance c' as the lengths L·c'/c), warm-started at ``warm``."""
+        if not trials:
+            return []
+        self.set_physics(base)
+        spec, c0 = self.robot(), float(self.cc.encoder.log_compliance.exp())
+        rest, gravity, spring = [], [], []
+        n = x.shape[0]
+        for trial in trials:
+            self.set_physics(trial)
+            rest.append(self.rest_lengths(x))
+            gravity.append(self.gravity().expand(n, 3))
+            spring.append((self.path_length * float(self.cc.encoder.log_compliance.exp()) / c0).expand(n, -1))
+        self.set_physics(base)
+        k = len(trials)
+        sol = solve_displacements(spec, torch.cat(rest), gravity=torch.cat(gravity), spring_lengths=torch.cat(spring),
+                                  passing="segment", steps_per_segment=self.steps, tol=SOLVE_TOL, on_failure="flag",
+                                  tension_guess=warm.tension.repeat(k, 1),
+                                  compliance_guess=warm.compliance.repeat(k, 1, 1))
+        return list(sol.tip.split(n))
 
     def _apply(self, names, base, frame_base, frame, step: Tensor) -> None:
         """Set the physics to ``base`` and the frame parameters to ``frame_base`` plus the scaled LM ``step``."""

@@ -16,7 +16,7 @@ Steps (all generic: file names come from arguments, servo ids from the CSV heade
 
 Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool` (worker
 processes, or in line) and ``collect_*`` assembles the results in model order; ``run_*`` do both.
-Deterministic models (``linear_raw``, ``cc``: instant) always run in this process.
+Models fitted in no time (``linear_raw``, ``cc``: ``instant`` in the registry) run in this process.
 """
 from __future__ import annotations
 
@@ -152,6 +152,8 @@ def run_seed(name: str, s: Setup, seed: int, keep: bool = False) -> tuple[dict, 
     model = fit_model(name, s, seed)
     with torch.no_grad():
         run, pred_val = {"train": tip_metrics(model(s.train), s.train.tip)}, None
+        if hasattr(model, "physics_report"):          # a physical model's calibrated parameters (Cosserat)
+            run["physics"] = model.physics_report()
         if s.val is not None:
             pred_val = model(s.val)
             run["val"] = tip_metrics(pred_val, s.val.tip)
@@ -159,8 +161,9 @@ def run_seed(name: str, s: Setup, seed: int, keep: bool = False) -> tuple[dict, 
 
 
 def _submit(pool: TaskPool, name: str, fn: Callable, *args) -> Future:
-    """Learned models to the pool; deterministic ones (instant) in this process."""
-    return (pool.run_here if model_info(name).deterministic else pool.submit)(fn, name, *args)
+    """Models fitted in no time (``instant``: the linear map, the CC model) in this process; the others (learned
+    ones, the Cosserat calibration) to the pool."""
+    return (pool.run_here if model_info(name).instant else pool.submit)(fn, name, *args)
 
 
 def submit_benchmark(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int],
@@ -180,6 +183,8 @@ def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]
     for split in ("val", "train"):
         if split in first:
             summary[split] = {k: _summary([run[0][split][k] for run, _ in runs]) for k in first[split]}
+    if "physics" in first:
+        summary["physics"] = first["physics"]
     return summary, runs[0][0][1]
 
 
@@ -248,7 +253,7 @@ def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequenc
             for key, fn, args in warmups(build_model(name, ctx, seed), ctx.train):
                 pieces.setdefault(key, (fn, args))
     order = sorted(pieces, key=lambda k: "synthetic" in k)          # every calibration before the synthetic tips
-    return [pool.submit(*pieces[k]) for k in order]
+    return [pool.submit(pieces[k][0], *pieces[k][1]) for k in order]
 
 
 def selection_folds(s: Setup, proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, list[Fold]]:

@@ -80,6 +80,7 @@ class ModelInfo:
     deployable: bool = False
     outputs: int = 1000
     pretrained: bool = False
+    instant: bool = False            # fitted in no time (the benchmark runs it in its own process, not a worker)
 
     @property
     def clarke_space(self) -> bool:
@@ -87,10 +88,10 @@ class ModelInfo:
 
 
 _MODELS = (
-    ModelInfo("linear_raw", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True),
+    ModelInfo("linear_raw", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True, instant=True),
     ModelInfo("mlp_raw", lambda c, s: TipMLP("raw", c.n_inputs("raw")), "raw"),
     ModelInfo("mlp_clarke", lambda c, s: TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
-    ModelInfo("cc", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True, outputs=0),
+    ModelInfo("cc", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True, outputs=0, instant=True),
     ModelInfo("cc_clarke_residual", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True, outputs=2),
     ModelInfo("pretrained_clarke", _pretrained("clarke"), "clarke", pretrained=True),
     ModelInfo("cc_clarke_residual_history", lambda c, s: CCClarkeResidualHistory(c.cc), "clarke",
