@@ -174,3 +174,25 @@ def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_resi
     deployed = CCClarkeResidualHistory(cc)
     deployed.load_state_dict(history.state_dict())                # ships as a cc_clarke_residual_history model
     assert torch.equal(deployed(split), history(split))
+
+
+def test_the_history_model_on_the_cosserat_physics_saves_and_loads_as_a_history_model(compositional_split, tmp_path):
+    """cc_clarke_residual_history_cosserat is deployable: its members save with their play-memory input and load
+    into CCClarkeResidualHistory (the exported history modules' model) with the same predictions."""
+    from dacr_learn.hardware.deploy.checkpoint import HardwareModel, load_hardware_model, save_hardware_model
+
+    cc, split = compositional_split
+    torch.manual_seed(0)
+    member = CCClarkeResidualHistoryCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3)
+    member.fit_normalization(split)
+    with torch.no_grad():
+        member.net[-1].weight.normal_(0.0, 0.5)           # a correction that matters, and depends on the memory
+    model = HardwareModel("cc_clarke_residual_history_cosserat", cc.spec, labelled_servo_map(cc.spec), LABELLED_IDS,
+                          cc, [member.eval()])
+    loaded = load_hardware_model(save_hardware_model(model, tmp_path / "model.pt"))
+    assert loaded.history and isinstance(loaded.members[0], CCClarkeResidualHistory)
+    servo = 1e3 * split.servo
+    assert torch.allclose(loaded.predict(servo)[0], model.predict(servo)[0], rtol=0, atol=1e-12)
+    moved = split.rows(torch.arange(len(split)))                   # (this split's memory is 0: synthetic commands)
+    moved.memory = torch.full_like(moved.memory, 0.7)
+    assert float((member(moved) - member(split)).abs().max()) > 1e-6       # the memory input is used
