@@ -46,8 +46,11 @@ def test_the_sigma_models_held_out_rows_are_the_selection_proxies_own_fits(label
         fitted = held_out_folds(setup, name, [0], ("extrap",))
         assert [b.fold for b in reused] == [b.fold for b in fitted] == ["extrap:singles_to_pairs"]
         for a, b in zip(reused, fitted, strict=True):
-            for field in ("preds", "cc_tip", "tip", "rho", "support"):
+            for field in ("cc_tip", "tip", "rho", "support"):            # the same fold: the same inputs
                 assert torch.allclose(getattr(a, field), getattr(b, field), rtol=0, atol=1e-12), field
+            # the same fit, done twice: linear_raw's least squares on raw servo values is ill-conditioned, so two
+            # solves differ by more than rounding at the tip scale, but far below a nanometre
+            assert torch.allclose(a.preds, b.preds, rtol=0, atol=1e-9)
     assert held_out_from_selection(selection, "cc", [1]) is None                 # fitted with seed 0, not 1
     assert held_out_from_selection(selection, "mlp_raw", [0]) is None            # not scored
     scores = selection.scores["linear_raw"]
