@@ -63,10 +63,10 @@ class Arm:
         return int(self.chain.get_frame_indices(name)[0])
 
 
-def _quiet_urdf(text: str) -> URDF:
-    """The URDF parse of pytorch-kinematics' parser, without its warnings on unknown tags (dynamics etc.)."""
+def _quiet(parse, text: bytes):
+    """A parse by pytorch-kinematics' URDF parser, without its warnings on unknown tags (dynamics, transmissions)."""
     with contextlib.redirect_stderr(io.StringIO()):
-        return URDF.from_xml_string(text)
+        return parse(text)
 
 
 def _exact_transform(origin) -> tf.Transform3d:
@@ -87,14 +87,14 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
     """
     text, source = _urdf_text(urdf)
     try:
-        robot = _quiet_urdf(text)
+        robot = _quiet(URDF.from_xml_string, text)
     except Exception as err:                              # the parser raises assorted errors on bad XML
         raise ValueError(f"arm {source}: not a URDF file ({type(err).__name__}: {err})") from err
     links = [link.name for link in robot.links]
     for flag, name in (("--arm-tip", tip), ("root", root)):
         if name and name not in links:
             raise ValueError(f"{flag} {name!r}: no such link in {source}; its links are {links}")
-    chain = pk.build_chain_from_urdf(text).to(dtype=_F64)
+    chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=_F64)
     for joint in robot.joints:                           # the float64 geometry (pk parses it in float32)
         frame = chain.find_frame(joint.child)
         if frame is None:
@@ -120,13 +120,14 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
     return Arm(serial, names, types, limits, tip, frames, source)
 
 
-def _urdf_text(urdf: str | Path) -> tuple[str, str]:
+def _urdf_text(urdf: str | Path) -> tuple[bytes, str]:
+    """The URDF as bytes (the parser refuses a str with an encoding declaration) and a name for messages."""
     if isinstance(urdf, str) and urdf.lstrip().startswith("<"):
-        return urdf, "<URDF text>"
+        return urdf.encode("utf-8"), "<URDF text>"
     path = Path(urdf)
     if not path.is_file():
         raise FileNotFoundError(f"--arm {urdf}: no such file; expected a URDF file")
-    return path.read_text(encoding="utf-8"), str(path)
+    return path.read_bytes(), str(path)
 
 
 def _joint_limits(names: tuple[str, ...], by_name: dict, source: str) -> tuple[Limits, tuple[str, ...]]:
