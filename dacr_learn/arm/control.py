@@ -52,7 +52,8 @@ class Port:
 class WholeBodyConfig:
     """gain: fraction of the error corrected per step, (0, 1]; damping: λ [m] of the DLS; max_step: largest
     scaled step ‖Δz‖; rotation_length: w [m/rad] (None: the robot's length); port_weight: k of the port rows;
-    rest_gain: per-step pull of the variables towards the rest configuration, in the null space (0: off);
+    rest_gain: per-step pull of the variables towards a posture (the controller's ``posture``, default the
+    model's rest configuration), in the null space (0: off);
     dt: control period [s] for the arm's URDF velocity limits (None: not applied)."""
 
     gain: float = 0.5
@@ -79,12 +80,16 @@ class WholeBodyController:
 
     :meth:`step`: joint vectors q (B, n + N), targets (B, 4, 4) poses or (B, 3) positions [m] (arm base frame),
     optional feedforward (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, n + N). ``moving`` (n + D,) bool: the
-    variables this controller may change (default all).
+    variables this controller may change (default all). ``posture`` (n + D,): the variables ``rest_gain`` pulls
+    towards (default ``model.rest``).
     """
 
     def __init__(self, model: Composite, config: WholeBodyConfig = WholeBodyConfig(), port: Port | None = None,
-                 moving: Tensor | None = None):
+                 moving: Tensor | None = None, posture: Tensor | None = None):
         self.model, self.config, self.port = model, config, port
+        self.posture = (model.rest if posture is None else posture).to(_F64)
+        if self.posture.shape != model.rest.shape:
+            raise ValueError(f"posture: expected {tuple(model.rest.shape)} variables, got {tuple(self.posture.shape)}")
         self.limits = model.limits
         self.scale = model.limits.scale.to(_F64)
         d = self.scale.shape[0]
@@ -130,7 +135,7 @@ class WholeBodyController:
         jac = (scaled @ free) / self.scale
         secondary = None
         if cfg.rest_gain > 0:
-            pull = cfg.rest_gain * (model.rest.to(_F64) - xe) / self.scale * self.moving.to(_F64)
+            pull = cfg.rest_gain * (self.posture - xe) / self.scale * self.moving.to(_F64)
             secondary = (pull.unsqueeze(1) @ free).squeeze(1)
         step = scaled_dls_step(jac, err, self.scale, cfg.damping, cfg.max_step, secondary)
         if self.max_arm_step is not None:                                     # URDF velocity limits
@@ -145,12 +150,13 @@ class DecoupledController:
     (its rest shape: the arm's own IK aims the tool, with the port), then the robot's step with the arm held.
     Same interface and limits as :class:`WholeBodyController`."""
 
-    def __init__(self, model: Composite, config: WholeBodyConfig = WholeBodyConfig(), port: Port | None = None):
+    def __init__(self, model: Composite, config: WholeBodyConfig = WholeBodyConfig(), port: Port | None = None,
+                 posture: Tensor | None = None):
         n, d = model.num_arm, model.limits.num_variables
         arm = torch.arange(d) < n
         self.model = model
-        self.arm = WholeBodyController(model, config, port, moving=arm)
-        self.robot = WholeBodyController(model, config, None, moving=~arm)
+        self.arm = WholeBodyController(model, config, port, moving=arm, posture=posture)
+        self.robot = WholeBodyController(model, config, None, moving=~arm, posture=posture)
         self.straight = model.rest[n:].to(_F64)
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
