@@ -37,13 +37,13 @@ class WholeBody(NamedTuple):
     """One evaluation of a :class:`Composite` at variables (B, n + D), world (arm base) frame: tip ``position``
     (B, 3) [m], ``rotation`` (B, 3, 3) or None (position-only robot), ``jacobian`` (B, 6 or 3, n + D) of the
     tip (module docstring), the robot ``base`` pose T_a·M (B, 4, 4) and ``base_jacobian`` (B, 3, n + D): the
-    velocity of the base point (zero in the robot's columns)."""
+    velocity of the base point (zero in the robot's columns), or None when not asked for."""
 
     position: Tensor
     rotation: Tensor | None
     jacobian: Tensor
     base: Tensor
-    base_jacobian: Tensor
+    base_jacobian: Tensor | None
 
 
 def check_mount(mount) -> Tensor:
@@ -105,11 +105,12 @@ class Composite(SolverModel):
     def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
         """Variables (B, n + D) → tip position (B, 3) [m], rotation (B, 3, 3) (None for a position-only robot),
         J (B, 6 or 3, n + D) (module docstring), all in the arm's base frame."""
-        k = self.kinematics(x)
+        k = self.kinematics(x, with_base=False)
         return k.position, k.rotation, k.jacobian
 
-    def kinematics(self, x: Tensor) -> WholeBody:
-        """Tip, Jacobian and robot base of variables (B, n + D) in one pass (:class:`WholeBody`)."""
+    def kinematics(self, x: Tensor, with_base: bool = True) -> WholeBody:
+        """Tip, Jacobian and robot base of variables (B, n + D) in one pass (:class:`WholeBody`; its
+        ``base_jacobian`` None unless ``with_base``)."""
         n = self.num_arm
         theta, xc = x[:, :n], x[:, n:]
         jac_a, flange = self.arm.chain.jacobian_tensor(theta, ret_eef_pose=True)
@@ -122,7 +123,8 @@ class Composite(SolverModel):
                                                  dim=1)
         arm_v = jac_a[:, :3] + shift(pos)                                           # v_i + ω_i × (p − p_a)
         linear = torch.cat([arm_v, rb @ jac_c[:, :3]], dim=-1)
-        base_v = torch.cat([jac_a[:, :3] + shift(pb), torch.zeros_like(jac_c[:, :3])], dim=-1)
+        base_v = (torch.cat([jac_a[:, :3] + shift(pb), torch.zeros_like(jac_c[:, :3])], dim=-1)
+                  if with_base else None)
         if rc is None:
             return WholeBody(pos, None, linear, base, base_v)
         angular = torch.cat([omega, rb @ jac_c[:, 3:]], dim=-1)
