@@ -90,7 +90,8 @@ def jacobian_errors(model: Composite, n: int) -> dict:
     pose = model.pose_of_variables(x)
     dpose = torch.stack([torch.func.jacrev(lambda v: model.pose_of_variables(v[None])[0])(xi) for xi in x])
     theta = x[:, :model.num_arm]
-    local = torch.linalg.inv(model.arm.tip_pose(theta)) @ torch.cat([position, torch.ones(n, 1, dtype=F64)], 1)[..., None]
+    tip = torch.cat([position, torch.ones(n, 1, dtype=F64)], 1)[..., None]
+    local = torch.linalg.inv(model.arm.tip_pose(theta)) @ tip                 # the tip in the tip link's frame
     reference = model.arm.chain.jacobian(theta, locations=local[:, :3, 0])
     return {"samples": n, "jacrev_max": float((jac - twist_jacobian(pose, dpose)).abs().max()),
             "pytorch_kinematics_max": float((jac[:, :, :model.num_arm] - reference).abs().max())}
@@ -195,7 +196,8 @@ def print_report(r: dict) -> None:
     if "tracking" in r:
         print("\ntracking (examples/track_port.py)")
         for name, v in r["tracking"].items():
-            print(f"  {name:<12} position RMS {v['position_rms_mm']:.3f} mm, rotation RMS {v['rotation_rms_deg']:.3f}°, "
+            print(f"  {name:<12} position RMS {v['position_rms_mm']:.3f} mm, "
+                  f"rotation RMS {v['rotation_rms_deg']:.3f}°, "
                   f"arm {v['arm_motion_rad']:.2f} rad, robot {v['robot_motion_mm']:.0f} mm, "
                   f"{v['steps_at_a_limit']} steps at a limit, {v['limit_violations']} violations, "
                   f"port {v['port_max_mm']:.3f} mm")

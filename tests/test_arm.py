@@ -267,3 +267,52 @@ def test_a_position_only_robot_makes_a_position_only_whole_body(panda):
     result = solve_ik(model, position, n_solutions=3, position_only=True, seeds=model.seeds(position, 3))
     assert result.success.all()
     assert_every_flagged_solution_verifies(model, TDCR3, MOUNT, result, position)
+
+
+# --------------------------------------------------------------------------------------------------
+# Other continuum models on the arm: a trained FK network, a saved hardware model
+# --------------------------------------------------------------------------------------------------
+
+FIXTURES = ROOT / "tests" / "data" / "main_87f426b"     # tiny trained models (read only)
+
+
+def test_a_learned_fk_on_the_arm_jacobian_and_ik(panda):
+    """The robot is a trained compositional FK: J = jacrev of the whole (through the network) and IK solutions
+    that reach the targets through the NumPy arm chain · mount · the network's own pose of the returned joints."""
+    from dacr_learn.runs import load_model
+    net = load_model(FIXTURES / "fk_compositional.ckpt", dtype=F64)
+    model = Composite(panda, torch.from_numpy(MOUNT), net)
+    x = model.limits.sample(1, torch.Generator().manual_seed(8))       # jacrev through the network: ~1 s
+    _, _, jac = model.tip_and_jacobian(x)
+    assert (jac - jacrev_twist(model, x)).abs().max() <= 1e-9           # the folded Jacobian vs autodiff
+    target = model.pose_of_variables(model.limits.sample(6, torch.Generator().manual_seed(9))).detach()
+    result = solve_ik(model, target, n_solutions=2, seeds=PoseBank(model, 1024).seeds(target, 2))   # a small bank
+    assert result.success.any(1).all()
+    ref = UrdfArm(PANDA, "panda_link8")
+    for b, k in result.success.nonzero().tolist():
+        q = result.q[b, k]
+        with torch.no_grad():
+            robot = net(q[None, 7:])[0].numpy()
+        tip = ref.tip_pose(q[:7].numpy()) @ MOUNT @ robot
+        assert np.linalg.norm(tip[:3, 3] - target[b, :3, 3].numpy()) <= POS_TOL
+        assert ref.inside(q[:7].numpy())
+
+
+def test_a_hardware_model_on_the_arm_is_position_only(panda):
+    """Servo commands [mm] inside the recorded range behind the arm's joints; tips checked with the model's own
+    predict(static) through the NumPy arm chain."""
+    from dacr_learn.hardware.deploy import load_hardware_model
+    hardware = load_hardware_model(FIXTURES / "hardware_model.pt")
+    model = Composite(panda, torch.from_numpy(MOUNT), hardware)
+    assert not model.has_rotation
+    target = model.tip_and_jacobian(model.limits.sample(4, torch.Generator().manual_seed(10)))[0]
+    result = solve_ik(model, target, n_solutions=2, position_only=True, seeds=PoseBank(model, 1024).seeds(target, 2))
+    assert result.success.any(1).all()
+    ref, commands = UrdfArm(PANDA, "panda_link8"), hardware.examples.to(F64)
+    for b, k in result.success.nonzero().tolist():
+        q = result.q[b, k]
+        tip_c, _ = hardware.predict(q[None, 7:], static=True)
+        tip = ref.tip_pose(q[:7].numpy()) @ MOUNT @ np.append(tip_c[0].double().numpy(), 1.0)
+        assert np.linalg.norm(tip[:3] - target[b].numpy()) <= POS_TOL
+        assert ref.inside(q[:7].numpy())
+        assert (q[7:] >= commands.amin(0) - 1e-12).all() and (q[7:] <= commands.amax(0) + 1e-12).all()
