@@ -316,3 +316,10 @@ def test_a_hardware_model_on_the_arm_is_position_only(panda):
         assert np.linalg.norm(tip[:3] - target[b].numpy()) <= POS_TOL
         assert ref.inside(q[:7].numpy())
         assert (q[7:] >= commands.amin(0) - 1e-12).all() and (q[7:] <= commands.amax(0) + 1e-12).all()
+
+
+def test_a_urdf_with_a_joint_type_pytorch_kinematics_lacks_is_named():
+    floating = ('<robot name="f"><link name="a"/><link name="b"/><joint name="j" type="floating">'
+                '<parent link="a"/><child link="b"/></joint></robot>')
+    with pytest.raises(ValueError, match="floating"):
+        load_arm(floating, "b")

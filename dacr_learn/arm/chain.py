@@ -94,7 +94,12 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
     for flag, name in (("--arm-tip", tip), ("root", root)):
         if name and name not in links:
             raise ValueError(f"{flag} {name!r}: no such link in {source}; its links are {links}")
-    chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=_F64)
+    try:
+        chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=_F64)
+    except KeyError as err:                               # a joint type pytorch-kinematics has no model of
+        kinds = sorted({j.type for j in robot.joints} - {"revolute", "continuous", "prismatic", "fixed"})
+        raise ValueError(f"arm {source}: pytorch-kinematics cannot build this URDF (joint types {kinds or err}); "
+                         f"expected revolute, continuous, prismatic and fixed joints") from err
     for joint in robot.joints:                           # the float64 geometry (pk parses it in float32)
         frame = chain.find_frame(joint.child)
         if frame is None:

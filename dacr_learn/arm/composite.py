@@ -47,8 +47,9 @@ class WholeBody(NamedTuple):
 
 
 def check_mount(mount) -> Tensor:
-    """A mount (4, 4) as float64: a homogeneous transform (rotation orthonormal with det +1 to 1e-9, last row
-    (0, 0, 0, 1), finite). ValueError naming what is wrong."""
+    """A mount (4, 4) as float64: a homogeneous transform (rotation orthonormal with det +1 to 1e-6, as the
+    solver asks of a target pose; last row (0, 0, 0, 1), finite), used as given. ValueError naming what is
+    wrong."""
     m = torch.as_tensor(mount)
     if not m.is_floating_point() or m.shape != (4, 4):
         raise ValueError(f"mount: expected a float (4, 4) homogeneous transform (tip link → robot base), got "
@@ -59,8 +60,8 @@ def check_mount(mount) -> Tensor:
     rot = m[:3, :3]
     orth = float((rot @ rot.T - torch.eye(3, dtype=_F64)).abs().max())
     det = float(torch.linalg.det(rot))
-    if orth > 1e-9 or abs(det - 1) > 1e-9 or float((m[3] - torch.tensor([0.0, 0, 0, 1], dtype=_F64)).abs().max()) > 0:
-        raise ValueError(f"mount: the rotation block must be a rotation (RRᵀ = I, det +1 to 1e-9) and the last row "
+    if orth > 1e-6 or abs(det - 1) > 1e-6 or float((m[3] - torch.tensor([0.0, 0, 0, 1], dtype=_F64)).abs().max()) > 0:
+        raise ValueError(f"mount: the rotation block must be a rotation (RRᵀ = I, det +1 to 1e-6) and the last row "
                          f"(0, 0, 0, 1); got |RRᵀ − I| = {orth:.2e}, det = {det:.9f}, last row {m[3].tolist()}")
     return m
 

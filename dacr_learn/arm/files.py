@@ -40,3 +40,10 @@ def composite_from_files(arm: str | Path, tip: str | None, mount: str | Path | N
         raise ValueError(f"--arm needs {' and '.join(missing)}: the arm's tip link and the mount (tip link → robot "
                          f"base, float64 (4, 4) .npy)")
     return Composite(load_arm(arm, tip), load_mount(mount), robot)
+
+
+def describe(model: Composite) -> str:
+    """One line naming the joint vector's layout, e.g. for the CLI's summary."""
+    names = model.arm.joint_names
+    return (f"q = ({names[0]} … {names[-1]}: {len(names)} arm joints [rad, m], then the robot's "
+            f"{model.robot.num_joints} joints)")

@@ -138,9 +138,10 @@ def main(argv: list[str] | None = None) -> IKResult:
     from .models import as_solver_model
     solver_model = as_solver_model(model)
     if args.arm is not None:                                         # whole-body: arm + mount + this robot
-        from ..arm.files import composite_from_files
+        from ..arm.files import composite_from_files, describe
         solver_model = composite_from_files(args.arm, args.arm_tip, args.mount, solver_model)
-        seeder, description = solver_model.seeds, f"{args.arm} ({args.arm_tip}) carrying the {description}"
+        seeder = solver_model.seeds
+        description = f"{args.arm} ({args.arm_tip}) carrying the {description}; {describe(solver_model)}"
     parts = []
     chunks = range(0, targets.shape[0], args.batch)
     progress = _progress(len(chunks))
