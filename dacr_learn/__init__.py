@@ -40,6 +40,9 @@ def __getattr__(name: str):
     if name == "load_exported":
         from .deploy.export import load
         return load
+    if name in ("Composite", "load_arm"):          # the arm + continuum robot model (docs/arm.md), on first use
+        from . import arm
+        return getattr(arm, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
@@ -51,6 +54,7 @@ except PackageNotFoundError:  # a source tree that was not pip-installed
 __all__ = [
     "ClarkeDecoder",
     "ClarkeEncoder",
+    "Composite",
     "ControllerConfig",
     "FKModel",
     "IKModel",
@@ -63,6 +67,7 @@ __all__ = [
     "analytic_jacobian",
     "backbone_points",
     "forward_kinematics",
+    "load_arm",
     "load_exported",
     "load_model",
     "solve_ik",

@@ -84,6 +84,27 @@ def test_batch_dims_are_kept():
     assert out.tip.shape == (2, 3, 4, 4) and out.converged.shape == (2, 3)
 
 
+def test_per_sample_gravity_and_spring_lengths_equal_separate_solves():
+    """Parameter sets that share the robot (gravity, tendon spring lengths) solved in one batch give what each
+    gives alone — the batched finite differences of the hardware Cosserat fit."""
+    spec = robot()
+    _, _, ell = commanded(spec, 5, seed=6)
+    lengths = torch.tensor([0.06] * 3 + [0.1225] * 3 + [0.1865] * 3, dtype=F64)
+    gravities = [GRAVITY, torch.tensor([3.0, -2.0, -8.0], dtype=F64), torch.zeros(3, dtype=F64)]
+    springs = [lengths, 1.3 * lengths, 0.8 * lengths]
+    alone = [solve_displacements(spec, ell, gravity=g, spring_lengths=s, tol=1e-10)
+             for g, s in zip(gravities, springs, strict=True)]
+    together = solve_displacements(spec, ell.repeat(3, 1), tol=1e-10,
+                                   gravity=torch.cat([g.expand(5, 3) for g in gravities]),
+                                   spring_lengths=torch.cat([s.expand(5, 9) for s in springs]))
+    assert bool(together.converged.all())
+    for k, one in enumerate(alone):
+        part = slice(5 * k, 5 * k + 5)
+        assert torch.allclose(together.tension[part], one.tension, rtol=0, atol=1e-5 * tension_scale(spec))
+        assert float((together.tip[part, :3, 3] - one.tip[..., :3, 3]).norm(dim=-1).max()) < 1e-7 * spec.total_length
+    assert float((alone[0].tip[..., :3, 3] - alone[1].tip[..., :3, 3]).norm(dim=-1).max()) > 1e-4   # they differ
+
+
 def _lcp_brute_force(a: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """The LCP's solution by trying every set of positive unknowns (unique for SPD A)."""
     n = q.shape[0]
@@ -123,6 +144,10 @@ def test_bad_inputs_are_refused_with_clear_errors():
         solve_displacements(spec, ell, compliance_guess=torch.zeros(2, 9, 8, dtype=F64))
     with pytest.raises(ValueError, match="spring_lengths"):
         solve_displacements(spec, ell, spring_lengths=torch.ones(8, dtype=F64))
+    with pytest.raises(ValueError, match="spring_lengths"):
+        solve_displacements(spec, ell, spring_lengths=torch.ones(3, 9, dtype=F64))      # not one per sample
+    with pytest.raises(ValueError, match="gravity"):
+        solve_displacements(spec, ell, gravity=torch.zeros(3, 3, dtype=F64))
     with pytest.raises(ValueError, match="on_failure"):
         solve_displacements(spec, ell, on_failure="ignore")
     no_mechanics = RobotSpec.from_dict({k: v for k, v in spec.to_dict().items() if k != "mechanics"})

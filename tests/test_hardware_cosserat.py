@@ -7,10 +7,16 @@ import torch
 from hardware_testkit import LABELLED_IDS, LABELLED_ROBOT, labelled_servo_map
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
-from dacr_learn.hardware.cosserat_learned import CCClarkeResidualCosserat, CosseratOnly
+from dacr_learn.hardware.cosserat_learned import (
+    CCClarkeResidualCosserat,
+    CCClarkeResidualHistoryCosserat,
+    CosseratOnly,
+    _shared,
+    calibration_key,
+)
 from dacr_learn.hardware.cosserat_model import CalibratedCosserat
 from dacr_learn.hardware.deploy.checkpoint import _structure
-from dacr_learn.hardware.learned import CCClarkeResidual, synthetic_split
+from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, synthetic_split
 from dacr_learn.robot import RobotSpec
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -61,16 +67,63 @@ def test_weightless_and_axially_rigid_it_is_the_cc_model(strain):
 QUICK_FIT = {"rows": 32, "iterations": 2, "starts": (5e-5,)}
 
 
+def test_the_weight_is_a_free_direction_with_a_non_negative_magnitude():
+    """g = w·u in the motion-capture frame, rotated into the tilted base; w ≥ 0 by construction; a weight across the
+    robot bends it sideways, unlike one along its axis."""
+    cc = calibrated_cc()
+    side = CalibratedCosserat(cc, weight=0.3, direction=(0.0, -2.0, 0.0), axial_radius=1e-5)
+    assert side.weight == pytest.approx(0.3) and torch.allclose(side.direction(), torch.tensor([0.0, -1.0, 0.0],
+                                                                                                dtype=torch.float64))
+    expected = cc.base_rotation().detach().double().T @ torch.tensor([0.0, -0.3, 0.0], dtype=torch.float64)
+    assert torch.allclose(side.gravity(), expected, rtol=0, atol=1e-15)
+    report = side.report()
+    assert report["gravity_direction_mocap"] == [0.0, -1.0, 0.0] and report["gravity_from_mocap_down_deg"] == 90.0
+    assert report["gravity_azimuth_deg"] == -90.0 and 80.0 < report["gravity_to_base_axis_deg"] < 100.0
+    x = commands(cc, 8, seed=3)
+    axial = CalibratedCosserat(cc, weight=0.3, axial_radius=1e-5)                      # along mocap −z (≈ the axis)
+    sideways = (side(x) - cc(x))[:, 1]
+    assert float(sideways.mean()) < -1e-4 and float((side(x) - cc(x)).norm(dim=-1).mean()) > \
+        3 * float((axial(x) - cc(x)).norm(dim=-1).mean())
+    side.set_physics({"gravity": torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)})  # held to WEIGHT_MAX
+    assert side.weight == pytest.approx(0.5) and float(side.direction()[2]) == pytest.approx(1.0)
+    for bad in ({"weight": -0.1}, {"direction": (0.0, 0.0, 0.0)}):
+        with pytest.raises(ValueError, match="weight >= 0"):
+            CalibratedCosserat(cc, **bad)
+
+
+def test_calibrations_are_shared_through_files_between_processes(tmp_path):
+    """_shared computes a key once; a process that has not computed it (its in-process cache empty) reads the
+    file instead of computing it again."""
+    from dacr_learn.hardware import cosserat_learned
+
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"value": torch.arange(3)}
+
+    first = _shared("k1", compute, tmp_path)
+    cosserat_learned._SHARED.pop("k1")                                # as another process would start
+    second = _shared("k1", compute, tmp_path)
+    assert len(calls) == 1 and torch.equal(first["value"], second["value"])
+    assert (tmp_path / "k1.pkl").exists()
+    cc = calibrated_cc()
+    split = synthetic_split(cc, labelled_servo_map(cc.spec), LABELLED_IDS, 8, 0)
+    assert calibration_key(cc, split, {}) != calibration_key(cc, split, {"free_frame": False})
+    assert calibration_key(cc, split, {}) != calibration_key(cc, split.rows(torch.arange(7)), {})
+
+
 @pytest.mark.slow
 def test_fit_recovers_the_weight_and_the_tips_of_a_known_robot():
     cc = calibrated_cc()
-    truth = CalibratedCosserat(cc, weight=0.4, axial_radius=3e-4)
+    truth = CalibratedCosserat(cc, weight=0.4, axial_radius=3e-4, direction=(0.3, -1.0, -0.2))  # not along an axis
     x = commands(cc, 48, seed=1)
     tip = truth(x)
     model = CalibratedCosserat(cc)                                # starts from w = 0 and a stiffer backbone
     info = model.fit(x, tip, rows=48, iterations=6, starts=(5e-5,))
     assert info["rms_m"] < 0.1 * info["rms_before_m"] and info["rms_m"] < 2e-5
     assert abs(model.weight - 0.4) < 0.05
+    assert float(model.direction() @ truth.direction()) > 0.99    # within 8° of the true direction
     fresh = commands(cc, 32, seed=2)
     assert float((model(fresh) - truth(fresh)).norm(dim=-1).max()) < 1e-4
     assert model.report()["weight_per_length_N_per_m"] == pytest.approx(model.weight, abs=1e-5)
@@ -112,3 +165,34 @@ def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_resi
     plain = CCClarkeResidual(cc)
     plain.load_state_dict(residual.state_dict())                  # loads into the deployable class unchanged
     assert torch.equal(plain(split), pred)
+    torch.manual_seed(0)
+    history = CCClarkeResidualHistoryCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3,
+                                              samples=96, fit_options=QUICK_FIT)
+    history.fit(split)                                            # the same calibration and synthetic tips (cached)
+    assert history.fit_report == residual.fit_report and history.history
+    assert _structure([history]) == "clarke_residual"
+    deployed = CCClarkeResidualHistory(cc)
+    deployed.load_state_dict(history.state_dict())                # ships as a cc_clarke_residual_history model
+    assert torch.equal(deployed(split), history(split))
+
+
+def test_the_history_model_on_the_cosserat_physics_saves_and_loads_as_a_history_model(compositional_split, tmp_path):
+    """cc_clarke_residual_history_cosserat is deployable: its members save with their play-memory input and load
+    into CCClarkeResidualHistory (the exported history modules' model) with the same predictions."""
+    from dacr_learn.hardware.deploy.checkpoint import HardwareModel, load_hardware_model, save_hardware_model
+
+    cc, split = compositional_split
+    torch.manual_seed(0)
+    member = CCClarkeResidualHistoryCosserat(cc, labelled_servo_map(cc.spec), LABELLED_IDS, synthetic_seed=3)
+    member.fit_normalization(split)
+    with torch.no_grad():
+        member.net[-1].weight.normal_(0.0, 0.5)           # a correction that matters, and depends on the memory
+    model = HardwareModel("cc_clarke_residual_history_cosserat", cc.spec, labelled_servo_map(cc.spec), LABELLED_IDS,
+                          cc, [member.eval()])
+    loaded = load_hardware_model(save_hardware_model(model, tmp_path / "model.pt"))
+    assert loaded.history and isinstance(loaded.members[0], CCClarkeResidualHistory)
+    servo = 1e3 * split.servo
+    assert torch.allclose(loaded.predict(servo)[0], model.predict(servo)[0], rtol=0, atol=1e-12)
+    moved = split.rows(torch.arange(len(split)))                   # (this split's memory is 0: synthetic commands)
+    moved.memory = torch.full_like(moved.memory, 0.7)
+    assert float((member(moved) - member(split)).abs().max()) > 1e-6       # the memory input is used

@@ -62,3 +62,36 @@ def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reporte
     blocked = next(m for m in default_candidates(MODELS, deployable_only=False) if not model_info(m).deployable)
     scores = {m: {"extrap": 1.0 if m == blocked else 2.0 + i} for i, m in enumerate(MODELS)}
     assert choose_default(scores, default_candidates(list(scores)), "extrap") == "cc"
+
+
+def test_shared_cosserat_pieces_are_submitted_once_calibrations_first(compositional_split, tmp_path):
+    """The benchmark hands each Cosserat calibration and each seed's synthetic tips to its pool once (the residual
+    and its history variant share them), every calibration ahead of every synthetic set, each a call that binds to
+    its function; in line (one job) it hands none (the fits compute them when asked)."""
+    import inspect
+
+    from hardware_testkit import LABELLED_IDS, labelled_servo_map
+
+    from dacr_learn.hardware.study.benchmark import submit_warmups
+    from dacr_learn.hardware.study.registry import FitContext
+
+    cc, split = compositional_split
+    ctx = FitContext(cc, labelled_servo_map(cc.spec), LABELLED_IDS, split, tmp_path)
+
+    class Recorder:
+        jobs = 2
+        calls: list = []
+
+        def submit(self, fn, *args):
+            inspect.signature(fn).bind(*args)               # a call the worker can make
+            self.calls.append((fn.__name__, args))
+
+    pool = Recorder()
+    submit_warmups(pool, [(ctx, "cosserat", [0]), (ctx, "cc_clarke_residual_cosserat", [0, 1]),
+                          (ctx, "cc_clarke_residual_history_cosserat", [0, 1]), (ctx, "cc_clarke_residual", [0])])
+    names = [name for name, _ in pool.calls]
+    assert names == ["_calibrate", "_calibrate", "_synthesize", "_synthesize"]
+    assert [args[2] for name, args in pool.calls if name == "_calibrate"] == [tmp_path, tmp_path]
+    assert sorted(args[5] for name, args in pool.calls if name == "_synthesize") == [1000, 1001]   # synthetic seeds
+    pool.jobs = 1
+    assert submit_warmups(pool, [(ctx, "cosserat", [0])]) == []

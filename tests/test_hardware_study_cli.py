@@ -143,6 +143,12 @@ def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path)
     assert "val" not in results["models"]["cc"] and results["models"]["cc"]["train"]["rmse_mm"]["mean"] < 0.3
     assert not (out / "val_predictions.csv").exists()
     assert "**`cc`** (default)" in (out / "results.md").read_text()
+    selection = results["selection"]
+    assert selection["rule"].startswith("one-standard-error") and "cc" in selection["reason"]
+    assert selection["best_by_proxy"] == "cc" and selection["tied"] == ["cc"]
+    assert set(selection["comparison"]) == {"cc"} and selection["comparison"]["cc"]["gap_mm"] == 0.0
+    assert "extrap_std" in selection["scores"]["cc"] and selection["proxy_seeds"] == [0, 1, 2]
+    assert f"{selection['scores']['cc']['extrap']:.2f} ± " in (out / "results.md").read_text()
 
 
 def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, tmp_path):

@@ -13,11 +13,13 @@ NAME = "cc_compositional_residual"
 
 
 def test_registry_has_unique_names_and_flags():
-    assert len(set(MODELS)) == len(MODELS) == 13 and all(REGISTRY[m].name == m for m in MODELS)
+    assert len(set(MODELS)) == len(MODELS) == 14 and all(REGISTRY[m].name == m for m in MODELS)
     assert {m for m in MODELS if REGISTRY[m].deterministic} == {"linear_raw", "cc", "cosserat"}
     assert {m for m in MODELS if REGISTRY[m].deployable} == {"cc", "cc_clarke_residual", "cc_clarke_residual_history",
-                                                             "cc_compositional_residual", "cc_clarke_residual_cosserat"}
-    assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history", "cc_compositional_history"]
+                                                             "cc_compositional_residual", "cc_clarke_residual_cosserat",
+                                                             "cc_clarke_residual_history_cosserat"}
+    assert [m for m in MODELS if not REGISTRY[m].static] == ["cc_clarke_residual_history", "cc_compositional_history",
+                                                             "cc_clarke_residual_history_cosserat"]
     history = model_info("cc_compositional_history")
     assert history.clarke_space and not history.deployable
     assert not model_info("mlp_raw").clarke_space and model_info("pretrained_clarke").clarke_space

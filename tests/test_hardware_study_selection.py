@@ -9,6 +9,7 @@ val.csv, like data/ftdcr_v6.
 from __future__ import annotations
 
 import pytest
+import torch
 from conftest import ROOT
 
 from dacr_learn.hardware.recording import load_recording
@@ -80,3 +81,92 @@ def test_cc_variant_is_chosen_by_the_singles_to_pairs_score_of_the_cc_model(v4_t
     assert abs(fold_rmse("cc", fold, 0) - scores["strain"]) <= 1e-3   # same fit, same score [mm] (rounded to 1e-4)
     with pytest.raises(ValueError, match="cc variants: expected one or more of"):
         choose_cc_variant(rec, spec, smap, ("stiff",))
+
+
+# --------------------------------------------------------------------------------------------------
+# The proxies' noise: bootstrap over held-out pattern groups and seeds, and the one-standard-error rule
+# --------------------------------------------------------------------------------------------------
+
+
+def test_pattern_groups_join_a_pattern_and_its_hold_phase():
+    from dacr_learn.hardware.study.selection import pattern_group
+
+    assert pattern_group("rep1_pair13_same_dir60_hold") == pattern_group("rep1_pair13_same_dir60") == \
+        pattern_group("rep2_pair13_same_dir60") == "pair13_same_dir60"
+    assert pattern_group("rep1_pair13_opp_dir60") != pattern_group("rep1_pair13_same_dir60")
+
+
+def test_bootstrap_weights_and_rmse_equal_the_resampled_rows():
+    """Each replicate's weighted offset-removed RMSE equals offset_removed_rmse of the rows it stands for, written
+    out (an independent computation: the drawn groups' rows concatenated)."""
+    from dacr_learn.hardware.metrics import offset_removed_rmse
+    from dacr_learn.hardware.study.selection import bootstrap_replicates, group_weights, weighted_rmse
+
+    g = torch.Generator().manual_seed(4)
+    groups = ["a"] * 3 + ["b"] * 5 + ["c"] * 2 + ["d"] * 4
+    error = torch.randn(len(groups), 3, generator=g, dtype=torch.float64) + torch.tensor([2.0, -1.0, 0.5],
+                                                                                         dtype=torch.float64)
+    weights = group_weights(groups, 50, torch.Generator().manual_seed(0))
+    assert weights.shape == (50, len(groups))
+    names = sorted(set(groups))
+    for row in weights:
+        per_group = {gr: float(row[groups.index(gr)]) for gr in names}
+        assert sum(per_group.values()) == len(names)                          # as many groups drawn as there are
+        for i, gr in enumerate(groups):                                       # a row weighs as its group
+            assert float(row[i]) == per_group[gr]
+    rmse = weighted_rmse(error, weights)
+    for b in range(10):
+        rows = torch.cat([error[torch.tensor([i for i, gr in enumerate(groups) if gr == name])]
+                          for name in names for _ in range(int(weights[b, groups.index(name)]))])
+        assert float(rmse[b]) == pytest.approx(float(offset_removed_rmse(rows, torch.zeros_like(rows))), rel=1e-12)
+    unit = weighted_rmse(error, torch.ones(1, len(groups), dtype=torch.float64))
+    assert float(unit[0]) == pytest.approx(float(offset_removed_rmse(error, torch.zeros_like(error))), rel=1e-12)
+    # one seed: the replicates are the weighted RMSE; two identical seeds: the same (seed resampling adds nothing)
+    one = bootstrap_replicates({"f": [error]}, {"f": weights}, "m")
+    two = bootstrap_replicates({"f": [error, error]}, {"f": weights}, "m")
+    assert torch.allclose(one, rmse) and torch.allclose(two, rmse)
+    # seeds that differ add their spread
+    noisy = bootstrap_replicates({"f": [error, 3 * error]}, {"f": weights}, "m")
+    assert float(noisy.std()) > float(one.std())
+    with pytest.raises(ValueError, match="at least one row"):
+        group_weights([], 5)
+
+
+def test_default_is_the_simplest_candidate_within_the_combined_uncertainty():
+    from dacr_learn.hardware.study.selection import default_choice
+
+    scores = {"cc": {"extrap": 5.30}, "cc_clarke_residual": {"extrap": 5.10},
+              "cc_clarke_residual_history": {"extrap": 4.90}, "cc_compositional_residual": {"extrap": 4.95}}
+    candidates = list(scores)
+    g = torch.Generator().manual_seed(1)
+    common = torch.randn(4000, generator=g, dtype=torch.float64)           # the shared test patterns move all
+
+    def reps(spread: float) -> dict:
+        return {m: scores[m]["extrap"] + common + spread * torch.randn(4000, generator=g, dtype=torch.float64)
+                for m in candidates}
+
+    tight = default_choice(scores, candidates, "extrap", reps(0.01))       # every gap far beyond its noise
+    assert tight["default"] == tight["best"] == "cc_clarke_residual_history" and tight["tied"] == [tight["best"]]
+    # the paired difference cancels what the models share: a huge common spread alone ties nothing
+    assert all(r["gap_std_mm"] < 0.05 for r in tight["candidates"].values())
+    assert tight["candidates"]["cc"]["std_mm"] > 0.9
+    loose = default_choice(scores, candidates, "extrap", reps(0.2))        # σ of a difference ≈ 0.28 mm
+    assert loose["best"] == "cc_clarke_residual_history"
+    assert set(loose["tied"]) == {"cc_clarke_residual_history", "cc_compositional_residual", "cc_clarke_residual"}
+    assert loose["default"] == "cc_clarke_residual"                         # the simplest of the tied
+    assert "cc_clarke_residual" in loose["reason"] and loose["rule"].startswith("one-standard-error")
+    wide = default_choice(scores, candidates, "extrap", reps(1.0))
+    assert wide["default"] == "cc" and len(wide["tied"]) == 4
+    # without replicates: the lowest score (the rule before its noise was known)
+    assert default_choice(scores, candidates, "extrap")["default"] == "cc_clarke_residual_history"
+    with pytest.raises(ValueError, match="missing"):
+        default_choice(scores, candidates, "extrap", {"cc": common})
+
+
+def test_complexity_orders_static_before_history_and_fewer_outputs_first():
+    from dacr_learn.hardware.study.registry import complexity
+
+    order = sorted(["cc_clarke_residual_history_cosserat", "cc_clarke_residual_history", "cc_compositional_residual",
+                    "cc_clarke_residual_cosserat", "cc_clarke_residual", "cc"], key=complexity)
+    assert order == ["cc", "cc_clarke_residual", "cc_clarke_residual_cosserat", "cc_compositional_residual",
+                     "cc_clarke_residual_history", "cc_clarke_residual_history_cosserat"]

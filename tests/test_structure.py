@@ -156,7 +156,7 @@ LAYERS = {
     "data": ["data"],
     "learning": ["datamodule", "training", "training_sampler", "runs", "ablation", "combination_shift"],
     "viz": ["viz"],
-    "deploy": ["deploy", "ik"],
+    "deploy": ["deploy", "ik", "arm"],
     "hardware": ["hardware"],
     "hardware.deploy": ["hardware.deploy"],
     "hardware.study": ["hardware.study"],

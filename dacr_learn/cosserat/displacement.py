@@ -122,12 +122,16 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
                         max_iter: int = 30, on_failure: str = "raise", workers: int | None = None,
                         passing: str = "own") -> DisplacementSolution:
     """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector
-    order) and the robot's weight (``gravity`` (3,) [m/s²], base frame, as :func:`solve_statics`).
+    order) and the robot's weight (``gravity`` (3,) [m/s²], base frame, as :func:`solve_statics`, or one per
+    sample, (..., 3)).
 
     ``spring_lengths`` (T,) [m]: when given, each tendon is a linear spring of that fixed length (its
     stretch τ·c·L_s with c = ``mechanics.tendon_compliance``: e.g. a tendon that also runs from the base to
     its actuator, or the CC model's convention L_s = the straight path length), so R = L − c·L_s·τ instead of
-    L/(1 + cτ) (the stretch spread over the tendon's own, command-dependent unstretched length).
+    L/(1 + cτ) (the stretch spread over the tendon's own, command-dependent unstretched length); or one per
+    sample, (..., T) (e.g. several tendon compliances c' solved at once as lengths L_s·c'/c).
+    Per-sample gravities and spring lengths let one call solve a batch of parameter sets that share the robot
+    (a fit's finite differences).
     ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration
     (e.g. from the solution of a nearby command or parameter set). ``tol`` [m]: the largest tendon-length
     violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". ``passing``: as
@@ -156,31 +160,48 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
         tau = tension_guess.detach().to(torch.float64).reshape(-1, t).clamp(min=0).clone()
     else:
         tau = ell.new_zeros(n, t)
+    spring = None
     if spring_lengths is not None:
         check_tensor(spring_lengths, "spring_lengths", (t,))
-        if spring_lengths.dim() != 1 or not bool((spring_lengths > 0).all()):
-            raise ValueError(f"spring_lengths: got shape {tuple(spring_lengths.shape)}, expected ({t},) positive "
-                             "lengths [m]")
+        if spring_lengths.shape not in ((t,), (*batch, t)) or not bool((spring_lengths > 0).all()):
+            raise ValueError(f"spring_lengths: got shape {tuple(spring_lengths.shape)}, expected ({t},) or "
+                             f"{(*batch, t)} positive lengths [m]")
         spring = spring_lengths.detach().to(torch.float64) * spec.mechanics.tendon_compliance
+        spring = spring.reshape(-1, t) if spring.dim() > 1 else spring
+    if gravity is not None:
+        check_tensor(gravity, "gravity", (3,))
+        if gravity.shape not in ((3,), (*batch, 3)):
+            raise ValueError(f"gravity: got shape {tuple(gravity.shape)}, expected (3,) or {(*batch, 3)}")
+        gravity = gravity.detach().to(torch.float64)
+        gravity = gravity.reshape(-1, 3) if gravity.dim() > 1 else gravity
+    per_sample = any(v is not None and v.dim() > 1 for v in (gravity, spring))
     h = 1e-4 * tension_scale(spec)
-    kw = dict(gravity=gravity, steps_per_segment=steps_per_segment, on_failure="flag", workers=workers,
-              passing=passing)
+    kw = dict(steps_per_segment=steps_per_segment, on_failure="flag", workers=workers, passing=passing)
 
-    def rest(tensions: Tensor) -> tuple[Tensor, CosseratSolution]:
+    def of_rows(value: Tensor | None, rows: Tensor | None, repeat: int = 1) -> Tensor | None:
+        """A per-sample input (n, k) restricted to ``rows`` (None: all), each row repeated; shared ones as they are."""
+        if value is None or value.dim() == 1:
+            return value
+        value = value if rows is None else value[rows]
+        return value.repeat_interleave(repeat, 0) if repeat > 1 else value
+
+    def rest(tensions: Tensor, rows: Tensor | None = None, repeat: int = 1) -> tuple[Tensor, CosseratSolution]:
+        """Rest lengths R (B, T) at tensions (B, T) of the samples ``rows`` (None: all), each ``repeat`` times."""
         with torch.no_grad():
-            sol = solve_statics(spec, tensions, **kw)
-        if spring_lengths is None:
+            sol = solve_statics(spec, tensions, gravity=of_rows(gravity, rows, repeat), **kw)
+        if spring is None:
             return sol.tendon_rest_lengths, sol
-        return sol.tendon_lengths - spring * tensions, sol
+        return sol.tendon_lengths - of_rows(spring, rows, repeat) * tensions, sol
 
-    def chord(tensions: Tensor) -> Tensor:
-        """A = −∂R/∂τ (B, T, T) by central differences (one-sided at τ_j < h), symmetrised."""
+    def chord(tensions: Tensor, rows: Tensor | None = None) -> Tensor:
+        """A = −∂R/∂τ (B, T, T) by central differences (one-sided at τ_j < h), symmetrised, at tensions (B, T) of
+        the samples ``rows`` (None: all)."""
         b = tensions.shape[0]
         eye = torch.eye(t, dtype=torch.float64)
         up = tensions.unsqueeze(1) + h * eye
         down = (tensions.unsqueeze(1) - h * eye).clamp(min=0)
-        r_up, _ = rest(up.reshape(-1, t))
-        r_down, _ = rest(down.reshape(-1, t))
+        r_up, _ = rest(up.reshape(-1, t), rows, t)
+        r_down, _ = rest(down.reshape(-1, t), rows, t)
         width = (up - down).diagonal(dim1=-2, dim2=-1)                                # (b, T)
         jac = -(r_up - r_down).reshape(b, t, t) / width.unsqueeze(-1)                 # row j: ∂R/∂τ_j
         jac = jac.mT
@@ -191,8 +212,8 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
             raise ValueError(f"compliance_guess: got shape {tuple(compliance_guess.shape)}, expected "
                              f"{(*batch, t, t)}")
         a = compliance_guess.detach().to(torch.float64).reshape(n, t, t).clone()
-    elif tension_guess is None:       # every sample starts straight and unloaded: one chord serves all
-        a = chord(tau[:1]).expand(n, t, t).clone()
+    elif tension_guess is None and not per_sample:   # every sample starts straight and unloaded: one chord serves all
+        a = chord(tau[:1], torch.zeros(1, dtype=torch.long)).expand(n, t, t).clone()
     else:
         a = chord(tau)
     r, sol = rest(tau)
@@ -212,7 +233,7 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
         target = solve_lcp(aa, -ff - (aa @ tt.unsqueeze(-1)).squeeze(-1))
         trial = (tt + step[todo].unsqueeze(-1) * (target - tt)).clamp(min=0)
         trial = torch.where(torch.isfinite(trial).all(-1, keepdim=True), trial, tt)   # no step: retake the chord
-        r1, sol1 = rest(trial)
+        r1, sol1 = rest(trial, todo)
         f1 = r1 - ell[todo]
         v1 = _violation(f1, trial)
         better = v1 < viol[todo]
@@ -224,7 +245,7 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
         worse = todo[~better]
         retake = todo[~better & torch.isfinite(v1)]          # a worse shape: retake the chord at the iterate
         if retake.numel():
-            a[retake] = chord(tau[retake])
+            a[retake] = chord(tau[retake], retake)
         step[worse] = step[worse] / 2                        # a worse or failed shape: shorten the step
         step[keep] = torch.clamp(step[keep] * 2, max=1.0)
     statics = CosseratSolution(arc=sol.arc, grid=sol.grid,

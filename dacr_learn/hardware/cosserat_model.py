@@ -10,9 +10,11 @@ It starts from the calibrated CC model (:class:`~.ccmodel.CalibratedCC`), whose 
 meaning here: effective tendon radius and joint-angle rotation per segment, the tendon compliance EI/EA_t
 (with the nominal rod's EI it sets the tendons' 1/(E_t A_t)), the pretension (per tendon with the
 ``strain`` variant), the base tilt and translation and the marker offset; tendons pass each segment at its
-effective radius (``passing="segment"``). New: the weight per length w [N/m] along the motion-capture −z axis
-(w < 0: along +z; bounded by :data:`WEIGHT_MAX`) and the backbone's axial stiffness EA/EI (a solid rod of
-radius r_a has 4/r_a²). With w = 0 and an inextensible backbone the model is the CC model (a test checks
+effective radius (``passing="segment"``). New: the robot's weight per length as a vector
+g = w·u [N/m] of the motion-capture frame — a weight w ≥ 0 (the physical sign, by construction) along a free
+direction u (two angles): gravity need not lie along a motion-capture axis, nor along the robot's base axis
+(w ≤ :data:`WEIGHT_MAX`) — and the backbone's axial stiffness EA/EI (a solid rod of radius r_a has 4/r_a²).
+With w = 0 and an inextensible backbone the model is the CC model (a test checks
 the two agree to 5 µm), so the fit starts at the CC fit.
 
 :data:`BENDING_STIFFNESS` (a 1 mm NiTi wire's EI) is the scale against which the fitted tendon compliance,
@@ -45,14 +47,18 @@ FIT_ITERATIONS = 6
 SOLVE_TOL = 1e-8          # [m] tendon-length violation accepted: far below the finite differences of the fit
 FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than this fraction
 # physics parameters, re-solved for their finite differences: name → the unit of an LM step in it
-PHYSICS_SCALES = {"weight": 0.3, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
+PHYSICS_SCALES = {"gravity": 0.3, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
                   "pretension": 1e-4, "pretension_strain": 1e-4}
 AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC model, and a compressible rod
-# [N/m] bound of the fitted weight per length: a robot of this size (wire, disks, tendons) weighs well under it;
-# unbounded, the v6 singles fit ran to −1.6 N/m and beyond, into ever more nonlinear (and slower) solves
+# [N/m] bound of the fitted weight per length ‖g‖: a robot of this size (wire, disks, tendons) weighs well under it;
+# unbounded, the v6 singles fit (gravity then fixed along mocap z) ran to 1.6 N/m upwards and beyond, into ever more
+# nonlinear (and slower) solves
 WEIGHT_MAX = 0.5
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
 FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale
+# physics parameters that leave the robot description as it is (they change the rest lengths, the gravity or the
+# tendons' spring lengths): their finite differences are solved together, in one batch (_solve_trials)
+SHARED_SPEC = ("gravity", "log_compliance", "pretension", "pretension_strain")
 MAX_STEP = 3.0            # largest LM step per parameter, in units of its scale (a trust region)
 FRAME_SCALE = 1e-3        # [rad] or [m]: the step unit of the tilt and marker parameters
 
@@ -70,11 +76,16 @@ class CalibratedCosserat:
     Cosserat rod of the calibrated robot. Build from a fitted :class:`CalibratedCC` (copied, not changed)."""
 
     def __init__(self, cc: CalibratedCC, weight: float = 0.0, axial_radius: float = AXIAL_RADIUS,
-                 steps_per_segment: int = STEPS_PER_SEGMENT):
+                 steps_per_segment: int = STEPS_PER_SEGMENT, direction: tuple[float, float, float] = (0.0, 0.0, -1.0)):
+        """``weight`` w ≥ 0 [N/m] acts along ``direction`` (a vector of the motion-capture frame, normalised)."""
         self.cc = copy.deepcopy(cc)
         for p in self.cc.parameters():
             p.requires_grad_(False)
-        self.weight = float(weight)
+        u = torch.as_tensor(direction, dtype=torch.float64)
+        if not (weight >= 0) or u.shape != (3,) or not bool(u.norm() > 0):
+            raise ValueError(f"weight, direction: expected a weight >= 0 [N/m] and a non-zero 3-vector, got {weight!r} "
+                             f"and {tuple(direction)!r}")
+        self.gravity_vector = float(weight) * u / u.norm()      # g = w·u [N/m], motion-capture frame
         self.log_axial_radius = math.log(axial_radius)
         self.steps = int(steps_per_segment)
         enc = self.cc.encoder
@@ -85,7 +96,7 @@ class CalibratedCosserat:
     def physics(self) -> dict[str, Tensor]:
         """Current values of the re-solved parameters (float64 tensors)."""
         enc = self.cc.encoder
-        out = {"weight": torch.tensor(self.weight, dtype=torch.float64),
+        out = {"gravity": self.gravity_vector.clone(),
                "log_axial_radius": torch.tensor(self.log_axial_radius, dtype=torch.float64),
                "log_radius_scale": enc.log_radius_scale.detach().clone(),
                "log_compliance": enc.log_compliance.detach().clone(), "pretension": enc.pretension.detach().clone()}
@@ -97,8 +108,9 @@ class CalibratedCosserat:
         enc = self.cc.encoder
         with torch.no_grad():
             for name, value in values.items():
-                if name == "weight":
-                    self.weight = min(max(float(value), -WEIGHT_MAX), WEIGHT_MAX)
+                if name == "gravity":
+                    g = torch.as_tensor(value, dtype=torch.float64).clone()
+                    self.gravity_vector = g * min(1.0, WEIGHT_MAX / max(float(g.norm()), 1e-300))
                 elif name == "log_axial_radius":
                     self.log_axial_radius = min(max(float(value), math.log(AXIAL_RADIUS_RANGE[0])),
                                                 math.log(AXIAL_RADIUS_RANGE[1]))
@@ -125,11 +137,20 @@ class CalibratedCosserat:
                           "outer_radius": radius, "density": 1.0 / area, "tendon_compliance": compliance / ei}
         return RobotSpec.from_dict(d)
 
+    @property
+    def weight(self) -> float:
+        """The weight per length w = ‖g‖ ≥ 0 [N/m]."""
+        return float(self.gravity_vector.norm())
+
+    def direction(self) -> Tensor:
+        """The direction u (3,) of the weight in the motion-capture frame (−e_z while w = 0)."""
+        w = self.gravity_vector.norm()
+        return self.gravity_vector / w if w > 0 else torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+
     def gravity(self) -> Tensor:
         """Gravity vector (3,) in the robot base frame whose product with 1 kg/m is the weight per length:
-        −w·e_z of the motion-capture frame, rotated into the tilted base."""
-        down = torch.tensor([0.0, 0.0, -self.weight], dtype=torch.float64)
-        return self.cc.base_rotation().detach().to(torch.float64).T @ down
+        g of the motion-capture frame, rotated into the tilted base."""
+        return self.cc.base_rotation().detach().to(torch.float64).T @ self.gravity_vector
 
     def rest_lengths(self, x: Tensor) -> Tensor:
         """Unstretched tendon lengths ℓ = L₀ − x − p (n, N) [m] of displacements x (n, N) [m]."""
@@ -156,6 +177,13 @@ class CalibratedCosserat:
     def report(self) -> dict:
         out = self.cc.report()
         out["weight_per_length_N_per_m"] = round(self.weight, 5)
+        u = self.direction()
+        axis = self.cc.base_rotation().detach().to(torch.float64)[:, 2]       # the robot's base axis, mocap frame
+        out["gravity_direction_mocap"] = [round(float(v), 4) for v in u]
+        # polar angle from mocap −z and azimuth in the mocap xy plane; angle between the weight and the base axis
+        out["gravity_from_mocap_down_deg"] = round(math.degrees(math.acos(max(-1.0, min(1.0, -float(u[2]))))), 2)
+        out["gravity_azimuth_deg"] = round(math.degrees(math.atan2(float(u[1]), float(u[0]))), 2)
+        out["gravity_to_base_axis_deg"] = round(math.degrees(math.acos(max(-1.0, min(1.0, float(u @ axis))))), 2)
         out["axial_over_bending_stiffness_per_mm2"] = round(4 / math.exp(2 * self.log_axial_radius) * 1e-6, 4)
         return out
 
@@ -172,17 +200,17 @@ class CalibratedCosserat:
             pick = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:rows]
             x, tip = x[pick], tip[pick]
         x, tip = x.to(torch.float64), tip.to(torch.float64)
-        initial = (copy.deepcopy(self.cc), self.weight, self.log_axial_radius)
+        initial = (copy.deepcopy(self.cc), self.gravity_vector.clone(), self.log_axial_radius)
         best, per_start, before = None, {}, None
         for radius in starts:
-            self.cc, self.weight = copy.deepcopy(initial[0]), initial[1]
+            self.cc, self.gravity_vector = copy.deepcopy(initial[0]), initial[1].clone()
             self.set_physics({"log_axial_radius": torch.tensor(math.log(radius))})
             info = self._levenberg_marquardt(x, tip, iterations, free_frame, log)
             before = info["rms_before_m"] if before is None else before
             per_start[f"{radius:g}"] = info["rms_m"]
             if best is None or info["rms_m"] < best[0]["rms_m"]:
-                best = (info, copy.deepcopy(self.cc), self.weight, self.log_axial_radius)
-        info, self.cc, self.weight, self.log_axial_radius = best
+                best = (info, copy.deepcopy(self.cc), self.gravity_vector.clone(), self.log_axial_radius)
+        info, self.cc, self.gravity_vector, self.log_axial_radius = best
         return {**info, "rms_before_m": before, "rms_per_start_m": per_start, "seconds": time.perf_counter() - begin}
 
     def _levenberg_marquardt(self, x: Tensor, tip: Tensor, iterations: int, free_frame: bool, log) -> dict:
@@ -204,15 +232,22 @@ class CalibratedCosserat:
             rms_prev = _rms(r)
             cols = []
             base = self.physics()
-            for name in names:                                  # physics: finite differences of warm solves
+            batched, columns = [], []                           # physics: finite differences of warm solves
+            for name in names:
                 for j in range(base[name].numel()):
-                    h = PHYSICS_SCALES[name] * FD_FRACTION
                     trial = {k: v.clone() for k, v in base.items()}
-                    trial[name].view(-1)[j] += h
+                    trial[name].view(-1)[j] += PHYSICS_SCALES[name] * FD_FRACTION
+                    if name in SHARED_SPEC:                     # same robot: one solve for all of them, below
+                        batched.append(len(columns))
+                        columns.append(trial)
+                        continue
                     self.set_physics(trial)
-                    p1, _ = self.tip_poses(x, warm)
-                    cols.append(((residual(p1) - r) / h * PHYSICS_SCALES[name]).reshape(-1))
+                    columns.append(self.tip_poses(x, warm)[0])
                     self.set_physics(base)
+            for k, poses in zip(batched, self._solve_trials(x, warm, base, [columns[k] for k in batched]),
+                                strict=True):
+                columns[k] = poses
+            cols = [((residual(p1) - r) / FD_FRACTION).reshape(-1) for p1 in columns]
             jac = torch.stack(cols, -1)
             if frame:
                 jac = torch.cat([jac, _frame_jacobian(self.cc, frame, poses, tip)], -1)
@@ -238,7 +273,7 @@ class CalibratedCosserat:
                 lam *= 5
             done += 1
             if log is not None:
-                log(f"cosserat fit {done}: {_rms(r) * 1e3:.3f} mm, w = {self.weight:.4f} N/m")
+                log(f"cosserat fit {done}: {_rms(r) * 1e3:.3f} mm, g = {self.gravity_vector.tolist()} N/m")
             if not improved or rms_prev - _rms(r) < FIT_STALL * rms_prev:
                 break
         if free_frame:
@@ -246,6 +281,30 @@ class CalibratedCosserat:
                 self.cc.base_translation += -(self.world_tip(poses) - tip).mean(0)
         return {"rms_before_m": rms0, "rms_m": _rms(self.world_tip(poses) - tip), "iterations": done,
                 "rows": int(x.shape[0]), "seconds": time.perf_counter() - start}
+
+    def _solve_trials(self, x: Tensor, warm: WarmStart, base: dict[str, Tensor],
+                      trials: list[dict[str, Tensor]]) -> list[Tensor]:
+        """Tip poses (n, 4, 4) of displacements x (n, N) under each of ``trials`` (physics that differ from ``base``
+        only in :data:`SHARED_SPEC` parameters), all in one solve of the robot at ``base``: per sample their rest
+        lengths, gravities and spring lengths (a compliance c' as the lengths L·c'/c), warm-started at ``warm``."""
+        if not trials:
+            return []
+        self.set_physics(base)
+        spec, c0 = self.robot(), float(self.cc.encoder.log_compliance.exp())
+        rest, gravity, spring = [], [], []
+        n = x.shape[0]
+        for trial in trials:
+            self.set_physics(trial)
+            rest.append(self.rest_lengths(x))
+            gravity.append(self.gravity().expand(n, 3))
+            spring.append((self.path_length * float(self.cc.encoder.log_compliance.exp()) / c0).expand(n, -1))
+        self.set_physics(base)
+        k = len(trials)
+        sol = solve_displacements(spec, torch.cat(rest), gravity=torch.cat(gravity), spring_lengths=torch.cat(spring),
+                                  passing="segment", steps_per_segment=self.steps, tol=SOLVE_TOL, on_failure="flag",
+                                  tension_guess=warm.tension.repeat(k, 1),
+                                  compliance_guess=warm.compliance.repeat(k, 1, 1))
+        return list(sol.tip.split(n))
 
     def _apply(self, names, base, frame_base, frame, step: Tensor) -> None:
         """Set the physics to ``base`` and the frame parameters to ``frame_base`` plus the scaled LM ``step``."""

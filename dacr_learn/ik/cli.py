@@ -2,6 +2,7 @@
 
     python -m dacr_learn.ik (--robot ROBOT.yaml | --ckpt CKPT) --targets T.npy --out S.npz --solutions K \
         [--position-only]
+    python -m dacr_learn.ik --robot ROBOT.yaml --arm ARM.urdf --arm-tip LINK --mount M.npy --targets T.npy ...
 
 T.npy: float64 (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3) tip positions with --position-only.
 S.npz: q (B, K, N) float64 joint vectors (the robot's joint order, what ClarkeDecoder returns; servo commands
@@ -14,6 +15,10 @@ command on its own, no motion memory).
 --ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
 run/checkpoint or a learned IK sampler (the analytic CC model of its robot, seeded by the network), or a saved
 hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only).
+
+--arm ARM.urdf --arm-tip LINK --mount M.npy: whole-body IK of the arm carrying that robot (docs/arm.md): targets
+in the arm's base frame, q (B, K, n_arm + N) = (the arm's joints in the URDF chain's order [rad, m], then the
+robot's), success also inside the URDF's joint limits; M.npy float64 (4, 4), the tip link → robot base.
 """
 from __future__ import annotations
 
@@ -121,11 +126,16 @@ def main(argv: list[str] | None = None) -> IKResult:
     p.add_argument("--rerun", metavar="FILE.rrd", help="also write a Rerun recording of the first --show targets' "
                    "solutions (ghost backbones, target frames; robot models with an orientation)")
     p.add_argument("--show", type=int, default=4, help="targets in the --rerun recording (default 4)")
+    p.add_argument("--arm", help="URDF of an arm carrying the robot: whole-body IK (docs/arm.md)")
+    p.add_argument("--arm-tip", help="with --arm: the link the robot is mounted on")
+    p.add_argument("--mount", help="with --arm: float64 (4, 4) .npy, the tip link → robot base transform [m]")
     args = p.parse_args(argv)
     if args.solutions < 1:
         raise ValueError(f"--solutions: expected >= 1, got {args.solutions}")
     if args.batch < 1:
         raise ValueError(f"--batch: expected >= 1, got {args.batch}")
+    if args.arm is None and (args.arm_tip is not None or args.mount is not None):
+        raise ValueError("--arm-tip and --mount go with --arm ARM.urdf (whole-body IK); --arm is missing")
     out = _out_path(args.out)
     started = time.perf_counter()
     try:
@@ -137,6 +147,11 @@ def main(argv: list[str] | None = None) -> IKResult:
     options = IKOptions(tolerance=tuple(args.tolerance), seed=args.seed)
     from .models import as_solver_model
     solver_model = as_solver_model(model)
+    if args.arm is not None:                                         # whole-body: arm + mount + this robot
+        from ..arm.files import composite_from_files, describe
+        solver_model = composite_from_files(args.arm, args.arm_tip, args.mount, solver_model)
+        seeder = solver_model.seeds
+        description = f"{args.arm} ({args.arm_tip}) carrying the {description}; {describe(solver_model)}"
     parts = []
     chunks = range(0, targets.shape[0], args.batch)
     progress = _progress(len(chunks))

@@ -16,10 +16,11 @@ Steps (all generic: file names come from arguments, servo ids from the CSV heade
 
 Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool` (worker
 processes, or in line) and ``collect_*`` assembles the results in model order; ``run_*`` do both.
-Deterministic models (``linear_raw``, ``cc``: instant) always run in this process.
+Models fitted in no time (``linear_raw``, ``cc``: ``instant`` in the registry) run in this process.
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -32,10 +33,11 @@ from torch import nn
 from ...robot import RobotSpec
 from ..calibration import calibrate, default_map_path, write_calibration
 from ..ccmodel import CalibratedCC, fit_cc
+from ..cosserat_learned import warmups
 from ..deploy.checkpoint import HardwareModel
 from ..deploy.uncertainty import SigmaCalibration, SupportModel
 from ..learned import Split, cc_as_residual, make_split
-from ..metrics import tip_metrics
+from ..metrics import offset_removed_rmse, tip_metrics
 from ..recording import Recording, load_recording
 from ..servo_map import ServoMap
 from .pool import TaskPool, timed
@@ -44,9 +46,12 @@ from .selection import (
     CC_VARIANTS,
     DEFAULT_PROXIES,
     SELECTION_PROXY,
+    Fold,
+    bootstrap_replicates,
     choose_cc_variant,
-    choose_default,
-    fold_rmse,
+    default_choice,
+    fold_predictions,
+    fold_weights,
     make_folds,
     model_seeds,
     proxy_masks,
@@ -68,9 +73,10 @@ class Setup:
     calibration: dict
     cc_fit: dict
     cc_options: dict = field(default_factory=dict)   # CalibratedCC options of the chosen CC variant
+    cache_dir: Path | None = None                     # where worker processes share Cosserat calibrations, or None
 
     def context(self) -> FitContext:
-        return FitContext(self.cc, self.smap, self.train_rec.servo_ids, self.train)
+        return FitContext(self.cc, self.smap, self.train_rec.servo_ids, self.train, self.cache_dir)
 
 
 def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: Path,
@@ -146,6 +152,8 @@ def run_seed(name: str, s: Setup, seed: int, keep: bool = False) -> tuple[dict, 
     model = fit_model(name, s, seed)
     with torch.no_grad():
         run, pred_val = {"train": tip_metrics(model(s.train), s.train.tip)}, None
+        if hasattr(model, "physics_report"):          # a physical model's calibrated parameters (Cosserat)
+            run["physics"] = model.physics_report()
         if s.val is not None:
             pred_val = model(s.val)
             run["val"] = tip_metrics(pred_val, s.val.tip)
@@ -153,8 +161,9 @@ def run_seed(name: str, s: Setup, seed: int, keep: bool = False) -> tuple[dict, 
 
 
 def _submit(pool: TaskPool, name: str, fn: Callable, *args) -> Future:
-    """Learned models to the pool; deterministic ones (instant) in this process."""
-    return (pool.run_here if model_info(name).deterministic else pool.submit)(fn, name, *args)
+    """Models fitted in no time (``instant``: the linear map, the CC model) in this process; the others (learned
+    ones, the Cosserat calibration) to the pool."""
+    return (pool.run_here if model_info(name).instant else pool.submit)(fn, name, *args)
 
 
 def submit_benchmark(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int],
@@ -174,15 +183,19 @@ def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]
     for split in ("val", "train"):
         if split in first:
             summary[split] = {k: _summary([run[0][split][k] for run, _ in runs]) for k in first[split]}
+    if "physics" in first:
+        summary["physics"] = first["physics"]
     return summary, runs[0][0][1]
 
 
 def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = print,
-                      fitted: dict[str, list[nn.Module]] | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
-    """({model: summary}, {model: val predictions (first seed)}; empty without val), logged in model order.
+                      fitted: dict[str, list[nn.Module]] | None = None,
+                      start: float | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
+    """({model: summary}, {model: val predictions (first seed)}; empty without val), logged in model order as each
+    model's runs finish (with the time since ``start``).
     ``fitted``: a dict that receives {model: [fitted model per seed]} of the models submitted with ``keep``."""
     results, preds = {}, {}
-    for name, futures in pending.items():
+    for k, (name, futures) in enumerate(pending.items()):
         runs = [f.result() for f in futures]
         results[name], pred = summarize_model(name, runs, list(seeds))
         if pred is not None:
@@ -193,7 +206,9 @@ def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Calla
         v = r.get("val")
         shown = (f"val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "
                  f"mean {v['mean_mm']['mean']:6.2f}  p95 {v['p95_mm']['mean']:6.2f}  " if v else "")
-        log(f"{name:28s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, {r['seconds_per_run']:.1f} s/run)")
+        elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
+        log(f"[final {k + 1}/{len(pending)}] {name:36s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, "
+            f"{r['seconds_per_run']:.1f} s/run{elapsed})")
     return results, preds
 
 
@@ -202,36 +217,105 @@ def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor
     return summarize_model(name, [timed(run_seed, name, s, seed) for seed in model_seeds(name, seeds)], seeds)
 
 
+@dataclass
+class PendingSelection:
+    """The proxy fits handed to a pool: {model: {proxy: {fold: [future of timed(fold_predictions) per seed]}}},
+    the folds per proxy and the seeds per model."""
+
+    fits: dict[str, dict[str, dict[str, list[Future]]]]
+    folds: dict[str, list[Fold]]
+    seeds: dict[str, list[int]]
+
+
+@dataclass
+class SelectionResult:
+    """The train-only proxies of every model: ``scores`` ({model: :func:`.selection.summarize_scores`}, what
+    results.json records), ``replicates`` ({model: {proxy: bootstrap replicates (B,) [mm]}}), the held-out
+    ``predictions`` ({model: {proxy: {fold: [tips (n_fold, 3) [m] per seed]}}}) and the ``folds``."""
+
+    scores: dict
+    replicates: dict[str, dict[str, torch.Tensor]]
+    predictions: dict
+    folds: dict[str, list[Fold]]
+    seeds: dict[str, list[int]]
+
+
+def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]]) -> list[Future]:
+    """The shared pieces (Cosserat calibrations, then their synthetic tips) that the fits [(context, model,
+    seeds)] will need (:func:`..cosserat_learned.warmups`), each handed to the pool once, ahead of the fits:
+    with several workers the fits then read them instead of computing them in every worker or waiting for
+    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted)."""
+    if pool.jobs == 1:
+        return []
+    pieces: dict[str, tuple] = {}
+    for ctx, name, seeds in fits:
+        for seed in model_seeds(name, seeds):
+            for key, fn, args in warmups(build_model(name, ctx, seed), ctx.train):
+                pieces.setdefault(key, (fn, args))
+    order = sorted(pieces, key=lambda k: "synthetic" in k)          # every calibration before the synthetic tips
+    return [pool.submit(pieces[k][0], *pieces[k][1]) for k in order]
+
+
+def selection_folds(s: Setup, proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, list[Fold]]:
+    """{proxy: folds} of the training recording (CC refitted per fold). Raises ValueError when the labels name
+    no pattern families (:func:`.selection.proxy_masks`)."""
+    return {proxy: make_folds(s.train_rec, s.spec, s.smap, m, s.cc_options, s.cache_dir)
+            for proxy, m in proxy_masks(s.train_rec.labels, proxies).items()}
+
+
+def proxy_seeds_of(models: Sequence[str], seeds: Sequence[int], all_seeds: Sequence[str] | None = None
+                   ) -> dict[str, list[int]]:
+    """{model: its proxy seeds}: every seed for the models in ``all_seeds`` (default: all), the first for the
+    others; one for a deterministic model."""
+    full = set(models if all_seeds is None else all_seeds)
+    return {name: model_seeds(name, seeds if name in full else list(seeds)[:1]) for name in models}
+
+
 def submit_selection(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int],
-                     proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, dict]:
-    """{model: {proxy: {fold: [future of timed(fold_rmse) per seed]}}}, folds built once (CC refits).
-    Raises ValueError when the labels name no pattern families (:func:`.selection.proxy_masks`)."""
-    masks = proxy_masks(s.train_rec.labels, proxies)
-    folds = {proxy: make_folds(s.train_rec, s.spec, s.smap, m, s.cc_options) for proxy, m in masks.items()}
-    return {name: {proxy: {f.name: [_submit(pool, name, fold_rmse, f, seed) for seed in model_seeds(name, seeds)]
+                     proxies: Sequence[str] = DEFAULT_PROXIES, all_seeds: Sequence[str] | None = None,
+                     folds: dict[str, list[Fold]] | None = None) -> PendingSelection:
+    """Every model's proxy fits handed to ``pool`` on ``folds`` (default: :func:`selection_folds`). The models in
+    ``all_seeds`` (default: every model) are fitted with every seed, the others (scored for comparison) with
+    the first (:func:`proxy_seeds_of`). Raises ValueError when the labels name no pattern families."""
+    folds = selection_folds(s, proxies) if folds is None else folds
+    per_model = proxy_seeds_of(models, seeds, all_seeds)
+    fits = {name: {proxy: {f.name: [_submit(pool, name, fold_predictions, f, seed) for seed in per_model[name]]
                            for f in fs} for proxy, fs in folds.items()} for name in models}
+    return PendingSelection(fits, folds, per_model)
 
 
 _PROXY_NAMES = {"cv": "family CV", "extrap": "singles→pairs"}
 
 
-def collect_selection(pending: dict[str, dict], seeds: Sequence[int], log: Callable = print) -> dict:
-    """{model: train-only proxy scores} (:func:`.selection.summarize_scores`; seconds: the model's fits)."""
-    scores = {}
-    for name, per in pending.items():
+def collect_selection(pending: PendingSelection, log: Callable = print, start: float | None = None) -> SelectionResult:
+    """Every model's train-only proxy scores with their uncertainty (:func:`.selection.summarize_scores`,
+    bootstrap over the held-out pattern groups and the seeds, :func:`.selection.bootstrap_replicates`; seconds:
+    the model's fits), logged per model as its fits finish (with the time since ``start``)."""
+    weights = {proxy: fold_weights({f.name: f.groups for f in fs}) for proxy, fs in pending.folds.items()}
+    tips = {proxy: {f.name: f.test.tip for f in fs} for proxy, fs in pending.folds.items()}
+    scores, replicates, predictions = {}, {}, {}
+    for k, (name, per) in enumerate(pending.fits.items()):
         done = {proxy: {fold: [f.result() for f in fs] for fold, fs in folds.items()} for proxy, folds in per.items()}
-        rmse = {proxy: {fold: [r for r, _ in runs] for fold, runs in folds.items()} for proxy, folds in done.items()}
+        predictions[name] = {proxy: {fold: [p for p, _ in runs] for fold, runs in folds.items()}
+                             for proxy, folds in done.items()}
+        errors = {proxy: {fold: [1e3 * (p - tips[proxy][fold]) for p in preds] for fold, preds in folds.items()}
+                  for proxy, folds in predictions[name].items()}
+        rmse = {proxy: {fold: [float(offset_removed_rmse(e, torch.zeros_like(e))) for e in errs]
+                        for fold, errs in folds.items()} for proxy, folds in errors.items()}
+        replicates[name] = {proxy: bootstrap_replicates(errors[proxy], weights[proxy], name) for proxy in errors}
         seconds = sum(sec for folds in done.values() for runs in folds.values() for _, sec in runs)
-        scores[name] = p = summarize_scores(rmse, model_seeds(name, seeds), seconds)
-        shown = ", ".join(f"{_PROXY_NAMES[proxy]} {p[proxy]:6.2f} mm" for proxy in per)
-        log(f"{name:28s} proxies: {shown} ({p['seconds']:.0f} s)")
-    return scores
+        scores[name] = p = summarize_scores(rmse, pending.seeds[name], seconds, replicates[name])
+        shown = ", ".join(f"{_PROXY_NAMES[proxy]} {p[proxy]:6.2f} ± {p[proxy + '_std']:.2f} mm" for proxy in per)
+        elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
+        log(f"[proxy {k + 1}/{len(pending.fits)}] {name:36s} {shown} ({len(pending.seeds[name])} seed(s), "
+            f"{p['seconds']:.0f} s of fits{elapsed})")
+    return SelectionResult(scores, replicates, predictions, pending.folds, pending.seeds)
 
 
 def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = print,
                   proxies: Sequence[str] = DEFAULT_PROXIES, pool: TaskPool | None = None) -> dict:
     """{model: train-only proxy scores} for ``proxies`` (as :func:`.selection.proxy_scores`), folds built once."""
-    return collect_selection(submit_selection(pool or TaskPool(), s, models, seeds, proxies), seeds, log)
+    return collect_selection(submit_selection(pool or TaskPool(), s, models, seeds, proxies), log).scores
 
 
 def default_candidates(models: Sequence[str], deployable_only: bool = True) -> tuple[str, ...]:
@@ -240,8 +324,11 @@ def default_candidates(models: Sequence[str], deployable_only: bool = True) -> t
     return tuple(m for m in models if model_info(m).clarke_space and (model_info(m).deployable or not deployable_only))
 
 
-def select_default(scores: dict) -> str:
-    return choose_default(scores, default_candidates(list(scores)), SELECTION_PROXY)
+def select_default(scores: dict, replicates: dict | None = None) -> dict:
+    """The default model among :func:`default_candidates` and why (:func:`.selection.default_choice`, on the
+    selection proxy's bootstrap ``replicates`` {model: {proxy: (B,)}} when given)."""
+    reps = None if replicates is None else {m: r[SELECTION_PROXY] for m, r in replicates.items()}
+    return default_choice(scores, default_candidates(list(scores)), SELECTION_PROXY, reps)
 
 
 def run_benchmark(s: Setup, models: Sequence[str] = MODELS, seeds: Sequence[int] = (0, 1, 2),
@@ -259,13 +346,14 @@ def _pm(d: dict | None) -> str:
 def markdown_table(results: dict, scores: dict | None = None, default: str | None = None) -> str:
     """Results table in Markdown: proxies (train only), val metrics when present (mean ± std over seeds)."""
     scores = scores or {}
-    lines = ["| model | inputs | family CV [mm] | singles→pairs [mm] | val RMSE, offset removed [mm] | "
+    lines = ["| model | inputs | family CV [mm] | singles→pairs [mm] (± bootstrap σ) | val RMSE, offset removed [mm] | "
              "val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, r in results.items():
         v, t, p = r.get("val", {}), r["train"], scores.get(name, {})
         inputs = ("Clarke" if r["clarke_space"] else "raw servo") + ("" if r["static"] else " + history")
-        proxy = [f"{p[k]:.2f}" if k in p else "–" for k in ("cv", "extrap")]
+        proxy = [(f"{p[k]:.2f} ± {p[k + '_std']:.2f}" if k + "_std" in p else f"{p[k]:.2f}") if k in p else "–"
+                 for k in ("cv", "extrap")]
         shown = f"**`{name}`** (default)" if name == default else f"`{name}`"
         lines.append(f"| {shown} | {inputs} | {proxy[0]} | {proxy[1]} | {_pm(v.get('rmse_mm'))} | "
                      f"{_pm(v.get('mean_mm'))} | {_pm(v.get('p95_mm'))} | {_pm(t['rmse_mm'])} | {len(r['seeds'])} |")

@@ -14,6 +14,7 @@ import json
 import os
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -21,20 +22,24 @@ import torch
 
 from ...console import run_cli
 from .benchmark import (
+    SelectionResult,
     Setup,
     collect_benchmark,
     collect_selection,
     default_candidates,
     load_setup,
     markdown_table,
+    proxy_seeds_of,
     select_default,
+    selection_folds,
     submit_benchmark,
     submit_selection,
+    submit_warmups,
 )
-from .heldout import SIGMA_PROXIES, collect_held_out, sigma_models_of, submit_held_out
+from .heldout import SIGMA_PROXIES, collect_held_out, held_out_from_selection, sigma_models_of, submit_held_out
 from .pool import TaskPool
 from .registry import MODELS, model_info
-from .selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, choose_default
+from .selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, default_choice
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -55,7 +60,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="calibrated CC model variant (base: one pretension; strain: pretension ∝ tendon path "
                          "length, +1 parameter); auto (default): the lower singles→pairs score of the CC model")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="seeds of the final training runs")
-    ap.add_argument("--proxy-seeds", type=int, nargs="+", default=[0], help="seeds of the selection proxies")
+    ap.add_argument("--proxy-seeds", type=int, nargs="+", default=[0, 1, 2],
+                    help="seeds of the selection proxies of the default candidates (the other models, scored for "
+                         "comparison, use the first); the proxies' uncertainty bootstraps over them and over the "
+                         "held-out pattern groups")
     ap.add_argument("--no-proxies", action="store_true",
                     help="skip the selection proxies (no default model; needs pattern labels otherwise)")
     ap.add_argument("--proxies", nargs="+", default=list(DEFAULT_PROXIES), choices=PROXIES,
@@ -100,35 +108,50 @@ def _val_path(args: argparse.Namespace) -> Path | None:
     return path if path.exists() else None
 
 
-def _submit_selection(pool: TaskPool, setup: Setup, args: argparse.Namespace) -> dict:
-    """Pending proxy fits of every model, or {} (with the reason printed) when the labels name no pattern families."""
+def _selection_folds(setup: Setup, args: argparse.Namespace) -> dict:
+    """{proxy: folds}, or {} (with the reason printed) without proxies or when the labels name no families."""
     if args.no_proxies:
         return {}
     try:
-        return submit_selection(pool, setup, args.models, args.proxy_seeds, args.proxies)
+        return selection_folds(setup, args.proxies)
     except ValueError as err:
         print(f"no selection proxies, so no default model: {err}")
         return {}
 
 
-def _fit_all(setup: Setup, args: argparse.Namespace) -> tuple[dict, str | None, dict, dict, dict]:
-    """(proxy scores, default model or None, final results, val predictions, what ``--save`` needs): every fit
-    handed to one pool
-    before any is collected. With ``--save`` the final runs of the default candidates return their fitted
-    models, so the saved ensemble is the one whose results are reported (not trained a second time), and
-    the σ model's held-out fits of the default join the pool as soon as the proxies have chosen it:
-    {"members": {model: fitted models per seed}, "held_out": [HeldOut]} (empty without ``--save``)."""
+def _fit_all(setup: Setup, args: argparse.Namespace, start: float
+             ) -> tuple[SelectionResult | None, dict | None, dict, dict, dict]:
+    """(the proxies or None, the default's choice (:func:`.benchmark.select_default`) or None, final results,
+    val predictions, what ``--save`` needs): every fit handed to one pool before any is collected — first the
+    pieces several fits share (the Cosserat calibrations, :func:`.benchmark.submit_warmups`), then the proxies,
+    then the final runs. With ``--save`` the final runs of the default candidates return their fitted models, so
+    the saved ensemble is the one whose results are reported (not trained a second time), and the σ model's
+    held-out rows are the default's own proxy fits when its proxy seeds are ``--seeds`` (else they are fitted
+    once more): {"members": {model: fitted models per seed}, "held_out": [HeldOut]} (empty without ``--save``)."""
     keep = default_candidates(list(args.models)) if args.save else ()
     fitted: dict = {}
+    models = tuple(args.models)
+    folds = _selection_folds(setup, args)
+    proxy_seeds = proxy_seeds_of(models, args.proxy_seeds, default_candidates(list(models)))
     with TaskPool(args.jobs, args.threads) as pool:
-        pending = _submit_selection(pool, setup, args)
-        final = submit_benchmark(pool, setup, tuple(args.models), tuple(args.seeds), keep)
-        scores = collect_selection(pending, args.proxy_seeds)
-        default = select_default(scores) if default_candidates(list(scores)) else None
-        sigma = submit_held_out(pool, setup, default, args.seeds, SIGMA_PROXIES) if keep and default else []
-        results, preds = collect_benchmark(final, tuple(args.seeds), fitted=fitted)
-        saving = {"members": fitted, "held_out": collect_held_out(sigma)} if keep else {}
-    return scores, default, results, preds, saving
+        warm = submit_warmups(pool, [(f.ctx, m, proxy_seeds[m]) for fs in folds.values() for f in fs for m in models]
+                              + [(setup.context(), m, args.seeds) for m in models])
+        pending = (submit_selection(pool, setup, models, args.proxy_seeds, args.proxies,
+                                    default_candidates(list(models)), folds) if folds else None)
+        final = submit_benchmark(pool, setup, models, tuple(args.seeds), keep)
+        selection = collect_selection(pending, start=start) if pending is not None else None
+        choice = None
+        if selection is not None and default_candidates(list(selection.scores)):
+            choice = select_default(selection.scores, selection.replicates)
+        default = choice["default"] if choice else None
+        blocks = held_out_from_selection(selection, default, args.seeds) if keep and default else None
+        sigma = submit_held_out(pool, setup, default, args.seeds, SIGMA_PROXIES) if keep and default and not blocks \
+            else []
+        results, preds = collect_benchmark(final, tuple(args.seeds), fitted=fitted, start=start)
+        saving = {"members": fitted, "held_out": blocks or collect_held_out(sigma)} if keep else {}
+        for f in warm:                              # surfaces a failed shared piece (its fits computed it again)
+            f.result()
+    return selection, choice, results, preds, saving
 
 
 def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, Setup, dict]:
@@ -140,6 +163,15 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     args.out.mkdir(parents=True, exist_ok=True)
     setup = load_setup(args.robot, args.data / args.train, _val_path(args), args.out,
                        args.servo_map, args.data / args.pulls, args.units, args.cc_variant)
+    with tempfile.TemporaryDirectory(prefix="dacr_hardware_") as cache:
+        setup.cache_dir = Path(cache)                # the workers share the Cosserat calibrations here
+        try:
+            return _run(args, argv, setup, start)
+        finally:
+            setup.cache_dir = None
+
+
+def _run(args: argparse.Namespace, argv: list[str] | None, setup: Setup, start: float) -> tuple[dict, Setup, dict]:
     if setup.val_rec is None:     # printed after loading: an error in the robot or train file comes first
         print(f"no validation recording {args.data / args.val}: scoring with the train-only selection proxies only")
     variant = setup.cc_fit["variant"]
@@ -148,12 +180,15 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               f"({', '.join(f'{k} {v:.2f} mm' for k, v in variant['extrap'].items())})")
     print(f"CC fit on {len(setup.train_rec)} rows: {setup.cc_fit['rms_m'] * 1e3:.2f} mm rms "
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
-    scores, default, results, preds, saving = _fit_all(setup, args)
+    selection, choice, results, preds, saving = _fit_all(setup, args, start)
+    scores = selection.scores if selection is not None else {}
+    default = choice["default"] if choice else None
     everyone = default_candidates(list(scores), deployable_only=False)
-    proxy_best = choose_default(scores, everyone, SELECTION_PROXY) if everyone else None
-    if proxy_best is not None and proxy_best != default:
-        print(f"note: {proxy_best} has the best {SELECTION_PROXY} score of the Clarke-space models, but --save and "
-              f"the export do not support it yet; the default is the best deployable one, {default}")
+    reps = {m: r[SELECTION_PROXY] for m, r in selection.replicates.items()} if selection is not None else None
+    proxy_best = default_choice(scores, everyone, SELECTION_PROXY, reps)["default"] if everyone else None
+    if proxy_best is not None and not model_info(proxy_best).deployable:
+        print(f"note: among all Clarke-space models the rule would choose {proxy_best}, but --save and the export "
+              f"do not support it yet; the default is chosen among the deployable ones, {default}")
     clarke = tuple(m for m in results if model_info(m).clarke_space)
     report = {"command": "python -m dacr_learn.hardware " + " ".join(sys.argv[1:] if argv is None else argv),
               "robot": setup.spec.to_dict(), "train": str(args.data / args.train),
@@ -162,6 +197,11 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
               "calibration": setup.calibration, "cc_fit": setup.cc_fit,
               "default_model": default,
               "selection": {"proxy": SELECTION_PROXY, "candidates": list(default_candidates(list(scores))),
+                            "rule": choice["rule"] if choice else None,
+                            "reason": choice["reason"] if choice else None,
+                            "best_by_proxy": choice["best"] if choice else None,
+                            "tied": choice["tied"] if choice else [],
+                            "comparison": choice["candidates"] if choice else {},
                             "best_clarke_model_by_proxy": proxy_best,
                             "proxy_seeds": args.proxy_seeds, "proxies": [] if not scores else args.proxies,
                             "scores": scores},
@@ -183,8 +223,9 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
         plot_paths(setup, {m: preds[m] for m in dict.fromkeys(shown)}, args.out / "val_tip_paths.png")
         log_rerun(setup, preds, args.out / "val_tip_paths.rrd", default=default)
     print(markdown_table(results, scores, default))
-    print(f"default model (lowest {SELECTION_PROXY} proxy of the deployable Clarke-space models, train only): "
-          f"{default}; best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
+    if choice:
+        print(f"default model (train only): {default} — {choice['reason']}")
+    print(f"best on val: {report['best_clarke_model']}; wrote {args.out}/results.json "
           f"({report['seconds_total']:.0f} s)")
     return report, setup, saving
 

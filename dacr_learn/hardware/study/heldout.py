@@ -102,6 +102,29 @@ def collect_held_out(pending: list[tuple[str, list[Future]]], log=None) -> list[
     return out
 
 
+def held_out_from_selection(selection, name: str, seeds: Sequence[int],
+                            proxies: Sequence[str] = SIGMA_PROXIES) -> list[HeldOut] | None:
+    """:class:`HeldOut` of the ``proxies`` folds built from the selection proxies' own fits of model ``name``
+    (a :class:`~.benchmark.SelectionResult`: the same fold, model and seeds as :func:`held_out` would fit
+    again), or None when the selection did not fit ``name`` on those folds with exactly ``seeds``."""
+    want = model_seeds(name, seeds)
+    if name not in selection.predictions or selection.seeds.get(name) != want:
+        return None
+    if any(proxy not in selection.folds or proxy not in selection.predictions[name] for proxy in proxies):
+        return None
+    out = []
+    m = None
+    for proxy in proxies:
+        for fold in selection.folds[proxy]:
+            preds = torch.stack(selection.predictions[name][proxy][fold.name])
+            m = fold.ctx.cc.spec.num_segments
+            support = SupportModel(m).fit(fold.ctx.train.features[..., :2], list(fold.train_labels))
+            rho = fold.test.features[..., :2]
+            out.append(HeldOut(f"{proxy}:{fold.name}", preds, fold.test.cc_tip, fold.test.tip, rho,
+                               support.distance(rho)))
+    return out
+
+
 def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaModel:
     """:meth:`SigmaModel.fit` on the held-out rows of all blocks (residuals offset-removed per block)."""
     if not blocks:

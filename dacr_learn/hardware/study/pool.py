@@ -4,10 +4,14 @@ Every fit seeds torch itself (:func:`.registry.build_model`) and runs on ``threa
 in its worker, so a fit gives the same numbers in a worker as in the main process. Workers are
 spawned (not forked: a forked torch process may hang on the parent's thread pools) and each task
 is timed where it runs, so the reported seconds are the task's own, not its time in the queue.
+Tasks and results travel as plain pickles (tensors by value): torch's own multiprocessing pickler
+passes tensors as file descriptors through a socket per tensor, which a loaded machine with many
+queued tasks refused ("Connection refused" in a worker, the benchmark lost).
 """
 from __future__ import annotations
 
 import multiprocessing
+import pickle
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -20,6 +24,26 @@ def timed(fn: Callable, *args: Any) -> tuple[Any, float]:
     """(fn(*args), wall seconds it took)."""
     start = time.perf_counter()
     return fn(*args), time.perf_counter() - start
+
+
+def _timed_pickled(blob: bytes) -> bytes:
+    """A worker's task: the pickle of timed(fn, *args) from the pickle of (fn, args)."""
+    fn, args = pickle.loads(blob)
+    return pickle.dumps(timed(fn, *args))
+
+
+def _unpickled(future: Future) -> Future:
+    """A future of the unpickled result of a future of a pickle."""
+    out: Future = Future()
+
+    def done(f: Future) -> None:
+        try:
+            out.set_result(pickle.loads(f.result()))
+        except BaseException as err:             # a failed task (or a cancelled one) fails its future
+            out.set_exception(err)
+
+    future.add_done_callback(done)
+    return out
 
 
 class _Deferred(Future):
@@ -58,7 +82,7 @@ class TaskPool:
         if self._executor is None:
             self._executor = ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                                  initializer=torch.set_num_threads, initargs=(self.threads,))
-        return self._executor.submit(timed, fn, *args)
+        return _unpickled(self._executor.submit(_timed_pickled, pickle.dumps((fn, args))))
 
     def __enter__(self) -> TaskPool:
         return self

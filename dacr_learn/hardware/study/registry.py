@@ -10,13 +10,14 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 from torch import nn
 
 from ..ccmodel import CalibratedCC
 from ..compositional_model import CCCompositionalResidual
-from ..cosserat_learned import CCClarkeResidualCosserat, CosseratOnly
+from ..cosserat_learned import CCClarkeResidualCosserat, CCClarkeResidualHistoryCosserat, CosseratOnly
 from ..learned import (
     PRETRAIN_SAMPLES,
     CCClarkeResidual,
@@ -37,12 +38,14 @@ SYNTHETIC_SEED = 1000   # the pre-trained models' synthetic data of seed s is dr
 @dataclass(frozen=True)
 class FitContext:
     """What a model is built and fitted from: the CC model fitted on ``train``, the servo map and the servo ids
-    (the builders read these), and the training split (the callers fit on it)."""
+    (the builders read these), and the training split (the callers fit on it). ``cache_dir``: a folder where
+    the worker processes of one benchmark share the Cosserat calibrations (:mod:`..cosserat_learned`), or None."""
 
     cc: CalibratedCC
     smap: ServoMap
     servo_ids: tuple[str, ...]
     train: Split
+    cache_dir: Path | None = None
 
     def n_inputs(self, inputs: str) -> int:
         """Width of a network input: the number of servos ("raw") or 2m Clarke coordinates ("clarke")."""
@@ -64,7 +67,10 @@ class ModelInfo:
     ``static``: maps one command to one tip (False: also uses the command history);
     ``deterministic``: the same for every seed (trained once); ``deployable``: ``--save`` can write it and
     ``dacr_learn.export`` can export it (the CC Clarke-residual family and the compositional CC model of
-    :mod:`.checkpoint`)."""
+    :mod:`.checkpoint`); ``outputs``: the learned outputs per segment of a CC-based model (0: none, the CC model
+    itself; a large number for models that are not per-segment corrections); ``pretrained``: the network is
+    first trained on another model's synthetic data. The last two, with ``static``, order the models by
+    :func:`complexity`."""
 
     name: str
     build: Callable[[FitContext, int], nn.Module]
@@ -72,6 +78,9 @@ class ModelInfo:
     static: bool = True
     deterministic: bool = False
     deployable: bool = False
+    outputs: int = 1000
+    pretrained: bool = False
+    instant: bool = False            # fitted in no time (the benchmark runs it in its own process, not a worker)
 
     @property
     def clarke_space(self) -> bool:
@@ -79,24 +88,30 @@ class ModelInfo:
 
 
 _MODELS = (
-    ModelInfo("linear_raw", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True),
+    ModelInfo("linear_raw", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True, instant=True),
     ModelInfo("mlp_raw", lambda c, s: TipMLP("raw", c.n_inputs("raw")), "raw"),
     ModelInfo("mlp_clarke", lambda c, s: TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
-    ModelInfo("cc", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True),
-    ModelInfo("cc_clarke_residual", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True),
-    ModelInfo("pretrained_clarke", _pretrained("clarke"), "clarke"),
+    ModelInfo("cc", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True, outputs=0, instant=True),
+    ModelInfo("cc_clarke_residual", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True, outputs=2),
+    ModelInfo("pretrained_clarke", _pretrained("clarke"), "clarke", pretrained=True),
     ModelInfo("cc_clarke_residual_history", lambda c, s: CCClarkeResidualHistory(c.cc), "clarke",
-              static=False, deployable=True),
+              static=False, deployable=True, outputs=2),
     ModelInfo("cc_tip_residual", lambda c, s: CCTipResidual(c.n_inputs("clarke")), "clarke"),
     ModelInfo("pretrained_raw", _pretrained("raw"), "raw"),
     ModelInfo("cc_compositional_residual", lambda c, s: CCCompositionalResidual(c.cc), "clarke",
-              deployable=True),
+              deployable=True, outputs=5),
     ModelInfo("cc_compositional_history", lambda c, s: CCCompositionalResidual(c.cc, history=True), "clarke",
-              static=False),
-    ModelInfo("cosserat", lambda c, s: CosseratOnly(c.cc), "clarke", deterministic=True),
+              static=False, outputs=5),
+    ModelInfo("cosserat", lambda c, s: CosseratOnly(c.cc, cache_dir=c.cache_dir), "clarke", deterministic=True,
+              outputs=0),
     ModelInfo("cc_clarke_residual_cosserat",
-              lambda c, s: CCClarkeResidualCosserat(c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s), "clarke",
-              deployable=True),
+              lambda c, s: CCClarkeResidualCosserat(c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s,
+                                                    cache_dir=c.cache_dir), "clarke",
+              deployable=True, outputs=2, pretrained=True),
+    ModelInfo("cc_clarke_residual_history_cosserat",
+              lambda c, s: CCClarkeResidualHistoryCosserat(c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s,
+                                                           cache_dir=c.cache_dir), "clarke",
+              static=False, deployable=True, outputs=2, pretrained=True),
 )
 REGISTRY: dict[str, ModelInfo] = {m.name: m for m in _MODELS}
 MODELS: tuple[str, ...] = tuple(REGISTRY)
@@ -108,6 +123,17 @@ def model_info(model: str) -> ModelInfo:
     if model not in REGISTRY:
         raise ValueError(f"model: got {model!r}, expected one of {MODELS}")
     return REGISTRY[model]
+
+
+def complexity(model: str) -> tuple[int, int, int]:
+    """How much a model adds to the calibrated CC model, the order in which the default is chosen among models
+    the selection proxy cannot tell apart (:func:`.selection.default_choice`; lower is simpler), written down
+    before any of this order's v4 val figures: (1) a static map before one that needs the command history (a
+    state the controller must carry; memory inputs fit the loading paths of the training patterns), (2) fewer
+    learned outputs per segment (the CC model's 0, a Clarke correction's 2, a compositional twist's 5),
+    (3) without pre-training before with (pre-training inherits a second model's errors)."""
+    info = model_info(model)
+    return (int(not info.static), info.outputs, int(info.pretrained))
 
 
 def build_model(model: str, ctx: FitContext, seed: int) -> nn.Module:

@@ -29,11 +29,13 @@ from __future__ import annotations
 
 import re
 import time
-from collections.abc import Sequence
+import zlib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from ...robot import RobotSpec
 from ..ccmodel import CalibratedCC, fit_cc
@@ -41,12 +43,19 @@ from ..learned import Split, make_split
 from ..metrics import offset_removed_rmse
 from ..recording import Recording
 from ..servo_map import ServoMap
-from .registry import FitContext, build_model, model_info
+from .registry import FitContext, build_model, complexity, model_info
 
 CC_VARIANTS: dict[str, dict] = {"base": {}, "strain": {"pretension_strain": True}}   # name → CalibratedCC options
 PROXIES = ("cv", "extrap")
 SELECTION_PROXY = "extrap"
 DEFAULT_PROXIES = (SELECTION_PROXY,)
+# The noise of a proxy: a bootstrap over the held-out pattern groups (and over the proxy seeds), the groups drawn
+# alike for every model so that differences between models are paired (:func:`bootstrap_replicates`).
+BOOTSTRAP_REPLICATES = 2000
+BOOTSTRAP_SEED = 0
+# The one-standard-error rule (:func:`default_choice`): a candidate is tied with the best when its proxy is worse
+# by at most TIE_SIGMAS standard deviations of the bootstrapped difference between the two.
+TIE_SIGMAS = 1.0
 _PAIR = re.compile(r"pair(\d\d)")
 _SINGLE = re.compile(r"(^|_)(seg\d+|tendon\d+)")
 
@@ -60,6 +69,13 @@ def pattern_family(label: str) -> str:
         return "single"
     raise ValueError(f"pattern label {label!r}: expected one naming a single segment or tendon "
                      f"('seg<k>', 'tendon<k>') or a pair of segments ('pair<jk>')")
+
+
+def pattern_group(label: str) -> str:
+    """The pattern a row belongs to, for the bootstrap: its label without the repetition prefix and the hold
+    suffix (``rep1_pair13_same_dir60_hold`` → ``pair13_same_dir60``): the rows of one pattern move together, so
+    they are drawn together."""
+    return re.sub(r"_hold$", "", re.sub(r"^rep\d+_", "", label))
 
 
 def proxy_masks(labels: Sequence[str], proxies: Sequence[str] = PROXIES
@@ -86,12 +102,15 @@ class Fold:
     name: str
     ctx: FitContext
     test: Split
+    groups: tuple[str, ...] = ()      # the pattern group of each test row (:func:`pattern_group`), for the bootstrap
+    train_labels: tuple[str, ...] = ()   # the pattern labels of the training rows (e.g. for a support model)
 
 
 def make_folds(rec: Recording, spec: RobotSpec, smap: ServoMap,
-               masks: list[tuple[str, np.ndarray, np.ndarray]], cc_options: dict | None = None) -> list[Fold]:
+               masks: list[tuple[str, np.ndarray, np.ndarray]], cc_options: dict | None = None,
+               cache_dir=None) -> list[Fold]:
     """Refit the calibrated CC model (``CalibratedCC(spec, **cc_options)``) on each fold's training rows
-    and split the recording."""
+    and split the recording (``cache_dir``: the folds' :attr:`~.registry.FitContext.cache_dir`)."""
     x = smap.displacements(spec, rec)
     folds = []
     for name, tr, te in masks:
@@ -101,16 +120,24 @@ def make_folds(rec: Recording, spec: RobotSpec, smap: ServoMap,
         for p in cc.parameters():
             p.requires_grad_(False)
         split = make_split(rec, spec, smap, cc)
-        folds.append(Fold(name, FitContext(cc, smap, rec.servo_ids, split.rows(tr)), split.rows(te)))
+        labels = list(rec.labels)
+        folds.append(Fold(name, FitContext(cc, smap, rec.servo_ids, split.rows(tr), cache_dir), split.rows(te),
+                          tuple(pattern_group(lb) for lb, t in zip(labels, te.tolist(), strict=True) if t),
+                          tuple(lb for lb, t in zip(labels, tr.tolist(), strict=True) if t)))
     return folds
+
+
+def fold_predictions(model_name: str, fold: Fold, seed: int) -> Tensor:
+    """Tips (n_test, 3) [m] that a model trained on the fold's rows (seed ``seed``) predicts on its test rows."""
+    model = build_model(model_name, fold.ctx, seed)
+    model.fit(fold.ctx.train)
+    with torch.no_grad():
+        return model.eval()(fold.test).detach().to(torch.float64)
 
 
 def fold_rmse(model_name: str, fold: Fold, seed: int) -> float:
     """Offset-removed RMSE [mm] of a model trained on the fold's rows, on its test rows."""
-    model = build_model(model_name, fold.ctx, seed)
-    model.fit(fold.ctx.train)
-    with torch.no_grad():
-        return float(offset_removed_rmse(model(fold.test), fold.test.tip)) * 1e3
+    return float(offset_removed_rmse(fold_predictions(model_name, fold, seed), fold.test.tip)) * 1e3
 
 
 def model_seeds(name: str, seeds: Sequence[int]) -> list[int]:
@@ -118,17 +145,70 @@ def model_seeds(name: str, seeds: Sequence[int]) -> list[int]:
     return list(seeds)[:1] if model_info(name).deterministic else list(seeds)
 
 
-def summarize_scores(rmse: dict[str, dict[str, list[float]]], seeds: list[int], seconds: float) -> dict:
-    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, "seeds", "seconds"} from
-    {proxy: {fold: [RMSE [mm] per seed]}}."""
+def summarize_scores(rmse: dict[str, dict[str, list[float]]], seeds: list[int], seconds: float,
+                     replicates: Mapping[str, Tensor] | None = None) -> dict:
+    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, proxy + "_per_seed": [mean over
+    folds per seed], "seeds", "seconds"} from {proxy: {fold: [RMSE [mm] per seed]}}; with ``replicates``
+    ({proxy: bootstrap replicates (B,) [mm]}, :func:`bootstrap_replicates`) also proxy + "_std": their standard
+    deviation, the proxy's uncertainty."""
     out: dict = {}
     for proxy, folds in rmse.items():
         per = {fold: float(np.mean(values)) for fold, values in folds.items()}
         out[proxy] = round(float(np.mean(list(per.values()))), 4)
+        if replicates is not None and proxy in replicates:
+            out[proxy + "_std"] = round(float(replicates[proxy].std()), 4)
         out[proxy + "_folds"] = {k: round(v, 4) for k, v in per.items()}
+        out[proxy + "_per_seed"] = [round(float(v), 4) for v in np.mean(list(folds.values()), axis=0)]
     out["seeds"] = seeds
     out["seconds"] = round(seconds, 2)
     return out
+
+
+def group_weights(groups: Sequence[str], replicates: int = BOOTSTRAP_REPLICATES,
+                  generator: torch.Generator | None = None) -> Tensor:
+    """Bootstrap weights (B, n) of n rows in pattern groups ``groups`` (n,): each replicate draws as many groups
+    as there are, with replacement, and a row's weight is the number of times its group was drawn."""
+    names = sorted(set(groups))
+    if not names:
+        raise ValueError("groups: expected the pattern group of at least one row, got none")
+    index = torch.tensor([names.index(g) for g in groups])
+    draw = torch.randint(len(names), (replicates, len(names)), generator=generator)
+    counts = torch.zeros(replicates, len(names), dtype=torch.float64).scatter_add_(
+        1, draw, torch.ones(replicates, len(names), dtype=torch.float64))
+    return counts[:, index]
+
+
+def weighted_rmse(error: Tensor, weights: Tensor) -> Tensor:
+    """Offset-removed RMSE (B,) of errors (n, 3) under row weights (B, n) (the weighted mean error removed;
+    unit of ``error``): sqrt(Σ w‖e − ē_w‖² / Σ w)."""
+    total = weights.sum(-1)
+    mean = weights @ error / total[:, None]
+    square = weights @ error.pow(2).sum(-1) / total - mean.pow(2).sum(-1)
+    return square.clamp(min=0).sqrt()
+
+
+def fold_weights(groups: Mapping[str, Sequence[str]], replicates: int = BOOTSTRAP_REPLICATES,
+                 seed: int = BOOTSTRAP_SEED) -> dict[str, Tensor]:
+    """{fold: bootstrap weights (B, n_fold)} of each fold's test rows (its pattern groups ``groups[fold]``),
+    drawn once and shared by every model, so that the replicates of two models are paired."""
+    g = torch.Generator().manual_seed(seed)
+    return {fold: group_weights(names, replicates, g) for fold, names in groups.items()}
+
+
+def bootstrap_replicates(errors: Mapping[str, Sequence[Tensor]], weights: Mapping[str, Tensor],
+                         name: str = "") -> Tensor:
+    """Bootstrap replicates (B,) of a proxy: the mean over folds of the mean over seeds of the offset-removed
+    RMSE, from each fold's errors per seed [(n_fold, 3)] (any unit; the replicates are in it) and its row
+    weights (B, n_fold) (:func:`fold_weights`). Each replicate also draws the seeds with replacement (the
+    seed-to-seed spread of a learned model; one seed: none), with a generator seeded by ``name`` (a model's
+    replicates do not depend on which other models are scored)."""
+    g = torch.Generator().manual_seed(BOOTSTRAP_SEED + 1 + zlib.crc32(name.encode()))
+    per_fold = []
+    for fold, errs in errors.items():
+        rmse = torch.stack([weighted_rmse(e.to(torch.float64), weights[fold]) for e in errs])     # (S, B)
+        pick = torch.randint(len(errs), (rmse.shape[1], len(errs)), generator=g)              # (B, S)
+        per_fold.append(rmse.T.gather(1, pick).mean(1))
+    return torch.stack(per_fold).mean(0)
 
 
 def proxy_scores(name: str, folds: dict[str, list[Fold]], seeds: Sequence[int]) -> dict:
@@ -158,12 +238,55 @@ def choose_cc_variant(rec: Recording, spec: RobotSpec, smap: ServoMap,
     return min(variants, key=lambda v: scores[v]), scores
 
 
-def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY) -> str:
-    """The candidate with the lowest ``proxy`` score (ties: the earlier candidate)."""
+def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
+                   replicates: Mapping[str, Tensor] | None = None) -> str:
+    """The default model of :func:`default_choice` (without ``replicates``: the candidate with the lowest
+    ``proxy`` score, ties to the simpler one)."""
+    return default_choice(scores, candidates, proxy, replicates)["default"]
+
+
+def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
+                   replicates: Mapping[str, Tensor] | None = None, tie_sigmas: float = TIE_SIGMAS) -> dict:
+    """The default model by the one-standard-error rule, and why.
+
+    ``best`` is the candidate with the lowest ``proxy`` score. A candidate is *tied* with it when its score is
+    higher by at most ``tie_sigmas`` × the standard deviation of the bootstrapped difference of the two
+    (``replicates``: {model: bootstrap replicates (B,) of its proxy}, paired over the held-out pattern groups,
+    :func:`bootstrap_replicates`): the proxy cannot tell them apart. The default is the simplest tied
+    candidate (:func:`~.registry.complexity`; equal ones: the earlier candidate): a more complex model becomes
+    the default only when it beats every simpler one by more than their combined uncertainty. Without
+    ``replicates`` no difference has a spread and the lowest score wins.
+
+    Returns {"default", "best", "tied": [models], "rule", "reason", "candidates": {model: {"score_mm",
+    "std_mm", "gap_mm", "gap_std_mm", "tied"}}} (std: of the model's own replicates)."""
     scored = [c for c in candidates if c in scores and proxy in scores[c]]
     if not scored:
         raise ValueError(f"choose_default: none of the candidates {list(candidates)} has a {proxy!r} score")
-    return min(scored, key=lambda c: scores[c][proxy])
+    if replicates is not None:
+        missing = [c for c in scored if c not in replicates]
+        if missing:
+            raise ValueError(f"replicates: expected bootstrap replicates of every scored candidate, missing {missing}")
+    best = min(scored, key=lambda c: (scores[c][proxy], complexity(c)))
+    rows = {}
+    for c in scored:
+        gap = scores[c][proxy] - scores[best][proxy]
+        spread = 0.0 if replicates is None else float((replicates[c] - replicates[best]).std())
+        own = None if replicates is None else float(replicates[c].std())
+        rows[c] = {"score_mm": round(float(scores[c][proxy]), 4), "std_mm": None if own is None else round(own, 4),
+                   "gap_mm": round(float(gap), 4), "gap_std_mm": round(spread, 4),
+                   "tied": bool(gap <= tie_sigmas * spread)}
+    tied = [c for c in scored if rows[c]["tied"]]
+    default = min(tied, key=lambda c: (complexity(c), scored.index(c)))
+    if default == best and len(tied) == 1:
+        reason = (f"{best} has the lowest {proxy} score ({rows[best]['score_mm']:.2f} mm) and beats every other "
+                  f"candidate by more than {tie_sigmas:g}σ of the difference")
+    else:
+        others = ", ".join(f"{c} (+{rows[c]['gap_mm']:.2f} ± {rows[c]['gap_std_mm']:.2f})" for c in tied if c != best)
+        reason = (f"{best} has the lowest {proxy} score ({rows[best]['score_mm']:.2f} mm); within {tie_sigmas:g}σ "
+                  f"of the difference: {others}; the default is the simplest of them, {default}")
+    return {"default": default, "best": best, "tied": tied, "candidates": rows, "reason": reason,
+            "rule": f"one-standard-error: the simplest candidate whose {proxy} score is within {tie_sigmas:g}σ "
+                    "(bootstrap over held-out pattern groups and proxy seeds, paired) of the lowest"}
 
 
 def rank(values: dict[str, float]) -> list[str]:

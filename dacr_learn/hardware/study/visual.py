@@ -13,8 +13,8 @@ from .registry import MODELS
 COLORS = {"measured": (20, 20, 20), "cc": (31, 119, 180)}
 PALETTE = [(214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14), (140, 86, 75),
            (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207), (255, 0, 255), (0, 150, 136),
-           (0, 0, 128), (255, 215, 0)]
-# one colour per registered model besides cc: k = 1 … 13 in registry order never wraps onto another's
+           (0, 0, 128), (255, 215, 0), (128, 0, 0)]
+# one colour per registered model besides cc: k = 1 … 14 in registry order never wraps onto another's
 
 
 def _color(name: str, k: int) -> tuple[int, int, int]:

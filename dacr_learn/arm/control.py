@@ -1,0 +1,178 @@
+"""Whole-body resolved-rate control of an arm carrying a continuum robot, with every limit; and the decoupled
+scheme (the arm first, then the robot) it is compared with (examples/track_port.py, docs/arm.md).
+
+One whole-body step, with variables x = (θ, x_c) of a :class:`~.composite.Composite` (joint vector q ↔ x):
+
+1. tip pose, whole-body Jacobian J (6, n + D), robot base point p_b and its Jacobian J_b (:meth:`Composite.kinematics`);
+2. task e = gain·(p* − p, w·log(R*Rᵀ)) + feedforward (the target's displacement over the step), rows
+   (J_v, w·J_ω); w [m/rad] makes a rotation error count like a length (default: the robot's length);
+   with a :class:`Port`, rows k·J_b and task k·gain·(c − p_b) keep the robot's base (the flange's tool point)
+   at the port centre c (a remote centre of motion; k = ``port_weight``);
+3. limits inside the step as in the IK solver: in scaled variables z = x/s, a coordinate at a bound whose
+   descent points outward and a Clarke disk at its rim pushing outward are removed from J̃ (projector P of
+   :meth:`~dacr_learn.ik.Limits.free_directions`), and variables a scheme does not move (``moving``) too;
+4. Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹e (:func:`~dacr_learn.deploy.control.scaled_dls_step`, with the optional pull
+   towards the rest configuration in the null space), shortened to ``max_step`` and, with a time step ``dt``,
+   until no arm joint exceeds its URDF velocity limit;
+5. x' = the admissible point nearest x + s·Δz (URDF boxes, bend disks, length boxes), q' = joints(x').
+
+The decoupled scheme (:class:`DecoupledController`) runs the same step twice: the arm alone, as if the robot
+were straight at rest (the arm's IK aims the tool), then the robot alone with the arm where it now is.
+Everything float64; pure torch (no Lightning, no Rerun).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from pytorch_kinematics.transforms import matrix_to_axis_angle
+from torch import Tensor, nn
+
+from ..deploy.control import scaled_dls_step
+from .composite import Composite
+
+_F64 = torch.float64
+
+
+@dataclass(frozen=True)
+class Port:
+    """A narrow port the robot's base point (the flange's tool point, T_a·M) must not leave: a ball of
+    ``radius`` [m] around ``centre`` (3,) [m] in the arm's base frame."""
+
+    centre: tuple[float, float, float]
+    radius: float
+
+    def __post_init__(self):
+        if len(self.centre) != 3 or not self.radius > 0:
+            raise ValueError(f"port: expected a centre (x, y, z) [m] and a radius > 0 [m], got {self.centre}, "
+                             f"{self.radius}")
+
+
+@dataclass(frozen=True)
+class WholeBodyConfig:
+    """gain: fraction of the error corrected per step, (0, 1]; damping: λ [m] of the DLS; max_step: largest
+    scaled step ‖Δz‖; rotation_length: w [m/rad] (None: the robot's length); port_weight: k of the port rows;
+    rest_gain: per-step pull of the variables towards a posture (the controller's ``posture``, default the
+    model's rest configuration), in the null space (0: off);
+    dt: control period [s] for the arm's URDF velocity limits (None: not applied)."""
+
+    gain: float = 0.5
+    damping: float = 1e-3
+    max_step: float = 0.05
+    rotation_length: float | None = None
+    port_weight: float = 10.0
+    rest_gain: float = 0.0
+    dt: float | None = None
+
+    def __post_init__(self):
+        if not 0 < self.gain <= 1:
+            raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
+        if not self.damping >= 0 or not self.max_step > 0 or not self.port_weight > 0 or not self.rest_gain >= 0:
+            raise ValueError("damping >= 0, max_step > 0, port_weight > 0 and rest_gain >= 0 expected")
+        if self.rotation_length is not None and not self.rotation_length > 0:
+            raise ValueError(f"rotation_length: expected > 0 [m/rad], got {self.rotation_length}")
+        if self.dt is not None and not self.dt > 0:
+            raise ValueError(f"dt: expected > 0 [s], got {self.dt}")
+
+
+class WholeBodyController:
+    """Resolved-rate control of the whole body (module docstring).
+
+    :meth:`step`: joint vectors q (B, n + N), targets (B, 4, 4) poses or (B, 3) positions [m] (arm base frame),
+    optional feedforward (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, n + N). ``moving`` (n + D,) bool: the
+    variables this controller may change (default all). ``posture`` (n + D,): the variables ``rest_gain`` pulls
+    towards (default ``model.rest``).
+    """
+
+    def __init__(self, model: Composite, config: WholeBodyConfig = WholeBodyConfig(), port: Port | None = None,
+                 moving: Tensor | None = None, posture: Tensor | None = None):
+        self.model, self.config, self.port = model, config, port
+        self.posture = (model.rest if posture is None else posture).to(_F64)
+        if self.posture.shape != model.rest.shape:
+            raise ValueError(f"posture: expected {tuple(model.rest.shape)} variables, got {tuple(self.posture.shape)}")
+        self.limits = model.limits
+        self.scale = model.limits.scale.to(_F64)
+        d = self.scale.shape[0]
+        self.moving = torch.ones(d, dtype=torch.bool) if moving is None else moving.to(torch.bool)
+        if self.moving.shape != (d,):
+            raise ValueError(f"moving: expected ({d},) bools, got {tuple(self.moving.shape)}")
+        self.weight = model.robot.length if config.rotation_length is None else config.rotation_length
+        self.centre = None if port is None else torch.tensor(port.centre, dtype=_F64)
+        velocity = torch.tensor(model.arm.chain.get_joint_velocity_limits()[1], dtype=_F64)
+        self.max_arm_step = None if config.dt is None else velocity * config.dt       # (n,) [rad, m] per step
+
+    def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
+        x = self.model.variables(q.to(_F64))
+        return self.model.joints(self.step_variables(x, target, feedforward))
+
+    def step_variables(self, x: Tensor, target: Tensor, feedforward: Tensor | None = None,
+                       rest: Tensor | None = None) -> Tensor:
+        """One step in variables: x (B, n + D) → x' (B, n + D). ``rest`` (B, D_c): evaluate the robot at this
+        shape instead of its own (the decoupled arm step), leaving its variables unchanged."""
+        model, cfg, n = self.model, self.config, self.model.num_arm
+        target = target.to(_F64)
+        xe = x if rest is None else torch.cat([x[:, :n], rest], dim=-1)
+        kin = model.kinematics(xe)
+        pose = target.dim() == 3
+        position = target[:, :3, 3] if pose else target
+        rows, task = [kin.jacobian[:, :3]], [cfg.gain * (position - kin.position)]
+        if pose:
+            if kin.rotation is None:
+                raise ValueError("target: this robot gives a tip position only; pass (B, 3) positions")
+            rows.append(self.weight * kin.jacobian[:, 3:])
+            task.append(cfg.gain * self.weight * matrix_to_axis_angle(target[:, :3, :3] @ kin.rotation.mT))
+        if feedforward is not None:
+            ff = feedforward.to(_F64)
+            task = [task[0] + ff[:, :3]] + ([task[1] + self.weight * ff[:, 3:6]] if pose else [])
+        if self.centre is not None:
+            rows.append(cfg.port_weight * kin.base_jacobian)
+            task.append(cfg.port_weight * cfg.gain * (self.centre - kin.base[:, :3, 3]))
+        jac, err = torch.cat(rows, dim=1), torch.cat(task, dim=-1)
+        jac = jac * self.moving.to(_F64)
+        scaled = jac * self.scale
+        box, normals = self.limits.blocked(xe, -(scaled.mT @ err.unsqueeze(-1)).squeeze(-1))
+        free = self.limits.free_directions(box, normals)                      # (B, D, D) in scaled variables
+        jac = (scaled @ free) / self.scale
+        secondary = None
+        if cfg.rest_gain > 0:
+            pull = cfg.rest_gain * (self.posture - xe) / self.scale * self.moving.to(_F64)
+            secondary = (pull.unsqueeze(1) @ free).squeeze(1)
+        step = scaled_dls_step(jac, err, self.scale, cfg.damping, cfg.max_step, secondary)
+        if self.max_arm_step is not None:                                     # URDF velocity limits
+            ratio = (step[:, :n].abs() / self.max_arm_step).amax(-1, keepdim=True)
+            step = step / ratio.clamp_min(1.0)
+        moved = self.limits.project(xe + step)
+        return torch.where(self.moving, moved, x)
+
+
+class DecoupledController:
+    """The decoupled scheme: each step, the arm's resolved-rate step for the target as if the robot were straight
+    (its rest shape: the arm's own IK aims the tool, with the port), then the robot's step with the arm held.
+    Same interface and limits as :class:`WholeBodyController`."""
+
+    def __init__(self, model: Composite, config: WholeBodyConfig = WholeBodyConfig(), port: Port | None = None,
+                 posture: Tensor | None = None):
+        n, d = model.num_arm, model.limits.num_variables
+        arm = torch.arange(d) < n
+        self.model = model
+        self.arm = WholeBodyController(model, config, port, moving=arm, posture=posture)
+        self.robot = WholeBodyController(model, config, None, moving=~arm, posture=posture)
+        self.straight = model.rest[n:].to(_F64)
+
+    def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
+        x = self.model.variables(q.to(_F64))
+        x = self.arm.step_variables(x, target, feedforward, rest=self.straight.expand(x.shape[0], -1))
+        x = self.robot.step_variables(x, target, feedforward)
+        return self.model.joints(x)
+
+
+class ControlStep(nn.Module):
+    """One step of a controller as a module, for torch.export / AOTInductor (a kHz loop at batch 1):
+    (x (B, n + D), target (B, 4, 4), feedforward (B, 6)) → x' (B, n + D), in the model's variables."""
+
+    def __init__(self, controller: WholeBodyController):
+        super().__init__()
+        self.controller = controller
+
+    def forward(self, x: Tensor, target: Tensor, feedforward: Tensor) -> Tensor:
+        return self.controller.step_variables(x, target, feedforward)
