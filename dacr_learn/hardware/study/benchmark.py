@@ -246,11 +246,13 @@ class SelectionResult:
     seeds: dict[str, list[int]]
 
 
-def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]]) -> list[Future]:
+def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]],
+                   log: Callable | None = None, start: float | None = None) -> list[Future]:
     """The shared pieces (Cosserat calibrations, then their synthetic tips) that the fits [(context, model,
     seeds)] will need (:func:`..cosserat_learned.warmups`), each handed to the pool once, ahead of the fits:
     with several workers the fits then read them instead of computing them in every worker or waiting for
-    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted)."""
+    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted). ``log``: called
+    with a line as each piece finishes (the calibrations can take many minutes before any model's line)."""
     if pool.jobs == 1:
         return []
     pieces: dict[str, tuple] = {}
@@ -259,7 +261,19 @@ def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequenc
             for key, fn, args in warmups(build_model(name, ctx, seed), ctx.train):
                 pieces.setdefault(key, (fn, args))
     order = sorted(pieces, key=lambda k: "synthetic" in k)          # every calibration before the synthetic tips
-    return [pool.submit(pieces[k][0], *pieces[k][1]) for k in order]
+    futures = [pool.submit(pieces[k][0], *pieces[k][1]) for k in order]
+    if log is not None:
+        done = iter(range(1, len(futures) + 1))                        # next() is atomic: callbacks may race
+
+        def report(future: Future, what: str) -> None:
+            if future.exception() is None:
+                elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
+                log(f"[shared {next(done)}/{len(futures)}] {what} ready ({future.result()[1]:.0f} s{elapsed})")
+
+        for key, future in zip(order, futures, strict=True):
+            what = "Cosserat synthetic tips" if "synthetic" in key else "Cosserat calibration"
+            future.add_done_callback(lambda f, what=what: report(f, what))
+    return futures
 
 
 def selection_folds(s: Setup, proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, list[Fold]]:

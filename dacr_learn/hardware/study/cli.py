@@ -136,7 +136,7 @@ def _fit_all(setup: Setup, args: argparse.Namespace, start: float
     proxy_seeds = proxy_seeds_of(models, args.proxy_seeds, default_candidates(list(models)))
     with TaskPool(args.jobs, args.threads) as pool:
         warm = submit_warmups(pool, [(f.ctx, m, proxy_seeds[m]) for fs in folds.values() for f in fs for m in models]
-                              + [(setup.context(), m, args.seeds) for m in models])
+                              + [(setup.context(), m, args.seeds) for m in models], progress, start)
         pending = (submit_selection(pool, setup, models, args.proxy_seeds, args.proxies,
                                     default_candidates(list(models)), folds) if folds else None)
         final = submit_benchmark(pool, setup, models, tuple(args.seeds), keep)
