@@ -224,3 +224,23 @@ def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
     assert torch.allclose(model.predict(split)[1], model.sigma(preds.std(0)), rtol=1e-12, atol=0)
     with pytest.raises(ValueError, match=r"servo_mm: expected shape \(n, 8\)"):
         model.predict(servo_mm[:, :5])
+
+
+def test_servo_range_is_the_stored_recorded_range_else_the_examples(tmp_path):
+    """``servo_range``: info["servo_range_mm"] (the whole training recording, stored since 2026-11-28) through a
+    weights-only round trip; a file without it gets the range of its example commands; neither: a ValueError."""
+    model = synthetic_model(history=False, members=1)
+    old = model.servo_range()                                             # a file saved before the entry existed
+    assert torch.equal(old[0], model.examples.amin(0)) and torch.equal(old[1], model.examples.amax(0))
+    recorded = 1e3 * command_recording(200, 0).servo
+    model.info["servo_range_mm"] = {"lower": recorded.amin(0).tolist(), "upper": recorded.amax(0).tolist()}
+    lower, upper = load_hardware_model(save_hardware_model(model, tmp_path / "m.pt")).servo_range()
+    assert lower.dtype == torch.float64 and torch.equal(lower, recorded.amin(0))        # stored values, not computed
+    assert torch.equal(upper, recorded.amax(0))
+    model.info["servo_range_mm"] = {"lower": [0.0] * 3, "upper": [1.0] * 3}
+    with pytest.raises(ValueError, match="servo_range_mm.*8 values"):
+        model.servo_range()
+    model.info.pop("servo_range_mm")
+    model.examples = None
+    with pytest.raises(ValueError, match="recorded servo range is unknown"):
+        model.servo_range()
