@@ -8,8 +8,10 @@ A twist ξ = (v, ω) (..., 6) [m, rad] has the matrix ξ^ = [[ω^, v], [0, 0]] a
 with s, f, g written as functions of φ² that are finite, with finite derivatives, at φ = 0 (Taylor
 polynomials below :data:`TAYLOR_BELOW`). A constant-curvature segment is the exponential of a twist that
 is linear in its Clarke coordinates (docs/design.md §2), so the CC kinematics (:mod:`.kinematics`), the
-compositional FK (:mod:`.compositional`) and the folded hardware inference modules
-(:mod:`.hardware.deploy`) all build on these functions. Pure torch, any leading batch dims.
+compositional FK (:mod:`.compositional`), the IK solver and every folded inference module
+(:mod:`.deploy`, :mod:`.hardware.deploy`) build on these functions: one closed form of the exponential
+(:func:`exp_components`), its tangent (:func:`exp_components_and_tangents`) and one chain product rule
+(:func:`chain_components`). Pure torch, any leading batch dims.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ from torch import Tensor
 
 __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
-    "exp_of_twist_matrix", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_exp",
+    "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_exp",
     "roll_z", "twist_exp_and_tangent", "vee",
 ]
 
@@ -349,38 +351,37 @@ def roll_z_and_tangents(poses: Tensor, ang: Tensor, lin: Tensor, alpha: Tensor,
     return pose_of_components(rot, pos), _undirections(b), _undirections(dp)
 
 
-def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor) -> tuple[Tensor, Tensor]:
+def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor, base: Tensor | None = None,
+                   point: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The chain product rule: tip pose and base-frame Jacobian of a product of transforms.
 
     poses (..., n, 4, 4): T_1 … T_n, each relative to the end of the previous one; ang, lin (..., n, T, 3):
     spatial tangents of each T_k in its own base frame (:func:`twist_exp_and_tangents`) along T directions
-    each. Returns the tip pose T_1⋯T_n (..., 4, 4) and J (..., 6, n·T): per factor and direction, the velocity
-    of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base frame
+    each. Optional fixed ends (no tangents): ``base`` (..., 4, 4), a pose in front of T_1 (J is then in its
+    base frame), and ``point`` (..., 3) [m], a point fixed in the frame of T_n (the tip is then that point).
+    Returns the tip pose B·T_1⋯T_n·Trans(point) (..., 4, 4) and J (..., 6, n·T): per factor and direction,
+    the velocity of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base frame
     (:func:`chain_components`).
     """
     n = poses.shape[-3]
     rot, pos = _rot_pos(poses)
     b, dp = _directions(ang), _directions(lin)                                    # components (T, ..., n)
     at = lambda c, k: tuple(x[..., k] for x in c)  # noqa: E731
-    tip_rot, tip_pos, cols = chain_components([at(rot, k) for k in range(n)], [at(pos, k) for k in range(n)],
-                                              [[(at(b, k), at(dp, k))] for k in range(n)])
+    rots, poss = [at(rot, k) for k in range(n)], [at(pos, k) for k in range(n)]
+    tangents = [[(at(b, k), at(dp, k))] for k in range(n)]
+    if base is not None:
+        rots.insert(0, _rot_pos(base)[0])
+        poss.insert(0, _rot_pos(base)[1])
+        tangents.insert(0, [])
+    if point is not None:
+        rots.append((1.0, None, None, None, 1.0, None, None, None, 1.0))
+        poss.append(components(point))
+        tangents.append([])
+    tip_rot, tip_pos, cols = chain_components(rots, poss, tangents)
     like = b[0][..., 0]
-    jac = torch.stack([torch.stack(dense((*v, *w), like), dim=0) for [(v, w)] in cols], dim=1)   # (6, n, T, ...)
+    jac = torch.stack([torch.stack(dense((*v, *w), like), dim=0) for c in cols if c for (v, w) in c],
+                      dim=1)                                                      # (6, n, T, ...)
     return pose_of_components(tip_rot, tip_pos), jac.movedim(0, -1).movedim(0, -1).movedim(0, -1).flatten(-2)
-
-
-def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
-    """exp(ξ^) (..., 4, 4) of twist matrices ξ^ (..., 4, 4): I + ξ^ + f·ξ^² + g·ξ^³ (ω^³ = −φ²ω^ makes the
-    series collapse; the same map as :func:`twist_exp` in fewer ops, for folded inference modules).
-    ‖ω^‖_F = √2·φ; s, f as sinc terms of y = φ/2π, g from the Taylor-guarded (1 − s)/φ²."""
-    rot = xi_hat[..., :3, :3]
-    phi_sq = 0.5 * (rot * rot).sum((-2, -1))
-    y = torch.linalg.vector_norm(rot.flatten(-2), dim=-1) * (0.5 / (torch.pi * 2**0.5))
-    g = third_coefficient(phi_sq, torch.sinc(2 * y))
-    sq = xi_hat @ xi_hat
-    out = torch.addcmul(xi_hat, (0.5 * torch.sinc(y) ** 2)[..., None, None], sq)
-    out = torch.addcmul(out, g[..., None, None], sq @ xi_hat)
-    return out + torch.eye(4, dtype=xi_hat.dtype)
 
 
 def chain_products(poses: Tensor) -> Tensor:
