@@ -28,6 +28,7 @@ __all__ = ["activation_and_derivative", "activation_name", "affine_probe", "line
            "tangent_rows"]
 
 _F64 = torch.float64
+_FUNCTIONS = {"silu": F.silu, "relu": F.relu, "gelu": F.gelu, "tanh": torch.tanh}   # models.ACTIVATIONS as functions
 
 
 def linear_layers(net: nn.Sequential) -> list[nn.Linear]:
@@ -68,20 +69,26 @@ def tangent_rows(rows: Tensor, layers: Sequence[tuple[Tensor, Tensor]], activati
     ``layers`` (weight, bias) applies σ to the value row and σ'(value)·tangent to the others, then the
     weight to all rows and the bias to the value row only. Weights (in, out) with biases (out,), or K
     members' weights (K, in, out) with biases (K, 1, out) for rows (K, R, 1 + T, W) (one batched product).
-    Returns (..., 1 + T, out): the network output and its T tangents.
+    Returns (..., 1 + T, out): the network output and its T tangents. With no tangent rows (T = 0) this is
+    the plain forward pass.
     """
     n = rows.shape[-2]
     value_row = (torch.arange(n, device=rows.device) == 0).to(rows.dtype).unsqueeze(-1)   # (1 + T, 1)
     a = rows
     for weight, bias in layers:
-        s, ds = activation_and_derivative(activation, a[..., :1, :])
-        a = torch.cat([s, a[..., 1:, :] * ds], dim=-2)
-        if weight.dim() == 3:                                  # members: (K, R, 1 + T, in) → one bmm
-            shape = a.shape
-            a = torch.bmm(a.reshape(shape[0], -1, shape[-1]), weight).view(*shape[:-1], -1)
-            a = a + bias.unsqueeze(1) * value_row
+        if n == 1:                                             # no tangents: the plain forward pass
+            a = _FUNCTIONS[activation](a)
         else:
-            a = a @ weight + bias * value_row
+            s, ds = activation_and_derivative(activation, a[..., :1, :])
+            a = torch.cat([s, a[..., 1:, :] * ds], dim=-2)
+        if weight.dim() == 3:                                  # K members (K, R, 1 + T, in): one batched product
+            flat = a.reshape(a.shape[0], -1, a.shape[-1])
+            if n == 1:
+                a = torch.baddbmm(bias, flat, weight).view(*a.shape[:-1], -1)
+            else:
+                a = torch.bmm(flat, weight).view(*a.shape[:-1], -1) + bias.unsqueeze(1) * value_row
+        else:
+            a = a @ weight + (bias if n == 1 else bias * value_row)
     return a
 
 

@@ -62,12 +62,20 @@ class InferenceCompositionalFK(nn.Module):
         self.rolls = bool(model.rolls)
         self.register_buffer("roll_select", roll_selection(model).to(dtype) if self.rolls else None)
 
+    def segment_outputs(self, u: Tensor, seed: Tensor | None = None) -> Tensor:
+        """Head inputs (B, m, 1, O) of every segment from the inputs u (B, N + n_g) (``fold.inputs``); with tangent
+        rows ``seed`` (m, T, W + O) of the first layer, also their tangents: (B, m, 1 + T, O) (forward mode as
+        stacked rows, :func:`~dacr_learn.folding.tangent_rows`)."""
+        pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
+        rows = pre.unflatten(-1, (self.num_segments, self.width + self.out)).unsqueeze(-2)  # (B, m, 1, W + O)
+        if seed is not None:
+            rows = torch.cat([rows, seed.expand(rows.shape[0], -1, -1, -1)], dim=-2)       # (B, m, 1 + T, W + O)
+        a = tangent_rows(rows[..., :self.width], self.mlp.layers(), self.mlp.act)
+        return (a + rows[..., self.width:]) * self.out_scale.unsqueeze(-2)
+
     def segment_transforms(self, q: Tensor) -> Tensor:
         """T_k (B, m, 4, 4) of every segment."""
-        u = self.fold.inputs(q)
-        pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
-        pre = pre.unflatten(-1, (self.num_segments, self.width + self.out))
-        out = (self.mlp(pre[..., :self.width]) + pre[..., self.width:]) * self.out_scale
+        out = self.segment_outputs(self.fold.inputs(q))[..., 0, :]
         if self.rotation == "twist":
             t = twist_exp(out)
         else:
@@ -108,64 +116,46 @@ class InferenceCompositionalJacobian(nn.Module):
         if model.rotation != "twist":
             raise ValueError("rotation: the compositional Jacobian module needs the 'twist' head, "
                              f"got {model.rotation!r}")
-        m = self.num_segments = model.spec.num_segments
-        self.num_joints = model.spec.num_joints
-        self.width, self.out = linear_layers(model.net)[0].out_features, HEADS[model.rotation]
-        self.fold = ClarkeFold(model.spec)
-        ones = torch.ones(self.out, dtype=_F64)
-        k, k0 = compositional_first_layer(model)                          # acts on actuated features f
+        fk = self.fk = InferenceCompositionalFK(model, dtype)
+        m, w = fk.num_segments, fk.width + fk.out
+        k = compositional_first_layer(model)[0]                             # acts on actuated features f
         d = self.num_features = k.shape[1]
-        seed = k.view(m, self.width + self.out, d).mT                     # ∂(pre-activations | skip)/∂f (m, D, W + O)
+        seed = k.view(m, w, d).mT                                           # ∂(pre-activations | skip)/∂f (m, D, W + O)
         used = [torch.nonzero(seed[j].abs().sum(-1) > 0).flatten().tolist() for j in range(m)]
-        self.rolls = bool(model.rolls)
         rolled = torch.nonzero(model.roll).flatten().tolist()
         rolled_alpha = list(zip(rolled, feature_columns(model.spec, "alpha", rolled), strict=True))  # (segment, α col)
         for j, col in rolled_alpha:
             if col not in used[j]:                                          # the roll depends on α in any case
                 used[j].append(col)
         t = max(1, *map(len, used))
-        local = torch.zeros(m, t, self.width + self.out, dtype=_F64)      # the T tangent rows of each segment
-        pick = torch.zeros(m, t, d, dtype=_F64)                           # (segment, row) → feature column
+        local = torch.zeros(m, t, w, dtype=_F64)                            # the T tangent rows of each segment
+        pick = torch.zeros(m, t, d, dtype=_F64)                             # (segment, row) → feature column
+        roll_row = torch.zeros(m, t, 1, dtype=_F64)                         # 1 on the α row of a rolled segment
         for j, cols in enumerate(used):
             local[j, :len(cols)] = seed[j, cols]
             pick[j, range(len(cols)), cols] = 1.0
-        self.on_features = self.fold.has_type3
-        if not self.on_features:
-            k, k0 = k @ self.fold.E, k0 + k @ self.fold.e0
-        self.constant_dfdq = not (self.fold.has_g or self.fold.has_type3)
-        pick = pick.flatten(0, 1)                                          # (m·T, D)
-        if self.constant_dfdq:                                             # [J_f | J_q] in one product
-            pick = torch.cat([pick, pick @ self.fold.E[:, :self.num_joints]], dim=-1)
-        self.register_buffer("seed", local.to(dtype))
-        self.register_buffer("pick", pick.to(dtype))
-        roll_row = torch.zeros(m, t, 1, dtype=_F64)                        # 1 on the α row of a rolled segment
         for j, col in rolled_alpha:
             roll_row[j, used[j].index(col)] = 1.0
-        self.register_buffer("roll_row", roll_row.to(dtype) if self.rolls else None)
-        self.register_buffer("roll_select", roll_selection(model).to(dtype) if self.rolls else None)
-        self.fold.to(dtype)
-        self.mlp = FoldedMLP(model.net, (k, k0), ones, torch.zeros_like(ones), dtype)
-        self.register_buffer("out_scale", output_scale(model).to(dtype))
-
-    def segment_twists(self, u: Tensor) -> tuple[Tensor, Tensor]:
-        """Twists ξ_k (B, m, 6) and their tangents (B, m, T, 6) along each segment's tangent rows."""
-        pre = self.mlp.first(self.fold.features(u) if self.on_features else u)
-        pre = pre.unflatten(-1, (self.num_segments, self.width + self.out)).unsqueeze(-2)   # (B, m, 1, W + O)
-        rows = torch.cat([pre, self.seed.expand(pre.shape[0], -1, -1, -1)], dim=-2)      # (B, m, 1 + T, W + O)
-        a = tangent_rows(rows[..., :self.width], self.mlp.layers(), self.mlp.act)
-        xi = (a + rows[..., self.width:]) * self.out_scale.unsqueeze(-2)                  # (B, m, 1 + T, 6)
-        return xi[..., 0, :], xi[..., 1:, :]
+        self.constant_dfdq = not (fk.fold.has_g or fk.fold.has_type3)
+        pick = pick.flatten(0, 1)                                           # (m·T, D)
+        if self.constant_dfdq:                                              # [J_f | J_q] in one product
+            pick = torch.cat([pick, pick @ ClarkeFold(model.spec).E[:, :fk.num_joints]], dim=-1)
+        self.register_buffer("seed", local.to(dtype))
+        self.register_buffer("pick", pick.to(dtype))
+        self.register_buffer("roll_row", roll_row.to(dtype) if fk.rolls else None)
 
     def forward(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        u = self.fold.inputs(q)
-        poses, ang, lin = twist_exp_and_tangents(*self.segment_twists(u))
-        if self.rolls:                                                      # Rz(α)·exp(ξ) and its tangents
-            poses, ang, lin = roll_z_and_tangents(poses, ang, lin, q @ self.roll_select, self.roll_row)
+        fk = self.fk
+        u = fk.fold.inputs(q)
+        xi = fk.segment_outputs(u, self.seed)                               # (B, m, 1 + T, 6)
+        poses, ang, lin = twist_exp_and_tangents(xi[..., 0, :], xi[..., 1:, :])
+        if fk.rolls:                                                        # Rz(α)·exp(ξ) and its tangents
+            poses, ang, lin = roll_z_and_tangents(poses, ang, lin, q @ fk.roll_select, self.roll_row)
         pose, jac = chain_jacobian(poses, ang, lin)                         # (B, 4, 4), (B, 6, m·T)
         jac = jac @ self.pick                                               # (B, 6, D [+ N])
         if self.constant_dfdq:
             return pose, jac[..., :self.num_features], jac[..., self.num_features:]
-        return pose, jac, jac @ self.fold.jacobian(q, u)
+        return pose, jac, jac @ fk.fold.jacobian(q, u)
 
 
 def roll_selection(model) -> Tensor:

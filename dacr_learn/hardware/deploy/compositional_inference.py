@@ -31,7 +31,6 @@ from torch import Tensor, nn
 from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_twist, effective_features
 from ...lie import chain_jacobian, pose_from_parts, twist_exp, twist_exp_and_tangents
-from ...models import ACTIVATIONS
 from .checkpoint import HardwareModel
 from .inference import (
     HardwareFK,
@@ -98,7 +97,6 @@ class CompositionalHardwareFK(nn.Module):
         spec, cc = model.spec, model.cc
         self.num_segments, self.num_servos, self.ensemble = spec.num_segments, len(model.servo_ids), len(model.members)
         nets, self.activation, self.context = _stacked_networks(model.members)
-        self.activation_fn = ACTIVATIONS[self.activation]()
         self.layers = sum(1 for k in nets if k[0] == "w" and k[1:].isdigit())    # linear layers of f_θ
         with torch.no_grad():
             buffers = {**active_set_maps(model), **nets,
@@ -145,46 +143,42 @@ class CompositionalHardwareFK(nn.Module):
             self.context_matrix @ z)
         return torch.cat([z, extra], -1)
 
-    def corrections(self, rho: Tensor) -> Tensor:
-        """Each member's correction exp(ξ_k^) of every segment (B, K, m, 4, 4) at ρ (B, m, 2) [m]: the affine
-        part (first layer and skip, :meth:`affine_part`) in one product, the hidden and output layers as
-        batched products over the members (K, B·m, ·), the kernel's :func:`~dacr_learn.lie.twist_exp`."""
-        k, m, h = self.ensemble, self.num_segments, self.hidden_width
-        pre = torch.addmm(self.affine_offset, rho.flatten(1), self.affine_map).view(-1, k, m, h + 6)
-        a = pre[..., :h].transpose(0, 1).reshape(k, -1, h)                                # (K, B·m, H)
-        for i in range(1, self.layers):
-            a = torch.baddbmm(getattr(self, f"b{i}"), self.activation_fn(a), getattr(self, f"w{i}"))
-        xi = a.view(k, -1, m, 6).transpose(0, 1) + pre[..., h:]                           # ξ (B, K, m, 6)
-        return twist_exp(xi)
+    def twists(self, rho: Tensor, tangents: bool = False) -> Tensor:
+        """Each member's twist ξ_k (B, K, m, 1, 6) of every segment at ρ (B, m, 2) [m], with its 2m tangents along
+        the Clarke coordinates (B, K, m, 1 + 2m, 6) if ``tangents``: the affine part (first layer and skip,
+        :meth:`affine_part`) in one product, its tangents the map's rows; the further layers batched over the
+        members (K, B·m, ·) as stacked rows (:func:`~dacr_learn.folding.tangent_rows`)."""
+        b, m, k, h = rho.shape[0], self.num_segments, self.ensemble, self.hidden_width
+        rows = torch.addmm(self.affine_offset, rho.flatten(1), self.affine_map).view(b, 1, k, m, -1)
+        if tangents:
+            rows = torch.cat([rows, self.affine_map.view(1, 2 * m, k, m, -1).expand(b, -1, -1, -1, -1)], 1)
+        n = rows.shape[1]                                                                  # rows (B, n, K, m, H + 6)
+        a = rows[..., :h].permute(2, 0, 3, 1, 4).reshape(k, b * m, n, h)
+        a = tangent_rows(a, [(getattr(self, f"w{i}"), getattr(self, f"b{i}")) for i in range(1, self.layers)],
+                         self.activation)
+        return a.view(k, b, m, n, 6).transpose(0, 1) + rows[..., h:].permute(0, 2, 3, 1, 4)
 
     def tips(self, rho: Tensor) -> Tensor:
-        """Every member's tip (B, K, 3) [m, motion-capture frame] at ρ (B, m, 2) [m]."""
+        """Every member's tip (B, K, 3) [m, motion-capture frame] at ρ (B, m, 2) [m]: the CC poses times each
+        member's corrections exp(ξ_k^) (the kernel's :func:`~dacr_learn.lie.twist_exp`), chained."""
         cc = cc_segment_poses(rho, self.radius, self.length)                             # (B, m, 4, 4)
-        return chained_marker_point(self.base_pose, cc.unsqueeze(1) @ self.corrections(rho), self.tip_marker)
+        corrections = twist_exp(self.twists(rho)[..., 0, :])                              # (B, K, m, 4, 4)
+        return chained_marker_point(self.base_pose, cc.unsqueeze(1) @ corrections, self.tip_marker)
 
     def tips_and_rho_jacobian(self, rho: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`tips` (B, K, 3) and ∂tips/∂ρ (B, K, 2m, 3) in forward mode along the 2m Clarke coordinates.
-
-        The first layer and the skip term are affine in ρ, so their tangents are the map's rows; the value and
-        its 2m tangents go through the further layers as stacked rows (:func:`~dacr_learn.folding.tangent_rows`).
-        The chain base · T_1^CC·C_1 ⋯ T_m^CC·C_m · marker is differentiated by the kernel
-        (:func:`~dacr_learn.lie.twist_exp_and_tangents`, :func:`~dacr_learn.lie.chain_jacobian`), each CC factor
-        along its own two coordinates, each correction along all 2m."""
-        b, m, k, h = rho.shape[0], self.num_segments, self.ensemble, self.hidden_width
-        t = 2 * m
-        pre = torch.addmm(self.affine_offset, rho.flatten(1), self.affine_map).view(b, 1, k, m, -1)
-        rows = torch.cat([pre, self.affine_map.view(1, t, k, m, -1).expand(b, -1, -1, -1, -1)], 1)  # (B,1+T,K,m,H+6)
-        a = rows[..., :h].permute(2, 0, 3, 1, 4).reshape(k, b * m, 1 + t, h)
-        layers = [(getattr(self, f"w{i}"), getattr(self, f"b{i}")) for i in range(1, self.layers)]
-        a = tangent_rows(a, layers, self.activation)
-        xi = a.view(k, b, m, 1 + t, 6).permute(1, 0, 2, 3, 4) + rows[..., h:].permute(0, 2, 3, 1, 4)  # (B,K,m,1+T,6)
+        """:meth:`tips` (B, K, 3) and ∂tips/∂ρ (B, K, 2m, 3): the chain base · T_1^CC·C_1 ⋯ T_m^CC·C_m · marker
+        differentiated by the kernel (:func:`~dacr_learn.lie.twist_exp_and_tangents`,
+        :func:`~dacr_learn.lie.chain_jacobian`), each CC factor along its own two coordinates, each correction
+        along all 2m (:meth:`twists`)."""
+        k, t = self.ensemble, 2 * self.num_segments
+        xi = self.twists(rho, tangents=True)
         corr = twist_exp_and_tangents(xi[..., 0, :], xi[..., 1:, :])                       # (B,K,m,4,4), (B,K,m,T,3)²
         xi_cc = cc_twist(rho / self.radius.unsqueeze(-1), self.length).unsqueeze(1).expand(-1, k, -1, -1)
         cc = twist_exp_and_tangents(xi_cc, self.cc_directions)                            # along ρ_k: (m, T, 6)
         # interleaved factors T_1^CC, C_1, …, T_m^CC, C_m (B, K, 2m, ...)
         poses, ang, lin = (torch.stack([x, y], 3).flatten(2, 3) for x, y in zip(cc, corr, strict=True))
         tip, jac = chain_jacobian(poses, ang, lin, self.base_pose, self.tip_marker[:3])   # jac (B, K, 6, 2m·T)
-        return tip[..., :3, 3], jac[..., :3, :].unflatten(-1, (2 * m, t)).sum(-2).mT
+        return tip[..., :3, 3], jac[..., :3, :].unflatten(-1, (t, t)).sum(-2).mT
 
     def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:
         _check_servo(servo, self.num_servos)

@@ -32,7 +32,6 @@ from torch import Tensor, nn
 from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
 from ...lie import chain_jacobian, pose_from_parts, twist_exp_and_tangents
-from ...models import ACTIVATIONS
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
@@ -109,8 +108,7 @@ class HardwareFK(nn.Module):
         for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
             self.register_buffer(name, value.detach().to(dtype).contiguous())
         self.ensemble = len(model.members)
-        self.activation = activation_name([m.net for m in model.members])       # for tangent_rows
-        self.activation_fn = ACTIVATIONS[self.activation]()
+        self.activation = activation_name([m.net for m in model.members])
         self.spec = spec
 
     def clarke(self, servo: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor | None]:
@@ -145,38 +143,29 @@ class HardwareFK(nn.Module):
         drag = (eye - unit.unsqueeze(-1) * unit.unsqueeze(-2)) / norm.unsqueeze(-1)
         return memory, new, torch.where(inside.unsqueeze(-1), eye / self.play_width, drag)
 
-    def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None]):
-        """Corrected ρ' (B, K, m, 2) of every member and its tangents (B, K, m, 2, T), from the tangents
-        (∂ρ (B, m, 2, T), ∂memory or None) of the inputs (the FK path without tangents: :meth:`members_only`).
+    def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None] | None = None):
+        """Corrected ρ' (B, K, m, 2) of every member and, given the tangents (∂ρ (B, m, 2, T), ∂memory or None)
+        of the inputs, its tangents (B, K, m, 2, T) (else None).
 
-        Forward mode as stacked rows: per (batch, segment) the input value and its T tangents are 1 + T rows
-        through the same products (the first layer shared, the others batched over the members,
-        :func:`~dacr_learn.folding.tangent_rows`) (v4 default's AOTI Jacobian runner 94.9 → 79.3 µs)."""
+        Forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`): per (batch, segment) the input
+        value and its T tangents are 1 + T rows through the same products, the shared input through all K first
+        layers in one product, the K hidden and output layers batched over the members (bmm: a third of the
+        work of one block-diagonal product; v4 model's AOTI runner of the FK part 23.0 → 14.7 µs, of the
+        Jacobian 94.9 → 79.3 µs)."""
         x = rho if memory is None else torch.cat([rho, memory], -1)                        # (B, m, I)
-        dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)     # (B, m, I, T)
-        b, m, t = rho.shape[0], rho.shape[1], dx.shape[-1]
-        k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
-        rows = torch.cat([x.unsqueeze(2), dx.transpose(-1, -2)], 2)                        # (B, m, 1 + T, I)
-        value_row = (torch.arange(1 + t) == 0).to(rho.dtype).unsqueeze(-1)                  # bias on the value row
-        a = rows @ self.first_all + self.b_first_all.unsqueeze(1) * value_row               # (B, m, 1 + T, K·H)
-        a = a.view(b, m, 1 + t, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, 1 + t, h)
+        rows = x.unsqueeze(2)                                                              # (B, m, 1, I)
+        if tangent is not None:
+            dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)  # (B, m, I, T)
+            rows = torch.cat([rows, dx.transpose(-1, -2)], 2)                              # (B, m, 1 + T, I)
+        (b, m, n, _), (k, h) = rows.shape, self.w_hidden.shape[:2]
+        bias = self.b_first_all.unsqueeze(1)                                               # on the value row only
+        bias = bias * (torch.arange(n) == 0).to(rho.dtype).unsqueeze(-1) if n > 1 else bias
+        a = rows @ self.first_all + bias                                                   # (B, m, 1 + T, K·H)
+        a = a.view(b, m, n, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, n, h)
         a = tangent_rows(a, [(self.w_hidden, self.b_hidden), (self.w_last, self.b_last)], self.activation)
-        a = a.view(k, b, m, 1 + t, 2).transpose(0, 1)                                     # (B, K, m, 1 + T, 2)
-        out, dout = a[:, :, :, 0], a[:, :, :, 1:].transpose(-1, -2)                        # (B,K,m,2), (B,K,m,2,T)
-        return rho.unsqueeze(1) + out, tangent[0].unsqueeze(1) + dout
-
-    def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
-        """Corrected ρ' (B, K, m, 2) of every member: the shared input through all K first layers in one
-        product, then the K hidden and output layers as batched products over the members (bmm: a third
-        of the work of one block-diagonal product; v4 model's AOTI runner of this part 23.0 → 14.7 µs)."""
-        x = rho if memory is None else torch.cat([rho, memory], -1)
-        k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
-        a = x @ self.first_all + self.b_first_all                            # (B, m, K·H)
-        a = self.activation_fn(a).reshape(-1, k, h).transpose(0, 1)          # (K, B·m, H)
-        a = torch.baddbmm(self.b_hidden, a, self.w_hidden)
-        a = torch.baddbmm(self.b_last, self.activation_fn(a), self.w_last)   # (K, B·m, 2)
-        a = a.reshape(k, -1, self.num_segments, 2).transpose(0, 1)           # (B, K, m, 2)
-        return rho.unsqueeze(1) + a
+        a = a.view(k, b, m, n, 2).transpose(0, 1)                                         # (B, K, m, 1 + T, 2)
+        out = rho.unsqueeze(1) + a[:, :, :, 0]
+        return out, None if tangent is None else tangent[0].unsqueeze(1) + a[:, :, :, 1:].transpose(-1, -2)
 
     def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., m, 2, 3) from ρ (..., m, 2)
@@ -203,7 +192,7 @@ class HardwareFK(nn.Module):
         memory, new_state = None, None
         if self.history:
             memory, new_state, _ = self.play(rho, state, derivative=False)
-        corrected = self.members_only(rho, memory)
+        corrected = self.members(rho, memory)[0]
         tips = self.tip_only(corrected)
         tip, std = self.mean_std(tips, rho)
         return (tip, std, new_state) if self.history else (tip, std)
