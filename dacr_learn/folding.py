@@ -88,7 +88,7 @@ def tangent_rows(rows: Tensor, layers: Sequence[tuple[Tensor, Tensor]], activati
             else:
                 a = torch.bmm(flat, weight).view(*a.shape[:-1], -1) + bias.unsqueeze(1) * value_row
         else:
-            a = a @ weight + (bias if n == 1 else bias * value_row)
+            a = F.linear(a, weight.mT, bias) if n == 1 else a @ weight + bias * value_row
     return a
 
 

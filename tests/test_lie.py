@@ -180,3 +180,18 @@ def test_chain_jacobian_with_a_fixed_base_and_point_is_reverse_mode_autodiff():
     omega = lie.vee(torch.einsum("ijk,lj->ilk", ref[:3, :3], got_tip[:3, :3]).permute(2, 0, 1))
     torch.testing.assert_close(got_tip, tip(x0), atol=roundoff_tol(F64, 10.0), rtol=0)
     torch.testing.assert_close(jac, torch.cat([ref[:3, 3], omega.mT], dim=0), atol=roundoff_tol(F64, 100.0), rtol=0)
+
+
+def test_twist_chain_jacobian_is_the_composition_of_the_tensor_wrappers():
+    """The fused product-of-exponentials Jacobian (with rolls and fixed ends) equals twist_exp_and_tangents,
+    roll_z_and_tangents and chain_jacobian called one after the other."""
+    xi, dxi = twists(2 * 3, 0.7, seed=13).view(2, 3, 6), twists(2 * 3 * 4, 1.0, seed=14).view(2, 3, 4, 6)
+    alpha = torch.tensor([[0.3, -1.1, 0.0], [2.0, 0.5, -0.4]], dtype=F64)
+    alpha_row = torch.zeros(3, 4, 1, dtype=F64)
+    alpha_row[:, 3] = 1.0
+    base, point = twist_exp(twists(1, 1.0, seed=15)[0]), torch.tensor([0.1, 0.2, -0.3], dtype=F64)
+    poses = lie.roll_z_and_tangents(*lie.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
+    tip, jac = lie.twist_chain_jacobian(xi, dxi, alpha, alpha_row, base, point)
+    ref_tip, ref_jac = lie.chain_jacobian(*poses, base, point)
+    torch.testing.assert_close(tip, ref_tip, atol=roundoff_tol(F64, 10.0), rtol=0)
+    torch.testing.assert_close(jac, ref_jac, atol=roundoff_tol(F64, 100.0), rtol=0)

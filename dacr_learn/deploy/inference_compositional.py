@@ -8,7 +8,7 @@ and the products of the segment transforms.
   J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.deploy.inference.InferenceJacobian`: the segment twists and
   their tangents along the actuated features each segment depends on, in forward mode through the MLP (value
   and tangent rows stacked, :func:`~dacr_learn.folding.tangent_rows`), then the kernel's exponential with its
-  tangents, roll and chain product rule (:mod:`dacr_learn.lie`).
+  tangents, roll and chain product rule (:func:`dacr_learn.lie.twist_chain_jacobian`).
 
 Both roll a twisting segment by its α first, T_k = Rz(α_k)·head (``CompositionalFK.roll``): α_k is a joint of the
 vector, picked by ``roll_select`` (N, m)."""
@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from ..clarke_space import ClarkeFold, feature_columns
 from ..compositional import HEADS
 from ..folding import affine_probe, linear_layers, tangent_rows
-from ..lie import chain_jacobian, pose_from_parts, roll_z, roll_z_and_tangents, twist_exp, twist_exp_and_tangents
+from ..lie import pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
 from ..models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 from .inference import FoldedMLP
 
@@ -76,11 +76,11 @@ class InferenceCompositionalFK(nn.Module):
     def segment_transforms(self, q: Tensor) -> Tensor:
         """T_k (B, m, 4, 4) of every segment."""
         out = self.segment_outputs(self.fold.inputs(q))[..., 0, :]
+        alpha = q @ self.roll_select if self.rolls else None
         if self.rotation == "twist":
-            t = twist_exp(out)
-        else:
-            t = pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
-        return roll_z(t, q @ self.roll_select) if self.rolls else t
+            return twist_exp(out, alpha)
+        t = pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3], self.bottom)
+        return t if alpha is None else roll_z(t, alpha)
 
     def forward(self, q: Tensor) -> Tensor:
         t = self.segment_transforms(q)
@@ -104,8 +104,7 @@ class InferenceCompositionalJacobian(nn.Module):
       k's first layer depends on (``columns`` (m, T), padded with zero seeds): 2 per type-I segment without
       context, instead of all D.
     - The segment transforms, their spatial tangents, the roll and the chain are the kernel's
-      (:func:`~dacr_learn.lie.twist_exp_and_tangents`, :func:`~dacr_learn.lie.roll_z_and_tangents`,
-      :func:`~dacr_learn.lie.chain_jacobian`): pointwise, no 4 × 4 tangent products.
+      (:func:`~dacr_learn.lie.twist_chain_jacobian`): pointwise, no 4 × 4 tangent products.
     - The per-segment columns (B, 6, m·T) become J_f and J_q in one product with a constant map
       [selection | selection·∂f/∂q] when ∂f/∂q is constant (no twisting segment); otherwise J_q =
       J_f·∂f/∂q(q).
@@ -148,10 +147,8 @@ class InferenceCompositionalJacobian(nn.Module):
         fk = self.fk
         u = fk.fold.inputs(q)
         xi = fk.segment_outputs(u, self.seed)                               # (B, m, 1 + T, 6)
-        poses, ang, lin = twist_exp_and_tangents(xi[..., 0, :], xi[..., 1:, :])
-        if fk.rolls:                                                        # Rz(α)·exp(ξ) and its tangents
-            poses, ang, lin = roll_z_and_tangents(poses, ang, lin, q @ fk.roll_select, self.roll_row)
-        pose, jac = chain_jacobian(poses, ang, lin)                         # (B, 4, 4), (B, 6, m·T)
+        alpha = q @ fk.roll_select if fk.rolls else None                    # T_k = Rz(α_k)·exp(ξ_k^)
+        pose, jac = twist_chain_jacobian(xi[..., 0, :], xi[..., 1:, :], alpha, self.roll_row)   # J (B, 6, m·T)
         jac = jac @ self.pick                                               # (B, 6, D [+ N])
         if self.constant_dfdq:
             return pose, jac[..., :self.num_features], jac[..., self.num_features:]

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_twist, effective_features
-from ...lie import chain_jacobian, pose_from_parts, twist_exp, twist_exp_and_tangents
+from ...lie import pose_from_parts, twist_chain_jacobian, twist_exp
 from .checkpoint import HardwareModel
 from .inference import (
     HardwareFK,
@@ -167,17 +167,15 @@ class CompositionalHardwareFK(nn.Module):
 
     def tips_and_rho_jacobian(self, rho: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`tips` (B, K, 3) and ∂tips/∂ρ (B, K, 2m, 3): the chain base · T_1^CC·C_1 ⋯ T_m^CC·C_m · marker
-        differentiated by the kernel (:func:`~dacr_learn.lie.twist_exp_and_tangents`,
-        :func:`~dacr_learn.lie.chain_jacobian`), each CC factor along its own two coordinates, each correction
-        along all 2m (:meth:`twists`)."""
-        k, t = self.ensemble, 2 * self.num_segments
-        xi = self.twists(rho, tangents=True)
-        corr = twist_exp_and_tangents(xi[..., 0, :], xi[..., 1:, :])                       # (B,K,m,4,4), (B,K,m,T,3)²
+        differentiated by the kernel (:func:`~dacr_learn.lie.twist_chain_jacobian`), each CC factor along its own
+        two coordinates, each correction along all 2m (:meth:`twists`)."""
+        b, k, t = rho.shape[0], self.ensemble, 2 * self.num_segments
+        xi = self.twists(rho, tangents=True)                                               # (B, K, m, 1 + T, 6)
         xi_cc = cc_twist(rho / self.radius.unsqueeze(-1), self.length).unsqueeze(1).expand(-1, k, -1, -1)
-        cc = twist_exp_and_tangents(xi_cc, self.cc_directions)                            # along ρ_k: (m, T, 6)
-        # interleaved factors T_1^CC, C_1, …, T_m^CC, C_m (B, K, 2m, ...)
-        poses, ang, lin = (torch.stack([x, y], 3).flatten(2, 3) for x, y in zip(cc, corr, strict=True))
-        tip, jac = chain_jacobian(poses, ang, lin, self.base_pose, self.tip_marker[:3])   # jac (B, K, 6, 2m·T)
+        # interleaved factors T_1^CC, C_1, …, T_m^CC, C_m: twists (B, K, 2m, 6) and tangents (B, K, 2m, T, 6)
+        twists = torch.stack([xi_cc, xi[..., 0, :]], 3).flatten(2, 3)
+        tangents = torch.stack([self.cc_directions.expand(b, k, -1, -1, -1), xi[..., 1:, :]], 3).flatten(2, 3)
+        tip, jac = twist_chain_jacobian(twists, tangents, base=self.base_pose, point=self.tip_marker[:3])
         return tip[..., :3, 3], jac[..., :3, :].unflatten(-1, (t, t)).sum(-2).mT
 
     def forward(self, servo: Tensor) -> tuple[Tensor, Tensor]:

@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
-from ...lie import chain_jacobian, pose_from_parts, twist_exp_and_tangents
+from ...lie import pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
@@ -66,9 +66,9 @@ def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions:
     """Marker point base · T₁ ⋯ T_m · marker (:func:`cc_segment_poses`, :func:`chained_marker_point`) and its
     derivative: ρ (..., m, 2) [m] → tip (..., 3) [m], ∂tip/∂ρ (..., m, 2, 3) [m/m]. The kernel's exponential
     with its tangents along ``directions`` = :func:`cc_twist_directions` (radius) and its chain rule with the
-    base pose and the marker as fixed ends (:func:`~dacr_learn.lie.chain_jacobian`)."""
+    base pose and the marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
     xi = cc_twist(rho / radius.unsqueeze(-1), length)
-    tip, jac = chain_jacobian(*twist_exp_and_tangents(xi, directions), base_pose, tip_marker[:3])
+    tip, jac = twist_chain_jacobian(xi, directions, base=base_pose, point=tip_marker[:3])
     return tip[..., :3, 3], jac[..., :3, :].unflatten(-1, (rho.shape[-2], 2)).movedim(-3, -1)
 
 
