@@ -371,18 +371,22 @@ def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor, base: Tensor | None 
     return _chain(*_rot_pos(poses), _directions(ang), _directions(lin), base, point)
 
 
-def twist_chain_jacobian(xi: Tensor, dxi: Tensor, alpha: Tensor | None = None, alpha_row: Tensor | None = None,
-                         base: Tensor | None = None, point: Tensor | None = None) -> tuple[Tensor, Tensor]:
+def twist_chain_jacobian(xi: Tensor | tuple, dxi: Tensor | tuple, alpha: Tensor | None = None,
+                         alpha_row: Tensor | None = None, base: Tensor | None = None,
+                         point: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Tip pose and Jacobian of a product of exponentials, in component form from the twists to J (one layout
     conversion in, one out): :func:`twist_exp_and_tangents`, [:func:`roll_z_and_tangents`,]
     :func:`chain_jacobian` in one call.
 
     xi (..., n, 6) twists of the factors E_k = [Rz(α_k)·]exp(ξ_k^); dxi (..., n, T, 6) (broadcast) their tangents
-    along T directions each; ``alpha`` (..., n) [rad] rolls with ``alpha_row`` (..., n, T, 1), 1 on the direction
-    that is α_k itself; ``base``, ``point``: fixed ends as in :func:`chain_jacobian`. Returns the tip pose
-    (..., 4, 4) and J (..., 6, n·T).
+    along T directions each; or both as 6 components, xi's (..., n) and dxi's (T, ..., n) (broadcast), where
+    None is an exact zero that costs no operation (e.g. a CC twist's, :func:`~.kinematics.cc_transform`);
+    ``alpha`` (..., n) [rad] rolls with ``alpha_row`` (..., n, T, 1), 1 on the direction that is α_k itself;
+    ``base``, ``point``: fixed ends as in :func:`chain_jacobian`. Returns the tip pose (..., 4, 4) and
+    J (..., 6, n·T).
     """
-    c, d = components(xi), _directions(dxi.expand(*xi.shape[:-1], *dxi.shape[-2:]))
+    c = components(xi) if isinstance(xi, Tensor) else xi
+    d = _directions(dxi.expand(*xi.shape[:-1], *dxi.shape[-2:])) if isinstance(dxi, Tensor) else dxi
     rot, pos, [(b, dp)] = exp_components_and_tangents(c[:3], c[3:], [(d[:3], d[3:])])
     if alpha is not None:
         rows = alpha_row.expand(*xi.shape[:-1], *alpha_row.shape[-2:])[..., 0].movedim(-1, 0)
@@ -392,8 +396,8 @@ def twist_chain_jacobian(xi: Tensor, dxi: Tensor, alpha: Tensor | None = None, a
 
 def _chain(rot: Rot3, pos: Vec3, b: tuple, dp: tuple, base: Tensor | None, point: Tensor | None):
     """:func:`chain_components` of factors in component form (..., n) with tangents (T, ..., n), fixed ends."""
-    n = pos[0].shape[-1]
-    at = lambda c, k: tuple(x[..., k] for x in c)  # noqa: E731
+    n = next(x for x in pos if x is not None).shape[-1]
+    at = lambda c, k: tuple(None if x is None else x[..., k] for x in c)  # noqa: E731
     rots, poss = [at(rot, k) for k in range(n)], [at(pos, k) for k in range(n)]
     tangents = [[(at(b, k), at(dp, k))] for k in range(n)]
     if base is not None:
@@ -404,7 +408,9 @@ def _chain(rot: Rot3, pos: Vec3, b: tuple, dp: tuple, base: Tensor | None, point
         poss.append(components(point))
         tangents.append([])
     tip_rot, tip_pos, cols = chain_components(rots, poss, tangents)
-    entries = dense(tuple(x for c in cols for (v, w) in c for x in (*v, *w)), b[0][..., 0])   # (factor, row)
+    entries = [x for c in cols for (v, w) in c for x in (*v, *w)]                  # (factor, row), (T, ...)
+    given = [x for x in entries if x is not None]
+    entries = dense(entries, given[0].expand(torch.broadcast_shapes(*(x.shape for x in given))))
     jac = torch.stack(entries, dim=-1).movedim(0, -1).unflatten(-2, (n, 6)).transpose(-3, -2)   # (..., 6, n, T)
     return pose_of_components(tip_rot, tip_pos), jac.flatten(-2)
 

@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
-from ...lie import pose_from_parts, twist_chain_jacobian
+from ...lie import components, pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
@@ -67,8 +67,10 @@ def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions:
     derivative: ρ (..., m, 2) [m] → tip (..., 3) [m], ∂tip/∂ρ (..., m, 2, 3) [m/m]. The kernel's exponential
     with its tangents along ``directions`` = :func:`cc_twist_directions` (radius) and its chain rule with the
     base pose and the marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
-    xi = cc_twist(rho / radius.unsqueeze(-1), length)
-    tip, jac = twist_chain_jacobian(xi, directions, base=base_pose, point=tip_marker[:3])
+    u = components(rho / radius.unsqueeze(-1))                                        # u_x, u_y (..., m)
+    dw = directions[..., 3:5].permute(1, 2, 0).unflatten(-1, (*[1] * (rho.dim() - 2), -1))   # dω_x, dω_y (T, 1.., m)
+    xi, dxi = (None, None, length, -u[1], u[0], None), (None, None, None, dw[:, 0], dw[:, 1], None)   # zeros skipped
+    tip, jac = twist_chain_jacobian(xi, dxi, base=base_pose, point=tip_marker[:3])
     return tip[..., :3, 3], jac[..., :3, :].unflatten(-1, (rho.shape[-2], 2)).movedim(-3, -1)
 
 
