@@ -21,15 +21,16 @@ $(STAMP): pyproject.toml constraints.txt
 train: $(STAMP)
 	$(PY) train.py fit --config configs/default.yaml
 
-# The suite runs twice: first with one torch/BLAS thread, then with two threads and torch's portable
-# (non-SIMD) CPU kernels (ATEN_CPU_CAPABILITY=default, oneDNN limited to SSE4.1): other float reduction
+# The suite runs once with one torch/BLAS thread; then the tests whose verdict depends on float reduction
+# order (marker reduction_order, listed in tests/reduction_order.py) run again with two threads and torch's
+# portable (non-SIMD) CPU kernels (ATEN_CPU_CAPABILITY=default, oneDNN limited to SSE4.1): other reduction
 # orders, as on another CPU, so a test that only passes bit for bit here fails here first. OpenMP threads
 # sleep when idle (OMP_WAIT_POLICY=PASSIVE): spinning threads slow everything on a shared 2-core machine.
 test: $(STAMP)
 	$(PY) -m ruff check .
 	DACR_TEST_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE $(PY) -m pytest -q
 	DACR_TEST_THREADS=2 OMP_NUM_THREADS=2 OPENBLAS_NUM_THREADS=2 OMP_WAIT_POLICY=PASSIVE ATEN_CPU_CAPABILITY=default ONEDNN_MAX_CPU_ISA=SSE41 \
-		DACR_TEST_AOTI=0 $(PY) -m pytest -q -m "not slow" -p no:cacheprovider
+		DACR_TEST_AOTI=0 $(PY) -m pytest -q -m reduction_order -p no:cacheprovider
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

@@ -15,8 +15,11 @@ docs/hardware.md).
 Two tasks: a circle of ``--radius`` mm around the model's rest tip (command 0), ``--laps`` laps of
 ``--period`` steps in the motion-capture xy plane ``--drop`` mm below the rest tip, and static targets
 (the model's tips at a few training commands, reachable by construction), each held for ``--hold``
-steps. Printed: tracking RMS / max [mm] and the controller step's p50 latency [µs]; written:
-``--out``/summary.json.
+steps. The circle starts at the command the IK solver gives for its first point
+(:func:`dacr_learn.solve_ik` on the saved model the export was made from, ``--ckpt``, position only: the
+solution nearest the rest command, inside the recorded servo range); the static targets start at the rest
+command, so that they test the controller's own approach. Printed: the initial command's error, tracking
+RMS / max [mm] and the controller step's p50 latency [µs]; written: ``--out``/summary.json.
 
     .venv/bin/python -m dacr_learn.hardware --data data/ftdcr_v4 --robot configs/robots/ftdcr_v4_calibrated.yaml \\
         --out runs/ftdcr_v4 --seeds 0 --save runs/ftdcr_v4_model
@@ -39,9 +42,11 @@ from dacr_learn.console import run_cli  # noqa: E402
 from dacr_learn.hardware.deploy.control import (  # noqa: E402
     ServoControl,
     circle,
+    initial_command,
     load_hardware_export,
     run_control,
     servo_signs,
+    source_model,
     static_targets,
     tracking_errors,
     training_commands,
@@ -54,6 +59,9 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--export", type=Path, default=ROOT / "runs" / "ftdcr_v4_model" / "export",
                    help="hardware model export (python -m dacr_learn.export --ckpt model.pt --out DIR)")
+    p.add_argument("--ckpt", type=Path, default=None,
+                   help="the saved model the export was made from, whose IK gives the initial command "
+                        "(default: the checkpoint its metadata names)")
     p.add_argument("--train", type=Path, default=ROOT / "data" / "ftdcr_v4" / "train.csv",
                    help="training recording whose command range bounds the servos")
     p.add_argument("--radius", type=float, default=10.0, help="circle radius [mm]")
@@ -72,19 +80,29 @@ def main(argv: list[str] | None = None) -> dict:
         raise FileNotFoundError(f"{args.export}: no hardware model export (metadata.json missing); "
                                 "build one with the commands in this script's docstring")
     fk, jac, init, meta = load_hardware_export(args.export)
+    model = source_model(args.export, meta, args.ckpt)
     commands = training_commands(meta["servo_ids"], args.train)
     lower, upper = commands.min(0).values, commands.max(0).values          # the box of the training commands
     config = ServoControl(gain=args.gain, retension=args.retension)
     pull_sign = servo_signs(meta)
+    tip_of = lambda u: fk(u[None], *(() if init is None else (init(u[None]),)))[0][0].to(_F64)  # noqa: E731
     rest = torch.zeros(len(meta["servo_ids"]), dtype=_F64).clamp(lower, upper)
-    state0 = None if init is None else init(rest[None])
-    rest_tip = fk(rest[None], *(() if init is None else (state0,)))[0][0]
-    path = circle(rest_tip, 1e-3 * args.radius, 1e-3 * args.drop, args.period).repeat(args.laps, 1)
-    results = {"circle": tracking_errors(run_control(fk, jac, path, rest, state0, lower, upper, config, args.settle,
+    path = circle(tip_of(rest), 1e-3 * args.radius, 1e-3 * args.drop, args.period).repeat(args.laps, 1)
+    start, ik_error = initial_command(model, path[0], rest)                # the IK's command for the first point
+    if not bool(((start >= lower) & (start <= upper)).all()):
+        raise ValueError(f"--train {args.train}: its command box does not hold the model's recorded servo range "
+                         f"(the IK's command {start.tolist()} mm lies outside it); pass the model's training recording")
+    state0 = None if init is None else init(start[None])
+    initial = {"servo_mm": start.tolist(), "ik_error_mm": 1e3 * ik_error,
+               "export_error_mm": 1e3 * float((tip_of(start) - path[0]).norm()),
+               "largest_change_from_rest_mm": float((start - rest).abs().max()),
+               "from": "dacr_learn.solve_ik on the saved model, position only, the solution nearest the rest command"}
+    results = {"circle": tracking_errors(run_control(fk, jac, path, start, state0, lower, upper, config, args.settle,
                                             pull_sign))}
     results.update(static_targets(fk, jac, init, commands, rest, lower, upper, config, args.hold, pull_sign))
     summary = {"export": str(args.export), "model": meta["model"], "robot": meta["robot"]["name"],
                "history": meta["history"], "plant": "the learned model itself (exported fk module)",
+               "initial_command": initial,
                "servo_box_mm": {"lower": lower.tolist(), "upper": upper.tolist()}, "controller": asdict(config),
                "circle": {"radius_mm": args.radius, "drop_mm": args.drop, "period_steps": args.period,
                           "laps": args.laps, "settle_steps": args.settle}, "results": results}
@@ -98,7 +116,10 @@ def print_summary(summary: dict, out: Path) -> None:
     print(f"\nresolved-rate control of the exported hardware model {summary['model']} ({summary['robot']}); "
           f"THE PLANT IS THE LEARNED MODEL ITSELF (its exported fk module, play state passed on each step), "
           f"so this checks the controller and the deployed modules, not the real robot")
-    c = summary["results"]["circle"]
+    c, i = summary["results"]["circle"], summary["initial_command"]
+    print(f"  initial command (IK of the saved model for the circle's first point, nearest the rest command): "
+          f"{i['ik_error_mm']:.2e} mm from it per the model, {i['export_error_mm']:.2e} mm per the export, "
+          f"servos up to {i['largest_change_from_rest_mm']:.2f} mm from rest")
     print(f"  circle r = {summary['circle']['radius_mm']:.0f} mm, {summary['circle']['laps']} laps of "
           f"{summary['circle']['period_steps']} steps: RMS {c['rms_mm']:.3f} mm, median {c['median_mm']:.4f} mm, "
           f"p95 {c['p95_mm']:.3f} mm, max {c['max_mm']:.3f} mm, "

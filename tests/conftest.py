@@ -391,6 +391,24 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
+@pytest.hookimpl(tryfirst=True)        # before -k / -m deselect: every collected module is checked
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of tests/reduction_order.py ``reduction_order``; a listed name missing from its collected
+    module is an error (a renamed test must not drop out of `make test`'s second pass unnoticed)."""
+    from reduction_order import REDUCTION_ORDER
+
+    modules = {}
+    for item in items:
+        module = item.module.__name__ + ".py" if getattr(item, "module", None) else None
+        modules[module] = item.module if module else None
+        if item.originalname in REDUCTION_ORDER.get(module, ()):
+            item.add_marker(pytest.mark.reduction_order)
+    stale = [f"{m}::{name}" for m, mod in modules.items() if m in REDUCTION_ORDER
+             for name in REDUCTION_ORDER[m] if not hasattr(mod, name)]
+    if stale:
+        raise pytest.UsageError(f"tests/reduction_order.py lists tests that do not exist: {stale}")
+
+
 def pytest_report_header(config):
     from hypothesis import settings as current
 

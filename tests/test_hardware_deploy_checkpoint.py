@@ -16,6 +16,7 @@ from hardware_testkit import (
     batch_prediction,
     command_recording,
     labelled_servo_map,
+    sigma_roundoff_tol,
     synthetic_model,
     v4_commands,
 )
@@ -140,7 +141,7 @@ def test_round_trip_is_weights_only_and_predicts_the_same(v4_slice, compositiona
     servo = v4_commands(v4_slice)
     (tip, std), (tip_l, std_l) = model.predict(servo), loaded.predict(servo)
     assert (tip_l - tip).abs().max() <= roundoff_tol(torch.float32, V4_TIP_SCALE)
-    assert (std_l - std).abs().max() <= roundoff_tol(torch.float32, float(std.max()))
+    assert (std_l - std).abs().max() <= sigma_roundoff_tol(model, torch.float32, V4_TIP_SCALE)
     assert tip.shape == std.shape == (servo.shape[0], 3) and bool((std > 0).all())
     assert torch.equal(loaded.support_score(servo), model.support_score(servo))
     assert loaded.sigma_of().terms == ("ensemble", "bend")
@@ -223,3 +224,23 @@ def test_checkpoint_stores_the_sigma_model_and_predict_exposes_sigma(tmp_path):
     assert torch.allclose(model.predict(split)[1], model.sigma(preds.std(0)), rtol=1e-12, atol=0)
     with pytest.raises(ValueError, match=r"servo_mm: expected shape \(n, 8\)"):
         model.predict(servo_mm[:, :5])
+
+
+def test_servo_range_is_the_stored_recorded_range_else_the_examples(tmp_path):
+    """``servo_range``: info["servo_range_mm"] (the whole training recording, stored since 2026-11-28) through a
+    weights-only round trip; a file without it gets the range of its example commands; neither: a ValueError."""
+    model = synthetic_model(history=False, members=1)
+    old = model.servo_range()                                             # a file saved before the entry existed
+    assert torch.equal(old[0], model.examples.amin(0)) and torch.equal(old[1], model.examples.amax(0))
+    recorded = 1e3 * command_recording(200, 0).servo
+    model.info["servo_range_mm"] = {"lower": recorded.amin(0).tolist(), "upper": recorded.amax(0).tolist()}
+    lower, upper = load_hardware_model(save_hardware_model(model, tmp_path / "m.pt")).servo_range()
+    assert lower.dtype == torch.float64 and torch.equal(lower, recorded.amin(0))        # stored values, not computed
+    assert torch.equal(upper, recorded.amax(0))
+    model.info["servo_range_mm"] = {"lower": [0.0] * 3, "upper": [1.0] * 3}
+    with pytest.raises(ValueError, match="servo_range_mm.*8 values"):
+        model.servo_range()
+    model.info.pop("servo_range_mm")
+    model.examples = None
+    with pytest.raises(ValueError, match="recorded servo range is unknown"):
+        model.servo_range()

@@ -2,7 +2,7 @@
 examples/control_hardware_model.py, the script that runs it on an export.
 
 The plant and the Jacobian are the small synthetic hardware model of tests/hardware_testkit.py (a history model:
-its play state is passed on each step), in memory and exported.
+its play state is passed on each step), in memory and exported; the initial command is the IK of the saved model.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from hardware_testkit import IDS, TIP_SCALE, command_recording, synthetic_model,
 
 from dacr_learn import export as dexport
 from dacr_learn.hardware.deploy import control
-from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
+from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
 from dacr_learn.hardware.deploy.inference import HardwareFK, HardwareJacobian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -96,10 +96,44 @@ def test_controller_runs_the_exported_modules_causally(tmp_path):
     assert float(err[-1]) <= max(1e-3 * float(err[0]), roundoff_tol(torch.float32, TIP_SCALE, ulps=4096))
 
 
+def _saved(tmp_path, members: int = 3):
+    """The history test model as --save writes it (its recorded servo range: the 200 training-like commands),
+    loaded back from the file, and those commands [mm]."""
+    model = synthetic_model(history=True, members=members)
+    commands = 1e3 * command_recording(200, 0).servo
+    model.info["servo_range_mm"] = {"lower": commands.amin(0).tolist(), "upper": commands.amax(0).tolist()}
+    path = save_hardware_model(model, tmp_path / "model.pt")
+    return load_hardware_model(path), path, commands
+
+
+def test_the_initial_command_reaches_the_target_inside_the_recorded_range(tmp_path):
+    """initial_command: IK of the saved model; checked through the folded float64 FK module with the play state
+    started at the command (independent of the eager ensemble the solver's verdict uses)."""
+    model, _, commands = _saved(tmp_path)
+    fk = HardwareFK(model, torch.float64)
+    lower, upper = model.servo_range()
+    rest = torch.zeros(len(IDS), dtype=torch.float64)
+    for row in (37, 120):
+        goal = commands[row]
+        target = fk(goal[None], fk.initial_state(goal[None]))[0][0].double()       # reachable by construction
+        u0, err = control.initial_command(model, target, rest)
+        assert u0.shape == (len(IDS),) and bool(((u0 >= lower) & (u0 <= upper)).all()), "inside the recorded range"
+        reached = fk(u0[None], fk.initial_state(u0[None]))[0][0]
+        assert float((reached - target).norm()) <= 1e-6 + roundoff_tol(torch.float64, TIP_SCALE)   # IK tolerance
+        assert err <= 1e-6 and float((u0 - rest).abs().max()) > 0.1                 # a real move from rest [mm]
+        near, _ = control.initial_command(model, target, goal)                     # warm start on an exact answer
+        assert float((near - goal).abs().max()) <= 1e-3, "the solution nearest the current command comes first"
+    far = fk(rest[None], fk.initial_state(rest[None]))[0][0].double() + torch.tensor([0.0, 0.0, 0.5],
+                                                                                       dtype=torch.float64)
+    with pytest.raises(ValueError, match="no command in the recorded servo range reaches it"):
+        control.initial_command(model, far, rest)
+    with pytest.raises(ValueError, match="target \\(3,\\) \\[m\\] and current \\(8,\\)"):
+        control.initial_command(model, far[:2], rest)
+
+
 def test_the_example_script_tracks_a_circle_on_an_export(tmp_path, capsys):
-    model = synthetic_model(history=True, members=2)
-    dexport.export_checkpoint(save_hardware_model(model, tmp_path / "model.pt"), tmp_path / "export", aoti=False)
-    commands = 1e3 * command_recording(200, 0).servo                              # [mm], columns in IDS order
+    model, path, commands = _saved(tmp_path, members=2)
+    dexport.export_checkpoint(path, tmp_path / "export", aoti=False)
     train = write_csv(tmp_path / "train.csv", ["timestamp", "pattern_label", *(f"servo_{i}_mm" for i in IDS),
                                                "tip_x", "tip_y", "tip_z"],
                       [[k, "p", *row, 0.0, 0.0, 0.0] for k, row in enumerate(commands.tolist())])
@@ -108,7 +142,14 @@ def test_the_example_script_tracks_a_circle_on_an_export(tmp_path, capsys):
                             "--drop", "0", "--period", "100", "--laps", "1", "--settle", "40", "--hold", "40",
                             "--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / "summary.json").is_file() and "THE PLANT IS THE LEARNED MODEL" in capsys.readouterr().out
+    start = summary["initial_command"]                                        # the IK's command for the first point
+    u0 = torch.tensor(start["servo_mm"], dtype=torch.float64)
+    assert bool(((u0 >= commands.amin(0)) & (u0 <= commands.amax(0))).all()) and start["ik_error_mm"] <= 1e-3
+    assert start["export_error_mm"] <= 1e3 * roundoff_tol(torch.float32, TIP_SCALE, ulps=4096)   # float32 modules
     circle = summary["results"]["circle"]
     assert circle["steps"] == 100 and circle["rms_mm"] < 0.05                      # a 0.5 mm circle, tracked
     statics = [r for name, r in summary["results"].items() if name.startswith("static")]
     assert len(statics) == 4 and all(r["final_error_mm"] < r["start_error_mm"] for r in statics)
+    other = save_hardware_model(synthetic_model(history=True, members=1), tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="not the checkpoint .* was exported from"):
+        example.main(["--export", str(tmp_path / "export"), "--ckpt", str(other), "--train", str(train)])

@@ -13,7 +13,15 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import roundoff_tol
-from hardware_testkit import TIP_SCALE, V4_TIP_SCALE, batch_prediction, command_recording, strained_cc, synthetic_model
+from hardware_testkit import (
+    TIP_SCALE,
+    V4_TIP_SCALE,
+    batch_prediction,
+    command_recording,
+    sigma_roundoff_tol,
+    strained_cc,
+    synthetic_model,
+)
 
 from dacr_learn.hardware.deploy.checkpoint import HardwareModel
 from dacr_learn.hardware.deploy.inference import (
@@ -163,8 +171,6 @@ def test_inference_module_includes_the_strain(v4_train_head):
 def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     """HardwareFK (what dacr_learn.export exports) gives predict's σ for a σ model of the ensemble and bend
     terms (float64), and refuses terms it cannot compute instead of silently returning another σ."""
-    from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
-
     from dacr_learn.hardware.deploy.inference import HardwareFK
 
     model = synthetic_model(history=False)
@@ -173,10 +179,9 @@ def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     tip, sigma = model.predict(servo_mm)
     tip_fk, sigma_fk = HardwareFK(model, torch.float64)(servo_mm.double())
     # The library model runs its kinematics in float32: tips agree to float32 rounding at tip scale, and σ
-    # to that times the ensemble coefficient (the members' std is a difference of such tips).
-    tol = roundoff_tol(torch.float32, TIP_SCALE)
-    assert torch.allclose(tip_fk, tip, rtol=0, atol=tol)
-    assert torch.allclose(sigma_fk, sigma, rtol=0, atol=2 * tol)
+    # to that times the coefficients (the members' std is a difference of such tips).
+    assert torch.allclose(tip_fk, tip, rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))
+    assert torch.allclose(sigma_fk, sigma, rtol=0, atol=sigma_roundoff_tol(model, torch.float32, TIP_SCALE))
     assert not torch.allclose(sigma_fk, HardwareFK(synthetic_model(history=False), torch.float64)(servo_mm.double())[1])
     model.sigma_model = SigmaModel(("support",), [0.1], 2e-4)
     with pytest.raises(ValueError, match="unsupported: \\['support'\\]"):

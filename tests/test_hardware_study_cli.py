@@ -7,8 +7,10 @@ default model chosen on the proxies; ``--save`` bundles the final runs' models);
 """
 from __future__ import annotations
 
+import io
 import json
 import math
+import sys
 from pathlib import Path
 
 import pytest
@@ -127,13 +129,36 @@ def test_cli_on_ftdcr_v6_without_val_chooses_a_default_on_train(tmp_path):
 # --------------------------------------------------------------------------------------------------
 
 
-def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path):
+class _Flushes(io.StringIO):
+    """A stdout that keeps, at each flush, the text written so far."""
+
+    def __init__(self):
+        super().__init__()
+        self.flushed: list[str] = []
+
+    def flush(self):
+        self.flushed.append(self.getvalue())
+        super().flush()
+
+
+def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path, monkeypatch):
     from dacr_learn.hardware.study.cli import main
 
     data, robot = labelled_robot_dir
     out = tmp_path / "run"
+    stdout = _Flushes()
+    monkeypatch.setattr(sys, "stdout", stdout)
     report = main(["--data", str(data), "--robot", str(robot), "--out", str(out),
                    "--models", "linear_raw", "cc", "--seeds", "0"])
+    monkeypatch.undo()
+    # progress: a start line, then a line per model as its proxies and as its final runs finish, each flushed as
+    # it is printed (stdout redirected to a log file is block-buffered: unflushed, they would show at the end)
+    lines = [line for line in stdout.getvalue().splitlines() if line.startswith("[")]
+    assert lines[0].startswith("[start] 2 models") and len(lines) == 5, lines
+    for stage in ("proxy", "final"):
+        shown = [line for line in lines if line.startswith(f"[{stage} ")]
+        assert [line.split()[1:3] for line in shown] == [["1/2]", "linear_raw"], ["2/2]", "cc"]], shown
+    assert all(any(text.endswith(line + "\n") for text in stdout.flushed) for line in lines)
     results = json.loads((out / "results.json").read_text())
     assert results["default_model"] == report["default_model"] == "cc"
     assert results["selection"]["candidates"] == ["cc"] and results["val"] is None

@@ -25,6 +25,9 @@ def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(labelled_rob
     assert float(model.floor) == pytest.approx(1e-4, rel=0.35)             # 40 rows × 3 axes of 0.1 mm noise
     assert float(cal.floor) == pytest.approx(float(model.floor), rel=0.35)
     hw = fit_hardware_model(setup, "cc", [0], sigma=cal)
+    servo = 1e3 * setup.train_rec.servo                                  # the whole recording [mm]
+    lower, upper = hw.servo_range()                                      # the IK's box: all of it, not the examples'
+    assert torch.equal(lower, servo.amin(0)) and torch.equal(upper, servo.amax(0))      # stored, not computed
     hw.sigma_model = model
     tip, sigma = hw.predict(setup.train)
     assert (tip - setup.train.cc_tip).abs().max() <= roundoff_tol(torch.float32, 0.15)   # member kinematics in float32

@@ -39,3 +39,39 @@ def _context(labelled_robot_dir) -> FitContext:
     for p in cc.parameters():
         p.requires_grad_(False)
     return FitContext(cc, smap, rec.servo_ids, make_split(rec, spec, smap, cc))
+
+
+def test_shared_pieces_log_a_progress_line_each_as_they_finish(monkeypatch):
+    """submit_warmups: each shared piece (one per key, whichever fits ask for it) is submitted once, and a line is
+    logged when it finishes, in the order they finish (here a pool whose futures finish when told to)."""
+    from concurrent.futures import Future
+
+    from dacr_learn.hardware.study import benchmark
+
+    pieces = {"a": [("cal-1", print, ()), ("cal-1-synthetic-4000-0", print, ())], "b": [("cal-1", print, ())],
+              "c": [("cal-2", print, ())]}
+    monkeypatch.setattr(benchmark, "build_model", lambda name, ctx, seed: name)
+    monkeypatch.setattr(benchmark, "warmups", lambda model, train: pieces[model])
+    monkeypatch.setattr(benchmark, "model_seeds", lambda name, seeds: list(seeds))
+
+    class Pool:
+        jobs = 2
+
+        def __init__(self):
+            self.futures: list[Future] = []
+
+        def submit(self, fn, *args):
+            self.futures.append(Future())
+            return self.futures[-1]
+
+    class Ctx:
+        train = None
+
+    pool, lines = Pool(), []
+    futures = benchmark.submit_warmups(pool, [(Ctx, name, [0]) for name in "abc"], lines.append)
+    assert len(futures) == 3 and lines == []                                 # cal-1 once, cal-2, the synthetic tips
+    for k, seconds in ((2, 5.0), (0, 61.0)):
+        pool.futures[k].set_result((None, seconds))
+    pool.futures[1].set_exception(RuntimeError("failed"))                   # surfaced by the caller, not logged
+    assert lines == ["[shared 1/3] Cosserat synthetic tips ready (5 s)",
+                     "[shared 2/3] Cosserat calibration ready (61 s)"]

@@ -19,7 +19,9 @@ loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
     sigma_model: SigmaModel.to_dict() ({"terms", "coefficients", "floor"}) or None (the σ of
         :meth:`HardwareModel.predict`; absent in older checkpoints); support: SupportModel state dict or None
     examples: (n, S) training commands [mm] in time order (to verify exports), or None
-    info: free-form dict (metrics, command line, …)
+    info: free-form dict (command line, …; ``servo_range_mm``: {"lower", "upper"} the range of every servo
+        command of the training recording [mm], written by the benchmark since 2026-11-28:
+        :meth:`HardwareModel.servo_range`)
 
 Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
 history variant :class:`~.learned.CCClarkeResidualHistory`; registry ``cc``, ``cc_clarke_residual``,
@@ -110,6 +112,24 @@ class HardwareModel:
         """The σ this model reports: the stored σ model, else the σ calibration (an ``ensemble``-term σ
         model; without one the raw ensemble std)."""
         return self.sigma_model or (self.sigma or SigmaCalibration()).as_model()
+
+    def servo_range(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lower, upper) (S,) float64 [mm, ``servo_ids`` order]: the range of the commands recorded in training,
+        ``info["servo_range_mm"]`` (the whole recording), else, in files saved before it was stored, the range of
+        the ``examples`` (the recording's first rows: a narrower box). ValueError when neither is there."""
+        stored = self.info.get("servo_range_mm")
+        if stored is not None:
+            lower, upper = (torch.as_tensor(stored[k], dtype=torch.float64) for k in ("lower", "upper"))
+            if lower.shape != (len(self.servo_ids),) or upper.shape != lower.shape or not bool((upper >= lower).all()):
+                raise ValueError(f"info['servo_range_mm']: expected lower ≤ upper, {len(self.servo_ids)} values each "
+                                 f"[mm], got {stored}")
+            return lower, upper
+        if self.examples is None or self.examples.shape[0] < 2:
+            raise ValueError("servo_range: this hardware model was saved without its training commands (examples, "
+                             "info['servo_range_mm']), so the recorded servo range is unknown; save it again with "
+                             "--save")
+        commands = self.examples.to(torch.float64)
+        return commands.amin(0), commands.amax(0)
 
     def support_score(self, commands: torch.Tensor | Split) -> torch.Tensor:
         """Out-of-support score (n,) of servo commands (n, S) [mm] or a Split (:class:`~.uncertainty.SupportModel`;

@@ -10,9 +10,11 @@ to a box of commands (those of the training recording). A slack tendon's column 
 alone never re-tensions it; opt-in, a second task in J's null space pulls each slack servo in
 (``ServoControl.retension``, :func:`slack_pull`: docs/export.md for the trade-off).
 
+- :func:`initial_command`: the command to start at, :func:`dacr_learn.solve_ik` of the saved model for the first
+  target (position only), the solution nearest the current command;
 - :func:`run_control`: track targets with a plant (``fk``, e.g. the exported model itself) and a Jacobian;
 - :func:`static_targets`: reach the model's tips at a few training commands from the rest command;
-- :func:`load_hardware_export`, :func:`training_commands`, :func:`servo_signs`, :func:`circle`,
+- :func:`load_hardware_export`, :func:`source_model`, :func:`training_commands`, :func:`servo_signs`, :func:`circle`,
   :func:`tracking_errors`: the pieces around them.
 
 examples/control_hardware_model.py runs both tasks on an export and prints the tracking errors.
@@ -29,10 +31,12 @@ from torch import Tensor
 
 from ...deploy import export as dexport
 from ...deploy.control import scaled_dls_step
+from ...ik import IKOptions, solve_ik
 from ..recording import load_recording
+from .checkpoint import HardwareModel, load_hardware_model
 
-__all__ = ["ServoControl", "circle", "load_hardware_export", "run_control", "servo_signs", "slack_pull",
-           "static_targets", "tracking_errors", "training_commands"]
+__all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", "run_control", "servo_signs",
+           "slack_pull", "source_model", "static_targets", "tracking_errors", "training_commands"]
 
 _F64 = torch.float64
 
@@ -69,6 +73,34 @@ def training_commands(servo_ids: list[str], recording: Path) -> Tensor:
     if missing:
         raise ValueError(f"{recording}: lacks the servo columns {missing} of the model (has {list(rec.servo_ids)})")
     return 1e3 * rec.servo[:, [where[str(i)] for i in servo_ids]]
+
+
+def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solutions: int = 4,
+                    options: IKOptions | None = None) -> tuple[Tensor, float]:
+    """The command to start a control loop at: (u0 (S,) [mm, ``model.servo_ids`` order], its tip error [m]).
+
+    :func:`dacr_learn.solve_ik` of the saved hardware ``model`` (:func:`.checkpoint.load_hardware_model`) for the
+    tip position ``target`` (3,) [m] (position only), warm-started at the ``current`` command (S,) [mm] (e.g. the
+    rest command 0): of ``solutions`` solutions, the first successful one, which is the one nearest ``current``
+    (largest servo difference). It lies in the recorded servo range (:meth:`.checkpoint.HardwareModel.servo_range`)
+    and the model's own static prediction there (a history model's play state at the command itself) is within
+    ``options.tolerance[0]`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
+    returned. ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the
+    wrong shape."""
+    options = IKOptions() if options is None else options
+    target = torch.as_tensor(target, dtype=_F64)
+    current = torch.as_tensor(current, dtype=_F64)
+    if target.shape != (3,) or current.shape != (len(model.servo_ids),):
+        raise ValueError(f"target (3,) [m] and current ({len(model.servo_ids)},) [mm] expected, got "
+                         f"{tuple(target.shape)} and {tuple(current.shape)}")
+    lower, upper = model.servo_range()
+    result = solve_ik(model, target[None], n_solutions=solutions, q0=current.clamp(lower, upper)[None],
+                      position_only=True, options=options)
+    if not bool(result.success[0, 0]):
+        raise ValueError(f"target {[round(1e3 * v, 3) for v in target.tolist()]} mm: no command in the recorded "
+                         f"servo range reaches it per the model (closest {1e3 * float(result.pos_err[0].min()):.3f} "
+                         f"mm off, tolerance {1e3 * options.tolerance[0]:.4f} mm)")
+    return result.q[0, 0], float(result.pos_err[0, 0])
 
 
 def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | None, lower: Tensor,
@@ -144,6 +176,30 @@ def load_hardware_export(export: str | Path):
         raise ValueError(f"{export}: expected a hardware model export (task 'hardware_fk'), got {meta.get('task')!r}")
     init = dexport.load(export, "initial_state") if meta["history"] else None
     return dexport.load(export, "fk"), dexport.load(export, "jacobian"), init, meta
+
+
+def source_model(export: str | Path, meta: dict, ckpt: str | Path | None = None) -> HardwareModel:
+    """The saved hardware model an export was made from: ``ckpt``, else the checkpoint named in its metadata
+    (``source_checkpoint``; a relative path is tried as written, then next to the export's folder); checked
+    against the export's checksum of it and its servo ids. FileNotFoundError when it is not found, ValueError
+    when it is another model than the one exported."""
+    export = Path(export)
+    if ckpt is None:
+        named = Path(meta["source_checkpoint"]["path"])
+        found = [p for p in (named, export.parent / named.name) if p.is_file()]
+        if not found:
+            raise FileNotFoundError(f"{export}: the checkpoint it was exported from, {named}, is not there; "
+                                    f"pass it (--ckpt model.pt)")
+        ckpt = found[0]
+    ckpt = Path(ckpt)
+    digest = dexport.file_sha256(ckpt)
+    if digest != meta["source_checkpoint"]["sha256"]:
+        raise ValueError(f"{ckpt}: not the checkpoint {export} was exported from (sha256 {digest[:12]}…, the export "
+                         f"names {meta['source_checkpoint']['path']}, {meta['source_checkpoint']['sha256'][:12]}…)")
+    model = load_hardware_model(ckpt)
+    if [str(i) for i in model.servo_ids] != [str(i) for i in meta["servo_ids"]]:
+        raise ValueError(f"{ckpt}: servo ids {list(model.servo_ids)}, the export's are {meta['servo_ids']}")
+    return model
 
 
 def static_targets(fk, jac, init, commands: Tensor, rest: Tensor, lower: Tensor, upper: Tensor,

@@ -22,23 +22,20 @@ class HardwareTip(SolverModel):
     """A saved hardware model (``dacr_learn.hardware.deploy.load_hardware_model``) inverted in servo space.
 
     Variables and joints are the servo commands [mm] (checkpoint column order), limited to the box of the
-    commands recorded in training (the checkpoint's ``examples``); the tip is the model's position in the
-    motion-capture frame [m] (no orientation: position-only IK), its Jacobian ∂tip/∂servo [m/mm] from the
-    folded inference module (float64). A history model is solved with its play state at the command itself
-    (no motion memory: the static answer, each command as the start of a sequence). Accuracy is with respect
-    to the model; :meth:`check` is the model's own ``predict(q, static=True)`` (the eager ensemble, not the
-    folded module the solver iterates with).
+    commands recorded in training (:meth:`~.checkpoint.HardwareModel.servo_range`: the whole recording's; in
+    files saved before 2026-11-28, that of the stored ``examples``, the recording's first rows); the tip is the
+    model's position in the motion-capture frame [m] (no orientation: position-only IK), its Jacobian
+    ∂tip/∂servo [m/mm] from the folded inference module (float64). A history model is solved with its play
+    state at the command itself (no motion memory: the static answer, each command as the start of a
+    sequence). Accuracy is with respect to the model; :meth:`check` is the model's own
+    ``predict(q, static=True)`` (the eager ensemble, not the folded module the solver iterates with).
     """
 
     has_rotation = False
 
     def __init__(self, model):
-        if model.examples is None or model.examples.shape[0] < 2:
-            raise ValueError("ckpt: this hardware model was saved without its training commands (examples), so "
-                             "the recorded servo range that bounds the IK is unknown; save it again with --save")
         self.hardware, self.spec = model, None
-        commands = model.examples.to(_F64)
-        lower, upper = commands.amin(0), commands.amax(0)
+        lower, upper = model.servo_range()
         if not bool((upper > lower).all()):
             raise ValueError("ckpt: a servo never moved in the recorded commands; its range is empty")
         self.limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),

@@ -188,7 +188,13 @@ def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]
     return summary, runs[0][0][1]
 
 
-def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = print,
+def progress(line: str) -> None:
+    """Print one progress line and flush it, so that it shows while the run goes on even when stdout is a file
+    or a pipe (block-buffered: unflushed, every line of a 30 min run would appear at its end)."""
+    print(line, flush=True)
+
+
+def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = progress,
                       fitted: dict[str, list[nn.Module]] | None = None,
                       start: float | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
     """({model: summary}, {model: val predictions (first seed)}; empty without val), logged in model order as each
@@ -240,11 +246,13 @@ class SelectionResult:
     seeds: dict[str, list[int]]
 
 
-def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]]) -> list[Future]:
+def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]],
+                   log: Callable | None = None, start: float | None = None) -> list[Future]:
     """The shared pieces (Cosserat calibrations, then their synthetic tips) that the fits [(context, model,
     seeds)] will need (:func:`..cosserat_learned.warmups`), each handed to the pool once, ahead of the fits:
     with several workers the fits then read them instead of computing them in every worker or waiting for
-    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted)."""
+    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted). ``log``: called
+    with a line as each piece finishes (the calibrations can take many minutes before any model's line)."""
     if pool.jobs == 1:
         return []
     pieces: dict[str, tuple] = {}
@@ -253,7 +261,19 @@ def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequenc
             for key, fn, args in warmups(build_model(name, ctx, seed), ctx.train):
                 pieces.setdefault(key, (fn, args))
     order = sorted(pieces, key=lambda k: "synthetic" in k)          # every calibration before the synthetic tips
-    return [pool.submit(pieces[k][0], *pieces[k][1]) for k in order]
+    futures = [pool.submit(pieces[k][0], *pieces[k][1]) for k in order]
+    if log is not None:
+        done = iter(range(1, len(futures) + 1))                        # next() is atomic: callbacks may race
+
+        def report(future: Future, what: str) -> None:
+            if future.exception() is None:
+                elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
+                log(f"[shared {next(done)}/{len(futures)}] {what} ready ({future.result()[1]:.0f} s{elapsed})")
+
+        for key, future in zip(order, futures, strict=True):
+            what = "Cosserat synthetic tips" if "synthetic" in key else "Cosserat calibration"
+            future.add_done_callback(lambda f, what=what: report(f, what))
+    return futures
 
 
 def selection_folds(s: Setup, proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, list[Fold]]:
@@ -287,7 +307,8 @@ def submit_selection(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Seq
 _PROXY_NAMES = {"cv": "family CV", "extrap": "singles→pairs"}
 
 
-def collect_selection(pending: PendingSelection, log: Callable = print, start: float | None = None) -> SelectionResult:
+def collect_selection(pending: PendingSelection, log: Callable = progress,
+                      start: float | None = None) -> SelectionResult:
     """Every model's train-only proxy scores with their uncertainty (:func:`.selection.summarize_scores`,
     bootstrap over the held-out pattern groups and the seeds, :func:`.selection.bootstrap_replicates`; seconds:
     the model's fits), logged per model as its fits finish (with the time since ``start``)."""
@@ -312,7 +333,7 @@ def collect_selection(pending: PendingSelection, log: Callable = print, start: f
     return SelectionResult(scores, replicates, predictions, pending.folds, pending.seeds)
 
 
-def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = print,
+def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = progress,
                   proxies: Sequence[str] = DEFAULT_PROXIES, pool: TaskPool | None = None) -> dict:
     """{model: train-only proxy scores} for ``proxies`` (as :func:`.selection.proxy_scores`), folds built once."""
     return collect_selection(submit_selection(pool or TaskPool(), s, models, seeds, proxies), log).scores
@@ -332,7 +353,7 @@ def select_default(scores: dict, replicates: dict | None = None) -> dict:
 
 
 def run_benchmark(s: Setup, models: Sequence[str] = MODELS, seeds: Sequence[int] = (0, 1, 2),
-                  log: Callable = print, pool: TaskPool | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
+                  log: Callable = progress, pool: TaskPool | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
     """All models → ({model: summary}, {model: val predictions (first seed)}; empty without val)."""
     return collect_benchmark(submit_benchmark(pool or TaskPool(), s, models, seeds), seeds, log)
 
@@ -378,6 +399,8 @@ def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibrati
     else:
         members = [fit_model(name, setup, seed).eval() for seed in seeds]
     support = SupportModel(setup.spec.num_segments).fit(setup.train.features[..., :2], list(setup.train_rec.labels))
+    servo = 1e3 * setup.train_rec.servo                                            # [mm]
+    recorded = {"lower": servo.amin(0).tolist(), "upper": servo.amax(0).tolist()}   # the IK's box (HardwareTip)
     return HardwareModel(name, setup.spec, setup.smap, setup.train_rec.servo_ids, setup.cc, members,
-                         sigma=sigma, support=support, examples=1e3 * setup.train_rec.servo[:256],
-                         info=dict(info or {}))
+                         sigma=sigma, support=support, examples=servo[:256],
+                         info={**dict(info or {}), "servo_range_mm": recorded})

@@ -29,6 +29,7 @@ from .benchmark import (
     default_candidates,
     load_setup,
     markdown_table,
+    progress,
     proxy_seeds_of,
     select_default,
     selection_folds,
@@ -135,10 +136,15 @@ def _fit_all(setup: Setup, args: argparse.Namespace, start: float
     proxy_seeds = proxy_seeds_of(models, args.proxy_seeds, default_candidates(list(models)))
     with TaskPool(args.jobs, args.threads) as pool:
         warm = submit_warmups(pool, [(f.ctx, m, proxy_seeds[m]) for fs in folds.values() for f in fs for m in models]
-                              + [(setup.context(), m, args.seeds) for m in models])
+                              + [(setup.context(), m, args.seeds) for m in models], progress, start)
         pending = (submit_selection(pool, setup, models, args.proxy_seeds, args.proxies,
                                     default_candidates(list(models)), folds) if folds else None)
         final = submit_benchmark(pool, setup, models, tuple(args.seeds), keep)
+        proxy_fits = 0 if pending is None else sum(len(fs) for per in pending.fits.values()
+                                                   for folds in per.values() for fs in folds.values())
+        progress(f"[start] {len(models)} models on {args.jobs} worker(s): {len(warm)} shared Cosserat piece(s), "
+                 f"{proxy_fits} proxy fits, {sum(len(fs) for fs in final.values())} final runs; a line per model "
+                 f"as its proxies ([proxy k/{len(models)}]) and its final runs ([final k/{len(models)}]) finish")
         selection = collect_selection(pending, start=start) if pending is not None else None
         choice = None
         if selection is not None and default_candidates(list(selection.scores)):
