@@ -124,6 +124,25 @@ def launched_rank() -> int:
     return max(int(os.environ.get(name, "0") or 0) for name in ("LOCAL_RANK", "NODE_RANK", "RANK"))
 
 
+# Rank 0 names the folders it made in its environment, which Lightning's DDP launcher copies to the worker
+# processes it starts: a worker uses exactly these, never "the newest version" (another job of the same run
+# name may have made a newer one in between).
+RUN_FOLDER_ENV, OUT_FOLDER_ENV = "DACR_RUN_FOLDER", "DACR_OUT_FOLDER"
+
+
+def worker_folders(run_root: Path, subcommand: str | None, ckpt_run: Path | None,
+                   environ=os.environ) -> tuple[Path, Path]:
+    """(run folder, output folder) of a DDP worker process: the ones rank 0 put in ``environ``
+    (:data:`RUN_FOLDER_ENV`, :data:`OUT_FOLDER_ENV`). Without them (a launcher that does not start the workers
+    from rank 0) the run of the checkpoint, else the newest version of ``run_root``, and its newest
+    ``<subcommand>_<k>`` folder for test/validate/predict."""
+    if environ.get(RUN_FOLDER_ENV) and environ.get(OUT_FOLDER_ENV):
+        return Path(environ[RUN_FOLDER_ENV]), Path(environ[OUT_FOLDER_ENV])
+    run = ckpt_run if ckpt_run is not None else runs.versions(run_root)[-1]
+    out = run if subcommand in (None, "fit") else runs.numbered(run, f"{subcommand}_")[-1]
+    return run, out
+
+
 class DacrCLI(LightningCLI):
     def __init__(self, *args, argv: list[str] | None = None, **kwargs) -> None:
         self._argv = list(sys.argv[1:] if argv is None else argv)
@@ -176,10 +195,15 @@ class DacrCLI(LightningCLI):
         ckpt = self.run_config.get("ckpt_path")
         run = runs.checkpoint_run_dir(ckpt) if ckpt is not None else None
         if launched_rank() > 0:   # a DDP worker process: rank 0 made this command's folders before launching it
-            run = run if run is not None else runs.versions(self.run_root)[-1]
-            if self.subcommand in (None, "fit"):
-                return run, run, runs.read_run_info(run)
-            return run, runs.numbered(run, f"{self.subcommand}_")[-1], {"recording_id": None}
+            run, out = worker_folders(self.run_root, self.subcommand, run)
+            info = runs.read_run_info(run) if self.subcommand in (None, "fit") else {"recording_id": None}
+            return run, out, info
+        run, out, info = self._new_run_folders(ckpt, run)
+        os.environ[RUN_FOLDER_ENV], os.environ[OUT_FOLDER_ENV] = str(run.resolve()), str(out.resolve())
+        return run, out, info
+
+    def _new_run_folders(self, ckpt, run: Path | None) -> tuple[Path, Path, dict]:
+        """Rank 0's part of :meth:`_run_folders`."""
         if self.subcommand in (None, "fit"):
             if run is None:   # a new run (or fine-tuning from a checkpoint outside any run folder)
                 run = runs.new_numbered_dir(self.run_root, "version_")

@@ -82,7 +82,7 @@ def warm_start_latency(name: str, export: str | None, rounds: int) -> dict:
     q0 = model.joints(model.limits.project(x + 0.01 * model.limits.scale * torch.randn(x.shape, generator=g,
                                                                                        dtype=F64)))
     out = {}
-    runners = {"eager": IKRefinement(spec, 4)}
+    runners = {"eager": IKRefinement(spec)}
     if export:
         from dacr_learn import load_exported
         runners["exported"] = load_exported(export, "refine")

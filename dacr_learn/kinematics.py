@@ -21,11 +21,10 @@ from .lie import (
     chain_components,
     chain_products,
     dense,
+    exp_components,
     exp_components_and_tangents,
     pose_of_components,
     roll_components,
-    roll_z,
-    twist_exp,
 )
 from .robot import RobotSpec
 
@@ -79,11 +78,11 @@ def cc_twist(u: Tensor, beta: Tensor) -> Tensor:
 def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor:
     """Rz(α)·exp(ξ_cc^) for bending vector u (..., 2) [rad], length β (...) [m], roll α (...) [rad] → (..., 4, 4).
 
-    ``alpha=None`` means no roll. The kernel's exponential (:func:`~.lie.twist_exp`) of :func:`cc_twist`:
-    R = I + s·K + f·K², p = β·(f·u_x, f·u_y, s).
+    ``alpha=None`` means no roll. The kernel's exponential (:func:`~.lie.exp_components`) of :func:`cc_twist`,
+    its zero components skipped: R = I + s·K + f·K², p = β·(f·u_x, f·u_y, s).
     """
-    pose = twist_exp(cc_twist(u, beta))
-    return pose if alpha is None else roll_z(pose, alpha)
+    rot, pos = exp_components((None, None, beta), (-u[..., 1], u[..., 0], None))
+    return pose_of_components(*(rot, pos) if alpha is None else roll_components(alpha, rot, pos))
 
 
 def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,

@@ -8,8 +8,10 @@ A twist ξ = (v, ω) (..., 6) [m, rad] has the matrix ξ^ = [[ω^, v], [0, 0]] a
 with s, f, g written as functions of φ² that are finite, with finite derivatives, at φ = 0 (Taylor
 polynomials below :data:`TAYLOR_BELOW`). A constant-curvature segment is the exponential of a twist that
 is linear in its Clarke coordinates (docs/design.md §2), so the CC kinematics (:mod:`.kinematics`), the
-compositional FK (:mod:`.compositional`) and the folded hardware inference modules
-(:mod:`.hardware.deploy`) all build on these functions. Pure torch, any leading batch dims.
+compositional FK (:mod:`.compositional`), the IK solver and every folded inference module
+(:mod:`.deploy`, :mod:`.hardware.deploy`) build on these functions: one closed form of the exponential
+(:func:`exp_components`), its tangent (:func:`exp_components_and_tangents`) and one chain product rule
+(:func:`chain_components`). Pure torch, any leading batch dims.
 """
 from __future__ import annotations
 
@@ -18,8 +20,8 @@ from torch import Tensor
 
 __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
-    "exp_of_twist_matrix", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_exp",
-    "roll_z", "twist_exp_and_tangent", "vee",
+    "chain_jacobian", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_chain_jacobian",
+    "twist_exp", "twist_exp_and_tangent", "twist_exp_and_tangents", "roll_z", "roll_z_and_tangents", "vee",
 ]
 
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
@@ -279,16 +281,19 @@ def chain_components(rots: list[Rot3], poss: list[Vec3],
 
 def dense(x: tuple, like: Tensor) -> tuple[Tensor, ...]:
     """Components with None (exact zeros) replaced by zero tensors of ``like``'s shape."""
-    return tuple(torch.zeros_like(like) if c is None else c.expand_as(like) for c in x)
+    return tuple(torch.zeros_like(like) if c is None else c if c.shape == like.shape else c.expand_as(like) for c in x)
 
 
 def pose_of_components(rot: Rot3, pos: Vec3) -> Tensor:
-    """(..., 4, 4) homogeneous poses from component form."""
-    like = torch.broadcast_tensors(*(c for c in (*rot, *pos) if c is not None))[0]
-    rot, pos = dense(rot, like), dense(pos, like)
-    zero = torch.zeros_like(like)
-    entries = (*rot[0:3], pos[0], *rot[3:6], pos[1], *rot[6:9], pos[2], zero, zero, zero, zero + 1)
-    return torch.stack(entries, dim=-1).unflatten(-1, (4, 4))
+    """(..., 4, 4) homogeneous poses from component form (one stack and one cat)."""
+    given = [c for c in (*rot, *pos) if c is not None]
+    shape = torch.broadcast_shapes(*(c.shape for c in given))
+    zero = torch.zeros_like(given[0]).expand(shape) if len(given) < 12 else None
+    full = [zero if c is None else c if c.shape == shape else c.expand(shape)
+            for c in (*rot[0:3], pos[0], *rot[3:6], pos[1], *rot[6:9], pos[2])]
+    top = torch.stack(full, dim=-1).unflatten(-1, (3, 4))
+    bottom = top.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(*shape, 1, 4)
+    return torch.cat([top, bottom], dim=-2)
 
 
 def _rot_pos(poses: Tensor) -> tuple[Rot3, Vec3]:
@@ -307,14 +312,16 @@ def _undirections(x: tuple[Tensor, ...]) -> Tensor:
     return torch.stack(x, dim=-1).movedim(0, -2)
 
 
-def twist_exp(xi: Tensor) -> Tensor:
-    """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4).
+def twist_exp(xi: Tensor, alpha: Tensor | None = None) -> Tensor:
+    """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4); with rolls α (...)
+    [rad], Rz(α)·exp(ξ^) (:func:`roll_z`, in the same component pass).
 
     The one closed form of the exponential in the package (:func:`exp_components`); equals
     torch.linalg.matrix_exp of ξ^ (tested) at a fraction of its cost.
     """
     c = components(xi)
-    return pose_of_components(*exp_components(c[:3], c[3:]))
+    rot, pos = exp_components(c[:3], c[3:])
+    return pose_of_components(*(rot, pos) if alpha is None else roll_components(alpha, rot, pos))
 
 
 def twist_exp_and_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -349,38 +356,63 @@ def roll_z_and_tangents(poses: Tensor, ang: Tensor, lin: Tensor, alpha: Tensor,
     return pose_of_components(rot, pos), _undirections(b), _undirections(dp)
 
 
-def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor) -> tuple[Tensor, Tensor]:
+def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor, base: Tensor | None = None,
+                   point: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The chain product rule: tip pose and base-frame Jacobian of a product of transforms.
 
     poses (..., n, 4, 4): T_1 … T_n, each relative to the end of the previous one; ang, lin (..., n, T, 3):
     spatial tangents of each T_k in its own base frame (:func:`twist_exp_and_tangents`) along T directions
-    each. Returns the tip pose T_1⋯T_n (..., 4, 4) and J (..., 6, n·T): per factor and direction, the velocity
-    of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base frame
+    each. Optional fixed ends (no tangents): ``base`` (..., 4, 4), a pose in front of T_1 (J is then in its
+    base frame), and ``point`` (..., 3) [m], a point fixed in the frame of T_n (the tip is then that point).
+    Returns the tip pose B·T_1⋯T_n·Trans(point) (..., 4, 4) and J (..., 6, n·T): per factor and direction,
+    the velocity of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base frame
     (:func:`chain_components`).
     """
-    n = poses.shape[-3]
-    rot, pos = _rot_pos(poses)
-    b, dp = _directions(ang), _directions(lin)                                    # components (T, ..., n)
-    at = lambda c, k: tuple(x[..., k] for x in c)  # noqa: E731
-    tip_rot, tip_pos, cols = chain_components([at(rot, k) for k in range(n)], [at(pos, k) for k in range(n)],
-                                              [[(at(b, k), at(dp, k))] for k in range(n)])
-    like = b[0][..., 0]
-    jac = torch.stack([torch.stack(dense((*v, *w), like), dim=0) for [(v, w)] in cols], dim=1)   # (6, n, T, ...)
-    return pose_of_components(tip_rot, tip_pos), jac.movedim(0, -1).movedim(0, -1).movedim(0, -1).flatten(-2)
+    return _chain(*_rot_pos(poses), _directions(ang), _directions(lin), base, point)
 
 
-def exp_of_twist_matrix(xi_hat: Tensor) -> Tensor:
-    """exp(ξ^) (..., 4, 4) of twist matrices ξ^ (..., 4, 4): I + ξ^ + f·ξ^² + g·ξ^³ (ω^³ = −φ²ω^ makes the
-    series collapse; the same map as :func:`twist_exp` in fewer ops, for folded inference modules).
-    ‖ω^‖_F = √2·φ; s, f as sinc terms of y = φ/2π, g from the Taylor-guarded (1 − s)/φ²."""
-    rot = xi_hat[..., :3, :3]
-    phi_sq = 0.5 * (rot * rot).sum((-2, -1))
-    y = torch.linalg.vector_norm(rot.flatten(-2), dim=-1) * (0.5 / (torch.pi * 2**0.5))
-    g = third_coefficient(phi_sq, torch.sinc(2 * y))
-    sq = xi_hat @ xi_hat
-    out = torch.addcmul(xi_hat, (0.5 * torch.sinc(y) ** 2)[..., None, None], sq)
-    out = torch.addcmul(out, g[..., None, None], sq @ xi_hat)
-    return out + torch.eye(4, dtype=xi_hat.dtype)
+def twist_chain_jacobian(xi: Tensor | tuple, dxi: Tensor | tuple, alpha: Tensor | None = None,
+                         alpha_row: Tensor | None = None, base: Tensor | None = None,
+                         point: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Tip pose and Jacobian of a product of exponentials, in component form from the twists to J (one layout
+    conversion in, one out): :func:`twist_exp_and_tangents`, [:func:`roll_z_and_tangents`,]
+    :func:`chain_jacobian` in one call.
+
+    xi (..., n, 6) twists of the factors E_k = [Rz(α_k)·]exp(ξ_k^); dxi (..., n, T, 6) (broadcast) their tangents
+    along T directions each; or both as 6 components, xi's (..., n) and dxi's (T, ..., n) (broadcast), where
+    None is an exact zero that costs no operation (e.g. a CC twist's, :func:`~.kinematics.cc_transform`);
+    ``alpha`` (..., n) [rad] rolls with ``alpha_row`` (..., n, T, 1), 1 on the direction that is α_k itself;
+    ``base``, ``point``: fixed ends as in :func:`chain_jacobian`. Returns the tip pose (..., 4, 4) and
+    J (..., 6, n·T).
+    """
+    c = components(xi) if isinstance(xi, Tensor) else xi
+    d = _directions(dxi.expand(*xi.shape[:-1], *dxi.shape[-2:])) if isinstance(dxi, Tensor) else dxi
+    rot, pos, [(b, dp)] = exp_components_and_tangents(c[:3], c[3:], [(d[:3], d[3:])])
+    if alpha is not None:
+        rows = alpha_row.expand(*xi.shape[:-1], *alpha_row.shape[-2:])[..., 0].movedim(-1, 0)
+        rot, pos, [(b, dp)] = roll_components(alpha, rot, pos, [(b, dp)], (0, rows))
+    return _chain(rot, pos, b, dp, base, point)
+
+
+def _chain(rot: Rot3, pos: Vec3, b: tuple, dp: tuple, base: Tensor | None, point: Tensor | None):
+    """:func:`chain_components` of factors in component form (..., n) with tangents (T, ..., n), fixed ends."""
+    n = next(x for x in pos if x is not None).shape[-1]
+    at = lambda c, k: tuple(None if x is None else x[..., k] for x in c)  # noqa: E731
+    rots, poss = [at(rot, k) for k in range(n)], [at(pos, k) for k in range(n)]
+    tangents = [[(at(b, k), at(dp, k))] for k in range(n)]
+    if base is not None:
+        base_rot, base_pos = _rot_pos(base)
+        rots, poss, tangents = [base_rot, *rots], [base_pos, *poss], [[], *tangents]
+    if point is not None:
+        rots.append((1.0, None, None, None, 1.0, None, None, None, 1.0))
+        poss.append(components(point))
+        tangents.append([])
+    tip_rot, tip_pos, cols = chain_components(rots, poss, tangents)
+    entries = [x for c in cols for (v, w) in c for x in (*v, *w)]                  # (factor, row), (T, ...)
+    given = [x for x in entries if x is not None]
+    entries = dense(entries, given[0].expand(torch.broadcast_shapes(*(x.shape for x in given))))
+    jac = torch.stack(entries, dim=-1).movedim(0, -1).unflatten(-2, (n, 6)).transpose(-3, -2)   # (..., 6, n, T)
+    return pose_of_components(tip_rot, tip_pos), jac.flatten(-2)
 
 
 def chain_products(poses: Tensor) -> Tensor:

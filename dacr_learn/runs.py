@@ -292,7 +292,9 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
         an IK model maps tip poses ``(..., 4, 4)`` to joint lengths ``(..., N)`` [m];
         a learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`) draws joint configurations for tip
         poses or positions (``sample_features(target, count)`` → ``(B, count, D)`` float64, the IK solver's seeds).
-        Its ``.task`` attribute is ``"fk"``, ``"ik"`` or ``"sampler"``.
+        Its ``.task`` attribute is ``"fk"``, ``"ik"`` or ``"sampler"``. FK / IK models take inputs of any floating
+        dtype (cast to ``dtype``, e.g. the float64 joints of ``ResolvedRateController.step``); an FK model raises a
+        ValueError for joint lengths far outside the robot's limits (millimetres instead of metres).
 
     Raises:
         FileNotFoundError: nothing to load at ``path``.
@@ -301,4 +303,48 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
     task, model = load_checkpoint_model(find_checkpoint(path))
     model = model.to(dtype).eval()
     model.task = task
+    if task in ("fk", "ik"):
+        model.register_forward_pre_hook(_FriendlyInput(task))
     return model
+
+
+def _longest_joint_length(spec: RobotSpec) -> float:
+    """An upper bound [m] of any joint length inside the robot's limits: every segment at its longest, bent and
+    twisted to its limits at its outermost joint (a tendon passes at most every segment)."""
+    total = 0.0
+    for seg in spec.segments:
+        longest = seg.length_range[1] if seg.length_range else seg.length
+        twist = max(map(abs, seg.twist_range)) if seg.twist_range else 0.0
+        total += longest + max(seg.joint_radii) * (seg.bend + twist)
+    return total
+
+
+JOINT_UNIT_FACTOR = 2.0    # joint lengths beyond this many times the longest possible one: not metres
+
+
+class _FriendlyInput:
+    """Forward pre-hook of :func:`load_model`'s FK / IK models: floating inputs of another dtype (the float64
+    joints ``ResolvedRateController.step`` returns) are cast to the model's; an FK model refuses joint lengths
+    far outside the robot's limits (a ValueError: millimetres instead of metres would give a tip metres away).
+    Skipped while tracing (torch.export / compile) and under torch.func transforms, like check_tensor."""
+
+    def __init__(self, task: str):
+        self.task = task
+
+    def __call__(self, module: torch.nn.Module, args: tuple) -> tuple | None:
+        if not args or not isinstance(args[0], torch.Tensor) or not args[0].is_floating_point():
+            return None
+        x = args[0]
+        dtype = next((p.dtype for p in module.parameters() if p.is_floating_point()), x.dtype)
+        if x.dtype != dtype:
+            x = x.to(dtype)
+        if (self.task == "fk" and x.numel() and not torch.compiler.is_compiling()
+                and not torch._C._functorch.is_functorch_wrapped_tensor(x)):
+            spec = module.spec                 # read at each call: a transferred copy has another robot
+            longest, n = _longest_joint_length(spec), spec.num_length_joints
+            worst = float(x[..., :n].detach().abs().amax()) if x.shape[-1] >= n else 0.0
+            if worst > JOINT_UNIT_FACTOR * longest:
+                raise ValueError(
+                    f"joint vector: expected joint lengths in metres, at most {longest:.3g} m for robot "
+                    f"{spec.name!r} within its limits, got {worst:.4g} (millimetres? divide by 1000)")
+        return (x, *args[1:])

@@ -3,7 +3,8 @@
 Each script is run from the repository root as ``python -m research.<script>`` or
 ``python -m research.hardware_cv.<script>``; its docstring names the docs section whose numbers it
 produced and its exact command. They are kept so those numbers can be reproduced: they are not
-maintained beyond running, not installed with the package, and not run by the test suite.
+maintained beyond running, not installed with the package, and not run by the test suite (it only
+imports each one: tests/test_research_imports.py).
 
 - :mod:`research.ik_pose_loss`: docs/ablation.md, "Multi-segment IK with a pose loss"
 - :mod:`research.hardware_analysis`: docs/hardware_history.md, "2026-11-21: Where the error comes from"

@@ -26,9 +26,9 @@ from dacr_learn.robot import RobotSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Intra-op threads for the whole suite. `make test` runs the suite twice, with 1 and then 2 threads
-# (DACR_TEST_THREADS=2): another float reduction order, so a test that only passes bit for bit on
-# one machine fails here first.
+# Intra-op threads for the whole suite. `make test` runs the suite with 1 thread, then the reduction_order
+# tests (tests/reduction_order.py) with 2 threads (DACR_TEST_THREADS=2) and portable kernels: another float
+# reduction order, so a test that only passes bit for bit on one machine fails here first.
 TEST_THREADS = int(os.environ.get("DACR_TEST_THREADS", "1"))
 torch.set_num_threads(TEST_THREADS)
 
@@ -389,6 +389,24 @@ def one_thread():
     torch.set_num_threads(TEST_THREADS)
     yield
     torch.set_num_threads(threads)
+
+
+@pytest.hookimpl(tryfirst=True)        # before -k / -m deselect: every collected module is checked
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of tests/reduction_order.py ``reduction_order``; a listed name missing from its collected
+    module is an error (a renamed test must not drop out of `make test`'s second pass unnoticed)."""
+    from reduction_order import REDUCTION_ORDER
+
+    modules = {}
+    for item in items:
+        module = item.module.__name__ + ".py" if getattr(item, "module", None) else None
+        modules[module] = item.module if module else None
+        if item.originalname in REDUCTION_ORDER.get(module, ()):
+            item.add_marker(pytest.mark.reduction_order)
+    stale = [f"{m}::{name}" for m, mod in modules.items() if m in REDUCTION_ORDER
+             for name in REDUCTION_ORDER[m] if not hasattr(mod, name)]
+    if stale:
+        raise pytest.UsageError(f"tests/reduction_order.py lists tests that do not exist: {stale}")
 
 
 def pytest_report_header(config):

@@ -20,7 +20,7 @@ import math
 from pathlib import Path
 
 import torch
-from conftest import ROOT
+from conftest import ROOT, roundoff_tol
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual
@@ -89,6 +89,26 @@ def synthetic_model(history: bool, members: int = 3) -> HardwareModel:
     return HardwareModel("cc_clarke_residual_history" if history else "cc_clarke_residual", spec, smap, IDS, cc,
                          nets, sigma=SigmaCalibration(1.5, 2e-4), support=support,
                          examples=1e3 * command_recording(64, 3).servo)
+
+
+SUPPORT_SCALE = 10.0     # magnitude of the standardised Clarke coordinates the support distance is computed from
+
+
+def sigma_roundoff_tol(model: HardwareModel, dtype: torch.dtype, tip_scale: float, ulps: float = 64.0,
+                       support_dtype: torch.dtype = torch.float64) -> float:
+    """Tolerance [m] for two computations of ``model``'s σ (its :meth:`~HardwareModel.sigma_of`) that differ only by
+    rounding, tied to the scale σ is computed from rather than to σ's own (sub-millimetre) scale.
+
+    σ_a = √(σ₀² + Σ_t (c_t·f_t,a)²) has ∂σ_a/∂f_t,a = c_t²·f_t,a/σ_a ≤ c_t, so feature errors δ_t move σ by at most
+    Σ_t c_t·δ_t. The ensemble std and the disagreement |mean − CC tip| are differences of tips: each off by at most
+    two roundings at ``tip_scale`` [m] in ``dtype``; the bend ‖ρ‖ comes from tendon displacements no larger than the
+    tip's scale either; the support distance (dimensionless, computed in ``support_dtype``) rounds at the scale of
+    the standardised coordinates (SUPPORT_SCALE). The sqrt adds a relative rounding of σ, far below these."""
+    sigma = model.sigma_of()
+    tip = roundoff_tol(dtype, tip_scale, ulps)
+    per_term = {"ensemble": 2 * tip, "disagreement": 2 * tip, "bend": tip,
+                "support": roundoff_tol(support_dtype, SUPPORT_SCALE, ulps)}
+    return sum(c * per_term[t] for c, t in zip(sigma.coefficients.tolist(), sigma.terms, strict=True))
 
 
 def batch_prediction(model: HardwareModel, rec: Recording) -> torch.Tensor:

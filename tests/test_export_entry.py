@@ -13,6 +13,7 @@ import torch
 from conftest import ROOT, names
 
 from dacr_learn import export as dexport
+from dacr_learn.console import run_cli
 from dacr_learn.runs import load_checkpoint_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -24,22 +25,11 @@ def _run(code: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
 
 
-@pytest.mark.parametrize("ckpt", ["fk.ckpt", "hardware_model.pt"])
-def test_export_and_load_import_no_lightning(ckpt, tmp_path):
-    run = _run(f"""
-import sys
-from dacr_learn.export import export_checkpoint, load
-meta = export_checkpoint({str(DATA / ckpt)!r}, {str(tmp_path / 'out')!r}, aoti=False)
-load({str(tmp_path / 'out')!r}, "fk")
-print(meta["task"], sorted(m for m in sys.modules if m.split(".")[0] in ("lightning", "pytorch_lightning")))
-""")
-    assert run.returncode == 0, run.stderr
-    task, lightning = run.stdout.split(" ", 1)
-    assert task in ("fk", "hardware_fk") and lightning.strip() == "[]", run.stdout
-
-
-def test_a_checkpoint_without_its_architecture_is_read_through_lightning(tmp_path):
-    """Positive control of the test above: the fallback does import Lightning, and gives the same model."""
+def test_export_and_load_import_no_lightning_and_the_fallback_does(tmp_path):
+    """A train.py checkpoint and a hardware model are exported and loaded without importing Lightning; a
+    checkpoint whose hyper-parameters lack part of the architecture is read through its LightningModule (the
+    positive control: it does import Lightning) and gives the same model. One fresh interpreter for all (each
+    start-up imports torch: seconds)."""
     blob = torch.load(DATA / "fk.ckpt", weights_only=True)
     del blob["hyper_parameters"]["activation"]               # the FKModule default ("silu") fills it in
     torch.save(blob, tmp_path / "old.ckpt")
@@ -50,26 +40,30 @@ def test_a_checkpoint_without_its_architecture_is_read_through_lightning(tmp_pat
         assert task == "fk" and torch.equal(model(q), direct(q))
     run = _run(f"""
 import sys
+from dacr_learn.export import export_checkpoint, load
 from dacr_learn.runs import load_checkpoint_model
+for ckpt in ("fk.ckpt", "hardware_model.pt"):
+    meta = export_checkpoint({str(DATA)!r} + "/" + ckpt, {str(tmp_path)!r} + "/" + ckpt, aoti=False)
+    load({str(tmp_path)!r} + "/" + ckpt, "fk")
+    print(meta["task"], sorted(m for m in sys.modules if m.split(".")[0] in ("lightning", "pytorch_lightning")))
 load_checkpoint_model({str(tmp_path / 'old.ckpt')!r})
 print("lightning" in sys.modules)
 """)
-    assert run.returncode == 0 and run.stdout.strip() == "True", run.stderr
-
-
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "dacr_learn.export", *args], capture_output=True, text=True,
-                          cwd=ROOT, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.splitlines() == ["fk []", "hardware_fk []", "True"], run.stdout
 
 
 @pytest.mark.parametrize("where", ["a file", "below a file"])
-def test_out_blocked_by_a_file_is_one_line_naming_out(where, tmp_path):
+def test_out_blocked_by_a_file_is_one_line_naming_out(where, tmp_path, capsys):
+    """In process through run_cli, what ``python -m dacr_learn.export`` runs (its entry point: test_export.py's
+    test_export_cli_prints_the_error_not_a_traceback): a subprocess here cost 5 s of imports per case."""
     (tmp_path / "afile").write_text("x")
     out = tmp_path / "afile" if where == "a file" else tmp_path / "afile" / "sub"
-    run = _cli("--ckpt", str(DATA / "fk.ckpt"), "--out", str(out), "--no-aoti")
-    lines = run.stderr.strip().splitlines()
-    assert run.returncode == 2 and len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
-    assert lines[0].startswith(f"error: --out {out}: ") and "expected a folder" in lines[0], run.stderr
+    code = run_cli(dexport.main, ["--ckpt", str(DATA / "fk.ckpt"), "--out", str(out), "--no-aoti"])
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"error: --out {out}: ") and "expected a folder" in lines[0], err
     assert (tmp_path / "afile").read_text() == "x"                                  # left as it was
 
 

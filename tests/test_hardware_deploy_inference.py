@@ -1,8 +1,8 @@
 """The deployed FK and Jacobian modules (dacr_learn.hardware.deploy.inference) against the library model.
 
-- The CC segment pose T = I + sΞ + fΞ² (:func:`~dacr_learn.hardware.deploy.inference.twist_segment_poses`)
+- The CC segment pose (:func:`~dacr_learn.hardware.deploy.inference.cc_segment_poses`)
   against :func:`~dacr_learn.kinematics.cc_transform`, with finite gradients at zero bending.
-- The chained tip and its closed-form ∂tip/∂ρ (:func:`~dacr_learn.hardware.deploy.inference.twist_tip_and_jacobian`)
+- The chained tip and its closed-form ∂tip/∂ρ (:func:`~dacr_learn.hardware.deploy.inference.cc_tip_and_jacobian`)
   against the tip of cc_transform products and autograd's Jacobian of it, straight segments included.
 - HardwareFK / HardwareJacobian of a small synthetic model (tests/hardware_testkit.py) equal the library model run
   causally (play state passed on) and autograd in float64; HardwareFK computes the library model's tips with a
@@ -13,15 +13,23 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import roundoff_tol
-from hardware_testkit import TIP_SCALE, V4_TIP_SCALE, batch_prediction, command_recording, strained_cc, synthetic_model
+from hardware_testkit import (
+    TIP_SCALE,
+    V4_TIP_SCALE,
+    batch_prediction,
+    command_recording,
+    sigma_roundoff_tol,
+    strained_cc,
+    synthetic_model,
+)
 
 from dacr_learn.hardware.deploy.checkpoint import HardwareModel
 from dacr_learn.hardware.deploy.inference import (
     HardwareFK,
     HardwareJacobian,
-    segment_twists,
-    twist_segment_poses,
-    twist_tip_and_jacobian,
+    cc_segment_poses,
+    cc_tip_and_jacobian,
+    cc_twist_directions,
 )
 from dacr_learn.hardware.deploy.uncertainty import SigmaModel
 from dacr_learn.hardware.learned import cc_as_residual, make_split
@@ -38,18 +46,15 @@ def test_segment_pose_from_twist_is_cc_transform(dtype):
     rho = 0.004 * (2 * torch.rand(400, 3, 2, generator=g, dtype=F64) - 1)
     rho[:50] *= 1e-6                                           # nearly straight
     rho[50:60] = 0.0                                           # straight
-    constants = {k: v.to(dtype) for k, v in segment_twists(radius, length).items()}
-    got = twist_segment_poses(rho.to(dtype), **constants)
+    got = cc_segment_poses(rho.to(dtype), radius.to(dtype), length.to(dtype))
     ref = cc_transform(rho / radius.unsqueeze(-1), length.expand(400, 3))
     assert (got.double() - ref).abs().max() <= roundoff_tol(dtype, 1.0, ulps=16)
 
 
 def test_segment_pose_gradient_is_finite_and_right_at_zero_bending():
     radius, length = torch.tensor([0.005], dtype=F64), torch.tensor([0.08], dtype=F64)
-    constants = segment_twists(radius, length)
-
     def pose(rho):
-        return twist_segment_poses(rho, **constants)
+        return cc_segment_poses(rho, radius, length)
 
     def reference(rho):
         return cc_transform(rho / radius.unsqueeze(-1), length)
@@ -71,7 +76,6 @@ def test_tip_jacobian_in_closed_form_is_autograds_of_the_cc_chain():
     base[:2, :2] = torch.tensor([[angle.cos(), -angle.sin()], [angle.sin(), angle.cos()]])
     base[:3, 3] = torch.tensor([0.01, -0.02, 0.3], dtype=F64)
     marker = torch.tensor([0.004, -0.002, 0.01, 1.0], dtype=F64)
-    constants = segment_twists(radius, length)
     rho = 0.004 * (2 * torch.rand(6, 3, 2, generator=g, dtype=F64) - 1)
     rho[0, 1] = 0.0
     rho[1, 0] = 1e-9
@@ -83,8 +87,7 @@ def test_tip_jacobian_in_closed_form_is_autograds_of_the_cc_chain():
             chain = chain @ cc_transform(r[k] / radius[k], length[k])
         return (chain @ marker)[:3]
 
-    tip, jac = twist_tip_and_jacobian(rho, constants["twist_map"], constants["twist_offset"], radius,
-                                      constants["eye4"], base, marker)
+    tip, jac = cc_tip_and_jacobian(rho, radius, length, cc_twist_directions(radius), base, marker)
     for b in range(rho.shape[0]):
         ref_tip = reference_tip(rho[b])
         ref_jac = torch.autograd.functional.jacobian(reference_tip, rho[b])             # (3, m, 2)
@@ -168,8 +171,6 @@ def test_inference_module_includes_the_strain(v4_train_head):
 def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     """HardwareFK (what dacr_learn.export exports) gives predict's σ for a σ model of the ensemble and bend
     terms (float64), and refuses terms it cannot compute instead of silently returning another σ."""
-    from hardware_testkit import TIP_SCALE, command_recording, synthetic_model
-
     from dacr_learn.hardware.deploy.inference import HardwareFK
 
     model = synthetic_model(history=False)
@@ -178,10 +179,9 @@ def test_the_exported_fk_computes_the_stored_sigma_model_like_predict():
     tip, sigma = model.predict(servo_mm)
     tip_fk, sigma_fk = HardwareFK(model, torch.float64)(servo_mm.double())
     # The library model runs its kinematics in float32: tips agree to float32 rounding at tip scale, and σ
-    # to that times the ensemble coefficient (the members' std is a difference of such tips).
-    tol = roundoff_tol(torch.float32, TIP_SCALE)
-    assert torch.allclose(tip_fk, tip, rtol=0, atol=tol)
-    assert torch.allclose(sigma_fk, sigma, rtol=0, atol=2 * tol)
+    # to that times the coefficients (the members' std is a difference of such tips).
+    assert torch.allclose(tip_fk, tip, rtol=0, atol=roundoff_tol(torch.float32, TIP_SCALE))
+    assert torch.allclose(sigma_fk, sigma, rtol=0, atol=sigma_roundoff_tol(model, torch.float32, TIP_SCALE))
     assert not torch.allclose(sigma_fk, HardwareFK(synthetic_model(history=False), torch.float64)(servo_mm.double())[1])
     model.sigma_model = SigmaModel(("support",), [0.1], 2e-4)
     with pytest.raises(ValueError, match="unsupported: \\['support'\\]"):

@@ -7,7 +7,7 @@ from conftest import roundoff_tol
 
 from dacr_learn import lie
 from dacr_learn.kinematics import cc_transform
-from dacr_learn.lie import exp_of_twist_matrix, hat_map, twist_exp, twist_exp_and_tangent
+from dacr_learn.lie import twist_exp, twist_exp_and_tangent
 
 F64 = torch.float64
 
@@ -26,15 +26,6 @@ def test_hat_vee_are_inverse_and_hat_is_the_cross_product():
     xi = twists(4, 1.0)
     torch.testing.assert_close((xi @ lie.hat_map()).unflatten(-1, (4, 4)),
                                lie.pose_from_parts(lie.hat(xi[:, 3:]), xi[:, :3], torch.zeros(1, 4, dtype=xi.dtype)))
-
-
-@pytest.mark.parametrize("scale", [0.0, 1e-5, 0.05, 1.0, 3.0])     # φ = 0, inside and beyond the Taylor branch
-def test_twist_exp_and_the_matrix_form_equal_matrix_exp(scale):
-    xi = twists(64, scale)
-    xi_hat = (xi @ lie.hat_map()).unflatten(-1, (4, 4))
-    reference = torch.linalg.matrix_exp(xi_hat)
-    torch.testing.assert_close(lie.twist_exp(xi), reference, atol=1e-12, rtol=0)
-    torch.testing.assert_close(lie.exp_of_twist_matrix(xi_hat), reference, atol=1e-12, rtol=0)
 
 
 @pytest.mark.parametrize("scale", [1e-4, 0.05, 2.0])
@@ -112,14 +103,6 @@ def test_twist_exp_tangent_matches_forward_mode_autodiff(scale):
     assert (tangent - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()))
 
 
-@pytest.mark.parametrize("scale", [0.0, 0.02, 1.5])
-def test_exp_of_the_twist_matrix_is_twist_exp(scale):
-    """The FK path's exp(ξ^) = I + ξ^ + f·ξ^² + g·ξ^³ equals compositional.twist_exp (ξ = 0 included)."""
-    xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    got = exp_of_twist_matrix((xi @ hat_map()).unflatten(-1, (4, 4)))
-    assert (got - twist_exp(xi)).abs().max() <= roundoff_tol(torch.float64, 1.0 + float(xi.abs().max()))
-
-
 # --------------------------------------------------------------------------------------------------
 # The kernel's spatial tangents, roll and chain rule against forward/reverse-mode autodiff
 # --------------------------------------------------------------------------------------------------
@@ -178,3 +161,37 @@ def test_chain_jacobian_is_reverse_mode_autodiff_of_the_product(factors):
         expected = torch.cat([ref[:3, 3], omega.mT], dim=0)
         torch.testing.assert_close(got_tip, tip(x0), atol=roundoff_tol(F64, 10.0), rtol=0)
         torch.testing.assert_close(jac, expected, atol=roundoff_tol(F64, 100.0), rtol=0)
+
+
+def test_chain_jacobian_with_a_fixed_base_and_point_is_reverse_mode_autodiff():
+    """base · T_1(x_1) T_2(x_2) · Trans(point): the point's velocity and the angular velocity in base's frame."""
+    xi, dirs = twists(2, 1.0, seed=10), twists(2 * 3, 1.0, seed=11).view(2, 3, 6)
+    base, point = twist_exp(twists(1, 1.0, seed=12)[0]), torch.tensor([0.3, -0.2, 0.5], dtype=F64)
+    offset = torch.eye(4, dtype=F64)
+    offset[:3, 3] = point
+
+    def tip(x):
+        return base @ lie.chain_products(twist_exp(xi + (x.unsqueeze(-1) * dirs).sum(-2)))[-1] @ offset
+
+    pose, ang, lin = lie.twist_exp_and_tangents(xi, dirs)
+    got_tip, jac = lie.chain_jacobian(pose, ang, lin, base, point)
+    x0 = torch.zeros(2, 3, dtype=F64)
+    ref = torch.func.jacrev(tip)(x0).flatten(-2)                 # (4, 4, 6)
+    omega = lie.vee(torch.einsum("ijk,lj->ilk", ref[:3, :3], got_tip[:3, :3]).permute(2, 0, 1))
+    torch.testing.assert_close(got_tip, tip(x0), atol=roundoff_tol(F64, 10.0), rtol=0)
+    torch.testing.assert_close(jac, torch.cat([ref[:3, 3], omega.mT], dim=0), atol=roundoff_tol(F64, 100.0), rtol=0)
+
+
+def test_twist_chain_jacobian_is_the_composition_of_the_tensor_wrappers():
+    """The fused product-of-exponentials Jacobian (with rolls and fixed ends) equals twist_exp_and_tangents,
+    roll_z_and_tangents and chain_jacobian called one after the other."""
+    xi, dxi = twists(2 * 3, 0.7, seed=13).view(2, 3, 6), twists(2 * 3 * 4, 1.0, seed=14).view(2, 3, 4, 6)
+    alpha = torch.tensor([[0.3, -1.1, 0.0], [2.0, 0.5, -0.4]], dtype=F64)
+    alpha_row = torch.zeros(3, 4, 1, dtype=F64)
+    alpha_row[:, 3] = 1.0
+    base, point = twist_exp(twists(1, 1.0, seed=15)[0]), torch.tensor([0.1, 0.2, -0.3], dtype=F64)
+    poses = lie.roll_z_and_tangents(*lie.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
+    tip, jac = lie.twist_chain_jacobian(xi, dxi, alpha, alpha_row, base, point)
+    ref_tip, ref_jac = lie.chain_jacobian(*poses, base, point)
+    torch.testing.assert_close(tip, ref_tip, atol=roundoff_tol(F64, 10.0), rtol=0)
+    torch.testing.assert_close(jac, ref_jac, atol=roundoff_tol(F64, 100.0), rtol=0)

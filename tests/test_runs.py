@@ -197,6 +197,15 @@ def test_load_model_from_a_run_folder_predicts_like_the_trained_module(tmp_path)
     assert pose.shape == (16, 4, 4)
     torch.testing.assert_close(pose, expected)
     assert isinstance(FKModule.load_from_checkpoint(runs.find_checkpoint(tmp_path / "runs/smoke")), FKModule)
+    # a newcomer's inputs: the float64 joints ResolvedRateController.step returns are cast (not a dtype error),
+    with torch.no_grad():
+        pose64 = model(q.double())
+    assert pose64.dtype == torch.float32 and torch.equal(pose64, pose)
+    # joint lengths in millimetres are refused instead of giving a tip metres away
+    with pytest.raises(ValueError, match=r"joint vector: expected joint lengths in metres.*millimetres"):
+        model(1e3 * q)
+    with torch.no_grad():                                       # at the robot's limits: still accepted
+        model(q * 1.5)
 
 
 # ---- interruptions (subprocess: real signals) ---------------------------------------------------------

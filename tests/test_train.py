@@ -22,9 +22,13 @@ def batch_loss(module, split):
         return module.loss({"q": split["q"], "pose": split["pose"]}).item()
 
 
-def test_fit_writes_summary_recording_and_checkpoint_and_loss_goes_down(tmp_path):
+def test_fit_writes_summary_recording_and_checkpoint_and_loss_goes_down(tmp_path, monkeypatch):
+    monkeypatch.setenv(train.RUN_FOLDER_ENV, "")
+    monkeypatch.setenv(train.OUT_FOLDER_ENV, "")
     cli = train.main(["fit", "--config", str(write_run_config(tmp_path))])
     run = tmp_path / "runs" / "smoke" / "version_0"
+    # rank 0 names its folder in the environment that a DDP launcher copies to the worker processes
+    assert os.environ[train.RUN_FOLDER_ENV] == os.environ[train.OUT_FOLDER_ENV] == str(run.resolve())
     summary = json.loads((run / "metrics.json").read_text())
     for key in ("pos_err_mean_mm", "pos_err_p95_mm", "pos_err_mean_pct", "rot_err_mean_deg", "train_seconds"):
         assert key in summary and summary[key] == summary[key]
@@ -111,3 +115,18 @@ def test_ddp_with_two_cpu_processes_matches_single_process_evaluation(tmp_path):
     pl.Trainer(logger=False, enable_progress_bar=False, enable_model_summary=False).test(module, dm, verbose=False)
     assert module.test_summary["pos_err_mean_mm"] == pytest.approx(summary["pos_err_mean_mm"], rel=1e-5)
     assert module.test_summary["pos_err_max_mm"] == pytest.approx(summary["pos_err_max_mm"], rel=1e-5)
+
+
+def test_ddp_workers_use_the_folders_rank_0_made_not_the_newest(tmp_path):
+    """Two DDP jobs of one run name started together: job A's rank 0 makes version_0, job B's version_1 before
+    A's workers start; A's workers must write to version_0 (rank 0 passes its folders to the processes it
+    launches through their environment), not to the newest version."""
+    root = tmp_path / "runs" / "smoke"
+    mine, newer = (root / "version_0"), (root / "version_1")
+    for folder in (mine, newer, mine / "test_0"):
+        folder.mkdir(parents=True)
+    env = {train.RUN_FOLDER_ENV: str(mine), train.OUT_FOLDER_ENV: str(mine)}
+    assert train.worker_folders(root, "fit", None, env) == (mine, mine)
+    env[train.OUT_FOLDER_ENV] = str(mine / "test_0")
+    assert train.worker_folders(root, "test", None, env) == (mine, mine / "test_0")
+    assert train.worker_folders(root, "fit", None, {}) == (newer, newer)       # without them: the old guess

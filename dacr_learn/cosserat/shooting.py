@@ -15,8 +15,8 @@ of the steps at the start (its O(h⁴) error only slows the iteration slightly, 
 cost), Broyden updates with the fine residuals after each step, differences again where progress is
 slow (``newton``). The residual itself
 is exact; J only steers the iteration, which still reaches the rounding level (about 1e-15).
-Damped by halving the step until ‖r‖ decreases. For the gradient, J is recomputed at the solution
-by central differences (error ≈ 1e-10).
+Damped by halving the step until ‖r‖ decreases (never moving to a worse point). For the gradient, J is
+recomputed at the solution by central differences (error ≈ 1e-10).
 
 Gradient: Newton runs without a graph; at the solution z* one more Newton step
 z = z* − J⁻¹·r(z*, θ) is taken with the graph on and J held fixed. Its value is z* (r ≈ 0) and its
@@ -140,24 +140,35 @@ def residual_and_jacobian(fun: Callable[[Tensor, Tensor], Tensor], x: Tensor, id
 
 
 Residual = Callable[[Tensor, Tensor], Tensor]
+KeepingResidual = Callable[[Tensor, Tensor], "tuple[Tensor, Tensor | None]"]
 
 
-def newton(fun: Residual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
-           halvings: int = 10) -> tuple[Tensor, Tensor, Tensor]:
-    """Damped quasi-Newton on fun(x, idx) = 0, each sample on its own and only while it has not converged.
+def newton(fun: KeepingResidual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
+           halvings: int = 10) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """Damped quasi-Newton on r(x) = 0, each sample on its own and only while it has not converged.
 
-    J from forward differences of ``coarse`` (the same residual on a coarser grid, default ``fun``) at x0,
+    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None): the residual of the n rows x of samples ``idx``, and
+    whatever the caller needs of the point besides r (e.g. the states at the grid nodes); ``newton`` returns the
+    ``kept`` of each sample's final x, so nothing is passed back through side effects of ``fun``.
+    J from forward differences of ``coarse`` (the same residual on a coarser grid, default ``fun``'s r) at x0,
     then Broyden's rank-one update with ``fun``'s residuals after every step, refreshed by differences
     where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, …
     (``halvings`` tries, one evaluation each) until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); the
-    accepted trial's residual is the next residual, so a step costs one integration. Returns
-    (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,))."""
+    accepted trial's residual is the next residual, so a step costs one integration. Where no trial meets
+    that, the best trial if it lowers ‖r‖₂, else the sample stays where it is: never a worse point. A sample
+    that cannot move gets J differenced again, on ``coarse`` and then on ``fun`` itself (the coarse grid's J
+    may be too rough where the rod bends hard); one that cannot move even then has stalled and stops (reported
+    with its residual).
+    Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,), kept (B, ...) or None)."""
     x = x0.clone()
     every = torch.arange(x.shape[0])
-    coarse = fun if coarse is None else coarse
-    r, jac = fun(x, every), residual_and_jacobian(coarse, x, every)[1]
+    fine = lambda z, idx: fun(z, idx)[0]  # noqa: E731
+    coarse, first = (fine, _FINE) if coarse is None else (coarse, _COARSE)
+    r, kept = fun(x, every)
+    jac = residual_and_jacobian(coarse, x, every)[1]
     res = _max_abs(r)
     iters = torch.zeros(x.shape[0], dtype=torch.long)
+    fresh = torch.full((x.shape[0],), first)        # how J was last made: _UPDATED, _COARSE or _FINE differences
     todo = every[torch.isfinite(res) & (res > tol)]
     for _ in range(max_iter):
         if not todo.numel():
@@ -165,18 +176,30 @@ def newton(fun: Residual, x0: Tensor, tol: float, max_iter: int, coarse: Residua
         j, r0 = jac[todo], r[todo]
         step, info = torch.linalg.solve_ex(j, r0)
         step = torch.where((info == 0).unsqueeze(-1), step, torch.nan)
-        x1, r1 = _line_search(fun, x[todo], step, r0, todo, halvings)
+        x1, r1, k1, moved = _line_search(fun, x[todo], step, r0, None if kept is None else kept[todo], todo, halvings)
         dx, dr = x1 - x[todo], r1 - r0
-        j = j + ((dr - (j @ dx.unsqueeze(-1)).squeeze(-1)) / (dx * dx).sum(-1, keepdim=True)).unsqueeze(-1) \
-            * dx.unsqueeze(-2)                                                         # Broyden ("good")
-        slow = (r1.norm(dim=-1) > REFRESH * r0.norm(dim=-1)) & torch.isfinite(r1).all(-1)
+        norm2 = (dx * dx).sum(-1, keepdim=True).clamp_min(torch.finfo(dx.dtype).tiny)
+        broyden = j + ((dr - (j @ dx.unsqueeze(-1)).squeeze(-1)) / norm2).unsqueeze(-1) * dx.unsqueeze(-2)  # "good"
+        j = torch.where(moved[:, None, None], broyden, j)
+        was = fresh[todo]
+        stalled = ~moved & (was == _FINE)
+        again_fine = ~moved & (was == _COARSE)
+        slow = (r1.norm(dim=-1) > REFRESH * r0.norm(dim=-1)) & torch.isfinite(r1).all(-1) & ~stalled & ~again_fine
         if slow.any():
             j[slow] = residual_and_jacobian(coarse, x1[slow], todo[slow])[1]
+        if again_fine.any():
+            j[again_fine] = residual_and_jacobian(fine, x1[again_fine], todo[again_fine])[1]
+        fresh[todo] = torch.where(again_fine | stalled, _FINE, torch.where(slow, first, _UPDATED))
         x[todo], r[todo], jac[todo] = x1, r1, j
+        if kept is not None:
+            kept[todo] = k1
         iters[todo] += 1
         res[todo] = _max_abs(r1)
-        todo = todo[torch.isfinite(res[todo]) & (res[todo] > tol)]   # NaN/inf: given up, reported as inf
-    return x, res, iters
+        todo = todo[torch.isfinite(res[todo]) & (res[todo] > tol) & ~stalled]   # NaN/inf: given up, reported as inf
+    return x, res, iters, kept
+
+
+_UPDATED, _COARSE, _FINE = 0, 1, 2
 
 
 def _max_abs(r: Tensor) -> Tensor:
@@ -184,20 +207,27 @@ def _max_abs(r: Tensor) -> Tensor:
     return torch.where(torch.isfinite(norm), norm, torch.inf)
 
 
-def _line_search(fun, x: Tensor, step: Tensor, r: Tensor, idx: Tensor, halvings: int) -> tuple[Tensor, Tensor]:
-    """(x − α·step, its residual) per sample, with the first α = 2^-k (k < halvings) that decreases ‖fun‖₂
-    (see newton); the last trial where none does."""
-    alpha = torch.ones(x.shape[0], 1, dtype=x.dtype)
-    out_r = torch.full_like(r, torch.nan)
+def _line_search(fun: KeepingResidual, x: Tensor, step: Tensor, r: Tensor, kept: Tensor | None, idx: Tensor,
+                 halvings: int) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+    """(x', fun's r and kept at x', moved (n,) bool) per sample: x' = x − α·step with the first α = 2^-k
+    (k < halvings) that decreases ‖r‖₂ by the Armijo factor (see newton); where none does, the trial of least
+    ‖r‖₂ if that is below ‖r(x)‖₂, else x itself (moved False)."""
     norm = r.norm(dim=-1)
-    pending = torch.arange(x.shape[0])
-    for k in range(halvings):
-        trial = fun(x[pending] - alpha[pending] * step[pending], idx[pending])
-        out_r[pending] = trial
-        tn = trial.norm(dim=-1)
-        ok = torch.isfinite(tn) & (tn <= (1 - 1e-4 * alpha[pending, 0]) * norm[pending])
+    best_x, best_r, best_norm = x.clone(), r.clone(), norm.clone()
+    best_kept = None if kept is None else kept.clone()
+    pending, alpha = torch.arange(x.shape[0]), 1.0
+    for _ in range(halvings):
+        trial = x[pending] - alpha * step[pending]
+        tr, tk = fun(trial, idx[pending])
+        tn = torch.where(torch.isfinite(tr).all(-1), tr.norm(dim=-1), torch.inf)
+        ok = tn <= (1 - 1e-4 * alpha) * norm[pending]
+        take = ok | (tn < best_norm[pending])
+        rows = pending[take]
+        best_x[rows], best_r[rows], best_norm[rows] = trial[take], tr[take], tn[take]
+        if best_kept is not None:
+            best_kept[rows] = tk[take]
         pending = pending[~ok]
-        if not pending.numel() or k == halvings - 1:
+        if not pending.numel():
             break
-        alpha[pending] = alpha[pending] / 2
-    return x - alpha * step, out_r
+        alpha /= 2
+    return best_x, best_r, best_kept, best_norm < norm

@@ -22,7 +22,16 @@ from .shooting import Loads, integrate, newton, residual, residual_and_jacobian,
 from .tendon import tendon_routing
 
 CHUNK = 2048  # samples solved together: bounds memory; per-sample time was flat from 1024 to 4096 (docs)
-COARSE_JACOBIAN = 4   # Newton's finite-difference Jacobian is taken on a grid with 1/4 of the steps
+COARSE_JACOBIAN = 4   # Newton's finite-difference Jacobian is taken on a grid with 1/4 of the steps,
+JACOBIAN_STEPS = 2    # but at least 2 per segment: one RK4 step per segment (the hardware models' 4 // 4) left J
+                      # off by up to 1.1 % on loaded samples (2 steps: 0.07 %; tests/test_cosserat_solver.py),
+                      # for 2 % more time per solve (64 samples: 248 → 253 ms)
+
+
+def jacobian_grid(grid: ArcGrid) -> ArcGrid:
+    """The grid Newton's finite-difference Jacobian is taken on: ``grid`` with a quarter of its steps, at least
+    JACOBIAN_STEPS per segment (the fine grid itself below that)."""
+    return grid.coarsened(COARSE_JACOBIAN, JACOBIAN_STEPS)
 
 
 class ConvergenceError(RuntimeError):
@@ -176,29 +185,22 @@ def _solve_flat(tau: Tensor, loads: Loads, routing, section: Section, grid: ArcG
     """(states at the nodes (B, K, 18 + T), base wrench x (B, 6), residual (B,), Newton steps (B,)) of B problems;
     ``graph``: the outputs carry the implicit gradient w.r.t. the tensions and loads."""
     scale = wrench_scale(section, length)
-    coarse = grid.coarsened(COARSE_JACOBIAN)
+    coarse = jacobian_grid(grid)
     tau_d, loads_d = tau.detach(), loads.detached()
 
     def fun(z, idx, tau=tau_d, loads=loads_d, grid=grid):   # dimensionless base wrench z = x / scale → residual
         end = integrate(z * scale, tau[idx], loads.select(idx), routing, section, grid, keep_nodes=False)[1]
         return residual(end, section, length)
 
-    nodes = None   # (B, K, 18 + T): each sample's latest fine integration, i.e. its accepted Newton iterate
-
-    def fine(z, idx):     # ``fun`` on the fine grid that also keeps the states at the nodes
-        nonlocal nodes
+    def fine(z, idx):     # ``fun`` on the fine grid, also keeping the states at the nodes (B, K, 18 + T)
         states, end = integrate(z * scale, tau_d[idx], loads_d.select(idx), routing, section, grid)
-        states = torch.stack(states, dim=1)
-        if nodes is None:
-            nodes = states.new_full((tau.shape[0], *states.shape[1:]), torch.nan)
-        nodes[idx] = states
-        return residual(end, section, length)
+        return residual(end, section, length), torch.stack(states, dim=1)
 
     with torch.no_grad():
         x0 = _initial_guess(tau_d, routing.offsets_in(0), loads_d, list(grid.load_arcs), length)
-        z, res, iters = newton(fine, x0 / scale, tol, max_iter, coarse=lambda z, idx: fun(z, idx, grid=coarse))
+        z, res, iters, nodes = newton(fine, x0 / scale, tol, max_iter, coarse=lambda z, idx: fun(z, idx, grid=coarse))
     if not graph:
-        return nodes, z * scale, res, iters          # the last Newton evaluation already integrated x (no extra pass)
+        return nodes, z * scale, res, iters          # newton kept the nodes of each sample's final z (no extra pass)
     every = torch.arange(z.shape[0])
     with torch.no_grad():
         jac = residual_and_jacobian(fun, z, every, central=True)[1]

@@ -23,45 +23,17 @@ and the IK output de-standardisation are folded into the last layer. All folding
 """
 from __future__ import annotations
 
-import math
-
 import torch
-import torch.nn.functional as F
 from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_matrix
 from torch import Tensor, nn
 
 from ..clarke_space import ClarkeFold, DecoderJacobian
+from ..folding import activation_name, linear_layers, tangent_rows
 from ..layers import ClarkeDecoder
 from ..lie import pose_from_parts
-from ..models import ACTIVATIONS, FKModel, IKModel, actuated_to_features
+from ..models import FKModel, IKModel, actuated_to_features
 
 _F64 = torch.float64
-
-
-def _activation_name(net: nn.Sequential) -> str:
-    kinds = {type(m) for m in net if not isinstance(m, nn.Linear)}
-    names = [k for k, cls in ACTIVATIONS.items() if {cls} == kinds]
-    if len(names) != 1:
-        raise ValueError(f"net: expected one activation of {sorted(ACTIVATIONS)}, got {kinds}")
-    return names[0]
-
-
-def activation_and_derivative(name: str, a: Tensor) -> tuple[Tensor, Tensor]:
-    """(σ(a), σ'(a)) for the activations of models.ACTIVATIONS (GELU: exact erf form)."""
-    if name == "silu":
-        sg = torch.sigmoid(a)
-        return a * sg, sg * (1 + a * (1 - sg))
-    if name == "relu":
-        return F.relu(a), (a > 0).to(a.dtype)
-    if name == "gelu":
-        cdf = 0.5 * (1 + torch.erf(a * (1 / math.sqrt(2))))
-        return a * cdf, cdf + a * torch.exp(-0.5 * a * a) * (1 / math.sqrt(2 * math.pi))
-    s = torch.tanh(a)
-    return s, 1 - s * s
-
-
-def linear_layers(net: nn.Sequential) -> list[nn.Linear]:
-    return [m for m in net if isinstance(m, nn.Linear)]
 
 
 def _frozen_linear(weight: Tensor, bias: Tensor, dtype: torch.dtype) -> nn.Linear:
@@ -77,8 +49,7 @@ class FoldedMLP(nn.Module):
     def __init__(self, net: nn.Sequential, first: tuple[Tensor, Tensor], out_scale: Tensor,
                  out_shift: Tensor, dtype: torch.dtype):
         super().__init__()
-        self.act = _activation_name(net)
-        self.activation = next(m for m in net if not isinstance(m, nn.Linear))   # the model's own module
+        self.act = activation_name(net)
         lin = linear_layers(net)
         last = lin[-1]
         w_last = out_scale[:, None] * last.weight.detach().to(_F64)
@@ -88,18 +59,20 @@ class FoldedMLP(nn.Module):
         self.last = _frozen_linear(w_last, b_last, dtype)
 
     def forward(self, a: Tensor) -> Tensor:
-        """First-layer pre-activations (B, W) → network output (B, out)."""
-        for layer in self.hidden:
-            a = layer(self.activation(a))
-        return self.last(self.activation(a))
+        """First-layer pre-activations (B, W) → network output (B, out) (:func:`~dacr_learn.folding.tangent_rows`
+        without tangent rows)."""
+        return tangent_rows(a.unsqueeze(-2), self.layers(), self.act)[..., 0, :]
 
     def forward_with_tangents(self, a: Tensor, tangent: Tensor) -> tuple[Tensor, Tensor]:
-        """Forward-mode derivative: pre-activations (B, W) with tangents (B, k, W) → (out, dout (B, k, out))."""
-        for layer in self.hidden:
-            s, ds = activation_and_derivative(self.act, a)
-            a, tangent = layer(s), F.linear(ds.unsqueeze(-2) * tangent, layer.weight)
-        s, ds = activation_and_derivative(self.act, a)
-        return self.last(s), F.linear(ds.unsqueeze(-2) * tangent, self.last.weight)
+        """Forward-mode derivative: pre-activations (B, W) with tangents (B, k, W) → (out, dout (B, k, out))
+        (:func:`~dacr_learn.folding.tangent_rows`)."""
+        rows = tangent_rows(torch.cat([a.unsqueeze(-2), tangent], dim=-2), self.layers(), self.act)
+        return rows[..., 0, :], rows[..., 1:, :]
+
+    def layers(self) -> list[tuple[Tensor, Tensor]]:
+        """(weight (in, out), bias (out,)) of the hidden and output layers, for
+        :func:`~dacr_learn.folding.tangent_rows`."""
+        return [(layer.weight.mT, layer.bias) for layer in [*self.hidden, self.last]]
 
 
 def _first_layer(net: nn.Sequential, mean: Tensor, std: Tensor) -> tuple[Tensor, Tensor]:

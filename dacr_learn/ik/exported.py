@@ -32,7 +32,7 @@ _F64 = torch.float64
 class IKRefinement(nn.Module):
     """Fixed-iteration IK refinement on the analytic CC model of a robot (module docstring), float64."""
 
-    def __init__(self, spec: RobotSpec, iterations: int = 4, position_only: bool = False, damping: float = 1e-6):
+    def __init__(self, spec: RobotSpec, iterations: int = 3, position_only: bool = False, damping: float = 1e-6):
         super().__init__()
         if iterations < 1:
             raise ValueError(f"iterations: expected >= 1, got {iterations}")
@@ -64,7 +64,7 @@ class IKRefinement(nn.Module):
         return self.model.joints(x), pos_err, rot_err
 
 
-def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterations: int = 4,
+def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterations: int = 3,
                       position_only: bool = False, aoti: bool = True) -> dict[str, Any]:
     """Export :class:`IKRefinement` of a robot as the module ``refine`` (``refine.pt2`` [and ``refine.aoti.pt2``]) into
     ``out``, verified against the eager module on 64 warm-started targets; returns the metadata. Load it with
@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     p = argparse.ArgumentParser(prog="python -m dacr_learn.ik.exported", description=__doc__.split("\n\n")[0])
     p.add_argument("--robot", required=True, help="robot YAML file")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--iterations", type=int, default=4, help="LM iterations per call (default 4)")
+    p.add_argument("--iterations", type=int, default=3, help="LM iterations per call (default 3)")
     p.add_argument("--position-only", action="store_true", help="targets are tip positions (B, 3)")
     p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (about a minute)")
     args = p.parse_args(argv)

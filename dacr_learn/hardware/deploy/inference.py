@@ -15,9 +15,9 @@ enumeration with the servo map (x = servo·A + a₀ + p) folded in: one product 
 2ᴺ stretched-tendon sets' sign violations, the consistent set's affine map gives ρ and ∂ρ/∂servo
 (:func:`~.slack.active_set_gains`; the same minimiser as :func:`~.slack.solve_tendon_qp`, without its
 data-dependent iterations or linear solves) → ρ per segment → [play operator step] → per-member
-correction Δρ (the residual MLPs, batched over members) → CC kinematics (segment poses
-T = exp(Ξ) = I + sΞ + fΞ², chained with the base pose) → tip. Written for few ops at batch 1: no
-einsum, linear solve or Python-side work in forward (N ≤ 12 tendons for the enumeration).
+correction Δρ (the residual MLPs, batched over members) → CC kinematics (segment poses: the kernel's
+exponential of the CC twists, :mod:`dacr_learn.lie`, chained with the base pose) → tip. Written for few ops
+at batch 1: no einsum, linear solve or Python-side work in forward (N ≤ 12 tendons for the enumeration).
 
 History models run causally: ``state`` is the play operator's state (the previous call's output);
 start a sequence with :meth:`HardwareFK.initial_state` of the first command (the batch training
@@ -29,7 +29,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ...lie import bending_coefficients_and_derivatives, pose_from_parts
+from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
+from ...kinematics import cc_transform, cc_twist
+from ...lie import components, pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
@@ -37,31 +39,17 @@ from .checkpoint import HardwareModel
 _F64 = torch.float64
 
 
-def segment_twists(radius: Tensor, length: Tensor) -> dict[str, Tensor]:
-    """Constants of :func:`twist_segment_poses` for segments of radius d (m,) and length β (m,) [m]: ``twist_map``
-    (m, 2, 16) and ``twist_offset`` (m, 4, 4) with Ξ = ρ·map + offset = [[0, 0, uₓ, 0], [0, 0, u_y, 0],
-    [−uₓ, −u_y, 0, β], [0, 0, 0, 0]] for u = ρ/d, ``half_turns`` 1/(2πd) (m, 1, 1), ``eye4`` I (4, 4)."""
-    m = radius.shape[0]
-    twist = torch.zeros(m, 2, 4, 4, dtype=radius.dtype)
-    twist[:, 0, 0, 2] = twist[:, 1, 1, 2] = 1 / radius
-    twist[:, 0, 2, 0] = twist[:, 1, 2, 1] = -1 / radius
-    offset = torch.zeros(m, 4, 4, dtype=radius.dtype)
-    offset[:, 2, 3] = length
-    return {"twist_map": twist.flatten(-2), "twist_offset": offset,
-            "half_turns": 1 / (2 * torch.pi * radius[:, None, None]), "eye4": torch.eye(4, dtype=radius.dtype)}
+def cc_segment_poses(rho: Tensor, radius: Tensor, length: Tensor) -> Tensor:
+    """CC segment poses (..., m, 4, 4) of ρ (..., m, 2) [m] for segments of radius d (m,) and length β (m,) [m]:
+    the kernel's exponential of the CC twist, :func:`~dacr_learn.kinematics.cc_transform` (ρ/d, β)."""
+    return cc_transform(rho / radius.unsqueeze(-1), length)
 
 
-def twist_segment_poses(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, half_turns: Tensor,
-                        eye4: Tensor) -> Tensor:
-    """CC segment poses (..., m, 4, 4) of ρ (..., m, 2) [m] (constants from :func:`segment_twists`):
-    T = exp(Ξ) = I + sΞ + fΞ² with φ = ‖u‖ = 2πy, s = sin φ/φ = sinc(2y), f = (1 − cos φ)/φ² = ½ sinc(y)² — the
-    closed form of the exponential because the translation (0, 0, β) is orthogonal to the rotation axis; the
-    same R, p as :func:`~dacr_learn.kinematics.cc_transform` (docs/design.md §2) to float rounding, both sinc
-    terms free of cancellation, finite gradients at u = 0."""
-    row = rho.unsqueeze(-2)                                                       # (..., m, 1, 2)
-    xi = (row @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset
-    y = torch.linalg.vector_norm(row * half_turns, dim=-1, keepdim=True)          # (..., m, 1, 1)
-    return torch.addcmul(torch.addcmul(eye4, torch.sinc(2 * y), xi), torch.sinc(y) ** 2, xi @ xi, value=0.5)
+def cc_twist_directions(radius: Tensor) -> Tensor:
+    """∂ξ/∂ρ (m, 2, 6) of the CC twists ξ_k = :func:`~dacr_learn.kinematics.cc_twist` (ρ_k/d_k, β_k), which are
+    linear in ρ: cc_twist(e_j/d_k, 0) (the tangent directions of :func:`cc_tip_and_jacobian`)."""
+    eye = torch.eye(2, dtype=radius.dtype, device=radius.device)
+    return cc_twist(eye / radius[:, None, None], torch.zeros(radius.shape[0], 2, dtype=radius.dtype))
 
 
 def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -> Tensor:
@@ -73,72 +61,17 @@ def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -
     return (chain @ tip_marker)[..., :3]
 
 
-def twist_pose_terms(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radius: Tensor,
-                     eye4: Tensor) -> tuple[Tensor, tuple[Tensor, ...]]:
-    """CC segment poses T = I + sΞ + fΞ² (..., m, 4, 4) of ρ (..., m, 2) [m] (:func:`twist_segment_poses`) and the
-    terms :func:`twist_pose_derivative_times` needs: (Ξ, s, f, s', f', ∂φ²/∂ρ (..., m, 2), M = ∂Ξ/∂ρ (m, 2, 4, 4)),
-    s, f functions of φ² = ‖ρ_k‖²/d_k² and s', f' their φ²-derivatives (Taylor branch near 0)."""
-    m = rho.shape[-2]
-    xi = (rho.unsqueeze(-2) @ twist_map).reshape(*rho.shape[:-1], 4, 4) + twist_offset       # (..., m, 4, 4)
-    inv_d2 = 1 / radius**2
-    s, f, ds, df = bending_coefficients_and_derivatives((rho * rho).sum(-1) * inv_d2)        # (..., m)
-    poses = eye4 + s[..., None, None] * xi + f[..., None, None] * (xi @ xi)
-    return poses, (xi, s, f, ds, df, 2 * rho * inv_d2.unsqueeze(-1), twist_map.view(m, 2, 4, 4))
-
-
-def twist_pose_derivative_times(terms: tuple[Tensor, ...], w: Tensor) -> Tensor:
-    """(∂T_k/∂ρ_kj)·w_k (..., m, 2, 4) for vectors w (..., m, 4): ∂T/∂ρ_j = ∂φ²/∂ρ_j·(s'Ξ + f'Ξ²) + s·M_j +
-    f·(M_jΞ + ΞM_j) with the terms of :func:`twist_pose_terms` (matrix-vector products only)."""
-    xi, s, f, ds, df, dphi_sq, maps = terms
-    xw = (xi @ w.unsqueeze(-1)).squeeze(-1)                                                  # Ξw (..., m, 4)
-    xxw = (xi @ xw.unsqueeze(-1)).squeeze(-1)                                                # Ξ²w
-    mw = (maps @ w[..., None, :, None]).squeeze(-1)                                          # M_j w (..., m, 2, 4)
-    mxw = (maps @ xw[..., None, :, None]).squeeze(-1)                                        # M_j Ξ w
-    xmw = (xi.unsqueeze(-3) @ mw.unsqueeze(-1)).squeeze(-1)                                  # Ξ M_j w
-    return (dphi_sq.unsqueeze(-1) * (ds[..., None, None] * xw.unsqueeze(-2) + df[..., None, None] * xxw.unsqueeze(-2))
-            + s[..., None, None] * mw + f[..., None, None] * (mxw + xmw))
-
-
-def chain_prefix_suffix(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -> tuple[Tensor, Tensor]:
-    """For poses T (..., m, 4, 4): prefixes P_k = base · T₁ ⋯ T_{k−1} (..., m, 4, 4) and suffixes
-    v_k = T_{k+1} ⋯ T_m · marker (..., m, 4), so that the marker point is P_k · T_k · v_k for every k and its
-    derivative along a change dT_k of one segment is P_k · dT_k · v_k."""
-    m = poses.shape[-3]
-    suffix = [tip_marker.expand(*poses.shape[:-3], 4)]
-    for k in range(m - 1, 0, -1):
-        suffix.insert(0, (poses[..., k, :, :] @ suffix[0].unsqueeze(-1)).squeeze(-1))
-    prefix = [base_pose.expand(*poses.shape[:-3], 4, 4)]
-    for k in range(m - 1):
-        prefix.append(prefix[-1] @ poses[..., k, :, :])
-    return torch.stack(prefix, -3), torch.stack(suffix, -2)
-
-
-def twist_tip_and_jacobian(rho: Tensor, twist_map: Tensor, twist_offset: Tensor, radius: Tensor, eye4: Tensor,
-                           base_pose: Tensor, tip_marker: Tensor) -> tuple[Tensor, Tensor]:
-    """Marker point base · T₁ ⋯ T_m · marker (:func:`twist_segment_poses`, :func:`chained_marker_point`) and its
-    derivative ∂tip/∂ρ: ρ (..., m, 2) [m] → tip (..., 3) [m], J (..., m, 2, 3) [m/m], ∂tip/∂ρ_kj =
-    P_k · ∂T_k/∂ρ_kj · v_k (:func:`chain_prefix_suffix`, :func:`twist_pose_derivative_times`)."""
-    poses, terms = twist_pose_terms(rho, twist_map, twist_offset, radius, eye4)
-    p, v = chain_prefix_suffix(base_pose, poses, tip_marker)
-    tip = (p[..., -1, :3, :] @ (poses[..., -1, :, :] @ v[..., -1, :].unsqueeze(-1))).squeeze(-1)
-    return tip, (p[..., :3, :].unsqueeze(-3) @ twist_pose_derivative_times(terms, v).unsqueeze(-1)).squeeze(-1)
-
-
-def _value_row(rows: int, dtype: torch.dtype) -> Tensor:
-    """(rows, 1): 1 on the first (value) row of a value-and-tangents stack, 0 on the tangent rows."""
-    return (torch.arange(rows) == 0).to(dtype).unsqueeze(-1)
-
-
-def silu_linear_rows(a: Tensor, w: Tensor, bias: Tensor) -> Tensor:
-    """One SiLU + linear layer in forward mode on stacked rows a (K, R, 1 + T, H) = a value row and its T
-    tangent rows per network input: SiLU on the value, the tangents scaled by SiLU'(value), then all rows
-    through the K members' weights w (K, H, H') in one bmm, the bias (K, 1, H') on the value row only
-    → (K, R, 1 + T, H')."""
-    k, r, n, h = a.shape
-    v = a[:, :, :1]
-    sg = torch.sigmoid(v)
-    a = torch.cat([v * sg, a[:, :, 1:] * (sg * (1 + v * (1 - sg)))], 2).reshape(k, -1, h)
-    return torch.bmm(a, w).view(k, r, n, -1) + bias.unsqueeze(1) * _value_row(n, a.dtype)
+def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions: Tensor, base_pose: Tensor,
+                        tip_marker: Tensor) -> tuple[Tensor, Tensor]:
+    """Marker point base · T₁ ⋯ T_m · marker (:func:`cc_segment_poses`, :func:`chained_marker_point`) and its
+    derivative: ρ (..., m, 2) [m] → tip (..., 3) [m], ∂tip/∂ρ (..., m, 2, 3) [m/m]. The kernel's exponential
+    with its tangents along ``directions`` = :func:`cc_twist_directions` (radius) and its chain rule with the
+    base pose and the marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
+    u = components(rho / radius.unsqueeze(-1))                                        # u_x, u_y (..., m)
+    dw = directions[..., 3:5].permute(1, 2, 0).unflatten(-1, (*[1] * (rho.dim() - 2), -1))   # dω_x, dω_y (T, 1.., m)
+    xi, dxi = (None, None, length, -u[1], u[0], None), (None, None, None, dw[:, 0], dw[:, 1], None)   # zeros skipped
+    tip, jac = twist_chain_jacobian(xi, dxi, base=base_pose, point=tip_marker[:3])
+    return tip[..., :3, 3], jac[..., :3, :].unflatten(-1, (rho.shape[-2], 2)).movedim(-3, -1)
 
 
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
@@ -171,12 +104,13 @@ class HardwareFK(nn.Module):
                        "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
                        "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
                        "play_width": torch.tensor(model.play_width, dtype=_F64)}
-            buffers.update(segment_twists(buffers["radius"], buffers["length"]))
+            buffers["twist_directions"] = cc_twist_directions(buffers["radius"])
             buffers.update(_stacked_members(model.members))
             buffers["sigma_coefficients"] = sigma_coefficients(model)
         for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
             self.register_buffer(name, value.detach().to(dtype).contiguous())
         self.ensemble = len(model.members)
+        self.activation = activation_name([m.net for m in model.members])
         self.spec = spec
 
     def clarke(self, servo: Tensor, derivative: bool = True) -> tuple[Tensor, Tensor | None]:
@@ -211,49 +145,39 @@ class HardwareFK(nn.Module):
         drag = (eye - unit.unsqueeze(-1) * unit.unsqueeze(-2)) / norm.unsqueeze(-1)
         return memory, new, torch.where(inside.unsqueeze(-1), eye / self.play_width, drag)
 
-    def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None]):
-        """Corrected ρ' (B, K, m, 2) of every member and its tangents (B, K, m, 2, T), from the tangents
-        (∂ρ (B, m, 2, T), ∂memory or None) of the inputs (the FK path without tangents: :meth:`members_only`).
+    def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None] | None = None):
+        """Corrected ρ' (B, K, m, 2) of every member and, given the tangents (∂ρ (B, m, 2, T), ∂memory or None)
+        of the inputs, its tangents (B, K, m, 2, T) (else None).
 
-        Forward mode as stacked rows: per (batch, segment) the input value and its T tangents are 1 + T rows
-        through the same products (the bias on the value row only; after each SiLU the tangent rows are
-        scaled by SiLU'(value)), so each layer is one product for all members — the first layer shared, the
-        others batched over the members (K, B·m·(1 + T), ·) (v4 default's AOTI Jacobian runner 94.9 → 79.3 µs)."""
+        Forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`): per (batch, segment) the input
+        value and its T tangents are 1 + T rows through the same products, the shared input through all K first
+        layers in one product, the K hidden and output layers batched over the members (bmm: a third of the
+        work of one block-diagonal product; v4 model's AOTI runner of the FK part 23.0 → 14.7 µs, of the
+        Jacobian 94.9 → 79.3 µs)."""
         x = rho if memory is None else torch.cat([rho, memory], -1)                        # (B, m, I)
-        dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)     # (B, m, I, T)
-        b, m, t = rho.shape[0], rho.shape[1], dx.shape[-1]
-        k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
-        rows = torch.cat([x.unsqueeze(2), dx.transpose(-1, -2)], 2)                        # (B, m, 1 + T, I)
-        a = rows @ self.first_all + self.b_first_all.unsqueeze(1) * _value_row(1 + t, rho.dtype)  # (B,m,1+T,K·H)
-        a = a.view(b, m, 1 + t, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, 1 + t, h)
-        for w, bias in ((self.w_hidden, self.b_hidden), (self.w_last, self.b_last)):
-            a = silu_linear_rows(a, w, bias)
-        a = a.view(k, b, m, 1 + t, 2).transpose(0, 1)                                     # (B, K, m, 1 + T, 2)
-        out, dout = a[:, :, :, 0], a[:, :, :, 1:].transpose(-1, -2)                        # (B,K,m,2), (B,K,m,2,T)
-        return rho.unsqueeze(1) + out, tangent[0].unsqueeze(1) + dout
-
-    def members_only(self, rho: Tensor, memory: Tensor | None) -> Tensor:
-        """Corrected ρ' (B, K, m, 2) of every member: the shared input through all K first layers in one
-        product, then the K hidden and output layers as batched products over the members (bmm: a third
-        of the work of one block-diagonal product; v4 model's AOTI runner of this part 23.0 → 14.7 µs)."""
-        x = rho if memory is None else torch.cat([rho, memory], -1)
-        k, h = self.w_hidden.shape[0], self.w_hidden.shape[1]
-        a = x @ self.first_all + self.b_first_all                            # (B, m, K·H)
-        a = nn.functional.silu(a).reshape(-1, k, h).transpose(0, 1)          # (K, B·m, H)
-        a = torch.baddbmm(self.b_hidden, a, self.w_hidden)
-        a = torch.baddbmm(self.b_last, nn.functional.silu(a), self.w_last)   # (K, B·m, 2)
-        a = a.reshape(k, -1, self.num_segments, 2).transpose(0, 1)           # (B, K, m, 2)
-        return rho.unsqueeze(1) + a
+        rows = x.unsqueeze(2)                                                              # (B, m, 1, I)
+        if tangent is not None:
+            dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)  # (B, m, I, T)
+            rows = torch.cat([rows, dx.transpose(-1, -2)], 2)                              # (B, m, 1 + T, I)
+        (b, m, n, _), (k, h) = rows.shape, self.w_hidden.shape[:2]
+        bias = self.b_first_all.unsqueeze(1)                                               # on the value row only
+        bias = bias * (torch.arange(n) == 0).to(rho.dtype).unsqueeze(-1) if n > 1 else bias
+        a = rows @ self.first_all + bias                                                   # (B, m, 1 + T, K·H)
+        a = a.view(b, m, n, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, n, h)
+        a = tangent_rows(a, [(self.w_hidden, self.b_hidden), (self.w_last, self.b_last)], self.activation)
+        a = a.view(k, b, m, n, 2).transpose(0, 1)                                         # (B, K, m, 1 + T, 2)
+        out = rho.unsqueeze(1) + a[:, :, :, 0]
+        return out, None if tangent is None else tangent[0].unsqueeze(1) + a[:, :, :, 1:].transpose(-1, -2)
 
     def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., m, 2, 3) from ρ (..., m, 2)
-        (:func:`twist_tip_and_jacobian`)."""
-        return twist_tip_and_jacobian(rho, self.twist_map, self.twist_offset, self.radius, self.eye4, self.base_pose,
-                                      self.tip_marker)
+        (:func:`cc_tip_and_jacobian`)."""
+        return cc_tip_and_jacobian(rho, self.radius, self.length, self.twist_directions, self.base_pose,
+                                   self.tip_marker)
 
     def tip_only(self, rho: Tensor) -> Tensor:
         """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (marker, 1)."""
-        poses = twist_segment_poses(rho, self.twist_map, self.twist_offset, self.half_turns, self.eye4)
+        poses = cc_segment_poses(rho, self.radius, self.length)
         return chained_marker_point(self.base_pose, poses, self.tip_marker)
 
     def mean_std(self, tips: Tensor, rho: Tensor) -> tuple[Tensor, Tensor]:
@@ -270,7 +194,7 @@ class HardwareFK(nn.Module):
         memory, new_state = None, None
         if self.history:
             memory, new_state, _ = self.play(rho, state, derivative=False)
-        corrected = self.members_only(rho, memory)
+        corrected = self.members(rho, memory)[0]
         tips = self.tip_only(corrected)
         tip, std = self.mean_std(tips, rho)
         return (tip, std, new_state) if self.history else (tip, std)
@@ -333,7 +257,7 @@ def _stacked_members(members) -> dict[str, Tensor]:
     """Residual networks of the K members stacked (float64), weights (K, in, out): the first layers side by
     side as one (in, K·H) map of ρ [and memory] (input standardisation folded in) with the one-hot part folded
     into a per-segment bias (m, K·H); hidden and output layers (K, in, out), the output scale folded in."""
-    nets = [[l for l in m.net if isinstance(l, nn.Linear)] for m in members]
+    nets = [linear_layers(m.net) for m in members]
     if any(len(n) != 3 for n in nets):
         raise ValueError(f"members: expected residual networks with 3 linear layers, got {[len(n) for n in nets]}")
     w1 = torch.stack([n[0].weight for n in nets]).to(_F64)                  # (K, H, 2 [+2] + m)
@@ -342,10 +266,9 @@ def _stacked_members(members) -> dict[str, Tensor]:
     hist = 2 if members[0].history else 0
     w_first = torch.cat([(w1[..., :2] / std).mT, w1[..., 2:2 + hist].mT], -2)   # (K, 2 [+2], H): ρ [and memory]
     b_first = torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]  # (K, m, H)
+    w_hidden, b_hidden = stacked_linear([n[1] for n in nets])
+    w_last, b_last = stacked_linear([n[2] for n in nets], RESIDUAL_RHO_SCALE)
     # the K first layers as one (the input is shared): hidden units of the members side by side
     return {"first_all": w_first.permute(1, 0, 2).flatten(1),              # (in, K·H)
             "b_first_all": b_first.permute(1, 0, 2).flatten(1),            # (m, K·H)
-            "w_hidden": torch.stack([n[1].weight for n in nets]).to(_F64).mT,
-            "b_hidden": torch.stack([n[1].bias for n in nets]).to(_F64).unsqueeze(1),
-            "w_last": torch.stack([n[2].weight for n in nets]).to(_F64).mT * RESIDUAL_RHO_SCALE,
-            "b_last": torch.stack([n[2].bias for n in nets]).to(_F64).unsqueeze(1) * RESIDUAL_RHO_SCALE}
+            "w_hidden": w_hidden, "b_hidden": b_hidden, "w_last": w_last, "b_last": b_last}
