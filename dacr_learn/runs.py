@@ -304,7 +304,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
     model = model.to(dtype).eval()
     model.task = task
     if task in ("fk", "ik"):
-        model.register_forward_pre_hook(_FriendlyInput(task, _longest_joint_length(model.spec)))
+        model.register_forward_pre_hook(_FriendlyInput(task))
     return model
 
 
@@ -328,8 +328,8 @@ class _FriendlyInput:
     far outside the robot's limits (a ValueError: millimetres instead of metres would give a tip metres away).
     Skipped while tracing (torch.export / compile) and under torch.func transforms, like check_tensor."""
 
-    def __init__(self, task: str, longest: float):
-        self.task, self.longest = task, longest
+    def __init__(self, task: str):
+        self.task = task
 
     def __call__(self, module: torch.nn.Module, args: tuple) -> tuple | None:
         if not args or not isinstance(args[0], torch.Tensor) or not args[0].is_floating_point():
@@ -340,10 +340,11 @@ class _FriendlyInput:
             x = x.to(dtype)
         if (self.task == "fk" and x.numel() and not torch.compiler.is_compiling()
                 and not torch._C._functorch.is_functorch_wrapped_tensor(x)):
-            n = module.spec.num_length_joints
+            spec = module.spec                 # read at each call: a transferred copy has another robot
+            longest, n = _longest_joint_length(spec), spec.num_length_joints
             worst = float(x[..., :n].detach().abs().amax()) if x.shape[-1] >= n else 0.0
-            if worst > JOINT_UNIT_FACTOR * self.longest:
+            if worst > JOINT_UNIT_FACTOR * longest:
                 raise ValueError(
-                    f"joint vector: expected joint lengths in metres, at most {self.longest:.3g} m for robot "
-                    f"{module.spec.name!r} within its limits, got {worst:.4g} (millimetres? divide by 1000)")
+                    f"joint vector: expected joint lengths in metres, at most {longest:.3g} m for robot "
+                    f"{spec.name!r} within its limits, got {worst:.4g} (millimetres? divide by 1000)")
         return (x, *args[1:])

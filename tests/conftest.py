@@ -26,9 +26,9 @@ from dacr_learn.robot import RobotSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Intra-op threads for the whole suite. `make test` runs the suite twice, with 1 and then 2 threads
-# (DACR_TEST_THREADS=2): another float reduction order, so a test that only passes bit for bit on
-# one machine fails here first.
+# Intra-op threads for the whole suite. `make test` runs the suite with 1 thread, then the reduction_order
+# tests (tests/reduction_order.py) with 2 threads (DACR_TEST_THREADS=2) and portable kernels: another float
+# reduction order, so a test that only passes bit for bit on one machine fails here first.
 TEST_THREADS = int(os.environ.get("DACR_TEST_THREADS", "1"))
 torch.set_num_threads(TEST_THREADS)
 

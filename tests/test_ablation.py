@@ -118,6 +118,7 @@ def test_common_mode_offset_leaves_clarke_fk_unchanged(robot, dtype, tol):
     assert moved["raw"] > 1e-3 and moved["raw"] > 1e3 * tol      # the raw model's prediction changes
 
 
+@pytest.mark.slow          # the quick grid's rows: with the other grid tests, so the grid runs in one process
 def test_offset_condition_rows_match_clean_for_symmetric_clarke(quick_run):
     """In the grid itself: for the symmetric robot the Clarke FK rows of 'offset' equal 'clean'."""
     out, _ = quick_run

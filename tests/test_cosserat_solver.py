@@ -2,9 +2,10 @@
 order, global equilibrium, textbook cantilevers, gradients (gradcheck through the Newton solve),
 batching, and failures that are reported instead of returned as garbage.
 
-The solver checks are marked slow: `make test` runs them once, in its one-thread pass. In its
-two-thread pass on a loaded machine OpenMP's actively waiting worker made them 10-20x slower
-(test_batched_equals_per_sample: 1.9 s with OMP_WAIT_POLICY=PASSIVE, 25 s without)."""
+The solver checks are marked slow: `make test` runs them in its one-thread pass, beside the other tests; those
+that compare at rounding level (tests/reduction_order.py) run again in its two-thread pass, with
+OMP_WAIT_POLICY=PASSIVE: OpenMP's actively waiting worker made them 10-20x slower on a loaded machine
+(test_batched_equals_per_sample: 1.9 s with PASSIVE, 25 s without)."""
 from __future__ import annotations
 
 import math

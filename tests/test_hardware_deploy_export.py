@@ -15,7 +15,6 @@ from hardware_testkit import (
     V4_TIP_SCALE,
     batch_prediction,
     command_recording,
-    load_v4_slice,
     sigma_roundoff_tol,
     synthetic_model,
     v4_commands,
@@ -93,19 +92,20 @@ def test_export_equals_the_eager_model(v4_slice, compositional_models, exported_
     assert Path(out / dexport.METADATA_FILE).exists()
 
 
-def _residual_model(tmp: Path):
+def _residual_model(request):
     """A small residual ensemble of the synthetic robot (exported through HardwareFK)."""
     from hardware_testkit import synthetic_model
 
     return synthetic_model(history=False, members=2)
 
 
-def _compositional_model(tmp: Path):
-    """An untrained compositional ensemble on a slice of FTDCR v4 (exported through CompositionalHardwareFK)."""
+def _compositional_model(request):
+    """An untrained compositional ensemble on the session's slice of FTDCR v4 (exported through
+    CompositionalHardwareFK)."""
     from dacr_learn.hardware.compositional_model import CCCompositionalResidual
     from dacr_learn.hardware.deploy.checkpoint import HardwareModel
 
-    s = load_v4_slice(tmp)
+    s = request.getfixturevalue("v4_slice")                 # shared: its CC fit is not repeated here
     members = [CCCompositionalResidual(s.cc) for _ in range(2)]
     for member in members:
         member.fit_normalization(s.train)
@@ -114,13 +114,13 @@ def _compositional_model(tmp: Path):
 
 
 @pytest.mark.parametrize("build", [_residual_model, _compositional_model])
-def test_hardware_export_stores_whole_tensors(tmp_path, build):
+def test_hardware_export_stores_whole_tensors(tmp_path, build, request):
     """torch.export.save warned "No complete tensor found in the group!" for every exported hardware module:
     their stacked weights were transposed views. Fixed at the source: the modules' buffers are contiguous."""
     from dacr_learn import export as dexport
     from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
 
-    ckpt = save_hardware_model(build(tmp_path), tmp_path / "model.pt")
+    ckpt = save_hardware_model(build(request), tmp_path / "model.pt")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         dexport.export_checkpoint(ckpt, tmp_path / "export", aoti=False)

@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -188,10 +189,7 @@ def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]
     return summary, runs[0][0][1]
 
 
-def progress(line: str) -> None:
-    """Print one progress line and flush it, so that it shows while the run goes on even when stdout is a file
-    or a pipe (block-buffered: unflushed, every line of a 30 min run would appear at its end)."""
-    print(line, flush=True)
+progress = partial(print, flush=True)   # a line shows at once even when stdout is a file or pipe (block-buffered)
 
 
 def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = progress,
@@ -358,29 +356,6 @@ def run_benchmark(s: Setup, models: Sequence[str] = MODELS, seeds: Sequence[int]
     return collect_benchmark(submit_benchmark(pool or TaskPool(), s, models, seeds), seeds, log)
 
 
-def _pm(d: dict | None) -> str:
-    if d is None:
-        return "–"
-    return f"{d['mean']:.2f} ± {d['std']:.2f}" if len(d["per_seed"]) > 1 else f"{d['mean']:.2f}"
-
-
-def markdown_table(results: dict, scores: dict | None = None, default: str | None = None) -> str:
-    """Results table in Markdown: proxies (train only), val metrics when present (mean ± std over seeds)."""
-    scores = scores or {}
-    lines = ["| model | inputs | family CV [mm] | singles→pairs [mm] (± bootstrap σ) | val RMSE, offset removed [mm] | "
-             "val mean [mm] | val p95 [mm] | train RMSE [mm] | seeds |",
-             "|---|---|---|---|---|---|---|---|---|"]
-    for name, r in results.items():
-        v, t, p = r.get("val", {}), r["train"], scores.get(name, {})
-        inputs = ("Clarke" if r["clarke_space"] else "raw servo") + ("" if r["static"] else " + history")
-        proxy = [(f"{p[k]:.2f} ± {p[k + '_std']:.2f}" if k + "_std" in p else f"{p[k]:.2f}") if k in p else "–"
-                 for k in ("cv", "extrap")]
-        shown = f"**`{name}`** (default)" if name == default else f"`{name}`"
-        lines.append(f"| {shown} | {inputs} | {proxy[0]} | {proxy[1]} | {_pm(v.get('rmse_mm'))} | "
-                     f"{_pm(v.get('mean_mm'))} | {_pm(v.get('p95_mm'))} | {_pm(t['rmse_mm'])} | {len(r['seeds'])} |")
-    return "\n".join(lines)
-
-
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
                        info: dict | None = None, members: list[nn.Module] | None = None) -> HardwareModel:
     """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
@@ -388,8 +363,6 @@ def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibrati
     the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
     fitted on held-out residuals. ``members``: the models already fitted that way, one per seed (e.g. by
     the benchmark's final runs), bundled instead of trained again (ignored for ``cc``)."""
-    from ..study.benchmark import fit_model
-
     if name == "cc":                    # deterministic: one member, the CC model itself
         members = [cc_as_residual(setup.train, setup.cc)]
     elif members is not None:

@@ -28,7 +28,6 @@ from .benchmark import (
     collect_selection,
     default_candidates,
     load_setup,
-    markdown_table,
     progress,
     proxy_seeds_of,
     select_default,
@@ -41,6 +40,7 @@ from .heldout import SIGMA_PROXIES, collect_held_out, held_out_from_selection, s
 from .pool import TaskPool
 from .registry import MODELS, model_info
 from .selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, default_choice
+from .table import markdown_table
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
