@@ -140,8 +140,13 @@ def hat_map(dtype: torch.dtype = torch.float64) -> Tensor:
 def exp_components(v: Vec3, w: Vec3) -> tuple[Rot3, Vec3]:
     """exp(ξ^) of ξ = (v, ω) in component form (rotation R as 9 entries, position p as 3):
     R = cos φ·I + s·ω^ + f·ωωᵀ (ω^² = ωωᵀ − φ²I, cos φ = 1 − f·φ²), p = s·v + f·ω×v + g·(ω·v)·ω
-    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s)."""
-    return _exp_from_coefficients(v, w, *exp_coefficients(_phi_sq(v, w)))
+    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s). g is not evaluated where ω·v is an exact zero (None
+    components, e.g. a CC twist's)."""
+    phi_sq = _phi_sq(v, w)
+    s, f = bending_coefficients(phi_sq)
+    g = third_coefficient(phi_sq, s) if any(a is not None and b is not None for a, b in zip(w, v, strict=True)) \
+        else None
+    return _exp_from_coefficients(v, w, s, f, g)
 
 
 def _phi_sq(v: Vec3, w: Vec3) -> Tensor:
