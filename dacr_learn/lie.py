@@ -18,6 +18,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .component_algebra import Rot3, Vec3, components, dense
+from .component_algebra import add as _sum
+from .component_algebra import cross as _cross
+from .component_algebra import dot as _dot
+from .component_algebra import matmul as _matmul
+from .component_algebra import matvec as _matvec
+from .component_algebra import neg as _neg
+from .component_algebra import prod as _prod
+from .component_algebra import scaled as _scaled
+
 __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
     "chain_jacobian", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_chain_jacobian",
@@ -122,66 +132,21 @@ def hat_map(dtype: torch.dtype = torch.float64) -> Tensor:
 # torch ops on contiguous tensors of one shape are several times faster on CPU than ops that broadcast a
 # (..., 3) or (..., T, 3) layout, so the kernel computes in this form; the (..., 6) / (..., 4, 4) functions
 # below convert at the boundary. Tangent components carry T directions in front, (T, ...): per-sample
-# coefficients (...) broadcast over the leading dim, which keeps the inner loop contiguous.
+# coefficients (...) broadcast over the leading dim, which keeps the inner loop contiguous. The arithmetic on
+# components (None = an exact zero) is :mod:`.component_algebra`.
 # ------------------------------------------------------------------------------------------------------
-
-Vec3 = tuple  # three components; a component may be None, an exact zero that costs no operation
-Rot3 = tuple  # nine components, row-major
-
-
-_NO_FACTOR = object()
-
-
-def _prod(a, b, c=_NO_FACTOR):
-    """a·b (·c), None (exact zero) if any factor is None."""
-    if a is None or b is None or c is None:
-        return None
-    return a * b if c is _NO_FACTOR else a * b * c
-
-
-def _sum(*terms):
-    """The sum of the terms that are not None (None if all are)."""
-    out = None
-    for t in terms:
-        if t is not None:
-            out = t if out is None else out + t
-    return out
-
-
-def _neg(x):
-    return None if x is None else -x
-
-
-def _dot(a: Vec3, b: Vec3):
-    return _sum(*(_prod(x, y) for x, y in zip(a, b, strict=True)))
-
-
-def _cross(a: Vec3, b: Vec3) -> Vec3:
-    return tuple(_sum(_prod(a[i], b[j]), _neg(_prod(a[j], b[i]))) for i, j in ((1, 2), (2, 0), (0, 1)))
-
-
-def _matvec(r: Rot3, x: Vec3) -> Vec3:
-    return tuple(_dot(r[3 * i:3 * i + 3], x) for i in range(3))
-
-
-def _matmul(a: Rot3, b: Rot3) -> Rot3:
-    return tuple(_dot(a[3 * i:3 * i + 3], b[j::3]) for i in range(3) for j in range(3))
-
-
-def _scaled(c, x: Vec3) -> Vec3:
-    return tuple(_prod(c, xi) for xi in x)
-
-
-def components(x: Tensor) -> tuple[Tensor, ...]:
-    """The last dim of x (..., k) as k contiguous tensors (...)."""
-    return x.movedim(-1, 0).contiguous().unbind(0)
 
 
 def exp_components(v: Vec3, w: Vec3) -> tuple[Rot3, Vec3]:
     """exp(ξ^) of ξ = (v, ω) in component form (rotation R as 9 entries, position p as 3):
     R = cos φ·I + s·ω^ + f·ωωᵀ (ω^² = ωωᵀ − φ²I, cos φ = 1 − f·φ²), p = s·v + f·ω×v + g·(ω·v)·ω
-    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s)."""
-    return _exp_from_coefficients(v, w, *exp_coefficients(_phi_sq(v, w)))
+    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s). g is not evaluated where ω·v is an exact zero (None
+    components, e.g. a CC twist's)."""
+    phi_sq = _phi_sq(v, w)
+    s, f = bending_coefficients(phi_sq)
+    g = third_coefficient(phi_sq, s) if any(a is not None and b is not None for a, b in zip(w, v, strict=True)) \
+        else None
+    return _exp_from_coefficients(v, w, s, f, g)
 
 
 def _phi_sq(v: Vec3, w: Vec3) -> Tensor:
@@ -277,11 +242,6 @@ def chain_components(rots: list[Rot3], poss: list[Vec3],
             cols.append((tuple(_sum(a, c) for a, c in zip(vel, _cross(omega, arm), strict=True)), omega))
         columns.append(cols)
     return rot, pos, columns
-
-
-def dense(x: tuple, like: Tensor) -> tuple[Tensor, ...]:
-    """Components with None (exact zeros) replaced by zero tensors of ``like``'s shape."""
-    return tuple(torch.zeros_like(like) if c is None else c if c.shape == like.shape else c.expand_as(like) for c in x)
 
 
 def pose_of_components(rot: Rot3, pos: Vec3) -> Tensor:

@@ -50,6 +50,7 @@ class FoldedMLP(nn.Module):
                  out_shift: Tensor, dtype: torch.dtype):
         super().__init__()
         self.act = activation_name(net)
+        self.activation = next(m for m in net if not isinstance(m, nn.Linear))   # the model's own module
         lin = linear_layers(net)
         last = lin[-1]
         w_last = out_scale[:, None] * last.weight.detach().to(_F64)
@@ -59,9 +60,11 @@ class FoldedMLP(nn.Module):
         self.last = _frozen_linear(w_last, b_last, dtype)
 
     def forward(self, a: Tensor) -> Tensor:
-        """First-layer pre-activations (B, W) → network output (B, out) (:func:`~dacr_learn.folding.tangent_rows`
-        without tangent rows)."""
-        return tangent_rows(a.unsqueeze(-2), self.layers(), self.act)[..., 0, :]
+        """First-layer pre-activations (B, W) → network output (B, out): the frozen layers as they are (the
+        fewest operations, for the FK's export program; :meth:`forward_with_tangents` for the tangents)."""
+        for layer in self.hidden:
+            a = layer(self.activation(a))
+        return self.last(self.activation(a))
 
     def forward_with_tangents(self, a: Tensor, tangent: Tensor) -> tuple[Tensor, Tensor]:
         """Forward-mode derivative: pre-activations (B, W) with tangents (B, k, W) → (out, dout (B, k, out))

@@ -70,7 +70,8 @@ class InferenceCompositionalFK(nn.Module):
         rows = pre.unflatten(-1, (self.num_segments, self.width + self.out)).unsqueeze(-2)  # (B, m, 1, W + O)
         if seed is not None:
             rows = torch.cat([rows, seed.expand(rows.shape[0], -1, -1, -1)], dim=-2)       # (B, m, 1 + T, W + O)
-        a = tangent_rows(rows[..., :self.width], self.mlp.layers(), self.mlp.act)
+        a = self.mlp(rows[..., :self.width]) if seed is None else \
+            tangent_rows(rows[..., :self.width], self.mlp.layers(), self.mlp.act)
         return (a + rows[..., self.width:]) * self.out_scale.unsqueeze(-2)
 
     def segment_transforms(self, q: Tensor) -> Tensor:

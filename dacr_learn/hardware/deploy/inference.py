@@ -160,10 +160,11 @@ class HardwareFK(nn.Module):
             dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)  # (B, m, I, T)
             rows = torch.cat([rows, dx.transpose(-1, -2)], 2)                              # (B, m, 1 + T, I)
         (b, m, n, _), (k, h) = rows.shape, self.w_hidden.shape[:2]
-        bias = self.b_first_all.unsqueeze(1)                                               # on the value row only
-        bias = bias * (torch.arange(n) == 0).to(rho.dtype).unsqueeze(-1) if n > 1 else bias
-        a = rows @ self.first_all + bias                                                   # (B, m, 1 + T, K·H)
-        a = a.view(b, m, n, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, n, h)
+        if n == 1:                                                                         # no tangents: views only
+            a = (x @ self.first_all + self.b_first_all).view(b * m, k, h).transpose(0, 1).unsqueeze(2)
+        else:                                                                              # the bias on the value row
+            bias = self.b_first_all.unsqueeze(1) * (torch.arange(n) == 0).to(rho.dtype).unsqueeze(-1)
+            a = (rows @ self.first_all + bias).view(b, m, n, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, n, h)
         a = tangent_rows(a, [(self.w_hidden, self.b_hidden), (self.w_last, self.b_last)], self.activation)
         a = a.view(k, b, m, n, 2).transpose(0, 1)                                         # (B, K, m, 1 + T, 2)
         out = rho.unsqueeze(1) + a[:, :, :, 0]
