@@ -373,6 +373,25 @@ def compositional_models(v4_slice):
     return {config: compositional_ensemble(v4_slice, config) for config in COMPOSITIONAL_CONFIGS}
 
 
+@pytest.fixture(scope="session")
+def history_export(tmp_path_factory):
+    """The 2-member history test model as --save writes it (hardware_testkit.saved_history_model), exported once for
+    the session without AOTI (an export takes seconds): (model, checkpoint, export folder, metadata, commands [mm],
+    the messages of the warnings the export raised). Shared read-only by the export and control tests."""
+    import warnings
+
+    from hardware_testkit import saved_history_model
+
+    from dacr_learn import export as dexport
+
+    root = tmp_path_factory.mktemp("history_export")
+    model, ckpt, commands = saved_history_model(root, members=2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        meta = dexport.export_checkpoint(ckpt, root / "export", aoti=False)
+    return model, ckpt, root / "export", meta, commands, [str(w.message) for w in caught]
+
+
 @pytest.fixture(scope="module")
 def compositional_split():
     """(frozen calibrated CC model, synthetic split of 64 rows) of the labelled synthetic robot
@@ -393,9 +412,10 @@ def one_thread():
 
 @pytest.hookimpl(tryfirst=True)        # before -k / -m deselect: every collected module is checked
 def pytest_collection_modifyitems(config, items):
-    """Mark the tests of tests/reduction_order.py ``reduction_order``; a listed name missing from its collected
+    """Mark the tests of tests/reduction_order.py ``reduction_order`` (and ``second_pass_beside_slow`` in the
+    modules of its BESIDE_THE_SLOW_TESTS); a listed name missing from its collected
     module is an error (a renamed test must not drop out of `make test`'s second pass unnoticed)."""
-    from reduction_order import REDUCTION_ORDER
+    from reduction_order import BESIDE_THE_SLOW_TESTS, REDUCTION_ORDER
 
     modules = {}
     for item in items:
@@ -403,8 +423,11 @@ def pytest_collection_modifyitems(config, items):
         modules[module] = item.module if module else None
         if item.originalname in REDUCTION_ORDER.get(module, ()):
             item.add_marker(pytest.mark.reduction_order)
+            if module in BESIDE_THE_SLOW_TESTS:
+                item.add_marker(pytest.mark.second_pass_beside_slow)
     stale = [f"{m}::{name}" for m, mod in modules.items() if m in REDUCTION_ORDER
              for name in REDUCTION_ORDER[m] if not hasattr(mod, name)]
+    stale += [f"{m} (BESIDE_THE_SLOW_TESTS)" for m in BESIDE_THE_SLOW_TESTS if m not in REDUCTION_ORDER]
     if stale:
         raise pytest.UsageError(f"tests/reduction_order.py lists tests that do not exist: {stale}")
 

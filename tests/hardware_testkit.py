@@ -94,6 +94,18 @@ def synthetic_model(history: bool, members: int = 3) -> HardwareModel:
 SUPPORT_SCALE = 10.0     # magnitude of the standardised Clarke coordinates the support distance is computed from
 
 
+def saved_history_model(folder: Path, members: int = 3) -> tuple[HardwareModel, Path, torch.Tensor]:
+    """The history test model (:func:`synthetic_model`) as --save writes it (its recorded servo range: 200
+    training-like commands), saved to ``folder``/model.pt and loaded back: (model, checkpoint, those commands [mm])."""
+    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
+
+    model = synthetic_model(history=True, members=members)
+    commands = 1e3 * command_recording(200, 0).servo
+    model.info["servo_range_mm"] = {"lower": commands.amin(0).tolist(), "upper": commands.amax(0).tolist()}
+    path = save_hardware_model(model, folder / "model.pt")
+    return load_hardware_model(path), path, commands
+
+
 def sigma_roundoff_tol(model: HardwareModel, dtype: torch.dtype, tip_scale: float, ulps: float = 64.0,
                        support_dtype: torch.dtype = torch.float64) -> float:
     """Tolerance [m] for two computations of ``model``'s σ (its :meth:`~HardwareModel.sigma_of`) that differ only by

@@ -9,11 +9,10 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import load_example, roundoff_tol
-from hardware_testkit import IDS, TIP_SCALE, command_recording, synthetic_model, write_csv
+from hardware_testkit import IDS, TIP_SCALE, command_recording, saved_history_model, synthetic_model, write_csv
 
-from dacr_learn import export as dexport
 from dacr_learn.hardware.deploy import control
-from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
+from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
 from dacr_learn.hardware.deploy.inference import HardwareFK, HardwareJacobian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -85,10 +84,9 @@ def test_controller_reaches_a_static_target_on_the_history_model():
     assert float(err[-1]) <= 1e-3 * float(err[0])                                # converged to < 0.1 % of it
 
 
-def test_controller_runs_the_exported_modules_causally(tmp_path):
-    model = synthetic_model(history=True, members=2)
-    dexport.export_checkpoint(save_hardware_model(model, tmp_path / "model.pt"), tmp_path / "export", aoti=False)
-    fk, jac, init, meta = control.load_hardware_export(tmp_path / "export")
+def test_controller_runs_the_exported_modules_causally(history_export):
+    model, _, export, *_ = history_export
+    fk, jac, init, meta = control.load_hardware_export(export)
     assert meta["history"] and init is not None
     lower, upper, goal, start = _task(model)
     err = _reach(fk, jac, init, lower, upper, goal, start)
@@ -96,20 +94,10 @@ def test_controller_runs_the_exported_modules_causally(tmp_path):
     assert float(err[-1]) <= max(1e-3 * float(err[0]), roundoff_tol(torch.float32, TIP_SCALE, ulps=4096))
 
 
-def _saved(tmp_path, members: int = 3):
-    """The history test model as --save writes it (its recorded servo range: the 200 training-like commands),
-    loaded back from the file, and those commands [mm]."""
-    model = synthetic_model(history=True, members=members)
-    commands = 1e3 * command_recording(200, 0).servo
-    model.info["servo_range_mm"] = {"lower": commands.amin(0).tolist(), "upper": commands.amax(0).tolist()}
-    path = save_hardware_model(model, tmp_path / "model.pt")
-    return load_hardware_model(path), path, commands
-
-
 def test_the_initial_command_reaches_the_target_inside_the_recorded_range(tmp_path):
     """initial_command: IK of the saved model; checked through the folded float64 FK module with the play state
     started at the command (independent of the eager ensemble the solver's verdict uses)."""
-    model, _, commands = _saved(tmp_path)
+    model, _, commands = saved_history_model(tmp_path)
     fk = HardwareFK(model, torch.float64)
     lower, upper = model.servo_range()
     rest = torch.zeros(len(IDS), dtype=torch.float64)
@@ -131,14 +119,13 @@ def test_the_initial_command_reaches_the_target_inside_the_recorded_range(tmp_pa
         control.initial_command(model, far[:2], rest)
 
 
-def test_the_example_script_tracks_a_circle_on_an_export(tmp_path, capsys):
-    model, path, commands = _saved(tmp_path, members=2)
-    dexport.export_checkpoint(path, tmp_path / "export", aoti=False)
+def test_the_example_script_tracks_a_circle_on_an_export(history_export, tmp_path, capsys):
+    model, path, export, _, commands, _ = history_export
     train = write_csv(tmp_path / "train.csv", ["timestamp", "pattern_label", *(f"servo_{i}_mm" for i in IDS),
                                                "tip_x", "tip_y", "tip_z"],
                       [[k, "p", *row, 0.0, 0.0, 0.0] for k, row in enumerate(commands.tolist())])
     example = load_example("control_hardware_model")
-    summary = example.main(["--export", str(tmp_path / "export"), "--train", str(train), "--radius", "0.5",
+    summary = example.main(["--export", str(export), "--train", str(train), "--radius", "0.5",
                             "--drop", "0", "--period", "100", "--laps", "1", "--settle", "40", "--hold", "40",
                             "--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / "summary.json").is_file() and "THE PLANT IS THE LEARNED MODEL" in capsys.readouterr().out
@@ -152,4 +139,4 @@ def test_the_example_script_tracks_a_circle_on_an_export(tmp_path, capsys):
     assert len(statics) == 4 and all(r["final_error_mm"] < r["start_error_mm"] for r in statics)
     other = save_hardware_model(synthetic_model(history=True, members=1), tmp_path / "other.pt")
     with pytest.raises(ValueError, match="not the checkpoint .* was exported from"):
-        example.main(["--export", str(tmp_path / "export"), "--ckpt", str(other), "--train", str(train)])
+        example.main(["--export", str(export), "--ckpt", str(other), "--train", str(train)])

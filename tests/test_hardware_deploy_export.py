@@ -16,7 +16,6 @@ from hardware_testkit import (
     batch_prediction,
     command_recording,
     sigma_roundoff_tol,
-    synthetic_model,
     v4_commands,
 )
 
@@ -28,17 +27,8 @@ from dacr_learn.hardware.deploy.inference import HardwareJacobian
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-@pytest.fixture(scope="module")
-def exported(tmp_path_factory):
-    out = tmp_path_factory.mktemp("hw")
-    model = synthetic_model(history=True)
-    ckpt = save_hardware_model(model, out / "model.pt")
-    meta = dexport.export_checkpoint(ckpt, out / "export", aoti=False)
-    return model, ckpt, out / "export", meta
-
-
-def test_export_of_a_hardware_checkpoint_equals_the_model(exported):
-    model, ckpt, out, meta = exported
+def test_export_of_a_hardware_checkpoint_equals_the_model(history_export):
+    model, ckpt, out, meta, *_ = history_export
     assert meta["task"] == "hardware_fk" and meta["servo_ids"] == list(IDS)
     assert set(meta["modules"]) == {"fk", "jacobian", "initial_state"}
     assert max(meta["max_abs_deviation"].values()) <= dexport.VERIFY_TOLERANCE
@@ -68,11 +58,14 @@ def test_export_of_a_hardware_checkpoint_equals_the_model(exported):
 def exported_compositional(v4_slice, compositional_models, tmp_path_factory):
     out = tmp_path_factory.mktemp("hw_j")
     ckpt = save_hardware_model(compositional_models["distal"], out / "model.pt")
-    return ckpt, out / "export", dexport.export_checkpoint(ckpt, out / "export", aoti=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        meta = dexport.export_checkpoint(ckpt, out / "export", aoti=False)
+    return ckpt, out / "export", meta, [str(w.message) for w in caught]
 
 
 def test_export_equals_the_eager_model(v4_slice, compositional_models, exported_compositional):
-    ckpt, out, meta = exported_compositional
+    ckpt, out, meta, _ = exported_compositional
     model = compositional_models["distal"]
     assert meta["task"] == "hardware_fk" and not meta["history"] and set(meta["modules"]) == {"fk", "jacobian"}
     assert max(meta["max_abs_deviation"].values()) <= dexport.VERIFY_TOLERANCE
@@ -92,36 +85,11 @@ def test_export_equals_the_eager_model(v4_slice, compositional_models, exported_
     assert Path(out / dexport.METADATA_FILE).exists()
 
 
-def _residual_model(request):
-    """A small residual ensemble of the synthetic robot (exported through HardwareFK)."""
-    from hardware_testkit import synthetic_model
-
-    return synthetic_model(history=False, members=2)
-
-
-def _compositional_model(request):
-    """An untrained compositional ensemble on the session's slice of FTDCR v4 (exported through
-    CompositionalHardwareFK)."""
-    from dacr_learn.hardware.compositional_model import CCCompositionalResidual
-    from dacr_learn.hardware.deploy.checkpoint import HardwareModel
-
-    s = request.getfixturevalue("v4_slice")                 # shared: its CC fit is not repeated here
-    members = [CCCompositionalResidual(s.cc) for _ in range(2)]
-    for member in members:
-        member.fit_normalization(s.train)
-        member.eval()
-    return HardwareModel("cc_compositional_residual", s.spec, s.smap, s.train_rec.servo_ids, s.cc, members)
-
-
-@pytest.mark.parametrize("build", [_residual_model, _compositional_model])
-def test_hardware_export_stores_whole_tensors(tmp_path, build, request):
+@pytest.mark.parametrize("exported", ["history_export", "exported_compositional"])
+def test_hardware_export_stores_whole_tensors(exported, request):
     """torch.export.save warned "No complete tensor found in the group!" for every exported hardware module:
-    their stacked weights were transposed views. Fixed at the source: the modules' buffers are contiguous."""
-    from dacr_learn import export as dexport
-    from dacr_learn.hardware.deploy.checkpoint import save_hardware_model
-
-    ckpt = save_hardware_model(build(request), tmp_path / "model.pt")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        dexport.export_checkpoint(ckpt, tmp_path / "export", aoti=False)
-    assert not [str(w.message) for w in caught if "complete tensor" in str(w.message)]
+    their stacked weights were transposed views. Fixed at the source: the modules' buffers are contiguous.
+    The warnings of the two shared exports (a residual ensemble with history through HardwareFK, a compositional
+    one through CompositionalHardwareFK), recorded while they were written."""
+    caught = request.getfixturevalue(exported)[-1]
+    assert not [message for message in caught if "complete tensor" in message]
