@@ -29,7 +29,8 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
   aoti}``: the same model's FK generated from its eager code (dacr_learn.hardware.deploy.generated), the
   same inputs (its package called through the C++ runner, like ``hardware_fk_aoti_runner``).
 
-Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs].
+Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs] (``calls`` in the
+JSON: a row slower than ``--round-seconds`` / ``--calls`` per call runs fewer calls per round).
 The machine may be shared and noisy: compare medians, run it twice.
 
     .venv/bin/python benchmarks/latency.py            # table
@@ -261,6 +262,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="model shape (model.init_args, data.robot)")
     p.add_argument("--rounds", type=int, default=20)
     p.add_argument("--calls", type=int, default=500, help="calls per candidate per round")
+    p.add_argument("--round-seconds", type=float, default=0.2,
+                   help="a candidate slower than this / --calls per call runs about this long per round instead "
+                        "(at least 20 calls; the op-by-op rows of ~2 ms: 100 calls); 0 = always --calls")
     p.add_argument("--no-aoti", action="store_true", help="skip AOTInductor (no C++ compiler needed)")
     p.add_argument("--compile", action="store_true", help="also time torch.compile of the folded FK")
     p.add_argument("--autotune", action="store_true",
@@ -290,7 +294,8 @@ def main(argv: list[str] | None = None) -> dict:
             hw_ckpt = args.hardware_ckpt or hardware_checkpoint(out, args.hardware_members)
             fns.update(hardware_candidates(hw_ckpt, out, aoti=not args.no_aoti, autotune=args.autotune))
         with torch.inference_mode():
-            seconds = time_interleaved(fns, args.rounds, args.calls, warmup=200)
+            seconds = time_interleaved(fns, args.rounds, args.calls, warmup=200,
+                                       round_seconds=args.round_seconds or None)
         results = summarize({k: v * 1e6 for k, v in seconds.items()})   # µs
         deviation = json.loads((out / "fk" / dexport.METADATA_FILE).read_text())["max_abs_deviation"]
     report = {"benchmark": "latency", "batch": 1, "threads": torch.get_num_threads(), "aoti_autotune": args.autotune,
