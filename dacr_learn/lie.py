@@ -32,19 +32,10 @@ __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
     "chain_jacobian", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_chain_jacobian",
     "twist_exp", "twist_exp_and_tangent", "twist_exp_and_tangents", "roll_z", "roll_z_and_tangents", "vee",
-    "JACOBIAN_INDUCTOR_CONFIGS",
 ]
 
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
 
-# AOTInductor options of a module that runs :func:`twist_chain_jacobian` (its ``inductor_configs``, read by
-# dacr_learn.deploy.export.write_module). In component form the tangents and the chain are many small
-# per-component tensors; Inductor fuses them into a few kernels but keeps ~70 intermediates as buffers, each
-# allocated per call (aoti_torch_empty_strided), which at batch 1 cost more than the arithmetic. Memory
-# planning carves them out of one pool allocation (3–4 allocations per call instead of ~80; the same kernels,
-# bit-identical outputs): batch-1 runner of the compositional Jacobian 61 → 46 µs, hardware Jacobian 77 → 60 µs
-# (one thread, interleaved, under load).
-JACOBIAN_INDUCTOR_CONFIGS = {"memory_planning": True}
 
 
 def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:

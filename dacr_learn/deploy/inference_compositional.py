@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from ..clarke_space import ClarkeFold, feature_columns
 from ..compositional import HEADS
 from ..folding import affine_probe, linear_layers, tangent_rows
-from ..lie import JACOBIAN_INDUCTOR_CONFIGS, pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
+from ..lie import pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
 from ..models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 from .inference import FoldedMLP
 
@@ -110,8 +110,6 @@ class InferenceCompositionalJacobian(nn.Module):
       [selection | selection·∂f/∂q] when ∂f/∂q is constant (no twisting segment); otherwise J_q =
       J_f·∂f/∂q(q).
     """
-
-    inductor_configs = JACOBIAN_INDUCTOR_CONFIGS        # AOTI: the kernel's intermediates from one pool
 
     def __init__(self, model, dtype: torch.dtype = torch.float32):
         super().__init__()

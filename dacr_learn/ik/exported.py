@@ -22,7 +22,6 @@ from torch import Tensor, nn
 
 from ..console import run_cli
 from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
-from ..lie import JACOBIAN_INDUCTOR_CONFIGS
 from ..robot import RobotSpec
 from .models import ConstantCurvature
 from .refine import fused_matmul, limited_step, residual, spd_solve_unrolled
@@ -32,10 +31,6 @@ _F64 = torch.float64
 
 class IKRefinement(nn.Module):
     """Fixed-iteration IK refinement on the analytic CC model of a robot (module docstring), float64."""
-
-    # AOTI: the kernel's intermediates from one pool (its Jacobian is lie.twist_chain_jacobian's); side by side,
-    # batch 1, 3 iterations: 301 → 273–275 µs p50 (docs/ik.md)
-    inductor_configs = JACOBIAN_INDUCTOR_CONFIGS
 
     def __init__(self, spec: RobotSpec, iterations: int = 3, position_only: bool = False, damping: float = 1e-6):
         super().__init__()

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 
 from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_twist, effective_features
-from ...lie import JACOBIAN_INDUCTOR_CONFIGS, pose_from_parts, twist_chain_jacobian, twist_exp
+from ...lie import pose_from_parts, twist_chain_jacobian, twist_exp
 from .checkpoint import HardwareModel
 from .inference import (
     HardwareFK,
@@ -188,7 +188,6 @@ class CompositionalHardwareJacobian(nn.Module):
     """Servo (B, S) [mm] → (tip (B, 3) [m], J = ∂tip/∂servo (B, 3, S) [m/mm]) of the ensemble-mean tip."""
 
     history = False
-    inductor_configs = JACOBIAN_INDUCTOR_CONFIGS        # AOTI: the kernel's intermediates from one pool
 
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()

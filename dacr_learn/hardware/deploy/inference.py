@@ -31,7 +31,7 @@ from torch import Tensor, nn
 
 from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
-from ...lie import JACOBIAN_INDUCTOR_CONFIGS, components, pose_from_parts, twist_chain_jacobian
+from ...lie import components, pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
@@ -203,8 +203,6 @@ class HardwareFK(nn.Module):
 
 class HardwareJacobian(nn.Module):
     """Servo (B, S) [mm] (+ state) → (tip (B, 3) [m], J = ∂tip/∂servo (B, 3, S) [m/mm] (+ new state))."""
-
-    inductor_configs = JACOBIAN_INDUCTOR_CONFIGS        # AOTI: the kernel's intermediates from one pool
 
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()
