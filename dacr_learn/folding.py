@@ -28,7 +28,7 @@ __all__ = ["activation_and_derivative", "activation_name", "affine_probe", "line
            "tangent_rows"]
 
 _F64 = torch.float64
-_FUNCTIONS = {"silu": F.silu, "relu": F.relu, "gelu": F.gelu, "tanh": torch.tanh}   # models.ACTIVATIONS as functions
+_ACTIVATIONS = {name: cls() for name, cls in ACTIVATIONS.items()}   # one (stateless) module of each
 
 
 def linear_layers(net: nn.Sequential) -> list[nn.Linear]:
@@ -77,7 +77,7 @@ def tangent_rows(rows: Tensor, layers: Sequence[tuple[Tensor, Tensor]], activati
     a = rows
     for weight, bias in layers:
         if n == 1:                                             # no tangents: the plain forward pass
-            a = _FUNCTIONS[activation](a)
+            a = _ACTIVATIONS[activation](a)
         else:
             s, ds = activation_and_derivative(activation, a[..., :1, :])
             a = torch.cat([s, a[..., 1:, :] * ds], dim=-2)

@@ -378,18 +378,12 @@ def history_export(tmp_path_factory):
     """The 2-member history test model as --save writes it (hardware_testkit.saved_history_model), exported once for
     the session without AOTI (an export takes seconds): (model, checkpoint, export folder, metadata, commands [mm],
     the messages of the warnings the export raised). Shared read-only by the export and control tests."""
-    import warnings
-
-    from hardware_testkit import saved_history_model
-
-    from dacr_learn import export as dexport
+    from hardware_testkit import export_recording_warnings, saved_history_model
 
     root = tmp_path_factory.mktemp("history_export")
     model, ckpt, commands = saved_history_model(root, members=2)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        meta = dexport.export_checkpoint(ckpt, root / "export", aoti=False)
-    return model, ckpt, root / "export", meta, commands, [str(w.message) for w in caught]
+    meta, caught = export_recording_warnings(ckpt, root / "export")
+    return model, ckpt, root / "export", meta, commands, caught
 
 
 @pytest.fixture(scope="module")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import math
+import warnings
 from pathlib import Path
 
 import torch
@@ -24,7 +25,7 @@ from conftest import ROOT, roundoff_tol
 
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual
-from dacr_learn.hardware.deploy.checkpoint import HardwareModel
+from dacr_learn.hardware.deploy.checkpoint import HardwareModel, load_hardware_model, save_hardware_model
 from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, ensemble_predict
 from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, Split, make_split, synthetic_split
 from dacr_learn.hardware.recording import Recording, load_recording
@@ -97,13 +98,22 @@ SUPPORT_SCALE = 10.0     # magnitude of the standardised Clarke coordinates the 
 def saved_history_model(folder: Path, members: int = 3) -> tuple[HardwareModel, Path, torch.Tensor]:
     """The history test model (:func:`synthetic_model`) as --save writes it (its recorded servo range: 200
     training-like commands), saved to ``folder``/model.pt and loaded back: (model, checkpoint, those commands [mm])."""
-    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
-
     model = synthetic_model(history=True, members=members)
     commands = 1e3 * command_recording(200, 0).servo
     model.info["servo_range_mm"] = {"lower": commands.amin(0).tolist(), "upper": commands.amax(0).tolist()}
     path = save_hardware_model(model, folder / "model.pt")
     return load_hardware_model(path), path, commands
+
+
+def export_recording_warnings(ckpt: Path, out: Path) -> tuple[dict, list[str]]:
+    """``python -m dacr_learn.export`` of a hardware checkpoint into ``out`` without AOTI: (its metadata, the messages
+    of every warning the export raised)."""
+    from dacr_learn import export as dexport
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        meta = dexport.export_checkpoint(ckpt, out, aoti=False)
+    return meta, [str(w.message) for w in caught]
 
 
 def sigma_roundoff_tol(model: HardwareModel, dtype: torch.dtype, tip_scale: float, ulps: float = 64.0,

@@ -3,7 +3,6 @@ modules equal the library model, stored as whole tensors.
 """
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import pytest
@@ -15,6 +14,7 @@ from hardware_testkit import (
     V4_TIP_SCALE,
     batch_prediction,
     command_recording,
+    export_recording_warnings,
     sigma_roundoff_tol,
     v4_commands,
 )
@@ -58,10 +58,7 @@ def test_export_of_a_hardware_checkpoint_equals_the_model(history_export):
 def exported_compositional(v4_slice, compositional_models, tmp_path_factory):
     out = tmp_path_factory.mktemp("hw_j")
     ckpt = save_hardware_model(compositional_models["distal"], out / "model.pt")
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        meta = dexport.export_checkpoint(ckpt, out / "export", aoti=False)
-    return ckpt, out / "export", meta, [str(w.message) for w in caught]
+    return ckpt, out / "export", *export_recording_warnings(ckpt, out / "export")
 
 
 def test_export_equals_the_eager_model(v4_slice, compositional_models, exported_compositional):
