@@ -15,6 +15,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+F64 = torch.float64   # the dtype of the IK solver, the controllers and every float64 exported module
 _PY_SUM_MAX = 256   # elements up to which check_tensor's finiteness sum runs in Python (see there)
 
 

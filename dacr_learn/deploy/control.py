@@ -23,17 +23,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import forward_kinematics
 from ..models import actuated_to_features
 from ..robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
-_F64 = torch.float64
 
 
 def _f64(x: Tensor) -> Tensor:
-    return x if x.dtype == _F64 else x.to(_F64)
+    return x if x.dtype == F64 else x.to(F64)
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,7 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     tendon its Jacobian cannot. The sum is shortened to ``max_step``.
     """
     j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
-    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
+    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=F64)
     rhs = _f64(task_step).unsqueeze(-1)
     if secondary is not None:
         if tuple(secondary.shape) != tuple(j.shape[:-2]) + (j.shape[-1],):
@@ -153,7 +153,7 @@ def analytic_jacobian(spec: RobotSpec) -> JacobianFn:
 
     def jacobian(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         lead = q.shape[:-1]
-        q2 = q.to(_F64).reshape(-1, spec.num_joints)
+        q2 = q.to(F64).reshape(-1, spec.num_joints)
         f = space.features(q2)
         pose = pose_of(f)
         jac_f = twist_jacobian(pose, _jacobian_rows(pose_of, f))

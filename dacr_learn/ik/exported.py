@@ -20,13 +20,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..checks import F64
 from ..console import run_cli
 from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
 from ..robot import RobotSpec
 from .models import ConstantCurvature
 from .refine import fused_matmul, limited_step, residual, spd_solve_unrolled
-
-_F64 = torch.float64
 
 
 class IKRefinement(nn.Module):
@@ -76,9 +75,9 @@ def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterati
     x = module.model.limits.sample(64, g)
     pos, rot, _ = module.model.tip_and_jacobian(x)
     q0 = module.model.joints(module.model.limits.project(x + 0.02 * module.model.limits.scale * torch.randn(
-        x.shape, generator=g, dtype=_F64)))
+        x.shape, generator=g, dtype=F64)))
     target = pos if position_only else torch.cat([torch.cat([rot, pos.unsqueeze(-1)], -1),
-                                                  torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=_F64).expand(64, 1, 4)],
+                                                  torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=F64).expand(64, 1, 4)],
                                                  -2)
     target_shape = [3] if position_only else [4, 4]
     source = {"path": str(robot), "sha256": file_sha256(robot)} if isinstance(robot, (str, Path)) else None

@@ -12,10 +12,9 @@ import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
+from ..checks import F64
 from .limits import Limits
 from .models import SolverModel
-
-_F64 = torch.float64
 
 
 def fused_matmul(a: Tensor, b: Tensor) -> Tensor:
@@ -47,9 +46,9 @@ class Refinement:
                  tolerance: tuple[float, float], damping: float):
         self.model, self.lim, self.damping = model, model.limits, damping
         self.position, self.rotation = position, rotation
-        self.scale = self.lim.scale.to(_F64)
+        self.scale = self.lim.scale.to(F64)
         self.tol = tuple(0.1 * t for t in tolerance)                         # aim a decade below the tolerance
-        self.x = self.lim.project(x0.to(_F64))
+        self.x = self.lim.project(x0.to(F64))
         self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(self.x.shape[0]))
         self.cost = (self.r * self.r).sum(-1)
         self.lam = torch.full_like(self.cost, damping)
@@ -65,7 +64,7 @@ class Refinement:
         first = self.x.shape[0]
         self.position = torch.cat([self.position, position])
         self.rotation = None if rotation is None else torch.cat([self.rotation, rotation])
-        x = self.lim.project(x0.to(_F64))
+        x = self.lim.project(x0.to(F64))
         r, jac, pe, re = self._residual(x, torch.arange(first, first + x.shape[0]))
         self.x, self.r, self.jac = torch.cat([self.x, x]), torch.cat([self.r, r]), torch.cat([self.jac, jac])
         self.pos_err, self.rot_err = torch.cat([self.pos_err, pe]), torch.cat([self.rot_err, re])

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-_F64 = torch.float64
+from ..checks import F64
 
 
 def check_targets(target: Tensor, position_only: bool) -> Tensor:
@@ -15,7 +15,7 @@ def check_targets(target: Tensor, position_only: bool) -> Tensor:
         target = torch.as_tensor(target)
     if not target.is_floating_point():
         raise ValueError(f"target: expected floating-point values, got dtype {target.dtype}")
-    target = target.to(_F64)
+    target = target.to(F64)
     shapes = "(B, 3) positions or (B, 4, 4) poses" if position_only else "(B, 4, 4) poses"
     is_pose = target.dim() == 3 and target.shape[-2:] == (4, 4)
     if not (is_pose or (position_only and target.dim() == 2 and target.shape[-1] == 3)) or target.shape[0] == 0:
@@ -26,9 +26,9 @@ def check_targets(target: Tensor, position_only: bool) -> Tensor:
                          f"{int(bad.nonzero()[0])}")
     if is_pose:
         rot = target[:, :3, :3]
-        orth = (rot @ rot.mT - torch.eye(3, dtype=_F64)).abs().amax((-2, -1))
+        orth = (rot @ rot.mT - torch.eye(3, dtype=F64)).abs().amax((-2, -1))
         det = torch.linalg.det(rot)
-        row = (target[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=_F64)).abs().amax(-1)
+        row = (target[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F64)).abs().amax(-1)
         wrong = (orth > 1e-6) | ((det - 1).abs() > 1e-6) | (row > 1e-12)
         if wrong.any():
             i = int(wrong.nonzero()[0])
@@ -45,7 +45,7 @@ def check_q0(q0, b: int, n: int) -> Tensor:
         q0 = torch.as_tensor(q0)
     if not q0.is_floating_point():
         raise ValueError(f"q0: expected floating-point joint values, got dtype {q0.dtype}")
-    q0 = q0.to(_F64)
+    q0 = q0.to(F64)
     if q0.dim() == 1:
         q0 = q0.expand(b, -1)
     if q0.shape != (b, n):
