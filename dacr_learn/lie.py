@@ -31,7 +31,8 @@ from .component_algebra import scaled as _scaled
 __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
     "chain_jacobian", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_chain_jacobian",
-    "twist_exp", "twist_exp_and_tangent", "twist_exp_and_tangents", "roll_z", "roll_z_and_tangents", "vee",
+    "twist_exp", "twist_exp_and_tangent", "twist_exp_and_tangents", "twist_jacobian", "roll_z",
+    "roll_z_and_tangents", "vee",
 ]
 
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
@@ -107,6 +108,13 @@ def vee(w_hat: Tensor) -> Tensor:
     """ω (..., 3) of skew matrices ω^ (..., 3, 3) (the inverse of :func:`hat`; the skew part is read)."""
     return 0.5 * torch.stack([w_hat[..., 2, 1] - w_hat[..., 1, 2], w_hat[..., 0, 2] - w_hat[..., 2, 0],
                               w_hat[..., 1, 0] - w_hat[..., 0, 1]], dim=-1)
+
+
+def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
+    """Tip-twist Jacobian from a pose (..., 4, 4) and its derivative (..., 4, 4, k) → (..., 6, k): rows dp (the
+    tip point's linear velocity) and ω = vee(dR·Rᵀ), both in the base frame."""
+    omega = vee(dpose[..., :3, :3, :].movedim(-1, -3) @ pose[..., None, :3, :3].mT)        # (..., k, 3)
+    return torch.cat([dpose[..., :3, 3, :], omega.mT], dim=-2)
 
 
 def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = None) -> Tensor:

@@ -26,6 +26,7 @@ from torch import Tensor
 from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import forward_kinematics
+from ..lie import twist_jacobian
 from ..models import actuated_to_features
 from ..robot import RobotSpec
 
@@ -119,16 +120,6 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
     dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
     return dz * _f64(scale)
-
-
-def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
-    """Tip-twist Jacobian from a pose (..., 4, 4) and its derivative (..., 4, 4, k) → (..., 6, k).
-
-    Rows: dp (the tip point's linear velocity) and ω = vee(dR·Rᵀ), both in the base frame.
-    """
-    skew = torch.einsum("...ijk,...lj->...ilk", dpose[..., :3, :3, :], pose[..., :3, :3])
-    omega = torch.stack([skew[..., 2, 1, :], skew[..., 0, 2, :], skew[..., 1, 0, :]], dim=-2)
-    return torch.cat([dpose[..., :3, 3, :], omega], dim=-2)
 
 
 def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:

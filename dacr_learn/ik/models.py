@@ -28,6 +28,7 @@ from torch import Tensor, nn
 from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
+from ..lie import twist_jacobian
 from ..models import actuated_columns, actuated_to_features
 from ..robot import RobotSpec
 from .limits import Limits
@@ -166,10 +167,7 @@ class LearnedFK(_ClarkeVariables):
         with torch.no_grad():
             pose = self.model(self.joints(x))
         dpose = torch.func.vmap(torch.func.jacfwd(lambda f: self.model(self.joints(f.unsqueeze(0)))[0]))(x)
-        rot = pose[..., :3, :3]
-        skew = torch.einsum("bijk,blj->bilk", dpose[:, :3, :3], rot)                        # dR·Rᵀ per column
-        omega = torch.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], dim=1)
-        return pose[..., :3, 3], rot, torch.cat([dpose[:, :3, 3], omega], dim=1)
+        return pose[..., :3, 3], pose[..., :3, :3], twist_jacobian(pose, dpose)
 
     @torch.no_grad()
     def check(self, q: Tensor) -> Check:
