@@ -384,12 +384,14 @@ def _chain(rot: Rot3, pos: Vec3, b: tuple, dp: tuple, base: Tensor | None, point
     return pose_of_components(tip_rot, tip_pos), jac.flatten(-2)
 
 
-def chain_products(poses: Tensor) -> Tensor:
-    """Cumulative products T⁽¹⁾, T⁽¹⁾T⁽²⁾, …: (..., m, 4, 4) → (..., m, 4, 4)."""
+def chain_products(poses: Tensor, tip_only: bool = False) -> Tensor:
+    """Products of transforms T⁽¹⁾ … T⁽ᵐ⁾, each relative to the end of the previous one (..., m, 4, 4): the running
+    products T⁽¹⁾, T⁽¹⁾T⁽²⁾, … (..., m, 4, 4), or with ``tip_only`` the whole product T⁽¹⁾⋯T⁽ᵐ⁾ (..., 4, 4) alone
+    (unrolled over m: no stack in an exported module)."""
     out = [poses[..., 0, :, :]]
     for j in range(1, poses.shape[-3]):
         out.append(out[-1] @ poses[..., j, :, :])
-    return torch.stack(out, dim=-3)
+    return out[-1] if tip_only else torch.stack(out, dim=-3)
 
 
 def roll_z(poses: Tensor, alpha: Tensor) -> Tensor:

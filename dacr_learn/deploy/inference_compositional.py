@@ -22,7 +22,7 @@ from ..checks import F64
 from ..clarke_space import ClarkeFold, feature_columns
 from ..compositional import HEADS
 from ..folding import affine_probe, linear_layers, tangent_rows
-from ..lie import pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
+from ..lie import chain_products, pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
 from ..models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 from .inference import FoldedMLP
 
@@ -84,11 +84,7 @@ class InferenceCompositionalFK(nn.Module):
         return t if alpha is None else roll_z(t, alpha)
 
     def forward(self, q: Tensor) -> Tensor:
-        t = self.segment_transforms(q)
-        tip = t[:, 0]
-        for k in range(1, self.num_segments):
-            tip = tip @ t[:, k]
-        return tip
+        return chain_products(self.segment_transforms(q), tip_only=True)
 
 
 class InferenceCompositionalJacobian(nn.Module):

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from ...checks import F64
 from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
-from ...lie import components, pose_from_parts, twist_chain_jacobian
+from ...lie import chain_products, components, pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
@@ -53,11 +53,8 @@ def cc_twist_directions(radius: Tensor) -> Tensor:
 
 def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -> Tensor:
     """Marker point (..., 3) [m, motion-capture frame] = base pose (4, 4) · T₁ ⋯ T_m · (marker, 1) of segment
-    poses (..., m, 4, 4), tip_marker (4,) homogeneous (the chain unrolled over the m segments)."""
-    chain = base_pose
-    for k in range(poses.shape[-3]):
-        chain = chain @ poses[..., k, :, :]
-    return (chain @ tip_marker)[..., :3]
+    poses (..., m, 4, 4), tip_marker (4,) homogeneous (:func:`~dacr_learn.lie.chain_products`)."""
+    return (base_pose @ chain_products(poses, tip_only=True) @ tip_marker)[..., :3]
 
 
 def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions: Tensor, base_pose: Tensor,
