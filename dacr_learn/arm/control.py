@@ -30,6 +30,7 @@ from torch import Tensor, nn
 
 from ..checks import F64
 from ..deploy.control import scaled_dls_step
+from ..ik.refine import free_jacobian
 from .composite import Composite
 
 
@@ -129,9 +130,8 @@ class WholeBodyController:
         jac, err = torch.cat(rows, dim=1), torch.cat(task, dim=-1)
         jac = jac * self.moving.to(F64)
         scaled = jac * self.scale
-        box, normals = self.limits.blocked(xe, -(scaled.mT @ err.unsqueeze(-1)).squeeze(-1))
-        free = self.limits.free_directions(box, normals)                      # (B, D, D) in scaled variables
-        jac = (scaled @ free) / self.scale
+        scaled, free = free_jacobian(self.limits, xe, scaled, -(scaled.mT @ err.unsqueeze(-1)).squeeze(-1))
+        jac = scaled / self.scale                                             # free: (B, D, D) in scaled variables
         secondary = None
         if cfg.rest_gain > 0:
             pull = cfg.rest_gain * (self.posture - xe) / self.scale * self.moving.to(F64)

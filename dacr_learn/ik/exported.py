@@ -25,7 +25,7 @@ from ..console import run_cli
 from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
 from ..robot import RobotSpec
 from .models import ConstantCurvature
-from .refine import fused_matmul, limited_step, residual, spd_solve_unrolled
+from .refine import fused_matmul, limited_step, lm_accept, residual, spd_solve_unrolled
 
 
 class IKRefinement(nn.Module):
@@ -53,13 +53,8 @@ class IKRefinement(nn.Module):
         for _ in range(self.iterations):
             xt = limited_step(lim, x, r, jac, lam, solve=spd_solve_unrolled, matmul=fused_matmul)
             rt, jt, pe, re = residual(self.model, xt, position, rotation, fused_matmul)
-            ct = (rt * rt).sum(-1)
-            better = ct < cost
-            keep = better.unsqueeze(-1)
-            x, r, cost = torch.where(keep, xt, x), torch.where(keep, rt, r), torch.where(better, ct, cost)
-            jac = torch.where(keep.unsqueeze(-1), jt, jac)
-            pos_err, rot_err = torch.where(better, pe, pos_err), torch.where(better, re, rot_err)
-            lam = torch.where(better, torch.clamp(lam / 3, min=1e-12), lam * 4)
+            (x, r, jac, pos_err, rot_err), cost, lam = lm_accept((x, r, jac, pos_err, rot_err), (xt, rt, jt, pe, re),
+                                                                 cost, (rt * rt).sum(-1), lam)
         return self.model.joints(x), pos_err, rot_err
 
 
