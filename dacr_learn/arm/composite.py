@@ -26,6 +26,7 @@ from torch import Tensor
 from ..checks import F64
 from ..ik.limits import Limits
 from ..ik.models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model
+from ..ik.targets import pose_defects
 from ..kinematics import forward_kinematics
 from .chain import Arm
 from .seeds import PoseBank
@@ -47,8 +48,8 @@ class WholeBody(NamedTuple):
 
 
 def check_mount(mount) -> Tensor:
-    """A mount (4, 4) as float64: a homogeneous transform (rotation orthonormal with det +1 to 1e-6, as the
-    solver asks of a target pose; last row (0, 0, 0, 1), finite), used as given. ValueError naming what is
+    """A mount (4, 4) as float64: a homogeneous transform (:func:`~dacr_learn.ik.targets.pose_defects`, as the
+    solver asks of a target pose; finite), used as given. ValueError naming what is
     wrong."""
     m = torch.as_tensor(mount)
     if not m.is_floating_point() or m.shape != (4, 4):
@@ -57,12 +58,11 @@ def check_mount(mount) -> Tensor:
     m = m.to(F64)
     if not torch.isfinite(m).all():
         raise ValueError("mount: has NaN/inf entries")
-    rot = m[:3, :3]
-    orth = float((rot @ rot.T - torch.eye(3, dtype=F64)).abs().max())
-    det = float(torch.linalg.det(rot))
-    if orth > 1e-6 or abs(det - 1) > 1e-6 or float((m[3] - torch.tensor([0.0, 0, 0, 1], dtype=F64)).abs().max()) > 0:
+    orth, det, wrong = pose_defects(m)
+    if wrong:
         raise ValueError(f"mount: the rotation block must be a rotation (RRᵀ = I, det +1 to 1e-6) and the last row "
-                         f"(0, 0, 0, 1); got |RRᵀ − I| = {orth:.2e}, det = {det:.9f}, last row {m[3].tolist()}")
+                         f"(0, 0, 0, 1); got |RRᵀ − I| = {float(orth):.2e}, det = {float(det):.9f}, last row "
+                         f"{m[3].tolist()}")
     return m
 
 

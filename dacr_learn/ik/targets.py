@@ -7,6 +7,17 @@ from torch import Tensor
 from ..checks import F64
 
 
+def pose_defects(pose: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """How far homogeneous poses (..., 4, 4) are from rigid transforms: (largest entry of |RRᵀ − I|, det R, and
+    a mask of the poses that are not rigid transforms: RRᵀ = I and det R = +1 to 1e-6, last row (0, 0, 0, 1)
+    to 1e-12), each (...)."""
+    rot = pose[..., :3, :3]
+    orth = (rot @ rot.mT - torch.eye(3, dtype=pose.dtype)).abs().amax((-2, -1))
+    det = torch.linalg.det(rot)
+    row = (pose[..., 3, :] - pose.new_tensor([0.0, 0.0, 0.0, 1.0])).abs().amax(-1)
+    return orth, det, (orth > 1e-6) | ((det - 1).abs() > 1e-6) | (row > 1e-12)
+
+
 def check_targets(target: Tensor, position_only: bool) -> Tensor:
     """Validate IK targets: (B, 4, 4) homogeneous poses with a rotation part, or (B, 3) positions with
     ``position_only`` (a (B, 4, 4) pose is then reduced to its position). Returns float64. ValueError naming
@@ -25,11 +36,7 @@ def check_targets(target: Tensor, position_only: bool) -> Tensor:
         raise ValueError(f"target: {int(bad.sum())} target(s) with NaN/inf entries, first at index "
                          f"{int(bad.nonzero()[0])}")
     if is_pose:
-        rot = target[:, :3, :3]
-        orth = (rot @ rot.mT - torch.eye(3, dtype=F64)).abs().amax((-2, -1))
-        det = torch.linalg.det(rot)
-        row = (target[:, 3] - torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F64)).abs().amax(-1)
-        wrong = (orth > 1e-6) | ((det - 1).abs() > 1e-6) | (row > 1e-12)
+        orth, det, wrong = pose_defects(target)
         if wrong.any():
             i = int(wrong.nonzero()[0])
             raise ValueError(f"target: {int(wrong.sum())} pose(s) whose rotation is not a rotation matrix "
