@@ -29,7 +29,7 @@ from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor, nn
 
 from ..checks import F64
-from ..deploy.control import scaled_dls_step
+from ..deploy.control import ControllerConfig, scaled_dls_step
 from ..ik.refine import free_jacobian
 from .composite import Composite
 
@@ -49,26 +49,24 @@ class Port:
 
 
 @dataclass(frozen=True)
-class WholeBodyConfig:
-    """gain: fraction of the error corrected per step, (0, 1]; damping: λ [m] of the DLS; max_step: largest
-    scaled step ‖Δz‖; rotation_length: w [m/rad] (None: the robot's length); port_weight: k of the port rows;
+class WholeBodyConfig(ControllerConfig):
+    """gain, damping (λ [m] of the DLS), max_step: as :class:`~dacr_learn.deploy.control.ControllerConfig`;
+    rotation_length: w [m/rad] (None: the robot's length); port_weight: k of the port rows;
     rest_gain: per-step pull of the variables towards a posture (the controller's ``posture``, default the
     model's rest configuration), in the null space (0: off);
     dt: control period [s] for the arm's URDF velocity limits (None: not applied)."""
 
-    gain: float = 0.5
     damping: float = 1e-3
-    max_step: float = 0.05
     rotation_length: float | None = None
     port_weight: float = 10.0
     rest_gain: float = 0.0
     dt: float | None = None
 
     def __post_init__(self):
-        if not 0 < self.gain <= 1:
-            raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
-        if not self.damping >= 0 or not self.max_step > 0 or not self.port_weight > 0 or not self.rest_gain >= 0:
-            raise ValueError("damping >= 0, max_step > 0, port_weight > 0 and rest_gain >= 0 expected")
+        super().__post_init__()
+        if self.damping is None or not self.port_weight > 0 or not self.rest_gain >= 0:
+            raise ValueError(f"damping >= 0, port_weight > 0 and rest_gain >= 0 expected, got {self.damping}, "
+                             f"{self.port_weight}, {self.rest_gain}")
         if self.rotation_length is not None and not self.rotation_length > 0:
             raise ValueError(f"rotation_length: expected > 0 [m/rad], got {self.rotation_length}")
         if self.dt is not None and not self.dt > 0:

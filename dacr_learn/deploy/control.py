@@ -39,9 +39,11 @@ def _f64(x: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """gain: fraction of the position error corrected per step, in (0, 1]; damping: λ [m] of the
-    damped least squares (None: 1 % of the robot length); max_step: largest scaled feature step
-    ‖Δz‖ per control step (1 = a feature's whole half-range)."""
+    """The settings every resolved-rate controller shares (:func:`scaled_dls_step`): gain: fraction of the task
+    error corrected per step, in (0, 1]; damping: λ [task unit] of the damped least squares (None: the
+    controller's own default; here 1 % of the robot length); max_step: largest scaled step ‖Δz‖ per control
+    step (1 = a variable's whole half-range). The arm's and the servo controllers' configs extend it
+    (:class:`~dacr_learn.arm.WholeBodyConfig`, :class:`~dacr_learn.hardware.deploy.control.ServoControl`)."""
 
     gain: float = 0.5
     damping: float | None = None

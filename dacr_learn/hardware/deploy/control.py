@@ -31,7 +31,7 @@ from torch import Tensor
 
 from ...checks import F64
 from ...deploy import export as dexport
-from ...deploy.control import scaled_dls_step
+from ...deploy.control import ControllerConfig, scaled_dls_step
 from ...ik import IKOptions, solve_ik
 from ..recording import load_recording
 from .checkpoint import HardwareModel, load_hardware_model
@@ -42,25 +42,22 @@ __all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", 
 
 
 @dataclass(frozen=True)
-class ServoControl:
-    """gain: fraction of the tip error corrected per step, in (0, 1]; damping: λ [m] of the DLS;
-    max_step: largest scaled servo step ‖Δu / s‖ per control step (s: each servo's half-range);
-    retension: scaled step ‖Δu / s‖ per control step by which each *slack* servo (a zero column of J) is
-    pulled in, in [0, max_step] (0: off, the default). The tip task alone never moves a slack tendon's
+class ServoControl(ControllerConfig):
+    """gain, damping (λ [m] of the DLS), max_step (largest scaled servo step ‖Δu / s‖ per control step, s: each
+    servo's half-range): as :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step ‖Δu / s‖
+    per control step by which each *slack* servo (a zero column of J) is pulled in, in [0, max_step] (0: off, the
+    default). The tip task alone never moves a slack tendon's
     servo (its column of J is zero), so a target that needs the tendon taut again can stall. The pull is in
     J's null space, so it does not move the tip until the tendon goes taut (its column turns non-zero and
     the pull stops); the step that crosses the taut onset does move it (docs/export.md: a trade-off)."""
 
-    gain: float = 0.5
     damping: float = 2e-3
-    max_step: float = 0.05
     retension: float = 0.0
 
     def __post_init__(self):
-        if not 0 < self.gain <= 1:
-            raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
-        if not self.damping >= 0 or not self.max_step > 0:
-            raise ValueError(f"damping ≥ 0 [m] and max_step > 0 expected, got {self.damping}, {self.max_step}")
+        super().__post_init__()
+        if self.damping is None:
+            raise ValueError("damping: expected >= 0 [m], got None")
         if not 0 <= self.retension <= self.max_step:
             raise ValueError(f"retension: expected a value in [0, max_step = {self.max_step}], got {self.retension}")
 
