@@ -33,6 +33,14 @@ def _sum_is_finite(x: Tensor) -> bool:
     return math.isfinite(x.sum().item())
 
 
+def as_floating(x: Any, name: str, what: str = "values") -> Tensor:
+    """``x`` as a tensor (torch.as_tensor of a list or array); ValueError naming ``name`` unless floating point."""
+    x = x if isinstance(x, Tensor) else torch.as_tensor(x)
+    if not x.is_floating_point():
+        raise ValueError(f"{name}: expected floating-point {what}, got dtype {x.dtype}")
+    return x
+
+
 def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool = True, nonempty: bool = False) -> None:
     """Raise ValueError unless ``x`` is a floating tensor of shape (..., *trailing) with finite values
     (and, with ``nonempty``, at least one element).

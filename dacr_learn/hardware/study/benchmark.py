@@ -113,8 +113,7 @@ def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map:
     cc = CalibratedCC(spec, **CC_VARIANTS[variant["chosen"]])
     fit = fit_cc(cc, smap.displacements(spec, train_rec), train_rec.tip)
     fit["parameters"], fit["variant"] = cc.report(), variant
-    for p in cc.parameters():
-        p.requires_grad_(False)
+    cc.requires_grad_(False)
     val_split = make_split(val_rec, spec, smap, cc) if val_rec is not None else None
     return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc), val_split, cal, fit,
                  dict(CC_VARIANTS[variant["chosen"]]))
