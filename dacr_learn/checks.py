@@ -16,6 +16,13 @@ import torch
 from torch import Tensor
 
 F64 = torch.float64   # the dtype of the IK solver, the controllers and every float64 exported module
+
+
+def to_f64(x: Tensor) -> Tensor:
+    """``x`` in float64: ``x`` itself when it already is (no dispatch: it sits in control loops)."""
+    return x if x.dtype == F64 else x.to(F64)
+
+
 _PY_SUM_MAX = 256   # elements up to which check_tensor's finiteness sum runs in Python (see there)
 
 

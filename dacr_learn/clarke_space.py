@@ -15,17 +15,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .checks import F64
+from .checks import F64, to_f64
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
 from .robot import RobotSpec
 
 __all__ = ["ClarkeFold", "ClarkeSpace", "DecoderJacobian", "feature_columns"]
 
-
-
-def _f64(x: Tensor) -> Tensor:
-    return x if x.dtype == F64 else x.to(F64)
 
 
 def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -199,14 +195,14 @@ class ClarkeSpace:
 
     def features(self, q: Tensor) -> Tensor:
         """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
-        return self.fold.features(self.fold.inputs(_f64(q)))
+        return self.fold.features(self.fold.inputs(to_f64(q)))
 
     def _decode(self, f: Tensor) -> Tensor:
         return self.decoder(actuated_to_features(f, self.selection, self.base))
 
     def joints(self, f: Tensor) -> Tensor:
         """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
-        f = _f64(f)
+        f = to_f64(f)
         return torch.addmm(self.dec_offset, f, self.dec_matrix.mT) if self.linear and f.dim() == 2 else (
             self.dec_offset + f @ self.dec_matrix.mT if self.linear else self._decode(f))
 

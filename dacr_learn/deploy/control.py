@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import F64
+from ..checks import F64, to_f64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import forward_kinematics
 from ..lie import twist_jacobian
@@ -31,10 +31,6 @@ from ..models import actuated_to_features
 from ..robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
-
-
-def _f64(x: Tensor) -> Tensor:
-    return x if x.dtype == F64 else x.to(F64)
 
 
 @dataclass(frozen=True)
@@ -84,12 +80,12 @@ class ResolvedRateController:
         ``feedforward`` (..., 3) [m]: the target's displacement over this step (velocity × dt);
         ``measured`` (..., 3) [m]: the measured tip position (else the learned FK's is used).
         """
-        q = _f64(q)
+        q = to_f64(q)
         pose, jac_f, _ = self.jacobian(q)
-        position = _f64(pose[..., :3, 3] if measured is None else measured)
-        task = self.config.gain * (_f64(target) - position)
+        position = to_f64(pose[..., :3, 3] if measured is None else measured)
+        task = self.config.gain * (to_f64(target) - position)
         if feedforward is not None:
-            task = task + _f64(feedforward)
+            task = task + to_f64(feedforward)
         f = self.space.features(q) + self.clarke_step(jac_f[..., :3, :], task)
         return self.space.joints(self.space.saturate(f))
 
@@ -107,21 +103,21 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     (a slack tendon's zero column) pass unchanged, so this is how a resolved-rate controller re-tensions a
     tendon its Jacobian cannot. The sum is shortened to ``max_step``.
     """
-    j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
+    j = to_f64(jac) * to_f64(scale)                                               # J̃ = J·diag(s)
     a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=F64)
-    rhs = _f64(task_step).unsqueeze(-1)
+    rhs = to_f64(task_step).unsqueeze(-1)
     if secondary is not None:
         if tuple(secondary.shape) != tuple(j.shape[:-2]) + (j.shape[-1],):
             raise ValueError(f"secondary: expected shape {tuple(j.shape[:-2]) + (j.shape[-1],)} (a scaled step per "
                              f"actuator), got {tuple(secondary.shape)}")
-        z2 = _f64(secondary).unsqueeze(-1)
+        z2 = to_f64(secondary).unsqueeze(-1)
         rhs = rhs - j @ z2                                                    # Δz = z₂ + J̃ᵀA⁻¹(Δx − J̃z₂)
     dz = (j.mT @ torch.linalg.solve(a, rhs)).squeeze(-1)
     if secondary is not None:
-        dz = dz + _f64(secondary)
+        dz = dz + to_f64(secondary)
     norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
     dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
-    return dz * _f64(scale)
+    return dz * to_f64(scale)
 
 
 def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
