@@ -1,6 +1,6 @@
 """Hardware cross-validation experiments: frozen research scripts, not part of the ``dacr_learn`` library.
 
-Their figures are in the docs (the dated sections of docs/hardware_history.md, and
+Their figures are in the docs (the dated sections of docs/history/hardware.md, and
 docs/compositional.md, docs/results.md); each script's docstring names its section and its exact
 command, ``python -m research.hardware_cv.<script> …`` from the repository root. They are not
 maintained beyond running: kept so the documented numbers can be reproduced, not run by the tests.
