@@ -64,7 +64,7 @@ def test_the_checkers_see_what_they_should():
     assert ISSUE.search("(issue 30, item 3)") and ISSUE.search("see #32") and not ISSUE.search("[x](#results)")
 
 
-@pytest.mark.parametrize("page", GUIDE, ids=lambda p: p.name)
+@pytest.mark.parametrize("page", GUIDE, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_named_path_and_module_exists(page):
     missing = [p for p in PATH.findall(text(page)) if not (ROOT / p.rstrip(".")).exists()]
     missing += [f"python -m {m}" for m in MODULE.findall(text(page))
@@ -72,7 +72,7 @@ def test_every_named_path_and_module_exists(page):
     assert missing == [], f"{page.name} names what the repository does not have"
 
 
-@pytest.mark.parametrize("page", GUIDE + HISTORY, ids=lambda p: p.name)
+@pytest.mark.parametrize("page", GUIDE + HISTORY, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_relative_link_resolves(page):
     broken = []
     for target in LINK.findall(text(page)):
@@ -87,7 +87,7 @@ def test_every_relative_link_resolves(page):
     assert broken == [], f"{page.name}: links to what is not there"
 
 
-@pytest.mark.parametrize("page", GUIDE, ids=lambda p: p.name)
+@pytest.mark.parametrize("page", GUIDE, ids=lambda p: str(p.relative_to(ROOT)))
 def test_the_guide_speaks_of_the_project(page):
     lines = [f"{i}: {line.strip()}" for i, line in enumerate(text(page).splitlines(), 1)
              if WHO.search(line) or ISSUE.search(line)]
