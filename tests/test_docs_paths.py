@@ -1,7 +1,9 @@
-"""The user's guide names only what exists and speaks of the project: every ``dacr_learn/…`` path and every
-``python -m …`` module named in README.md and docs/*.md is in the repository, every relative link of those pages
-and of docs/history/ resolves (file and ``#anchor``), and no guide page talks about who ran something or cites an
-internal issue number (docs/history/, the research record, is kept as written)."""
+"""The user's guide names only what exists and speaks of the project: every ``dacr_learn/…`` path (and every path
+under tests/, benchmarks/, examples/, configs/, research/) and every ``python -m …`` module named in README.md and
+docs/*.md is in the repository; every relative link of those pages and of docs/history/ resolves (file and
+``#anchor``); design.md's architecture names every layer of tests/test_structure.py and every package; and no guide
+page talks about who ran something or cites an internal issue number (docs/history/, the research record, is kept
+as written)."""
 from __future__ import annotations
 
 import re
@@ -9,11 +11,12 @@ from pathlib import Path
 
 import pytest
 from conftest import ROOT
+from test_structure import LAYERS
 
 GUIDE = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 HISTORY = sorted((ROOT / "docs" / "history").glob("*.md"))
 
-PATH = re.compile(r"(?<![\w/.])dacr_learn/[\w./-]*")
+PATH = re.compile(r"(?<![\w/.])(?:dacr_learn|tests|benchmarks|examples|configs|research)/[\w./-]*")
 MODULE = re.compile(r"python -m ([A-Za-z_][\w.]*)")
 LINK = re.compile(r"\]\(([^)\s]+)\)")
 WHO = re.compile(r"\b(agents?|helpers?|this session|sessions?)\b", re.I)
@@ -53,9 +56,18 @@ def anchors(page: Path) -> set[str]:
     return found
 
 
+def exists(path: str) -> bool:
+    """A named path is in the repository; one ending in ``_`` names a family of files (``configs/robots/hetero_*``)."""
+    path = path.rstrip(".")
+    if path.endswith("_"):
+        return any((ROOT / path).parent.glob(Path(path).name + "*"))
+    return (ROOT / path).exists()
+
+
 def test_the_checkers_see_what_they_should():
-    assert PATH.findall("see `dacr_learn/ik/cli.py`, runs/dacr_learn/x and dacr_learn/.") == ["dacr_learn/ik/cli.py",
-                                                                                               "dacr_learn/."]
+    assert PATH.findall("see `dacr_learn/ik/cli.py`, runs/dacr_learn/x and tests/test_ik.py.") == [
+        "dacr_learn/ik/cli.py", "tests/test_ik.py."]
+    assert exists("tests/test_ik.py.") and exists("configs/robots/hetero_") and not exists("tests/test_errata.py")
     assert MODULE.findall(".venv/bin/python -m dacr_learn.ik --robot x") == ["dacr_learn.ik"]
     assert module_file("dacr_learn.ik") is not None and module_file("dacr_learn.kinematics") is None
     assert slug("## 1. The joint-space abstraction (`robot.py`, `clarke.py`)".lstrip("# ")) == \
@@ -66,7 +78,7 @@ def test_the_checkers_see_what_they_should():
 
 @pytest.mark.parametrize("page", GUIDE, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_named_path_and_module_exists(page):
-    missing = [p for p in PATH.findall(text(page)) if not (ROOT / p.rstrip(".")).exists()]
+    missing = [p for p in PATH.findall(text(page)) if not exists(p)]
     missing += [f"python -m {m}" for m in MODULE.findall(text(page))
                 if m.split(".")[0] not in OUTSIDE and module_file(m) is None]
     assert missing == [], f"{page.name} names what the repository does not have"
@@ -97,3 +109,13 @@ def test_the_guide_speaks_of_the_project(page):
 def test_the_guide_fits_an_afternoon():
     lines = sum(len(text(p).splitlines()) for p in GUIDE if p.parent.name == "docs")
     assert lines <= 2600, f"docs/*.md (outside docs/history/) has {lines} lines; the guide's budget is 2,600"
+
+
+def test_design_draws_the_layers_the_structure_test_enforces():
+    design = text(ROOT / "docs" / "design.md")
+    section = design[design.index("## 5. Architecture"):design.index("## 6.")]
+    rows = re.findall(r"^\| ([\w.]+) \|", section, flags=re.M)
+    assert [r for r in rows if r != "layer"] == list(LAYERS)
+    packages = sorted(p.parent.relative_to(ROOT / "dacr_learn").as_posix()
+                      for p in (ROOT / "dacr_learn").rglob("__init__.py") if p.parent != ROOT / "dacr_learn")
+    assert [p for p in packages if f"{p.split('/')[-1]}/" not in section] == []
