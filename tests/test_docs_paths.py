@@ -1,9 +1,9 @@
 """The user's guide names only what exists and speaks of the project: every ``dacr_learn/…`` path (and every path
 under tests/, benchmarks/, examples/, configs/, research/) and every ``python -m …`` module named in README.md and
 docs/*.md is in the repository; every relative link of those pages and of docs/history/ resolves (file and
-``#anchor``); design.md's architecture names every layer of tests/test_structure.py and every package; and no guide
-page talks about who ran something or cites an internal issue number (docs/history/, the research record, is kept
-as written)."""
+``#anchor``); design.md's architecture names every layer of tests/test_structure.py and every package; and no page
+of the guide, of the research record (docs/history/) or of CHANGELOG.md talks about who ran something or cites an
+internal issue number: they speak of the machine, the command, the date and the figure."""
 from __future__ import annotations
 
 import re
@@ -15,12 +15,15 @@ from test_structure import LAYERS
 
 GUIDE = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 HISTORY = sorted((ROOT / "docs" / "history").glob("*.md"))
+CHANGELOG = ROOT / "CHANGELOG.md"
 
 PATH = re.compile(r"(?<![\w/.])(?:dacr_learn|tests|benchmarks|examples|configs|research)/[\w./-]*")
 MODULE = re.compile(r"python -m ([A-Za-z_][\w.]*)")
 LINK = re.compile(r"\]\(([^)\s]+)\)")
-WHO = re.compile(r"\b(agents?|helpers?|this session|sessions?)\b", re.I)
-ISSUE = re.compile(r"\bissues?\s+#?\d+|(?<![\w&/])#\d+\b", re.I)
+WHO = re.compile(r"\b(agents?|helpers?|this session|sessions?|the lead|(?:we|I) (?:ran|measured|evaluated|tried)|"
+                 r"our (?:reading|criterion))\b|\bwe did\b", re.I)
+ISSUE = re.compile(r"\bissues?(?:'s)?\s+#?\d+|(?<![\w&/])#\d+\b(?!-)"      # #2026-11-23-… is a dated heading's anchor
+                   r"|\b(?:on|in) the issue\b|\bthe issue's\b|\(issue\)", re.I)
 OUTSIDE = {"pytest", "pip", "venv", "torch", "http.server"}     # modules of the environment, not of the repo
 
 
@@ -73,7 +76,12 @@ def test_the_checkers_see_what_they_should():
     assert slug("## 1. The joint-space abstraction (`robot.py`, `clarke.py`)".lstrip("# ")) == \
         "1-the-joint-space-abstraction-robotpy-clarkepy"
     assert WHO.search("two other Agents' jobs") and WHO.search("this session") and not WHO.search("sessionless")
+    assert WHO.search("for the lead's quiet run") and WHO.search("I evaluated it") and WHO.search("we did not test")
+    assert not WHO.search("leads with") and not WHO.search("I + ξ^ + fξ^²")
     assert ISSUE.search("(issue 30, item 3)") and ISSUE.search("see #32") and not ISSUE.search("[x](#results)")
+    assert ISSUE.search("(#32)") and not ISSUE.search("[Deploying (j)](#2026-11-23-deploying-the-model)")
+    assert ISSUE.search("after issues 21–23's work") and ISSUE.search("reported on the issue")
+    assert not ISSUE.search("a float32 issue is excluded") and not ISSUE.search("[§10](cosserat.md#10-displacement)")
 
 
 @pytest.mark.parametrize("page", GUIDE, ids=lambda p: str(p.relative_to(ROOT)))
@@ -99,8 +107,8 @@ def test_every_relative_link_resolves(page):
     assert broken == [], f"{page.name}: links to what is not there"
 
 
-@pytest.mark.parametrize("page", GUIDE, ids=lambda p: str(p.relative_to(ROOT)))
-def test_the_guide_speaks_of_the_project(page):
+@pytest.mark.parametrize("page", GUIDE + HISTORY + [CHANGELOG], ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_page_speaks_of_the_project(page):
     lines = [f"{i}: {line.strip()}" for i, line in enumerate(text(page).splitlines(), 1)
              if WHO.search(line) or ISSUE.search(line)]
     assert lines == [], f"{page.name}: who ran it or an internal issue number"
