@@ -86,5 +86,5 @@ class WholeBodyQPController(QPController):
     def joint_rate(self, x: np.ndarray) -> np.ndarray:
         """∂q_c/∂x (N, n + D) of the robot's joints (zero in the arm's columns)."""
         n = self.num_arm
-        inner = self.decoder(torch.from_numpy(x[n:])[None])[0].numpy()
+        inner = super().joint_rate(x[n:])
         return np.concatenate([np.zeros((inner.shape[0], n)), inner], axis=1)

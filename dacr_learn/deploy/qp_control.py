@@ -166,12 +166,14 @@ class QPController:
         self.step_bound = np.full(d, config.max_step)                        # |z_i| per step (arm: velocity too)
         robot = getattr(model, "robot", model)
         self.weight = float(robot.length) if config.rotation_length is None else config.rotation_length
-        self.decoder = None
+        self.decoder = self.rate_matrix = None
         if config.joint_step is not None:
             if getattr(robot, "spec", None) is None or not hasattr(robot, "space"):
                 raise ValueError(f"joint_step: needs a model whose variables are Clarke features of a robot file, "
                                  f"got {type(robot).__name__}")
             self.decoder = DecoderJacobian(robot.spec)
+            space = robot.space
+            self.rate_matrix = space.dec_matrix.numpy() if space.linear else None   # constant without twist
         self.status: list[str] = []
         self.active: list[int] = []
 
@@ -214,6 +216,8 @@ class QPController:
 
     def joint_rate(self, x: np.ndarray) -> np.ndarray:
         """∂q/∂x (N, D) of the robot's joints at variables x (D,) (the Clarke decoder's Jacobian)."""
+        if self.rate_matrix is not None:
+            return self.rate_matrix
         return self.decoder(torch.from_numpy(x)[None])[0].numpy()
 
     def program(self, x: np.ndarray, jac: np.ndarray, err: np.ndarray, s: Sensed, b: int) -> Program:
