@@ -7,8 +7,9 @@ Two scenes, each from the same start along the same target path, with the same g
   :class:`dacr_learn.deploy.control.ResolvedRateController` (damped least squares, limits by saturation) and
   :class:`dacr_learn.deploy.qp_control.QPController` (one QP per step: limits, joint speeds, clearance dampers).
 - ``arm``: the Panda holds the robot through a 5 mm port (as in examples/track_port.py); the tip tracks a circle
-  behind the port while a sphere sits across the circle's path. Compared: :class:`~dacr_learn.arm.control.WholeBodyController`,
-  :class:`~dacr_learn.arm.control.DecoupledController` and :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`.
+  behind the port while a sphere sits inside the cone the body sweeps. Compared:
+  :class:`~dacr_learn.arm.control.WholeBodyController`, :class:`~dacr_learn.arm.control.DecoupledController` and
+  :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`.
 
 The obstacle distances come from a minimal sphere scene in this file (:class:`SphereClearance`: the robot's
 backbone points, :func:`dacr_learn.kinematics.backbone_points`, swept by the envelope radius); the controllers take any
@@ -197,7 +198,8 @@ def arm_scene(args) -> dict:
     wb = WholeBodyConfig(gain=args.gain, max_step=args.max_step)
     cfg = QPConfig(gain=args.gain, max_step=args.max_step, safety=args.safety, influence=args.influence,
                    damper_gain=args.damper_gain, joint_step=args.joint_step)
-    controllers = {"whole_body": WholeBodyController(model, wb, port), "decoupled": DecoupledController(model, wb, port),
+    controllers = {"whole_body": WholeBodyController(model, wb, port),
+                   "decoupled": DecoupledController(model, wb, port),
                    "whole_body_qp": WholeBodyQPController(model, cfg, port, sensed)}
     return {"sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}, "port_radius_mm": 5.0,
             "results": {k: run(model, c, q0, path, check, port) for k, c in controllers.items()}}

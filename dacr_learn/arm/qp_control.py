@@ -33,14 +33,15 @@ _F64 = torch.float64
 class WholeBodyQPController(QPController):
     """Constrained resolved-rate control of the whole body (module docstring).
 
-    Args: model: the :class:`Composite`; config: :class:`~dacr_learn.deploy.qp_control.QPConfig`; port: a
+    Args: model: the :class:`Composite`; config: :class:`~dacr_learn.deploy.qp_control.QPConfig` (None: the
+    defaults); port: a
     :class:`Port` or None; distances: the clearance provider x (B, n + D) → (d (B, M) [m], ∂d/∂x (B, M, n + D)) or
     None; dt: control period [s] for the URDF velocity limits (None: not applied); port_weight: k > 0 of the port
     rows; sense: replaces the model's evaluation (x → :class:`Sensed` with ``base`` and ``base_jacobian``).
     ``step(q (B, n + N), target (B, 4, 4) or (B, 3), feedforward (B, 6) or (B, 3))`` → q' (B, n + N).
     """
 
-    def __init__(self, model: Composite, config: QPConfig = QPConfig(), port: Port | None = None,
+    def __init__(self, model: Composite, config: QPConfig | None = None, port: Port | None = None,
                  distances: DistanceFn | None = None, dt: float | None = None, port_weight: float = 10.0,
                  sense: Callable[[Tensor], Sensed | tuple] | None = None):
         if not isinstance(model, Composite):
@@ -50,7 +51,7 @@ class WholeBodyQPController(QPController):
             raise ValueError(f"dt: expected > 0 [s], got {dt}")
         if not port_weight > 0:
             raise ValueError(f"port_weight: expected > 0, got {port_weight}")
-        super().__init__(model, config, distances, sense)
+        super().__init__(model, config or QPConfig(), distances, sense)
         self.port, self.port_weight, self.num_arm = port, port_weight, model.num_arm
         self.centre = None if port is None else torch.tensor(port.centre, dtype=_F64)
         if dt is not None:

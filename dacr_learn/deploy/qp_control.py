@@ -168,7 +168,7 @@ class QPController:
         self.weight = float(robot.length) if config.rotation_length is None else config.rotation_length
         self.decoder = self.rate_matrix = None
         if config.joint_step is not None:
-            if getattr(robot, "spec", None) is None or not hasattr(robot, "space"):
+            if getattr(robot, "spec", None) is None or getattr(robot, "space", None) is None:
                 raise ValueError(f"joint_step: needs a model whose variables are Clarke features of a robot file, "
                                  f"got {type(robot).__name__}")
             self.decoder = DecoderJacobian(robot.spec)
@@ -229,7 +229,7 @@ class QPController:
         lb = np.minimum(np.maximum(-self.step_bound, (self.lower - x) / scale), 0.0)
         ub = np.maximum(np.minimum(self.step_bound, (self.upper - x) / scale), 0.0)
         rows, room, damper = [], [], []
-        for (i, j), r in zip(self.disks, self.radius):
+        for (i, j), r in zip(self.disks, self.radius, strict=True):
             normals, free = disk_rows(x[[i, j]], float(r), cfg.disk_sides)
             block = np.zeros((cfg.disk_sides, len(x)))
             block[:, i], block[:, j] = normals[:, 0] * scale[i], normals[:, 1] * scale[j]
