@@ -156,53 +156,62 @@ def ramp(start: torch.Tensor, goal: torch.Tensor, move: int, hold: int) -> torch
     return torch.cat([start + s[:, None] * (goal - start), goal.expand(hold, 3)])
 
 
-def robot_scene(args) -> dict:
-    """The robot alone: a sphere beside its upper half, the tip target behind it."""
+def robot_setup(args) -> dict:
+    """The robot alone: a sphere beside its upper half, the tip target behind it. The model, the controllers, the
+    start q0 (N,), the target path (S, 3), the dense clearance check and the sphere."""
     spec = RobotSpec.coerce(args.robot)
     model = ConstantCurvature(spec)
     length = spec.total_length
     sphere = ([0.26 * length, 0.0, 0.7 * length], 0.09 * length)
     goal = torch.tensor([0.65 * length, 0.05 * length, 0.55 * length], dtype=F64)
-    q0 = model.joints(model.rest[None])[0]
     path = ramp(model.tip_and_jacobian(model.rest[None])[0][0], goal, args.steps, args.hold)
-    check = SphereClearance(robot_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale)
     sensed = SphereClearance(robot_points(model, args.points), [sphere[0]], [sphere[1]], ENVELOPE,
                              model.limits.scale)
-    cfg = QPConfig(gain=args.gain, max_step=args.max_step, safety=args.safety, influence=args.influence,
-                   damper_gain=args.damper_gain, joint_step=args.joint_step)
     controllers = {"resolved_rate": ResolvedRateController(spec, cc_jacobian(model), ControllerConfig(
-                       gain=args.gain, damping=cfg.damping, max_step=args.max_step)),
-                   "qp": QPController(model, cfg, sensed)}
-    return {"sphere": {"centre_m": sphere[0], "radius_m": sphere[1]},
-            "results": {k: run(model, c, q0, path, check) for k, c in controllers.items()}}
+                       gain=args.gain, damping=QPConfig().damping, max_step=args.max_step)),
+                   "qp": QPController(model, qp_config(args), sensed)}
+    return {"model": model, "controllers": controllers, "q0": model.joints(model.rest[None])[0], "path": path,
+            "check": SphereClearance(robot_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale),
+            "sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}}
 
 
-def arm_scene(args) -> dict:
-    """The Panda through a port; the tip circles behind it, a sphere across the circle."""
+def arm_setup(args) -> dict:
+    """The Panda through a port; the tip circles behind it, a sphere inside the cone the body sweeps (as
+    :func:`robot_setup`, the path (S, 3), and the port)."""
     model = composite_from_files(ROOT / "configs" / "arms" / "panda.urdf", "panda_link8",
                                  ROOT / "configs" / "arms" / "panda_mount.npy", args.robot)
     n = model.num_arm
     ready = model.limits.project(torch.cat([torch.tensor(PANDA_READY, dtype=F64), model.robot.rest]))[:n]
     x0 = torch.cat([ready, model.robot.rest])
-    q0 = model.joints(x0[None])[0]
     base = model.base_pose(ready[None])[0]
     port = Port(tuple(base[:3, 3].tolist()), 0.005)
     t = 2 * math.pi * torch.arange(args.steps, dtype=F64) / args.steps
     ex, ey, ez = base[:3, 0], base[:3, 1], base[:3, 2]
     circle = base[:3, 3] + 0.22 * ez + 0.06 * (torch.cos(t)[:, None] * ex + torch.sin(t)[:, None] * ey)
-    start = model.tip_and_jacobian(x0[None])[0][0]
-    path = torch.cat([ramp(start, circle[0], args.hold, 0), circle])
+    path = torch.cat([ramp(model.tip_and_jacobian(x0[None])[0][0], circle[0], args.hold, 0), circle])
     sphere = ((base[:3, 3] + 0.19 * ez + 0.03 * ey).tolist(), 0.012)      # inside the cone the body sweeps
-    check = SphereClearance(arm_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale)
     sensed = SphereClearance(arm_points(model, args.points), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale)
     wb = WholeBodyConfig(gain=args.gain, max_step=args.max_step)
-    cfg = QPConfig(gain=args.gain, max_step=args.max_step, safety=args.safety, influence=args.influence,
-                   damper_gain=args.damper_gain, joint_step=args.joint_step)
     controllers = {"whole_body": WholeBodyController(model, wb, port),
                    "decoupled": DecoupledController(model, wb, port),
-                   "whole_body_qp": WholeBodyQPController(model, cfg, port, sensed)}
-    return {"sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}, "port_radius_mm": 5.0,
-            "results": {k: run(model, c, q0, path, check, port) for k, c in controllers.items()}}
+                   "whole_body_qp": WholeBodyQPController(model, qp_config(args), port, sensed)}
+    return {"model": model, "controllers": controllers, "q0": model.joints(x0[None])[0], "path": path,
+            "check": SphereClearance(arm_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale),
+            "sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}, "port": port}
+
+
+def qp_config(args) -> QPConfig:
+    return QPConfig(gain=args.gain, max_step=args.max_step, safety=args.safety, influence=args.influence,
+                    damper_gain=args.damper_gain, joint_step=args.joint_step)
+
+
+def run_scene(setup: dict) -> dict:
+    """Every controller of a setup over its path (:func:`run`)."""
+    port = setup.get("port")
+    results = {k: run(setup["model"], c, setup["q0"], setup["path"], setup["check"], port)
+               for k, c in setup["controllers"].items()}
+    return {"sphere": setup["sphere"], **({"port_radius_mm": 1e3 * port.radius} if port else {}),
+            "results": results}
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -239,9 +248,9 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(1)
     summary = {"config": {k: v for k, v in vars(args).items() if k != "out"}}
-    for name, scene in (("robot", robot_scene), ("arm", arm_scene)):
+    for name, setup in (("robot", robot_setup), ("arm", arm_setup)):
         if args.scene in (name, "both"):
-            summary[name] = scene(args)
+            summary[name] = run_scene(setup(args))
             print_table(name, summary[name])
     summary["config"]["robot"] = str(args.robot)
     args.out.mkdir(parents=True, exist_ok=True)

@@ -51,7 +51,7 @@ def test_disk_polygon_is_inscribed_with_a_vertex_on_the_current_direction():
         for _ in range(20):
             r = rng.uniform(0.001, 0.02)
             y = r * rng.uniform(0, 1) * np.array([math.cos(a := rng.uniform(-4, 4)), math.sin(a)])
-            normals, room = disk_rows(y, r, sides)
+            normals, room = (v[0] for v in disk_rows(y[None], np.array([r]), sides))
             assert (room >= 0).all()                                                 # the current point is inside
             vertices = r * np.stack([np.cos(a + 2 * np.pi * np.arange(sides) / sides),
                                      np.sin(a + 2 * np.pi * np.arange(sides) / sides)], -1)

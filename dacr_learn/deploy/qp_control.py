@@ -39,7 +39,7 @@ import numpy as np
 import qpsolvers
 import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..clarke_space import DecoderJacobian
 from ..ik.models import SolverModel
@@ -115,14 +115,16 @@ class Program(NamedTuple):
     damper: np.ndarray
 
 
-def disk_rows(pair: np.ndarray, radius: float, sides: int) -> tuple[np.ndarray, np.ndarray]:
-    """Half-planes n_k·(y + Δy) ≤ r·cos(π/K) of the K-gon inscribed in the disk ‖y‖ ≤ r with a vertex on the
-    direction of y (2,): (normals (K, 2), room (K,) = r·cos(π/K) − n_k·y, ≥ 0 for ‖y‖ ≤ r)."""
-    norm = math.hypot(pair[0], pair[1])
-    start = math.atan2(pair[1], pair[0]) if norm > 1e-15 * radius else 0.0
-    angle = start + math.pi / sides * (2 * np.arange(sides) + 1)
+def disk_rows(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.ndarray, np.ndarray]:
+    """Half-planes n_k·(y + Δy) ≤ r·cos(π/K) of the K-gon inscribed in each disk ‖y‖ ≤ r with a vertex on the
+    direction of y: pairs y (m, 2), radii r (m,) → (normals (m, K, 2), room (m, K) = r·cos(π/K) − n_k·y,
+    ≥ 0 for ‖y‖ ≤ r)."""
+    norm = np.hypot(pairs[:, 0], pairs[:, 1])
+    start = np.where(norm > 1e-15 * radius, np.arctan2(pairs[:, 1], pairs[:, 0]), 0.0)
+    angle = start[:, None] + math.pi / sides * (2 * np.arange(sides) + 1)
     normals = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
-    return normals, np.maximum(radius * math.cos(math.pi / sides) - normals @ pair, 0.0)
+    room = radius[:, None] * math.cos(math.pi / sides) - (normals * pairs[:, None]).sum(-1)
+    return normals, np.maximum(room, 0.0)
 
 
 def solve_program(program: Program, solver: str) -> tuple[np.ndarray, str]:
@@ -147,8 +149,8 @@ class QPController:
     Args:
         model: the model to control (a :class:`~dacr_learn.ik.SolverModel`, e.g. ``ConstantCurvature(spec)``).
         config: :class:`QPConfig`. distances: the clearance provider (:data:`DistanceFn`), or None (no obstacles).
-        sense: replaces the model's evaluation, x (B, D) → :class:`Sensed` or the same fields as a tuple (e.g. an
-            AOTInductor package of the model's tip, Jacobian and clearances, for a kHz loop at batch 1).
+        sense: replaces the model's evaluation, x (B, D) → :class:`Sensed` or its fields as a tuple, empty tensors
+            for those not given (e.g. the AOTInductor package of :class:`Sensing`, for a kHz loop at batch 1).
 
     :meth:`step`: joint vectors q (B, N), targets (B, 4, 4) poses or (B, 3) positions [m], optional feedforward
     (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, N). After a step, ``status`` holds each sample's
@@ -164,6 +166,10 @@ class QPController:
         self.disks, self.radius = self.limits.disks.numpy(), self.limits.radius.numpy()
         d = self.limits.num_variables
         self.step_bound = np.full(d, config.max_step)                        # |z_i| per step (arm: velocity too)
+        self.damping_matrix = config.damping**2 * np.eye(d)
+        self.disk_row = np.arange(len(self.disks) * config.disk_sides)
+        self.disk_scale = (self.scale[self.disks[:, 0]].repeat(config.disk_sides),
+                           self.scale[self.disks[:, 1]].repeat(config.disk_sides))
         robot = getattr(model, "robot", model)
         self.weight = float(robot.length) if config.rotation_length is None else config.rotation_length
         self.decoder = self.rate_matrix = None
@@ -183,7 +189,7 @@ class QPController:
         """The model (or the ``sense`` given) at x (B, D), with the clearances when there are obstacles."""
         if self.custom_sense is not None:
             out = self.custom_sense(x)
-            return out if isinstance(out, Sensed) else Sensed(*out)
+            return out if isinstance(out, Sensed) else Sensed(*(None if t.numel() == 0 else t for t in out))
         position, rotation, jac = self.model.tip_and_jacobian(x)
         d, jd = (None, None) if self.distances is None else self.distances(x)
         return Sensed(position, rotation, jac, d, jd)
@@ -224,17 +230,18 @@ class QPController:
         """The program of one sample: variables x (D,), task rows J (k, D) and e (k,) (module docstring)."""
         cfg, scale = self.config, self.scale
         js = jac * scale
-        H = js.T @ js + cfg.damping**2 * np.eye(len(x))
+        H = js.T @ js + self.damping_matrix
         g = -js.T @ err
         lb = np.minimum(np.maximum(-self.step_bound, (self.lower - x) / scale), 0.0)
         ub = np.maximum(np.minimum(self.step_bound, (self.upper - x) / scale), 0.0)
-        rows, room, damper = [], [], []
-        for (i, j), r in zip(self.disks, self.radius, strict=True):
-            normals, free = disk_rows(x[[i, j]], float(r), cfg.disk_sides)
-            block = np.zeros((cfg.disk_sides, len(x)))
-            block[:, i], block[:, j] = normals[:, 0] * scale[i], normals[:, 1] * scale[j]
+        rows, room = [], []
+        if len(self.disks):
+            normals, free = disk_rows(x[self.disks], self.radius, cfg.disk_sides)
+            block = np.zeros((free.size, len(x)))
+            block[self.disk_row, self.disks[:, 0].repeat(cfg.disk_sides)] = normals[..., 0].ravel() * self.disk_scale[0]
+            block[self.disk_row, self.disks[:, 1].repeat(cfg.disk_sides)] = normals[..., 1].ravel() * self.disk_scale[1]
             rows.append(block)
-            room.append(free)
+            room.append(free.ravel())
         if self.decoder is not None:
             rate = self.joint_rate(x) * scale
             rows += [rate, -rate]
@@ -270,9 +277,33 @@ class QPController:
                                    + (np.abs(z - p.ub) <= tol).sum()))
             self.status.append(status)
             out[b] = xs[b] + self.scale * z
-        return self.limits.project(torch.from_numpy(out))
+        out = torch.from_numpy(out)
+        return self.limits.project(out) if self.outside(out) else out
+
+    def outside(self, x: Tensor) -> bool:
+        """Whether some variable of x (B, D) lies outside a box or disk (the solver's round-off): then
+        :meth:`Limits.project` removes it."""
+        v = x.numpy()
+        if ((v < self.lower) | (v > self.upper)).any():
+            return True
+        return bool(len(self.disks)) and bool((np.hypot(v[:, self.disks[:, 0]], v[:, self.disks[:, 1]])
+                                                > self.radius).any())
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in joints: q (B, N) → q' (B, N) (module docstring)."""
         x = self.model.variables(q.to(_F64))
         return self.model.joints(self.step_variables(x, target, feedforward))
+
+
+class Sensing(nn.Module):
+    """A controller's evaluation of its model and clearances as a module, for torch.export / AOTInductor:
+    x (B, D) → the seven fields of :class:`Sensed`, empty (B, 0) tensors for those it does not give. The loaded
+    package is the controller's ``sense`` (the program itself stays in NumPy/qpsolvers)."""
+
+    def __init__(self, controller: QPController):
+        super().__init__()
+        self.controller = controller
+
+    def forward(self, x: Tensor) -> tuple[Tensor, ...]:
+        empty = x[:, :0]
+        return tuple(empty if t is None else t for t in self.controller.sense(x))

@@ -1,0 +1,126 @@
+"""Benchmark: one constrained (QP) control step at batch 1, side by side with today's resolved-rate step.
+
+The scenes of examples/qp_reach_behind_obstacle.py (the 3-segment TDCR beside a sphere; the Panda holding it
+through a port, a sphere behind the port), at a state ``--warm`` steps along the example's path (the body within
+the dampers' influence distance, so clearance rows are in the program). One thread, float64, median over
+``--calls`` calls. Rows:
+
+- ``today``: :class:`ResolvedRateController` with the closed-form CC Jacobian (robot) / :class:`WholeBodyController`
+  (arm: pose-free position target, port, limits by projection);
+- ``qp_eager``: :class:`QPController` / :class:`WholeBodyQPController`: model, clearances (16 points per segment,
+  Jacobian by central differences), program and DAQP, all eager;
+- ``program_daqp`` / ``program_proxqp``: the program alone (its evaluation cached): building it and solving it
+  with each qpsolvers backend — the measurement behind the choice of DAQP;
+- ``qp_aoti`` (with ``--aoti``): the QP step with the model and clearances as an AOTInductor package
+  (:class:`dacr_learn.deploy.qp_control.Sensing`; minutes to build) and the program in NumPy/DAQP.
+
+The machine may be shared: the load average is printed; compare rows of one run, not absolute numbers.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/qp_control.py [--aoti robot|all] [--json]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "examples"))
+import qp_reach_behind_obstacle as scene  # noqa: E402
+
+from dacr_learn.deploy.qp_control import Sensing  # noqa: E402
+
+F64 = torch.float64
+TARGET_US = 400.0
+
+
+def median_us(fn, calls: int) -> float:
+    for _ in range(3):
+        fn()
+    times = []
+    for _ in range(calls):
+        t = time.perf_counter_ns()
+        fn()
+        times.append((time.perf_counter_ns() - t) / 1e3)
+    return statistics.median(times)
+
+
+def warm_state(model, controller, q0: torch.Tensor, path: torch.Tensor, steps: int) -> torch.Tensor:
+    q = q0[None]
+    for i in range(steps):
+        q = controller.step(q, path[i:i + 1])
+    return q
+
+
+def rows(model, today, qp, q: torch.Tensor, target: torch.Tensor, calls: int, aoti: bool, name: str) -> dict:
+    x = model.variables(q)
+    out = {"today": median_us(lambda: today.step(q, target), max(10, calls // 10)),
+           "qp_eager": median_us(lambda: qp.step(q, target), max(10, calls // 10))}
+    sensed = qp.sense(x)
+    out["dampers_in_program"] = int((sensed.distance[0] < qp.config.influence).sum())
+    custom = qp.custom_sense
+    for solver in ("daqp", "proxqp"):
+        qp.config = dataclasses.replace(qp.config, solver=solver)
+        qp.custom_sense = lambda _: sensed
+        out[f"program_{solver}"] = median_us(lambda: qp.step_variables(x, target), calls)
+    qp.config, qp.custom_sense = dataclasses.replace(qp.config, solver="daqp"), custom
+    if aoti:
+        t = time.perf_counter()
+        program = torch.export.export(Sensing(qp), (x,))
+        path = torch._inductor.aoti_compile_and_package(program, package_path=str(ROOT / "runs" / f"qp_{name}.pt2"))
+        runner = torch._inductor.aoti_load_package(path)
+        out["aoti_build_s"] = time.perf_counter() - t
+        eager = qp.step_variables(x, target)
+        qp.custom_sense = runner
+        out["aoti_max_deviation"] = float((qp.step_variables(x, target) - eager).abs().max())
+        out["qp_aoti"] = median_us(lambda: qp.step_variables(x, target), calls)
+        qp.custom_sense = custom
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--calls", type=int, default=300)
+    p.add_argument("--warm", type=int, default=120, help="steps along the example's path before timing")
+    p.add_argument("--aoti", choices=("none", "robot", "all"), default="none")
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    ex = scene.parse_args(["--points", "16"])
+    report = {"load_average_before": " ".join(f"{v:.2f}" for v in os.getloadavg())}
+    for name, build, compared in (("robot", scene.robot_setup, ("resolved_rate", "qp")),
+                                  ("arm", scene.arm_setup, ("whole_body", "whole_body_qp"))):
+        setup = build(ex)
+        model, q0, path = setup["model"], setup["q0"], setup["path"]
+        today, qp = (setup["controllers"][k] for k in compared)
+        q = warm_state(model, qp, q0, path, args.warm)
+        target = path[args.warm:args.warm + 1]
+        report[name] = rows(model, today, qp, q, target, args.calls, args.aoti == "all" or args.aoti == name,
+                            name)
+    report["load_average_after"] = " ".join(f"{v:.2f}" for v in os.getloadavg())
+    if args.json:
+        print(json.dumps(report, indent=2))
+        return report
+    print(f"one control step, batch 1, 1 thread, p50 [µs] (load {report['load_average_before']} → "
+          f"{report['load_average_after']})")
+    keys = ("today", "qp_eager", "program_daqp", "program_proxqp", "qp_aoti")
+    print("  " + f"{'scene':>8}" + "".join(f"{k:>16}" for k in keys) + f"{'dampers':>10}")
+    for name in ("robot", "arm"):
+        r = report[name]
+        print("  " + f"{name:>8}" + "".join(f"{r[k]:>16.0f}" if k in r else f"{'-':>16}" for k in keys)
+              + f"{r['dampers_in_program']:>10d}")
+        if "aoti_build_s" in r:
+            print(f"  ({name}: AOTI build {r['aoti_build_s']:.0f} s, deviation from eager "
+                  f"{r['aoti_max_deviation']:.1e}; target qp_aoti <= {TARGET_US:.0f} µs)")
+    return report
+
+
+if __name__ == "__main__":
+    main()
