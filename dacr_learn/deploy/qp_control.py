@@ -25,7 +25,7 @@ least-squares step of :func:`~dacr_learn.deploy.control.scaled_dls_step`, z = J�
   those rows relaxed to "do not come closer" (``status`` "relaxed"), and a step of zero is taken if even that
   fails ("held"). Zero always satisfies every other row, so the step is always inside the limits.
 
-x' = the admissible point nearest x + s·z (:meth:`Limits.project`: only round-off to remove). Float64,
+x' = x + s·z, projected (:meth:`Limits.project`) only where the solver's round-off left a limit. Float64,
 NumPy + qpsolvers for the program, torch for the model. Pure Python; no Lightning, no Rerun.
 """
 from __future__ import annotations
