@@ -146,7 +146,7 @@ def test_a_clearance_below_safety_that_cannot_be_restored_is_relaxed_to_not_comi
     qp = QPController(model, QPConfig(), LinearClearance(np.array([0.001]), jac))
     target = model.tip_and_jacobian(x)[0] + torch.tensor([0.0, 0.0, 0.01], dtype=F64)   # pulls β up too
     moved = qp.step_variables(x, target)
-    assert qp.status == ["relaxed"] and float(moved[0, beta] - x[0, beta]) == 0.0
+    assert qp.status == ["relaxed"] and abs(float(moved[0, beta] - x[0, beta])) <= 1e-12 * float(qp.scale[beta])
 
 
 def test_the_example_sphere_clearance_jacobian_matches_autograd():

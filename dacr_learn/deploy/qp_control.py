@@ -122,9 +122,9 @@ def disk_rows(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.nda
     norm = np.hypot(pairs[:, 0], pairs[:, 1])
     start = np.where(norm > 1e-15 * radius, np.arctan2(pairs[:, 1], pairs[:, 0]), 0.0)
     angle = start[:, None] + math.pi / sides * (2 * np.arange(sides) + 1)
-    normals = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
-    room = radius[:, None] * math.cos(math.pi / sides) - (normals * pairs[:, None]).sum(-1)
-    return normals, np.maximum(room, 0.0)
+    nx, ny = np.cos(angle), np.sin(angle)
+    room = radius[:, None] * math.cos(math.pi / sides) - nx * pairs[:, :1] - ny * pairs[:, 1:]
+    return np.stack([nx, ny], axis=-1), np.maximum(room, 0.0)
 
 
 def solve_program(program: Program, solver: str) -> tuple[np.ndarray, str]:
@@ -167,9 +167,9 @@ class QPController:
         d = self.limits.num_variables
         self.step_bound = np.full(d, config.max_step)                        # |z_i| per step (arm: velocity too)
         self.damping_matrix = config.damping**2 * np.eye(d)
-        self.disk_row = np.arange(len(self.disks) * config.disk_sides)
-        self.disk_scale = (self.scale[self.disks[:, 0]].repeat(config.disk_sides),
-                           self.scale[self.disks[:, 1]].repeat(config.disk_sides))
+        k = config.disk_sides
+        self.disk_index = (np.arange(len(self.disks) * k), self.disks[:, 0].repeat(k), self.disks[:, 1].repeat(k))
+        self.disk_scale = (self.scale[self.disks[:, 0]].repeat(k), self.scale[self.disks[:, 1]].repeat(k))
         robot = getattr(model, "robot", model)
         self.weight = float(robot.length) if config.rotation_length is None else config.rotation_length
         self.decoder = self.rate_matrix = None
@@ -238,14 +238,15 @@ class QPController:
         if len(self.disks):
             normals, free = disk_rows(x[self.disks], self.radius, cfg.disk_sides)
             block = np.zeros((free.size, len(x)))
-            block[self.disk_row, self.disks[:, 0].repeat(cfg.disk_sides)] = normals[..., 0].ravel() * self.disk_scale[0]
-            block[self.disk_row, self.disks[:, 1].repeat(cfg.disk_sides)] = normals[..., 1].ravel() * self.disk_scale[1]
+            row, first, second = self.disk_index
+            block[row, first] = normals[..., 0].ravel() * self.disk_scale[0]
+            block[row, second] = normals[..., 1].ravel() * self.disk_scale[1]
             rows.append(block)
             room.append(free.ravel())
         if self.decoder is not None:
             rate = self.joint_rate(x) * scale
             rows += [rate, -rate]
-            room += [np.full(len(rate), cfg.joint_step)] * 2
+            room.append(np.full(2 * len(rate), cfg.joint_step))
         extra_g, extra_h = self.extra_rows(x, s, b)
         rows.append(extra_g)
         room.append(extra_h)
@@ -272,22 +273,21 @@ class QPController:
         for b in range(len(xs)):
             p = self.program(xs[b], jac[b], err[b], s, b)
             z, status = solve_program(p, self.config.solver)
-            tol = 1e-9 * max(1.0, self.config.max_step)
-            self.active.append(int((np.abs(p.G @ z - p.h) <= tol).sum() + (np.abs(z - p.lb) <= tol).sum()
-                                   + (np.abs(z - p.ub) <= tol).sum()))
+            self.active.append(np.count_nonzero(p.G @ z >= p.h - 1e-9)
+                               + np.count_nonzero((z <= p.lb + 1e-9) | (z >= p.ub - 1e-9)))
             self.status.append(status)
             out[b] = xs[b] + self.scale * z
         out = torch.from_numpy(out)
         return self.limits.project(out) if self.outside(out) else out
 
-    def outside(self, x: Tensor) -> bool:
-        """Whether some variable of x (B, D) lies outside a box or disk (the solver's round-off): then
-        :meth:`Limits.project` removes it."""
-        v = x.numpy()
-        if ((v < self.lower) | (v > self.upper)).any():
+    def outside(self, x: Tensor, tol: float = 1e-12) -> bool:
+        """Whether some variable of x (B, D) lies outside a box or disk by more than ``tol`` of its scale (the
+        solver's round-off): then :meth:`Limits.project` removes it."""
+        v, margin = x.numpy(), tol * self.scale
+        if ((v < self.lower - margin) | (v > self.upper + margin)).any():
             return True
         return bool(len(self.disks)) and bool((np.hypot(v[:, self.disks[:, 0]], v[:, self.disks[:, 1]])
-                                                > self.radius).any())
+                                                > self.radius * (1 + tol)).any())
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in joints: q (B, N) → q' (B, N) (module docstring)."""
