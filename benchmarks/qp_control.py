@@ -7,8 +7,8 @@ the dampers' influence distance, so clearance rows are in the program). One thre
 
 - ``today``: :class:`ResolvedRateController` with the closed-form CC Jacobian (robot) / :class:`WholeBodyController`
   (arm: pose-free position target, port, limits by projection);
-- ``qp_eager``: :class:`QPController` / :class:`WholeBodyQPController`: model, clearances (16 points per segment,
-  Jacobian by central differences), program and DAQP, all eager;
+- ``qp_eager``: :class:`QPController` / :class:`WholeBodyQPController`: model, clearances (``--points`` per segment,
+  default 8; Jacobian by central differences), program and DAQP, all eager;
 - ``program_daqp`` / ``program_proxqp``: the program alone (its evaluation cached): building it and solving it
   with each qpsolvers backend — the measurement behind the choice of DAQP;
 - ``qp_aoti`` (with ``--aoti``): the QP step with the model and clearances as an AOTInductor package
@@ -16,7 +16,7 @@ the dampers' influence distance, so clearance rows are in the program). One thre
 
 The machine may be shared: the load average is printed; compare rows of one run, not absolute numbers.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/qp_control.py [--aoti robot|all] [--json]
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/qp_control.py [--aoti robot|all] [--points 8] [--json]
 """
 from __future__ import annotations
 
@@ -41,15 +41,21 @@ F64 = torch.float64
 TARGET_US = 400.0
 
 
-def median_us(fn, calls: int) -> float:
+def median_us(fn, calls: int) -> dict[str, float]:
+    """Median wall time and CPU time of this process (process_time: less sensitive to a shared machine) [µs]."""
     for _ in range(3):
         fn()
-    times = []
+    wall, cpu = [], []
     for _ in range(calls):
-        t = time.perf_counter_ns()
+        t, c = time.perf_counter_ns(), time.process_time_ns()
         fn()
-        times.append((time.perf_counter_ns() - t) / 1e3)
-    return statistics.median(times)
+        wall.append((time.perf_counter_ns() - t) / 1e3)
+        cpu.append((time.process_time_ns() - c) / 1e3)
+    return {"wall": statistics.median(wall), "cpu": statistics.median(cpu)}
+
+
+def cell(row: dict, key: str) -> str:
+    return f"{row[key]['wall']:.0f} / {row[key]['cpu']:.0f}" if key in row else "-"
 
 
 def warm_state(model, controller, q0: torch.Tensor, path: torch.Tensor, steps: int) -> torch.Tensor:
@@ -90,10 +96,11 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--calls", type=int, default=300)
     p.add_argument("--warm", type=int, default=120, help="steps along the example's path before timing")
     p.add_argument("--aoti", choices=("none", "robot", "all"), default="none")
+    p.add_argument("--points", type=int, default=8, help="body points per segment the QP sees")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    ex = scene.parse_args(["--points", "16"])
+    ex = scene.parse_args(["--points", str(args.points)])
     report = {"load_average_before": " ".join(f"{v:.2f}" for v in os.getloadavg())}
     for name, build, compared in (("robot", scene.robot_setup, ("resolved_rate", "qp")),
                                   ("arm", scene.arm_setup, ("whole_body", "whole_body_qp"))):
@@ -108,14 +115,13 @@ def main(argv: list[str] | None = None) -> dict:
     if args.json:
         print(json.dumps(report, indent=2))
         return report
-    print(f"one control step, batch 1, 1 thread, p50 [µs] (load {report['load_average_before']} → "
-          f"{report['load_average_after']})")
+    print(f"one control step, batch 1, 1 thread, median wall / CPU time [µs] (load {report['load_average_before']} "
+          f"→ {report['load_average_after']}; {args.points} body points per segment)")
     keys = ("today", "qp_eager", "program_daqp", "program_proxqp", "qp_aoti")
-    print("  " + f"{'scene':>8}" + "".join(f"{k:>16}" for k in keys) + f"{'dampers':>10}")
+    print("  " + f"{'scene':>8}" + "".join(f"{k:>18}" for k in keys) + f"{'dampers':>10}")
     for name in ("robot", "arm"):
         r = report[name]
-        print("  " + f"{name:>8}" + "".join(f"{r[k]:>16.0f}" if k in r else f"{'-':>16}" for k in keys)
-              + f"{r['dampers_in_program']:>10d}")
+        print("  " + f"{name:>8}" + "".join(f"{cell(r, k):>18}" for k in keys) + f"{r['dampers_in_program']:>10d}")
         if "aoti_build_s" in r:
             print(f"  ({name}: AOTI build {r['aoti_build_s']:.0f} s, deviation from eager "
                   f"{r['aoti_max_deviation']:.1e}; target qp_aoti <= {TARGET_US:.0f} µs)")
