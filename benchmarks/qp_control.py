@@ -10,7 +10,7 @@ the dampers' influence distance, so clearance rows are in the program). One thre
 - ``qp_eager``: :class:`QPController` / :class:`WholeBodyQPController`: model, clearances (``--points`` per segment,
   default 8; Jacobian by central differences), program and DAQP, all eager;
 - ``program_daqp`` / ``program_proxqp``: the program alone (its evaluation cached): building it and solving it
-  with each qpsolvers backend — the measurement behind the choice of DAQP;
+  with each qpsolvers backend installed (proxqp: ``pip install proxsuite``) — the measurement behind DAQP;
 - ``qp_aoti`` (with ``--aoti``): the QP step with the model and clearances as an AOTInductor package
   (:class:`dacr_learn.deploy.qp_control.Sensing`; minutes to build) and the program in NumPy/DAQP.
 
@@ -29,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+import qpsolvers
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -72,7 +73,7 @@ def rows(model, today, qp, q: torch.Tensor, target: torch.Tensor, calls: int, ao
     sensed = qp.sense(x)
     out["dampers_in_program"] = int((sensed.distance[0] < qp.config.influence).sum())
     custom = qp.custom_sense
-    for solver in ("daqp", "proxqp"):
+    for solver in (k for k in ("daqp", "proxqp") if k in qpsolvers.available_solvers):
         qp.config = dataclasses.replace(qp.config, solver=solver)
         qp.custom_sense = lambda _: sensed
         out[f"program_{solver}"] = median_us(lambda: qp.step_variables(x, target), calls)
