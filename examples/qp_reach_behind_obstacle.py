@@ -191,10 +191,10 @@ def arm_setup(args) -> dict:
     path = torch.cat([ramp(model.tip_and_jacobian(x0[None])[0][0], circle[0], args.hold, 0), circle])
     sphere = ((base[:3, 3] + 0.19 * ez + 0.03 * ey).tolist(), 0.012)      # inside the cone the body sweeps
     sensed = SphereClearance(arm_points(model, args.points), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale)
-    wb = WholeBodyConfig(gain=args.gain, max_step=args.max_step)
+    wb = WholeBodyConfig(gain=args.gain, max_step=args.max_step, dt=args.dt)
     controllers = {"whole_body": WholeBodyController(model, wb, port),
                    "decoupled": DecoupledController(model, wb, port),
-                   "whole_body_qp": WholeBodyQPController(model, qp_config(args), port, sensed)}
+                   "whole_body_qp": WholeBodyQPController(model, qp_config(args), port, sensed, dt=args.dt)}
     return {"model": model, "controllers": controllers, "q0": model.joints(x0[None])[0], "path": path,
             "check": SphereClearance(arm_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale),
             "sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}, "port": port}
@@ -227,6 +227,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--influence", type=float, default=0.02, help="d_i [m]")
     p.add_argument("--damper-gain", type=float, default=0.002, help="ξ [m per step]")
     p.add_argument("--points", type=int, default=16, help="body points per segment the QP sees")
+    p.add_argument("--dt", type=float, default=0.01, help="control period [s] for the arm's URDF velocity limits")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "qp_reach")
     return p.parse_args(argv)
 

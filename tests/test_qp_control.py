@@ -242,3 +242,14 @@ def test_bad_configuration_is_a_clear_value_error(arm_model):
     servo.space = None                                                # variables that are not Clarke features
     with pytest.raises(ValueError, match="joint_step"):
         QPController(servo, QPConfig(joint_step=1e-3))
+
+
+@pytest.mark.slow
+def test_the_example_arm_scene_has_no_collision_with_qp_and_keeps_the_port():
+    example = load_example("qp_reach_behind_obstacle")
+    summary = example.main(["--scene", "arm", "--steps", "48", "--hold", "30", "--points", "8",
+                            "--out", str(ROOT / ".pytest_tmp" / "qp_reach_arm")])
+    res = summary["arm"]["results"]
+    qp = res["whole_body_qp"]
+    assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["port_max_mm"] <= 5.0
+    assert res["whole_body"]["collisions"] > 0 and res["whole_body"]["limit_violations"] == 0
