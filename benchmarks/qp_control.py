@@ -11,16 +11,20 @@ the dampers' influence distance, so clearance rows are in the program). One thre
   default 8; Jacobian by central differences), program and DAQP, all eager;
 - ``program_daqp`` / ``program_proxqp``: the program alone (its evaluation cached): building it and solving it
   with each qpsolvers backend installed (proxqp: ``pip install proxsuite``) — the measurement behind DAQP;
-- ``qp_aoti`` (with ``--aoti``): the QP step with the model and clearances as an AOTInductor package
-  (:class:`dacr_learn.deploy.qp_control.Sensing`; minutes to build) and the program in NumPy/DAQP.
+- ``sensing_aoti`` / ``qp_aoti`` (with ``--aoti``): the model and clearances as an AOTInductor package
+  (:class:`dacr_learn.deploy.qp_control.Sensing`; minutes to build, ``--reuse`` loads the last one) alone, and
+  the QP step with it (the program in NumPy/DAQP).
+
+Candidates run interleaved (benchmarks/timing.py), so load slows them alike.
 
 The machine may be shared: the load average is printed; compare rows of one run, not absolute numbers.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/qp_control.py [--aoti robot|all] [--points 8] [--json]
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/qp_control.py [--aoti robot|all] [--reuse] [--points 8] [--json]
 """
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import os
@@ -34,7 +38,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "examples"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 import qp_reach_behind_obstacle as scene  # noqa: E402
+from timing import time_interleaved  # noqa: E402
 
 from dacr_learn.deploy.qp_control import Sensing  # noqa: E402
 
@@ -42,17 +48,20 @@ F64 = torch.float64
 TARGET_US = 400.0
 
 
-def median_us(fn, calls: int) -> dict[str, float]:
-    """Median wall time and CPU time of this process (process_time: less sensitive to a shared machine) [µs]."""
-    for _ in range(3):
-        fn()
-    wall, cpu = [], []
-    for _ in range(calls):
-        t, c = time.perf_counter_ns(), time.process_time_ns()
-        fn()
-        wall.append((time.perf_counter_ns() - t) / 1e3)
-        cpu.append((time.process_time_ns() - c) / 1e3)
-    return {"wall": statistics.median(wall), "cpu": statistics.median(cpu)}
+def medians(fns: dict, rounds: int, calls: int) -> dict[str, dict[str, float]]:
+    """Candidates run interleaved (:func:`timing.time_interleaved`): median wall time and median CPU time of this
+    process per call (process_time: less sensitive to a shared machine) [µs]."""
+    cpu: dict[str, list[int]] = {k: [] for k in fns}
+
+    def with_cpu(name: str, fn):
+        def call():
+            c = time.process_time_ns()
+            fn()
+            cpu[name].append(time.process_time_ns() - c)
+        return call
+    wall = time_interleaved({k: with_cpu(k, f) for k, f in fns.items()}, rounds, calls, round_seconds=0.2)
+    return {k: {"wall": 1e6 * float(statistics.median(wall[k])), "cpu": statistics.median(cpu[k]) / 1e3}
+            for k in fns}
 
 
 def cell(row: dict, key: str) -> str:
@@ -66,37 +75,38 @@ def warm_state(model, controller, q0: torch.Tensor, path: torch.Tensor, steps: i
     return q
 
 
-def rows(model, today, qp, q: torch.Tensor, target: torch.Tensor, calls: int, aoti: bool, name: str) -> dict:
+def rows(model, today, qp, q: torch.Tensor, target: torch.Tensor, rounds: int, aoti: str | None, name: str) -> dict:
+    """The candidates of one scene, timed interleaved; ``aoti``: "build" the Sensing package, "reuse" the one in
+    runs/, or None."""
     x = model.variables(q)
-    out = {"today": median_us(lambda: today.step(q, target), max(10, calls // 10)),
-           "qp_eager": median_us(lambda: qp.step(q, target), max(10, calls // 10))}
     sensed = qp.sense(x)
-    out["dampers_in_program"] = int((sensed.distance[0] < qp.config.influence).sum())
-    custom = qp.custom_sense
+    out: dict = {"dampers_in_program": int((sensed.distance[0] < qp.config.influence).sum())}
+    fns = {"today": lambda: today.step(q, target), "qp_eager": lambda: qp.step(q, target)}
     for solver in (k for k in ("daqp", "proxqp") if k in qpsolvers.available_solvers):
-        qp.config = dataclasses.replace(qp.config, solver=solver)
-        qp.custom_sense = lambda _: sensed
-        out[f"program_{solver}"] = median_us(lambda: qp.step_variables(x, target), calls)
-    qp.config, qp.custom_sense = dataclasses.replace(qp.config, solver="daqp"), custom
+        cached = copy.copy(qp)
+        cached.config, cached.custom_sense = dataclasses.replace(qp.config, solver=solver), lambda _: sensed
+        fns[f"program_{solver}"] = lambda c=cached: c.step_variables(x, target)
     if aoti:
-        t = time.perf_counter()
-        program = torch.export.export(Sensing(qp), (x,))
-        path = torch._inductor.aoti_compile_and_package(program, package_path=str(ROOT / "runs" / f"qp_{name}.pt2"))
-        runner = torch._inductor.aoti_load_package(path)
-        out["aoti_build_s"] = time.perf_counter() - t
-        eager = qp.step_variables(x, target)
-        qp.custom_sense = runner
-        out["aoti_max_deviation"] = float((qp.step_variables(x, target) - eager).abs().max())
-        out["qp_aoti"] = median_us(lambda: qp.step_variables(x, target), calls)
-        qp.custom_sense = custom
-    return out
+        package = ROOT / "runs" / f"qp_{name}.pt2"
+        if aoti == "build" or not package.exists():
+            t = time.perf_counter()
+            program = torch.export.export(Sensing(qp), (x,))
+            torch._inductor.aoti_compile_and_package(program, package_path=str(package))
+            out["aoti_build_s"] = time.perf_counter() - t
+        fast = copy.copy(qp)
+        fast.custom_sense = torch._inductor.aoti_load_package(str(package))
+        out["aoti_max_deviation"] = float((fast.step_variables(x, target) - qp.step_variables(x, target)).abs().max())
+        fns["sensing_aoti"] = lambda: fast.custom_sense(x)
+        fns["qp_aoti"] = lambda: fast.step_variables(x, target)
+    return out | medians(fns, rounds, 10)
 
 
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--calls", type=int, default=300)
+    p.add_argument("--rounds", type=int, default=30, help="interleaved rounds of (up to) 10 calls per candidate")
     p.add_argument("--warm", type=int, default=120, help="steps along the example's path before timing")
     p.add_argument("--aoti", choices=("none", "robot", "all"), default="none")
+    p.add_argument("--reuse", action="store_true", help="load runs/qp_<scene>.pt2 where it exists (no rebuild)")
     p.add_argument("--points", type=int, default=8, help="body points per segment the QP sees")
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -110,21 +120,21 @@ def main(argv: list[str] | None = None) -> dict:
         today, qp = (setup["controllers"][k] for k in compared)
         q = warm_state(model, qp, q0, path, args.warm)
         target = path[args.warm:args.warm + 1]
-        report[name] = rows(model, today, qp, q, target, args.calls, args.aoti == "all" or args.aoti == name,
-                            name)
+        aoti = ("reuse" if args.reuse else "build") if args.aoti in ("all", name) else None
+        report[name] = rows(model, today, qp, q, target, args.rounds, aoti, name)
     report["load_average_after"] = " ".join(f"{v:.2f}" for v in os.getloadavg())
     if args.json:
         print(json.dumps(report, indent=2))
         return report
     print(f"one control step, batch 1, 1 thread, median wall / CPU time [µs] (load {report['load_average_before']} "
           f"→ {report['load_average_after']}; {args.points} body points per segment)")
-    keys = ("today", "qp_eager", "program_daqp", "program_proxqp", "qp_aoti")
+    keys = ("today", "qp_eager", "program_daqp", "program_proxqp", "sensing_aoti", "qp_aoti")
     print("  " + f"{'scene':>8}" + "".join(f"{k:>18}" for k in keys) + f"{'dampers':>10}")
     for name in ("robot", "arm"):
         r = report[name]
         print("  " + f"{name:>8}" + "".join(f"{cell(r, k):>18}" for k in keys) + f"{r['dampers_in_program']:>10d}")
-        if "aoti_build_s" in r:
-            print(f"  ({name}: AOTI build {r['aoti_build_s']:.0f} s, deviation from eager "
+        if "aoti_max_deviation" in r:
+            print(f"  ({name}: AOTI build {r.get('aoti_build_s', 0):.0f} s (0: reused), deviation from eager "
                   f"{r['aoti_max_deviation']:.1e}; target qp_aoti <= {TARGET_US:.0f} µs)")
     return report
 
