@@ -17,7 +17,7 @@ from dacr_learn.arm import Composite, load_arm
 from dacr_learn.arm.control import Port, WholeBodyConfig, WholeBodyController
 from dacr_learn.arm.qp_control import WholeBodyQPController
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
-from dacr_learn.deploy.qp_control import QPConfig, QPController, disk_rows, solve_program
+from dacr_learn.deploy.qp_control import QPConfig, QPController, Sensing, disk_rows, solve_program
 from dacr_learn.ik import ConstantCurvature
 from dacr_learn.robot import RobotSpec
 
@@ -162,10 +162,10 @@ def test_the_example_sphere_clearance_jacobian_matches_autograd():
         assert torch.allclose(jac[b], ref, atol=1e-8, rtol=0)
 
 
-def test_the_example_robot_scene_has_no_collision_with_qp_and_one_without():
+def test_the_example_robot_scene_has_no_collision_with_qp_and_one_without(tmp_path):
     example = load_example("qp_reach_behind_obstacle")
     summary = example.main(["--scene", "robot", "--steps", "80", "--hold", "20", "--points", "8",
-                            "--out", str(ROOT / ".pytest_tmp" / "qp_reach")])
+                            "--out", str(tmp_path)])
     qp, rrc = summary["robot"]["results"]["qp"], summary["robot"]["results"]["resolved_rate"]
     assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["min_clearance_mm"] > 0
     assert rrc["collisions"] > 0 and rrc["limit_violations"] == 0
@@ -245,11 +245,23 @@ def test_bad_configuration_is_a_clear_value_error(arm_model):
 
 
 @pytest.mark.slow
-def test_the_example_arm_scene_has_no_collision_with_qp_and_keeps_the_port():
+def test_the_example_arm_scene_has_no_collision_with_qp_and_keeps_the_port(tmp_path):
     example = load_example("qp_reach_behind_obstacle")
     summary = example.main(["--scene", "arm", "--steps", "48", "--hold", "30", "--points", "8",
-                            "--out", str(ROOT / ".pytest_tmp" / "qp_reach_arm")])
+                            "--out", str(tmp_path)])
     res = summary["arm"]["results"]
     qp = res["whole_body_qp"]
     assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["port_max_mm"] <= 5.0
     assert res["whole_body"]["collisions"] > 0 and res["whole_body"]["limit_violations"] == 0
+
+
+def test_sensing_as_a_module_drives_the_same_step():
+    model = ConstantCurvature(TDCR3)
+    x = interior(model, 2, seed=6)
+    clearance = LinearClearance(np.array([0.004, 0.03]), np.ones((2, model.limits.num_variables)))
+    qp = QPController(model, QPConfig(), clearance)
+    fields = Sensing(qp)(x)
+    assert len(fields) == 7 and fields[5].shape == (2, 0) and fields[6].shape == (2, 0)    # no base: empty
+    fast = QPController(model, QPConfig(), sense=Sensing(qp))
+    target = model.tip_and_jacobian(model.rest[None].expand(2, -1))[0]
+    assert torch.equal(fast.step_variables(x, target), qp.step_variables(x, target))
