@@ -9,7 +9,8 @@ Two scenes, each from the same start along the same target path, with the same g
 - ``arm``: the Panda holds the robot through a 5 mm port (as in examples/track_port.py); the tip tracks a circle
   behind the port while a sphere sits inside the cone the body sweeps. Compared:
   :class:`~dacr_learn.arm.control.WholeBodyController`, :class:`~dacr_learn.arm.control.DecoupledController` and
-  :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`.
+  :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`, all with the Panda's URDF velocity limits at
+  ``--dt`` (10 ms).
 
 The obstacle distances come from a minimal sphere scene in this file (:class:`SphereClearance`: the robot's
 backbone points, :func:`dacr_learn.kinematics.backbone_points`, swept by the envelope radius); the controllers take any
