@@ -1,7 +1,7 @@
 """Diagnosis (issue 22): can a twist that is affine in a twisting segment's strain-unit features give its
 transform Rz(α)·T_cc exactly?  Least-squares affine fit of log(T_k) against x_k = (ρ/d, β/l, α), k a type-II/III
 segment of hetero_4seg_types, and the pose error of exp(fit); the same for log(Rz(−α)·T_k) (the twist left
-once the roll α is applied first). Numbers: docs/compositional.md, "Twisting segments: the roll (2026-11-26)".
+once the roll α is applied first). Numbers: docs/history/compositional.md, "Twisting segments: the roll (2026-11-26)".
 
     .venv/bin/python -m research.twist_head.representation
 """
