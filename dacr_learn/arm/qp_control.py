@@ -23,11 +23,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..checks import F64
 from ..deploy.qp_control import DistanceFn, QPConfig, QPController, Sensed
 from .composite import Composite
 from .control import Port
-
-_F64 = torch.float64
 
 
 class WholeBodyQPController(QPController):
@@ -53,7 +52,7 @@ class WholeBodyQPController(QPController):
             raise ValueError(f"port_weight: expected > 0, got {port_weight}")
         super().__init__(model, config or QPConfig(), distances, sense)
         self.port, self.port_weight, self.num_arm = port, port_weight, model.num_arm
-        self.centre = None if port is None else torch.tensor(port.centre, dtype=_F64)
+        self.centre = None if port is None else torch.tensor(port.centre, dtype=F64)
         if dt is not None:
             velocity = np.asarray(model.arm.chain.get_joint_velocity_limits()[1], dtype=float)
             n = self.num_arm

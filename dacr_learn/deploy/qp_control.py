@@ -41,10 +41,10 @@ import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor, nn
 
+from ..checks import F64
 from ..clarke_space import DecoderJacobian
 from ..ik.models import SolverModel
 
-_F64 = torch.float64
 DistanceFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 """x (B, D) → (d (B, M) [m], ∂d/∂x (B, M, D)): clearances of the body to the obstacles and their Jacobians."""
 
@@ -160,7 +160,7 @@ class QPController:
     def __init__(self, model: SolverModel, config: QPConfig = QPConfig(), distances: DistanceFn | None = None,
                  sense: Callable[[Tensor], Sensed | tuple] | None = None):
         self.model, self.config, self.distances, self.custom_sense = model, config, distances, sense
-        self.limits = model.limits.to(_F64)
+        self.limits = model.limits.to(F64)
         self.scale = self.limits.scale.numpy()
         self.lower, self.upper = self.limits.lower.numpy(), self.limits.upper.numpy()
         self.disks, self.radius = self.limits.disks.numpy(), self.limits.radius.numpy()
@@ -197,7 +197,7 @@ class QPController:
     def task(self, s: Sensed, target: Tensor, feedforward: Tensor | None) -> tuple[Tensor, Tensor]:
         """Weighted task rows: (J (B, k, D), e (B, k)) — position rows, and w·rotation rows for a pose target."""
         cfg = self.config
-        target = target.to(_F64)
+        target = target.to(F64)
         pose = target.dim() == 3
         position = target[:, :3, 3] if pose else target
         rows, err = [s.jacobian[:, :3]], [cfg.gain * (position - s.position)]
@@ -207,7 +207,7 @@ class QPController:
             rows.append(self.weight * s.jacobian[:, 3:6])
             err.append(cfg.gain * self.weight * matrix_to_axis_angle(target[:, :3, :3] @ s.rotation.mT))
         if feedforward is not None:
-            ff = feedforward.to(_F64)
+            ff = feedforward.to(F64)
             if ff.shape[-1] != (6 if pose else 3):
                 raise ValueError(f"feedforward: expected (B, {6 if pose else 3}) for this target, got "
                                  f"{tuple(ff.shape)}")
@@ -262,7 +262,7 @@ class QPController:
 
     def step_variables(self, x: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in variables: x (B, D) → x' (B, D), inside the limits."""
-        x = x.to(_F64)
+        x = x.to(F64)
         if x.dim() != 2 or x.shape[1] != self.limits.num_variables:
             raise ValueError(f"x: expected (B, {self.limits.num_variables}) variables, got {tuple(x.shape)}")
         s = self.sense(x)
@@ -291,7 +291,7 @@ class QPController:
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in joints: q (B, N) → q' (B, N) (module docstring)."""
-        x = self.model.variables(q.to(_F64))
+        x = self.model.variables(q.to(F64))
         return self.model.joints(self.step_variables(x, target, feedforward))
 
 
