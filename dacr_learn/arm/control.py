@@ -25,11 +25,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor, nn
 
 from ..checks import F64
-from ..deploy.control import ControllerConfig, scaled_dls_step
+from ..deploy.control import ControllerConfig, scaled_dls_step, tip_task
 from ..ik.refine import free_jacobian
 from .composite import Composite
 
@@ -108,20 +107,9 @@ class WholeBodyController:
         """One step in variables: x (B, n + D) → x' (B, n + D). ``rest`` (B, D_c): evaluate the robot at this
         shape instead of its own (the decoupled arm step), leaving its variables unchanged."""
         model, cfg, n = self.model, self.config, self.model.num_arm
-        target = target.to(F64)
         xe = x if rest is None else torch.cat([x[:, :n], rest], dim=-1)
         kin = model.kinematics(xe)
-        pose = target.dim() == 3
-        position = target[:, :3, 3] if pose else target
-        rows, task = [kin.jacobian[:, :3]], [cfg.gain * (position - kin.position)]
-        if pose:
-            if kin.rotation is None:
-                raise ValueError("target: this robot gives a tip position only; pass (B, 3) positions")
-            rows.append(self.weight * kin.jacobian[:, 3:])
-            task.append(cfg.gain * self.weight * matrix_to_axis_angle(target[:, :3, :3] @ kin.rotation.mT))
-        if feedforward is not None:
-            ff = feedforward.to(F64)
-            task = [task[0] + ff[:, :3]] + ([task[1] + self.weight * ff[:, 3:6]] if pose else [])
+        rows, task = tip_task(kin.jacobian, kin.position, kin.rotation, target, feedforward, cfg.gain, self.weight)
         if self.centre is not None:
             rows.append(cfg.port_weight * kin.base_jacobian)
             task.append(cfg.port_weight * cfg.gain * (self.centre - kin.base[:, :3, 3]))

@@ -21,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
 from ..checks import F64, to_f64
@@ -118,6 +119,30 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
     dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
     return dz * to_f64(scale)
+
+
+def tip_task(jacobian: Tensor, position: Tensor, rotation: Tensor | None, target: Tensor,
+             feedforward: Tensor | None, gain: float, weight: float) -> tuple[list[Tensor], list[Tensor]]:
+    """The tip task of a resolved-rate step, as lists of rows a controller may add to: from the tip ``position``
+    (B, 3) [m], ``rotation`` (B, 3, 3) or None and its Jacobian (B, 6 or 3, D) towards ``target`` (B, 4, 4) poses
+    or (B, 3) positions [m]: rows J_v [and w·J_ω], task gain·(p* − p) [and gain·w·log(R*Rᵀ)], w = ``weight``
+    [m/rad] (a rotation error counts like a length), plus the ``feedforward`` (B, 6) (Δp [m], Δφ [rad]) or (B, 3).
+    Returns ([J_v, w·J_ω], [e_v, e_ω]) (the rotation entries for a pose target only). ValueError for a pose
+    target on a position-only model or a feedforward of the wrong width."""
+    target = target.to(F64)
+    pose = target.dim() == 3
+    rows, task = [jacobian[:, :3]], [gain * ((target[:, :3, 3] if pose else target) - position)]
+    if pose:
+        if rotation is None or jacobian.shape[1] < 6:
+            raise ValueError("target: this model gives a tip position only; pass (B, 3) positions")
+        rows.append(weight * jacobian[:, 3:6])
+        task.append(gain * weight * matrix_to_axis_angle(target[:, :3, :3] @ rotation.mT))
+    if feedforward is not None:
+        ff = feedforward.to(F64)
+        if ff.shape[-1] != (6 if pose else 3):
+            raise ValueError(f"feedforward: expected (B, {6 if pose else 3}) for this target, got {tuple(ff.shape)}")
+        task = [task[0] + ff[:, :3]] + ([task[1] + weight * ff[:, 3:6]] if pose else [])
+    return rows, task
 
 
 def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:

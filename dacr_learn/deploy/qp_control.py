@@ -38,12 +38,12 @@ from typing import NamedTuple
 import numpy as np
 import qpsolvers
 import torch
-from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor, nn
 
 from ..checks import F64
 from ..clarke_space import DecoderJacobian
 from ..ik.models import SolverModel
+from .control import tip_task
 
 DistanceFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 """x (B, D) → (d (B, M) [m], ∂d/∂x (B, M, D)): clearances of the body to the obstacles and their Jacobians."""
@@ -196,22 +196,7 @@ class QPController:
 
     def task(self, s: Sensed, target: Tensor, feedforward: Tensor | None) -> tuple[Tensor, Tensor]:
         """Weighted task rows: (J (B, k, D), e (B, k)) — position rows, and w·rotation rows for a pose target."""
-        cfg = self.config
-        target = target.to(F64)
-        pose = target.dim() == 3
-        position = target[:, :3, 3] if pose else target
-        rows, err = [s.jacobian[:, :3]], [cfg.gain * (position - s.position)]
-        if pose:
-            if s.rotation is None or s.jacobian.shape[1] < 6:
-                raise ValueError("target: this model gives a tip position only; pass (B, 3) positions")
-            rows.append(self.weight * s.jacobian[:, 3:6])
-            err.append(cfg.gain * self.weight * matrix_to_axis_angle(target[:, :3, :3] @ s.rotation.mT))
-        if feedforward is not None:
-            ff = feedforward.to(F64)
-            if ff.shape[-1] != (6 if pose else 3):
-                raise ValueError(f"feedforward: expected (B, {6 if pose else 3}) for this target, got "
-                                 f"{tuple(ff.shape)}")
-            err = [err[0] + ff[:, :3]] + ([err[1] + self.weight * ff[:, 3:6]] if pose else [])
+        rows, err = tip_task(s.jacobian, s.position, s.rotation, target, feedforward, self.config.gain, self.weight)
         return torch.cat(rows, dim=1), torch.cat(err, dim=-1)
 
     # -- the program -------------------------------------------------------------------------------------------
