@@ -43,26 +43,25 @@ from torch import Tensor, nn
 from ..checks import F64
 from ..clarke_space import DecoderJacobian
 from ..ik.models import SolverModel
-from .control import tip_task
+from .control import ControllerConfig, tip_task
 
 DistanceFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 """x (B, D) → (d (B, M) [m], ∂d/∂x (B, M, D)): clearances of the body to the obstacles and their Jacobians."""
 
 
 @dataclass(frozen=True)
-class QPConfig:
+class QPConfig(ControllerConfig):
     """Gains, limits and clearance of :class:`QPController` (module docstring).
 
-    gain: fraction of the tip error corrected per step, (0, 1]; damping: λ > 0 [m]; max_step: largest
-    |Δx_i|/s_i per step (the variables' velocity limit × dt, in scaled units); rotation_length: w [m/rad] for a
-    pose target (None: the robot's length); joint_step: largest |Δq| of the robot's joints per step [m, rad] (None:
-    not applied); safety d_s ≥ 0 [m] and influence d_i > d_s [m] of the dampers, damper_gain ξ > 0 [m per step];
-    disk_sides K ≥ 3 of the bend-disk polygon; solver: a qpsolvers backend ("daqp", "proxqp", …).
+    gain: fraction of the tip error corrected per step, (0, 1] (:class:`~.control.ControllerConfig`);
+    damping: λ > 0 [m]; max_step: largest |Δx_i|/s_i per step (the variables' velocity limit × dt, in scaled
+    units); rotation_length: w [m/rad] for a pose target (None: the robot's length); joint_step: largest |Δq| of
+    the robot's joints per step [m, rad] (None: not applied); safety d_s ≥ 0 [m] and influence d_i > d_s [m] of
+    the dampers, damper_gain ξ > 0 [m per step]; disk_sides K ≥ 3 of the bend-disk polygon; solver: a qpsolvers
+    backend ("daqp", "proxqp", …).
     """
 
-    gain: float = 0.5
     damping: float = 1e-3
-    max_step: float = 0.05
     rotation_length: float | None = None
     joint_step: float | None = None
     safety: float = 0.002
@@ -72,8 +71,8 @@ class QPConfig:
     solver: str = "daqp"
 
     def __post_init__(self):
-        checks = [("gain", 0 < self.gain <= 1, "a value in (0, 1]"), ("damping", self.damping > 0, "> 0 [m]"),
-                  ("max_step", self.max_step > 0, "> 0 (scaled units per step)"),
+        super().__post_init__()
+        checks = [("damping", self.damping is not None and self.damping > 0, "> 0 [m]"),
                   ("rotation_length", self.rotation_length is None or self.rotation_length > 0, "> 0 [m/rad]"),
                   ("joint_step", self.joint_step is None or self.joint_step > 0, "> 0 [m, rad per step]"),
                   ("safety", self.safety >= 0, ">= 0 [m]"),
