@@ -23,8 +23,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..ik.adapters import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model
 from ..ik.limits import Limits
-from ..ik.models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model
 from ..kinematics import forward_kinematics
 from .chain import Arm
 from .seeds import PoseBank

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..ik.models import SolverModel
+from ..ik.adapters import SolverModel
 
 _F64 = torch.float64
 POSITION_WEIGHT = 10.0   # a position difference of L/10 weighs like a rotation of about 40°

@@ -9,8 +9,8 @@
 >>> result.q.shape, bool(result.success.all())
 (torch.Size([1, 4, 12]), True)
 """
+from .adapters import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model, clarke_limits
 from .limits import Limits
-from .models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model, clarke_limits
 from .refine import levenberg_marquardt
 from .solver import IKOptions, IKResult, solve_ik
 from .targets import check_targets

@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> IKResult:
     q0 = None if args.q0 is None else torch.from_numpy(_load_array(args.q0, "--q0"))
     model, seeder, description = load_solver_model(args.robot, args.ckpt)
     options = IKOptions(tolerance=tuple(args.tolerance), seed=args.seed)
-    from .models import as_solver_model
+    from .adapters import as_solver_model
     solver_model = as_solver_model(model)
     if args.arm is not None:                                         # whole-body: arm + mount + this robot
         from ..arm.files import composite_from_files, describe

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from ..console import run_cli
 from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
 from ..robot import RobotSpec
-from .models import ConstantCurvature
+from .adapters import ConstantCurvature
 from .refine import fused_matmul, limited_step, residual, spd_solve_unrolled
 
 _F64 = torch.float64

@@ -12,8 +12,8 @@ import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
+from .adapters import SolverModel
 from .limits import Limits
-from .models import SolverModel
 
 _F64 = torch.float64
 

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from ..metrics import rotation_geodesic
-from .models import SolverModel, as_solver_model
+from .adapters import SolverModel, as_solver_model
 from .refine import STALL_LAMBDA, Refinement
 from .targets import check_q0, check_targets
 
@@ -108,7 +108,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
     """Up to ``n_solutions`` joint vectors per target (see :class:`IKResult` for the fields and their order).
 
     model_or_spec: a RobotSpec / robot YAML path / dict (analytic CC model), a trained FK model, or an
-    :class:`~.models.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
+    :class:`~.adapters.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
     positions with ``position_only``. q0 (B, N) or (N,): a warm start (the previous command of a
     trajectory): slot 0 starts there and the solution nearest q0 comes first. seeds (B, S, D): further starts
     in the model's variables (e.g. from a learned sampler; used before random ones).

@@ -10,8 +10,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ...ik.adapters import Check, SolverModel, register_solver_model
 from ...ik.limits import Limits
-from ...ik.models import Check, SolverModel, register_solver_model
 from .checkpoint import HardwareModel
 from .inference import HardwareJacobian
 
