@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> IKResult:
         raise ValueError(f"--targets {args.targets}: {err}") from err
     q0 = None if args.q0 is None else torch.from_numpy(load_array(args.q0, "--q0"))
     model, seeder, description = load_solver_model(args.robot, args.ckpt)
-    options = IKOptions(tolerance=tuple(args.tolerance), seed=args.seed)
+    options = IKOptions(pos_tolerance=args.tolerance[0], rot_tolerance=args.tolerance[1], seed=args.seed)
     solver_model = as_solver_model(model)
     if args.arm is not None:                                         # whole-body: arm + mount + this robot
         solver_model = composite_from_files(args.arm, args.arm_tip, args.mount, solver_model)
