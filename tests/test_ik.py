@@ -221,3 +221,12 @@ def test_limits_concatenation_shifts_the_disks_and_keeps_every_bound():
     assert lim.violation(x).item() == pytest.approx((math.hypot(1.5, 1.5) - 2.0) / 2.0, rel=1e-12)
     with pytest.raises(ValueError, match="lower < upper"):
         Limits.boxes([1.0], [1.0], ("w",))
+
+
+@pytest.mark.parametrize(("field", "value", "unit"),
+                         [("pos_tolerance", 0.0, "m"), ("rot_tolerance", math.nan, "rad"),
+                          ("pos_tolerance", math.inf, "m")])
+def test_ik_options_name_a_bad_tolerance(field, value, unit):
+    with pytest.raises(ValueError) as err:
+        IKOptions(**{field: value})
+    assert str(err.value) == f"{field}: expected a finite value > 0 [{unit}], got {value}"

@@ -47,9 +47,9 @@ class IKOptions:
     seed: int = 0
 
     def __post_init__(self):
-        for name, t in (("pos_tolerance", self.pos_tolerance), ("rot_tolerance", self.rot_tolerance)):
+        for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
             if not (t > 0 and math.isfinite(t)):
-                raise ValueError(f"{name}: expected a finite value > 0 ([m] / [rad]), got {t}")
+                raise ValueError(f"{name}: expected a finite value > 0 [{unit}], got {t}")
         if self.max_iterations < 1 or self.restarts < 0:
             raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
                              f"{self.restarts}")
