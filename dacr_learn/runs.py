@@ -272,13 +272,15 @@ def check_same_schedule(ckpt: str | Path, blob: Any, config: dict[str, Any]) -> 
                              "settings, or start a new run without --ckpt_path")
 
 
-def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn.Module:
+def load_model(path: str | Path, dtype: torch.dtype = torch.float32, blob: Any = None) -> torch.nn.Module:
     """The trained network of a ``train.py`` run, in eval mode, ready to predict.
 
     Args:
         path: a run folder (``runs/<run_name>``: its newest version), a version folder
             (``runs/<run_name>/version_<n>``) or a checkpoint file (``.ckpt``).
         dtype: floating dtype of the returned model's parameters.
+        blob: the checkpoint file's content when the caller has loaded it (weights-only, e.g.
+            :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`); ``path`` then names that file.
 
     Returns:
         An ``nn.Module`` with ``.spec`` (the :class:`~dacr_learn.robot.RobotSpec` it was trained for):
@@ -294,7 +296,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
         FileNotFoundError: nothing to load at ``path``.
         ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
     """
-    task, model = load_checkpoint_model(find_checkpoint(path))
+    task, model = load_checkpoint_model(find_checkpoint(path), blob)
     model = model.to(dtype).eval()
     model.task = task
     if task in ("fk", "ik"):

@@ -38,8 +38,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from dacr_learn.arm.control import DecoupledController, Port, WholeBodyConfig, WholeBodyController  # noqa: E402
-from dacr_learn.arm.files import composite_from_files  # noqa: E402
 from dacr_learn.arm.qp_control import WholeBodyQPController  # noqa: E402
+from dacr_learn.cli.loading import composite_from_files  # noqa: E402
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController  # noqa: E402
 from dacr_learn.deploy.qp_control import QPConfig, QPController  # noqa: E402
 from dacr_learn.ik import ConstantCurvature  # noqa: E402

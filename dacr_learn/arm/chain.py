@@ -150,7 +150,4 @@ def _joint_limits(names: tuple[str, ...], by_name: dict, source: str) -> tuple[L
             raise ValueError(f"arm {source}: joint {n!r} has an empty range [{lo}, {hi}]; make it a fixed joint")
         lower.append(float(lo))
         upper.append(float(hi))
-    lower, upper = torch.tensor(lower, dtype=F64), torch.tensor(upper, dtype=F64)
-    limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=F64),
-                    (upper - lower) / 2, tuple(f"arm.{n}" for n in names))
-    return limits, tuple(types)
+    return Limits.boxes(lower, upper, tuple(f"arm.{n}" for n in names)), tuple(types)

@@ -24,8 +24,8 @@ import torch
 from torch import Tensor
 
 from ..checks import F64
+from ..ik.adapters import Check, ConstantCurvature, LearnedFK, SolverModel, TipJacobian, as_solver_model
 from ..ik.limits import Limits
-from ..ik.models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model
 from ..ik.targets import pose_defects
 from ..kinematics import forward_kinematics
 from .chain import Arm
@@ -86,9 +86,8 @@ class Composite(SolverModel):
         self.num_joints = n + self.robot.num_joints
         self.has_rotation = self.robot.has_rotation
         self.spec = None
-        a, r = arm.limits, self.robot.limits.to(F64)
-        self.limits = Limits(torch.cat([a.lower, r.lower]), torch.cat([a.upper, r.upper]), r.disks + n, r.radius,
-                             torch.cat([a.scale, r.scale]), a.names + tuple(f"robot.{x}" for x in r.names))
+        a, r = arm.limits, self.robot.limits
+        self.limits = Limits.concatenate(a, r, names=a.names + tuple(f"robot.{x}" for x in r.names))
         if home is None:
             home = (a.lower + a.upper) / 2
         home = torch.as_tensor(home, dtype=F64)
@@ -103,11 +102,11 @@ class Composite(SolverModel):
 
     # -- the SolverModel interface -----------------------------------------------------------------------------
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         """Variables (B, n + D) → tip position (B, 3) [m], rotation (B, 3, 3) (None for a position-only robot),
         J (B, 6 or 3, n + D) (module docstring), all in the arm's base frame."""
         k = self.kinematics(x, with_base=False)
-        return k.position, k.rotation, k.jacobian
+        return TipJacobian(k.position, k.rotation, k.jacobian)
 
     def kinematics(self, x: Tensor, with_base: bool = True) -> WholeBody:
         """Tip, Jacobian and robot base of variables (B, n + D) in one pass (:class:`WholeBody`; its

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from ..checks import F64
-from ..ik.models import SolverModel
+from ..ik.adapters import SolverModel
 
 POSITION_WEIGHT = 10.0   # a position difference of L/10 weighs like a rotation of about 40°
 CHUNK = 1024             # targets per distance block (memory: CHUNK × size doubles)

@@ -42,7 +42,7 @@ from torch import Tensor, nn
 
 from ..checks import F64
 from ..clarke_space import DecoderJacobian
-from ..ik.models import SolverModel
+from ..ik.adapters import SolverModel
 from .control import ControllerConfig, tip_task
 
 DistanceFn = Callable[[Tensor], tuple[Tensor, Tensor]]

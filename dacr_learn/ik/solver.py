@@ -20,7 +20,7 @@ from torch import Tensor
 
 from ..checks import F64
 from ..metrics import rotation_geodesic
-from .models import SolverModel, as_solver_model
+from .adapters import SolverModel, as_solver_model
 from .refine import STALL_LAMBDA, Refinement
 from .targets import check_q0, check_targets
 
@@ -29,14 +29,16 @@ from .targets import check_q0, check_targets
 class IKOptions:
     """Settings of :func:`solve_ik`.
 
-    tolerance: (position [m], rotation [rad]) a solution must reach; max_iterations: LM iterations of one
+    pos_tolerance [m], rot_tolerance [rad]: the position and rotation errors a solution must reach (the names of
+    pytorch-kinematics' IK; the CLI's ``--tolerance POS ROT``); max_iterations: LM iterations of one
     start; restarts: new starts a slot may take when its start stalls or duplicates another solution;
     distinct: two solutions of a target are distinct when some joint differs by at least this much
     [joint units: m, rad; mm for a servo model]; damping: initial λ (scaled units); seed: of the random
     starts (reproducible results).
     """
 
-    tolerance: tuple[float, float] = (1e-6, 1e-5)
+    pos_tolerance: float = 1e-6
+    rot_tolerance: float = 1e-5
     max_iterations: int = 25
     restarts: int = 8
     distinct: float = 5e-4
@@ -44,8 +46,9 @@ class IKOptions:
     seed: int = 0
 
     def __post_init__(self):
-        if len(self.tolerance) != 2 or not all(t > 0 and math.isfinite(t) for t in self.tolerance):
-            raise ValueError(f"tolerance: expected (position [m], rotation [rad]), both > 0, got {self.tolerance}")
+        for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
+            if not (t > 0 and math.isfinite(t)):
+                raise ValueError(f"{name}: expected a finite value > 0 [{unit}], got {t}")
         if self.max_iterations < 1 or self.restarts < 0:
             raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
                              f"{self.restarts}")
@@ -107,7 +110,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
     """Up to ``n_solutions`` joint vectors per target (see :class:`IKResult` for the fields and their order).
 
     model_or_spec: a RobotSpec / robot YAML path / dict (analytic CC model), a trained FK model, or an
-    :class:`~.models.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
+    :class:`~.adapters.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
     positions with ``position_only``. q0 (B, N) or (N,): a warm start (the previous command of a
     trajectory): slot 0 starts there and the solution nearest q0 comes first. seeds (B, S, D): further starts
     in the model's variables (e.g. from a learned sampler; used before random ones).
@@ -136,7 +139,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
 
     rows = torch.arange(b).repeat_interleave(k)
     state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
-                       options.tolerance, options.damping)
+                       (options.pos_tolerance, options.rot_tolerance), options.damping)
     x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
                             lim.project(model.rest.to(F64)), options)
@@ -228,9 +231,9 @@ def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Ten
     pos_err = torch.linalg.vector_norm(check.position - position[rows], dim=-1).view(b, k)
     rot_err = (torch.zeros_like(pos_err) if rotation is None
                else rotation_geodesic(check.rotation, rotation[rows]).view(b, k))
-    tol_p, tol_r = options.tolerance
     constraint_ok = (check.constraint <= 1e-9 * max(model.length, 1.0)).view(b, k)
-    ok = (pos_err <= tol_p) & (rot_err <= tol_r) & check.inside.view(b, k) & constraint_ok
+    ok = ((pos_err <= options.pos_tolerance) & (rot_err <= options.rot_tolerance) & check.inside.view(b, k)
+          & constraint_ok)
     order = _order(q, x, ok, pos_err / model.length + rot_err, rest, model.limits.scale, q0)
     distinct = _distinct_mask(q, ok, order, options.distinct)
     pick = lambda t: torch.gather(t, 1, order.view(b, k, *([1] * (t.dim() - 2))).expand_as(t))  # noqa: E731

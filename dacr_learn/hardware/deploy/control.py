@@ -81,7 +81,7 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
     rest command 0): of ``solutions`` solutions, the first successful one, which is the one nearest ``current``
     (largest servo difference). It lies in the recorded servo range (:meth:`.checkpoint.HardwareModel.servo_range`)
     and the model's own static prediction there (a history model's play state at the command itself) is within
-    ``options.tolerance[0]`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
+    ``options.pos_tolerance`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
     returned. ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the
     wrong shape."""
     options = IKOptions() if options is None else options
@@ -96,7 +96,7 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
     if not bool(result.success[0, 0]):
         raise ValueError(f"target {[round(1e3 * v, 3) for v in target.tolist()]} mm: no command in the recorded "
                          f"servo range reaches it per the model (closest {1e3 * float(result.pos_err[0].min()):.3f} "
-                         f"mm off, tolerance {1e3 * options.tolerance[0]:.4f} mm)")
+                         f"mm off, tolerance {1e3 * options.pos_tolerance:.4f} mm)")
     return result.q[0, 0], float(result.pos_err[0, 0])
 
 

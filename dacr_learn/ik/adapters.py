@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -47,6 +48,17 @@ class Check:
     constraint: Tensor
 
 
+class TipJacobian(NamedTuple):
+    """What :meth:`SolverModel.tip_and_jacobian` returns for variables x (B, D), float64: the tip ``position``
+    (B, 3) [m], its ``rotation`` (B, 3, 3) or None (position-only models), and ``jacobian`` (B, 6 or 3, D): the
+    tip point's velocity (then angular velocity) in the base frame per unit of each variable. A tuple: ``pos, rot,
+    jac = model.tip_and_jacobian(x)`` unpacks it."""
+
+    position: Tensor
+    rotation: Tensor | None
+    jacobian: Tensor
+
+
 class SolverModel:
     """Interface of a model the IK solver can invert (see the module docstring).
 
@@ -63,9 +75,10 @@ class SolverModel:
     num_joints: int
     spec: RobotSpec | None = None
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
-        """Variables (B, D) → tip position (B, 3) [m], rotation (B, 3, 3) or None, J (B, 6 or 3, D):
-        the tip point's velocity (and angular velocity) in the base frame per unit of each variable."""
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
+        """Variables (B, D) → :class:`TipJacobian`: tip position (B, 3) [m], rotation (B, 3, 3) or None,
+        J (B, 6 or 3, D): the tip point's velocity (and angular velocity) in the base frame per unit of each
+        variable."""
         raise NotImplementedError
 
     def joints(self, x: Tensor) -> Tensor:
@@ -105,25 +118,15 @@ class _ClarkeVariables(SolverModel):
 def clarke_limits(spec: RobotSpec) -> Limits:
     """The limits of a robot's actuated features (``models.actuated_columns`` order): per segment a disk
     ‖(ρ_re, ρ_im)‖ ≤ d·bend, boxes for β (length range) and α (twist range); scales d·bend and the half-ranges."""
-    lower, upper, scale, names, disks, radius = [], [], [], [], [], []
-    for i, (k, name) in enumerate(actuated_columns(spec)):
+    parts = []
+    for k, name in actuated_columns(spec):
         seg = spec.segments[k]
-        names.append(f"segments[{k}].{name}")
-        if name.startswith("rho"):
-            lower.append(-float("inf"))
-            upper.append(float("inf"))
-            scale.append(seg.bend * seg.radius)
-            if name == "rho_re":
-                disks.append([i, i + 1])
-                radius.append(seg.bend * seg.radius)
-            continue
-        lo, hi = seg.length_range if name == "beta" else seg.twist_range
-        lower.append(lo)
-        upper.append(hi)
-        scale.append((hi - lo) / 2)
-    t = lambda v: torch.tensor(v, dtype=F64)  # noqa: E731
-    return Limits(t(lower), t(upper), torch.tensor(disks, dtype=torch.long).reshape(-1, 2), t(radius), t(scale),
-                  tuple(names))
+        if name == "rho_re":
+            parts.append(Limits.disk(seg.bend * seg.radius, (f"segments[{k}].rho_re", f"segments[{k}].rho_im")))
+        elif name in ("beta", "alpha"):
+            lo, hi = seg.length_range if name == "beta" else seg.twist_range
+            parts.append(Limits.boxes([lo], [hi], (f"segments[{k}].{name}",)))
+    return Limits.concatenate(*parts)
 
 
 class ConstantCurvature(_ClarkeVariables):
@@ -136,9 +139,9 @@ class ConstantCurvature(_ClarkeVariables):
     def features(self, x: Tensor) -> Tensor:
         return actuated_to_features(x, self.space.selection, self.space.base)
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         pose, jac = cc_pose_and_jacobian(self.spec, self.features(x), self._columns)
-        return pose[..., :3, 3], pose[..., :3, :3], jac
+        return TipJacobian(pose[..., :3, 3], pose[..., :3, :3], jac)
 
     def check(self, q: Tensor) -> Check:
         f, inside, residual = self._features_check(q)
@@ -160,14 +163,14 @@ class LearnedFK(_ClarkeVariables):
         self.model = model.to(F64).eval()
         self.jacobian_module = _folded_jacobian(self.model)
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         if self.jacobian_module is not None:
             pose, jac_f, _ = self.jacobian_module(self.joints(x))
-            return pose[..., :3, 3], pose[..., :3, :3], jac_f
+            return TipJacobian(pose[..., :3, 3], pose[..., :3, :3], jac_f)
         with torch.no_grad():
             pose = self.model(self.joints(x))
         dpose = torch.func.vmap(torch.func.jacfwd(lambda f: self.model(self.joints(f.unsqueeze(0)))[0]))(x)
-        return pose[..., :3, 3], pose[..., :3, :3], twist_jacobian(pose, dpose)
+        return TipJacobian(pose[..., :3, 3], pose[..., :3, :3], twist_jacobian(pose, dpose))
 
     @torch.no_grad()
     def check(self, q: Tensor) -> Check:

@@ -12,20 +12,17 @@ iterations reach micrometres (docs/ik.md); far from a solution use :func:`~.solv
 """
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from ..checks import F64
-from ..console import run_cli
-from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
-from ..robot import RobotSpec
-from .models import ConstantCurvature
-from .refine import fused_matmul, limited_step, lm_accept, residual, spd_solve_unrolled
+from ...checks import F64
+from ...deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
+from ...robot import RobotSpec
+from ..adapters import ConstantCurvature
+from ..refine import fused_matmul, limited_step, lm_accept, residual, spd_solve_unrolled
 
 
 class IKRefinement(nn.Module):
@@ -84,21 +81,3 @@ def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterati
     return write_export(out, meta, {"refine": module}, {"refine": (target, q0)}, {"refine": module}, aoti=aoti,
                         autotune=False, against="the eager refinement")
 
-
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = argparse.ArgumentParser(prog="python -m dacr_learn.ik.exported", description=__doc__.split("\n\n")[0])
-    p.add_argument("--robot", required=True, help="robot YAML file")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--iterations", type=int, default=3, help="LM iterations per call (default 3)")
-    p.add_argument("--position-only", action="store_true", help="targets are tip positions (B, 3)")
-    p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (about a minute)")
-    args = p.parse_args(argv)
-    meta = export_refinement(args.robot, args.out, iterations=args.iterations, position_only=args.position_only,
-                             aoti=not args.no_aoti)
-    for name, dev in meta["max_abs_deviation"].items():
-        print(f"{Path(args.out) / name}: max deviation from the eager refinement {dev:.2e}")
-    return meta
-
-
-if __name__ == "__main__":
-    sys.exit(run_cli(lambda argv=None: main(argv) and None))

@@ -14,7 +14,8 @@ command on its own, no motion memory).
 
 --ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
 run/checkpoint or a learned IK sampler (the analytic CC model of its robot, seeded by the network), or a saved
-hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only).
+hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only); the file is
+recognised by its contents (:func:`dacr_learn.cli.loading.load_solver_model`), not by its name.
 
 --arm ARM.urdf --arm-tip LINK --mount M.npy: whole-body IK of the arm carrying that robot (docs/arm.md): targets
 in the arm's base frame, q (B, K, n_arm + N) = (the arm's joints in the URDF chain's order [rad, m], then the
@@ -33,19 +34,8 @@ import numpy as np
 import torch
 
 from ..checks import F64
-from .solver import IKOptions, IKResult, solve_ik
-from .targets import check_targets
-
-
-def _load_array(path: str, flag: str) -> np.ndarray:
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{flag} {path}: no such file; expected a .npy array")
-    try:
-        return np.load(p, allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise ValueError(f"{flag} {path}: expected a .npy array (numpy.save), found a file numpy cannot read "
-                         f"({err})") from err
+from ..ik import IKOptions, IKResult, as_solver_model, check_targets, solve_ik
+from .loading import composite_from_files, describe, load_array, load_solver_model
 
 
 def _out_path(path: str) -> Path:
@@ -71,41 +61,6 @@ def _save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-
-
-def load_solver_model(robot: str | None, ckpt: str | None):
-    """(model_or_spec, seed function or None, description) for --robot / --ckpt."""
-    if robot is not None:
-        from ..robot import RobotSpec
-        spec = RobotSpec.from_yaml(robot)
-        return spec, None, f"analytic constant-curvature model of {robot}"
-    path = Path(ckpt)
-    if path.is_file() and path.suffix == ".pt":
-        from ..hardware.deploy.checkpoint import load_hardware_model
-        return load_hardware_model(path), None, f"hardware model {ckpt} (servo commands [mm])"
-    from ..runs import load_model
-    net = load_model(path, dtype=F64)
-    if net.task == "fk":
-        return net, None, f"learned FK {ckpt} (accuracy with respect to the network)"
-    if net.task == "sampler":     # seeds need no float64 (the solver refines them in float64): float32 samples faster
-        seeds = _network_seeds(net.float())
-        return net.spec, seeds, f"analytic CC model of {ckpt}'s robot, seeded by its learned sampler"
-    return net.spec, _network_seeds(net), f"analytic CC model of {ckpt}'s robot, seeded by its IK network"
-
-
-def _network_seeds(net):
-    """Seeds (B, S, D) from a trained IK network (its prediction for each pose target) or a learned sampler."""
-    from ..clarke_space import ClarkeSpace
-    space = ClarkeSpace(net.spec)
-
-    def seeds(target: torch.Tensor, count: int) -> torch.Tensor | None:
-        if hasattr(net, "sample_features"):                       # a learned multi-solution sampler
-            return net.sample_features(target, count)
-        if target.dim() != 3:
-            return None                                           # an IK network needs whole poses
-        with torch.no_grad():
-            return space.features(net(target).to(F64)).unsqueeze(1)
-    return seeds
 
 
 def main(argv: list[str] | None = None) -> IKResult:
@@ -138,16 +93,14 @@ def main(argv: list[str] | None = None) -> IKResult:
     out = _out_path(args.out)
     started = time.perf_counter()
     try:
-        targets = check_targets(torch.from_numpy(_load_array(args.targets, "--targets")), args.position_only)
+        targets = check_targets(torch.from_numpy(load_array(args.targets, "--targets")), args.position_only)
     except ValueError as err:
         raise ValueError(f"--targets {args.targets}: {err}") from err
-    q0 = None if args.q0 is None else torch.from_numpy(_load_array(args.q0, "--q0"))
+    q0 = None if args.q0 is None else torch.from_numpy(load_array(args.q0, "--q0"))
     model, seeder, description = load_solver_model(args.robot, args.ckpt)
-    options = IKOptions(tolerance=tuple(args.tolerance), seed=args.seed)
-    from .models import as_solver_model
+    options = IKOptions(pos_tolerance=args.tolerance[0], rot_tolerance=args.tolerance[1], seed=args.seed)
     solver_model = as_solver_model(model)
     if args.arm is not None:                                         # whole-body: arm + mount + this robot
-        from ..arm.files import composite_from_files, describe
         solver_model = composite_from_files(args.arm, args.arm_tip, args.mount, solver_model)
         seeder = solver_model.seeds
         description = f"{args.arm} ({args.arm_tip}) carrying the {description}; {describe(solver_model)}"
@@ -211,7 +164,3 @@ def _progress(total: int):
     from tqdm import tqdm
     return tqdm(total=total, desc="IK", unit="batch", file=sys.stderr)
 
-
-def package_main(argv: list[str] | None = None) -> None:
-    """The CLI without its return value (``run_cli`` exits with the status it returns)."""
-    main(argv)
