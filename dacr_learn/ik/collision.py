@@ -131,3 +131,25 @@ class Avoidance:
         r[active, :k] = hinge / length
         jac[active, :k] = -slope.transpose(1, 2) * (hinge > 0).to(x.dtype).unsqueeze(-1) / length
         return r, jac, clear >= self.clearance
+
+
+def add_scene_arguments(parser) -> None:
+    """The command-line options ``--scene S.yaml --clearance D`` (an argparse parser)."""
+    parser.add_argument("--scene", help="scene YAML (obstacles, docs/body.md) in the robot's base frame (the arm's "
+                        "with --arm): success also needs the body at least --clearance from every obstacle")
+    parser.add_argument("--clearance", type=float, default=None, metavar="D",
+                        help="with --scene: the clearance [m] every solution keeps from the obstacles (default 0)")
+
+
+def scene_options(args) -> dict:
+    """``solve_ik`` keywords (scene, clearance) of parsed ``--scene/--clearance`` options; {} without a scene."""
+    from ..scene import load_scene
+    if args.scene is None:
+        if args.clearance is not None:
+            raise ValueError("--clearance goes with --scene S.yaml (the obstacles to keep clear of); "
+                             "--scene is missing")
+        return {}
+    clearance = 0.0 if args.clearance is None else args.clearance
+    if not clearance >= 0 or clearance == float("inf"):
+        raise ValueError(f"--clearance: expected a finite distance >= 0 [m], got {args.clearance}")
+    return {"scene": load_scene(args.scene), "clearance": clearance}

@@ -77,6 +77,12 @@ class IKResult:
     distinct: Tensor = field(default=None)
     clearance: Tensor | None = None
 
+    @classmethod
+    def concat(cls, parts: list[IKResult]) -> IKResult:
+        """The results of consecutive target batches as one (along B)."""
+        return cls(**{f.name: None if getattr(parts[0], f.name) is None else
+                      torch.cat([getattr(r, f.name) for r in parts]) for f in fields(cls)})
+
     def numpy(self) -> dict:
         return {f.name: getattr(self, f.name).cpu().numpy() for f in fields(self) if getattr(self, f.name) is not None}
 
