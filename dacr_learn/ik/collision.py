@@ -6,7 +6,9 @@ Two paths, like the tip's:
   model's body at :data:`CHECK_POINTS` points per segment), the signed clearance of the swept body (robot and arm
   links) to every obstacle, and of the robot's body to the arm's links away from the mount (docs/body.md), as a
   rigorous lower bound (:mod:`dacr_learn.scene.clearance`); a solution succeeds when it is ≥ the clearance D;
-- in the refinement (:meth:`Avoidance.residual`): hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS`
+- in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment; if
+  its clearance falls short of D by more than :data:`HINGE_WITHIN` it is restarted, else it takes (:meth:`Avoidance.residual`)
+  hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS`
   worst (ball, obstacle) pairs, d the signed distance of a body point's ball, with their Jacobian by forward
   differences (one batched evaluation of the body at the D perturbed variable vectors: any model with a body,
   meshes included); δ (a tenth of the longest chord between body points) makes the hinge push the points far
@@ -26,6 +28,7 @@ SOLVER_POINTS = 8     # body points per segment inside the refinement
 CHECK_POINTS = 32     # body points per segment of the independent check
 PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
 LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
+HINGE_WITHIN = 0.005  # [m] a converged start short of the clearance by less than this is pushed clear, else restarted
 STEP = 1e-7           # forward-difference step, in units of each variable's scale
 
 
@@ -98,9 +101,11 @@ class Avoidance:
         """Signed clearance lower bound (B,) [m] of variables x (B, D) (module docstring)."""
         return self._evaluate(x, points_per_segment)[0]
 
-    def satisfied(self, x: Tensor) -> Tensor:
-        """(B,) bool: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D."""
-        return self.clearance_of(x, SOLVER_POINTS) >= self.clearance
+    def triage(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """(B,) bool each: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D; it is below
+        but within :data:`HINGE_WITHIN` of D (the refinement then pushes the body clear)."""
+        bound = self.clearance_of(x, SOLVER_POINTS)
+        return bound >= self.clearance, bound >= self.clearance - HINGE_WITHIN
 
     def clearance_of_joints(self, q: Tensor) -> Tensor:
         """The independent check: clearance (B,) [m] of joint vectors q (B, N) alone (:data:`CHECK_POINTS`)."""

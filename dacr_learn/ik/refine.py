@@ -8,6 +8,8 @@ one (:class:`Refinement`). :func:`levenberg_marquardt` refines given starts; :mo
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
@@ -43,11 +45,12 @@ class Refinement:
     """The LM state of M starts (module docstring): variables x (M, D), residual r and its Jacobian, cost ‖r‖²,
     damping λ and the errors, with the targets of each row.
 
-    ``extra`` (e.g. :class:`~.collision.Avoidance`): a further condition on a solution, with ``satisfied(x)``
-    (M,) bool and ``residual(x)`` → (rows (M, E), Jacobian (M, E, D), satisfied (M,)), E = ``extra.rows``. A
-    start whose tip has converged is checked; if the condition fails, the start is *hinged*: from then on its
-    residual carries the extra rows (zeros for the other starts), and it converges when its tip has and the
-    condition holds. So only the starts that need it pay for the extra rows."""
+    ``extra`` (e.g. :class:`~.collision.Avoidance`): a further condition on a solution, with ``triage(x)`` →
+    (satisfied (M,) bool, failed by little (M,) bool) and ``residual(x)`` → (rows (M, E), Jacobian (M, E, D),
+    satisfied (M,)), E = ``extra.rows``. A start whose tip has converged is checked; if the condition fails by
+    little, the start is *hinged*: from then on its residual carries the extra rows (zeros for the other starts)
+    and it converges when its tip has and the condition holds; if it fails by much, the start stalls (a new
+    start is cheaper). So only the starts that need it pay for the extra rows."""
 
     def __init__(self, model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
                  tolerance: tuple[float, float], damping: float, extra=None):
@@ -84,15 +87,17 @@ class Refinement:
         return self._tip_converged() & self.satisfied
 
     def _settle(self, rows: Tensor) -> None:
-        """Check the extra condition of the given rows whose tip has converged; hinge those that fail it."""
+        """Check the extra condition of the given rows whose tip has converged: those that fail it by little
+        (``extra.triage``) are hinged, the others stall (their slot restarts from a new start)."""
         if self.extra is None:
             return
         rows = rows[self._tip_converged()[rows] & ~self.satisfied[rows] & ~self.hinged[rows]]
         if rows.numel() == 0:
             return
-        ok = self.extra.satisfied(self.x[rows])
+        ok, near = self.extra.triage(self.x[rows])
         self.satisfied[rows[ok]] = True
-        bad = rows[~ok]
+        self.lam[rows[~ok & ~near]] = math.inf
+        bad = rows[~ok & near]
         if bad.numel():
             self.hinged[bad] = True
             self.r[bad], self.jac[bad], _, _ = self._residual(self.x[bad], bad)
