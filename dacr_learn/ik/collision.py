@@ -8,9 +8,9 @@ Two paths, like the tip's:
   rigorous lower bound (:mod:`dacr_learn.scene.clearance`); a solution succeeds when it is ≥ the clearance D;
 - in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment; if
   its clearance falls short of D by more than :data:`HINGE_WITHIN` it is restarted, else it takes
-  (:meth:`Avoidance.residual`) hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle) pairs, d the signed distance of a body point's ball, with their Jacobian by forward
-  differences (one batched evaluation of the body at the D perturbed variable vectors: any model with a body,
-  meshes included); δ (a tenth of the longest chord between body points) makes the hinge push the points far
+  (:meth:`Avoidance.residual`) hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle)
+  pairs, d the signed distance of a body point's ball, with their Jacobian by forward differences (one batched
+  evaluation of the body at the D perturbed variable vectors: any model with a body, meshes included); δ (a tenth of the longest chord between body points) makes the hinge push the points far
   enough for the chord bound to pass. A start has converged when its tip has and the bound of its body
   (:data:`SOLVER_POINTS` per segment) is ≥ D.
 """
