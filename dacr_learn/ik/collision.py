@@ -10,8 +10,9 @@ Two paths, like the tip's:
   its clearance falls short of D by more than :data:`HINGE_WITHIN` it is restarted, else it takes
   (:meth:`Avoidance.residual`) hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle)
   pairs, d the signed distance of a body point's ball, with their Jacobian by forward differences (one batched
-  evaluation of the body at the D perturbed variable vectors: any model with a body, meshes included); δ (a tenth of the longest chord between body points) makes the hinge push the points far
-  enough for the chord bound to pass. A start has converged when its tip has and the bound of its body
+  evaluation of the body at the D perturbed variable vectors: any model with a body, meshes included);
+  δ (a tenth of the longest chord between body points) makes the hinge push the points far enough for the chord
+  bound to pass. A start has converged when its tip has and the bound of its body
   (:data:`SOLVER_POINTS` per segment) is ≥ D.
 """
 from __future__ import annotations
