@@ -177,7 +177,8 @@ def main(argv: list[str] | None = None) -> IKResult:
         arrays["sigma"] = sigma.reshape(b, k, 3).to(_F64).numpy()
     _save_npz(out, arrays)
     if args.rerun:
-        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show])
+        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show],
+                **scene)
     ok = result.success
     print(f"solved {int(ok.any(1).sum())}/{ok.shape[0]} targets ({int(ok.sum())}/{ok.numel()} solutions, "
           f"{result.distinct.sum(1).double().mean():.1f} distinct per target) on the {description} "
@@ -185,7 +186,8 @@ def main(argv: list[str] | None = None) -> IKResult:
     return result
 
 
-def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor) -> None:
+def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor, scene=None,
+            clearance: float = 0.0) -> None:
     """Rerun recording of a solve: target frames, solutions' backbones (:func:`dacr_learn.viz.ik.log_ik_solutions`)."""
     import rerun as rr
 
@@ -200,7 +202,12 @@ def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: 
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("dacr_learn_ik")
     rec.save(str(path), default_blueprint=ik_blueprint())
-    log_ik_solutions(rec, "ik", targets, lines, success)
+    if scene is None:
+        log_ik_solutions(rec, "ik", targets, lines, success)
+    else:                                        # obstacles, and the body coloured by clearance
+        from ..body import body_profile
+        from ..viz.obstacles import log_scene_solutions
+        log_scene_solutions(rec, "ik", scene, targets, lines, body_profile(spec, 16)[1], success, clearance)
     rec.flush()
 
 
