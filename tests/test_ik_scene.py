@@ -127,3 +127,24 @@ def test_cli_scene_and_clearance(tmp_path):
     main(args + ["--scene", str(SCENE_FILE), "--clearance", str(D)])
     out = np.load(tmp_path / "s.npz")
     assert out["clearance"].shape == (2, 2) and (out["clearance"][out["success"]] >= D).all()
+
+
+def test_rerun_draws_obstacles_and_the_body_coloured_by_clearance(tmp_path):
+    from rerun_testkit import rrd_data, rrd_verify
+
+    from dacr_learn.ik.cli import main
+    from dacr_learn.viz.obstacles import clearance_colors
+    model, scene = ConstantCurvature(SPEC), load_scene(SCENE_FILE)
+    np.save(tmp_path / "t.npy", clear_targets(model, scene, 2, seed=5).numpy())
+    main(["--robot", str(ROOT / "configs" / "robots" / "tdcr_3seg_equal.yaml"), "--targets", str(tmp_path / "t.npy"),
+          "--out", str(tmp_path / "s.npz"), "--solutions", "2", "--scene", str(SCENE_FILE), "--clearance", str(D),
+          "--rerun", str(tmp_path / "s.rrd"), "--show", "2"])
+    rrd_verify(tmp_path / "s.rrd")
+    data = rrd_data(tmp_path / "s.rrd")
+    for b in range(2):
+        centers = data[f"/ik/target_{b}/obstacles/spheres"]["Ellipsoids3D:centers"][-1]
+        assert np.allclose(np.array(centers), scene.sphere_center.numpy(), atol=1e-6)
+        balls = data[f"/ik/target_{b}/body/balls"]
+        assert len(balls["Points3D:positions"][-1]) == 1 + 3 * 16
+    assert clearance_colors(np.array([-0.001, 0.002, 0.02]), 0.004)[:, :3].tolist() == [
+        [220, 30, 30], [255, 150, 0], [40, 190, 60]]
