@@ -28,7 +28,7 @@ SOLVER_POINTS = 8     # body points per segment inside the refinement
 CHECK_POINTS = 32     # body points per segment of the independent check
 PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
 LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
-HINGE_WITHIN = 0.005  # [m] a converged start short of the clearance by less than this is pushed clear, else restarted
+HINGE_WITHIN = 0.001  # [m] a converged start short of the clearance by less than this is pushed clear, else restarted
 STEP = 1e-7           # forward-difference step, in units of each variable's scale
 
 
