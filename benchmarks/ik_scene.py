@@ -14,7 +14,6 @@ solutions per target, verified solutions/s, and the plain solver's time on the s
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -24,6 +23,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))          # the independent NumPy references
+
+from conftest import reference_backbone  # noqa: E402
 
 from dacr_learn.arm import Composite, load_arm  # noqa: E402
 from dacr_learn.ik import ConstantCurvature, solve_ik  # noqa: E402
@@ -33,31 +35,6 @@ from dacr_learn.robot import RobotSpec  # noqa: E402
 from dacr_learn.scene import load_scene  # noqa: E402
 
 F64 = torch.float64
-
-
-def numpy_arcs(spec: RobotSpec, f: np.ndarray, per_segment: int) -> np.ndarray:
-    """Backbone points (1 + m·K, 3) of features (m, 4) by the classic arc formula (Webster & Jones), NumPy."""
-    base, pts = np.eye(4), [np.zeros(3)]
-    for k, seg in enumerate(spec.segments):
-        rho_re, rho_im, beta, alpha = f[k]
-        beta = beta if seg.extends else seg.length
-        alpha = alpha if seg.twists else 0.0
-        theta, phi = math.atan2(rho_im, rho_re), math.hypot(rho_re, rho_im) / seg.radius
-        roll = np.eye(4)
-        roll[:2, :2] = [[math.cos(alpha), -math.sin(alpha)], [math.sin(alpha), math.cos(alpha)]]
-        for s in np.linspace(0, 1, per_segment + 1)[1:]:
-            pts.append((base @ roll @ arc(theta, s * phi, s * beta))[:3, 3])
-        base = base @ roll @ arc(theta, phi, beta)
-    return np.array(pts)
-
-
-def arc(theta: float, phi: float, beta: float) -> np.ndarray:
-    t = np.eye(4)
-    c, s, cp, sp = math.cos(theta), math.sin(theta), math.cos(phi), math.sin(phi)
-    rz = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    t[:3, :3] = rz @ np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]]) @ rz.T
-    t[:3, 3] = [0, 0, beta] if phi == 0 else beta / phi * np.array([c * (1 - cp), s * (1 - cp), sp])
-    return t
 
 
 def numpy_scene_distance(scene, points: np.ndarray) -> np.ndarray:
@@ -83,7 +60,7 @@ def numpy_clearance(model, spec: RobotSpec, scene, q: np.ndarray) -> np.ndarray:
         base = (model.base_pose(theta)).numpy()
         a, b, r, near = (t.numpy() for t in model.links(model.variables(torch.from_numpy(q))))
     for i in range(q.shape[0]):
-        pts = numpy_arcs(spec, f[i], 400)
+        pts = reference_backbone(spec, f[i], 400)
         if n_arm:
             pts = pts @ base[i, :3, :3].T + base[i, :3, 3]
         c = (numpy_scene_distance(scene, pts) - radius).min()

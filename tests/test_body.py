@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import arc_parameters, classic_arc, random_features, rot_z, spec_by_name
+from conftest import random_features, reference_backbone, spec_by_name
 
 from dacr_learn.body import BodyPoints, cc_body, chord_sag
 from dacr_learn.ik import ConstantCurvature, SolverModel
@@ -16,21 +16,6 @@ from dacr_learn.scene import Swept, chain_clearance, load_scene, scene_from_dict
 
 F64 = torch.float64
 TDCR3 = spec_by_name("tdcr_3seg_equal")
-
-
-def reference_backbone(spec: RobotSpec, features: np.ndarray, per_segment: int) -> np.ndarray:
-    """Points (1 + m·K, 3) of one sample from the classic arc formula: the arc of segment k at s = j/K is the
-    arc of bending angle s·φ and length s·β, after the full segments before it."""
-    base, points = np.eye(4), [np.zeros(3)]
-    for k in range(spec.num_segments):
-        theta, phi, beta, alpha = arc_parameters(spec, features, k)
-        roll = np.eye(4)
-        roll[:3, :3] = rot_z(alpha)
-        for j in range(1, per_segment + 1):
-            s = j / per_segment
-            points.append((base @ roll @ classic_arc(theta, s * phi, s * beta))[:3, 3])
-        base = base @ roll @ classic_arc(theta, phi, beta)
-    return np.array(points)
 
 
 @pytest.mark.parametrize("name", ["tdcr_3seg_equal", "twisting", "hetero_4seg_types"])

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import torch
 from arm_reference import UrdfArm
-from conftest import ROOT, reference_joint_vector, spec_by_name
-from test_body import reference_backbone
+from conftest import ROOT, reference_backbone, reference_joint_vector, spec_by_name
 
 from dacr_learn.arm import Composite, load_arm
 from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
