@@ -25,6 +25,7 @@ from torch import Tensor
 
 from ..checks import F64
 from ..ik.limits import Limits
+from .geometry import LinkCapsules, link_capsules
 
 CONTINUOUS_RANGE = 2 * math.pi   # [rad]: the box of a joint without limits is ±this
 
@@ -34,7 +35,7 @@ class Arm:
     """A serial arm: ``chain`` (pytorch-kinematics SerialChain, float64), its movable ``joint_names`` (n,) in
     the chain's order, ``joint_types`` ("revolute" / "prismatic"), box ``limits`` (n variables, scale = half
     the range) of the URDF's joint limits, the ``tip`` link and ``frame_names``: the chain's frames, root to
-    tip (link frames, for drawing)."""
+    tip (link frames, for drawing); ``geometry``: the links' collision capsules (:mod:`.geometry`)."""
 
     chain: pk.SerialChain
     joint_names: tuple[str, ...]
@@ -43,6 +44,7 @@ class Arm:
     tip: str
     frame_names: tuple[str, ...]
     source: str
+    geometry: LinkCapsules | None = None
 
     @property
     def num_joints(self) -> int:
@@ -122,7 +124,8 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
         raise ValueError(f"arm {source}: mimic joints are not supported, found {mimic} on the chain to {tip!r}")
     limits, types = _joint_limits(names, by_name, source)
     frames = tuple(serial.get_frame_names(exclude_fixed=False))
-    return Arm(serial, names, types, limits, tip, frames, source)
+    folder = Path(source).parent if source != "<URDF text>" else Path.cwd()
+    return Arm(serial, names, types, limits, tip, frames, source, link_capsules(robot, serial, frames, folder))
 
 
 def _urdf_text(urdf: str | Path) -> tuple[bytes, str]:

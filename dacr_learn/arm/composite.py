@@ -23,12 +23,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..body import BodyPoints, transform_body
 from ..checks import F64
 from ..ik.adapters import Check, ConstantCurvature, LearnedFK, SolverModel, TipJacobian, as_solver_model
 from ..ik.limits import Limits
 from ..ik.targets import pose_defects
 from ..kinematics import forward_kinematics
 from .chain import Arm
+from .geometry import posed_capsules
 from .seeds import PoseBank
 
 BANK_SIZE = 8192   # samples of the pose bank that seeds whole-body IK (docs/arm.md: about 0.1 s to build)
@@ -155,6 +157,20 @@ class Composite(SolverModel):
         if self._bank is None:
             self._bank = PoseBank(self, BANK_SIZE)
         return self._bank.seeds(target, count)
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The robot's body (its model's :meth:`~dacr_learn.ik.SolverModel.body`) in the arm's base frame, at
+        variables x (B, n + D); differentiable in x."""
+        return transform_body(self.robot.body(x[:, self.num_arm:], points_per_segment),
+                              self.base_pose(x[:, :self.num_arm]))
+
+    def links(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """The arm's link capsules (:mod:`.geometry`) at variables x (B, n + D), in the arm's base frame."""
+        geometry = self.arm.geometry
+        if geometry is None or geometry.radius.numel() == 0:
+            return None
+        a, b = posed_capsules(geometry, self.arm.frames(x[:, :self.num_arm]))
+        return a, b, geometry.radius, geometry.near_mount
 
     # -- differentiable forward kinematics ---------------------------------------------------------------------
 

@@ -9,7 +9,9 @@ S.npz: q (B, K, N) float64 joint vectors (the robot's joint order, what ClarkeDe
 [mm] for a hardware model), success (B, K) bool (the solver's verdict: pose within --tolerance, inside every
 limit of the robot file, on the displacement constraint), pos_err (B, K) [m], rot_err (B, K) [rad] (0 with
 --position-only), iterations (B, K), distinct (B, K) (solutions kept as distinct from the earlier ones of their
-target); for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution (each
+target); with --scene S.yaml [--clearance D] also clearance (B, K) [m], the signed clearance of the body (and the
+arm's links) to the obstacles from the returned joints alone, and success needs it >= D (docs/body.md);
+for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution (each
 command on its own, no motion memory).
 
 --ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
@@ -35,6 +37,7 @@ import torch
 
 from ..checks import F64
 from ..ik import IKOptions, IKResult, as_solver_model, check_targets, solve_ik
+from ..ik.collision import add_scene_arguments, scene_options
 from .loading import composite_from_files, describe, load_array, load_solver_model
 
 
@@ -83,7 +86,9 @@ def main(argv: list[str] | None = None) -> IKResult:
     p.add_argument("--arm", help="URDF of an arm carrying the robot: whole-body IK (docs/arm.md)")
     p.add_argument("--arm-tip", help="with --arm: the link the robot is mounted on")
     p.add_argument("--mount", help="with --arm: float64 (4, 4) .npy, the tip link → robot base transform [m]")
+    add_scene_arguments(p)
     args = p.parse_args(argv)
+    scene = scene_options(args)
     if args.solutions < 1:
         raise ValueError(f"--solutions: expected >= 1, got {args.solutions}")
     if args.batch < 1:
@@ -112,11 +117,10 @@ def main(argv: list[str] | None = None) -> IKResult:
         q0_chunk = q0 if q0 is None or q0.dim() == 1 else q0[start:start + args.batch]
         seeds = None if seeder is None else seeder(t, args.solutions)
         parts.append(solve_ik(solver_model, t, args.solutions, q0=q0_chunk, position_only=args.position_only,
-                              options=options, seeds=seeds))
+                              options=options, seeds=seeds, **scene))
         progress.update()
     progress.close()
-    result = IKResult(*(torch.cat([getattr(r, f) for r in parts]) for f in
-                        ("q", "success", "pos_err", "rot_err", "iterations", "distinct")))
+    result = IKResult.concat(parts)
     arrays = {k: v for k, v in result.numpy().items()}
     arrays["q"] = arrays["q"].astype(np.float64)
     if hasattr(solver_model, "hardware"):                            # a hardware model: σ of each solution
@@ -125,7 +129,8 @@ def main(argv: list[str] | None = None) -> IKResult:
         arrays["sigma"] = sigma.reshape(b, k, 3).to(F64).numpy()
     _save_npz(out, arrays)
     if args.rerun:
-        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show])
+        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show],
+                **scene)
     ok = result.success
     print(f"solved {int(ok.any(1).sum())}/{ok.shape[0]} targets ({int(ok.sum())}/{ok.numel()} solutions, "
           f"{result.distinct.sum(1).double().mean():.1f} distinct per target) on the {description} "
@@ -133,7 +138,8 @@ def main(argv: list[str] | None = None) -> IKResult:
     return result
 
 
-def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor) -> None:
+def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor, scene=None,
+            clearance: float = 0.0) -> None:
     """Rerun recording of a solve: target frames, solutions' backbones (:func:`dacr_learn.viz.ik.log_ik_solutions`)."""
     import rerun as rr
 
@@ -148,7 +154,12 @@ def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: 
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("dacr_learn_ik")
     rec.save(str(path), default_blueprint=ik_blueprint())
-    log_ik_solutions(rec, "ik", targets, lines, success)
+    if scene is None:
+        log_ik_solutions(rec, "ik", targets, lines, success)
+    else:                                        # obstacles, and the body coloured by clearance
+        from ..body import body_profile
+        from ..viz.obstacles import log_scene_solutions
+        log_scene_solutions(rec, "ik", scene, targets, lines, body_profile(spec, 16)[1], success, clearance)
     rec.flush()
 
 

@@ -26,6 +26,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from ..body import BodyPoints, cc_body
 from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
@@ -92,6 +93,19 @@ class SolverModel:
     def check(self, q: Tensor) -> Check:
         raise NotImplementedError
 
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """Points on the robot's body at variables x (B, D), differentiable in x (:class:`~dacr_learn.body.BodyPoints`:
+        points (B, 1 + m·K, 3) [m] in the model's base frame — the arm's base frame for an arm composite —, their
+        arc length (P,) and envelope radius (P,); K = ``points_per_segment``). Collision-free IK (``solve_ik(...,
+        scene=)``) needs it. A model without a body raises ValueError."""
+        raise ValueError(f"{type(self).__name__}: has no body: this model knows its tip only (collision checks "
+                         f"need a model with a backbone, e.g. the analytic CC model of a robot file)")
+
+    def links(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """Rigid links around the body (an arm's) at variables x (B, D) as capsules: ends a, b (B, C, 3) [m], radius
+        (C,) [m], near_mount (C,) bool (not checked against the robot's body); None for a robot alone."""
+        return None
+
 
 class _ClarkeVariables(SolverModel):
     """Actuated Clarke features of a RobotSpec as the variables: limits, decoder and encoder."""
@@ -147,6 +161,10 @@ class ConstantCurvature(_ClarkeVariables):
         f, inside, residual = self._features_check(q)
         pose = forward_kinematics(self.spec, self.features(f))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The exact constant-curvature arcs (:func:`~dacr_learn.body.cc_body`) in the robot's base frame."""
+        return cc_body(self.spec, self.features(x), points_per_segment)
 
 
 class LearnedFK(_ClarkeVariables):

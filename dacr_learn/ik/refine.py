@@ -8,6 +8,8 @@ one (:class:`Refinement`). :func:`levenberg_marquardt` refines given starts; :mo
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
@@ -40,24 +42,66 @@ def residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor |
 
 class Refinement:
     """The LM state of M starts (module docstring): variables x (M, D), residual r and its Jacobian, cost ‖r‖²,
-    damping λ and the errors, with the targets of each row."""
+    damping λ and the errors, with the targets of each row.
+
+    ``extra`` (e.g. :class:`~.collision.Avoidance`): a further condition on a solution, with ``triage(x)`` →
+    (satisfied (M,) bool, failed by little (M,) bool) and ``residual(x)`` → (rows (M, E), Jacobian (M, E, D),
+    satisfied (M,)), E = ``extra.rows``. A start whose tip has converged is checked; if the condition fails by
+    little, the start is *hinged*: from then on its residual carries the extra rows (zeros for the other starts)
+    and it converges when its tip has and the condition holds; if it fails by much, the start stalls (a new
+    start is cheaper). So only the starts that need it pay for the extra rows."""
 
     def __init__(self, model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
-                 tolerance: tuple[float, float], damping: float):
-        self.model, self.lim, self.damping = model, model.limits, damping
+                 tolerance: tuple[float, float], damping: float, extra=None):
+        self.model, self.lim, self.damping, self.extra = model, model.limits, damping, extra
         self.position, self.rotation = position, rotation
         self.scale = self.lim.scale.to(F64)
         self.tol = tuple(0.1 * t for t in tolerance)                         # aim a decade below the tolerance
         self.x = self.lim.project(x0.to(F64))
-        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(self.x.shape[0]))
+        m = self.x.shape[0]
+        self.hinged = torch.zeros(m, dtype=torch.bool)
+        self.satisfied = torch.full((m,), extra is None)
+        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(m))
         self.cost = (self.r * self.r).sum(-1)
         self.lam = torch.full_like(self.cost, damping)
+        self._settle(torch.arange(m))
 
     def _residual(self, x: Tensor, rows: Tensor):
-        return residual(self.model, x, self.position[rows], None if self.rotation is None else self.rotation[rows])
+        r, jac, pos_err, rot_err = residual(self.model, x, self.position[rows],
+                                            None if self.rotation is None else self.rotation[rows])
+        self.tip_rows = r.shape[-1]
+        if self.extra is None:
+            return r, jac, pos_err, rot_err
+        r_e, jac_e = r.new_zeros(r.shape[0], self.extra.rows), jac.new_zeros(r.shape[0], self.extra.rows, x.shape[1])
+        self._satisfied_new = self.satisfied[rows].clone()
+        h = self.hinged[rows].nonzero().squeeze(-1)
+        if h.numel():
+            r_e[h], jac_e[h], self._satisfied_new[h] = self.extra.residual(x[h])
+        return torch.cat([r, r_e], -1), torch.cat([jac, jac_e], 1), pos_err, rot_err
+
+    def _tip_converged(self) -> Tensor:
+        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
 
     def converged(self) -> Tensor:
-        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
+        return self._tip_converged() & self.satisfied
+
+    def _settle(self, rows: Tensor) -> None:
+        """Check the extra condition of the given rows whose tip has converged: those that fail it by little
+        (``extra.triage``) are hinged, the others stall (their slot restarts from a new start)."""
+        if self.extra is None:
+            return
+        rows = rows[self._tip_converged()[rows] & ~self.satisfied[rows] & ~self.hinged[rows]]
+        if rows.numel() == 0:
+            return
+        ok, near = self.extra.triage(self.x[rows])
+        self.satisfied[rows[ok]] = True
+        self.lam[rows[~ok & ~near]] = math.inf
+        bad = rows[~ok & near]
+        if bad.numel():
+            self.hinged[bad] = True
+            self.r[bad], self.jac[bad], _, _ = self._residual(self.x[bad], bad)
+            self.cost[bad] = (self.r[bad] * self.r[bad]).sum(-1)
+            self.lam[bad] = self.damping
 
     def append(self, x0: Tensor, position: Tensor, rotation: Tensor | None) -> None:
         """New rows: starts x0 (R, D) towards their targets (position (R, 3), rotation (R, 3, 3) or None)."""
@@ -65,21 +109,29 @@ class Refinement:
         self.position = torch.cat([self.position, position])
         self.rotation = None if rotation is None else torch.cat([self.rotation, rotation])
         x = self.lim.project(x0.to(F64))
-        r, jac, pe, re = self._residual(x, torch.arange(first, first + x.shape[0]))
+        self.hinged = torch.cat([self.hinged, torch.zeros(x.shape[0], dtype=torch.bool)])
+        self.satisfied = torch.cat([self.satisfied, torch.full((x.shape[0],), self.extra is None)])
+        new = torch.arange(first, first + x.shape[0])
+        r, jac, pe, re = self._residual(x, new)
         self.x, self.r, self.jac = torch.cat([self.x, x]), torch.cat([self.r, r]), torch.cat([self.jac, jac])
         self.pos_err, self.rot_err = torch.cat([self.pos_err, pe]), torch.cat([self.rot_err, re])
         self.cost = torch.cat([self.cost, (r * r).sum(-1)])
         self.lam = torch.cat([self.lam, torch.full_like(pe, self.damping)])
+        self._settle(new)
 
     def step(self, rows: Tensor) -> None:
         """One LM iteration of the given rows: a step with the limits inside it, kept if it lowers the cost."""
         la = self.lam[rows]
         xt = limited_step(self.lim, self.x[rows], self.r[rows], self.jac[rows], la, only_held=True)
         rt, jt, pe, re = self._residual(xt, rows)
+        ct = (rt * rt).sum(-1)
+        better = ct < self.cost[rows]
         current = self.x[rows], self.r[rows], self.jac[rows], self.pos_err[rows], self.rot_err[rows]
-        kept, self.cost[rows], self.lam[rows] = lm_accept(current, (xt, rt, jt, pe, re), self.cost[rows],
-                                                          (rt * rt).sum(-1), la)
+        kept, self.cost[rows], self.lam[rows] = lm_accept(current, (xt, rt, jt, pe, re), self.cost[rows], ct, la)
         self.x[rows], self.r[rows], self.jac[rows], self.pos_err[rows], self.rot_err[rows] = kept
+        if self.extra is not None:
+            self.satisfied[rows[better]] = self._satisfied_new[better]
+        self._settle(rows)
 
 
 def lm_accept(current: tuple[Tensor, ...], trial: tuple[Tensor, ...], cost: Tensor, trial_cost: Tensor,
