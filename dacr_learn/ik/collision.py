@@ -22,7 +22,7 @@ from torch import Tensor
 
 from ..scene import Scene, capsule_chain, capsule_clearance, chain_clearance, join, swept_body
 from ..scene.shapes import capsule_distance
-from .models import SolverModel
+from .adapters import SolverModel
 
 SOLVER_POINTS = 8     # body points per segment inside the refinement
 CHECK_POINTS = 32     # body points per segment of the independent check
