@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from ..body import BodyPoints, cc_body
 from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
 from ..models import actuated_columns, actuated_to_features
@@ -77,6 +78,11 @@ class SolverModel:
 
     def check(self, q: Tensor) -> Check:
         raise NotImplementedError
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """Variables (B, D) → the model's body (:class:`~dacr_learn.body.BodyPoints`, (B, P, 3) [m]); a model
+        without one raises ValueError."""
+        raise ValueError(f"{type(self).__name__}: has no body: the model gives its tip only")
 
 
 class _ClarkeVariables(SolverModel):
@@ -144,6 +150,9 @@ class ConstantCurvature(_ClarkeVariables):
         pose = forward_kinematics(self.spec, self.features(f))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
 
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        return cc_body(self.spec, self.features(x), points_per_segment)
+
 
 class LearnedFK(_ClarkeVariables):
     """A trained FK model (joint vector → tip pose) inverted in Clarke space.
@@ -176,6 +185,12 @@ class LearnedFK(_ClarkeVariables):
         _, inside, residual = self._features_check(q)
         pose = self.model(q.to(_F64))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The network's learned body (the compositional model's segment twists, an FK model's shape output)."""
+        if not hasattr(self.model, "body"):
+            raise ValueError(f"{type(self.model).__name__}: has no body")
+        return self.model.body(self.joints(x), points_per_segment)
 
 
 def _folded_jacobian(model: nn.Module) -> nn.Module | None:
