@@ -9,9 +9,10 @@ and compares its body (:mod:`dacr_learn.body`) with the true body of held-out sa
 - ``compositional_cc``: the compositional model (twist head, strain units) of the 3-segment coupled robot trained on
   CC data with the tip loss only; true body: the exact CC arcs. Target: ≤ 0.05 % of the length at every point.
 - ``fk_shape_cc``: a monolithic FK network with a shape output (``body_points`` 8, ``body_weight`` 1), CC data.
-- ``fk_shape_cosserat``, ``compositional_cosserat``: the same two kinds trained on Cosserat data (the robot lying
-  horizontal, gravity along −x; the compositional one with context "distal" and the body loss on its twist arcs);
-  true body: the rod's nodes. Baseline: the CC arcs of the same joints. Target: ≥ 5× closer than them.
+- ``fk_shape_cosserat``: the shape output on Cosserat data (the robot lying horizontal, gravity along −x) as offsets
+  from the CC arcs (``body_prior`` "cc"); ``fk_shape_cosserat_no_prior`` the points themselves; ``compositional_
+  cosserat`` the compositional model (context "distal") with the body loss on its twist arcs. True body: the rod's
+  nodes. Baseline: the CC arcs of the same joints. Target: ≥ 5× closer than them.
 
 Error of a point: ‖p̂ − p‖ [m]. Reported in % of the robot's length: ``worst_point`` = the largest over the body
 points of the mean over the held-out samples (the target's measure), ``tip`` the same at the last point,
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -42,17 +44,20 @@ COSSERAT_ROBOT = "configs/robots/tdcr_3seg_cosserat.yaml"
 COSSERAT = {"steps_per_segment": 8}          # the rod's nodes: 8 per segment, the points of the body
 POINTS = 8                                   # body points per segment
 ROWS = {   # name: (robot, source, n_train, epochs, batch, FKModule arguments)
-    "compositional_cc": (CC_ROBOT, "cc", 20_000, 20, 128, dict(
+    "compositional_cc": (CC_ROBOT, "cc", 20_000, 60, 128, dict(
         structure="compositional", width=64, depth=3, lr=0.01, rotation="twist", rot_weight=0.1)),
     "fk_shape_cc": (CC_ROBOT, "cc", 20_000, 20, 128, dict(
         width=128, depth=3, lr=0.003, rotation="6d", rot_weight=0.1, body_points=POINTS, body_weight=1.0)),
     "fk_shape_cosserat": (COSSERAT_ROBOT, "cosserat", 5_000, 30, 128, dict(
+        width=128, depth=3, lr=0.003, rotation="6d", rot_weight=0.1, body_points=POINTS, body_prior="cc",
+        body_weight=1.0)),
+    "fk_shape_cosserat_no_prior": (COSSERAT_ROBOT, "cosserat", 5_000, 30, 128, dict(
         width=128, depth=3, lr=0.003, rotation="6d", rot_weight=0.1, body_points=POINTS, body_weight=1.0)),
     "compositional_cosserat": (COSSERAT_ROBOT, "cosserat", 5_000, 30, 128, dict(
         structure="compositional", context="distal", width=64, depth=3, lr=0.01, rotation="twist", rot_weight=0.1,
         body_weight=1.0)),
 }
-N_TEST = 2_000
+N_TEST = 1_000
 
 
 def errors(pred: torch.Tensor, true: torch.Tensor, length: float) -> dict[str, float]:
@@ -114,15 +119,17 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rows", nargs="+", choices=sorted(ROWS), default=list(ROWS))
     parser.add_argument("--scale", type=float, default=1.0, help="multiplies every row's training samples")
-    parser.add_argument("--cache", type=Path, default=None, help="folder caching the Cosserat datasets")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="folder keeping the Cosserat datasets between runs (default: a temporary one)")
     parser.add_argument("--ckpt", default=None, help="measure this trained FK run instead of training")
     parser.add_argument("--source", choices=("cc", "cosserat"), default="cc", help="data of --ckpt's held-out set")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", module="lightning")
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
-    rows = [run_checkpoint(args.ckpt, args.source)] if args.ckpt else [
-        run_row(name, args.scale, args.cache) for name in args.rows]
+    with tempfile.TemporaryDirectory() as tmp:        # the Cosserat rows share one dataset
+        rows = [run_checkpoint(args.ckpt, args.source)] if args.ckpt else [
+            run_row(name, args.scale, args.cache or Path(tmp)) for name in args.rows]
     for row in rows:
         print(json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     if args.json is not None:

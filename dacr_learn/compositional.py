@@ -252,11 +252,11 @@ class CompositionalFK(nn.Module):
 
 
 def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str = "none", units: str = "strain",
-                   body_points: int = 0, **kwargs) -> FKModel | CompositionalFK:
+                   body_points: int = 0, body_prior: str = "none", **kwargs) -> FKModel | CompositionalFK:
     """An FK model of the given ``structure`` ("monolithic" | "compositional"); ``kwargs`` are the shared
     model arguments (features, width, depth, activation, rotation). ``context`` and ``units`` are the
-    compositional model's (the monolithic model takes their defaults only); ``body_points`` the monolithic
-    model's shape output (the compositional model's body comes from its segment twists: 0 only)."""
+    compositional model's (the monolithic model takes their defaults only); ``body_points`` and ``body_prior`` the
+    monolithic model's shape output (the compositional model's body comes from its segment twists: 0 only)."""
     if structure not in STRUCTURES:
         raise ValueError(f"structure: expected one of {STRUCTURES}, got {structure!r}")
     if structure == "compositional":
@@ -268,7 +268,7 @@ def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str 
         raise ValueError(f"context: only the compositional structure takes a context, got {context!r}")
     if units != "strain":
         raise ValueError(f"units: only the compositional structure takes units, got {units!r}")
-    return FKModel(spec, body_points=body_points, **kwargs)
+    return FKModel(spec, body_points=body_points, body_prior=body_prior, **kwargs)
 
 
 # hyper-parameters a FKModule / IKModule checkpoint must hold to rebuild its network without Lightning
@@ -285,7 +285,8 @@ def model_from_hparams(task: str, spec: RobotSpec, hparams) -> nn.Module:
     h = hparams
     if task == "fk":
         return build_fk_model(spec, h.get("structure", "monolithic"), h.get("context", "none"),
-                              h.get("units", "strain"), h.get("body_points", 0), features=h["features"],
+                              h.get("units", "strain"), h.get("body_points", 0), h.get("body_prior", "none"),
+                              features=h["features"],
                               width=h["width"], depth=h["depth"],
                               activation=h["activation"], rotation=h["rotation"])
     if task == "ik":

@@ -155,7 +155,8 @@ class KinematicsModule(pl.LightningModule):
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
         """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres; keys of
         :func:`dacr_learn.viz.scene.log_scene`): the CC backbone of the samples' features, the dataset's
-        own backbone where it has one (Cosserat), the learned segment ends of a compositional model."""
+        own backbone where it has one (Cosserat), the learned segment ends of a compositional model or the body of an
+        FK network's shape output."""
         val = self.trainer.datamodule.splits["val"]
         k, n = min(self.hparams.visual_samples, len(val["q"])), min(num_workspace, len(val["q"]))
         q, pose = val["q"][:n].to(self.device), val["pose"][:n].to(self.device)
@@ -168,6 +169,8 @@ class KinematicsModule(pl.LightningModule):
         if isinstance(getattr(self, "model", None), CompositionalFK):
             ends = self.model.segment_ends(q[:k])[..., :3, 3]
             visual["backbone_pred"] = torch.cat([torch.zeros_like(ends[..., :1, :]), ends], dim=-2).cpu()
+        elif getattr(getattr(self, "model", None), "body_points", 0):       # an FK network's shape output
+            visual["backbone_pred"] = self.model.body(q[:k]).points.cpu()
         return visual
 
 
@@ -182,7 +185,8 @@ class FKModule(KinematicsModule):
     ``segment_frames``).
 
     The body (:mod:`dacr_learn.body`): ``body_points`` K > 0 gives a monolithic model a shape output
-    (:class:`~dacr_learn.models.FKModel`); a compositional model's body is its segment twists followed part of
+    (:class:`~dacr_learn.models.FKModel`; ``body_prior`` "none" | "cc": the points, or their offsets from the CC
+    arcs); a compositional model's body is its segment twists followed part of
     the way (:meth:`~dacr_learn.compositional.CompositionalFK.body`, "twist" head). When batches carry the true
     body ("backbone", the datamodule's ``body_points``), ``body_weight`` × the mean of ‖p̂ − p‖²/L² over its
     points is added to the loss, and validation/test report ``body_err`` (per sample the largest point error).
@@ -192,7 +196,7 @@ class FKModule(KinematicsModule):
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0,
                  structure: str = "monolithic", context: str = "none", segment_weight: float = 0.0,
-                 units: str = "strain", body_points: int = 0, body_weight: float = 0.0):
+                 units: str = "strain", body_points: int = 0, body_prior: str = "none", body_weight: float = 0.0):
         # save_hyperparameters() in the base class also records the FK-only arguments
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
