@@ -220,3 +220,14 @@ def test_the_weightless_calibrated_rod_has_the_calibrated_cc_body():
         reference = cc.body(x, rod.steps)
     assert float((body.points - reference.points).norm(dim=-1).max()) < 5e-6
     assert torch.equal(body.arc_length, reference.arc_length)
+
+
+def test_a_shape_output_with_the_cc_prior_starts_at_the_cc_arcs():
+    """body_prior "cc": the network gives offsets from the CC arcs of the joints' Clarke features, zero at the start."""
+    spec = RobotSpec.from_yaml(ROBOTS / "type3.yaml")
+    data = generate(spec, 6, seed=2, dtype=F64)
+    model = FKModel(spec, width=16, depth=2, body_points=4, body_prior="cc").to(F64)
+    model.fit_normalization(data["q"])
+    assert torch.allclose(model.body(data["q"]).points, cc_body(spec, data["features"], 4).points, rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="body_prior"):
+        FKModel(spec, body_points=4, body_prior="arc")
