@@ -127,11 +127,13 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore", module="lightning")
     logging.getLogger("lightning.pytorch").setLevel(logging.ERROR)
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:        # the Cosserat rows share one dataset
-        rows = [run_checkpoint(args.ckpt, args.source)] if args.ckpt else [
-            run_row(name, args.scale, args.cache or Path(tmp)) for name in args.rows]
-    for row in rows:
-        print(json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
+        for name in [None] if args.ckpt else args.rows:
+            row = run_checkpoint(args.ckpt, args.source) if args.ckpt else run_row(name, args.scale,
+                                                                                    args.cache or Path(tmp))
+            rows.append(row)
+            print(json.dumps({k: round(v, 5) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
 
