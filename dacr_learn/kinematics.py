@@ -148,11 +148,7 @@ def segment_tip_poses(spec: RobotSpec, features: Tensor) -> Tensor:
 
 def forward_kinematics(spec: RobotSpec, features: Tensor) -> Tensor:
     """Tip pose T⁽¹⁾T⁽²⁾…T⁽ᵐ⁾ in the base frame: features (..., m, 4) → (..., 4, 4) [m]."""
-    poses = segment_poses(spec, features)
-    tip = poses[..., 0, :, :]
-    for j in range(1, spec.num_segments):
-        tip = tip @ poses[..., j, :, :]
-    return tip
+    return chain_products(segment_poses(spec, features), tip_only=True)
 
 
 def backbone_points(spec: RobotSpec, features: Tensor, points_per_segment: int = 16) -> Tensor:

@@ -45,7 +45,6 @@ DEFAULT_TWIST = (-math.pi / 2, math.pi / 2)
 
 _ROBOT_KEYS = {"name", "routing", "segments", "mechanics"}
 _SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles", "joint_radii", "limits"}
-_LIMIT_KEYS = {"bend", "length", "twist"}
 _MECHANICS_KEYS = {"youngs_modulus", "shear_modulus", "poisson_ratio", "outer_radius", "inner_radius", "density",
                    "tendon_compliance"}
 # Largest accepted condition number of a segment's joint layout A ([A, 1] when it extends). The Clarke

@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from .checks import load_torch_file, short_error
+from .checks import load_torch_file, read_json_object, short_error
 from .compositional import REQUIRED_HPARAMS, model_from_hparams
 from .robot import RobotSpec
 
@@ -110,13 +110,7 @@ def read_run_info(run_dir: str | Path) -> dict[str, Any]:
     path = Path(run_dir) / RUN_INFO
     if not path.is_file():
         return {}
-    try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err}); expected the run.json that train.py writes") from err
-    if not isinstance(info, dict):
-        raise ValueError(f"{path}: expected a JSON object, found a {type(info).__name__}")
-    return info
+    return read_json_object(path, "the run.json that train.py writes")
 
 
 def checkpoint_run_dir(ckpt: str | Path) -> Path | None:

@@ -303,8 +303,8 @@ def max_diff(a, b) -> float:
 def autograd_jacobians(model: torch.nn.Module, spec: RobotSpec, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Reference Jacobians (J_f, J_q) of one sample by torch.func.jacrev of q ↦ FK(q) and f ↦ FK(dec(f))
     (``model``: an FKModel of ``spec``)."""
-    from dacr_learn.deploy.control import twist_jacobian
     from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
+    from dacr_learn.lie import twist_jacobian
     from dacr_learn.models import actuated_selection
 
     enc, dec, sel = ClarkeEncoder(spec).double(), ClarkeDecoder(spec).double(), actuated_selection(spec).double()

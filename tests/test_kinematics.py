@@ -371,8 +371,8 @@ def _random_features(spec: RobotSpec, n: int, seed: int, straight: bool = False)
 @pytest.mark.parametrize("robot", ["tdcr_3seg_coupled", "hetero_4seg_types", "type3", "asymmetric"])
 @pytest.mark.parametrize("straight", [False, True])
 def test_cc_pose_and_jacobian_is_reverse_mode_autodiff(robot, straight):
-    from dacr_learn.deploy.control import twist_jacobian
     from dacr_learn.kinematics import cc_pose_and_jacobian
+    from dacr_learn.lie import twist_jacobian
     spec = RobotSpec.from_yaml(ROBOT_CONFIGS[0].parent / f"{robot}.yaml")
     feats = _random_features(spec, 6, 0, straight)
     pose, jac = cc_pose_and_jacobian(spec, feats)

@@ -23,9 +23,9 @@ from pytorch_kinematics import transforms as tf
 from pytorch_kinematics.urdf_parser_py.urdf import URDF
 from torch import Tensor
 
+from ..checks import F64
 from ..ik.limits import Limits
 
-_F64 = torch.float64
 CONTINUOUS_RANGE = 2 * math.pi   # [rad]: the box of a joint without limits is ±this
 
 
@@ -73,10 +73,10 @@ def _exact_transform(origin) -> tf.Transform3d:
     """A URDF <origin xyz rpy> as a float64 Transform3d: R = Rz(yaw)·Ry(pitch)·Rx(roll) (fixed axes x, y, z)."""
     xyz = [0.0, 0.0, 0.0] if origin is None or origin.xyz is None else [float(v) for v in origin.xyz]
     rpy = [0.0, 0.0, 0.0] if origin is None or origin.rpy is None else [float(v) for v in origin.rpy]
-    rot = tf.euler_angles_to_matrix(torch.tensor(rpy[::-1], dtype=_F64), "ZYX")
-    matrix = torch.eye(4, dtype=_F64)
-    matrix[:3, :3], matrix[:3, 3] = rot, torch.tensor(xyz, dtype=_F64)
-    return tf.Transform3d(matrix=matrix, dtype=_F64)
+    rot = tf.euler_angles_to_matrix(torch.tensor(rpy[::-1], dtype=F64), "ZYX")
+    matrix = torch.eye(4, dtype=F64)
+    matrix[:3, :3], matrix[:3, 3] = rot, torch.tensor(xyz, dtype=F64)
+    return tf.Transform3d(matrix=matrix, dtype=F64)
 
 
 def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
@@ -95,7 +95,7 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
         if name and name not in links:
             raise ValueError(f"{flag} {name!r}: no such link in {source}; its links are {links}")
     try:
-        chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=_F64)
+        chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=F64)
     except KeyError as err:                               # a joint type pytorch-kinematics has no model of
         kinds = sorted({j.type for j in robot.joints} - {"revolute", "continuous", "prismatic", "fixed"})
         raise ValueError(f"arm {source}: pytorch-kinematics cannot build this URDF (joint types {kinds or err}); "
@@ -105,12 +105,12 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
         if frame is None:
             continue
         frame.joint.offset = _exact_transform(joint.origin)
-        axis = torch.tensor([1.0, 0.0, 0.0] if joint.axis is None else [float(v) for v in joint.axis], dtype=_F64)
+        axis = torch.tensor([1.0, 0.0, 0.0] if joint.axis is None else [float(v) for v in joint.axis], dtype=F64)
         if joint.type != "fixed" and not torch.linalg.vector_norm(axis) > 0:
             raise ValueError(f"arm {source}: joint {joint.name!r} has a zero axis")
         frame.joint.axis = axis / torch.linalg.vector_norm(axis).clamp_min(1e-300)   # URDF default: (1, 0, 0)
     try:
-        serial = pk.SerialChain(chain, tip, root, dtype=_F64)
+        serial = pk.SerialChain(chain, tip, root, dtype=F64)
     except (ValueError, KeyError, IndexError) as err:
         raise ValueError(f"arm {source}: no serial chain from {root or 'the root link'} to {tip!r} ({err})") from err
     names = tuple(serial.get_joint_parameter_names())
@@ -150,7 +150,7 @@ def _joint_limits(names: tuple[str, ...], by_name: dict, source: str) -> tuple[L
             raise ValueError(f"arm {source}: joint {n!r} has an empty range [{lo}, {hi}]; make it a fixed joint")
         lower.append(float(lo))
         upper.append(float(hi))
-    lower, upper = torch.tensor(lower, dtype=_F64), torch.tensor(upper, dtype=_F64)
-    limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),
+    lower, upper = torch.tensor(lower, dtype=F64), torch.tensor(upper, dtype=F64)
+    limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=F64),
                     (upper - lower) / 2, tuple(f"arm.{n}" for n in names))
     return limits, tuple(types)

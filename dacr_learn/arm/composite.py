@@ -23,13 +23,14 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..checks import F64
 from ..ik.limits import Limits
 from ..ik.models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model
+from ..ik.targets import pose_defects
 from ..kinematics import forward_kinematics
 from .chain import Arm
 from .seeds import PoseBank
 
-_F64 = torch.float64
 BANK_SIZE = 8192   # samples of the pose bank that seeds whole-body IK (docs/arm.md: about 0.1 s to build)
 
 
@@ -47,22 +48,21 @@ class WholeBody(NamedTuple):
 
 
 def check_mount(mount) -> Tensor:
-    """A mount (4, 4) as float64: a homogeneous transform (rotation orthonormal with det +1 to 1e-6, as the
-    solver asks of a target pose; last row (0, 0, 0, 1), finite), used as given. ValueError naming what is
+    """A mount (4, 4) as float64: a homogeneous transform (:func:`~dacr_learn.ik.targets.pose_defects`, as the
+    solver asks of a target pose; finite), used as given. ValueError naming what is
     wrong."""
     m = torch.as_tensor(mount)
     if not m.is_floating_point() or m.shape != (4, 4):
         raise ValueError(f"mount: expected a float (4, 4) homogeneous transform (tip link → robot base), got "
                          f"{m.dtype} {tuple(m.shape)}")
-    m = m.to(_F64)
+    m = m.to(F64)
     if not torch.isfinite(m).all():
         raise ValueError("mount: has NaN/inf entries")
-    rot = m[:3, :3]
-    orth = float((rot @ rot.T - torch.eye(3, dtype=_F64)).abs().max())
-    det = float(torch.linalg.det(rot))
-    if orth > 1e-6 or abs(det - 1) > 1e-6 or float((m[3] - torch.tensor([0.0, 0, 0, 1], dtype=_F64)).abs().max()) > 0:
+    orth, det, wrong = pose_defects(m)
+    if wrong:
         raise ValueError(f"mount: the rotation block must be a rotation (RRᵀ = I, det +1 to 1e-6) and the last row "
-                         f"(0, 0, 0, 1); got |RRᵀ − I| = {orth:.2e}, det = {det:.9f}, last row {m[3].tolist()}")
+                         f"(0, 0, 0, 1); got |RRᵀ − I| = {float(orth):.2e}, det = {float(det):.9f}, last row "
+                         f"{m[3].tolist()}")
     return m
 
 
@@ -86,17 +86,17 @@ class Composite(SolverModel):
         self.num_joints = n + self.robot.num_joints
         self.has_rotation = self.robot.has_rotation
         self.spec = None
-        a, r = arm.limits, self.robot.limits.to(_F64)
+        a, r = arm.limits, self.robot.limits.to(F64)
         self.limits = Limits(torch.cat([a.lower, r.lower]), torch.cat([a.upper, r.upper]), r.disks + n, r.radius,
                              torch.cat([a.scale, r.scale]), a.names + tuple(f"robot.{x}" for x in r.names))
         if home is None:
             home = (a.lower + a.upper) / 2
-        home = torch.as_tensor(home, dtype=_F64)
+        home = torch.as_tensor(home, dtype=F64)
         if home.shape != (n,) or not torch.isfinite(home).all() or not bool(a.inside(home)):
             raise ValueError(f"home: expected {n} finite arm joint values inside the URDF limits, got {home.tolist()}")
         self.home = home
-        self.rest = torch.cat([home, self.robot.rest.to(_F64)])
-        offsets = arm.chain.forward_kinematics_tensor(torch.zeros(1, n, dtype=_F64), analytical_grad=False)
+        self.rest = torch.cat([home, self.robot.rest.to(F64)])
+        offsets = arm.chain.forward_kinematics_tensor(torch.zeros(1, n, dtype=F64), analytical_grad=False)
         reach = torch.linalg.vector_norm(offsets[1:, 0, :3, 3] - offsets[:-1, 0, :3, 3], dim=-1).sum()
         self._bank = None
         self.length = float(reach) + float(torch.linalg.vector_norm(self.mount[:3, 3])) + float(self.robot.length)
@@ -135,13 +135,13 @@ class Composite(SolverModel):
         return torch.cat([x[:, :self.num_arm], self.robot.joints(x[:, self.num_arm:])], dim=-1)
 
     def variables(self, q: Tensor) -> Tensor:
-        q = q.to(_F64)
+        q = q.to(F64)
         return torch.cat([q[:, :self.num_arm], self.robot.variables(q[:, self.num_arm:])], dim=-1)
 
     def check(self, q: Tensor) -> Check:
         """From the joints alone: the arm's FK (pytorch-kinematics, not the Jacobian path) and URDF limits, the
         robot's own check (its FK, limits, constraint), composed through the mount."""
-        q = q.to(_F64)
+        q = q.to(F64)
         theta = q[:, :self.num_arm]
         base = self.arm.tip_pose(theta) @ self.mount
         inner = self.robot.check(q[:, self.num_arm:])

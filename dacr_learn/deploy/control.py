@@ -23,24 +23,27 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import forward_kinematics
+from ..lie import twist_jacobian
 from ..models import actuated_to_features
 from ..robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
-_F64 = torch.float64
 
 
 def _f64(x: Tensor) -> Tensor:
-    return x if x.dtype == _F64 else x.to(_F64)
+    return x if x.dtype == F64 else x.to(F64)
 
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """gain: fraction of the position error corrected per step, in (0, 1]; damping: λ [m] of the
-    damped least squares (None: 1 % of the robot length); max_step: largest scaled feature step
-    ‖Δz‖ per control step (1 = a feature's whole half-range)."""
+    """The settings every resolved-rate controller shares (:func:`scaled_dls_step`): gain: fraction of the task
+    error corrected per step, in (0, 1]; damping: λ [task unit] of the damped least squares (None: the
+    controller's own default; here 1 % of the robot length); max_step: largest scaled step ‖Δz‖ per control
+    step (1 = a variable's whole half-range). The arm's and the servo controllers' configs extend it
+    (:class:`~dacr_learn.arm.WholeBodyConfig`, :class:`~dacr_learn.hardware.deploy.control.ServoControl`)."""
 
     gain: float = 0.5
     damping: float | None = None
@@ -105,7 +108,7 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     tendon its Jacobian cannot. The sum is shortened to ``max_step``.
     """
     j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
-    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
+    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=F64)
     rhs = _f64(task_step).unsqueeze(-1)
     if secondary is not None:
         if tuple(secondary.shape) != tuple(j.shape[:-2]) + (j.shape[-1],):
@@ -119,16 +122,6 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
     dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
     return dz * _f64(scale)
-
-
-def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
-    """Tip-twist Jacobian from a pose (..., 4, 4) and its derivative (..., 4, 4, k) → (..., 6, k).
-
-    Rows: dp (the tip point's linear velocity) and ω = vee(dR·Rᵀ), both in the base frame.
-    """
-    skew = torch.einsum("...ijk,...lj->...ilk", dpose[..., :3, :3, :], pose[..., :3, :3])
-    omega = torch.stack([skew[..., 2, 1, :], skew[..., 0, 2, :], skew[..., 1, 0, :]], dim=-2)
-    return torch.cat([dpose[..., :3, 3, :], omega], dim=-2)
 
 
 def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
@@ -153,7 +146,7 @@ def analytic_jacobian(spec: RobotSpec) -> JacobianFn:
 
     def jacobian(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         lead = q.shape[:-1]
-        q2 = q.to(_F64).reshape(-1, spec.num_joints)
+        q2 = q.to(F64).reshape(-1, spec.num_joints)
         f = space.features(q2)
         pose = pose_of(f)
         jac_f = twist_jacobian(pose, _jacobian_rows(pose_of, f))

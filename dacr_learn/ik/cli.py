@@ -32,10 +32,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..checks import F64
 from .solver import IKOptions, IKResult, solve_ik
 from .targets import check_targets
-
-_F64 = torch.float64
 
 
 def _load_array(path: str, flag: str) -> np.ndarray:
@@ -85,7 +84,7 @@ def load_solver_model(robot: str | None, ckpt: str | None):
         from ..hardware.deploy.checkpoint import load_hardware_model
         return load_hardware_model(path), None, f"hardware model {ckpt} (servo commands [mm])"
     from ..runs import load_model
-    net = load_model(path, dtype=_F64)
+    net = load_model(path, dtype=F64)
     if net.task == "fk":
         return net, None, f"learned FK {ckpt} (accuracy with respect to the network)"
     if net.task == "sampler":     # seeds need no float64 (the solver refines them in float64): float32 samples faster
@@ -105,7 +104,7 @@ def _network_seeds(net):
         if target.dim() != 3:
             return None                                           # an IK network needs whole poses
         with torch.no_grad():
-            return space.features(net(target).to(_F64)).unsqueeze(1)
+            return space.features(net(target).to(F64)).unsqueeze(1)
     return seeds
 
 
@@ -170,7 +169,7 @@ def main(argv: list[str] | None = None) -> IKResult:
     if hasattr(solver_model, "hardware"):                            # a hardware model: σ of each solution
         b, k, n = result.q.shape
         _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n), static=True)
-        arrays["sigma"] = sigma.reshape(b, k, 3).to(_F64).numpy()
+        arrays["sigma"] = sigma.reshape(b, k, 3).to(F64).numpy()
     _save_npz(out, arrays)
     if args.rerun:
         _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show])
@@ -192,7 +191,7 @@ def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: 
     if spec is None or targets.dim() != 3:
         raise ValueError("--rerun: needs a robot model (not a hardware model) and pose targets (B, 4, 4)")
     b, k, n = q.shape
-    lines = backbone_points(spec, ClarkeEncoder(spec).to(_F64)(q.reshape(-1, n))).view(b, k, -1, 3)
+    lines = backbone_points(spec, ClarkeEncoder(spec).to(F64)(q.reshape(-1, n))).view(b, k, -1, 3)
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("dacr_learn_ik")
     rec.save(str(path), default_blueprint=ik_blueprint())

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-_F64 = torch.float64
+from ..checks import F64
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,7 @@ class Limits:
         """(...) bool: within every limit up to ``tol`` of the variable's scale."""
         return self.violation(x) <= tol
 
-    def sample(self, n: int, generator: torch.Generator, dtype: torch.dtype = _F64) -> Tensor:
+    def sample(self, n: int, generator: torch.Generator, dtype: torch.dtype = F64) -> Tensor:
         """n points (n, D) uniform inside the set: boxes uniform, disks uniform by area (r = R·√u)."""
         lo, hi = self.lower.to(dtype), self.upper.to(dtype)
         u = torch.rand(n, self.num_variables, generator=generator, dtype=dtype)

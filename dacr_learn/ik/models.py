@@ -26,13 +26,14 @@ import torch
 from torch import Tensor, nn
 
 from ..body import BodyPoints, cc_body
+from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
+from ..lie import twist_jacobian
 from ..models import actuated_columns, actuated_to_features
 from ..robot import RobotSpec
 from .limits import Limits
 
-_F64 = torch.float64
 _COLUMN = {"rho_re": 0, "rho_im": 1, "beta": 2, "alpha": 3}
 
 
@@ -92,7 +93,7 @@ class _ClarkeVariables(SolverModel):
         self.spec, self.num_joints, self.length = spec, spec.num_joints, spec.total_length
         self.space = ClarkeSpace(spec)
         self.limits = clarke_limits(spec)
-        self.rest = self.space.fold.e0.to(_F64)           # the straight robot at nominal lengths, no twist
+        self.rest = self.space.fold.e0.to(F64)           # the straight robot at nominal lengths, no twist
 
     def joints(self, x: Tensor) -> Tensor:
         return self.space.joints(x)
@@ -126,7 +127,7 @@ def clarke_limits(spec: RobotSpec) -> Limits:
         lower.append(lo)
         upper.append(hi)
         scale.append((hi - lo) / 2)
-    t = lambda v: torch.tensor(v, dtype=_F64)  # noqa: E731
+    t = lambda v: torch.tensor(v, dtype=F64)  # noqa: E731
     return Limits(t(lower), t(upper), torch.tensor(disks, dtype=torch.long).reshape(-1, 2), t(radius), t(scale),
                   tuple(names))
 
@@ -165,7 +166,7 @@ class LearnedFK(_ClarkeVariables):
 
     def __init__(self, model: nn.Module):
         super().__init__(model.spec)
-        self.model = model.to(_F64).eval()
+        self.model = model.to(F64).eval()
         self.jacobian_module = _folded_jacobian(self.model)
 
     def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -175,15 +176,12 @@ class LearnedFK(_ClarkeVariables):
         with torch.no_grad():
             pose = self.model(self.joints(x))
         dpose = torch.func.vmap(torch.func.jacfwd(lambda f: self.model(self.joints(f.unsqueeze(0)))[0]))(x)
-        rot = pose[..., :3, :3]
-        skew = torch.einsum("bijk,blj->bilk", dpose[:, :3, :3], rot)                        # dR·Rᵀ per column
-        omega = torch.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], dim=1)
-        return pose[..., :3, 3], rot, torch.cat([dpose[:, :3, 3], omega], dim=1)
+        return pose[..., :3, 3], pose[..., :3, :3], twist_jacobian(pose, dpose)
 
     @torch.no_grad()
     def check(self, q: Tensor) -> Check:
         _, inside, residual = self._features_check(q)
-        pose = self.model(q.to(_F64))
+        pose = self.model(q.to(F64))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
 
     def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
@@ -199,8 +197,8 @@ def _folded_jacobian(model: nn.Module) -> nn.Module | None:
     from ..deploy.inference import InferenceJacobian
     from ..deploy.inference_compositional import InferenceCompositionalJacobian
     if isinstance(model, CompositionalFK):
-        return InferenceCompositionalJacobian(model, _F64) if model.rotation == "twist" else None
-    return InferenceJacobian(model, _F64)
+        return InferenceCompositionalJacobian(model, F64) if model.rotation == "twist" else None
+    return InferenceJacobian(model, F64)
 
 
 ADAPTERS: dict[type, Callable[[object], SolverModel]] = {}

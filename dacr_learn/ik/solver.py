@@ -18,12 +18,11 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import Tensor
 
+from ..checks import F64
 from ..metrics import rotation_geodesic
 from .models import SolverModel, as_solver_model
 from .refine import STALL_LAMBDA, Refinement
 from .targets import check_q0, check_targets
-
-_F64 = torch.float64
 
 
 @dataclass(frozen=True)
@@ -130,7 +129,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         if seeds.dim() != 3 or seeds.shape[0] != b or seeds.shape[2] != d or not torch.isfinite(seeds).all():
             raise ValueError(f"seeds: expected finite (B={b}, S, D={d}) variables, got {tuple(seeds.shape)}")
         s = min(k, seeds.shape[1])
-        starts[:, :s] = seeds[:, :s].to(_F64)
+        starts[:, :s] = seeds[:, :s].to(F64)
     if q0 is not None:
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
@@ -140,7 +139,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
                        options.tolerance, options.damping)
     x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
-                            lim.project(model.rest.to(_F64)), options)
+                            lim.project(model.rest.to(F64)), options)
 
 
 FAN_OUT = 4   # new starts a slot takes at once when its starts have stalled, doubled at each further restart
@@ -209,7 +208,7 @@ def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: 
 def _slot_results(state: Refinement, slot: Tensor, solution: Tensor, since: Tensor, m: int) -> tuple[Tensor, Tensor]:
     """Per slot: the variables of its solving row, else of its row of least cost; and the iterations of all its rows."""
     cost = state.cost.clone()
-    best = torch.full((m,), float("inf"), dtype=_F64).scatter_reduce(0, slot, cost, "amin")
+    best = torch.full((m,), float("inf"), dtype=F64).scatter_reduce(0, slot, cost, "amin")
     is_best = cost <= best[slot]
     pick = torch.full((m,), cost.shape[0], dtype=torch.long).scatter_reduce(
         0, slot[is_best], is_best.nonzero().squeeze(-1), "amin")

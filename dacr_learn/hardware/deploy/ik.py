@@ -11,12 +11,11 @@ import torch
 from torch import Tensor
 
 from ...body import BodyPoints
+from ...checks import F64
 from ...ik.limits import Limits
 from ...ik.models import Check, SolverModel, register_solver_model
 from .checkpoint import HardwareModel
 from .inference import HardwareJacobian
-
-_F64 = torch.float64
 
 
 class HardwareTip(SolverModel):
@@ -39,12 +38,12 @@ class HardwareTip(SolverModel):
         lower, upper = model.servo_range()
         if not bool((upper > lower).all()):
             raise ValueError("ckpt: a servo never moved in the recorded commands; its range is empty")
-        self.limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),
+        self.limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=F64),
                              (upper - lower) / 2, tuple(f"servo {s} [mm]" for s in model.servo_ids))
-        self.rest = torch.zeros(len(model.servo_ids), dtype=_F64)         # command 0: the rest posture
+        self.rest = torch.zeros(len(model.servo_ids), dtype=F64)         # command 0: the rest posture
         self.num_joints = len(model.servo_ids)
         self.length = float(model.spec.total_length)
-        self.jacobian_module = HardwareJacobian(model, _F64)
+        self.jacobian_module = HardwareJacobian(model, F64)
 
     def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, None, Tensor]:
         if not self.hardware.history:
@@ -65,7 +64,7 @@ class HardwareTip(SolverModel):
         return x
 
     def variables(self, q: Tensor) -> Tensor:
-        return q.to(_F64)
+        return q.to(F64)
 
     def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
         """The calibrated physical model's body of servo commands x (B, S) [mm] (motion-capture frame)."""
@@ -73,7 +72,7 @@ class HardwareTip(SolverModel):
 
     def check(self, q: Tensor) -> Check:
         tip, _ = self.hardware.predict(q, static=True)
-        return Check(tip.to(_F64), None, self.limits.inside(q), torch.zeros(q.shape[0], dtype=_F64))
+        return Check(tip.to(F64), None, self.limits.inside(q), torch.zeros(q.shape[0], dtype=F64))
 
 
 register_solver_model(HardwareModel, HardwareTip)
