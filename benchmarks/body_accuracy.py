@@ -79,14 +79,14 @@ def datamodule(robot: str, source: str, n_train: int, batch: int, seed: int = 0,
     return dm
 
 
-def measure(model: torch.nn.Module, test: dict[str, torch.Tensor], spec: RobotSpec) -> dict[str, float]:
+def measure(model: torch.nn.Module, test: dict[str, torch.Tensor], spec: RobotSpec, source: str) -> dict[str, float]:
     """The model's body against the split's true body, and (Cosserat) the CC arcs of the same joints against it."""
     model = model.double().eval()
     q, true = test["q"].double(), test["backbone"].double()
     with torch.no_grad():
         out = errors(model.body(q, POINTS).points, true, spec.total_length)
-    cc = errors(cc_body(spec, test["features"].double(), POINTS).points, true, spec.total_length)
-    if cc["worst_point"] > 1e-9:           # not CC data: the CC arcs of the same joints are the baseline
+    if source == "cosserat":               # the CC arcs of the same joints are the baseline
+        cc = errors(cc_body(spec, test["features"].double(), POINTS).points, true, spec.total_length)
         out.update({f"cc_{k}": v for k, v in cc.items()}, ratio=cc["worst_point"] / out["worst_point"])
     return out
 
@@ -104,7 +104,7 @@ def run_row(name: str, scale: float, cache: Path | None) -> dict:
     trainer.fit(module, dm)
     row = {"row": name, "n_train": dm.sizes[0], "epochs": epochs, "data_s": round(generated, 1),
            "train_s": round(time.perf_counter() - start - generated, 1)}
-    return row | measure(module.model, dm.splits["test"], dm.spec)
+    return row | measure(module.model, dm.splits["test"], dm.spec, source)
 
 
 def run_checkpoint(ckpt: str, source: str) -> dict:
@@ -112,7 +112,7 @@ def run_checkpoint(ckpt: str, source: str) -> dict:
     dm = KinematicsDataModule(model.spec.to_dict(), n_train=1, n_val=1, n_test=N_TEST, seed=12345, source=source,
                               cosserat=COSSERAT if source == "cosserat" else None, body_points=POINTS)
     dm.setup()
-    return {"row": str(ckpt), "source": source} | measure(model, dm.splits["test"], dm.spec)
+    return {"row": str(ckpt), "source": source} | measure(model, dm.splits["test"], dm.spec, source)
 
 
 def main(argv: list[str] | None = None) -> None:
