@@ -157,6 +157,8 @@ def test_fk_training_on_the_data_body(tmp_path):
         trainer.fit(module, dm)
         trainer.test(module, dm, verbose=False)
         assert module.test_summary["body_err_mean_mm"] > 0
+        if k:                                           # the Rerun scene draws the shape output as the learned body
+            assert module.visual_batch()["backbone_pred"].shape == (8, 1 + 3 * k, 3)
         batch = next(iter(dm.train_dataloader()))
         tip_only = module.pose_loss(module.model(batch["q"]), batch["pose"])
         assert module.loss(batch).item() > tip_only.item()
