@@ -48,6 +48,7 @@ import torch
 from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
+from .body import BodyPoints, body_of_points, check_points_per_segment
 from .checks import check_tensor
 from .kinematics import effective_features
 from .layers import ClarkeEncoder
@@ -197,19 +198,50 @@ class CompositionalFK(nn.Module):
     def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:
         self.front.fit(q)
 
+    def twists(self, out: Tensor) -> Tensor:
+        """Twist-head outputs (..., m, 6) → the segments' twists ξ_k = (v [m], ω [rad]) (..., m, 6)."""
+        return torch.cat([out[..., :3] * self.length_scale.to(out.dtype).unsqueeze(-1), out[..., 3:]], dim=-1)
+
     def head(self, out: Tensor) -> Tensor:
         """Network outputs (..., m, 6 | 9) → segment transforms (..., m, 4, 4)."""
-        scale = self.length_scale.to(out.dtype).unsqueeze(-1)
         if self.rotation == "twist":
-            return twist_exp(torch.cat([out[..., :3] * scale, out[..., 3:]], dim=-1))
+            return twist_exp(self.twists(out))
+        scale = self.length_scale.to(out.dtype).unsqueeze(-1)
         return pose_from_parts(rotation_6d_to_matrix(out[..., 3:]), out[..., :3] * scale)
+
+    def outputs(self, q: Tensor) -> tuple[Tensor, Tensor | None]:
+        """(network outputs (..., m, 6 | 9), roll α_k (..., m) [rad] of the rolled segments (0 elsewhere), or None
+        when no segment is rolled) of joint vectors (..., N)."""
+        x = self.front.segment_features(q)
+        z = self.front.with_context(self.front.norm(x))
+        return self.net(z) + self.skip(z), torch.where(self.roll, x[..., 3], 0.0) if self.rolls else None
 
     def segment_transforms(self, q: Tensor) -> Tensor:
         """T_k, base of segment k → its end: (..., N) → (..., m, 4, 4); Rz(α_k)·head for a rolled segment."""
-        x = self.front.segment_features(q)
-        z = self.front.with_context(self.front.norm(x))
-        t = self.head(self.net(z) + self.skip(z))
-        return roll_z(t, torch.where(self.roll, x[..., 3], 0.0)) if self.rolls else t
+        out, alpha = self.outputs(q)
+        t = self.head(out)
+        return t if alpha is None else roll_z(t, alpha)
+
+    def body(self, q: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The learned body of joint vectors q (..., N): points (..., 1 + m·K, 3) [m] in the base frame, the layout
+        of :mod:`dacr_learn.body`. Segment k's point at fraction s = j/K is Rz(α_k)·exp(s·ξ_k) after the ends of
+        the segments before it: the segment's own learned twist, followed part of the way (a constant-curvature
+        arc, rolled by its twist, is exactly that curve). Needs the "twist" head (ValueError for "6d")."""
+        if self.rotation != "twist":
+            raise ValueError(f"{type(self).__name__}: has no body: the {self.rotation!r} head gives a segment's end "
+                             "transform but not the curve to it; train with rotation 'twist'")
+        k = check_points_per_segment(points_per_segment)
+        out, alpha = self.outputs(q)
+        xi = self.twists(out)
+        frac = torch.arange(1, k + 1, dtype=xi.dtype, device=xi.device) / k
+        partial = twist_exp(xi.unsqueeze(-2) * frac.unsqueeze(-1),                    # (..., m, K, 4, 4)
+                            None if alpha is None else alpha.unsqueeze(-1).expand(*alpha.shape, k))
+        ends = chain_products(partial[..., -1, :, :])                                 # (..., m, 4, 4)
+        eye = torch.eye(4, dtype=xi.dtype, device=xi.device).expand(*ends.shape[:-3], 1, 4, 4)
+        bases = torch.cat([eye, ends[..., :-1, :, :]], dim=-3).unsqueeze(-3)          # (..., m, 1, 4, 4)
+        pts = (bases[..., :3, :3] @ partial[..., :3, 3:] + bases[..., :3, 3:]).squeeze(-1)   # (..., m, K, 3)
+        pts = pts.flatten(-3, -2)
+        return body_of_points(self.spec, torch.cat([torch.zeros_like(pts[..., :1, :]), pts], dim=-2), k)
 
     def segment_ends(self, q: Tensor) -> Tensor:
         """End frame of every segment in the robot base frame: (..., N) → (..., m, 4, 4); [..., -1] is the tip."""
@@ -220,19 +252,23 @@ class CompositionalFK(nn.Module):
 
 
 def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str = "none", units: str = "strain",
-                   **kwargs) -> FKModel | CompositionalFK:
+                   body_points: int = 0, body_prior: str = "none", **kwargs) -> FKModel | CompositionalFK:
     """An FK model of the given ``structure`` ("monolithic" | "compositional"); ``kwargs`` are the shared
     model arguments (features, width, depth, activation, rotation). ``context`` and ``units`` are the
-    compositional model's (the monolithic model takes their defaults only)."""
+    compositional model's (the monolithic model takes their defaults only); ``body_points`` and ``body_prior`` the
+    monolithic model's shape output (the compositional model's body comes from its segment twists: 0 only)."""
     if structure not in STRUCTURES:
         raise ValueError(f"structure: expected one of {STRUCTURES}, got {structure!r}")
     if structure == "compositional":
+        if body_points:
+            raise ValueError(f"body_points: the compositional model's body comes from its segment twists (no shape "
+                             f"output); expected 0, got {body_points}")
         return CompositionalFK(spec, context=context, units=units, **kwargs)
     if context != "none":
         raise ValueError(f"context: only the compositional structure takes a context, got {context!r}")
     if units != "strain":
         raise ValueError(f"units: only the compositional structure takes units, got {units!r}")
-    return FKModel(spec, **kwargs)
+    return FKModel(spec, body_points=body_points, body_prior=body_prior, **kwargs)
 
 
 # hyper-parameters a FKModule / IKModule checkpoint must hold to rebuild its network without Lightning
@@ -249,7 +285,9 @@ def model_from_hparams(task: str, spec: RobotSpec, hparams) -> nn.Module:
     h = hparams
     if task == "fk":
         return build_fk_model(spec, h.get("structure", "monolithic"), h.get("context", "none"),
-                              h.get("units", "strain"), features=h["features"], width=h["width"], depth=h["depth"],
+                              h.get("units", "strain"), h.get("body_points", 0), h.get("body_prior", "none"),
+                              features=h["features"],
+                              width=h["width"], depth=h["depth"],
                               activation=h["activation"], rotation=h["rotation"])
     if task == "ik":
         return IKModel(spec, h["features"], h["width"], h["depth"], h["activation"], h.get("output_scale", "std"))

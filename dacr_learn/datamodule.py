@@ -17,12 +17,15 @@ import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
+from .body import check_points_per_segment, subsample
 from .data import SamplerOptions, generate, generate_or_load, with_segment_frames
 from .data import cosserat as cosserat_dataset
+from .kinematics import backbone_points
 from .robot import RobotSpec
 
 BATCH_KEYS = ("q", "pose")
 OPTIONAL_BATCH_KEYS = ("segment_frames",)     # served when the dataset holds them
+BODY_KEY = "backbone"                         # served only when asked for (``body_points``)
 
 
 def _rank_world() -> tuple[int, int]:
@@ -34,10 +37,12 @@ def _rank_world() -> tuple[int, int]:
 class TensorBatches:
     """Iterable of index batches over a dict of equally long tensors (reshuffled every epoch)."""
 
-    def __init__(self, tensors: dict[str, Tensor], batch_size: int, shuffle: bool, seed: int = 0):
+    def __init__(self, tensors: dict[str, Tensor], batch_size: int, shuffle: bool, seed: int = 0,
+                 extra_keys: tuple[str, ...] = ()):
         if batch_size < 1:
             raise ValueError(f"batch_size: expected >= 1, got {batch_size}")
-        self.tensors = {k: tensors[k] for k in BATCH_KEYS + OPTIONAL_BATCH_KEYS if k in tensors or k in BATCH_KEYS}
+        keys = BATCH_KEYS + OPTIONAL_BATCH_KEYS + tuple(extra_keys)
+        self.tensors = {k: tensors[k] for k in keys if k in tensors or k in BATCH_KEYS}
         self.n = self.tensors["q"].shape[0]
         self.batch_size, self.shuffle, self.seed, self.epoch = batch_size, shuffle, seed, 0
 
@@ -95,13 +100,16 @@ class KinematicsDataModule(pl.LightningDataModule):
         source: "cc" (default) or "cosserat" (needs a robot with a ``mechanics:`` block; no noise options).
         cosserat: options of the Cosserat source (:class:`~dacr_learn.data.cosserat.CosseratOptions`:
             tension_max, tendons_pulled, gravity, tip_force_max, steps_per_segment, tol, max_iter).
+        body_points: K > 0 serves the true body in batches ("backbone", (B, 1 + m·K, 3) [m], the layout of
+            :mod:`dacr_learn.body`): the exact CC arcs of the noise-free features ("cc"), or every
+            (steps_per_segment/K)-th node of the Cosserat solution ("cosserat"; K must divide steps_per_segment).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", n_train: int = 100_000,
                  n_val: int = 5_000, n_test: int = 10_000, batch_size: int = 1024, seed: int = 0,
                  joint_noise: float = 0.0, pose_noise_pos: float = 0.0, pose_noise_rot: float = 0.0,
                  common_offset: float = 0.0, cache_dir: str | None = None, segment_frames: bool = False,
-                 source: str = "cc", cosserat: dict | None = None):
+                 source: str = "cc", cosserat: dict | None = None, body_points: int = 0):
         super().__init__()
         self.spec = RobotSpec.coerce(robot)
         for name, v in (("n_train", n_train), ("n_val", n_val), ("n_test", n_test)):
@@ -110,6 +118,9 @@ class KinematicsDataModule(pl.LightningDataModule):
         self.sizes = (n_train, n_val, n_test)
         self.batch_size, self.seed, self.cache_dir = batch_size, seed, cache_dir
         self.segment_frames = segment_frames
+        self.body_points = int(body_points) if body_points else 0
+        if self.body_points:
+            check_points_per_segment(body_points)
         self.source = source
         self.options = _options(self.spec, source, cosserat,
                                 SamplerOptions(joint_noise, pose_noise_pos, pose_noise_rot, common_offset))
@@ -135,15 +146,33 @@ class KinematicsDataModule(pl.LightningDataModule):
             data = data if self.segment_frames else {k: v for k, v in data.items() if k != "segment_frames"}
         elif self.segment_frames:
             data = with_segment_frames(self.spec, data)
+        if self.body_points:
+            data = {**data, BODY_KEY: self._body(data)}
         bounds = [0, self.sizes[0], self.sizes[0] + self.sizes[1], n]
         for name, lo, hi in zip(("train", "val", "test"), bounds[:-1], bounds[1:], strict=True):
             self.splits[name] = {k: v[lo:hi] for k, v in data.items()}
 
+    def _body(self, data: dict[str, Tensor]) -> Tensor:
+        """The true body (N, 1 + m·K, 3) [m] of the dataset's samples at ``body_points`` K per segment."""
+        k = self.body_points
+        if self.source == "cc":
+            return backbone_points(self.spec, data["features"], k)
+        steps = self.options.steps_per_segment
+        if steps % k:
+            raise ValueError(f"body_points: the Cosserat backbone has {steps} points per segment "
+                             f"(data.cosserat.steps_per_segment); expected a divisor of it, got {k}")
+        return subsample(data[BODY_KEY], self.spec.num_segments, steps // k)
+
+    def _loader(self, split: str, batch_size: int, shuffle: bool) -> TensorBatches:
+        extra = (BODY_KEY,) if self.body_points else ()
+        return TensorBatches(self.splits[split], batch_size, shuffle=shuffle, seed=self.seed if shuffle else 0,
+                             extra_keys=extra)
+
     def train_dataloader(self):
-        return TensorBatches(self.splits["train"], self.batch_size, shuffle=True, seed=self.seed)
+        return self._loader("train", self.batch_size, True)
 
     def val_dataloader(self):
-        return TensorBatches(self.splits["val"], 4 * self.batch_size, shuffle=False)
+        return self._loader("val", 4 * self.batch_size, False)
 
     def test_dataloader(self):
-        return TensorBatches(self.splits["test"], 4 * self.batch_size, shuffle=False)
+        return self._loader("test", 4 * self.batch_size, False)

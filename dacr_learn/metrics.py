@@ -24,7 +24,8 @@ def summarize(errors: dict[str, Tensor], total_length: float) -> dict[str, float
     """Summary numbers of per-sample errors (1-D tensors) in display units.
 
     pos_err [m] → pos_err_{mean,p95,max}_mm and pos_err_mean_pct (% of total robot length);
-    rot_err [rad] → rot_err_{mean,p95,max}_deg; joint_err [m] → joint_err_{mean,max}_mm;
+    rot_err [rad] → rot_err_{mean,p95,max}_deg; body_err [m] (per sample the largest error of a body point) →
+    body_err_{mean,p95,max}_mm and body_err_mean_pct; joint_err [m] → joint_err_{mean,max}_mm;
     constraint_residual [m] → constraint_residual_{mean,max}_m; out_of_limits (1 where a prediction
     leaves the joint limits, else 0) → out_of_limits_pct; nll (a sampler's negative log-likelihood) → nll_mean.
     """
@@ -38,6 +39,11 @@ def summarize(errors: dict[str, Tensor], total_length: float) -> dict[str, float
         deg = torch.rad2deg(e["rot_err"])
         out.update(rot_err_mean_deg=deg.mean().item(), rot_err_p95_deg=torch.quantile(deg, 0.95).item(),
                    rot_err_max_deg=deg.max().item())
+    if "body_err" in e:
+        mm = e["body_err"] * 1e3
+        out.update(body_err_mean_mm=mm.mean().item(), body_err_p95_mm=torch.quantile(mm, 0.95).item(),
+                   body_err_max_mm=mm.max().item(),
+                   body_err_mean_pct=(e["body_err"].mean() / total_length * 100).item())
     if "joint_err" in e:
         out.update(joint_err_mean_mm=e["joint_err"].mean().item() * 1e3,
                    joint_err_max_mm=e["joint_err"].max().item() * 1e3)

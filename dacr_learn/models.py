@@ -18,13 +18,15 @@ import torch
 from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_matrix
 from torch import Tensor, nn
 
+from .body import BodyPoints, body_of_points, check_points_per_segment, subsample
 from .checks import check_tensor
-from .kinematics import forward_kinematics
+from .kinematics import backbone_points, forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .lie import pose_from_parts
 from .robot import RobotSpec
 
 FEATURE_MODES = ("clarke", "raw")
+BODY_PRIORS = ("none", "cc")
 ROTATIONS = {"6d": (6, rotation_6d_to_matrix), "quaternion": (4, quaternion_to_matrix)}
 ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU, "gelu": nn.GELU, "tanh": nn.Tanh}
 
@@ -134,19 +136,58 @@ def pose_to_vector(pose: Tensor, length: float) -> Tensor:
 
 
 class FKModel(nn.Module):
-    """Learned forward kinematics: joint vector (..., num_joints) → tip pose (..., 4, 4) [m]."""
+    """Learned forward kinematics: joint vector (..., num_joints) → tip pose (..., 4, 4) [m].
+
+    ``body_points`` K > 0 adds a shape output: a second network of the same shape (``body_net``, on the same
+    input features) predicting the body, 1 + m·K points (..., 1 + m·K, 3) [m] in the base frame at the
+    fractions j/K of every segment (the layout of :mod:`dacr_learn.body`), each divided by the total length;
+    :meth:`body` returns them. It is trained on the data's backbones (``training.FKModule``'s ``body_weight``);
+    the tip network is untouched by it (0: no shape output, the model and its state dict as before).
+    ``body_prior``: "none" (the network gives the points) or "cc" (the network gives their offsets from the CC
+    arcs of the joint vector's Clarke features, :func:`~dacr_learn.kinematics.backbone_points`: what the CC model
+    leaves out, e.g. the sag of a robot under its weight, is learned, the arcs are not). The body's last point is
+    the shape output's own tip, not the tip network's.
+    """
 
     structure = "monolithic"     # one network for the whole robot (vs compositional.CompositionalFK)
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
-                 activation: str = "silu", rotation: str = "6d"):
+                 activation: str = "silu", rotation: str = "6d", body_points: int = 0, body_prior: str = "none"):
         super().__init__()
         if rotation not in ROTATIONS:
             raise ValueError(f"rotation: expected one of {sorted(ROTATIONS)}, got {rotation!r}")
-        self.spec, self.rotation = spec, rotation
+        if isinstance(body_points, bool) or not isinstance(body_points, int) or body_points < 0:
+            raise ValueError(f"body_points: expected an integer >= 0 (points per segment of the shape output; "
+                             f"0: none), got {body_points!r}")
+        if body_prior not in BODY_PRIORS:
+            raise ValueError(f"body_prior: expected one of {BODY_PRIORS}, got {body_prior!r}")
+        self.spec, self.rotation, self.body_points, self.body_prior = spec, rotation, body_points, body_prior
         self.front = FeatureFrontEnd(spec, features)
         self.net = mlp(self.front.dim, 3 + ROTATIONS[rotation][0], width, depth, activation)
         self.length = spec.total_length
+        if body_points:
+            self.body_net = mlp(self.front.dim, 3 * spec.num_segments * body_points, width, depth, activation)
+            if body_prior == "cc":
+                self.body_encoder = ClarkeEncoder(spec)
+                with torch.no_grad():                   # start at the CC arcs
+                    self.body_net[-1].weight.zero_()
+                    self.body_net[-1].bias.zero_()
+
+    def body(self, q: Tensor, points_per_segment: int | None = None) -> BodyPoints:
+        """The learned body of joint vectors q (..., num_joints) (the shape output): ``points_per_segment`` K'
+        (None: the trained K) must divide the trained K (every K/K'-th point); ValueError without a shape output."""
+        if not self.body_points:
+            raise ValueError(f"{type(self).__name__}: has no body: trained without a shape output; train with "
+                             "model.init_args.body_points K > 0 and body_weight > 0 on data with backbones")
+        k = self.body_points if points_per_segment is None else check_points_per_segment(points_per_segment)
+        if self.body_points % k:
+            raise ValueError(f"points_per_segment: the shape output has {self.body_points} points per segment; "
+                             f"expected a divisor of it, got {k}")
+        pts = (self.body_net(self.front(q)) * self.length).unflatten(-1, (-1, 3))
+        pts = torch.cat([torch.zeros_like(pts[..., :1, :]), pts], dim=-2)
+        if self.body_prior == "cc":
+            pts = pts + backbone_points(self.spec, self.body_encoder(q), self.body_points)
+        return body_of_points(self.spec, subsample(pts, self.spec.num_segments, self.body_points // k), k)
 
     def fit_normalization(self, q: Tensor, pose: Tensor | None = None) -> None:
         self.front.fit(q)

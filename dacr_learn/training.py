@@ -155,7 +155,8 @@ class KinematicsModule(pl.LightningModule):
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
         """Scene of fixed validation samples for the Rerun callback (CPU tensors, metres; keys of
         :func:`dacr_learn.viz.scene.log_scene`): the CC backbone of the samples' features, the dataset's
-        own backbone where it has one (Cosserat), the learned segment ends of a compositional model."""
+        own backbone where it has one (Cosserat), the learned segment ends of a compositional model or the body of an
+        FK network's shape output."""
         val = self.trainer.datamodule.splits["val"]
         k, n = min(self.hparams.visual_samples, len(val["q"])), min(num_workspace, len(val["q"]))
         q, pose = val["q"][:n].to(self.device), val["pose"][:n].to(self.device)
@@ -168,6 +169,8 @@ class KinematicsModule(pl.LightningModule):
         if isinstance(getattr(self, "model", None), CompositionalFK):
             ends = self.model.segment_ends(q[:k])[..., :3, 3]
             visual["backbone_pred"] = torch.cat([torch.zeros_like(ends[..., :1, :]), ends], dim=-2).cpu()
+        elif getattr(getattr(self, "model", None), "body_points", 0):       # an FK network's shape output
+            visual["backbone_pred"] = self.model.body(q[:k]).points.cpu()
         return visual
 
 
@@ -180,13 +183,20 @@ class FKModule(KinematicsModule):
     "distal", ``units`` "strain" | "metric"). ``segment_weight``: weight of the loss on the end frames of the
     segments before the tip when batches carry ``segment_frames`` (compositional only; the datamodule's
     ``segment_frames``).
+
+    The body (:mod:`dacr_learn.body`): ``body_points`` K > 0 gives a monolithic model a shape output
+    (:class:`~dacr_learn.models.FKModel`; ``body_prior`` "none" | "cc": the points, or their offsets from the CC
+    arcs); a compositional model's body is its segment twists followed part of
+    the way (:meth:`~dacr_learn.compositional.CompositionalFK.body`, "twist" head). When batches carry the true
+    body ("backbone", the datamodule's ``body_points``), ``body_weight`` × the mean of ‖p̂ − p‖²/L² over its
+    points is added to the loss, and validation/test report ``body_err`` (per sample the largest point error).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
                  width: int = 256, depth: int = 3, activation: str = "silu", lr: float = 3e-3,
                  weight_decay: float = 0.0, visual_samples: int = 8, rotation: str = "6d", rot_weight: float = 1.0,
                  structure: str = "monolithic", context: str = "none", segment_weight: float = 0.0,
-                 units: str = "strain"):
+                 units: str = "strain", body_points: int = 0, body_prior: str = "none", body_weight: float = 0.0):
         # save_hyperparameters() in the base class also records the FK-only arguments
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
@@ -203,13 +213,29 @@ class FKModule(KinematicsModule):
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
         weight = self.hparams.get("segment_weight", 0.0)
         if not (weight and "segment_frames" in batch and isinstance(self.model, CompositionalFK)):
-            return self.pose_loss(self.model(batch["q"]), batch["pose"])
-        ends = self.model.segment_ends(batch["q"])
-        inner = self.pose_loss(ends[..., :-1, :, :], batch["segment_frames"][..., :-1, :, :])
-        return self.pose_loss(ends[..., -1, :, :], batch["pose"]) + weight * inner
+            loss = self.pose_loss(self.model(batch["q"]), batch["pose"])
+        else:
+            ends = self.model.segment_ends(batch["q"])
+            inner = self.pose_loss(ends[..., :-1, :, :], batch["segment_frames"][..., :-1, :, :])
+            loss = self.pose_loss(ends[..., -1, :, :], batch["pose"]) + weight * inner
+        body_weight = self.hparams.get("body_weight", 0.0)
+        if body_weight and "backbone" in batch:
+            error = self.body_prediction(batch) - batch["backbone"]
+            loss = loss + body_weight * (error / self.spec.total_length).square().sum(-1).mean()
+        return loss
+
+    def body_prediction(self, batch: dict[str, Tensor]) -> Tensor:
+        """The model's body (B, 1 + m·K, 3) [m] at the layout of the batch's true body ``backbone``."""
+        k = (batch["backbone"].shape[-2] - 1) // self.spec.num_segments
+        return self.model.body(batch["q"], k).points
 
     def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
-        return pose_errors(self.model(batch["q"]), batch["pose"])
+        errors = pose_errors(self.model(batch["q"]), batch["pose"])
+        learned_body = self.hparams.get("body_points", 0) or getattr(self.model, "rotation", "") == "twist"
+        if "backbone" in batch and learned_body:
+            diff = self.body_prediction(batch) - batch["backbone"]
+            errors["body_err"] = torch.linalg.vector_norm(diff, dim=-1).amax(-1)
+        return errors
 
     def predicted_pose(self, q: Tensor, pose: Tensor) -> Tensor:
         return self.model(q)

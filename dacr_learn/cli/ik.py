@@ -157,9 +157,9 @@ def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: 
     if scene is None:
         log_ik_solutions(rec, "ik", targets, lines, success)
     else:                                        # obstacles, and the body coloured by clearance
-        from ..body import body_profile
+        from ..body import body_layout
         from ..viz.obstacles import log_scene_solutions
-        log_scene_solutions(rec, "ik", scene, targets, lines, body_profile(spec, 16)[1], success, clearance)
+        log_scene_solutions(rec, "ik", scene, targets, lines, body_layout(spec, 16)[1], success, clearance)
     rec.flush()
 
 

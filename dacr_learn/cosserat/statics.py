@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..body import BodyPoints, body_layout, body_of_points, check_points_per_segment
 from ..checks import check_tensor
 from ..lie import pose_from_parts
 from ..robot import RobotSpec
@@ -72,6 +73,18 @@ class CosseratSolution:
     def at(self, arcs: Sequence[float]) -> Tensor:
         """Frames (..., S, 4, 4) at reference arcs [m] that are grid nodes (``stations`` of the solve)."""
         return self.frames[..., self.grid.index(arcs), :, :]
+
+    def body(self, spec: RobotSpec, points_per_segment: int | None = None) -> BodyPoints:
+        """The rod's own body: its nodes at the fractions j/K of every segment's reference length, (..., 1 + m·K, 3)
+        [m] in the base frame (the layout of :mod:`dacr_learn.body`; NaN where the solve failed). ``spec``: the
+        solved robot (its envelope radii). K (None: the solve's ``steps_per_segment``) must divide the steps per
+        segment (ValueError otherwise: solve with a multiple of K steps)."""
+        k = self.grid.steps if points_per_segment is None else check_points_per_segment(points_per_segment)
+        arcs, _ = body_layout(spec, k)
+        if self.grid.steps % k or abs(float(arcs[-1]) - self.grid.ends[-1]) > 1e-12 * self.grid.ends[-1]:
+            raise ValueError(f"points_per_segment: the solve has {self.grid.steps} nodes per segment of "
+                             f"{spec.name!r}; expected a divisor of it, got {k}")
+        return body_of_points(spec, self.frames[..., self.grid.index(arcs.tolist()), :3, 3], k)
 
 
 def _loads(spec: RobotSpec, batch: torch.Size, section: Section, gravity, tip_wrench, point_wrenches):

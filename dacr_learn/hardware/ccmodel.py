@@ -33,6 +33,7 @@ import torch
 from pytorch_kinematics.transforms import euler_angles_to_matrix
 from torch import Tensor, nn
 
+from ..body import BodyPoints, body_of_points, check_points_per_segment
 from ..kinematics import backbone_points, forward_kinematics
 from ..robot import RobotSpec
 from .slack import SlackAwareEncoder
@@ -91,6 +92,12 @@ class CalibratedCC(nn.Module):
     def backbone(self, x: Tensor, points_per_segment: int = 12) -> Tensor:
         """Backbone points (..., 1 + m·K, 3) [m] in the motion-capture frame, for drawing."""
         return self.to_world(backbone_points(self.spec, self.encoder(x), points_per_segment))
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The calibrated model's body of displacements x (..., N) [m]: the CC arcs of the fitted encoder's
+        features, in the motion-capture frame (:mod:`dacr_learn.body` layout; radii of the nominal robot file)."""
+        return body_of_points(self.spec, self.backbone(x, check_points_per_segment(points_per_segment)),
+                              points_per_segment)
 
     def report(self) -> dict:
         """Fitted physical parameters in readable units (mm, deg)."""

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..cosserat.displacement import solve_displacements
+from ..body import BodyPoints
+from ..cosserat.displacement import DisplacementSolution, solve_displacements
 from ..robot import RobotSpec
 from .ccmodel import CalibratedCC
 
@@ -156,13 +157,25 @@ class CalibratedCosserat:
         p = self.cc.encoder.tendon_pretension().detach()
         return self.path_length - x.to(torch.float64) - p
 
+    def solve(self, x: Tensor, warm: WarmStart | None = None) -> DisplacementSolution:
+        """The statics of displacements x (n, N) [m] (base frame; NaN rows where the solve failed)."""
+        kw = {} if warm is None else {"tension_guess": warm.tension, "compliance_guess": warm.compliance}
+        return solve_displacements(self.robot(), self.rest_lengths(x), gravity=self.gravity(),
+                                   spring_lengths=self.path_length, passing="segment",
+                                   steps_per_segment=self.steps, tol=SOLVE_TOL, on_failure="flag", **kw)
+
     def tip_poses(self, x: Tensor, warm: WarmStart | None = None) -> tuple[Tensor, WarmStart]:
         """Tip poses (n, 4, 4) [m] in the base frame of displacements x (n, N) [m], and the new warm start."""
-        kw = {} if warm is None else {"tension_guess": warm.tension, "compliance_guess": warm.compliance}
-        sol = solve_displacements(self.robot(), self.rest_lengths(x), gravity=self.gravity(),
-                                  spring_lengths=self.path_length, passing="segment",
-                                  steps_per_segment=self.steps, tol=SOLVE_TOL, on_failure="flag", **kw)
+        sol = self.solve(x, warm)
         return sol.tip, WarmStart(sol.tension, sol.compliance)
+
+    def body(self, x: Tensor, points_per_segment: int | None = None) -> BodyPoints:
+        """The rod's body of displacements x (n, N) [m]: its nodes (:meth:`~dacr_learn.cosserat.statics.
+        CosseratSolution.body`; K must divide ``steps_per_segment``, None: all of them) in the motion-capture
+        frame; NaN rows where the solve failed."""
+        body = self.solve(x).statics.body(self.spec0, points_per_segment)
+        with torch.no_grad():
+            return body._replace(points=self.cc.to_world(body.points))
 
     def world_tip(self, pose: Tensor) -> Tensor:
         """Tip poses (n, 4, 4) in the base frame → marker positions (n, 3) [m], motion-capture frame."""

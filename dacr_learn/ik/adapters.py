@@ -196,6 +196,12 @@ class LearnedFK(_ClarkeVariables):
         pose = self.model(q.to(F64))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
 
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The network's learned body (the compositional model's segment twists, an FK model's shape output)."""
+        if not hasattr(self.model, "body"):
+            raise ValueError(f"{type(self.model).__name__}: has no body")
+        return self.model.body(self.joints(x), points_per_segment)
+
 
 def _folded_jacobian(model: nn.Module) -> nn.Module | None:
     """The folded Jacobian module of a trained FK model in float64, or None where there is none."""

@@ -153,7 +153,7 @@ def log_scene(
     ``visual`` may hold any subset of (tensors or arrays, metres):
     ``backbone`` (k, P, 3) (grey: the CC backbone of the samples' features), ``backbone_true`` (k, P', 3)
     (blue: the data's own backbone where it is not CC, e.g. Cosserat), ``backbone_pred`` (k, P'', 3)
-    (orange: the learned base and segment ends), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
+    (orange: the learned base and segment ends, or a learned body), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
     ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,).
     The workspace cloud uses :func:`log_workspace` (``error_range``, ``max_points``) and gets a
     static colour bar at ``<prefix>/workspace/colour_scale`` the first time.

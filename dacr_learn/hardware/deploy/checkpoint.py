@@ -45,6 +45,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import nn
 
+from ...body import BodyPoints
 from ...checks import load_torch_file
 from ...robot import RobotSpec
 from ...runs import CHECKPOINT, find_checkpoint
@@ -109,6 +110,17 @@ class HardwareModel:
         with torch.no_grad():
             preds = torch.stack([m(split) for m in self.members])
         return mean_and_sigma(preds, split.cc_tip, split.features[..., :2], self.sigma_of(), self.support)
+
+    def body(self, servo_mm: torch.Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The body of servo commands (n, S) [mm, ``servo_ids`` order]: the calibrated physical model's
+        (:meth:`~..ccmodel.CalibratedCC.body`: the CC arcs of the fitted encoder's features), in the motion-capture
+        frame of the tips, float64. The learned residual corrects the tip only, so near the tip the body can be off
+        the predicted tip by up to the residual (:meth:`predict` minus the calibrated CC tip)."""
+        servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
+        if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
+            raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
+        with torch.no_grad():
+            return self.cc.body(self.smap.command_displacements(self.spec, self.servo_ids, servo), points_per_segment)
 
     def sigma_of(self) -> SigmaModel:
         """The σ this model reports: the stored σ model, else the σ calibration (an ``ensemble``-term σ

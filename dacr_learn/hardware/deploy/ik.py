@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ...body import BodyPoints
 from ...checks import F64
 from ...ik.adapters import Check, SolverModel, TipJacobian, register_solver_model
 from ...ik.limits import Limits
@@ -63,6 +64,10 @@ class HardwareTip(SolverModel):
 
     def variables(self, q: Tensor) -> Tensor:
         return q.to(F64)
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The calibrated physical model's body of servo commands x (B, S) [mm] (motion-capture frame)."""
+        return self.hardware.body(x, points_per_segment)
 
     def check(self, q: Tensor) -> Check:
         tip, _ = self.hardware.predict(q, static=True)
