@@ -8,7 +8,7 @@ import lightning.pytorch as pl
 import pytest
 import torch
 from conftest import ROOT
-from dacr_learn.ik.models import as_solver_model
+from dacr_learn.ik.adapters import as_solver_model
 
 from dacr_learn.body import BodyPoints, body_layout, cc_body, segment_body_radii, subsample
 from dacr_learn.compositional import CompositionalFK
