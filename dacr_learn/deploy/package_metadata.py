@@ -18,8 +18,9 @@ string, numbers as Python's ``repr`` of a float, lists separated by ``,``):
 - robot models only: ``feature_names`` (the actuated Clarke features, the columns of ``J_f``), the features'
   limits ``feature_lower`` / ``feature_upper`` (±inf on the ρ columns), ``feature_disks`` (index pairs of the ρ
   columns, ``i j`` per pair) with ``feature_disk_radius`` [m] (‖ρ‖ ≤ d·bend), ``feature_scale`` (a typical range
-  per feature), ``robot_length`` [m] (the sum of the nominal segment lengths), and when the Clarke maps are affine (no twisting segment) ``decoder_matrix`` (N × D, row major) and
-  ``decoder_offset`` (N): q = A·f + c, ``encoder_matrix`` (D × N) and ``encoder_offset`` (D): f = E·q + e;
+  per feature), ``robot_length`` [m] (the sum of the nominal segment lengths), and when the Clarke maps are
+  affine (no twisting segment) ``decoder_matrix`` (N × D, row major) and ``decoder_offset`` (N): q = A·f + c,
+  ``encoder_matrix`` (D × N) and ``encoder_offset`` (D): f = E·q + e;
 - ``iterations``, ``position_only`` (IK refinement); ``servo_ids``, ``history`` (hardware models).
 """
 from __future__ import annotations
