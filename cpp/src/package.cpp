@@ -89,6 +89,27 @@ void expect_size(const std::string& path, const std::string& what, size_t got, s
                        std::to_string(want));
 }
 
+// Copy a tensor into `dst` in row-major order, whatever its strides (outputs of a package need not be contiguous,
+// e.g. a transposed Jacobian): no temporary tensor.
+template <class T>
+void copy_out(const at::Tensor& t, const T* src, double* dst) {
+  const int64_t dims = t.dim(), n = t.numel();
+  if (t.is_contiguous()) {
+    for (int64_t k = 0; k < n; ++k) dst[k] = src[k];
+    return;
+  }
+  const auto sizes = t.sizes();
+  const auto strides = t.strides();
+  for (int64_t k = 0; k < n; ++k) {
+    int64_t rest = k, offset = 0;
+    for (int64_t d = dims - 1; d >= 0; --d) {
+      offset += (rest % sizes[d]) * strides[d];
+      rest /= sizes[d];
+    }
+    dst[k] = src[offset];
+  }
+}
+
 }  // namespace
 
 int64_t TensorSpec::numel() const {
@@ -244,14 +265,8 @@ void Package::call(const double* const* inputs, double* const* outputs) {
   auto outs = runner_->run(batch1_);
   for (size_t j = 0; j < outs.size(); ++j) {
     if (outputs[j] == nullptr) continue;
-    const int64_t n = outs[j].numel();
-    if (dtype_ == at::kFloat) {
-      const float* src = outs[j].const_data_ptr<float>();
-      for (int64_t k = 0; k < n; ++k) outputs[j][k] = src[k];
-    } else {
-      const double* src = outs[j].const_data_ptr<double>();
-      for (int64_t k = 0; k < n; ++k) outputs[j][k] = src[k];
-    }
+    if (dtype_ == at::kFloat) copy_out(outs[j], outs[j].const_data_ptr<float>(), outputs[j]);
+    else copy_out(outs[j], outs[j].const_data_ptr<double>(), outputs[j]);
   }
 }
 

@@ -96,7 +96,7 @@ int main(int argc, char** argv) {
       }
       auto outs = p.run(inputs);
       for (size_t k = 0; k < outs.size(); ++k)
-        write_file(out + "." + std::to_string(k) + ".bin", outs[k].const_data_ptr(), outs[k].nbytes());
+        write_file(out + "." + std::to_string(k) + ".bin", outs[k].contiguous().const_data_ptr(), outs[k].nbytes());
       // the plain-buffer API, row by row
       std::vector<std::vector<double>> in64, out64(outs.size());
       for (auto& t : inputs) {

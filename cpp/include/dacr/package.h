@@ -87,7 +87,8 @@ class Package {
   at::ScalarType dtype() const { return dtype_; }
 
   // Batch call: one tensor per input, shape (B, *shape), the package's dtype, contiguous CPU; returns the outputs
-  // (B, *shape). PackageError on a wrong count, shape, dtype or device.
+  // (B, *shape), not necessarily contiguous (a Jacobian may come transposed in memory). PackageError on a wrong
+  // count, shape, dtype or device.
   std::vector<at::Tensor> run(const std::vector<at::Tensor>& inputs);
 
   // Batch-1 call on plain buffers: `inputs[i]` points at inputs()[i].numel() doubles, `outputs[j]` at
