@@ -46,7 +46,7 @@ BUILD = ROOT / "cpp" / "build"
 TARGETS = {"jacobian_p50_us": 25.0, "jacobian_p99_us": 60.0, "refine_p50_us": 200.0, "overrun_fraction": 1e-3}
 
 
-def export_packages(out: Path, width: int, depth: int, epochs: int) -> None:
+def export_packages(out: Path, width: int, depth: int, epochs: int, refine: bool) -> None:
     """The FK model (trained for ``epochs`` on 20,000 samples; 0: random weights) and the refinement, exported."""
     torch.manual_seed(0)
     fk = FKModule(robot=str(ROBOT), features="clarke", width=width, depth=depth, activation="silu", rotation="6d",
@@ -62,7 +62,8 @@ def export_packages(out: Path, width: int, depth: int, epochs: int) -> None:
     torch.save({"state_dict": fk.state_dict(), "hyper_parameters": dict(fk.hparams),
                 "pytorch-lightning_version": lightning.__version__}, out / "fk.ckpt")
     dexport.export_checkpoint(out / "fk.ckpt", out / "fk")
-    export_refinement(ROBOT, out / "refine", iterations=3)
+    if refine:
+        export_refinement(ROBOT, out / "refine", iterations=3)
 
 
 def write_targets(path: Path, ticks: int, lap_s: float = 2.0, rate: float = 1000.0) -> None:
@@ -91,17 +92,19 @@ def python_round(fns: dict, calls: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def python_rows(out: Path, targets: Path) -> dict:
-    fk, jac, ref = (dexport.load(out / f, n) for f, n in (("fk", "fk"), ("fk", "jacobian"), ("refine", "refine")))
+def python_rows(out: Path, targets: Path, refine: bool) -> dict:
+    fk, jac = dexport.load(out / "fk", "fk"), dexport.load(out / "fk", "jacobian")
     q = torch.full((1, fk.inputs[0][1][0]), 0.01)
-    data = np.fromfile(targets)
-    n = ref.inputs[1][1][0]
-    q0 = torch.from_numpy(data[:n].copy()).unsqueeze(0)
-    pose = torch.from_numpy(data[n:n + 16].copy()).reshape(1, 4, 4)
+    rows = {"python_fk": lambda: fk(q), "python_jacobian": lambda: jac(q), "python_fk_runner": lambda: fk.runner([q]),
+            "python_jacobian_runner": lambda: jac.runner([q])}
+    if refine:
+        ref = dexport.load(out / "refine", "refine")
+        data = np.fromfile(targets)
+        n = ref.inputs[1][1][0]
+        q0 = torch.from_numpy(data[:n].copy()).unsqueeze(0)
+        pose = torch.from_numpy(data[n:n + 16].copy()).reshape(1, 4, 4)
+        rows.update(python_refine=lambda: ref(pose, q0), python_refine_runner=lambda: ref.runner([pose, q0]))
     with torch.no_grad():
-        rows = {"python_fk": lambda: fk(q), "python_jacobian": lambda: jac(q), "python_refine": lambda: ref(pose, q0),
-                "python_fk_runner": lambda: fk.runner([q]), "python_jacobian_runner": lambda: jac.runner([q]),
-                "python_refine_runner": lambda: ref.runner([pose, q0])}
         for fn in rows.values():
             for _ in range(50):
                 fn()
@@ -119,14 +122,17 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--calls", type=int, default=1000, help="calls per row and round")
     p.add_argument("--seconds", type=float, default=10.0, help="length of each 1 kHz loop")
     p.add_argument("--cpu", type=int, default=1, help="the CPU both sides are pinned to")
+    p.add_argument("--no-refine", action="store_true", help="skip the IK refinement (its package builds for minutes)")
     p.add_argument("--json", action="store_true", help="one JSON line on stdout")
     args = p.parse_args(argv)
     quiet_third_party_warnings()
     out = Path(args.out)
-    have = all((out / f).is_file() for f in ("fk/fk.aoti.pt2", "fk/jacobian.aoti.pt2", "refine/refine.aoti.pt2"))
+    refine = not args.no_refine
+    wanted = ("fk/fk.aoti.pt2", "fk/jacobian.aoti.pt2") + (("refine/refine.aoti.pt2",) if refine else ())
+    have = all((out / f).is_file() for f in wanted)
     if not (args.reuse and have):
         t0 = time.perf_counter()
-        export_packages(out, args.width, args.depth, args.epochs)
+        export_packages(out, args.width, args.depth, args.epochs, refine)
         print(f"exported in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
     t0 = time.perf_counter()
     subprocess.run(["bash", str(ROOT / "cpp" / "build.sh")], check=True, env={**os.environ, "PYTHON": sys.executable},
@@ -136,10 +142,10 @@ def main(argv: list[str] | None = None) -> dict:
     write_targets(targets, int(round(args.seconds * 1000)))
     torch.set_num_threads(1)
     os.sched_setaffinity(0, {args.cpu})
-    rows = python_rows(out, targets)
+    rows = python_rows(out, targets, refine)
     rt = [str(BUILD / "dacr_rt")]
-    packages = ["--fk", str(out / "fk" / "fk.aoti.pt2"), "--jacobian", str(out / "fk" / "jacobian.aoti.pt2"),
-                "--refine", str(out / "refine" / "refine.aoti.pt2"), "--targets", str(targets), "--cpu", str(args.cpu)]
+    packages = ["--fk", str(out / "fk" / "fk.aoti.pt2"), "--jacobian", str(out / "fk" / "jacobian.aoti.pt2")]
+    packages += ["--refine", str(out / "refine" / "refine.aoti.pt2"), "--targets", str(targets)] if refine else []
     load = {"before": os.getloadavg()}
     rounds: dict[str, list[dict]] = {}
     setup = None
@@ -147,15 +153,16 @@ def main(argv: list[str] | None = None) -> dict:
         with torch.no_grad():
             for name, r in python_round(rows, args.calls).items():
                 rounds.setdefault(name, []).append(r)
-        cpp = json.loads(subprocess.run(rt + ["bench", *packages, "--calls", str(args.calls), "--rounds", "1"],
+        cpp = json.loads(subprocess.run(rt + ["bench", *packages, "--calls", str(args.calls), "--rounds", "1",
+                                              "--cpu", str(args.cpu)],
                                         check=True, capture_output=True, text=True).stdout)
         setup = {k: cpp[k] for k in ("pinning", "scheduler", "memory")}
-        for name in ("fk", "jacobian", "refine"):
+        for name in ("fk", "jacobian") + (("refine",) if refine else ()):
             rounds.setdefault(f"cpp_{name}", []).append(cpp[name])
     latency = {name: {k: float(np.median([r[k] for r in rs])) for k in ("p50_us", "p99_us")}
                for name, rs in rounds.items()}
     loops = {}
-    for mode, extra in (("rrc", packages[2:4]), ("ik", packages[4:8])):
+    for mode, extra in (("rrc", packages[2:4]), ("ik", packages[4:8]))[:2 if refine else 1]:
         command = rt + [mode, *extra, "--seconds", str(args.seconds), "--cpu", str(args.cpu)]
         loops[mode] = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
     load["after"] = os.getloadavg()
