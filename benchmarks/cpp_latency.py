@@ -39,6 +39,7 @@ from dacr_learn.console import quiet_third_party_warnings, run_cli  # noqa: E402
 from dacr_learn.data import generate  # noqa: E402
 from dacr_learn.datamodule import KinematicsDataModule  # noqa: E402
 from dacr_learn.ik.exported import IKRefinement, export_refinement  # noqa: E402
+from dacr_learn.robot import RobotSpec  # noqa: E402
 from dacr_learn.training import FKModule  # noqa: E402
 
 ROBOT = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
@@ -69,7 +70,7 @@ def export_packages(out: Path, width: int, depth: int, epochs: int, refine: bool
 def write_targets(path: Path, ticks: int, lap_s: float = 2.0, rate: float = 1000.0) -> None:
     """float64: the start joints (N), then one target pose (4 × 4) per tick: x(t) moves between two random admissible
     configurations and back, (1 − cos(2πt / lap)) / 2 of the way (the admissible set is convex)."""
-    model = IKRefinement(ROBOT).model
+    model = IKRefinement(RobotSpec.from_yaml(ROBOT)).model
     x = model.limits.sample(2, torch.Generator().manual_seed(1))
     t = torch.arange(ticks, dtype=torch.float64) / rate
     w = ((1 - torch.cos(2 * torch.pi * t / lap_s)) / 2).unsqueeze(-1)
