@@ -1,6 +1,7 @@
 // Loading and checking dacr_learn's AOTInductor packages (include/dacr/package.h).
 #include "dacr/package.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -190,7 +191,9 @@ Package::Package(const std::string& path, const std::string& module, const std::
   try {
     metadata = torch::inductor::AOTIModelPackageLoader::load_metadata_from_package(path, "model");
   } catch (const std::exception& err) {
-    throw PackageError(path + ": not an AOTInductor package (" + std::string(err.what()).substr(0, 200) + ")");
+    std::string what = err.what();
+    what = what.substr(0, std::min(what.find('\n'), size_t(160)));  // the first line of libtorch's message
+    throw PackageError(path + ": not an AOTInductor package (" + what + ")");
   }
   info_ = PackageInfo::parse(metadata, path);
   const std::string here = TORCH_VERSION;
