@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: train test lint bench clean-venv
+.PHONY: train test lint bench cpp clean-venv
 
 # Re-install only when the dependency list or the constraints change.
 $(STAMP): pyproject.toml constraints.txt
@@ -56,6 +56,11 @@ test: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
+
+# The C++ library and examples (cpp/, docs/cpp.md) against the libtorch inside the installed torch wheel: cmake and a
+# C++ compiler (ninja if present); a missing one is a one-line error naming it.
+cpp: $(STAMP)
+	@PYTHON=$(PY) cpp/build.sh
 
 bench: $(STAMP)
 	$(PY) benchmarks/kinematics.py

@@ -39,6 +39,7 @@ from ..robot import RobotSpec
 from ..runs import CHECKPOINT, load_checkpoint_model
 from .inference import InferenceFK, InferenceIK, InferenceJacobian
 from .inference_compositional import InferenceCompositionalFK, InferenceCompositionalJacobian
+from .package_metadata import package_metadata
 
 FORMAT = "dacr_learn.export/1"
 METADATA_FILE = "metadata.json"
@@ -90,16 +91,16 @@ PACKAGE_CONFIGS = {"memory_planning": True}
 
 
 def write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, ...], out: Path,
-                 aoti: bool, autotune: bool = False) -> dict[str, str]:
+                 aoti: bool, autotune: bool = False, metadata: dict[str, str] | None = None) -> dict[str, str]:
     """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2`` (with
     :data:`PACKAGE_CONFIGS`, :data:`AUTOTUNE_CONFIGS` when ``autotune``, and the module's ``inductor_configs`` if
-    it has them)."""
+    it has them). ``metadata``: strings stored inside the package (:mod:`.package_metadata`, read by C++ loaders)."""
     program = export_program(module, example)
     files = {"export": f"{name}.pt2"}
     torch.export.save(program, out / files["export"])
     if aoti:
         configs = {**PACKAGE_CONFIGS, **(AUTOTUNE_CONFIGS if autotune else {}),
-                   **getattr(module, "inductor_configs", {})}
+                   **getattr(module, "inductor_configs", {}), "aot_inductor.metadata": dict(metadata or {})}
         try:
             torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"),
                                                      inductor_configs=configs)
@@ -143,7 +144,7 @@ def write_export(out: Path, meta: dict[str, Any], modules: dict[str, nn.Module],
     ``against`` (what the references are) when a deviation exceeds :data:`VERIFY_TOLERANCE`."""
     for name, module in modules.items():
         files = write_module(name, module, tuple(x[:2] for x in inputs[name]), out,
-                             aoti if isinstance(aoti, bool) else name in aoti, autotune)
+                             aoti if isinstance(aoti, bool) else name in aoti, autotune, package_metadata(meta, name))
         meta["modules"][name]["files"] = {k: {"file": f, "sha256": file_sha256(out / f)} for k, f in files.items()}
     worst = {}
     for name, info in meta["modules"].items():

@@ -1,0 +1,38 @@
+// What a real-time loop needs around the controllers: pinning, the scheduler, a periodic clock, latency figures,
+// and counting the allocations of the loop (docs/cpp.md, "Real-time loop").
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace dacr {
+
+// Outcome of preparing the calling thread for real-time work; each field says what happened in words.
+struct RealtimeSetup {
+  bool pinned = false, fifo = false, locked = false;
+  std::string pinning, scheduler, memory;
+};
+
+// Pin the calling thread to `cpu` (pthread affinity), ask for SCHED_FIFO at `priority` (needs CAP_SYS_NICE or an
+// rtprio limit; else it stays SCHED_OTHER and says so) and lock the process memory (mlockall, if permitted).
+RealtimeSetup prepare_realtime_thread(int cpu, int priority);
+
+// Monotonic clock [ns].
+int64_t now_ns();
+// Sleep until the absolute monotonic time `t_ns` (clock_nanosleep, TIMER_ABSTIME).
+void sleep_until_ns(int64_t t_ns);
+
+// p50 / p99 / max / mean of samples [ns], reported in µs.
+struct LatencySummary {
+  double p50_us = 0, p99_us = 0, max_us = 0, mean_us = 0;
+  int64_t count = 0;
+};
+LatencySummary summarize(std::vector<int64_t> samples_ns);
+
+// Counts of tensor storages allocated through libtorch's CPU allocator since `install_counting_allocator()`
+// (a wrapper around the default allocator, c10::SetCPUAllocator).
+void install_counting_allocator();
+int64_t tensor_allocations();
+
+}  // namespace dacr
