@@ -8,7 +8,6 @@ import lightning.pytorch as pl
 import pytest
 import torch
 from conftest import ROOT
-from dacr_learn.ik.adapters import as_solver_model
 
 from dacr_learn.body import BodyPoints, body_layout, cc_body, segment_body_radii, subsample
 from dacr_learn.compositional import CompositionalFK
@@ -16,6 +15,7 @@ from dacr_learn.cosserat import solve_statics
 from dacr_learn.data import cosserat as cosserat_data
 from dacr_learn.data import generate
 from dacr_learn.datamodule import KinematicsDataModule
+from dacr_learn.ik.adapters import as_solver_model
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.models import FKModel
 from dacr_learn.robot import RobotSpec
