@@ -156,11 +156,12 @@ LAYERS = {
     "data": ["data"],
     "learning": ["datamodule", "training", "training_sampler", "runs", "ablation", "combination_shift"],
     "viz": ["viz"],
-    "deploy": ["deploy", "ik", "arm"],
+    "deploy": ["deploy", "ik", "arm", "plan"],
     "hardware": ["hardware"],
     "hardware.deploy": ["hardware.deploy"],
     "hardware.study": ["hardware.study"],
-    "entry": ["", "export", "hardware.__main__", "ablation.__main__", "ik.cli", "ik.__main__"],   # root and CLIs
+    "entry": ["", "export", "cli", "hardware.__main__", "ablation.__main__", "ik.cli", "ik.__main__",
+              "plan.__main__"],   # root and CLIs
 }
 NO_LIGHTNING_OR_RERUN = ("core", "physics", "data", "deploy", "hardware", "hardware.deploy")
 
