@@ -5,13 +5,15 @@ to min(path length, L), while the inserted body stays on the traversed path (doc
 
 1. **first step** (s = 0): the multi-solution IK solver (:func:`dacr_learn.ik.solve_ik`, seeded by the arm's
    pose bank) puts the tip on the path's start pointing along the path, at several rolls; each solution is
-   refined on the step problem (:mod:`.solve`: the whole body on the entry line) and the lowest cost is kept;
+   refined on the step problem (:mod:`.solve`: the whole body on the entry line, every point weighing alike)
+   and the lowest cost is kept (of equal ones, the arm's best-conditioned configuration);
 2. **coarse pass**: steps :attr:`FTLOptions.coarse_spacing` apart, each refined from the previous one
    (Levenberg–Marquardt on tip + body residuals, limits inside the step) and its tip polished onto the path; a
    step whose tip cannot be put on the path is retried from the IK solver's solutions nearest the previous
    step (**recovery**);
 3. **fine pass**: all T steps at once, started from the coarse solutions interpolated in s, refined and
-   polished as one batch;
+   polished as one batch; a step that leaves its predecessor's branch (a variable changing by more than half
+   its continuity bound) or misses the path is solved again from its predecessor (continuation);
 4. **verdict**: from the joints alone (the model's own check): every tip within ``tolerance``·L of its path
    point, inside every limit, and no variable changing by more than :meth:`FTLOptions.bounds` between
    consecutive steps; else ``success`` False and ``reason`` names the first failure.
@@ -19,7 +21,7 @@ to min(path length, L), while the inserted body stays on the traversed path (doc
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
@@ -39,6 +41,8 @@ _F64 = torch.float64
 BANK_SIZE = 2048   # admissible samples seeding the IK of the first step and of a recovery (dacr_learn.arm.seeds)
 ROLLS = 4          # rolls about the path's entry direction tried for the first step
 FIRST_ITERATIONS = 40   # LM steps of the first step (from IK solutions: the body may start far from the line)
+TIE = 1e-10         # step costs (units of L²) this close count as equally good for the first step
+REPAIR = 0.5      # a fine step changing a variable by more than this fraction of its bound is continued anew
 RECOVER = 1e-3     # a coarse step whose tip stays this far (relative to L) from its path point is recovered
 
 
@@ -48,7 +52,9 @@ class FTLOptions:
     path, relative to L; coarse_spacing: of the sequential pass; coarse_iterations / fine_iterations: LM
     steps per step of each pass; max_change: the continuity bound per step at the default spacing, in
     rad for revolute arm joints, in units of L for prismatic ones, in units of the variable's scale for the
-    robot's (bend ρ: of its disk radius); solutions: IK solutions tried for the first step and a recovery."""
+    robot's (bend ρ: of its disk radius); coarse_regularization: the pull towards the previous step in the coarse
+    pass (strong: what the body leaves free stays where it was; the fine pass re-centres it and removes the bias);
+    solutions: IK solutions tried for the first step and a recovery."""
 
     tolerance: float = 1e-6
     spacing: float = 0.01
@@ -56,6 +62,7 @@ class FTLOptions:
     coarse_iterations: int = 6
     fine_iterations: int = 8
     max_change: float = 0.1
+    coarse_regularization: float = 1e-2
     solutions: int = 8
     step: StepOptions = field(default_factory=StepOptions)
 
@@ -118,6 +125,7 @@ class _Planner:
         self.length = robot_length(model)
         self.tol = options.tolerance * self.length
         self.problem = Problem(model, path, self.length, options.step)
+        self.start = Problem(model, path, self.length, replace(options.step, outside_weight=1.0))
         self.bank = None
 
     def _candidates(self, targets: Tensor, position_only: bool, q0: Tensor | None = None) -> Tensor:
@@ -135,12 +143,19 @@ class _Planner:
     def _best(self, cand: Tensor, s: float, ref: Tensor | None, iterations: int) -> tuple[Tensor, bool]:
         """The candidate (D,) of least step cost after refinement and polish (tip on the path first)."""
         sv = torch.full((cand.shape[0],), s, dtype=_F64)
-        x, cost, _ = self.problem.refine(cand, sv, cand if ref is None else ref.expand_as(cand), iterations)
+        problem = self.problem if ref is not None else self.start   # the first step: the whole body on the line
+        x, cost, _ = problem.refine(cand, sv, cand if ref is None else ref.expand_as(cand), iterations)
         x = self.problem.polish(x, sv, 1e-3 * self.tol)
         ok = self.problem.tip_error(x, sv) <= self.tol
         if ref is not None:       # a recovery: prefer the solution nearest the previous step
             cost = cost + ((x - ref) / self.problem.scale).square().sum(-1) * 1e-6
-        i = int(torch.where(ok, cost, cost + 1e6).argmin())
+        cost = torch.where(ok, cost, cost + 1e6)
+        if ref is None and isinstance(self.model, Composite):   # first step: of the equally good, the arm's
+            tie = cost <= cost.min() + TIE                        # best-conditioned (far from its singularities)
+            jac = self.model.tip_and_jacobian(x)[2][:, :, :self.model.num_arm]
+            sigma = torch.linalg.svdvals(jac)[:, -1]
+            cost = torch.where(tie, -sigma, torch.full_like(sigma, float("inf")))
+        i = int(cost.argmin())
         return x[i], bool(ok[i])
 
     def _wrapped(self, x: Tensor) -> Tensor:
@@ -167,9 +182,10 @@ class _Planner:
         xs, reason = [x0], ""
         for k in range(1, s.shape[0]):
             prev = xs[-1][None]
-            pred = self.problem.lim.project(2 * xs[-1] - xs[-2])[None] if k > 1 else prev   # linear predictor
+            pred = prev
             sk = s[k:k + 1]
-            x, _, tip = self.problem.refine(pred.clone(), sk, prev, self.opts.coarse_iterations)
+            x, _, tip = self.problem.refine(pred.clone(), sk, prev, self.opts.coarse_iterations,
+                                            reg=self.opts.coarse_regularization)
             if float(tip[0]) > RECOVER * self.length:                                   # recovery
                 cand = self._candidates(self.path.at(sk), True, q0=self.model.joints(prev))
                 if cand.shape[0]:
@@ -187,10 +203,15 @@ class _Planner:
         x, _, _ = self.problem.refine(x0.clone(), s, x0, self.opts.fine_iterations)
         x, _, _ = self.problem.refine(x, s, x.clone(), self.opts.fine_iterations)      # pull re-centred: no bias
         x = self.problem.polish(x, s, 1e-3 * self.tol)
-        bad = (self.problem.tip_error(x, s) > self.tol).nonzero().squeeze(-1).tolist()
-        for k in bad:                                   # rows the batch missed: from their neighbour
-            prev = x[max(k - 1, 0)][None]
-            xk, _, _ = self.problem.refine(prev.clone(), s[k:k + 1], prev, self.opts.coarse_iterations)
+        bad = self.problem.tip_error(x, s) > self.tol
+        bound = self.bounds(float((s[1:] - s[:-1]).max()) if s.shape[0] > 1 else 0.0)
+        for k in range(1, x.shape[0]):        # continuation: a row off its neighbour's branch, or missed, again
+            if not (bool(bad[k]) or bool(((x[k] - x[k - 1]).abs() > REPAIR * bound).any())):
+                continue
+            prev = x[k - 1:k]
+            xk, _, _ = self.problem.refine(prev.clone(), s[k:k + 1], prev, self.opts.coarse_iterations,
+                                           reg=self.opts.coarse_regularization)
+            xk, _, _ = self.problem.refine(xk, s[k:k + 1], xk.clone(), self.opts.fine_iterations)
             x[k] = self.problem.polish(xk, s[k:k + 1], 1e-3 * self.tol)[0]
         return x
 

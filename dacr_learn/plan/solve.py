@@ -28,7 +28,7 @@ from .path import Path
 
 _F64 = torch.float64
 TIP_WEIGHT = 10.0      # the tip's weight relative to one body point (then polished to the tolerance)
-RAMP = 0.02            # length of the weight ramp at the entry point, relative to L
+RAMP = 0.25            # length of the weight ramp at the entry point, relative to L
 
 
 @dataclass(frozen=True)
@@ -52,8 +52,9 @@ class Problem:
         self.lim = model.limits.to(_F64)
         self.scale = self.lim.scale.to(_F64)
 
-    def residual(self, x: Tensor, s: Tensor, ref: Tensor) -> tuple[Tensor, Tensor]:
-        """r (B, R) and ∂r/∂x (B, R, D) at variables x (B, D), tip arc lengths s (B,) [m], references ref (B, D)."""
+    def residual(self, x: Tensor, s: Tensor, ref: Tensor, reg: float | None = None) -> tuple[Tensor, Tensor]:
+        """r (B, R) and ∂r/∂x (B, R, D) at variables x (B, D), tip arc lengths s (B,) [m], references ref (B, D);
+        ``reg``: the pull towards ref (default ``regularization``)."""
         b, d = x.shape
         body, jac, jac_arc = body_and_jacobian(self.model, x, self.opts.points_per_segment)
         p = body.points.shape[1]
@@ -69,18 +70,18 @@ class Problem:
         w = w / (self.length * p ** 0.5)
         r_body = (w[..., None] * (body.points - target)).reshape(b, 3 * p)
         j_body = (w[..., None, None] * jac).reshape(b, 3 * p, d)
-        reg = self.opts.regularization
+        reg = self.opts.regularization if reg is None else reg
         r_reg = reg * (x - ref) / self.scale
         j_reg = torch.diag(reg / self.scale).expand(b, d, d)
         return torch.cat([r_body, r_reg], dim=1), torch.cat([j_body, j_reg], dim=1)
 
-    def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int,
-               tol: float = 1e-10) -> tuple[Tensor, Tensor, Tensor]:
+    def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int, tol: float = 1e-10,
+               reg: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """LM on the step residuals from x (B, D): at most ``iterations`` steps; a row stops when its cost
-        falls by less than ``tol`` (relative) or its λ exceeds 1e6. Returns (x, cost (B,), the tip's distance
-        to its path point (B,) [m], from the body's last point)."""
+        falls by less than ``tol`` (relative) or its λ exceeds 1e6; ``reg`` overrides the pull's weight. Returns
+        (x, cost (B,), the tip's distance to its path point (B,) [m], from the body's last point)."""
         x = self.lim.project(x.to(_F64))
-        r, jac = self.residual(x, s, ref)
+        r, jac = self.residual(x, s, ref, reg)
         cost = (r * r).sum(-1)
         lam = torch.full_like(cost, self.opts.damping)
         live = torch.ones_like(cost, dtype=torch.bool)
@@ -89,7 +90,7 @@ class Problem:
             if rows.numel() == 0:
                 break
             xt = self._step(x[rows], r[rows], jac[rows], lam[rows])
-            rt, jt = self.residual(xt, s[rows], ref[rows])
+            rt, jt = self.residual(xt, s[rows], ref[rows], reg)
             ct = (rt * rt).sum(-1)
             better = ct < cost[rows]
             gain = (cost[rows] - ct) / cost[rows].clamp_min(1e-300)
