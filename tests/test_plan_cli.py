@@ -32,7 +32,8 @@ def args(tmp_path, *extra: str) -> list[str]:
 
 def test_the_plan_file_has_the_contracts_arrays(tmp_path):
     points = arc_path(tmp_path)
-    main(args(tmp_path, "--steps", "9"))
+    main(args(tmp_path, "--steps", "9", "--rerun", str(tmp_path / "plan.rrd")))
+    assert (tmp_path / "plan.rrd").stat().st_size > 0
     plan = dict(np.load(tmp_path / "PLAN.npz"))
     spec = RobotSpec.from_yaml(ROBOT)
     assert set(plan) == {"q", "s", "tip_err", "shape_dev", "shape_dev_max", "success", "reason"}

@@ -125,8 +125,7 @@ def main(argv: list[str] | None = None) -> FTLPlan:
     plan = plan_ftl(model, path, args.steps, FTLOptions(tolerance=args.tolerance))
     write_plan(out, plan)
     if args.rerun:
-        from ..viz.plan import record_plan
-        record_plan(Path(args.rerun), model, path, plan)
+        record(Path(args.rerun), model, path, plan)
     length = plan.length
     verdict = "success" if plan.success else f"FAILED: {plan.reason}"
     mean, worst = (100 * float(v) / length for v in (plan.shape_dev.mean(), plan.shape_dev_max.max()))
@@ -135,6 +134,27 @@ def main(argv: list[str] | None = None) -> FTLPlan:
           f"{mean:.3f} % / max {worst:.3f} % of L = {length:.4g} m; {verdict}; "
           f"{time.perf_counter() - started:.1f} s → {out}")
     return plan
+
+
+def record(file: Path, model, path: PolylinePath, plan: FTLPlan) -> None:
+    """The plan as a Rerun recording (:func:`dacr_learn.viz.plan.record_insertion`)."""
+    from ..arm import Composite
+    from ..plan.body import body
+    from ..viz.plan import record_insertion
+    x = plan.x
+    pos, rot, _ = model.tip_and_jacobian(x)
+    tips = torch.eye(4, dtype=_F64).repeat(x.shape[0], 1, 1)
+    tips[:, :3, 3] = pos
+    if rot is not None:
+        tips[:, :3, :3] = rot
+    traversed = [torch.cat([path.points[path.arc < s], path.at(s[None])]).numpy() for s in plan.s]
+    frames = bases = None
+    if isinstance(model, Composite):
+        theta = x[:, :model.num_arm]
+        frames, bases = model.arm.frames(theta).numpy(), model.base_pose(theta).numpy()
+    record_insertion(file, path.points.numpy(), traversed, body(model, x).points.numpy(), tips.numpy(),
+                     plan.length, plan.shape_dev.numpy(), plan.shape_dev_max.numpy(), plan.tip_err.numpy(),
+                     frames, bases)
 
 
 def package_main(argv: list[str] | None = None) -> None:
