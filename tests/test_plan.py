@@ -108,7 +108,7 @@ def test_a_start_out_of_reach_fails_with_a_reason():
 def test_a_path_leaving_the_workspace_fails_with_a_reason():
     # the stage moves along z only: a path turning sideways 0.5 m leaves what the 0.27 m robot can reach
     model = stage_model()
-    plan = plan_ftl(model, line([0, 0, 0.3], [0.5, 0, 0.3]), steps=8, options=FTLOptions(coarse_spacing=0.2))
+    plan = plan_ftl(model, line([0, 0, 0.3], [0.5, 0, 0.3]), steps=6, options=FTLOptions(coarse_spacing=0.5))
     assert not plan.success and "tip" in plan.reason
     assert float(plan.tip_err.max()) > 1e-6 * model.robot.length
 

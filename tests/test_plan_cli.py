@@ -17,8 +17,8 @@ ROBOT = ROOT / "configs" / "robots" / "tdcr_3seg_equal.yaml"
 
 
 def arc_path(tmp_path) -> np.ndarray:
-    """A quarter circle of radius 0.3 m from the origin, starting along +z, 0.2 m long (spacing 2 mm)."""
-    angle = np.linspace(0.0, 0.2 / 0.3, 101)
+    """An arc of radius 0.3 m from the origin, starting along +z, 0.12 m long (spacing 2 mm)."""
+    angle = np.linspace(0.0, 0.12 / 0.3, 61)
     points = np.stack([0.3 * (1 - np.cos(angle)), np.zeros_like(angle), 0.3 * np.sin(angle)], -1)
     np.save(tmp_path / "P.npy", points)
     return points

@@ -220,6 +220,12 @@ class _Planner:
         factor = self.opts.max_change * max(1.0, ds / (self.opts.spacing * self.length))
         scale = self.problem.scale.clone()
         out = factor * scale
+        names = self.model.limits.names
+        for j, name in enumerate(names):     # lengths like the path's advance, twists like joint angles
+            if name.endswith(".beta"):
+                out[j] = factor * self.length
+            elif name.endswith(".alpha"):
+                out[j] = factor
         if isinstance(self.model, Composite):
             n = self.model.num_arm
             kinds = self.model.arm.joint_types
