@@ -209,9 +209,10 @@ class _Planner:
             if not (bool(bad[k]) or bool(((x[k] - x[k - 1]).abs() > REPAIR * bound).any())):
                 continue
             prev = x[k - 1:k]
-            xk, _, _ = self.problem.refine(prev.clone(), s[k:k + 1], prev, self.opts.coarse_iterations,
+            xk, _, _ = self.problem.refine(prev.clone(), s[k:k + 1], prev, 2 * self.opts.coarse_iterations,
                                            reg=self.opts.coarse_regularization)
-            xk, _, _ = self.problem.refine(xk, s[k:k + 1], xk.clone(), self.opts.fine_iterations)
+            for _ in range(2):                                       # the pull re-centred: converged, no bias
+                xk, _, _ = self.problem.refine(xk, s[k:k + 1], xk.clone(), self.opts.fine_iterations)
             x[k] = self.problem.polish(xk, s[k:k + 1], 1e-3 * self.tol)[0]
         return x
 
