@@ -181,10 +181,9 @@ class _Planner:
     def coarse(self, x0: Tensor, s: Tensor) -> tuple[Tensor, str]:
         xs, reason = [x0], ""
         for k in range(1, s.shape[0]):
-            prev = xs[-1][None]
-            pred = prev
+            prev = xs[-1][None]             # from the previous step (an extrapolated start hopped branches)
             sk = s[k:k + 1]
-            x, _, tip = self.problem.refine(pred.clone(), sk, prev, self.opts.coarse_iterations,
+            x, _, tip = self.problem.refine(prev.clone(), sk, prev, self.opts.coarse_iterations,
                                             reg=self.opts.coarse_regularization)
             if float(tip[0]) > RECOVER * self.length:                                   # recovery
                 cand = self._candidates(self.path.at(sk), True, q0=self.model.joints(prev))
