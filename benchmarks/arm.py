@@ -41,8 +41,8 @@ from arm_reference import UrdfArm, check_solution  # noqa: E402
 
 from dacr_learn.arm import Composite, load_arm  # noqa: E402
 from dacr_learn.arm.control import ControlStep, Port, WholeBodyConfig, WholeBodyController  # noqa: E402
-from dacr_learn.deploy.control import twist_jacobian  # noqa: E402
 from dacr_learn.ik import solve_ik  # noqa: E402
+from dacr_learn.lie import twist_jacobian  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
 
 URDF, TIP = ROOT / "configs" / "arms" / "panda.urdf", "panda_link8"

@@ -15,6 +15,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
+F64 = torch.float64   # the dtype of the IK solver, the controllers and every float64 exported module
+
+
+def to_f64(x: Tensor) -> Tensor:
+    """``x`` in float64: ``x`` itself when it already is (no dispatch: it sits in control loops)."""
+    return x if x.dtype == F64 else x.to(F64)
+
+
 _PY_SUM_MAX = 256   # elements up to which check_tensor's finiteness sum runs in Python (see there)
 
 
@@ -30,6 +38,14 @@ def _sum_is_finite(x: Tensor) -> bool:
             values = itertools.chain.from_iterable(values)
         return math.isfinite(sum(values))
     return math.isfinite(x.sum().item())
+
+
+def as_floating(x: Any, name: str, what: str = "values") -> Tensor:
+    """``x`` as a tensor (torch.as_tensor of a list or array); ValueError naming ``name`` unless floating point."""
+    x = x if isinstance(x, Tensor) else torch.as_tensor(x)
+    if not x.is_floating_point():
+        raise ValueError(f"{name}: expected floating-point {what}, got dtype {x.dtype}")
+    return x
 
 
 def check_tensor(x: Tensor, name: str, trailing: tuple[int, ...], finite: bool = True, nonempty: bool = False) -> None:

@@ -46,25 +46,6 @@ def clarke_matrix(psi: Tensor, radii: Tensor | None = None, ref_radius: Tensor |
     return torch.linalg.pinv(clarke_matrix_inverse(psi, radii, ref_radius))
 
 
-def displacements_to_clarke(rho: Tensor, clarke: Tensor) -> Tensor:
-    """ρ (..., n) [m] → Clarke coordinates (ρ_re, ρ_im) (..., 2) [m], with M_P of shape (2, n)."""
-    return rho @ clarke.mT
-
-
-def clarke_to_displacements(rho_clarke: Tensor, clarke_inverse: Tensor) -> Tensor:
-    """(ρ_re, ρ_im) (..., 2) [m] → displacements ρ (..., n) [m], with A = M_P⁻¹ of shape (n, 2)."""
-    return rho_clarke @ clarke_inverse.mT
-
-
-def helix_offset(alpha: Tensor, radius: Tensor | float, beta: Tensor | float) -> Tensor:
-    """Δl_α = sqrt((α d)² + β²) − β [m]: extra joint length of a helical path twisted by α.
-
-    Written as (αd)² / (sqrt((αd)² + β²) + β) so it stays accurate for small twists.
-    """
-    ad2 = (alpha * radius) ** 2
-    return ad2 / (torch.sqrt(ad2 + beta**2) + beta)
-
-
 class JointSpaceMaps(NamedTuple):
     """The constant matrices of q = B_ρ·ρ + C·h for a robot (float64).
 

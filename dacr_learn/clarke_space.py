@@ -15,17 +15,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .checks import F64, to_f64
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
 from .robot import RobotSpec
 
 __all__ = ["ClarkeFold", "ClarkeSpace", "DecoderJacobian", "feature_columns"]
 
-_F64 = torch.float64
-
-
-def _f64(x: Tensor) -> Tensor:
-    return x if x.dtype == _F64 else x.to(_F64)
 
 
 def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -34,10 +30,10 @@ def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Te
     Returns E (D, N + n_g), e₀ (D,), q_ref (N,). For a type-III segment the β column of f_lin
     holds the helix length h. Found by probing the affine map with unit vectors (exact).
     """
-    enc = enc.to(_F64)
+    enc = enc.to(F64)
     n, nl, m = enc.num_joints, enc.num_lengths, enc.num_segments
-    l, ext = enc.nominal_length, enc.extends.to(_F64)
-    g_select = torch.eye(m, dtype=_F64)[:, has_g]                         # (m, n_g)
+    l, ext = enc.nominal_length, enc.extends.to(F64)
+    g_select = torch.eye(m, dtype=F64)[:, has_g]                         # (m, n_g)
 
     def f_lin(u: Tensor) -> Tensor:
         dl, tw, g = u[:, :nl], u[:, nl:n], u[:, n:] @ g_select.mT
@@ -48,8 +44,8 @@ def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Te
         return torch.cat([rho, beta.unsqueeze(-1), alpha.unsqueeze(-1)], -1).flatten(-2) @ sel.mT
 
     width = n + g_select.shape[1]
-    out = f_lin(torch.cat([torch.zeros(1, width, dtype=_F64), torch.eye(width, dtype=_F64)]))
-    q_ref = torch.cat([l @ enc.path.mT, torch.zeros(n - nl, dtype=_F64)])
+    out = f_lin(torch.cat([torch.zeros(1, width, dtype=F64), torch.eye(width, dtype=F64)]))
+    q_ref = torch.cat([l @ enc.path.mT, torch.zeros(n - nl, dtype=F64)])
     return (out[1:] - out[0]).mT.contiguous(), out[0].clone(), q_ref
 
 
@@ -69,7 +65,7 @@ class ClarkeFold(nn.Module):
         type2 = [k for k, s in enumerate(segs) if s.twists and not s.extends]
         type3 = [k for k, s in enumerate(segs) if s.twists and s.extends]
         twist_index = {k: i for i, k in enumerate(k for k, s in enumerate(segs) if s.twists)}
-        sel = actuated_selection(spec).to(_F64)
+        sel = actuated_selection(spec).to(F64)
         e, e0, q_ref = _affine_features(enc, sel, torch.tensor([k in type2 for k in range(len(segs))]))
         self.has_g, self.has_type3 = bool(type2), bool(type3)
         self.register_buffer("E", e)
@@ -77,11 +73,11 @@ class ClarkeFold(nn.Module):
         self.register_buffer("q_ref", q_ref)
         g_index = [self.num_lengths + twist_index[k] for k in type2]
         for name, values, dtype in (("g_index", g_index, torch.long),
-                                    ("g_radius", [segs[k].joint_radii[0] for k in type2], _F64),
-                                    ("g_length", [segs[k].length for k in type2], _F64),
+                                    ("g_radius", [segs[k].joint_radii[0] for k in type2], F64),
+                                    ("g_length", [segs[k].length for k in type2], F64),
                                     ("beta3", feature_columns(spec, "beta", type3), torch.long),
                                     ("alpha3", feature_columns(spec, "alpha", type3), torch.long),
-                                    ("radius3", [segs[k].joint_radii[0] for k in type3], _F64)):
+                                    ("radius3", [segs[k].joint_radii[0] for k in type3], F64)):
             # Empty index buffers are left out (None): torch.export would store them as broken groups.
             self.register_buffer(name, torch.tensor(values, dtype=dtype) if values else None)
 
@@ -128,18 +124,18 @@ class DecoderJacobian(nn.Module):
 
     def __init__(self, spec: RobotSpec):
         super().__init__()
-        dec, sel = ClarkeDecoder(spec).to(_F64), actuated_selection(spec).to(_F64)
+        dec, sel = ClarkeDecoder(spec).to(F64), actuated_selection(spec).to(F64)
         segs, m = spec.segments, spec.num_segments
         ext, tw = [k for k, s in enumerate(segs) if s.extends], [k for k, s in enumerate(segs) if s.twists]
         d = sel.shape[0]
-        pick_beta, pick_alpha = torch.zeros(d, m, dtype=_F64), torch.zeros(d, m, dtype=_F64)
+        pick_beta, pick_alpha = torch.zeros(d, m, dtype=F64), torch.zeros(d, m, dtype=F64)
         pick_beta[feature_columns(spec, "beta", ext), ext] = 1.0
         pick_alpha[feature_columns(spec, "alpha", tw), tw] = 1.0
-        const = torch.zeros(spec.num_joints, d, dtype=_F64)
+        const = torch.zeros(spec.num_joints, d, dtype=F64)
         rho_cols = [c for c in range(d) if not (pick_beta[c].any() or pick_alpha[c].any())]
         const[:spec.num_length_joints, rho_cols] = dec.displacement
         const[spec.num_length_joints:] = pick_alpha.mT[tw]
-        path = torch.zeros(spec.num_joints, d, dtype=_F64)
+        path = torch.zeros(spec.num_joints, d, dtype=F64)
         path[:spec.num_length_joints] = dec.path @ (pick_beta + pick_alpha).mT
         self.register_buffer("pick_beta", pick_beta)
         self.register_buffer("pick_alpha", pick_alpha)
@@ -180,33 +176,33 @@ class ClarkeSpace:
 
     def __init__(self, spec: RobotSpec):
         self.spec = spec
-        self.encoder, self.decoder = ClarkeEncoder(spec).to(_F64), ClarkeDecoder(spec).to(_F64)
+        self.encoder, self.decoder = ClarkeEncoder(spec).to(F64), ClarkeDecoder(spec).to(F64)
         self.fold = ClarkeFold(spec)                       # the encoder as one affine map (+ helix terms)
-        self.selection = actuated_selection(spec).to(_F64)
-        self.base = fixed_features(spec, _F64)
+        self.selection = actuated_selection(spec).to(F64)
+        self.base = fixed_features(spec, F64)
         self.linear = not any(s.twists for s in spec.segments)   # then the decoder is affine: q = A·f + c
         if self.linear:
             straight = self.fold.e0                               # features of the nominal straight robot
             self.dec_matrix = DecoderJacobian(spec)(straight)
             self.dec_offset = self._decode(straight) - self.dec_matrix @ straight
         c = _column_limits(spec)
-        self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=_F64)
+        self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=F64)
         self.beta_cols = torch.tensor(c["beta"], dtype=torch.long)
         self.alpha_cols = torch.tensor(c["alpha"], dtype=torch.long)
-        self.beta_range = torch.tensor(c["beta_range"], dtype=_F64).reshape(-1, 2)
-        self.alpha_range = torch.tensor(c["alpha_range"], dtype=_F64).reshape(-1, 2)
-        self.scale = torch.tensor(c["scale"], dtype=_F64)
+        self.beta_range = torch.tensor(c["beta_range"], dtype=F64).reshape(-1, 2)
+        self.alpha_range = torch.tensor(c["alpha_range"], dtype=F64).reshape(-1, 2)
+        self.scale = torch.tensor(c["scale"], dtype=F64)
 
     def features(self, q: Tensor) -> Tensor:
         """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
-        return self.fold.features(self.fold.inputs(_f64(q)))
+        return self.fold.features(self.fold.inputs(to_f64(q)))
 
     def _decode(self, f: Tensor) -> Tensor:
         return self.decoder(actuated_to_features(f, self.selection, self.base))
 
     def joints(self, f: Tensor) -> Tensor:
         """Actuated features (..., D) → joint vector (..., N) on the displacement constraint."""
-        f = _f64(f)
+        f = to_f64(f)
         return torch.addmm(self.dec_offset, f, self.dec_matrix.mT) if self.linear and f.dim() == 2 else (
             self.dec_offset + f @ self.dec_matrix.mT if self.linear else self._decode(f))
 

@@ -21,14 +21,13 @@ import csv
 import json
 import statistics
 import sys
-import time
 from pathlib import Path
 
 import lightning.pytorch as pl
 import torch
 from torch import Tensor
 
-from .ablation.runner import StepDataModule, evaluate, quiet_lightning
+from .ablation.runner import evaluate, quiet_lightning, train_steps
 from .compositional import transfer
 from .console import run_cli
 from .data import generate
@@ -65,12 +64,8 @@ def train_fk(spec: RobotSpec, data: dict[str, Tensor], params: dict, steps: int,
     quiet_lightning()
     pl.seed_everything(seed, verbose=False)
     module = FKModule(robot=spec.to_dict(), **params)
-    trainer = pl.Trainer(max_steps=steps, max_epochs=1, accelerator="cpu", devices=1, logger=False,
-                         enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
-                         limit_val_batches=0, num_sanity_val_steps=0)
-    start = time.perf_counter()
-    trainer.fit(module, datamodule=StepDataModule(data, steps, batch_size, seed))
-    return module.eval(), time.perf_counter() - start
+    seconds = train_steps(module, data, steps, batch_size, seed)
+    return module.eval(), seconds
 
 
 def _row(study: str, model: str, seed: int, test: str, summary: dict, steps: int, seconds: float) -> dict:

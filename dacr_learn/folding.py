@@ -22,12 +22,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .checks import F64
 from .models import ACTIVATIONS
 
 __all__ = ["activation_and_derivative", "activation_name", "affine_probe", "linear_layers", "stacked_linear",
            "tangent_rows"]
 
-_F64 = torch.float64
 _ACTIVATIONS = {name: cls() for name, cls in ACTIVATIONS.items()}   # one (stateless) module of each
 
 
@@ -92,7 +92,7 @@ def tangent_rows(rows: Tensor, layers: Sequence[tuple[Tensor, Tensor]], activati
     return a
 
 
-def affine_probe(fn: Callable[[Tensor], Tensor], width: int, dtype: torch.dtype = _F64) -> tuple[Tensor, Tensor]:
+def affine_probe(fn: Callable[[Tensor], Tensor], width: int, dtype: torch.dtype = F64) -> tuple[Tensor, Tensor]:
     """(M (width, out), c (out,)) with fn(x) = x·M + c for an affine ``fn`` of x (P, width) → (P, ...): its
     values at 0 and at the ``width`` unit vectors (exact for an affine map; flattened after the batch dim)."""
     basis = torch.cat([torch.zeros(1, width, dtype=dtype), torch.eye(width, dtype=dtype)])
@@ -103,6 +103,6 @@ def affine_probe(fn: Callable[[Tensor], Tensor], width: int, dtype: torch.dtype 
 def stacked_linear(layers: Sequence[nn.Linear], scale: Tensor | float = 1.0) -> tuple[Tensor, Tensor]:
     """One linear layer of K members side by side, float64: weights (K, in, out) and biases (K, 1, out),
     both times ``scale`` (broadcast against (K, 1, out), e.g. a per-member output scale)."""
-    weight = torch.stack([l.weight.detach() for l in layers]).to(_F64).mT * scale
-    bias = torch.stack([l.bias.detach() for l in layers]).to(_F64).unsqueeze(1) * scale
+    weight = torch.stack([l.weight.detach() for l in layers]).to(F64).mT * scale
+    bias = torch.stack([l.bias.detach() for l in layers]).to(F64).unsqueeze(1) * scale
     return weight, bias

@@ -148,11 +148,7 @@ def segment_tip_poses(spec: RobotSpec, features: Tensor) -> Tensor:
 
 def forward_kinematics(spec: RobotSpec, features: Tensor) -> Tensor:
     """Tip pose T⁽¹⁾T⁽²⁾…T⁽ᵐ⁾ in the base frame: features (..., m, 4) → (..., 4, 4) [m]."""
-    poses = segment_poses(spec, features)
-    tip = poses[..., 0, :, :]
-    for j in range(1, spec.num_segments):
-        tip = tip @ poses[..., j, :, :]
-    return tip
+    return chain_products(segment_poses(spec, features), tip_only=True)
 
 
 def backbone_points(spec: RobotSpec, features: Tensor, points_per_segment: int = 16) -> Tensor:
@@ -165,13 +161,17 @@ def backbone_points(spec: RobotSpec, features: Tensor, points_per_segment: int =
     u, beta, alpha = _segment_parameters(spec, features)
     frac = torch.arange(1, points_per_segment + 1, dtype=u.dtype, device=u.device) / points_per_segment
     u_partial = u.unsqueeze(-3) * frac[:, None, None]                              # (..., K, m, 2)
-    alpha_partial = None if alpha is None else alpha.unsqueeze(-2)                # (..., 1, m)
-    partial = cc_transform(u_partial, beta.unsqueeze(-2) * frac[:, None], alpha_partial)
+    beta_partial = beta.unsqueeze(-2) * frac[:, None]                              # (..., K, m)
+    rot, pos = exp_components((None, None, beta_partial), (-u_partial[..., 1], u_partial[..., 0], None))
+    if alpha is not None:                                                          # positions only: no 4×4 poses
+        rot, pos = roll_components(alpha.unsqueeze(-2), rot, pos)
+    zero = torch.zeros_like(beta_partial)
+    partial = torch.stack([zero if c is None else c.expand_as(zero) for c in pos], dim=-1)   # (..., K, m, 3)
     bases = chain_products(cc_transform(u, beta, alpha))                                   # (..., m, 4, 4)
     eye = torch.eye(4, dtype=u.dtype, device=u.device).expand(*bases.shape[:-3], 1, 4, 4)
-    bases = torch.cat([eye, bases[..., :-1, :, :]], dim=-3)                        # base of each segment
-    world = bases.unsqueeze(-4) @ partial                                          # (..., K, m, 4, 4)
-    pts = world[..., :3, 3].transpose(-2, -3).flatten(-3, -2)                      # (..., m·K, 3)
+    bases = torch.cat([eye, bases[..., :-1, :, :]], dim=-3).unsqueeze(-4)          # base of each segment
+    world = (bases[..., :3, :3] @ partial.unsqueeze(-1)).squeeze(-1) + bases[..., :3, 3]   # (..., K, m, 3)
+    pts = world.transpose(-2, -3).flatten(-3, -2)                                  # (..., m·K, 3)
     origin = torch.zeros_like(pts[..., :1, :])
     return torch.cat([origin, pts], dim=-2)
 

@@ -29,9 +29,8 @@ from .component_algebra import prod as _prod
 from .component_algebra import scaled as _scaled
 
 __all__ = [
-    "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products",
-    "chain_jacobian", "hat", "hat_map", "pose_from_parts", "third_coefficient", "twist_chain_jacobian",
-    "twist_exp", "twist_exp_and_tangent", "twist_exp_and_tangents", "roll_z", "roll_z_and_tangents", "vee",
+    "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products", "hat",
+    "pose_from_parts", "third_coefficient", "twist_chain_jacobian", "twist_exp", "twist_jacobian", "roll_z", "vee",
 ]
 
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
@@ -78,12 +77,6 @@ def third_coefficient(phi_sq: Tensor, s: Tensor) -> Tensor:
     return torch.where(small, g_small, (1 - s) / torch.where(small, 1.0, phi_sq))
 
 
-def exp_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """(s, f, g) of φ² (...): the coefficients of the exponential of a twist (module docstring)."""
-    s, f = bending_coefficients(phi_sq)
-    return s, f, third_coefficient(phi_sq, s)
-
-
 def exp_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """(s, f, g, ds, df, dg) of φ² (...): the coefficients of exp of a twist (:func:`twist_exp`) and their
     φ²-derivatives (Taylor polynomials below ``TAYLOR_BELOW``)."""
@@ -109,6 +102,13 @@ def vee(w_hat: Tensor) -> Tensor:
                               w_hat[..., 1, 0] - w_hat[..., 0, 1]], dim=-1)
 
 
+def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
+    """Tip-twist Jacobian from a pose (..., 4, 4) and its derivative (..., 4, 4, k) → (..., 6, k): rows dp (the
+    tip point's linear velocity) and ω = vee(dR·Rᵀ), both in the base frame."""
+    omega = vee(dpose[..., :3, :3, :].movedim(-1, -3) @ pose[..., None, :3, :3].mT)        # (..., k, 3)
+    return torch.cat([dpose[..., :3, 3, :], omega.mT], dim=-2)
+
+
 def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = None) -> Tensor:
     """Homogeneous pose (..., 4, 4) from rotation (..., 3, 3) and position (..., 3).
 
@@ -120,12 +120,6 @@ def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = 
         bottom = torch.zeros_like(top[..., :1, :])
         bottom[..., 0, 3] = 1.0
     return torch.cat([top, bottom.expand(*top.shape[:-2], 1, 4)], dim=-2)
-
-
-def hat_map(dtype: torch.dtype = torch.float64) -> Tensor:
-    """(6, 16): the linear map ξ = (v, ω) ↦ ξ^ = [[ω^, v], [0, 0]] flattened row-major."""
-    basis = torch.eye(6, dtype=dtype)
-    return pose_from_parts(hat(basis[:, 3:]), basis[:, :3], basis.new_zeros(1, 4)).flatten(-2)
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -268,11 +262,6 @@ def _directions(d: Tensor) -> tuple[Tensor, ...]:
     return d.movedim(-1, 0).movedim(-1, 1).contiguous().unbind(0)
 
 
-def _undirections(x: tuple[Tensor, ...]) -> Tensor:
-    """k components (T, ...) → (..., T, k)."""
-    return torch.stack(x, dim=-1).movedim(0, -2)
-
-
 def twist_exp(xi: Tensor, alpha: Tensor | None = None) -> Tensor:
     """exp of se(3) twists: (..., 6) = (v [m], ω [rad]) → homogeneous transforms (..., 4, 4); with rolls α (...)
     [rad], Rz(α)·exp(ξ^) (:func:`roll_z`, in the same component pass).
@@ -285,66 +274,21 @@ def twist_exp(xi: Tensor, alpha: Tensor | None = None) -> Tensor:
     return pose_of_components(*(rot, pos) if alpha is None else roll_components(alpha, rot, pos))
 
 
-def twist_exp_and_tangents(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """exp of twists ξ = (v, ω) (..., 6) and its first derivative along T directions dξ (..., T, 6).
-
-    Returns the pose T = exp(ξ^) (..., 4, 4) (:func:`twist_exp`) and, per direction, the spatial tangent of T:
-    the angular velocity b = vee(dR·Rᵀ) (..., T, 3) [rad per unit] and the velocity of the frame's origin
-    dp (..., T, 3) [m per unit], so that dT = [[b^·R, dp], [0, 0]] (:func:`exp_components_and_tangents`).
-    """
-    c, d = components(xi), _directions(dxi.expand(*xi.shape[:-1], *dxi.shape[-2:]))
-    rot, pos, [(ang, lin)] = exp_components_and_tangents(c[:3], c[3:], [(d[:3], d[3:])])
-    return pose_of_components(rot, pos), _undirections(ang), _undirections(lin)
-
-
-def twist_exp_and_tangent(xi: Tensor, dxi: Tensor) -> tuple[Tensor, Tensor]:
-    """exp of twists ξ (..., 6) (:func:`twist_exp`, (..., 4, 4)) and its tangents as matrices (..., T, 4, 4)
-    along dξ (..., T, 6): dT = [[b^·R, dp], [0, 0]] of :func:`twist_exp_and_tangents`."""
-    pose, ang, lin = twist_exp_and_tangents(xi, dxi)
-    drot = hat(ang) @ pose[..., None, :3, :3]
-    return pose, pose_from_parts(drot, lin, lin.new_zeros(1, 4))
-
-
-def roll_z_and_tangents(poses: Tensor, ang: Tensor, lin: Tensor, alpha: Tensor,
-                        alpha_row: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Rz(α)·T and its spatial tangents from those of T: poses (..., 4, 4), tangents ang, lin (..., T, 3)
-    (:func:`twist_exp_and_tangents`), roll α (...) [rad], ``alpha_row`` (..., T, 1): 1 on the direction that
-    is the roll angle itself, 0 elsewhere (:func:`roll_components`)."""
-    rot, pos = _rot_pos(poses)
-    rows = alpha_row.expand(*poses.shape[:-2], *alpha_row.shape[-2:])[..., 0].movedim(-1, 0)
-    tangents = [(_directions(ang), _directions(lin))]
-    rot, pos, [(b, dp)] = roll_components(alpha, rot, pos, tangents, (0, rows))
-    return pose_of_components(rot, pos), _undirections(b), _undirections(dp)
-
-
-def chain_jacobian(poses: Tensor, ang: Tensor, lin: Tensor, base: Tensor | None = None,
-                   point: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """The chain product rule: tip pose and base-frame Jacobian of a product of transforms.
-
-    poses (..., n, 4, 4): T_1 … T_n, each relative to the end of the previous one; ang, lin (..., n, T, 3):
-    spatial tangents of each T_k in its own base frame (:func:`twist_exp_and_tangents`) along T directions
-    each. Optional fixed ends (no tangents): ``base`` (..., 4, 4), a pose in front of T_1 (J is then in its
-    base frame), and ``point`` (..., 3) [m], a point fixed in the frame of T_n (the tip is then that point).
-    Returns the tip pose B·T_1⋯T_n·Trans(point) (..., 4, 4) and J (..., 6, n·T): per factor and direction,
-    the velocity of the tip point (rows 0–2) and the angular velocity (rows 3–5), both in the base frame
-    (:func:`chain_components`).
-    """
-    return _chain(*_rot_pos(poses), _directions(ang), _directions(lin), base, point)
-
-
 def twist_chain_jacobian(xi: Tensor | tuple, dxi: Tensor | tuple, alpha: Tensor | None = None,
                          alpha_row: Tensor | None = None, base: Tensor | None = None,
                          point: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Tip pose and Jacobian of a product of exponentials, in component form from the twists to J (one layout
-    conversion in, one out): :func:`twist_exp_and_tangents`, [:func:`roll_z_and_tangents`,]
-    :func:`chain_jacobian` in one call.
+    conversion in, one out): the exponentials with their tangents (:func:`exp_components_and_tangents`), the
+    rolls (:func:`roll_components`) and the chain product rule (:func:`chain_components`) in one call.
 
     xi (..., n, 6) twists of the factors E_k = [Rz(α_k)·]exp(ξ_k^); dxi (..., n, T, 6) (broadcast) their tangents
     along T directions each; or both as 6 components, xi's (..., n) and dxi's (T, ..., n) (broadcast), where
     None is an exact zero that costs no operation (e.g. a CC twist's, :func:`~.kinematics.cc_transform`);
     ``alpha`` (..., n) [rad] rolls with ``alpha_row`` (..., n, T, 1), 1 on the direction that is α_k itself;
-    ``base``, ``point``: fixed ends as in :func:`chain_jacobian`. Returns the tip pose (..., 4, 4) and
-    J (..., 6, n·T).
+    ``base`` (..., 4, 4): a fixed pose in front of E_1 (J is then in its base frame); ``point`` (..., 3) [m]: a
+    point fixed in the frame of E_n (the tip is then that point). Returns the tip pose B·E_1⋯E_n·Trans(point)
+    (..., 4, 4) and J (..., 6, n·T): per factor and direction, the velocity of the tip point (rows 0–2) and
+    the angular velocity (rows 3–5), both in the base frame.
     """
     c = components(xi) if isinstance(xi, Tensor) else xi
     d = _directions(dxi.expand(*xi.shape[:-1], *dxi.shape[-2:])) if isinstance(dxi, Tensor) else dxi
@@ -376,12 +320,14 @@ def _chain(rot: Rot3, pos: Vec3, b: tuple, dp: tuple, base: Tensor | None, point
     return pose_of_components(tip_rot, tip_pos), jac.flatten(-2)
 
 
-def chain_products(poses: Tensor) -> Tensor:
-    """Cumulative products T⁽¹⁾, T⁽¹⁾T⁽²⁾, …: (..., m, 4, 4) → (..., m, 4, 4)."""
+def chain_products(poses: Tensor, tip_only: bool = False) -> Tensor:
+    """Products of transforms T⁽¹⁾ … T⁽ᵐ⁾, each relative to the end of the previous one (..., m, 4, 4): the running
+    products T⁽¹⁾, T⁽¹⁾T⁽²⁾, … (..., m, 4, 4), or with ``tip_only`` the whole product T⁽¹⁾⋯T⁽ᵐ⁾ (..., 4, 4) alone
+    (unrolled over m: no stack in an exported module)."""
     out = [poses[..., 0, :, :]]
     for j in range(1, poses.shape[-3]):
         out.append(out[-1] @ poses[..., j, :, :])
-    return torch.stack(out, dim=-3)
+    return out[-1] if tip_only else torch.stack(out, dim=-3)
 
 
 def roll_z(poses: Tensor, alpha: Tensor) -> Tensor:

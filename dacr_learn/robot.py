@@ -12,6 +12,8 @@ Schema (docs/design.md §4)::
         offset: 0.0             #   ... starting at this angle [rad]
         # or: joint_angles: [...] [rad] and optional joint_radii: [...] [m]
         limits: {bend: 1.57, length: [0.08, 0.12], twist: [-1.0, 1.0]}
+        body_radius: 0.012      # optional envelope radius [m] (spacer disks / sheath) for collision checks;
+                                #   default: the largest joint radius of the segment
     mechanics:                  # optional, for the Cosserat-rod model (dacr_learn.cosserat)
       youngs_modulus: 2.0e+11   # E [Pa] (PyYAML reads 2.0e11 as a string: write the exponent sign)
       poisson_ratio: 0.3        # ν in (-1, 0.5]; or shear_modulus: G [Pa] (exactly one of the two)
@@ -44,8 +46,8 @@ DEFAULT_LENGTH_RATIO = (0.8, 1.2)
 DEFAULT_TWIST = (-math.pi / 2, math.pi / 2)
 
 _ROBOT_KEYS = {"name", "routing", "segments", "mechanics"}
-_SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles", "joint_radii", "limits"}
-_LIMIT_KEYS = {"bend", "length", "twist"}
+_SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles", "joint_radii", "limits",
+                 "body_radius"}
 _MECHANICS_KEYS = {"youngs_modulus", "shear_modulus", "poisson_ratio", "outer_radius", "inner_radius", "density",
                    "tendon_compliance"}
 # Largest accepted condition number of a segment's joint layout A ([A, 1] when it extends). The Clarke
@@ -100,6 +102,7 @@ class SegmentSpec:
     ``joint_angles`` ψ_i [rad] and ``joint_radii`` d_i [m] are always explicit here; the
     ``symmetric`` flag (with ``offset``) remembers whether the YAML used ``joints/offset``.
     ``bend`` [rad], ``length_range`` [m] and ``twist_range`` [rad] are sampling limits.
+    ``envelope`` [m]: the ``body_radius`` the YAML gave, or None (see :attr:`body_radius`).
     """
 
     type: str
@@ -112,6 +115,14 @@ class SegmentSpec:
     twist_range: tuple[float, float] | None
     symmetric: bool
     offset: float = 0.0
+    envelope: float | None = None
+
+    @property
+    def body_radius(self) -> float:
+        """Envelope radius [m] of the segment's body (its backbone swept by a ball of this radius, what a wall
+        touches: spacer disks or a sheath): the robot file's ``body_radius``, by default the largest joint
+        radius of the segment (the tendons run at the disks' rim)."""
+        return self.envelope if self.envelope is not None else max(self.joint_radii)
 
     @property
     def num_joints(self) -> int:
@@ -142,7 +153,9 @@ class SegmentSpec:
         radius = _positive_float(f"{where}.radius", d.get("radius"))
         angles, radii, symmetric, offset = _joint_layout(d, where, radius)
         bend, length_range, twist_range = _limits(d.get("limits", {}), where, seg_type, length)
-        seg = cls(seg_type, length, radius, angles, radii, bend, length_range, twist_range, symmetric, offset)
+        envelope = _positive_float(f"{where}.body_radius", d["body_radius"]) if "body_radius" in d else None
+        seg = cls(seg_type, length, radius, angles, radii, bend, length_range, twist_range, symmetric, offset,
+                  envelope)
         _check_rank(seg, where)
         return seg
 
@@ -160,6 +173,8 @@ class SegmentSpec:
         if self.twist_range is not None:
             limits["twist"] = list(self.twist_range)
         d["limits"] = limits
+        if self.envelope is not None:
+            d["body_radius"] = self.envelope
         return d
 
 

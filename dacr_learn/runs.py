@@ -28,7 +28,7 @@ from typing import Any
 
 import torch
 
-from .checks import load_torch_file, short_error
+from .checks import load_torch_file, read_json_object, short_error
 from .compositional import REQUIRED_HPARAMS, model_from_hparams
 from .robot import RobotSpec
 
@@ -110,13 +110,7 @@ def read_run_info(run_dir: str | Path) -> dict[str, Any]:
     path = Path(run_dir) / RUN_INFO
     if not path.is_file():
         return {}
-    try:
-        info = json.loads(path.read_text(encoding="utf-8"))
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err}); expected the run.json that train.py writes") from err
-    if not isinstance(info, dict):
-        raise ValueError(f"{path}: expected a JSON object, found a {type(info).__name__}")
-    return info
+    return read_json_object(path, "the run.json that train.py writes")
 
 
 def checkpoint_run_dir(ckpt: str | Path) -> Path | None:
@@ -278,13 +272,15 @@ def check_same_schedule(ckpt: str | Path, blob: Any, config: dict[str, Any]) -> 
                              "settings, or start a new run without --ckpt_path")
 
 
-def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn.Module:
+def load_model(path: str | Path, dtype: torch.dtype = torch.float32, blob: Any = None) -> torch.nn.Module:
     """The trained network of a ``train.py`` run, in eval mode, ready to predict.
 
     Args:
         path: a run folder (``runs/<run_name>``: its newest version), a version folder
             (``runs/<run_name>/version_<n>``) or a checkpoint file (``.ckpt``).
         dtype: floating dtype of the returned model's parameters.
+        blob: the checkpoint file's content when the caller has loaded it (weights-only, e.g.
+            :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`); ``path`` then names that file.
 
     Returns:
         An ``nn.Module`` with ``.spec`` (the :class:`~dacr_learn.robot.RobotSpec` it was trained for):
@@ -300,7 +296,7 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32) -> torch.nn
         FileNotFoundError: nothing to load at ``path``.
         ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
     """
-    task, model = load_checkpoint_model(find_checkpoint(path))
+    task, model = load_checkpoint_model(find_checkpoint(path), blob)
     model = model.to(dtype).eval()
     model.task = task
     if task in ("fk", "ik"):

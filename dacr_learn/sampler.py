@@ -32,6 +32,7 @@ import torch
 import zuko
 from torch import Tensor, nn
 
+from .checks import F64, as_floating
 from .clarke_space import ClarkeSpace
 from .layers import ClarkeEncoder
 from .models import ACTIVATIONS, FEATURE_MODES, Standardizer, actuated_selection, pose_to_vector
@@ -39,7 +40,6 @@ from .robot import RobotSpec
 
 __all__ = ["ClarkeSampler", "LimitSquash"]
 
-_F64 = torch.float64
 EDGE = 1e-6          # a training sample on a limit is moved this far inside (in units of the half-range) before atanh
 
 
@@ -173,10 +173,7 @@ class ClarkeSampler(nn.Module):
     # ---- sampling
     def check_target(self, target) -> Tensor:
         """Validated targets: (B, 4, 4) poses or (B, 3) positions, finite, B ≥ 1 (ValueError naming the problem)."""
-        if not isinstance(target, Tensor):
-            target = torch.as_tensor(target)
-        if not target.is_floating_point():
-            raise ValueError(f"target: expected floating-point values, got dtype {target.dtype}")
+        target = as_floating(target, "target")
         is_pose = target.dim() == 3 and target.shape[-2:] == (4, 4)
         is_position = target.dim() == 2 and target.shape[-1] == 3
         if not (is_pose or is_position) or target.shape[0] == 0:
@@ -214,8 +211,8 @@ class ClarkeSampler(nn.Module):
         the limits. These are the ``seeds`` of :func:`dacr_learn.ik.solve_ik` (the IK CLI calls this method)."""
         v = self.sample_variables(target, count, temperature)
         if self.features == "clarke":
-            return self.squash(v.to(_F64))
-        return self.space.saturate(self.space.features(v.to(_F64)))
+            return self.squash(v.to(F64))
+        return self.space.saturate(self.space.features(v.to(F64)))
 
     @torch.no_grad()
     def sample(self, target, count: int, temperature: float = 1.0) -> Tensor:

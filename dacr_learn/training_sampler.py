@@ -15,14 +15,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .checks import F64
 from .compositional import model_from_hparams
 from .kinematics import backbone_points, forward_kinematics
 from .metrics import pose_errors
 from .models import actuated_to_features
 from .sampler import ClarkeSampler
 from .training import KinematicsModule
-
-_F64 = torch.float64
 
 
 class SamplerModule(KinematicsModule):
@@ -67,17 +66,17 @@ class SamplerModule(KinematicsModule):
         "raw", whether the sampled joints left the limits before the projection (out_of_limits, 0/1) and their
         constraint residual [m]."""
         m, space = self.model, self.model.space
-        v = m.sample_variables(pose, 1)[:, 0].to(_F64)
+        v = m.sample_variables(pose, 1)[:, 0].to(F64)
         raw = {}
         if m.features == "clarke":
             f = m.squash(v)                    # inside the limits and on the constraint by construction
         else:
             unprojected = space.features(v)
             f = space.saturate(unprojected)
-            raw = {"out_of_limits": (~space.within_limits(unprojected)).to(_F64),
+            raw = {"out_of_limits": (~space.within_limits(unprojected)).to(F64),
                    "constraint_residual": torch.linalg.vector_norm(space.joints(unprojected) - v, dim=-1)}
         tip = forward_kinematics(self.spec, actuated_to_features(f, space.selection, space.base))
-        return {**pose_errors(tip, pose.to(_F64)), **raw}
+        return {**pose_errors(tip, pose.to(F64)), **raw}
 
     def errors(self, batch: dict[str, Tensor]) -> dict[str, Tensor]:
         nll = -self.model.log_prob(batch["q"], batch["pose"])

@@ -38,6 +38,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from dacr_learn.checks import F64  # noqa: E402
 from dacr_learn.console import run_cli  # noqa: E402
 from dacr_learn.hardware.deploy.control import (  # noqa: E402
     ServoControl,
@@ -51,8 +52,6 @@ from dacr_learn.hardware.deploy.control import (  # noqa: E402
     tracking_errors,
     training_commands,
 )
-
-_F64 = torch.float64
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -85,8 +84,8 @@ def main(argv: list[str] | None = None) -> dict:
     lower, upper = commands.min(0).values, commands.max(0).values          # the box of the training commands
     config = ServoControl(gain=args.gain, retension=args.retension)
     pull_sign = servo_signs(meta)
-    tip_of = lambda u: fk(u[None], *(() if init is None else (init(u[None]),)))[0][0].to(_F64)  # noqa: E731
-    rest = torch.zeros(len(meta["servo_ids"]), dtype=_F64).clamp(lower, upper)
+    tip_of = lambda u: fk(u[None], *(() if init is None else (init(u[None]),)))[0][0].to(F64)  # noqa: E731
+    rest = torch.zeros(len(meta["servo_ids"]), dtype=F64).clamp(lower, upper)
     path = circle(tip_of(rest), 1e-3 * args.radius, 1e-3 * args.drop, args.period).repeat(args.laps, 1)
     start, ik_error = initial_command(model, path[0], rest)                # the IK's command for the first point
     if not bool(((start >= lower) & (start <= upper)).all()):

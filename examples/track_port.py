@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from dacr_learn.arm import Composite  # noqa: E402
 from dacr_learn.arm.control import DecoupledController, Port, WholeBodyConfig, WholeBodyController  # noqa: E402
-from dacr_learn.arm.files import composite_from_files  # noqa: E402
+from dacr_learn.cli.loading import composite_from_files  # noqa: E402
 from dacr_learn.ik import ConstantCurvature  # noqa: E402
 from dacr_learn.kinematics import backbone_points  # noqa: E402
 from dacr_learn.viz.arm import log_arm, log_port  # noqa: E402

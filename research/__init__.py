@@ -6,8 +6,8 @@ produced and its exact command. They are kept so those numbers can be reproduced
 maintained beyond running, not installed with the package, and not run by the test suite (it only
 imports each one: tests/test_research_imports.py).
 
-- :mod:`research.ik_pose_loss`: docs/ablation.md, "Multi-segment IK with a pose loss"
-- :mod:`research.hardware_analysis`: docs/hardware_history.md, "2026-11-21: Where the error comes from"
-- :mod:`research.hardware_cv`: the hardware cross-validation rounds of docs/hardware_history.md
-- :mod:`research.twist_head`: docs/compositional.md, "Twisting segments: the roll (2026-11-26)"
+- :mod:`research.ik_pose_loss`: docs/history/ablation.md, "Multi-segment IK with a pose loss"
+- :mod:`research.hardware_analysis`: docs/history/hardware.md, "2026-11-21: Where the error comes from"
+- :mod:`research.hardware_cv`: the hardware cross-validation rounds of docs/history/hardware.md
+- :mod:`research.twist_head`: docs/history/compositional.md, "Twisting segments: the roll (2026-11-26)"
 """

@@ -1,6 +1,6 @@
 """Diagnostics behind the benchmark numbers (a frozen research script, formerly ``dacr_learn.hardware.study.analysis``).
 
-Numbers: docs/hardware_history.md, "2026-11-21: Where the error comes from" (hysteresis gap, static floor,
+Numbers: docs/history/hardware.md, "2026-11-21: Where the error comes from" (hysteresis gap, static floor,
 per-family table) and "2026-11-24: Results (FTDCR v4)". It reads FTDCR v4's val.csv (``--val``); never
 point it at a hidden hold-out. Run from the repository root:
 

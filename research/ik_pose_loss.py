@@ -1,6 +1,6 @@
 """Exploration behind the IK pose loss (a frozen research script).
 
-Numbers: docs/ablation.md, "Multi-segment IK with a pose loss" and its subsection "Little data: why
+Numbers: docs/history/ablation.md, "Multi-segment IK with a pose loss" and its subsection "Little data: why
 Clarke IK was worse at 1k, and the fix". Run from the repository root:
 
     python -m research.ik_pose_loss --steps 8000 --n-train 1000 --loss ramp0.05_limit1 --seeds 0 1

@@ -2,7 +2,7 @@
 
 Every cell (features, n_train, seed) is one ``train.py fit`` of the same config, changed only by
 ``--model.init_args.features``, ``--data.n_train`` and the seed (``--seed_everything`` and ``--data.seed``:
-initialisation and dataset), run one after another with one torch thread. Numbers: docs/ablation.md,
+initialisation and dataset), run one after another with one torch thread. Numbers: docs/history/ablation.md,
 "One configuration for every training size". From the repository root:
 
     python -m research.ik_tdcr3_grid --n-train 100000 10000 1000 --seeds 0 1 --out runs/ik_tdcr3_grid

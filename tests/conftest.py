@@ -235,6 +235,21 @@ def arc_parameters(spec: RobotSpec, features: np.ndarray, k: int) -> tuple[float
             beta if seg.extends else seg.length, alpha if seg.twists else 0.0)
 
 
+def reference_backbone(spec: RobotSpec, features: np.ndarray, per_segment: int) -> np.ndarray:
+    """Backbone points (1 + m·K, 3) of one sample (m, 4) by the classic arc formula: the point s = j/K along
+    segment k is the tip of the arc of bending angle s·φ and length s·β, after the full segments before it."""
+    base, points = np.eye(4), [np.zeros(3)]
+    for k in range(spec.num_segments):
+        theta, phi, beta, alpha = arc_parameters(spec, features, k)
+        roll = np.eye(4)
+        roll[:3, :3] = rot_z(alpha)
+        for j in range(1, per_segment + 1):
+            s = j / per_segment
+            points.append((base @ roll @ classic_arc(theta, s * phi, s * beta))[:3, 3])
+        base = base @ roll @ classic_arc(theta, phi, beta)
+    return np.array(points)
+
+
 def classic_forward_kinematics(spec: RobotSpec, features: np.ndarray) -> np.ndarray:
     """Tip pose T⁽¹⁾…T⁽ᵐ⁾ with T⁽ʲ⁾ = Rz(α)·arc, one sample: (m, 4) → (4, 4)."""
     tip = np.eye(4)
@@ -303,8 +318,8 @@ def max_diff(a, b) -> float:
 def autograd_jacobians(model: torch.nn.Module, spec: RobotSpec, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Reference Jacobians (J_f, J_q) of one sample by torch.func.jacrev of q ↦ FK(q) and f ↦ FK(dec(f))
     (``model``: an FKModel of ``spec``)."""
-    from dacr_learn.deploy.control import twist_jacobian
     from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
+    from dacr_learn.lie import twist_jacobian
     from dacr_learn.models import actuated_selection
 
     enc, dec, sel = ClarkeEncoder(spec).double(), ClarkeDecoder(spec).double(), actuated_selection(spec).double()

@@ -9,7 +9,8 @@ import pytest
 import torch
 from conftest import ROOT
 
-from dacr_learn.ablation import COLUMNS, load_config, main, make_jobs, report, runner
+from dacr_learn.ablation import COLUMNS, load_config, make_jobs, report, runner
+from dacr_learn.cli.ablation import main
 from dacr_learn.data import SamplerOptions, generate
 from dacr_learn.robot import RobotSpec
 from dacr_learn.training import FKModule

@@ -18,8 +18,9 @@ distributed = pytest.importorskip("distributed", reason='Dask distributed not in
 
 import psutil  # noqa: E402  (a dependency of distributed)
 
-from dacr_learn.ablation import load_config, main, make_jobs, runner  # noqa: E402
+from dacr_learn.ablation import load_config, make_jobs, runner  # noqa: E402
 from dacr_learn.ablation.cluster import connect, portable_config  # noqa: E402
+from dacr_learn.cli.ablation import main  # noqa: E402
 
 
 def tiny_config(tmp_path: Path) -> Path:

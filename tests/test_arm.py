@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 
 from dacr_learn.arm import Composite, load_arm
 from dacr_learn.arm.seeds import PoseBank
-from dacr_learn.deploy.control import twist_jacobian
 from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
-from dacr_learn.ik.models import Check, SolverModel
+from dacr_learn.ik.adapters import Check, SolverModel
+from dacr_learn.lie import twist_jacobian
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64

@@ -9,7 +9,7 @@ from arm_reference import UrdfArm, check_solution, random_urdf
 from conftest import ROOT, TDCR3, spec_by_name
 
 from dacr_learn.arm import Composite, load_arm
-from dacr_learn.ik.cli import main
+from dacr_learn.cli.ik import main
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 PANDA = ROOT / "configs" / "arms" / "panda.urdf"

@@ -21,6 +21,7 @@ import torch
 from conftest import ROOT, TYPE1, autograd_jacobians, max_diff, names, roundoff_tol, truncated
 
 from dacr_learn import export as dexport
+from dacr_learn.cli import export as export_cli
 from dacr_learn.data import generate
 from dacr_learn.datamodule import KinematicsDataModule
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
@@ -59,7 +60,7 @@ def ckpts(tmp_path_factory) -> dict[str, Path]:
 def exports(ckpts, tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("export")
     for task in ("fk", "ik"):       # through the CLI: python -m dacr_learn.export --ckpt … --out … --no-aoti
-        dexport.main(["--ckpt", str(ckpts[task]), "--out", str(d / task), "--no-aoti"])
+        export_cli.main(["--ckpt", str(ckpts[task]), "--out", str(d / task), "--no-aoti"])
     return {"fk": d / "fk", "ik": d / "ik"}
 
 
@@ -126,7 +127,7 @@ def test_aoti_package_equals_lightning(ckpts, samples, tmp_path, autotune):
 def test_autotune_needs_the_aoti_packages(ckpts, exports, tmp_path, capsys):
     assert dexport.read_metadata(exports["fk"])["aoti_autotune"] is False      # the default
     with pytest.raises(SystemExit) as exit_info:
-        dexport.main(["--ckpt", str(ckpts["fk"]), "--out", str(tmp_path / "x"), "--no-aoti", "--autotune"])
+        export_cli.main(["--ckpt", str(ckpts["fk"]), "--out", str(tmp_path / "x"), "--no-aoti", "--autotune"])
     assert exit_info.value.code == 2 and "--autotune tunes the AOTInductor packages" in capsys.readouterr().err
 
 
@@ -278,7 +279,7 @@ def test_export_cli_prints_the_error_not_a_traceback(tmp_path):
     garbage = tmp_path / "garbage.ckpt"
     garbage.write_bytes(b"\x00" * 64)
     with pytest.raises(ValueError, match=names(garbage, "not a complete torch.save")):
-        dexport.main(["--ckpt", str(garbage), "--out", str(tmp_path / "out")])
+        export_cli.main(["--ckpt", str(garbage), "--out", str(tmp_path / "out")])
     run = subprocess.run([sys.executable, "-m", "dacr_learn.export", "--ckpt", str(garbage), "--out",
                           str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert run.returncode != 0 and "Traceback" not in run.stderr, run.stderr

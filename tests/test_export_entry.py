@@ -13,6 +13,7 @@ import torch
 from conftest import ROOT, names
 
 from dacr_learn import export as dexport
+from dacr_learn.cli import export as export_cli
 from dacr_learn.console import run_cli
 from dacr_learn.runs import load_checkpoint_model
 
@@ -59,7 +60,7 @@ def test_out_blocked_by_a_file_is_one_line_naming_out(where, tmp_path, capsys):
     test_export_cli_prints_the_error_not_a_traceback): a subprocess here cost 5 s of imports per case."""
     (tmp_path / "afile").write_text("x")
     out = tmp_path / "afile" if where == "a file" else tmp_path / "afile" / "sub"
-    code = run_cli(dexport.main, ["--ckpt", str(DATA / "fk.ckpt"), "--out", str(out), "--no-aoti"])
+    code = run_cli(export_cli.main, ["--ckpt", str(DATA / "fk.ckpt"), "--out", str(out), "--no-aoti"])
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
@@ -69,7 +70,7 @@ def test_out_blocked_by_a_file_is_one_line_naming_out(where, tmp_path, capsys):
 
 def test_out_with_missing_parents_is_created(tmp_path):
     out = tmp_path / "new" / "deeper" / "export"
-    meta = dexport.main(["--ckpt", str(DATA / "ik.ckpt"), "--out", str(out), "--no-aoti"])
+    meta = export_cli.main(["--ckpt", str(DATA / "ik.ckpt"), "--out", str(out), "--no-aoti"])
     assert meta["task"] == "ik" and (out / dexport.METADATA_FILE).is_file()
 
 

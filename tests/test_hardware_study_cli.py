@@ -1,4 +1,4 @@
-"""The hardware benchmark's command (dacr_learn.hardware.study.cli, python -m dacr_learn.hardware).
+"""The hardware benchmark's command (dacr_learn.cli.hardware, python -m dacr_learn.hardware).
 
 FTDCR v4 (results and visuals); FTDCR v6 (a folder without val.csv by design, a hidden hold-out: the models are
 scored with the train-only proxies); the labelled synthetic robot of ``labelled_robot_dir`` (no val.csv: the
@@ -49,7 +49,7 @@ def _write_recording(path: Path, ids, cols, model, spec, x: torch.Tensor, labels
 
 
 def test_second_robot_runs_through_the_same_command(tmp_path):
-    from dacr_learn.hardware.study.cli import main
+    from dacr_learn.cli.hardware import main
 
     robot_yaml, true_spec = _second_robot(tmp_path)
     ids = ["B7", "A2", "C1", "A9", "B3", "C5", "A4", "B1"]
@@ -89,7 +89,7 @@ def test_second_robot_runs_through_the_same_command(tmp_path):
 
 
 def test_cli_on_ftdcr_v4_writes_results_and_visuals(tmp_path):
-    from dacr_learn.hardware.study.cli import main
+    from dacr_learn.cli.hardware import main
 
     out = tmp_path / "run"
     report = main(["--data", str(V4_DATA), "--robot", str(V4_CALIBRATED), "--out", str(out),
@@ -110,7 +110,7 @@ def test_ftdcr_v6_folder_has_no_validation_recording():
 
 @pytest.mark.slow
 def test_cli_on_ftdcr_v6_without_val_chooses_a_default_on_train(tmp_path):
-    from dacr_learn.hardware.study.cli import main
+    from dacr_learn.cli.hardware import main
 
     out = tmp_path / "run"
     report = main(["--data", str(V6_DATA), "--robot", str(V6_CALIBRATED), "--out", str(out),
@@ -142,7 +142,7 @@ class _Flushes(io.StringIO):
 
 
 def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path, monkeypatch):
-    from dacr_learn.hardware.study.cli import main
+    from dacr_learn.cli.hardware import main
 
     data, robot = labelled_robot_dir
     out = tmp_path / "run"
@@ -177,7 +177,7 @@ def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path,
 
 
 def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, tmp_path):
-    from dacr_learn.hardware.study.cli import main, parse_args
+    from dacr_learn.cli.hardware import main, parse_args
 
     data, robot = labelled_robot_dir
     args = ["--data", str(data), "--robot", str(robot), "--models", "linear_raw", "cc", "--seeds", "0"]
@@ -199,10 +199,10 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     process (fit_model / the held-out build_model here raise). A member predicts like the same model trained
     here for its seed, the reported train RMSE per seed is the saved member's, and the σ model equals
     sigma_models computed here."""
+    from dacr_learn.cli.hardware import main
     from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
     from dacr_learn.hardware.metrics import tip_metrics
     from dacr_learn.hardware.study import benchmark, heldout
-    from dacr_learn.hardware.study.cli import main
 
     data, robot = labelled_robot_dir
     out, save = tmp_path / "run", tmp_path / "model"

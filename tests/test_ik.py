@@ -168,9 +168,9 @@ def test_bad_arguments_raise():
 
 
 def test_limits_projection_is_the_nearest_admissible_point():
-    lim = Limits(torch.tensor([-math.inf, -math.inf, 0.0], dtype=F64), torch.tensor([math.inf, math.inf, 1.0],
-                 dtype=F64), torch.tensor([[0, 1]]), torch.tensor([0.5], dtype=F64),
-                 torch.tensor([0.5, 0.5, 0.5], dtype=F64), ("a", "b", "c"))
+    lim = Limits.concatenate(Limits.disk(0.5, ("a", "b")), Limits.boxes([0.0], [1.0], ("c",)))
+    assert torch.equal(lim.lower, torch.tensor([-math.inf, -math.inf, 0.0], dtype=F64))
+    assert torch.equal(lim.disks, torch.tensor([[0, 1]])) and torch.equal(lim.scale, torch.full((3,), 0.5, dtype=F64))
     g = torch.Generator().manual_seed(0)
     x = torch.randn(200, 3, generator=g, dtype=F64)
     p = lim.project(x)
@@ -204,3 +204,29 @@ def test_unrolled_spd_solve_equals_torch(n):
     expected = torch.linalg.solve(a, b)
     cond = torch.linalg.cond(a)                                  # the error bound scales with the conditioning
     assert ((x - expected).abs().amax(-1) <= 64 * torch.finfo(F64).eps * cond * expected.abs().amax(-1)).all()
+
+
+def test_limits_concatenation_shifts_the_disks_and_keeps_every_bound():
+    """Limits.concatenate of (box, disk, box, disk) equals the limits written out by hand, variable by variable."""
+    parts = [Limits.boxes([-1.0, 2.0], [1.0, 5.0], ("p", "q"), scale=[0.1, 0.2]), Limits.disk(0.3, ("r", "s")),
+             Limits.boxes([0.0], [4.0], ("t",)), Limits.disk(2.0, ("u", "v"))]
+    lim = Limits.concatenate(*parts)
+    inf = math.inf
+    assert lim.lower.tolist() == [-1.0, 2.0, -inf, -inf, 0.0, -inf, -inf]
+    assert lim.upper.tolist() == [1.0, 5.0, inf, inf, 4.0, inf, inf]
+    assert lim.disks.tolist() == [[2, 3], [5, 6]] and lim.radius.tolist() == [0.3, 2.0]
+    assert lim.scale.tolist() == [0.1, 0.2, 0.3, 0.3, 2.0, 2.0, 2.0] and lim.names == tuple("pqrstuv")
+    assert Limits.concatenate(*parts, names=tuple("abcdefg")).names == tuple("abcdefg")
+    x = torch.tensor([[0.0, 3.0, 0.3, 0.0, 2.0, 1.5, 1.5]], dtype=F64)       # second disk: ‖(1.5, 1.5)‖ > 2
+    assert lim.violation(x).item() == pytest.approx((math.hypot(1.5, 1.5) - 2.0) / 2.0, rel=1e-12)
+    with pytest.raises(ValueError, match="lower < upper"):
+        Limits.boxes([1.0], [1.0], ("w",))
+
+
+@pytest.mark.parametrize(("field", "value", "unit"),
+                         [("pos_tolerance", 0.0, "m"), ("rot_tolerance", math.nan, "rad"),
+                          ("pos_tolerance", math.inf, "m")])
+def test_ik_options_name_a_bad_tolerance(field, value, unit):
+    with pytest.raises(ValueError) as err:
+        IKOptions(**{field: value})
+    assert str(err.value) == f"{field}: expected a finite value > 0 [{unit}], got {value}"

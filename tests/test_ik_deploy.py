@@ -8,8 +8,8 @@ from conftest import ROOT, TDCR3, random_features, spec_by_name
 from rerun_testkit import rrd_data, rrd_verify, rrd_views
 
 from dacr_learn import load_exported
+from dacr_learn.cli.ik import main
 from dacr_learn.ik import ConstantCurvature
-from dacr_learn.ik.cli import main
 from dacr_learn.ik.exported import IKRefinement, export_refinement
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.layers import ClarkeDecoder

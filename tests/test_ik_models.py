@@ -11,9 +11,9 @@ import torch
 from conftest import ROOT, TDCR3, random_features, reference_joint_vector
 
 from dacr_learn import load_model
+from dacr_learn.cli.ik import main
 from dacr_learn.hardware.deploy import load_hardware_model
 from dacr_learn.ik import LearnedFK, solve_ik
-from dacr_learn.ik.cli import main
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.metrics import rotation_geodesic

@@ -13,6 +13,7 @@ from conftest import ROOT, roundoff_tol
 
 from dacr_learn import export as dexport
 from dacr_learn import load_model
+from dacr_learn.cli import export as export_cli
 from dacr_learn.hardware.deploy import load_hardware_model
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -43,7 +44,7 @@ def test_checkpoint_of_main_loads_and_predicts_as_it_did(name, recorded):
 
 @pytest.mark.parametrize("name", CHECKPOINTS)
 def test_checkpoint_of_main_exports_and_the_export_predicts_as_it_did(name, recorded, tmp_path):
-    meta = dexport.main(["--ckpt", str(DATA / f"{name}.ckpt"), "--out", str(tmp_path / name), "--no-aoti"])
+    meta = export_cli.main(["--ckpt", str(DATA / f"{name}.ckpt"), "--out", str(tmp_path / name), "--no-aoti"])
     assert meta["task"] == name[:2] and max(meta["max_abs_deviation"].values()) <= dexport.VERIFY_TOLERANCE
     module = dexport.load(tmp_path / name, name[:2], checkpoint=DATA / f"{name}.ckpt")
     x, expected = recorded[name]["input"], recorded[name]["output"]

@@ -1,13 +1,14 @@
 """dacr_learn.lie against independent references: torch.linalg.matrix_exp, autograd, float64 gradcheck, the CC arc."""
 from __future__ import annotations
 
+import lie_testkit as testkit
 import pytest
 import torch
 from conftest import roundoff_tol
 
 from dacr_learn import lie
 from dacr_learn.kinematics import cc_transform
-from dacr_learn.lie import twist_exp, twist_exp_and_tangent
+from dacr_learn.lie import twist_exp
 
 F64 = torch.float64
 
@@ -24,14 +25,14 @@ def test_hat_vee_are_inverse_and_hat_is_the_cross_product():
     torch.testing.assert_close(lie.vee(lie.hat(w)), w)
     torch.testing.assert_close((lie.hat(w) @ x.unsqueeze(-1)).squeeze(-1), torch.linalg.cross(w, x))
     xi = twists(4, 1.0)
-    torch.testing.assert_close((xi @ lie.hat_map()).unflatten(-1, (4, 4)),
+    torch.testing.assert_close((xi @ testkit.hat_map()).unflatten(-1, (4, 4)),
                                lie.pose_from_parts(lie.hat(xi[:, 3:]), xi[:, :3], torch.zeros(1, 4, dtype=xi.dtype)))
 
 
 @pytest.mark.parametrize("scale", [1e-4, 0.05, 2.0])
 def test_twist_exp_tangent_is_autograds_directional_derivative(scale):
     xi, dxi = twists(8, scale), twists(8 * 3, 1.0, seed=1).view(8, 3, 6)
-    value, tangent = lie.twist_exp_and_tangent(xi, dxi)
+    value, tangent = testkit.twist_exp_and_tangent(xi, dxi)
     expected = torch.stack([torch.func.jvp(lie.twist_exp, (xi,), (dxi[:, t],))[1] for t in range(3)], dim=1)
     torch.testing.assert_close(value, lie.twist_exp(xi))
     torch.testing.assert_close(tangent, expected, atol=1e-12, rtol=0)
@@ -57,6 +58,16 @@ def test_chain_products_are_the_running_products():
     chained = lie.chain_products(poses)
     torch.testing.assert_close(chained[:, 2], poses[:, 0] @ poses[:, 1] @ poses[:, 2])
     torch.testing.assert_close(chained[:, 0], poses[:, 0])
+    assert torch.equal(lie.chain_products(poses, tip_only=True), chained[:, -1])
+
+
+def test_twist_jacobian_reads_the_angular_velocity_of_a_rotating_pose():
+    """T(t) = exp(t·ξ^)·P: dT/dt at t = 0 is ξ^·P (one column, k = 1): the tip point moves at v + ω × p, the
+    frame turns at ω."""
+    xi, pose = twists(5, 1.0, seed=3), lie.twist_exp(twists(5, 1.0, seed=4))
+    dpose = (lie.pose_from_parts(lie.hat(xi[:, 3:]), xi[:, :3], torch.zeros(1, 4, dtype=F64)) @ pose).unsqueeze(-1)
+    expected = torch.cat([xi[:, :3] + torch.linalg.cross(xi[:, 3:], pose[:, :3, 3]), xi[:, 3:]], dim=-1)
+    torch.testing.assert_close(lie.twist_jacobian(pose, dpose)[..., 0], expected, atol=1e-14, rtol=0)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -97,7 +108,7 @@ def test_twist_exp_gradcheck(scale):
 @pytest.mark.parametrize("scale", [0.02, 1.5])            # the Taylor branch (φ² < 1e-2) and the closed form
 def test_twist_exp_tangent_matches_forward_mode_autodiff(scale):
     xi = scale * torch.randn(16, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    value, tangent = twist_exp_and_tangent(xi, torch.eye(6, dtype=torch.float64).expand(16, 6, 6))
+    value, tangent = testkit.twist_exp_and_tangent(xi, torch.eye(6, dtype=torch.float64).expand(16, 6, 6))
     ref = torch.func.vmap(torch.func.jacfwd(twist_exp))(xi).permute(0, 3, 1, 2)    # (16, 6, 4, 4)
     assert torch.equal(value, twist_exp(xi))
     assert (tangent - ref).abs().max() <= roundoff_tol(torch.float64, float(ref.abs().max()))
@@ -116,7 +127,7 @@ def spatial(pose: torch.Tensor, dpose: torch.Tensor) -> tuple[torch.Tensor, torc
 @pytest.mark.parametrize("scale", [0.0, 1e-4, 0.05, 0.3, 2.5])   # φ = 0, the Taylor branch, the closed form
 def test_twist_exp_and_tangents_are_forward_mode_autodiff(scale):
     xi, dxi = twists(12, scale, seed=4), twists(12 * 5, 1.0, seed=5).view(12, 5, 6)
-    pose, ang, lin = lie.twist_exp_and_tangents(xi, dxi)
+    pose, ang, lin = testkit.twist_exp_and_tangents(xi, dxi)
     assert torch.equal(pose, twist_exp(xi))
     for t in range(5):
         b, dp = spatial(pose, torch.func.jvp(twist_exp, (xi,), (dxi[:, t],))[1])
@@ -128,7 +139,7 @@ def test_roll_z_and_tangents_are_forward_mode_autodiff():
     xi, alpha = twists(6, 1.0, seed=6), torch.linspace(-2.0, 2.0, 6, dtype=F64)
     dxi = torch.cat([twists(6 * 2, 1.0, seed=7).view(6, 2, 6), torch.zeros(6, 1, 6, dtype=F64)], dim=1)
     alpha_row = torch.tensor([0.0, 0.0, 1.0], dtype=F64).view(3, 1)   # direction 2 is the roll angle
-    pose, ang, lin = lie.roll_z_and_tangents(*lie.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
+    pose, ang, lin = testkit.roll_z_and_tangents(*testkit.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
 
     def rolled(x, a):
         return lie.roll_z(twist_exp(x), a)
@@ -152,8 +163,8 @@ def test_chain_jacobian_is_reverse_mode_autodiff_of_the_product(factors):
 
     for b in range(4):
         xi_k = xi[b]
-        pose, ang, lin = lie.twist_exp_and_tangents(xi_k, dirs)
-        got_tip, jac = lie.chain_jacobian(pose, ang, lin)
+        pose, ang, lin = testkit.twist_exp_and_tangents(xi_k, dirs)
+        got_tip, jac = testkit.chain_jacobian(pose, ang, lin)
         x0 = torch.zeros(factors, 3, dtype=F64)
         ref = torch.func.jacrev(tip)(x0).flatten(-2)           # (4, 4, factors·3)
         rot = got_tip[:3, :3]
@@ -173,8 +184,8 @@ def test_chain_jacobian_with_a_fixed_base_and_point_is_reverse_mode_autodiff():
     def tip(x):
         return base @ lie.chain_products(twist_exp(xi + (x.unsqueeze(-1) * dirs).sum(-2)))[-1] @ offset
 
-    pose, ang, lin = lie.twist_exp_and_tangents(xi, dirs)
-    got_tip, jac = lie.chain_jacobian(pose, ang, lin, base, point)
+    pose, ang, lin = testkit.twist_exp_and_tangents(xi, dirs)
+    got_tip, jac = testkit.chain_jacobian(pose, ang, lin, base, point)
     x0 = torch.zeros(2, 3, dtype=F64)
     ref = torch.func.jacrev(tip)(x0).flatten(-2)                 # (4, 4, 6)
     omega = lie.vee(torch.einsum("ijk,lj->ilk", ref[:3, :3], got_tip[:3, :3]).permute(2, 0, 1))
@@ -190,8 +201,8 @@ def test_twist_chain_jacobian_is_the_composition_of_the_tensor_wrappers():
     alpha_row = torch.zeros(3, 4, 1, dtype=F64)
     alpha_row[:, 3] = 1.0
     base, point = twist_exp(twists(1, 1.0, seed=15)[0]), torch.tensor([0.1, 0.2, -0.3], dtype=F64)
-    poses = lie.roll_z_and_tangents(*lie.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
+    poses = testkit.roll_z_and_tangents(*testkit.twist_exp_and_tangents(xi, dxi), alpha, alpha_row)
     tip, jac = lie.twist_chain_jacobian(xi, dxi, alpha, alpha_row, base, point)
-    ref_tip, ref_jac = lie.chain_jacobian(*poses, base, point)
+    ref_tip, ref_jac = testkit.chain_jacobian(*poses, base, point)
     torch.testing.assert_close(tip, ref_tip, atol=roundoff_tol(F64, 10.0), rtol=0)
     torch.testing.assert_close(jac, ref_jac, atol=roundoff_tol(F64, 100.0), rtol=0)

@@ -37,8 +37,10 @@ def test_package_docstring_example_runs():
     assert result.attempted >= 4 and result.failed == 0
 
 
-def test_readme_example_runs(monkeypatch):
-    monkeypatch.chdir(ROOT)                          # the example reads configs/robots/... like a user would
+def test_readme_example_runs(monkeypatch, tmp_path):
+    # run where a user would, beside configs/, but in a fresh folder: the IK example writes T.npy
+    (tmp_path / "configs").symlink_to(ROOT / "configs")
+    monkeypatch.chdir(tmp_path)
     # every doctest of the README but "Your own robot", which needs a trained run (test_readme_own_robot.py)
     text = "".join(body for name, body in readme_sections().items() if name != OWN_ROBOT)
     test = doctest.DocTestParser().get_doctest(text, {}, "README.md", str(ROOT / "README.md"), 0)

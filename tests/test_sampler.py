@@ -14,9 +14,9 @@ from rerun_testkit import rrd_data, rrd_verify, rrd_views
 
 import train
 from dacr_learn import load_model
+from dacr_learn.cli.ik import main as ik_cli
 from dacr_learn.data import generate
 from dacr_learn.ik import clarke_limits, solve_ik
-from dacr_learn.ik.cli import main as ik_cli
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.metrics import rotation_geodesic

@@ -151,7 +151,7 @@ def test_no_file_in_the_package_is_over_400_lines():
 # a module imports only modules of its own layer or of layers listed before it.
 LAYERS = {
     "core": ["checks", "console", "robot", "clarke", "layers", "component_algebra", "lie", "kinematics", "metrics",
-             "models", "folding", "compositional", "clarke_space", "sampler"],
+             "models", "folding", "compositional", "clarke_space", "sampler", "body", "scene"],
     "physics": ["cosserat"],
     "data": ["data"],
     "learning": ["datamodule", "training", "training_sampler", "runs", "ablation", "combination_shift"],
@@ -160,8 +160,9 @@ LAYERS = {
     "hardware": ["hardware"],
     "hardware.deploy": ["hardware.deploy"],
     "hardware.study": ["hardware.study"],
-    "entry": ["", "export", "cli", "hardware.__main__", "ablation.__main__", "ik.cli", "ik.__main__",
-              "plan.__main__"],   # root and CLIs
+    # the root, the command lines (cli) and the thin `python -m dacr_learn.<package>` shims that run them
+    "entry": ["", "export", "cli", "hardware.__main__", "ablation.__main__", "ik.__main__", "ik.exported.__main__",
+              "plan.__main__"],
 }
 NO_LIGHTNING_OR_RERUN = ("core", "physics", "data", "deploy", "hardware", "hardware.deploy")
 
@@ -178,9 +179,11 @@ def layer_of(module: str) -> str:
 
 def test_every_module_has_a_layer_and_the_checker_sees_an_upward_import():
     assert [layer_of(m) for m in ("dacr_learn", "dacr_learn.lie", "dacr_learn.data.cosserat", "dacr_learn.deploy",
-                                  "dacr_learn.hardware.deploy.export", "dacr_learn.hardware.study.cli",
-                                  "dacr_learn.export", "dacr_learn.hardware.__main__")] == [
-        "entry", "core", "data", "deploy", "hardware.deploy", "hardware.study", "entry", "entry"]
+                                  "dacr_learn.hardware.deploy.export", "dacr_learn.hardware.study.benchmark",
+                                  "dacr_learn.export", "dacr_learn.hardware.__main__", "dacr_learn.cli.ik",
+                                  "dacr_learn.ik.exported", "dacr_learn.ik.exported.__main__")] == [
+        "entry", "core", "data", "deploy", "hardware.deploy", "hardware.study", "entry", "entry", "entry", "deploy",
+        "entry"]
     order = list(LAYERS)
     assert order.index(layer_of("dacr_learn.deploy.export")) > order.index(layer_of("dacr_learn.runs"))
     unclaimed = []
@@ -216,3 +219,18 @@ def test_the_synthetic_deploy_layer_imports_nothing_of_hardware():
     edges = graph()
     assert not {f"{a} → {b}" for a, targets in edges.items() if layer_of(a) == "deploy"
                 for b in targets if b.startswith("dacr_learn.hardware")}
+
+
+def test_the_solver_imports_neither_the_arm_nor_the_hardware():
+    """ik/ is below arm/ and hardware/ (both build on it): no module under dacr_learn/ik imports either, also not a
+    command line living there (they are in cli/)."""
+    solver = [a for a in graph() if a.split(".")[:2] == ["dacr_learn", "ik"]]
+    assert len(solver) > 5
+    assert sorted(f"{a} → {b}" for a in solver for b in graph()[a] if b.split(".")[1] in ("arm", "hardware")) == []
+
+
+def test_only_the_command_lines_and_their_shims_import_cli():
+    edges = graph()
+    assert sorted(f"{a} → {b}" for a, targets in edges.items() for b in targets
+                  if b.startswith("dacr_learn.cli") and not a.startswith("dacr_learn.cli")
+                  and not a.endswith(".__main__")) == []

@@ -5,9 +5,8 @@
 
 Writes ``<out>/results.csv`` (one row per run and test condition, appended and flushed as each
 training finishes, so an interrupted grid resumes where it stopped), ``summary.md``, one PNG per
-task and condition, and ``ablation.rrd``.
+task and condition, and ``ablation.rrd``. The command line: :mod:`dacr_learn.cli.ablation`.
 """
-from .cli import main
 from .runner import COLUMNS, Job, conditions, evaluate, load_config, make_jobs, run_job
 
-__all__ = ["COLUMNS", "Job", "conditions", "evaluate", "load_config", "main", "make_jobs", "run_job"]
+__all__ = ["COLUMNS", "Job", "conditions", "evaluate", "load_config", "make_jobs", "run_job"]

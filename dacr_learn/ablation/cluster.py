@@ -35,11 +35,6 @@ def connect(address: str):
     return Client(address)
 
 
-def cluster_threads(client) -> int:
-    """Total worker threads of the cluster now (≥ 1; it may grow or shrink while the grid runs)."""
-    return max(1, sum(client.nthreads().values()))
-
-
 def portable_config(cfg: dict) -> dict:
     """A copy of ``cfg`` whose robot paths (``robots`` values, ``transfer.to``) are replaced by
     RobotSpec dicts, so a worker on another machine needs no ``configs/`` directory."""

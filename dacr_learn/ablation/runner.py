@@ -278,12 +278,18 @@ def fit(cfg: dict, job: Job, spec: RobotSpec) -> tuple[pl.LightningModule, float
     data = dataset(cfg, spec, job.n_train, seed=1 + job.seed)
     pl.seed_everything(job.seed, verbose=False)
     module = build_module(cfg, job.task, spec.to_dict(), job.features, job.structure)
+    return module, train_steps(module, data, steps, bs, job.seed)
+
+
+def train_steps(module: pl.LightningModule, data: dict[str, Tensor], steps: int, batch_size: int, seed: int) -> float:
+    """Train ``module`` for ``steps`` steps of ``batch_size`` samples of ``data`` on the CPU (no logger, checkpoint
+    or validation: :class:`StepDataModule`); returns the fit time [s]."""
     trainer = pl.Trainer(max_steps=steps, max_epochs=1, accelerator="cpu", devices=1, logger=False,
                          enable_checkpointing=False, enable_progress_bar=False, enable_model_summary=False,
                          limit_val_batches=0, num_sanity_val_steps=0)
     start = time.perf_counter()
-    trainer.fit(module, datamodule=StepDataModule(data, steps, bs, seed=job.seed))
-    return module, time.perf_counter() - start
+    trainer.fit(module, datamodule=StepDataModule(data, steps, batch_size, seed=seed))
+    return time.perf_counter() - start
 
 
 def run_job(cfg: dict, job: Job) -> list[dict]:

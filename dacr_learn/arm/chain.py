@@ -23,9 +23,10 @@ from pytorch_kinematics import transforms as tf
 from pytorch_kinematics.urdf_parser_py.urdf import URDF
 from torch import Tensor
 
+from ..checks import F64
 from ..ik.limits import Limits
+from .geometry import LinkCapsules, link_capsules
 
-_F64 = torch.float64
 CONTINUOUS_RANGE = 2 * math.pi   # [rad]: the box of a joint without limits is ±this
 
 
@@ -34,7 +35,7 @@ class Arm:
     """A serial arm: ``chain`` (pytorch-kinematics SerialChain, float64), its movable ``joint_names`` (n,) in
     the chain's order, ``joint_types`` ("revolute" / "prismatic"), box ``limits`` (n variables, scale = half
     the range) of the URDF's joint limits, the ``tip`` link and ``frame_names``: the chain's frames, root to
-    tip (link frames, for drawing)."""
+    tip (link frames, for drawing); ``geometry``: the links' collision capsules (:mod:`.geometry`)."""
 
     chain: pk.SerialChain
     joint_names: tuple[str, ...]
@@ -43,6 +44,7 @@ class Arm:
     tip: str
     frame_names: tuple[str, ...]
     source: str
+    geometry: LinkCapsules | None = None
 
     @property
     def num_joints(self) -> int:
@@ -73,10 +75,10 @@ def _exact_transform(origin) -> tf.Transform3d:
     """A URDF <origin xyz rpy> as a float64 Transform3d: R = Rz(yaw)·Ry(pitch)·Rx(roll) (fixed axes x, y, z)."""
     xyz = [0.0, 0.0, 0.0] if origin is None or origin.xyz is None else [float(v) for v in origin.xyz]
     rpy = [0.0, 0.0, 0.0] if origin is None or origin.rpy is None else [float(v) for v in origin.rpy]
-    rot = tf.euler_angles_to_matrix(torch.tensor(rpy[::-1], dtype=_F64), "ZYX")
-    matrix = torch.eye(4, dtype=_F64)
-    matrix[:3, :3], matrix[:3, 3] = rot, torch.tensor(xyz, dtype=_F64)
-    return tf.Transform3d(matrix=matrix, dtype=_F64)
+    rot = tf.euler_angles_to_matrix(torch.tensor(rpy[::-1], dtype=F64), "ZYX")
+    matrix = torch.eye(4, dtype=F64)
+    matrix[:3, :3], matrix[:3, 3] = rot, torch.tensor(xyz, dtype=F64)
+    return tf.Transform3d(matrix=matrix, dtype=F64)
 
 
 def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
@@ -95,7 +97,7 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
         if name and name not in links:
             raise ValueError(f"{flag} {name!r}: no such link in {source}; its links are {links}")
     try:
-        chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=_F64)
+        chain = _quiet(pk.build_chain_from_urdf, text).to(dtype=F64)
     except KeyError as err:                               # a joint type pytorch-kinematics has no model of
         kinds = sorted({j.type for j in robot.joints} - {"revolute", "continuous", "prismatic", "fixed"})
         raise ValueError(f"arm {source}: pytorch-kinematics cannot build this URDF (joint types {kinds or err}); "
@@ -105,12 +107,12 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
         if frame is None:
             continue
         frame.joint.offset = _exact_transform(joint.origin)
-        axis = torch.tensor([1.0, 0.0, 0.0] if joint.axis is None else [float(v) for v in joint.axis], dtype=_F64)
+        axis = torch.tensor([1.0, 0.0, 0.0] if joint.axis is None else [float(v) for v in joint.axis], dtype=F64)
         if joint.type != "fixed" and not torch.linalg.vector_norm(axis) > 0:
             raise ValueError(f"arm {source}: joint {joint.name!r} has a zero axis")
         frame.joint.axis = axis / torch.linalg.vector_norm(axis).clamp_min(1e-300)   # URDF default: (1, 0, 0)
     try:
-        serial = pk.SerialChain(chain, tip, root, dtype=_F64)
+        serial = pk.SerialChain(chain, tip, root, dtype=F64)
     except (ValueError, KeyError, IndexError) as err:
         raise ValueError(f"arm {source}: no serial chain from {root or 'the root link'} to {tip!r} ({err})") from err
     names = tuple(serial.get_joint_parameter_names())
@@ -122,7 +124,8 @@ def load_arm(urdf: str | Path, tip: str, root: str = "") -> Arm:
         raise ValueError(f"arm {source}: mimic joints are not supported, found {mimic} on the chain to {tip!r}")
     limits, types = _joint_limits(names, by_name, source)
     frames = tuple(serial.get_frame_names(exclude_fixed=False))
-    return Arm(serial, names, types, limits, tip, frames, source)
+    folder = Path(source).parent if source != "<URDF text>" else Path.cwd()
+    return Arm(serial, names, types, limits, tip, frames, source, link_capsules(robot, serial, frames, folder))
 
 
 def _urdf_text(urdf: str | Path) -> tuple[bytes, str]:
@@ -150,7 +153,4 @@ def _joint_limits(names: tuple[str, ...], by_name: dict, source: str) -> tuple[L
             raise ValueError(f"arm {source}: joint {n!r} has an empty range [{lo}, {hi}]; make it a fixed joint")
         lower.append(float(lo))
         upper.append(float(hi))
-    lower, upper = torch.tensor(lower, dtype=_F64), torch.tensor(upper, dtype=_F64)
-    limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),
-                    (upper - lower) / 2, tuple(f"arm.{n}" for n in names))
-    return limits, tuple(types)
+    return Limits.boxes(lower, upper, tuple(f"arm.{n}" for n in names)), tuple(types)

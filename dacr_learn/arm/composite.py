@@ -23,13 +23,16 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ..body import BodyPoints, transform_body
+from ..checks import F64
+from ..ik.adapters import Check, ConstantCurvature, LearnedFK, SolverModel, TipJacobian, as_solver_model
 from ..ik.limits import Limits
-from ..ik.models import Check, ConstantCurvature, LearnedFK, SolverModel, as_solver_model
+from ..ik.targets import pose_defects
 from ..kinematics import forward_kinematics
 from .chain import Arm
+from .geometry import posed_capsules
 from .seeds import PoseBank
 
-_F64 = torch.float64
 BANK_SIZE = 8192   # samples of the pose bank that seeds whole-body IK (docs/arm.md: about 0.1 s to build)
 
 
@@ -47,22 +50,21 @@ class WholeBody(NamedTuple):
 
 
 def check_mount(mount) -> Tensor:
-    """A mount (4, 4) as float64: a homogeneous transform (rotation orthonormal with det +1 to 1e-6, as the
-    solver asks of a target pose; last row (0, 0, 0, 1), finite), used as given. ValueError naming what is
+    """A mount (4, 4) as float64: a homogeneous transform (:func:`~dacr_learn.ik.targets.pose_defects`, as the
+    solver asks of a target pose; finite), used as given. ValueError naming what is
     wrong."""
     m = torch.as_tensor(mount)
     if not m.is_floating_point() or m.shape != (4, 4):
         raise ValueError(f"mount: expected a float (4, 4) homogeneous transform (tip link → robot base), got "
                          f"{m.dtype} {tuple(m.shape)}")
-    m = m.to(_F64)
+    m = m.to(F64)
     if not torch.isfinite(m).all():
         raise ValueError("mount: has NaN/inf entries")
-    rot = m[:3, :3]
-    orth = float((rot @ rot.T - torch.eye(3, dtype=_F64)).abs().max())
-    det = float(torch.linalg.det(rot))
-    if orth > 1e-6 or abs(det - 1) > 1e-6 or float((m[3] - torch.tensor([0.0, 0, 0, 1], dtype=_F64)).abs().max()) > 0:
+    orth, det, wrong = pose_defects(m)
+    if wrong:
         raise ValueError(f"mount: the rotation block must be a rotation (RRᵀ = I, det +1 to 1e-6) and the last row "
-                         f"(0, 0, 0, 1); got |RRᵀ − I| = {orth:.2e}, det = {det:.9f}, last row {m[3].tolist()}")
+                         f"(0, 0, 0, 1); got |RRᵀ − I| = {float(orth):.2e}, det = {float(det):.9f}, last row "
+                         f"{m[3].tolist()}")
     return m
 
 
@@ -86,28 +88,27 @@ class Composite(SolverModel):
         self.num_joints = n + self.robot.num_joints
         self.has_rotation = self.robot.has_rotation
         self.spec = None
-        a, r = arm.limits, self.robot.limits.to(_F64)
-        self.limits = Limits(torch.cat([a.lower, r.lower]), torch.cat([a.upper, r.upper]), r.disks + n, r.radius,
-                             torch.cat([a.scale, r.scale]), a.names + tuple(f"robot.{x}" for x in r.names))
+        a, r = arm.limits, self.robot.limits
+        self.limits = Limits.concatenate(a, r, names=a.names + tuple(f"robot.{x}" for x in r.names))
         if home is None:
             home = (a.lower + a.upper) / 2
-        home = torch.as_tensor(home, dtype=_F64)
+        home = torch.as_tensor(home, dtype=F64)
         if home.shape != (n,) or not torch.isfinite(home).all() or not bool(a.inside(home)):
             raise ValueError(f"home: expected {n} finite arm joint values inside the URDF limits, got {home.tolist()}")
         self.home = home
-        self.rest = torch.cat([home, self.robot.rest.to(_F64)])
-        offsets = arm.chain.forward_kinematics_tensor(torch.zeros(1, n, dtype=_F64), analytical_grad=False)
+        self.rest = torch.cat([home, self.robot.rest.to(F64)])
+        offsets = arm.chain.forward_kinematics_tensor(torch.zeros(1, n, dtype=F64), analytical_grad=False)
         reach = torch.linalg.vector_norm(offsets[1:, 0, :3, 3] - offsets[:-1, 0, :3, 3], dim=-1).sum()
         self._bank = None
         self.length = float(reach) + float(torch.linalg.vector_norm(self.mount[:3, 3])) + float(self.robot.length)
 
     # -- the SolverModel interface -----------------------------------------------------------------------------
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         """Variables (B, n + D) → tip position (B, 3) [m], rotation (B, 3, 3) (None for a position-only robot),
         J (B, 6 or 3, n + D) (module docstring), all in the arm's base frame."""
         k = self.kinematics(x, with_base=False)
-        return k.position, k.rotation, k.jacobian
+        return TipJacobian(k.position, k.rotation, k.jacobian)
 
     def kinematics(self, x: Tensor, with_base: bool = True) -> WholeBody:
         """Tip, Jacobian and robot base of variables (B, n + D) in one pass (:class:`WholeBody`; its
@@ -135,13 +136,13 @@ class Composite(SolverModel):
         return torch.cat([x[:, :self.num_arm], self.robot.joints(x[:, self.num_arm:])], dim=-1)
 
     def variables(self, q: Tensor) -> Tensor:
-        q = q.to(_F64)
+        q = q.to(F64)
         return torch.cat([q[:, :self.num_arm], self.robot.variables(q[:, self.num_arm:])], dim=-1)
 
     def check(self, q: Tensor) -> Check:
         """From the joints alone: the arm's FK (pytorch-kinematics, not the Jacobian path) and URDF limits, the
         robot's own check (its FK, limits, constraint), composed through the mount."""
-        q = q.to(_F64)
+        q = q.to(F64)
         theta = q[:, :self.num_arm]
         base = self.arm.tip_pose(theta) @ self.mount
         inner = self.robot.check(q[:, self.num_arm:])
@@ -156,6 +157,20 @@ class Composite(SolverModel):
         if self._bank is None:
             self._bank = PoseBank(self, BANK_SIZE)
         return self._bank.seeds(target, count)
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The robot's body (its model's :meth:`~dacr_learn.ik.SolverModel.body`) in the arm's base frame, at
+        variables x (B, n + D); differentiable in x."""
+        return transform_body(self.robot.body(x[:, self.num_arm:], points_per_segment),
+                              self.base_pose(x[:, :self.num_arm]))
+
+    def links(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """The arm's link capsules (:mod:`.geometry`) at variables x (B, n + D), in the arm's base frame."""
+        geometry = self.arm.geometry
+        if geometry is None or geometry.radius.numel() == 0:
+            return None
+        a, b = posed_capsules(geometry, self.arm.frames(x[:, :self.num_arm]))
+        return a, b, geometry.radius, geometry.near_mount
 
     # -- differentiable forward kinematics ---------------------------------------------------------------------
 

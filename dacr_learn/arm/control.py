@@ -25,13 +25,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor, nn
 
-from ..deploy.control import scaled_dls_step
+from ..checks import F64
+from ..deploy.control import ControllerConfig, scaled_dls_step, tip_task
+from ..ik.refine import free_jacobian
 from .composite import Composite
-
-_F64 = torch.float64
 
 
 @dataclass(frozen=True)
@@ -49,26 +48,24 @@ class Port:
 
 
 @dataclass(frozen=True)
-class WholeBodyConfig:
-    """gain: fraction of the error corrected per step, (0, 1]; damping: λ [m] of the DLS; max_step: largest
-    scaled step ‖Δz‖; rotation_length: w [m/rad] (None: the robot's length); port_weight: k of the port rows;
+class WholeBodyConfig(ControllerConfig):
+    """gain, damping (λ [m] of the DLS), max_step: as :class:`~dacr_learn.deploy.control.ControllerConfig`;
+    rotation_length: w [m/rad] (None: the robot's length); port_weight: k of the port rows;
     rest_gain: per-step pull of the variables towards a posture (the controller's ``posture``, default the
     model's rest configuration), in the null space (0: off);
     dt: control period [s] for the arm's URDF velocity limits (None: not applied)."""
 
-    gain: float = 0.5
     damping: float = 1e-3
-    max_step: float = 0.05
     rotation_length: float | None = None
     port_weight: float = 10.0
     rest_gain: float = 0.0
     dt: float | None = None
 
     def __post_init__(self):
-        if not 0 < self.gain <= 1:
-            raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
-        if not self.damping >= 0 or not self.max_step > 0 or not self.port_weight > 0 or not self.rest_gain >= 0:
-            raise ValueError("damping >= 0, max_step > 0, port_weight > 0 and rest_gain >= 0 expected")
+        super().__post_init__()
+        if self.damping is None or not self.port_weight > 0 or not self.rest_gain >= 0:
+            raise ValueError(f"damping >= 0, port_weight > 0 and rest_gain >= 0 expected, got {self.damping}, "
+                             f"{self.port_weight}, {self.rest_gain}")
         if self.rotation_length is not None and not self.rotation_length > 0:
             raise ValueError(f"rotation_length: expected > 0 [m/rad], got {self.rotation_length}")
         if self.dt is not None and not self.dt > 0:
@@ -87,22 +84,22 @@ class WholeBodyController:
     def __init__(self, model: Composite, config: WholeBodyConfig = WholeBodyConfig(), port: Port | None = None,
                  moving: Tensor | None = None, posture: Tensor | None = None):
         self.model, self.config, self.port = model, config, port
-        self.posture = (model.rest if posture is None else posture).to(_F64)
+        self.posture = (model.rest if posture is None else posture).to(F64)
         if self.posture.shape != model.rest.shape:
             raise ValueError(f"posture: expected {tuple(model.rest.shape)} variables, got {tuple(self.posture.shape)}")
         self.limits = model.limits
-        self.scale = model.limits.scale.to(_F64)
+        self.scale = model.limits.scale.to(F64)
         d = self.scale.shape[0]
         self.moving = torch.ones(d, dtype=torch.bool) if moving is None else moving.to(torch.bool)
         if self.moving.shape != (d,):
             raise ValueError(f"moving: expected ({d},) bools, got {tuple(self.moving.shape)}")
         self.weight = model.robot.length if config.rotation_length is None else config.rotation_length
-        self.centre = None if port is None else torch.tensor(port.centre, dtype=_F64)
-        velocity = torch.tensor(model.arm.chain.get_joint_velocity_limits()[1], dtype=_F64)
+        self.centre = None if port is None else torch.tensor(port.centre, dtype=F64)
+        velocity = torch.tensor(model.arm.chain.get_joint_velocity_limits()[1], dtype=F64)
         self.max_arm_step = None if config.dt is None else velocity * config.dt       # (n,) [rad, m] per step
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
-        x = self.model.variables(q.to(_F64))
+        x = self.model.variables(q.to(F64))
         return self.model.joints(self.step_variables(x, target, feedforward))
 
     def step_variables(self, x: Tensor, target: Tensor, feedforward: Tensor | None = None,
@@ -110,32 +107,20 @@ class WholeBodyController:
         """One step in variables: x (B, n + D) → x' (B, n + D). ``rest`` (B, D_c): evaluate the robot at this
         shape instead of its own (the decoupled arm step), leaving its variables unchanged."""
         model, cfg, n = self.model, self.config, self.model.num_arm
-        target = target.to(_F64)
         xe = x if rest is None else torch.cat([x[:, :n], rest], dim=-1)
         kin = model.kinematics(xe)
-        pose = target.dim() == 3
-        position = target[:, :3, 3] if pose else target
-        rows, task = [kin.jacobian[:, :3]], [cfg.gain * (position - kin.position)]
-        if pose:
-            if kin.rotation is None:
-                raise ValueError("target: this robot gives a tip position only; pass (B, 3) positions")
-            rows.append(self.weight * kin.jacobian[:, 3:])
-            task.append(cfg.gain * self.weight * matrix_to_axis_angle(target[:, :3, :3] @ kin.rotation.mT))
-        if feedforward is not None:
-            ff = feedforward.to(_F64)
-            task = [task[0] + ff[:, :3]] + ([task[1] + self.weight * ff[:, 3:6]] if pose else [])
+        rows, task = tip_task(kin.jacobian, kin.position, kin.rotation, target, feedforward, cfg.gain, self.weight)
         if self.centre is not None:
             rows.append(cfg.port_weight * kin.base_jacobian)
             task.append(cfg.port_weight * cfg.gain * (self.centre - kin.base[:, :3, 3]))
         jac, err = torch.cat(rows, dim=1), torch.cat(task, dim=-1)
-        jac = jac * self.moving.to(_F64)
+        jac = jac * self.moving.to(F64)
         scaled = jac * self.scale
-        box, normals = self.limits.blocked(xe, -(scaled.mT @ err.unsqueeze(-1)).squeeze(-1))
-        free = self.limits.free_directions(box, normals)                      # (B, D, D) in scaled variables
-        jac = (scaled @ free) / self.scale
+        scaled, free = free_jacobian(self.limits, xe, scaled, -(scaled.mT @ err.unsqueeze(-1)).squeeze(-1))
+        jac = scaled / self.scale                                             # free: (B, D, D) in scaled variables
         secondary = None
         if cfg.rest_gain > 0:
-            pull = cfg.rest_gain * (self.posture - xe) / self.scale * self.moving.to(_F64)
+            pull = cfg.rest_gain * (self.posture - xe) / self.scale * self.moving.to(F64)
             secondary = (pull.unsqueeze(1) @ free).squeeze(1)
         step = scaled_dls_step(jac, err, self.scale, cfg.damping, cfg.max_step, secondary)
         if self.max_arm_step is not None:                                     # URDF velocity limits
@@ -157,10 +142,10 @@ class DecoupledController:
         self.model = model
         self.arm = WholeBodyController(model, config, port, moving=arm, posture=posture)
         self.robot = WholeBodyController(model, config, None, moving=~arm, posture=posture)
-        self.straight = model.rest[n:].to(_F64)
+        self.straight = model.rest[n:].to(F64)
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
-        x = self.model.variables(q.to(_F64))
+        x = self.model.variables(q.to(F64))
         x = self.arm.step_variables(x, target, feedforward, rest=self.straight.expand(x.shape[0], -1))
         x = self.robot.step_variables(x, target, feedforward)
         return self.model.joints(x)

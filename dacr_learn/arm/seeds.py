@@ -14,9 +14,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..ik.models import SolverModel
+from ..checks import F64
+from ..ik.adapters import SolverModel
 
-_F64 = torch.float64
 POSITION_WEIGHT = 10.0   # a position difference of L/10 weighs like a rotation of about 40°
 CHUNK = 1024             # targets per distance block (memory: CHUNK × size doubles)
 
@@ -34,8 +34,8 @@ class PoseBank:
         gen = torch.Generator().manual_seed(seed)
         self.x = model.limits.sample(size, gen)
         parts = [model.tip_and_jacobian(chunk)[:2] for chunk in self.x.split(4096)]
-        self.position = torch.cat([p for p, _ in parts]).to(_F64)
-        self.rotation = None if parts[0][1] is None else torch.cat([r for _, r in parts]).to(_F64)
+        self.position = torch.cat([p for p, _ in parts]).to(F64)
+        self.rotation = None if parts[0][1] is None else torch.cat([r for _, r in parts]).to(F64)
         self._weight = POSITION_WEIGHT / model.length
 
     def _features(self, position: Tensor, rotation: Tensor | None) -> Tensor:
@@ -46,7 +46,7 @@ class PoseBank:
         """Seeds (B, count, D) for targets (B, 4, 4) poses or (B, 3) positions [m] in the model's base frame."""
         if count < 1 or count > self.size:
             raise ValueError(f"count: expected 1 … {self.size} seeds per target, got {count}")
-        target = target.to(_F64)
+        target = target.to(F64)
         pose = target.dim() == 3
         position = target[:, :3, 3] if pose else target
         use_rotation = pose and self.rotation is not None

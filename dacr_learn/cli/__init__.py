@@ -2,7 +2,13 @@
 thin ``__main__`` of the package a user names (``python -m dacr_learn.<package>`` through
 :func:`dacr_learn.console.run_cli`: a user error is one ``error: …`` line and exit status 2).
 
-- :mod:`.plan`   ``python -m dacr_learn.plan ftl``: follow-the-leader insertion along a path
+- :mod:`.ik`           ``python -m dacr_learn.ik``: IK for a file of targets (a robot file, a checkpoint, an arm)
+- :mod:`.ik_exported`  ``python -m dacr_learn.ik.exported``: export the warm-started IK refinement
+- :mod:`.export`       ``python -m dacr_learn.export``: export a checkpoint of any format
+- :mod:`.hardware`     ``python -m dacr_learn.hardware``: the model-selection study on hardware recordings
+- :mod:`.ablation`     ``python -m dacr_learn.ablation``: the Clarke-vs-raw ablation grid
+- :mod:`.loading`      what they read: .npy arrays, a model recognised by its file's contents, the arm files
+- :mod:`.plan`         ``python -m dacr_learn.plan ftl``: follow-the-leader insertion along a path
 
 Nothing in the library imports this package.
 """

@@ -26,24 +26,14 @@ import torch
 
 from ..plan import FTLOptions, FTLPlan, plan_ftl
 from ..plan.path import Path as PolylinePath
+from .loading import composite_from_files, describe, load_array, load_solver_model
 
 _F64 = torch.float64
 
 
-def _read_npy(path: str, flag: str) -> np.ndarray:
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{flag} {path}: no such file; expected a .npy array")
-    try:
-        return np.load(p, allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise ValueError(f"{flag} {path}: expected a .npy array (numpy.save), found a file numpy cannot read "
-                         f"({err})") from err
-
-
 def load_path(path: str) -> PolylinePath:
     """--path P.npy: a float (W, 3) polyline [m]. ValueError naming the flag and what was wrong."""
-    array = _read_npy(path, "--path")
+    array = load_array(path, "--path")
     if not np.issubdtype(array.dtype, np.floating):
         raise ValueError(f"--path {path}: expected float64 (W, 3) points [m], got dtype {array.dtype}")
     try:
@@ -72,15 +62,13 @@ def write_plan(out: Path, plan: FTLPlan) -> None:
 
 def build_model(args: argparse.Namespace):
     """The planner's model: --robot / --ckpt, inside the arm of --arm/--arm-tip/--mount when given."""
-    from ..ik.cli import load_solver_model
-    from ..ik.models import as_solver_model
+    from ..ik.adapters import as_solver_model
     model, _, description = load_solver_model(args.robot, args.ckpt)
     model = as_solver_model(model)
     if args.arm is None:
         if args.arm_tip is not None or args.mount is not None:
             raise ValueError("--arm-tip and --mount go with --arm ARM.urdf; --arm is missing")
         return model, description
-    from ..arm.files import composite_from_files, describe
     composite = composite_from_files(args.arm, args.arm_tip, args.mount, model)
     return composite, f"{args.arm} ({args.arm_tip}) carrying the {description}; {describe(composite)}"
 

@@ -35,7 +35,7 @@ from torch import Tensor
 from ..checks import check_tensor
 from ..robot import RobotSpec
 from .rod import Section
-from .statics import ConvergenceError, CosseratSolution, solve_statics
+from .statics import ConvergenceError, CosseratSolution, check_solve_arguments, solve_statics
 from .tendon import tendon_routing
 
 LCP_ACTIVE_SET_STEPS = 25
@@ -136,10 +136,7 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
     (e.g. from the solution of a nearby command or parameter set). ``tol`` [m]: the largest tendon-length
     violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". ``passing``: as
     :func:`solve_statics`. Float64, no gradient."""
-    if spec.mechanics is None:
-        raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
-    if on_failure not in ("raise", "flag"):
-        raise ValueError(f"on_failure: got {on_failure!r}, expected 'raise' or 'flag'")
+    check_solve_arguments(spec, on_failure)
     if not (isinstance(max_iter, int) and max_iter >= 1):
         raise ValueError(f"max_iter: got {max_iter!r}, expected a positive integer")
     if not tol > 0:

@@ -110,6 +110,14 @@ def _initial_guess(tension: Tensor, offsets: Tensor, loads: Loads, arcs: list[fl
     return torch.cat([n, m], dim=-1) - tension @ tendon
 
 
+def check_solve_arguments(spec: RobotSpec, on_failure: str) -> None:
+    """ValueError unless the robot has a mechanics block and ``on_failure`` is "raise" or "flag"."""
+    if spec.mechanics is None:
+        raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
+    if on_failure not in ("raise", "flag"):
+        raise ValueError(f"on_failure: got {on_failure!r}, expected 'raise' or 'flag'")
+
+
 def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = None, tip_wrench: Tensor | None = None,
                   point_wrenches: Sequence[tuple[float, Tensor]] = (), steps_per_segment: int = 16,
                   stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
@@ -124,10 +132,7 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
     ``workers``: chunks solved at once in threads (default ``torch.get_num_threads()``); a solve that must
     carry a gradient runs its chunks one after another. ``passing``: the radius of a tendon inside a segment
     it passes, "own" or "segment" (:func:`~.tendon.tendon_routing`)."""
-    if spec.mechanics is None:
-        raise ValueError("mechanics: got None, expected a mechanics block in the robot description")
-    if on_failure not in ("raise", "flag"):
-        raise ValueError(f"on_failure: got {on_failure!r}, expected 'raise' or 'flag'")
+    check_solve_arguments(spec, on_failure)
     for name, value in (("chunk_size", chunk_size), ("workers", workers)):
         if value is not None and (not isinstance(value, int) or value < 1):
             raise ValueError(f"{name}: got {value!r}, expected a positive integer")

@@ -21,26 +21,26 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
+from ..checks import F64, to_f64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import forward_kinematics
+from ..lie import twist_jacobian
 from ..models import actuated_to_features
 from ..robot import RobotSpec
 
 JacobianFn = Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]
-_F64 = torch.float64
-
-
-def _f64(x: Tensor) -> Tensor:
-    return x if x.dtype == _F64 else x.to(_F64)
 
 
 @dataclass(frozen=True)
 class ControllerConfig:
-    """gain: fraction of the position error corrected per step, in (0, 1]; damping: λ [m] of the
-    damped least squares (None: 1 % of the robot length); max_step: largest scaled feature step
-    ‖Δz‖ per control step (1 = a feature's whole half-range)."""
+    """The settings every resolved-rate controller shares (:func:`scaled_dls_step`): gain: fraction of the task
+    error corrected per step, in (0, 1]; damping: λ [task unit] of the damped least squares (None: the
+    controller's own default; here 1 % of the robot length); max_step: largest scaled step ‖Δz‖ per control
+    step (1 = a variable's whole half-range). The arm's and the servo controllers' configs extend it
+    (:class:`~dacr_learn.arm.WholeBodyConfig`, :class:`~dacr_learn.hardware.deploy.control.ServoControl`)."""
 
     gain: float = 0.5
     damping: float | None = None
@@ -81,12 +81,12 @@ class ResolvedRateController:
         ``feedforward`` (..., 3) [m]: the target's displacement over this step (velocity × dt);
         ``measured`` (..., 3) [m]: the measured tip position (else the learned FK's is used).
         """
-        q = _f64(q)
+        q = to_f64(q)
         pose, jac_f, _ = self.jacobian(q)
-        position = _f64(pose[..., :3, 3] if measured is None else measured)
-        task = self.config.gain * (_f64(target) - position)
+        position = to_f64(pose[..., :3, 3] if measured is None else measured)
+        task = self.config.gain * (to_f64(target) - position)
         if feedforward is not None:
-            task = task + _f64(feedforward)
+            task = task + to_f64(feedforward)
         f = self.space.features(q) + self.clarke_step(jac_f[..., :3, :], task)
         return self.space.joints(self.space.saturate(f))
 
@@ -104,31 +104,45 @@ def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: floa
     (a slack tendon's zero column) pass unchanged, so this is how a resolved-rate controller re-tensions a
     tendon its Jacobian cannot. The sum is shortened to ``max_step``.
     """
-    j = _f64(jac) * _f64(scale)                                               # J̃ = J·diag(s)
-    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=_F64)
-    rhs = _f64(task_step).unsqueeze(-1)
+    j = to_f64(jac) * to_f64(scale)                                               # J̃ = J·diag(s)
+    a = j @ j.mT + damping**2 * torch.eye(j.shape[-2], dtype=F64)
+    rhs = to_f64(task_step).unsqueeze(-1)
     if secondary is not None:
         if tuple(secondary.shape) != tuple(j.shape[:-2]) + (j.shape[-1],):
             raise ValueError(f"secondary: expected shape {tuple(j.shape[:-2]) + (j.shape[-1],)} (a scaled step per "
                              f"actuator), got {tuple(secondary.shape)}")
-        z2 = _f64(secondary).unsqueeze(-1)
+        z2 = to_f64(secondary).unsqueeze(-1)
         rhs = rhs - j @ z2                                                    # Δz = z₂ + J̃ᵀA⁻¹(Δx − J̃z₂)
     dz = (j.mT @ torch.linalg.solve(a, rhs)).squeeze(-1)
     if secondary is not None:
-        dz = dz + _f64(secondary)
+        dz = dz + to_f64(secondary)
     norm = torch.linalg.vector_norm(dz, dim=-1, keepdim=True)
     dz = dz * torch.clamp(max_step / norm.clamp_min(1e-300), max=1.0)
-    return dz * _f64(scale)
+    return dz * to_f64(scale)
 
 
-def twist_jacobian(pose: Tensor, dpose: Tensor) -> Tensor:
-    """Tip-twist Jacobian from a pose (..., 4, 4) and its derivative (..., 4, 4, k) → (..., 6, k).
-
-    Rows: dp (the tip point's linear velocity) and ω = vee(dR·Rᵀ), both in the base frame.
-    """
-    skew = torch.einsum("...ijk,...lj->...ilk", dpose[..., :3, :3, :], pose[..., :3, :3])
-    omega = torch.stack([skew[..., 2, 1, :], skew[..., 0, 2, :], skew[..., 1, 0, :]], dim=-2)
-    return torch.cat([dpose[..., :3, 3, :], omega], dim=-2)
+def tip_task(jacobian: Tensor, position: Tensor, rotation: Tensor | None, target: Tensor,
+             feedforward: Tensor | None, gain: float, weight: float) -> tuple[list[Tensor], list[Tensor]]:
+    """The tip task of a resolved-rate step, as lists of rows a controller may add to: from the tip ``position``
+    (B, 3) [m], ``rotation`` (B, 3, 3) or None and its Jacobian (B, 6 or 3, D) towards ``target`` (B, 4, 4) poses
+    or (B, 3) positions [m]: rows J_v [and w·J_ω], task gain·(p* − p) [and gain·w·log(R*Rᵀ)], w = ``weight``
+    [m/rad] (a rotation error counts like a length), plus the ``feedforward`` (B, 6) (Δp [m], Δφ [rad]) or (B, 3).
+    Returns ([J_v, w·J_ω], [e_v, e_ω]) (the rotation entries for a pose target only). ValueError for a pose
+    target on a position-only model or a feedforward of the wrong width."""
+    target = target.to(F64)
+    pose = target.dim() == 3
+    rows, task = [jacobian[:, :3]], [gain * ((target[:, :3, 3] if pose else target) - position)]
+    if pose:
+        if rotation is None or jacobian.shape[1] < 6:
+            raise ValueError("target: this model gives a tip position only; pass (B, 3) positions")
+        rows.append(weight * jacobian[:, 3:6])
+        task.append(gain * weight * matrix_to_axis_angle(target[:, :3, :3] @ rotation.mT))
+    if feedforward is not None:
+        ff = feedforward.to(F64)
+        if ff.shape[-1] != (6 if pose else 3):
+            raise ValueError(f"feedforward: expected (B, {6 if pose else 3}) for this target, got {tuple(ff.shape)}")
+        task = [task[0] + ff[:, :3]] + ([task[1] + weight * ff[:, 3:6]] if pose else [])
+    return rows, task
 
 
 def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
@@ -153,7 +167,7 @@ def analytic_jacobian(spec: RobotSpec) -> JacobianFn:
 
     def jacobian(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         lead = q.shape[:-1]
-        q2 = q.to(_F64).reshape(-1, spec.num_joints)
+        q2 = q.to(F64).reshape(-1, spec.num_joints)
         f = space.features(q2)
         pose = pose_of(f)
         jac_f = twist_jacobian(pose, _jacobian_rows(pose_of, f))

@@ -27,13 +27,12 @@ import torch
 from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_matrix
 from torch import Tensor, nn
 
+from ..checks import F64
 from ..clarke_space import ClarkeFold, DecoderJacobian
 from ..folding import activation_name, linear_layers, tangent_rows
 from ..layers import ClarkeDecoder
 from ..lie import pose_from_parts
 from ..models import FKModel, IKModel, actuated_to_features
-
-_F64 = torch.float64
 
 
 def _frozen_linear(weight: Tensor, bias: Tensor, dtype: torch.dtype) -> nn.Linear:
@@ -53,8 +52,8 @@ class FoldedMLP(nn.Module):
         self.activation = next(m for m in net if not isinstance(m, nn.Linear))   # the model's own module
         lin = linear_layers(net)
         last = lin[-1]
-        w_last = out_scale[:, None] * last.weight.detach().to(_F64)
-        b_last = out_scale * last.bias.detach().to(_F64) + out_shift
+        w_last = out_scale[:, None] * last.weight.detach().to(F64)
+        b_last = out_scale * last.bias.detach().to(F64) + out_shift
         self.first = _frozen_linear(*first, dtype)
         self.hidden = nn.ModuleList(_frozen_linear(m.weight.detach(), m.bias.detach(), dtype) for m in lin[1:-1])
         self.last = _frozen_linear(w_last, b_last, dtype)
@@ -81,8 +80,8 @@ class FoldedMLP(nn.Module):
 def _first_layer(net: nn.Sequential, mean: Tensor, std: Tensor) -> tuple[Tensor, Tensor]:
     """(W₁/std, b₁ − W₁·mean/std) in float64: the first layer acting on unstandardised inputs."""
     first = linear_layers(net)[0]
-    w = first.weight.detach().to(_F64) / std.to(_F64)
-    return w, first.bias.detach().to(_F64) - w @ mean.to(_F64)
+    w = first.weight.detach().to(F64) / std.to(F64)
+    return w, first.bias.detach().to(F64) - w @ mean.to(F64)
 
 
 def _rotation_tangent_6d(d6: Tensor, dd6: Tensor) -> tuple[Tensor, Tensor]:
@@ -143,7 +142,7 @@ class InferenceFK(nn.Module):
             self.register_buffer("q_ref", q_ref.to(dtype))
         self.register_buffer("seed", w.mT.contiguous().to(dtype))       # ∂a₁/∂x, (k, W)
         self.register_buffer("bottom", torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=dtype))
-        scale = torch.ones(net[-1].out_features, dtype=_F64)
+        scale = torch.ones(net[-1].out_features, dtype=F64)
         scale[:3] = model.length                                          # position × total length
         self.mlp = FoldedMLP(net, (k, k0), scale, torch.zeros_like(scale), dtype)
 
@@ -202,10 +201,10 @@ class InferenceIK(nn.Module):
     def __init__(self, model: IKModel, dtype: torch.dtype = torch.float32):
         super().__init__()
         self.features_mode, self.num_joints = model.features, model.spec.num_joints
-        scale = torch.ones(9, dtype=_F64)
+        scale = torch.ones(9, dtype=F64)
         scale[:3] = 1 / model.length                                      # v = [p / L, first two rows of R]
         w, b = _first_layer(model.net, model.in_norm.mean, model.in_norm.std)
-        out_std, out_mean = model.out_norm.std.to(_F64), model.out_norm.mean.to(_F64)
+        out_std, out_mean = model.out_norm.std.to(F64), model.out_norm.mean.to(F64)
         self.mlp = FoldedMLP(model.net, (w * scale, b), out_std, out_mean, dtype)
         if self.features_mode == "clarke":
             self.register_buffer("selection", model.selection.to(dtype))

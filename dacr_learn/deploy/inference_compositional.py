@@ -18,16 +18,16 @@ import torch
 from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
+from ..checks import F64
 from ..clarke_space import ClarkeFold, feature_columns
 from ..compositional import HEADS
 from ..folding import affine_probe, linear_layers, tangent_rows
-from ..lie import pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
+from ..lie import chain_products, pose_from_parts, roll_z, twist_chain_jacobian, twist_exp
 from ..models import Standardizer, actuated_selection, actuated_to_features, fixed_features
 from .inference import FoldedMLP
 
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
 
-_F64 = torch.float64
 
 
 class InferenceCompositionalFK(nn.Module):
@@ -50,7 +50,7 @@ class InferenceCompositionalFK(nn.Module):
         self.num_joints, self.features_mode = model.spec.num_joints, "clarke"
         self.width, self.out = linear_layers(model.net)[0].out_features, HEADS[model.rotation]
         self.fold = ClarkeFold(model.spec)
-        ones = torch.ones(self.out, dtype=_F64)
+        ones = torch.ones(self.out, dtype=F64)
         k, k0 = compositional_first_layer(model)                                # acts on actuated features f
         self.on_features = self.fold.has_type3
         if not self.on_features:
@@ -84,11 +84,7 @@ class InferenceCompositionalFK(nn.Module):
         return t if alpha is None else roll_z(t, alpha)
 
     def forward(self, q: Tensor) -> Tensor:
-        t = self.segment_transforms(q)
-        tip = t[:, 0]
-        for k in range(1, self.num_segments):
-            tip = tip @ t[:, k]
-        return tip
+        return chain_products(self.segment_transforms(q), tip_only=True)
 
 
 class InferenceCompositionalJacobian(nn.Module):
@@ -128,9 +124,9 @@ class InferenceCompositionalJacobian(nn.Module):
             if col not in used[j]:                                          # the roll depends on α in any case
                 used[j].append(col)
         t = max(1, *map(len, used))
-        local = torch.zeros(m, t, w, dtype=_F64)                            # the T tangent rows of each segment
-        pick = torch.zeros(m, t, d, dtype=_F64)                             # (segment, row) → feature column
-        roll_row = torch.zeros(m, t, 1, dtype=_F64)                         # 1 on the α row of a rolled segment
+        local = torch.zeros(m, t, w, dtype=F64)                            # the T tangent rows of each segment
+        pick = torch.zeros(m, t, d, dtype=F64)                             # (segment, row) → feature column
+        roll_row = torch.zeros(m, t, 1, dtype=F64)                         # 1 on the α row of a rolled segment
         for j, cols in enumerate(used):
             local[j, :len(cols)] = seed[j, cols]
             pick[j, range(len(cols)), cols] = 1.0
@@ -162,7 +158,7 @@ def roll_selection(model) -> Tensor:
     spec = model.spec
     twist_joint = {k: spec.num_length_joints + i for i, k in enumerate(k for k, s in enumerate(spec.segments)
                                                                        if s.twists)}
-    sel = torch.zeros(spec.num_joints, spec.num_segments, dtype=_F64)
+    sel = torch.zeros(spec.num_joints, spec.num_segments, dtype=F64)
     for k in torch.nonzero(model.roll).flatten().tolist():
         sel[twist_joint[k], k] = 1.0
     return sel
@@ -171,8 +167,8 @@ def roll_selection(model) -> Tensor:
 def output_scale(model) -> Tensor:
     """(m, O) float64 factors of the network outputs: the segment's translation unit on the twist's (or
     position's) first three columns, ones elsewhere."""
-    scale = torch.ones(model.spec.num_segments, HEADS[model.rotation], dtype=_F64)
-    scale[:, :3] = model.length_scale.to(_F64).unsqueeze(-1)
+    scale = torch.ones(model.spec.num_segments, HEADS[model.rotation], dtype=F64)
+    scale[:, :3] = model.length_scale.to(F64).unsqueeze(-1)
     return scale
 
 
@@ -183,13 +179,13 @@ def compositional_first_layer(model) -> tuple[Tensor, Tensor]:
     (:func:`~dacr_learn.folding.affine_probe`).
     """
     spec, front = model.spec, model.front
-    sel, fixed = actuated_selection(spec).to(_F64), fixed_features(spec, _F64)
+    sel, fixed = actuated_selection(spec).to(F64), fixed_features(spec, F64)
     first, skip = linear_layers(model.net)[0], model.skip
-    unit = front.unit.to(_F64)
-    w = torch.cat([first.weight, skip.weight]).detach().to(_F64)
-    b = torch.cat([first.bias.detach().to(_F64), torch.zeros(skip.out_features, dtype=_F64)])
-    norm = Standardizer(4).to(_F64)
-    norm.load_state_dict({k: v.to(_F64) for k, v in front.norm.state_dict().items()})
+    unit = front.unit.to(F64)
+    w = torch.cat([first.weight, skip.weight]).detach().to(F64)
+    b = torch.cat([first.bias.detach().to(F64), torch.zeros(skip.out_features, dtype=F64)])
+    norm = Standardizer(4).to(F64)
+    norm.load_state_dict({k: v.to(F64) for k, v in front.norm.state_dict().items()})
 
     def affine(f: Tensor) -> Tensor:
         x = norm(actuated_to_features(f, sel, fixed) / unit)             # (P, m, 4)

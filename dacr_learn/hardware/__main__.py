@@ -1,8 +1,8 @@
-"""``python -m dacr_learn.hardware``: the model-selection study's command line (:mod:`.study.cli`)."""
+"""``python -m dacr_learn.hardware``: the model-selection study's command line (:mod:`dacr_learn.cli.hardware`)."""
 import sys
 
+from ..cli.hardware import main
 from ..console import run_cli
-from .study.cli import main
 
 if __name__ == "__main__":
     sys.exit(run_cli(main))

@@ -109,8 +109,7 @@ class CCCompositionalResidual(nn.Module):
         self.fk.front.norm.fit(self.segment_features(train))
 
     def fit(self, train: Split) -> None:
-        for p in self.cc.parameters():
-            p.requires_grad_(False)
+        self.cc.requires_grad_(False)
         self.fit_normalization(train)
         params = [p for n, p in self.fk.named_parameters() if not n.startswith("front.")]
         train_full_batch(params, lambda: self.objective(train), steps=self.steps, lr=self.lr)

@@ -189,8 +189,7 @@ class CCClarkeResidualCosserat(CCClarkeResidual):
                  (self.cc, train, smap, servo_ids, samples, seed, self.cache_dir, self.fit_options))]
 
     def fit(self, train: Split) -> None:
-        for p in self.cc.parameters():
-            p.requires_grad_(False)
+        self.cc.requires_grad_(False)
         self.fit_normalization(train)
         synthetic = self.synthetic(train)
         train_full_batch(self.net.parameters(), lambda: self.objective(synthetic))

@@ -79,8 +79,7 @@ class CalibratedCosserat:
                  steps_per_segment: int = STEPS_PER_SEGMENT, direction: tuple[float, float, float] = (0.0, 0.0, -1.0)):
         """``weight`` w ≥ 0 [N/m] acts along ``direction`` (a vector of the motion-capture frame, normalised)."""
         self.cc = copy.deepcopy(cc)
-        for p in self.cc.parameters():
-            p.requires_grad_(False)
+        self.cc.requires_grad_(False)
         u = torch.as_tensor(direction, dtype=torch.float64)
         if not (weight >= 0) or u.shape != (3,) or not bool(u.norm() > 0):
             raise ValueError(f"weight, direction: expected a weight >= 0 [N/m] and a non-zero 3-vector, got {weight!r} "

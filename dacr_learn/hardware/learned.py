@@ -272,8 +272,7 @@ class CCClarkeResidual(nn.Module):
         return (self(train) - train.tip).pow(2).mean() / 1e-6
 
     def fit(self, train: Split) -> None:
-        for p in self.cc.parameters():
-            p.requires_grad_(False)
+        self.cc.requires_grad_(False)
         self.fit_normalization(train)
         train_full_batch(self.net.parameters(), lambda: self.objective(train))
 

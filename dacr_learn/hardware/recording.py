@@ -55,10 +55,6 @@ class Recording:
     def __len__(self) -> int:
         return self.servo.shape[0]
 
-    @property
-    def servo_columns(self) -> tuple[str, ...]:
-        return tuple(f"servo_{i}" for i in self.servo_ids)
-
     def select(self, mask: Tensor) -> Recording:
         """Rows where the boolean ``mask`` (N,) is true, in their original order."""
         idx = torch.nonzero(mask, as_tuple=False).flatten().tolist()

@@ -1,7 +1,7 @@
-"""python -m dacr_learn.ik: see :mod:`dacr_learn.ik.cli`."""
+"""python -m dacr_learn.ik: see :mod:`dacr_learn.cli.ik`."""
 import sys
 
+from ..cli.ik import main
 from ..console import run_cli
-from .cli import package_main
 
-sys.exit(run_cli(package_main))
+sys.exit(run_cli(main))

@@ -4,16 +4,18 @@ An IK variable vector x (..., D) is admissible when every box coordinate lies in
 disk pair (x_i, x_j) has ‖(x_i, x_j)‖ ≤ r. In Clarke space a segment's bending limit is a disk
 (‖ρ‖ = d·φ ≤ d·bend), its length and twist ranges are boxes; servo commands of a hardware model are a box.
 :class:`Limits` projects onto the set (the nearest admissible point: clamp, radial shrink), tells which
-constraints are active for a step, samples uniformly inside and measures violations.
+constraints are active for a step, samples uniformly inside and measures violations. Build one with the named
+constructors :meth:`Limits.boxes`, :meth:`Limits.disk` and :meth:`Limits.concatenate`.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-_F64 = torch.float64
+from ..checks import F64
 
 
 @dataclass(frozen=True)
@@ -23,7 +25,8 @@ class Limits:
     lower, upper (D,): box bounds [variable units], ±inf where a coordinate has none (disk coordinates);
     disks (k, 2) long: index pairs constrained to ‖(x_i, x_j)‖ ≤ radius (k,); scale (D,): a typical
     range of each variable (the solver's unit: ρ by its disk radius, β and α by their half-ranges, a
-    servo by its half-range). ``names`` (D,) label the variables in messages.
+    servo by its half-range). ``names`` (D,) label the variables in messages. Built by :meth:`boxes`,
+    :meth:`disk` and :meth:`concatenate`.
     """
 
     lower: Tensor
@@ -45,13 +48,40 @@ class Limits:
         if not bool((self.scale > 0).all()):
             raise ValueError("limits: every scale must be > 0")
 
+    @classmethod
+    def boxes(cls, lower, upper, names: tuple[str, ...], scale=None) -> Limits:
+        """lower ≤ x ≤ upper on D variables (sequences or (D,) tensors, float64) [variable units]; ``scale``
+        (D,) defaults to the half-ranges (upper − lower) / 2."""
+        lower, upper = torch.as_tensor(lower, dtype=F64), torch.as_tensor(upper, dtype=F64)
+        scale = (upper - lower) / 2 if scale is None else torch.as_tensor(scale, dtype=F64)
+        return cls(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=F64), scale, tuple(names))
+
+    @classmethod
+    def disk(cls, radius: float, names: tuple[str, str]) -> Limits:
+        """‖(x_0, x_1)‖ ≤ radius on two variables (no box bounds; the scale of both is the radius)."""
+        inf = torch.full((2,), torch.inf, dtype=F64)
+        return cls(-inf, inf, torch.tensor([[0, 1]]), torch.tensor([float(radius)], dtype=F64),
+                   torch.full((2,), float(radius), dtype=F64), tuple(names))
+
+    @classmethod
+    def concatenate(cls, *parts: Limits, names: tuple[str, ...] | None = None) -> Limits:
+        """The limits of the parts' variables one after another (disk indices shifted); ``names`` replaces the
+        joined names."""
+        offsets = [0]
+        for p in parts[:-1]:
+            offsets.append(offsets[-1] + p.num_variables)
+        cat = lambda field: torch.cat([getattr(p, field).to(F64) for p in parts])  # noqa: E731
+        disks = torch.cat([p.disks + o for p, o in zip(parts, offsets, strict=True)])
+        names = tuple(names) if names is not None else sum((p.names for p in parts), ())
+        return cls(cat("lower"), cat("upper"), disks, cat("radius"), cat("scale"), names)
+
     @property
     def num_variables(self) -> int:
         return self.lower.shape[0]
 
     def to(self, dtype: torch.dtype) -> Limits:
-        return Limits(self.lower.to(dtype), self.upper.to(dtype), self.disks, self.radius.to(dtype),
-                      self.scale.to(dtype), self.names)
+        return dataclasses.replace(self, lower=self.lower.to(dtype), upper=self.upper.to(dtype),
+                                   radius=self.radius.to(dtype), scale=self.scale.to(dtype))
 
     def project(self, x: Tensor) -> Tensor:
         """The nearest admissible point (..., D): box coordinates clamped, disk pairs shrunk radially."""
@@ -76,7 +106,7 @@ class Limits:
         """(...) bool: within every limit up to ``tol`` of the variable's scale."""
         return self.violation(x) <= tol
 
-    def sample(self, n: int, generator: torch.Generator, dtype: torch.dtype = _F64) -> Tensor:
+    def sample(self, n: int, generator: torch.Generator, dtype: torch.dtype = F64) -> Tensor:
         """n points (n, D) uniform inside the set: boxes uniform, disks uniform by area (r = R·√u)."""
         lo, hi = self.lower.to(dtype), self.upper.to(dtype)
         u = torch.rand(n, self.num_variables, generator=generator, dtype=dtype)

@@ -8,14 +8,15 @@ one (:class:`Refinement`). :func:`levenberg_marquardt` refines given starts; :mo
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
+from ..checks import F64
+from .adapters import SolverModel
 from .limits import Limits
-from .models import SolverModel
-
-_F64 = torch.float64
 
 
 def fused_matmul(a: Tensor, b: Tensor) -> Tensor:
@@ -41,36 +42,82 @@ def residual(model: SolverModel, x: Tensor, position: Tensor, rotation: Tensor |
 
 class Refinement:
     """The LM state of M starts (module docstring): variables x (M, D), residual r and its Jacobian, cost ‖r‖²,
-    damping λ and the errors, with the targets of each row."""
+    damping λ and the errors, with the targets of each row.
+
+    ``extra`` (e.g. :class:`~.collision.Avoidance`): a further condition on a solution, with ``triage(x)`` →
+    (satisfied (M,) bool, failed by little (M,) bool) and ``residual(x)`` → (rows (M, E), Jacobian (M, E, D),
+    satisfied (M,)), E = ``extra.rows``. A start whose tip has converged is checked; if the condition fails by
+    little, the start is *hinged*: from then on its residual carries the extra rows (zeros for the other starts)
+    and it converges when its tip has and the condition holds; if it fails by much, the start stalls (a new
+    start is cheaper). So only the starts that need it pay for the extra rows."""
 
     def __init__(self, model: SolverModel, x0: Tensor, position: Tensor, rotation: Tensor | None,
-                 tolerance: tuple[float, float], damping: float):
-        self.model, self.lim, self.damping = model, model.limits, damping
+                 tolerance: tuple[float, float], damping: float, extra=None):
+        self.model, self.lim, self.damping, self.extra = model, model.limits, damping, extra
         self.position, self.rotation = position, rotation
-        self.scale = self.lim.scale.to(_F64)
+        self.scale = self.lim.scale.to(F64)
         self.tol = tuple(0.1 * t for t in tolerance)                         # aim a decade below the tolerance
-        self.x = self.lim.project(x0.to(_F64))
-        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(self.x.shape[0]))
+        self.x = self.lim.project(x0.to(F64))
+        m = self.x.shape[0]
+        self.hinged = torch.zeros(m, dtype=torch.bool)
+        self.satisfied = torch.full((m,), extra is None)
+        self.r, self.jac, self.pos_err, self.rot_err = self._residual(self.x, torch.arange(m))
         self.cost = (self.r * self.r).sum(-1)
         self.lam = torch.full_like(self.cost, damping)
+        self._settle(torch.arange(m))
 
     def _residual(self, x: Tensor, rows: Tensor):
-        return residual(self.model, x, self.position[rows], None if self.rotation is None else self.rotation[rows])
+        r, jac, pos_err, rot_err = residual(self.model, x, self.position[rows],
+                                            None if self.rotation is None else self.rotation[rows])
+        self.tip_rows = r.shape[-1]
+        if self.extra is None:
+            return r, jac, pos_err, rot_err
+        r_e, jac_e = r.new_zeros(r.shape[0], self.extra.rows), jac.new_zeros(r.shape[0], self.extra.rows, x.shape[1])
+        self._satisfied_new = self.satisfied[rows].clone()
+        h = self.hinged[rows].nonzero().squeeze(-1)
+        if h.numel():
+            r_e[h], jac_e[h], self._satisfied_new[h] = self.extra.residual(x[h])
+        return torch.cat([r, r_e], -1), torch.cat([jac, jac_e], 1), pos_err, rot_err
+
+    def _tip_converged(self) -> Tensor:
+        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
 
     def converged(self) -> Tensor:
-        return (self.pos_err <= self.tol[0]) & (self.rot_err <= self.tol[1])
+        return self._tip_converged() & self.satisfied
+
+    def _settle(self, rows: Tensor) -> None:
+        """Check the extra condition of the given rows whose tip has converged: those that fail it by little
+        (``extra.triage``) are hinged, the others stall (their slot restarts from a new start)."""
+        if self.extra is None:
+            return
+        rows = rows[self._tip_converged()[rows] & ~self.satisfied[rows] & ~self.hinged[rows]]
+        if rows.numel() == 0:
+            return
+        ok, near = self.extra.triage(self.x[rows])
+        self.satisfied[rows[ok]] = True
+        self.lam[rows[~ok & ~near]] = math.inf
+        bad = rows[~ok & near]
+        if bad.numel():
+            self.hinged[bad] = True
+            self.r[bad], self.jac[bad], _, _ = self._residual(self.x[bad], bad)
+            self.cost[bad] = (self.r[bad] * self.r[bad]).sum(-1)
+            self.lam[bad] = self.damping
 
     def append(self, x0: Tensor, position: Tensor, rotation: Tensor | None) -> None:
         """New rows: starts x0 (R, D) towards their targets (position (R, 3), rotation (R, 3, 3) or None)."""
         first = self.x.shape[0]
         self.position = torch.cat([self.position, position])
         self.rotation = None if rotation is None else torch.cat([self.rotation, rotation])
-        x = self.lim.project(x0.to(_F64))
-        r, jac, pe, re = self._residual(x, torch.arange(first, first + x.shape[0]))
+        x = self.lim.project(x0.to(F64))
+        self.hinged = torch.cat([self.hinged, torch.zeros(x.shape[0], dtype=torch.bool)])
+        self.satisfied = torch.cat([self.satisfied, torch.full((x.shape[0],), self.extra is None)])
+        new = torch.arange(first, first + x.shape[0])
+        r, jac, pe, re = self._residual(x, new)
         self.x, self.r, self.jac = torch.cat([self.x, x]), torch.cat([self.r, r]), torch.cat([self.jac, jac])
         self.pos_err, self.rot_err = torch.cat([self.pos_err, pe]), torch.cat([self.rot_err, re])
         self.cost = torch.cat([self.cost, (r * r).sum(-1)])
         self.lam = torch.cat([self.lam, torch.full_like(pe, self.damping)])
+        self._settle(new)
 
     def step(self, rows: Tensor) -> None:
         """One LM iteration of the given rows: a step with the limits inside it, kept if it lowers the cost."""
@@ -79,10 +126,24 @@ class Refinement:
         rt, jt, pe, re = self._residual(xt, rows)
         ct = (rt * rt).sum(-1)
         better = ct < self.cost[rows]
-        acc = rows[better]
-        self.x[acc], self.r[acc], self.jac[acc], self.cost[acc] = xt[better], rt[better], jt[better], ct[better]
-        self.pos_err[acc], self.rot_err[acc] = pe[better], re[better]
-        self.lam[rows] = torch.where(better, torch.clamp(la / 3, min=1e-12), la * 4)
+        current = self.x[rows], self.r[rows], self.jac[rows], self.pos_err[rows], self.rot_err[rows]
+        kept, self.cost[rows], self.lam[rows] = lm_accept(current, (xt, rt, jt, pe, re), self.cost[rows], ct, la)
+        self.x[rows], self.r[rows], self.jac[rows], self.pos_err[rows], self.rot_err[rows] = kept
+        if self.extra is not None:
+            self.satisfied[rows[better]] = self._satisfied_new[better]
+        self._settle(rows)
+
+
+def lm_accept(current: tuple[Tensor, ...], trial: tuple[Tensor, ...], cost: Tensor, trial_cost: Tensor,
+              lam: Tensor) -> tuple[tuple[Tensor, ...], Tensor, Tensor]:
+    """The LM acceptance rule of M rows: each row keeps its trial (every tensor of ``trial``, (M, ...), against the
+    same of ``current``) where the trial cost (M,) is below the current cost, else its current values; λ (M,)
+    shrinks to λ/3 (not below 1e-12) after an accepted step and grows to 4λ after a rejected one. Branch-free
+    (torch.where), so exported modules use it too. Returns (the kept tensors, cost, λ)."""
+    better = trial_cost < cost
+    kept = tuple(torch.where(better[(...,) + (None,) * (t.dim() - 1)], t, c)
+                 for c, t in zip(current, trial, strict=True))
+    return kept, torch.where(better, trial_cost, cost), torch.where(better, torch.clamp(lam / 3, min=1e-12), lam * 4)
 
 
 def spd_solve_unrolled(a: Tensor, b: Tensor) -> Tensor:
@@ -121,27 +182,39 @@ def spd_solve_unrolled(a: Tensor, b: Tensor) -> Tensor:
 def limited_step(lim: Limits, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor, only_held: bool = False,
                  solve=None, matmul=torch.matmul) -> Tensor:
     """The LM trial point of variables x (M, D) with residual r (M, R) and Jacobian ∂r/∂x (M, R, D), damping λ (M,):
-    in scaled variables z = x/s, the limits that block descent are held (:meth:`~.limits.Limits.blocked`:
-    projector P), δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖², and x + s·δz is projected onto the
-    admissible set. ``only_held``: build P only for the rows some limit holds (data-dependent; False in
-    exported modules, where every row takes the projector). ``solve``: (a, b) → a⁻¹b for the SPD system
+    in scaled variables z = x/s, the limits that block descent are held (:func:`free_jacobian`: projector P),
+    δz = −(J̃P)ᵀ(J̃PJ̃ᵀ + λI)⁻¹r minimises ‖r + J̃P·δz‖² + λ‖δz‖², and x + s·δz is projected onto the admissible set.
+    ``only_held``: build P only for the rows some limit holds (data-dependent; False in exported modules, where
+    every row takes the projector). ``solve``: (a, b) → a⁻¹b for the SPD system
     (default torch.linalg.solve; exported modules pass :func:`spd_solve_unrolled`) and ``matmul`` the products
     (exported modules: :func:`fused_matmul`)."""
     scale = lim.scale.to(x)
     ja = jac * scale
-    box, normals = lim.blocked(x, (ja.mT * r.unsqueeze(-2)).sum(-1))                       # J̃ᵀr
-    if only_held:
-        held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
-        if held.any():
-            h = held.nonzero().squeeze(-1)
-            ja = ja.clone()
-            ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
-    else:
-        ja = matmul(ja, lim.free_directions(box, normals))
+    ja, _ = free_jacobian(lim, x, ja, (ja.mT * r.unsqueeze(-2)).sum(-1), only_held, matmul)          # J̃ᵀr
     gram = matmul(ja, ja.mT) + lam[:, None, None] * torch.eye(r.shape[-1], dtype=x.dtype, device=x.device)
     y = torch.linalg.solve(gram, r.unsqueeze(-1)).squeeze(-1) if solve is None else solve(gram, r)
     step = -(ja.mT * y.unsqueeze(-2)).sum(-1)                                                # J̃ᵀy
     return lim.project(x + step * scale)
+
+
+def free_jacobian(lim: Limits, x: Tensor, ja: Tensor, gradient: Tensor, only_held: bool = False,
+                  matmul=torch.matmul) -> tuple[Tensor, Tensor | None]:
+    """The limits inside a step, in scaled variables z = x/s: at variables x (M, D), with J̃ (M, R, D) and the
+    gradient J̃ᵀr (M, D) of the cost (descent along −J̃ᵀr), the limits that block descent are held
+    (:meth:`~.limits.Limits.blocked`) and their directions removed from J̃ by the projector P
+    (:meth:`~.limits.Limits.free_directions`). Returns (J̃P (M, R, D), P (M, D, D)); with ``only_held`` P is
+    built only for the rows some limit holds (data-dependent; J̃ unchanged elsewhere) and returned as None.
+    ``matmul``: as in :func:`limited_step`."""
+    box, normals = lim.blocked(x, gradient)
+    if not only_held:
+        free = lim.free_directions(box, normals)
+        return matmul(ja, free), free
+    held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
+    if held.any():
+        h = held.nonzero().squeeze(-1)
+        ja = ja.clone()
+        ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
+    return ja, None
 
 
 STALL_LAMBDA = 1e6   # λ beyond which a start has no descent direction left (a local minimum, or unreachable)

@@ -18,26 +18,29 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import Tensor
 
+from ..checks import F64
 from ..metrics import rotation_geodesic
-from .models import SolverModel, as_solver_model
+from ..scene import load_scene
+from .adapters import SolverModel, as_solver_model
+from .collision import Avoidance
 from .refine import STALL_LAMBDA, Refinement
 from .targets import check_q0, check_targets
-
-_F64 = torch.float64
 
 
 @dataclass(frozen=True)
 class IKOptions:
     """Settings of :func:`solve_ik`.
 
-    tolerance: (position [m], rotation [rad]) a solution must reach; max_iterations: LM iterations of one
+    pos_tolerance [m], rot_tolerance [rad]: the position and rotation errors a solution must reach (the names of
+    pytorch-kinematics' IK; the CLI's ``--tolerance POS ROT``); max_iterations: LM iterations of one
     start; restarts: new starts a slot may take when its start stalls or duplicates another solution;
     distinct: two solutions of a target are distinct when some joint differs by at least this much
     [joint units: m, rad; mm for a servo model]; damping: initial λ (scaled units); seed: of the random
     starts (reproducible results).
     """
 
-    tolerance: tuple[float, float] = (1e-6, 1e-5)
+    pos_tolerance: float = 1e-6
+    rot_tolerance: float = 1e-5
     max_iterations: int = 25
     restarts: int = 8
     distinct: float = 5e-4
@@ -45,8 +48,9 @@ class IKOptions:
     seed: int = 0
 
     def __post_init__(self):
-        if len(self.tolerance) != 2 or not all(t > 0 and math.isfinite(t) for t in self.tolerance):
-            raise ValueError(f"tolerance: expected (position [m], rotation [rad]), both > 0, got {self.tolerance}")
+        for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
+            if not (t > 0 and math.isfinite(t)):
+                raise ValueError(f"{name}: expected a finite value > 0 [{unit}], got {t}")
         if self.max_iterations < 1 or self.restarts < 0:
             raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
                              f"{self.restarts}")
@@ -62,7 +66,9 @@ class IKResult:
 
     q (B, K, N) joint vectors; success (B, K) the model's own verdict (tolerance, limits, constraint);
     pos_err (B, K) [m]; rot_err (B, K) [rad] (0 with position_only); iterations (B, K) LM iterations spent
-    on the returned solution's slot over all rounds; distinct (B, K) True for the solutions kept as distinct.
+    on the returned solution's slot over all rounds; distinct (B, K) True for the solutions kept as distinct;
+    clearance (B, K) [m] with a scene (else None): the signed clearance of the body (and an arm's links) to the
+    obstacles, a lower bound computed from the returned joints alone (:mod:`.collision`; negative = penetration).
     """
 
     q: Tensor
@@ -71,9 +77,16 @@ class IKResult:
     rot_err: Tensor
     iterations: Tensor
     distinct: Tensor = field(default=None)
+    clearance: Tensor | None = None
+
+    @classmethod
+    def concat(cls, parts: list[IKResult]) -> IKResult:
+        """The results of consecutive target batches as one (along B)."""
+        return cls(**{f.name: None if getattr(parts[0], f.name) is None else
+                      torch.cat([getattr(r, f.name) for r in parts]) for f in fields(cls)})
 
     def numpy(self) -> dict:
-        return {f.name: getattr(self, f.name).cpu().numpy() for f in fields(self)}
+        return {f.name: getattr(self, f.name).cpu().numpy() for f in fields(self) if getattr(self, f.name) is not None}
 
 
 def _distinct_mask(q: Tensor, ok: Tensor, order: Tensor, threshold: float) -> Tensor:
@@ -104,17 +117,22 @@ def _order(q: Tensor, x: Tensor, ok: Tensor, cost: Tensor, rest: Tensor, scale: 
 
 
 def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | None = None,
-             position_only: bool = False, options: IKOptions = IKOptions(), seeds: Tensor | None = None) -> IKResult:
+             position_only: bool = False, options: IKOptions = IKOptions(), seeds: Tensor | None = None,
+             scene=None, clearance: float = 0.0) -> IKResult:
     """Up to ``n_solutions`` joint vectors per target (see :class:`IKResult` for the fields and their order).
 
     model_or_spec: a RobotSpec / robot YAML path / dict (analytic CC model), a trained FK model, or an
-    :class:`~.models.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
+    :class:`~.adapters.SolverModel`. target: (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3)
     positions with ``position_only``. q0 (B, N) or (N,): a warm start (the previous command of a
     trajectory): slot 0 starts there and the solution nearest q0 comes first. seeds (B, S, D): further starts
     in the model's variables (e.g. from a learned sampler; used before random ones).
     An unreachable target gets success False and the admissible configuration with the smallest residual.
+    scene: obstacles (a :class:`~dacr_learn.scene.Scene`, a scene YAML path or dict; the model's base frame, the
+    arm's for an arm composite): success then also needs the body (and an arm's links) at least ``clearance``
+    [m] from every obstacle (:mod:`.collision`; the model needs a body), and the result carries ``clearance``.
     """
     model = as_solver_model(model_or_spec)
+    avoid = None if scene is None else Avoidance(model, load_scene(scene), clearance)
     if n_solutions < 1:
         raise ValueError(f"n_solutions: expected >= 1, got {n_solutions}")
     if not position_only and not model.has_rotation:
@@ -130,17 +148,17 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         if seeds.dim() != 3 or seeds.shape[0] != b or seeds.shape[2] != d or not torch.isfinite(seeds).all():
             raise ValueError(f"seeds: expected finite (B={b}, S, D={d}) variables, got {tuple(seeds.shape)}")
         s = min(k, seeds.shape[1])
-        starts[:, :s] = seeds[:, :s].to(_F64)
+        starts[:, :s] = seeds[:, :s].to(F64)
     if q0 is not None:
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
 
     rows = torch.arange(b).repeat_interleave(k)
     state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
-                       options.tolerance, options.damping)
+                       (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
     x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
-                            lim.project(model.rest.to(_F64)), options)
+                            lim.project(model.rest.to(F64)), options, avoid)
 
 
 FAN_OUT = 4   # new starts a slot takes at once when its starts have stalled, doubled at each further restart
@@ -166,7 +184,7 @@ def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: 
     used = torch.zeros(m, dtype=torch.long)                           # restarts taken, per slot
     solution = torch.full((m,), -1, dtype=torch.long)                 # the row that solved each slot
     duplicates_checked = 0
-    redundant = state.x.shape[1] >= state.r.shape[1]    # fewer variables than residuals: isolated solutions
+    redundant = state.x.shape[1] >= state.tip_rows      # fewer variables than residuals: isolated solutions
     while True:
         conv = state.converged() & live
         first_conv = torch.full((m,), state.x.shape[0], dtype=torch.long).scatter_reduce(
@@ -209,7 +227,7 @@ def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: 
 def _slot_results(state: Refinement, slot: Tensor, solution: Tensor, since: Tensor, m: int) -> tuple[Tensor, Tensor]:
     """Per slot: the variables of its solving row, else of its row of least cost; and the iterations of all its rows."""
     cost = state.cost.clone()
-    best = torch.full((m,), float("inf"), dtype=_F64).scatter_reduce(0, slot, cost, "amin")
+    best = torch.full((m,), float("inf"), dtype=F64).scatter_reduce(0, slot, cost, "amin")
     is_best = cost <= best[slot]
     pick = torch.full((m,), cost.shape[0], dtype=torch.long).scatter_reduce(
         0, slot[is_best], is_best.nonzero().squeeze(-1), "amin")
@@ -219,8 +237,9 @@ def _slot_results(state: Refinement, slot: Tensor, solution: Tensor, since: Tens
 
 
 def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Tensor, rotation: Tensor | None,
-                     q0: Tensor | None, rest: Tensor, options: IKOptions) -> IKResult:
-    """The result of variables x (B, K, D): joints, the model's independent check, order and distinct flags."""
+                     q0: Tensor | None, rest: Tensor, options: IKOptions, avoid: Avoidance | None = None) -> IKResult:
+    """The result of variables x (B, K, D): joints, the model's independent check (and the clearance check of
+    ``avoid``), order and distinct flags."""
     b, k, d = x.shape
     q = model.joints(x.view(-1, d))
     check = model.check(q)
@@ -229,11 +248,16 @@ def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Ten
     pos_err = torch.linalg.vector_norm(check.position - position[rows], dim=-1).view(b, k)
     rot_err = (torch.zeros_like(pos_err) if rotation is None
                else rotation_geodesic(check.rotation, rotation[rows]).view(b, k))
-    tol_p, tol_r = options.tolerance
     constraint_ok = (check.constraint <= 1e-9 * max(model.length, 1.0)).view(b, k)
-    ok = (pos_err <= tol_p) & (rot_err <= tol_r) & check.inside.view(b, k) & constraint_ok
+    ok = ((pos_err <= options.pos_tolerance) & (rot_err <= options.rot_tolerance) & check.inside.view(b, k)
+          & constraint_ok)
+    clearance = None
+    if avoid is not None:
+        clearance = avoid.clearance_of_joints(q.view(b * k, -1)).view(b, k)
+        ok &= clearance >= avoid.clearance
     order = _order(q, x, ok, pos_err / model.length + rot_err, rest, model.limits.scale, q0)
     distinct = _distinct_mask(q, ok, order, options.distinct)
     pick = lambda t: torch.gather(t, 1, order.view(b, k, *([1] * (t.dim() - 2))).expand_as(t))  # noqa: E731
     return IKResult(q=pick(q), success=pick(ok), pos_err=pick(pos_err), rot_err=pick(rot_err),
-                    iterations=pick(iters), distinct=pick(distinct))
+                    iterations=pick(iters), distinct=pick(distinct),
+                    clearance=None if clearance is None else pick(clearance))

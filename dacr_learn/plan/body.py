@@ -2,10 +2,10 @@
 
 :func:`body` returns the backbone of a model's variables x (B, D): points (B, P, 3) [m] from the continuum
 robot's base to its tip, in the model's base frame (the arm's base for an arm composite), and their arc lengths
-(B, P) [m] from the robot's base. A model that offers ``model.body(x)`` (the project's body API: points,
-arc_length, radius) is asked for it; the analytic constant-curvature model and an arm composite around it are
-served here directly (:func:`dacr_learn.kinematics.backbone_points`, composed with the arm's FK and the mount).
-TODO(body API): once every SolverModel has ``body``, drop the two direct cases below and keep the first.
+(B, P) [m] from the robot's base. The analytic constant-curvature model is served here directly
+(:func:`dacr_learn.kinematics.backbone_points` with the actual arc lengths, which an extensible robot changes:
+the body API's are nominal), an arm composite by composing its robot's body with the arm's FK and the mount, any
+other model through the body API (``model.body(x)``: a model without a body raises ValueError).
 
 :func:`body_and_jacobian` adds ∂points/∂x (B, P, 3, D) and ∂arc/∂x (B, P, D): for an arm composite the arm's
 columns in closed form (pytorch-kinematics' Jacobian at the tip link, shifted to each point: v_i + ω_i × (p − p_a))
@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from ..arm import Composite
-from ..ik.models import ConstantCurvature, SolverModel
+from ..ik.adapters import ConstantCurvature, SolverModel
 from ..kinematics import backbone_points, effective_features
 
 _F64 = torch.float64
@@ -36,11 +36,6 @@ class Body(NamedTuple):
     arc: Tensor
 
 
-def has_body(model: SolverModel) -> bool:
-    inner = model.robot if isinstance(model, Composite) else model
-    return hasattr(inner, "body") or isinstance(inner, ConstantCurvature)
-
-
 def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEGMENT) -> Body:
     """The backbone of variables x (B, D) (module docstring). ValueError for a model without a body."""
     if isinstance(model, Composite):
@@ -49,18 +44,15 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
         base = model.base_pose(x[:, :n])
         pts = base[:, None, :3, 3] + local.points @ base[:, :3, :3].mT
         return Body(pts, local.arc)
-    if hasattr(model, "body"):
-        got = model.body(x, points_per_segment)
-        return Body(got.points, got.arc_length.to(_F64).expand(got.points.shape[:2]))
-    if isinstance(model, ConstantCurvature):
+    if isinstance(model, ConstantCurvature):             # the actual arc lengths (an extensible robot's change)
         features = model.features(x)                                                    # (B, m, 4)
         pts = backbone_points(model.spec, features, points_per_segment)
         beta = effective_features(model.spec, features)[..., 2]                          # (B, m)
         step = (beta / points_per_segment).repeat_interleave(points_per_segment, dim=-1)
         arc = torch.cat([torch.zeros_like(beta[:, :1]), torch.cumsum(step, -1)], dim=-1)
         return Body(pts, arc)
-    raise ValueError(f"{type(model).__name__}: has no body: the planner needs the robot's backbone (the analytic "
-                     f"constant-curvature model of a robot file, or a model with a body)")
+    got = model.body(x, points_per_segment)             # the body API (ValueError: a model without a body)
+    return Body(got.points, got.arc_length.to(_F64).expand(got.points.shape[:2]))
 
 
 def _differences(model: SolverModel, x: Tensor, points_per_segment: int) -> tuple[Body, Tensor, Tensor]:

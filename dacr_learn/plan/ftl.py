@@ -31,8 +31,8 @@ from ..arm import Composite
 from ..arm.chain import CONTINUOUS_RANGE
 from ..arm.seeds import PoseBank
 from ..ik import IKOptions, solve_ik
-from ..ik.models import SolverModel, as_solver_model
-from .body import body, has_body
+from ..ik.adapters import SolverModel, as_solver_model
+from .body import body
 from .metric import shape_deviation
 from .path import Path
 from .solve import Problem, StepOptions
@@ -262,8 +262,7 @@ def plan_ftl(model, path, steps: int | None = None, options: FTLOptions = FTLOpt
     the model's base frame, or a :class:`~.path.Path`) in ``steps`` steps (default: spacing ≤
     ``options.spacing``·L). See the module docstring; the plan's figures are those of :mod:`.metric`."""
     model = as_solver_model(model)
-    if not has_body(model):
-        body(model, torch.zeros(1, model.limits.num_variables, dtype=_F64))        # raises the model's message
+    body(model, model.limits.project(torch.zeros(1, model.limits.num_variables, dtype=_F64)))   # none: ValueError
     path = path if isinstance(path, Path) else Path(path)
     planner = _Planner(model, path, options)
     stop = min(path.length, planner.length)

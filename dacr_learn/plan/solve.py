@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..ik.models import SolverModel
+from ..ik.adapters import SolverModel
 from ..ik.refine import limited_step
 from .body import body_and_jacobian
 from .path import Path

@@ -1,7 +1,7 @@
 """Hardware cross-validation experiments: frozen research scripts, not part of the ``dacr_learn`` library.
 
-Their figures are in the docs (the dated sections of docs/hardware_history.md, and
-docs/compositional.md, docs/results.md); each script's docstring names its section and its exact
+Their figures are in the docs (the dated sections of docs/history/hardware.md, and
+docs/history/compositional.md, docs/history/results.md); each script's docstring names its section and its exact
 command, ``python -m research.hardware_cv.<script> …`` from the repository root. They are not
 maintained beyond running: kept so the documented numbers can be reproduced, not run by the tests.
 Importing a script reads no data and writes nothing; the work happens in its ``main()``. A script runs

@@ -10,7 +10,7 @@ tensions, the tendon stretch the plain path (``solve_tendon_qp`` with a force ma
 One extra parameter, μ, fitted with the CC parameters on the training rows. ~1 min.
 (--extrap: fit on the single-segment family, test on all pairs; --val reads FTDCR v4's val.csv)
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (row `capstan_hysteresis.py`: μ = 0.20, val 7.35 mm) and "2026-11-21:
 Third round: static physics and a better selection proxy" (`--extrap`).
 Run from the repository root:

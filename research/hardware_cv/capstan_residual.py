@@ -6,7 +6,7 @@ residual network (``residual_memory.py``) then corrects each segment as before.
 (EXTRAP: fit on the single-segment family, test on all pairs, as in residual_memory.py; VAL reads
 FTDCR v4's val.csv) ~40 s per seed (CV).
 
-Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+Numbers: docs/history/hardware.md, "2026-11-21: Third round: static physics and a better selection
 proxy" (row "(g) on the capstan CC model").
 Run from the repository root: python -m research.hardware_cv.capstan_residual SEEDS [CV|EXTRAP|VAL]
 e.g.   python -m research.hardware_cv.capstan_residual 0,1,2 CV

@@ -7,7 +7,7 @@ recording of one robot. Variants are passed as constructor arguments, no library
 fallback gate) left the library on 2026-11-25 (no registered model used them); :class:`CarryOver` here
 keeps them for this script, as the library had them.
 
-Numbers: docs/hardware_history.md, "2026-11-23: Carrying Clarke-space models over between robots"
+Numbers: docs/history/hardware.md, "2026-11-23: Carrying Clarke-space models over between robots"
 (results/carry_over.jsonl).
 Run from the repository root:
 

@@ -3,7 +3,7 @@ proxies on one robot (FTDCR v6's free fit puts the marker 25 mm *behind* the tip
 One JSON line per offset: train RMSE, family CV, singles→pairs extrapolation [mm], fitted parameters;
 ~6 CC fits per offset.
 
-Numbers: docs/hardware_history.md, "2026-11-23: FTDCR v6, the second robot" (marker offset fixed at
+Numbers: docs/history/hardware.md, "2026-11-23: FTDCR v6, the second robot" (marker offset fixed at
 0 / 15 mm).
 Run from the repository root: python -m research.hardware_cv.cc_marker ROBOT OFFSETS_MM   (e.g. v6 free,0,15)
 """

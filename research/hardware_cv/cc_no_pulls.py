@@ -2,7 +2,7 @@
 library's train-only proxies on the same test rows as the package model (pull rows stay in the tests).
 JSON lines for the fits with / without pulls; 12 CC fits.
 
-Numbers: docs/hardware_history.md, "2026-11-23: Carrying Clarke-space models over between robots"
+Numbers: docs/history/hardware.md, "2026-11-23: Carrying Clarke-space models over between robots"
 (row "static CC fitted without the tendon-pull rows").
 Run from the repository root: python -m research.hardware_cv.cc_no_pulls ROBOT   (ROBOT: v4 | v6)
 """

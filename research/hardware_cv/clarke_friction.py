@@ -3,7 +3,7 @@ follows the linearised capstan law, w_k = mu * wrap_k * |rho_k| + w0 (wrap_k = b
 segments + half of segment k's own bend), in the CC model (refitted twice with the correction
 from the previous fit). One JSON line per (mu, w0); ~2 min.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (row `clarke_friction.py`).
 Run from the repository root: python -m research.hardware_cv.clarke_friction ['[[mu, w0_m], ...]']
 (default grid [[0, 0], [0.05, 0], [0.1, 0], [0.2, 0], [0, 5e-5], [0.1, 5e-5]])

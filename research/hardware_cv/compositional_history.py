@@ -14,7 +14,7 @@ The variant is now the library's ``CCCompositionalResidual(history=True)``, regi
 One JSON line per model and proxy appended to results/compositional_history.jsonl; ~2 min per robot
 (singles → pairs), ~3 min with the CV.
 
-Numbers: docs/hardware_history.md, "2026-11-24: The compositional model with memory (k)".
+Numbers: docs/history/hardware.md, "2026-11-24: The compositional model with memory (k)".
 Run from the repository root: python -m research.hardware_cv.compositional_history ROBOT [PROXIES]
 (ROBOT: v4 | v6; PROXIES: extrap,cv, default extrap)
 """

@@ -7,7 +7,7 @@ weight_decay, torsion, steps, lr), e.g. ``context=distal,weight_decay=1e-3``; ``
 One JSON line per (variant, proxy) on stdout, seed 0 (the docs' lines are in results/compositional_sweep.jsonl);
 ~100–230 s per fit on a loaded machine.
 
-Numbers: docs/compositional.md, "On the real robots: hardware model `cc_compositional_residual`"
+Numbers: docs/history/compositional.md, "On the real robots: hardware model `cc_compositional_residual`"
 (the design chosen on the singles → pairs proxy).
 Run from the repository root: python -m research.hardware_cv.compositional_sweep ROBOT PROXIES VARIANT [VARIANT ...]
 e.g.   python -m research.hardware_cv.compositional_sweep v4 extrap default context=distal,weight_decay=1e-3

@@ -1,6 +1,6 @@
 """σ models of the default hardware model (g) on ftdcr_v4: chosen on held-out train folds, reported on val.
 
-Numbers: docs/hardware_history.md, "2026-11-23: Uncertainty: σ per prediction and out-of-support score"
+Numbers: docs/history/hardware.md, "2026-11-23: Uncertainty: σ per prediction and out-of-support score"
 (the table of 13 σ models and the v4 val report). Run from the repository root:
 
     python -m research.hardware_cv.ensemble_uncertainty --members 4 --out /tmp/unc.pt   # ~30 min loaded

@@ -12,7 +12,7 @@ lowers the points along mocap −z, γ < 0 along +z (the sign is not assumed: it
 Static CC only. Reports train RMSE, leave-one-family-out CV RMSE and the singles → pairs
 extrapolation RMSE (--val: also FTDCR v4's val.csv). ~25 s per mass.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+Numbers: docs/history/hardware.md, "2026-11-21: Third round: static physics and a better selection
 proxy" (row `gravity.py`, tip mass 0 / 1).
 Run from the repository root: python -m research.hardware_cv.gravity [--tip-mass 0 1] [--val]
 """

@@ -9,7 +9,7 @@ three segments), pairs bending the same / opposite way.
 - with --val: the static CC fitted on train, on val's all3_same / scurve / spiral (a diagnosis
   after the fact; used for no choice). 25 s.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+Numbers: docs/history/hardware.md, "2026-11-21: Third round: static physics and a better selection
 proxy" (radial bias while loading; output in results/loading_bias.txt).
 Run from the repository root: python -m research.hardware_cv.loading_bias [--val]
 """

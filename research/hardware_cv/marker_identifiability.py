@@ -9,7 +9,7 @@ parameters the nominal standard error [mm] (σ²·(JᵀJ)⁻¹ with σ² the res
 the residuals are correlated along the paths) and the largest correlation with another parameter.
 One JSON line per model on stdout (the docs' lines: results/marker_identifiability.jsonl); ~1 min.
 
-Numbers: docs/hardware_history.md, "2026-11-23: Lateral marker offset" (Identifiability).
+Numbers: docs/history/hardware.md, "2026-11-23: Lateral marker offset" (Identifiability).
 Run from the repository root: [HW_ROBOT=v6] python -m research.hardware_cv.marker_identifiability
 """
 

@@ -2,7 +2,7 @@
 refitted with the offset fixed at several values (the base translation absorbs the rest); family CV
 and the singles → pairs extrapolation score. One JSON line per offset.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" ("The marker offset matters at large bends") and "2026-11-21: Third
 round: static physics and a better selection proxy" (EXTRAP flat over 0–12 mm). ~40 s.
 Run from the repository root: python -m research.hardware_cv.marker_offset

@@ -11,7 +11,7 @@ results/model_average.jsonl: {"robot", "models", "extrap", "cv", "cv_folds"}.
 
 ~2 min per robot for singles → pairs, ~10 min with the family CV.
 
-Numbers: docs/hardware_history.md, "2026-11-24: Fifth round: averaging two models' tips (tried, not adopted)".
+Numbers: docs/history/hardware.md, "2026-11-24: Fifth round: averaging two models' tips (tried, not adopted)".
 Run from the repository root: python -m research.hardware_cv.model_average ROBOT MODELS [PROXIES]   (ROBOT: v4 | v6)
 e.g.   python -m research.hardware_cv.model_average v6 cc,cc_compositional_residual,pretrained_raw,mlp_raw extrap
 """

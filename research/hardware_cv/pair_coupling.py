@@ -1,6 +1,6 @@
 """Why a held distal segment bends back more on FTDCR v6 than the CC model allows (issue 12, research).
 
-Finding 3 of the fourth round (docs/hardware_history.md): on v6 the single-segment patterns and pair12 want
+Finding 3 of the fourth round (docs/history/hardware.md): on v6 the single-segment patterns and pair12 want
 different CC parameters. In ``pair12_opp_*`` segment 1's tendons are pulled while segment 2's and 3's
 are held near 0: segment 2 is bent back only by the coupled routing (its tendons pass through the
 bent segment 1), an S-curve. The singles fit predicts a much larger tip excursion than measured.
@@ -41,7 +41,7 @@ Rule fixed before scoring (brief): a candidate counts only if it improves v6's s
 (``extrap``) by ≥ 0.20 mm AND worsens neither v4's singles → pairs nor v4's family CV (``cv``) by more
 than 0.10 mm, each robot on its chosen CC variant. Both proxies are reported on both robots.
 
-Numbers: docs/hardware_history.md, "v6's pair12 inconsistency (same round, no change)" in "2026-11-23:
+Numbers: docs/history/hardware.md, "v6's pair12 inconsistency (same round, no change)" in "2026-11-23:
 Fourth round: pretension that grows with the tendon length, chosen per robot" (results/pair_coupling.jsonl).
 Run from the repository root:
 

@@ -4,7 +4,7 @@ softmax-weighted sum is the CC input), "pi_seg", "lin" (widths of the stop-opera
 sum_j c_kj (rho - play_wj(rho))), "lin_mat". ~45 s per config and seed.
 (results/pi_hysteresis.jsonl was produced by an earlier copy of this script with the same model code.)
 
-Numbers: docs/hardware_history.md, "2026-11-21: Tried after the first results".
+Numbers: docs/history/hardware.md, "2026-11-21: Tried after the first results".
 Run from the repository root: python -m research.hardware_cv.pi_hysteresis '{"lin6": {"mem": [], "hidden": 64,
 "pi": [], "lin": [5e-5, 1e-4, 2e-4, 4e-4, 8e-4]}}' 0,1,2
 """

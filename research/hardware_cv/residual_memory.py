@@ -6,7 +6,7 @@ outputs the correction in it: a correction that is the same for every bending di
 CV (default), EXTRAP (fit on single segments, test on all pairs) or VAL (FTDCR v4's val.csv);
 ~80 s per config (2 seeds).
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (rows `residual_memory.py`) and "2026-11-21: Third round: static physics and
 a better selection proxy" (equivariant, 32 / 128 units; EXTRAP of (g)).
 Run from the repository root: python -m research.hardware_cv.residual_memory '{"name": {"width": 1e-4,

@@ -4,7 +4,7 @@ Prints one JSON line: offset-removed RMSE [mm], ±2σ coverage and Spearman(‖�
 and the same for its ensemble-only σ calibration. Evaluation only: FTDCR v4's val.csv; never point it
 at a hidden hold-out. Seconds.
 
-Numbers: docs/hardware_history.md, "2026-11-23: Uncertainty: σ per prediction and out-of-support
+Numbers: docs/history/hardware.md, "2026-11-23: Uncertainty: σ per prediction and out-of-support
 score" (the re-measurement on the `--save runs/ftdcr_v4_model` model), docs/results.md and README.md
 (uncertainty on v4 val: 92.3 %, 0.56).
 Run from the repository root: python -m research.hardware_cv.saved_model_val CKPT VAL_CSV

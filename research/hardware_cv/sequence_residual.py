@@ -4,7 +4,7 @@ output is added to the static per-segment Clarke correction before the CC kinema
 windows (warm-up rows without loss, then loss rows of the training families), evaluated by
 running the GRU causally along the whole recording (VAL: FTDCR v4's val.csv). ~6 min (1 seed).
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (row `sequence_residual.py`: 16 / 32 units).
 Run from the repository root: python -m research.hardware_cv.sequence_residual HIDDEN SEEDS [CV|VAL]
 e.g.   python -m research.hardware_cv.sequence_residual 16 0 CV

@@ -14,7 +14,7 @@ the singles → pairs extrapolation RMSE (fit on the single-segment family, test
 radial bias of loading rows by family (positive = over-bends) and the marker offset [mm] fitted in
 each fold (--val: also FTDCR v4's val.csv; never with HW_ROBOT=v6). ~6 s per variant.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Third round: static physics and a better selection
+Numbers: docs/history/hardware.md, "2026-11-21: Third round: static physics and a better selection
 proxy" (the static rows), "2026-11-23: FTDCR v6, the second robot" (HW_ROBOT=v6,
 results/static_variants_v6.jsonl) and "2026-11-23: Lateral marker offset" (`marker3`, key `marker_mm`).
 Run from the repository root: [HW_ROBOT=v6] python -m research.hardware_cv.static_variants VARIANT[,VARIANT...] [--val]

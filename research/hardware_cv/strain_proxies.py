@@ -5,7 +5,7 @@ For each CC variant (``selection.CC_VARIANTS``: base, strain) the folds are buil
 One JSON line per (variant, model) appended to results/strain_proxies.jsonl.
 About 1.5 min per learned model and variant on a quiet core.
 
-Numbers: docs/hardware_history.md, "2026-11-23: Fourth round: pretension that grows with the tendon
+Numbers: docs/history/hardware.md, "2026-11-23: Fourth round: pretension that grows with the tendon
 length, chosen per robot" (the proxies of the CC-based models with the strain variant).
 Run from the repository root: python -m research.hardware_cv.strain_proxies ROBOT MODELS   (ROBOT: v4 | v6;
 MODELS: a,b,…)

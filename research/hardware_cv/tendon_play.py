@@ -2,7 +2,7 @@
 the tendon's wrap angle / pull, fed to the static CC model (refitted). Prints one JSON line per
 configuration.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (row `tendon_play.py`). ~2 min.
 Run from the repository root: python -m research.hardware_cv.tendon_play
 """

@@ -26,7 +26,7 @@ Selection rule, fixed before scoring (brief of issue 12): a candidate counts onl
 FTDCR v4 and v6, neither proxy (family CV, singles → pairs) is worse than ``base`` by more than
 0.10 mm ("neutral"), and on at least one robot both proxies are ≥ 0.20 mm better ("clearly better").
 
-Numbers: docs/hardware_history.md, "2026-11-23: Fourth round: pretension that grows with the tendon
+Numbers: docs/history/hardware.md, "2026-11-23: Fourth round: pretension that grows with the tendon
 length, chosen per robot" (results/tendon_zero.jsonl, results/tendon_zero_subsets.jsonl).
 Run from the repository root:
 

@@ -1,7 +1,7 @@
 """A first-order lag (viscoelastic creep) of the commands, exp(-dt/tau) with the recorded
 timestamps, fed to the static CC model (refitted). Prints one JSON line per tau.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (row `time_lag.py`). ~30 s.
 Run from the repository root: python -m research.hardware_cv.time_lag
 """

@@ -4,7 +4,7 @@ force vector of segment j. At the encoder's equilibrium each segment bends along
 force through it, so the cross product vanishes: the model predicts no twist. This script checks
 that numerically (max |moment| relative to its scale), on train and on FTDCR v4's val.
 
-Numbers: docs/hardware_history.md, "2026-11-21: Second round: hysteresis physics, selected by
+Numbers: docs/history/hardware.md, "2026-11-21: Second round: hysteresis physics, selected by
 cross-validation on train" (row `torsion.py`: relative moment ≤ 4e-12). ~5 s.
 Run from the repository root: python -m research.hardware_cv.torsion
 """

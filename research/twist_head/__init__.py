@@ -1,4 +1,4 @@
-"""The twisting-segment study of docs/compositional.md, "Twisting segments: the roll (2026-11-26)": frozen
+"""The twisting-segment study of docs/history/compositional.md, "Twisting segments: the roll (2026-11-26)": frozen
 research scripts, not part of the ``dacr_learn`` library, run from the repository root as
 ``python -m research.twist_head.<script>``.
 

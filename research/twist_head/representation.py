@@ -1,7 +1,7 @@
 """Diagnosis (issue 22): can a twist that is affine in a twisting segment's strain-unit features give its
 transform Rz(α)·T_cc exactly?  Least-squares affine fit of log(T_k) against x_k = (ρ/d, β/l, α), k a type-II/III
 segment of hetero_4seg_types, and the pose error of exp(fit); the same for log(Rz(−α)·T_k) (the twist left
-once the roll α is applied first). Numbers: docs/compositional.md, "Twisting segments: the roll (2026-11-26)".
+once the roll α is applied first). Numbers: docs/history/compositional.md, "Twisting segments: the roll (2026-11-26)".
 
     .venv/bin/python -m research.twist_head.representation
 """
@@ -9,7 +9,7 @@ import torch
 
 from dacr_learn.data import generate
 from dacr_learn.kinematics import effective_features, segment_poses
-from dacr_learn.lie import bending_coefficients, hat, third_coefficient, twist_exp
+from dacr_learn.lie import bending_coefficients, hat, third_coefficient, twist_exp, vee
 from dacr_learn.robot import RobotSpec
 
 F64 = torch.float64
@@ -19,8 +19,7 @@ def twist_log(t):
     r, p = t[..., :3, :3], t[..., :3, 3]
     cos = ((r.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
     phi = torch.acos(cos)
-    w = torch.stack([r[..., 2, 1] - r[..., 1, 2], r[..., 0, 2] - r[..., 2, 0], r[..., 1, 0] - r[..., 0, 1]], -1)
-    w = w * (phi / (2 * torch.sin(phi).clamp_min(1e-300))).unsqueeze(-1)
+    w = vee(r) * (phi / torch.sin(phi).clamp_min(1e-300)).unsqueeze(-1)
     s, f = bending_coefficients(phi**2)
     g = third_coefficient(phi**2, s)
     wh = hat(w)

@@ -1,5 +1,5 @@
 """Diagnosis (issue 22): which segment's transform is wrong in a trained compositional model. Numbers:
-docs/compositional.md, "Twisting segments: the roll (2026-11-26)" (runs of the user's command on hetero_4seg_types).
+docs/history/compositional.md, "Twisting segments: the roll (2026-11-26)" (the user's command on hetero_4seg_types).
 
     .venv/bin/python -m research.twist_head.segment_errors RUN_DIR [RUN_DIR ...]
 

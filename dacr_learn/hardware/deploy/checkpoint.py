@@ -40,12 +40,14 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import nn
 
+from ...checks import load_torch_file
 from ...robot import RobotSpec
+from ...runs import CHECKPOINT, find_checkpoint
 from ..ccmodel import CalibratedCC
 from ..compositional_model import CCCompositionalResidual
 from ..learned import PLAY_WIDTH, CCClarkeResidual, CCClarkeResidualHistory, Split, command_split
@@ -229,6 +231,28 @@ def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
     except (RuntimeError, KeyError, TypeError, IndexError) as err:
         raise ValueError(f"{path}: the stored weights do not fit the stored robot ({type(err).__name__}: "
                          f"{str(err)[:300]})") from None
+
+
+class ModelFile(NamedTuple):
+    """A model file read once (:func:`read_model_file`): ``path`` the checkpoint file, ``blob`` its weights-only
+    content, ``hardware`` True for a saved hardware model (:func:`save_hardware_model`; build it with
+    :func:`hardware_model_from_blob`), False for anything else, read as a ``train.py`` checkpoint
+    (:func:`dacr_learn.runs.load_model` with ``blob``, which names what is wrong when it is not one)."""
+
+    path: Path
+    blob: Any
+    hardware: bool
+
+
+def read_model_file(path: str | Path) -> ModelFile:
+    """The checkpoint ``path`` names (a file, a ``train.py`` run or version folder:
+    :func:`~dacr_learn.runs.find_checkpoint`), loaded once (``weights_only``) and recognised by its contents,
+    whatever the file is called. FileNotFoundError / ValueError naming the path when there is none or it is not
+    a torch file. Used by every entry that takes a checkpoint (``python -m dacr_learn.export``,
+    ``python -m dacr_learn.ik --ckpt``)."""
+    ckpt = find_checkpoint(path)
+    blob = load_torch_file(ckpt, CHECKPOINT)
+    return ModelFile(ckpt, blob, is_hardware_blob(blob))
 
 
 def _support_from_state(state: dict, m: int) -> SupportModel:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ...checks import F64
 from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_twist, effective_features
 from ...lie import pose_from_parts, twist_chain_jacobian, twist_exp
@@ -40,8 +41,6 @@ from .inference import (
     chained_marker_point,
     sigma_coefficients,
 )
-
-_F64 = torch.float64
 
 
 def _check_servo(servo: Tensor, num_servos: int) -> None:
@@ -69,18 +68,18 @@ def _stacked_networks(members) -> tuple[dict[str, Tensor], str, str]:
     with torch.no_grad():
         dtype = fks[0].skip.weight.dtype
         fixed = effective_features(spec, torch.zeros(1, spec.num_segments, 4, dtype=dtype))
-        out["z_fixed"] = torch.stack([fk.front.norm(fixed)[0, :, 2:] for fk in fks]).to(_F64)
-        out["rho_mean"] = torch.stack([fk.front.norm.mean[:2] for fk in fks]).to(_F64).unsqueeze(1)
-        out["rho_std"] = torch.stack([fk.front.norm.std[:2] for fk in fks]).to(_F64).unsqueeze(1)
-        out["context_matrix"] = fks[0].front.context_matrix.to(_F64)
-        unit = torch.stack([m.twist_mask.to(_F64) for m in members])                      # (K, 6)
-        unit[:, :3] *= torch.stack([fk.length_scale[:1].to(_F64) for fk in fks])     # metric: one L_s per member
+        out["z_fixed"] = torch.stack([fk.front.norm(fixed)[0, :, 2:] for fk in fks]).to(F64)
+        out["rho_mean"] = torch.stack([fk.front.norm.mean[:2] for fk in fks]).to(F64).unsqueeze(1)
+        out["rho_std"] = torch.stack([fk.front.norm.std[:2] for fk in fks]).to(F64).unsqueeze(1)
+        out["context_matrix"] = fks[0].front.context_matrix.to(F64)
+        unit = torch.stack([m.twist_mask.to(F64) for m in members])                      # (K, 6)
+        unit[:, :3] *= torch.stack([fk.length_scale[:1].to(F64) for fk in fks])     # metric: one L_s per member
         layers = [linear_layers(fk.net) for fk in fks]
         last = len(layers[0]) - 1
         for i in range(len(layers[0])):
             scale = unit.unsqueeze(1) if i == last else 1.0
             out[f"w{i}"], out[f"b{i}"] = stacked_linear([ls[i] for ls in layers], scale)
-        out["skip"] = torch.stack([fk.skip.weight for fk in fks]).to(_F64).mT * unit.unsqueeze(1)
+        out["skip"] = torch.stack([fk.skip.weight for fk in fks]).to(F64).mT * unit.unsqueeze(1)
     return out, activation, context
 
 
@@ -101,12 +100,12 @@ class CompositionalHardwareFK(nn.Module):
         with torch.no_grad():
             buffers = {**active_set_maps(model), **nets,
                        "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
-                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
+                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=F64)]),   # homogeneous
                        "sigma_coefficients": sigma_coefficients(model),
-                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
-                       "length": torch.tensor([s.length for s in spec.segments], dtype=_F64)}
+                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=F64),
+                       "length": torch.tensor([s.length for s in spec.segments], dtype=F64)}
             # ∂ξ_k^CC along all 2m coordinates (m, 2m, 6): segment k's two directions, zero elsewhere
-            eye = torch.eye(spec.num_segments, dtype=_F64)[:, :, None, None]
+            eye = torch.eye(spec.num_segments, dtype=F64)[:, :, None, None]
             buffers["cc_directions"] = (eye * cc_twist_directions(buffers["radius"])).flatten(1, 2)
         for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
             self.register_buffer(name, value.detach().contiguous())    # float64 until the affine part is folded

@@ -29,8 +29,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ...checks import F64
 from ...deploy import export as dexport
-from ...deploy.control import scaled_dls_step
+from ...deploy.control import ControllerConfig, scaled_dls_step
 from ...ik import IKOptions, solve_ik
 from ..recording import load_recording
 from .checkpoint import HardwareModel, load_hardware_model
@@ -38,29 +39,25 @@ from .checkpoint import HardwareModel, load_hardware_model
 __all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", "run_control", "servo_signs",
            "slack_pull", "source_model", "static_targets", "tracking_errors", "training_commands"]
 
-_F64 = torch.float64
 
 
 @dataclass(frozen=True)
-class ServoControl:
-    """gain: fraction of the tip error corrected per step, in (0, 1]; damping: λ [m] of the DLS;
-    max_step: largest scaled servo step ‖Δu / s‖ per control step (s: each servo's half-range);
-    retension: scaled step ‖Δu / s‖ per control step by which each *slack* servo (a zero column of J) is
-    pulled in, in [0, max_step] (0: off, the default). The tip task alone never moves a slack tendon's
+class ServoControl(ControllerConfig):
+    """gain, damping (λ [m] of the DLS), max_step (largest scaled servo step ‖Δu / s‖ per control step, s: each
+    servo's half-range): as :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step ‖Δu / s‖
+    per control step by which each *slack* servo (a zero column of J) is pulled in, in [0, max_step] (0: off, the
+    default). The tip task alone never moves a slack tendon's
     servo (its column of J is zero), so a target that needs the tendon taut again can stall. The pull is in
     J's null space, so it does not move the tip until the tendon goes taut (its column turns non-zero and
     the pull stops); the step that crosses the taut onset does move it (docs/export.md: a trade-off)."""
 
-    gain: float = 0.5
     damping: float = 2e-3
-    max_step: float = 0.05
     retension: float = 0.0
 
     def __post_init__(self):
-        if not 0 < self.gain <= 1:
-            raise ValueError(f"gain: expected a value in (0, 1], got {self.gain}")
-        if not self.damping >= 0 or not self.max_step > 0:
-            raise ValueError(f"damping ≥ 0 [m] and max_step > 0 expected, got {self.damping}, {self.max_step}")
+        super().__post_init__()
+        if self.damping is None:
+            raise ValueError("damping: expected >= 0 [m], got None")
         if not 0 <= self.retension <= self.max_step:
             raise ValueError(f"retension: expected a value in [0, max_step = {self.max_step}], got {self.retension}")
 
@@ -84,12 +81,12 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
     rest command 0): of ``solutions`` solutions, the first successful one, which is the one nearest ``current``
     (largest servo difference). It lies in the recorded servo range (:meth:`.checkpoint.HardwareModel.servo_range`)
     and the model's own static prediction there (a history model's play state at the command itself) is within
-    ``options.tolerance[0]`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
+    ``options.pos_tolerance`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
     returned. ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the
     wrong shape."""
     options = IKOptions() if options is None else options
-    target = torch.as_tensor(target, dtype=_F64)
-    current = torch.as_tensor(current, dtype=_F64)
+    target = torch.as_tensor(target, dtype=F64)
+    current = torch.as_tensor(current, dtype=F64)
     if target.shape != (3,) or current.shape != (len(model.servo_ids),):
         raise ValueError(f"target (3,) [m] and current ({len(model.servo_ids)},) [mm] expected, got "
                          f"{tuple(target.shape)} and {tuple(current.shape)}")
@@ -99,7 +96,7 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
     if not bool(result.success[0, 0]):
         raise ValueError(f"target {[round(1e3 * v, 3) for v in target.tolist()]} mm: no command in the recorded "
                          f"servo range reaches it per the model (closest {1e3 * float(result.pos_err[0].min()):.3f} "
-                         f"mm off, tolerance {1e3 * options.tolerance[0]:.4f} mm)")
+                         f"mm off, tolerance {1e3 * options.pos_tolerance:.4f} mm)")
     return result.q[0, 0], float(result.pos_err[0, 0])
 
 
@@ -117,17 +114,17 @@ def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | 
     ``settle`` steps hold targets[0] and are not returned. Returns numpy arrays of the tracking phase:
     desired, actual (T, 3) [m], servo (T, S) [mm], step_us (T,) (controller step: Jacobian + DLS + clip).
     """
-    scale = ((upper - lower) / 2).to(_F64).clamp_min(1e-9)
-    lower, upper = lower.to(_F64), upper.to(_F64)
-    u, state = servo0.to(_F64).clamp(lower, upper), state0
-    pull_sign = torch.ones_like(u) if pull_sign is None else pull_sign.to(_F64)
-    desired = torch.cat([targets[:1].expand(settle, 3), targets, targets[-1:]]).to(_F64)
+    scale = ((upper - lower) / 2).to(F64).clamp_min(1e-9)
+    lower, upper = lower.to(F64), upper.to(F64)
+    u, state = servo0.to(F64).clamp(lower, upper), state0
+    pull_sign = torch.ones_like(u) if pull_sign is None else pull_sign.to(F64)
+    desired = torch.cat([targets[:1].expand(settle, 3), targets, targets[-1:]]).to(F64)
     rows: dict[str, list] = {"desired": [], "actual": [], "servo": [], "step_us": []}
     with torch.no_grad():
         for k in range(settle + len(targets)):
             before = state
             out = fk(u[None]) if state is None else fk(u[None], state)
-            tip, state = out[0][0].to(_F64), (None if state is None else out[2])
+            tip, state = out[0][0].to(F64), (None if state is None else out[2])
             t0 = time.perf_counter_ns()
             j = (jacobian(u[None]) if before is None else jacobian(u[None], before))[1][0]
             task = config.gain * (desired[k] - tip) + (desired[k + 1] - desired[k])
@@ -136,7 +133,7 @@ def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | 
             step_us = (time.perf_counter_ns() - t0) / 1e3
             if k >= settle:
                 for key, v in (("desired", desired[k]), ("actual", tip), ("servo", u), ("step_us", step_us)):
-                    rows[key].append(torch.as_tensor(v, dtype=_F64))
+                    rows[key].append(torch.as_tensor(v, dtype=F64))
             u = u_next
     return {k: torch.stack(v).numpy() for k, v in rows.items()}
 
@@ -144,21 +141,21 @@ def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | 
 def slack_pull(jac: Tensor, pull_sign: Tensor, retension: float) -> Tensor:
     """Scaled null-space step (S,) re-tensioning slack tendons: retension·pull_sign on the servos whose
     column of J (3, S) is zero (relative to the largest: a slack tendon), 0 elsewhere; pull_sign (S,) ±1."""
-    column = torch.linalg.vector_norm(jac.to(_F64), dim=-2)
+    column = torch.linalg.vector_norm(jac.to(F64), dim=-2)
     slack = column <= 1e-6 * column.max().clamp_min(1e-300)
-    return torch.where(slack, retension * pull_sign.to(_F64), torch.zeros_like(column))
+    return torch.where(slack, retension * pull_sign.to(F64), torch.zeros_like(column))
 
 
 def servo_signs(meta: dict) -> Tensor:
     """(S,) ±1 of an export's servo map in ``servo_ids`` order: the direction that pulls each tendon in."""
     sign = {str(a["servo"]): float(a["sign"]) for a in meta["servo_map"]["servos"]}
-    return torch.tensor([sign[str(i)] for i in meta["servo_ids"]], dtype=_F64)
+    return torch.tensor([sign[str(i)] for i in meta["servo_ids"]], dtype=F64)
 
 
 def circle(center: Tensor, radius: float, drop: float, steps: int) -> Tensor:
     """(steps, 3) [m]: a circle of ``radius`` [m] in the xy plane, ``drop`` [m] below ``center``."""
-    t = 2 * torch.pi * torch.arange(steps, dtype=_F64) / steps
-    return center.to(_F64) + torch.stack([radius * torch.cos(t), radius * torch.sin(t), torch.full_like(t, -drop)], -1)
+    t = 2 * torch.pi * torch.arange(steps, dtype=F64) / steps
+    return center.to(F64) + torch.stack([radius * torch.cos(t), radius * torch.sin(t), torch.full_like(t, -drop)], -1)
 
 
 def tracking_errors(result: dict[str, np.ndarray]) -> dict[str, float]:
@@ -210,7 +207,7 @@ def static_targets(fk, jac, init, commands: Tensor, rest: Tensor, lower: Tensor,
     for n, row in enumerate(torch.linspace(0, len(commands) - 1, count + 2)[1:-1].round().long().tolist()):
         goal = commands[row]
         state_goal = None if init is None else init(goal[None])
-        target = fk(goal[None], *(() if init is None else (state_goal,)))[0][0].to(_F64)
+        target = fk(goal[None], *(() if init is None else (state_goal,)))[0][0].to(F64)
         state0 = None if init is None else init(rest[None])
         res = run_control(fk, jac, target.expand(hold, 3), rest, state0, lower, upper, config, pull_sign=pull_sign)
         err = np.linalg.norm(res["actual"] - res["desired"], axis=-1)

@@ -23,13 +23,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ...checks import check_tensor
+from ...checks import F64, check_tensor
 from ..learned import PLAY_WIDTH, encoded_split, play_step
 from ..slack import active_set_gains, enumerated_solution, residual_maps
 from .checkpoint import HardwareModel
 from .uncertainty import mean_and_sigma
-
-_F64 = torch.float64
 
 
 class GeneratedHardwareFK(nn.Module):
@@ -78,7 +76,7 @@ class GeneratedHardwareFK(nn.Module):
     def encode(self, servo: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(servo (B, S) [m], displacements x (B, N) [m], encoder features (B, m, 4)) of commands (B, S) [mm],
         float64: the servo map and the slack-aware encoder of ``HardwareModel.split``."""
-        servo_m = 1e-3 * servo.to(_F64)
+        servo_m = 1e-3 * servo.to(F64)
         x = self.smap.command_displacements(self.spec, self.servo_ids, servo_m)
         rho = enumerated_solution(x + self.pretension, self.sets, self.gain, self.residual_map, self.tendon_w)
         return servo_m, x, self.cc.encoder.features_from_clarke(rho.unflatten(-1, (self.num_segments, 2)))
@@ -93,7 +91,7 @@ class GeneratedHardwareFK(nn.Module):
         self._check_state(servo, state)
         servo_m, x, features = self.encode(servo)
         rho = features[..., :2]
-        played = play_step(state.to(_F64), rho, PLAY_WIDTH) if self.history else rho
+        played = play_step(state.to(F64), rho, PLAY_WIDTH) if self.history else rho
         # the CC tip only where the σ reads it (its disagreement term); the checkpoints' members do not read it
         cc_tip = self.cc.tip_from_features(features) if self.disagreement else rho.new_zeros(rho.shape[0], 3)
         split = encoded_split(servo_m, x, features, played, cc_tip)

@@ -10,12 +10,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ...checks import F64
+from ...ik.adapters import Check, SolverModel, TipJacobian, register_solver_model
 from ...ik.limits import Limits
-from ...ik.models import Check, SolverModel, register_solver_model
 from .checkpoint import HardwareModel
 from .inference import HardwareJacobian
-
-_F64 = torch.float64
 
 
 class HardwareTip(SolverModel):
@@ -38,18 +37,17 @@ class HardwareTip(SolverModel):
         lower, upper = model.servo_range()
         if not bool((upper > lower).all()):
             raise ValueError("ckpt: a servo never moved in the recorded commands; its range is empty")
-        self.limits = Limits(lower, upper, torch.zeros(0, 2, dtype=torch.long), torch.zeros(0, dtype=_F64),
-                             (upper - lower) / 2, tuple(f"servo {s} [mm]" for s in model.servo_ids))
-        self.rest = torch.zeros(len(model.servo_ids), dtype=_F64)         # command 0: the rest posture
+        self.limits = Limits.boxes(lower, upper, tuple(f"servo {s} [mm]" for s in model.servo_ids))
+        self.rest = torch.zeros(len(model.servo_ids), dtype=F64)          # command 0: the rest posture
         self.num_joints = len(model.servo_ids)
         self.length = float(model.spec.total_length)
-        self.jacobian_module = HardwareJacobian(model, _F64)
+        self.jacobian_module = HardwareJacobian(model, F64)
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, None, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         if not self.hardware.history:
             with torch.no_grad():
                 tip, jac = self.jacobian_module(x)
-            return tip, None, jac
+            return TipJacobian(tip, None, jac)
         # A history model held static: the play state follows the command (memory 0 whatever the command), so
         # the Jacobian is that of the static map, not the module's (which holds the state fixed: the effect of
         # the next command given the history). Three reverse-mode passes through the folded FK.
@@ -58,17 +56,17 @@ class HardwareTip(SolverModel):
         with torch.enable_grad():
             tip = fk(servo, fk.initial_state(servo))[0]
             rows = [torch.autograd.grad(tip[:, i].sum(), servo, retain_graph=i < 2)[0] for i in range(3)]
-        return tip.detach(), None, torch.stack(rows, dim=1)
+        return TipJacobian(tip.detach(), None, torch.stack(rows, dim=1))
 
     def joints(self, x: Tensor) -> Tensor:
         return x
 
     def variables(self, q: Tensor) -> Tensor:
-        return q.to(_F64)
+        return q.to(F64)
 
     def check(self, q: Tensor) -> Check:
         tip, _ = self.hardware.predict(q, static=True)
-        return Check(tip.to(_F64), None, self.limits.inside(q), torch.zeros(q.shape[0], dtype=_F64))
+        return Check(tip.to(F64), None, self.limits.inside(q), torch.zeros(q.shape[0], dtype=F64))
 
 
 register_solver_model(HardwareModel, HardwareTip)

@@ -29,14 +29,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ...checks import F64
 from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
-from ...lie import components, pose_from_parts, twist_chain_jacobian
+from ...lie import chain_products, components, pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
 from ..slack import active_set_gains
 from .checkpoint import HardwareModel
-
-_F64 = torch.float64
 
 
 def cc_segment_poses(rho: Tensor, radius: Tensor, length: Tensor) -> Tensor:
@@ -54,11 +53,8 @@ def cc_twist_directions(radius: Tensor) -> Tensor:
 
 def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -> Tensor:
     """Marker point (..., 3) [m, motion-capture frame] = base pose (4, 4) · T₁ ⋯ T_m · (marker, 1) of segment
-    poses (..., m, 4, 4), tip_marker (4,) homogeneous (the chain unrolled over the m segments)."""
-    chain = base_pose
-    for k in range(poses.shape[-3]):
-        chain = chain @ poses[..., k, :, :]
-    return (chain @ tip_marker)[..., :3]
+    poses (..., m, 4, 4), tip_marker (4,) homogeneous (:func:`~dacr_learn.lie.chain_products`)."""
+    return (base_pose @ chain_products(poses, tip_only=True) @ tip_marker)[..., :3]
 
 
 def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions: Tensor, base_pose: Tensor,
@@ -87,7 +83,7 @@ def sigma_coefficients(model: HardwareModel) -> Tensor:
         raise ValueError(f"sigma_model: the exported FK computes the terms {SIGMA_TERMS_EXPORTED}, got "
                          f"{list(sm.terms)} (unsupported: {other}); save the model without them")
     coef = dict(zip(sm.terms, sm.coefficients.tolist(), strict=True))
-    return torch.tensor([float(sm.floor), coef.get("ensemble", 0.0), coef.get("bend", 0.0)], dtype=_F64)
+    return torch.tensor([float(sm.floor), coef.get("ensemble", 0.0), coef.get("bend", 0.0)], dtype=F64)
 
 
 class HardwareFK(nn.Module):
@@ -99,11 +95,11 @@ class HardwareFK(nn.Module):
         self.history, self.num_segments, self.num_servos = model.history, spec.num_segments, len(model.servo_ids)
         with torch.no_grad():
             buffers = {**active_set_maps(model),
-                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=_F64),
-                       "length": torch.tensor([s.length for s in spec.segments], dtype=_F64),
+                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=F64),
+                       "length": torch.tensor([s.length for s in spec.segments], dtype=F64),
                        "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
-                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=_F64)]),   # homogeneous
-                       "play_width": torch.tensor(model.play_width, dtype=_F64)}
+                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=F64)]),   # homogeneous
+                       "play_width": torch.tensor(model.play_width, dtype=F64)}
             buffers["twist_directions"] = cc_twist_directions(buffers["radius"])
             buffers.update(_stacked_members(model.members))
             buffers["sigma_coefficients"] = sigma_coefficients(model)
@@ -241,13 +237,13 @@ def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
     ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
     give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
-    a0 = model.smap.command_displacements(spec, model.servo_ids, torch.zeros(1, s, dtype=_F64))[0]
-    a = model.smap.command_displacements(spec, model.servo_ids, 1e-3 * torch.eye(s, dtype=_F64)) - a0   # (S, N)
+    a0 = model.smap.command_displacements(spec, model.servo_ids, torch.zeros(1, s, dtype=F64))[0]
+    a = model.smap.command_displacements(spec, model.servo_ids, 1e-3 * torch.eye(s, dtype=F64)) - a0   # (S, N)
     a0 = a0 + enc.tendon_pretension()
     g, tendon_w = enc.displacement_map(), 1.0 / enc.path_length
     sets, gain = active_set_gains(g, enc.bend_weights(), tendon_w)                    # (2ᴺ, N), (2ᴺ, 2m, N)
-    weight = torch.where(sets, -1.0, 1.0).to(_F64) * tendon_w                          # (2ᴺ, N)
-    keep = torch.eye(g.shape[0], dtype=_F64) - g @ gain                                # x − Gρ_S = (I − G K_S) x
+    weight = torch.where(sets, -1.0, 1.0).to(F64) * tendon_w                          # (2ᴺ, N)
+    keep = torch.eye(g.shape[0], dtype=F64) - g @ gain                                # x − Gρ_S = (I − G K_S) x
     scale = (enc.radius / enc.effective_radius()).repeat_interleave(2).unsqueeze(-1)
     return {"rho_gain": (scale * gain @ a.mT).mT.contiguous(), "rho_offset": ((scale * gain) @ a0).unsqueeze(-2),
             "violation_map": torch.einsum("sij,kj->ksi", keep, a).mul(weight).flatten(-2),
@@ -261,12 +257,12 @@ def _stacked_members(members) -> dict[str, Tensor]:
     nets = [linear_layers(m.net) for m in members]
     if any(len(n) != 3 for n in nets):
         raise ValueError(f"members: expected residual networks with 3 linear layers, got {[len(n) for n in nets]}")
-    w1 = torch.stack([n[0].weight for n in nets]).to(_F64)                  # (K, H, 2 [+2] + m)
-    std = torch.stack([m.rho_std for m in members]).to(_F64).reshape(-1, 1, 1)
+    w1 = torch.stack([n[0].weight for n in nets]).to(F64)                  # (K, H, 2 [+2] + m)
+    std = torch.stack([m.rho_std for m in members]).to(F64).reshape(-1, 1, 1)
     m = members[0].onehot.shape[0]
     hist = 2 if members[0].history else 0
     w_first = torch.cat([(w1[..., :2] / std).mT, w1[..., 2:2 + hist].mT], -2)   # (K, 2 [+2], H): ρ [and memory]
-    b_first = torch.stack([n[0].bias for n in nets]).to(_F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]  # (K, m, H)
+    b_first = torch.stack([n[0].bias for n in nets]).to(F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]  # (K, m, H)
     w_hidden, b_hidden = stacked_linear([n[1] for n in nets])
     w_last, b_last = stacked_linear([n[2] for n in nets], RESIDUAL_RHO_SCALE)
     # the K first layers as one (the input is shared): hidden units of the members side by side

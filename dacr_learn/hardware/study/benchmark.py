@@ -41,8 +41,8 @@ from ..learned import Split, cc_as_residual, make_split
 from ..metrics import offset_removed_rmse, tip_metrics
 from ..recording import Recording, load_recording
 from ..servo_map import ServoMap
-from .pool import TaskPool, timed
-from .registry import MODELS, FitContext, build_model, model_info
+from .pool import TaskPool
+from .registry import FitContext, build_model, model_info
 from .selection import (
     CC_VARIANTS,
     DEFAULT_PROXIES,
@@ -113,8 +113,7 @@ def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map:
     cc = CalibratedCC(spec, **CC_VARIANTS[variant["chosen"]])
     fit = fit_cc(cc, smap.displacements(spec, train_rec), train_rec.tip)
     fit["parameters"], fit["variant"] = cc.report(), variant
-    for p in cc.parameters():
-        p.requires_grad_(False)
+    cc.requires_grad_(False)
     val_split = make_split(val_rec, spec, smap, cc) if val_rec is not None else None
     return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc), val_split, cal, fit,
                  dict(CC_VARIANTS[variant["chosen"]]))
@@ -214,11 +213,6 @@ def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Calla
         log(f"[final {k + 1}/{len(pending)}] {name:36s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, "
             f"{r['seconds_per_run']:.1f} s/run{elapsed})")
     return results, preds
-
-
-def run_model(name: str, s: Setup, seeds: list[int]) -> tuple[dict, torch.Tensor | None]:
-    """Train/evaluate one model over seeds in this process; (summary, val predictions of the first seed or None)."""
-    return summarize_model(name, [timed(run_seed, name, s, seed) for seed in model_seeds(name, seeds)], seeds)
 
 
 @dataclass
@@ -331,12 +325,6 @@ def collect_selection(pending: PendingSelection, log: Callable = progress,
     return SelectionResult(scores, replicates, predictions, pending.folds, pending.seeds)
 
 
-def run_selection(s: Setup, models: Sequence[str], seeds: Sequence[int], log: Callable = progress,
-                  proxies: Sequence[str] = DEFAULT_PROXIES, pool: TaskPool | None = None) -> dict:
-    """{model: train-only proxy scores} for ``proxies`` (as :func:`.selection.proxy_scores`), folds built once."""
-    return collect_selection(submit_selection(pool or TaskPool(), s, models, seeds, proxies), log).scores
-
-
 def default_candidates(models: Sequence[str], deployable_only: bool = True) -> tuple[str, ...]:
     """The models the default is chosen from: the Clarke-space ones that ``--save`` and the export can
     deploy (``deployable_only=False``: every Clarke-space model, to report which one the proxy prefers)."""
@@ -348,12 +336,6 @@ def select_default(scores: dict, replicates: dict | None = None) -> dict:
     selection proxy's bootstrap ``replicates`` {model: {proxy: (B,)}} when given)."""
     reps = None if replicates is None else {m: r[SELECTION_PROXY] for m, r in replicates.items()}
     return default_choice(scores, default_candidates(list(scores)), SELECTION_PROXY, reps)
-
-
-def run_benchmark(s: Setup, models: Sequence[str] = MODELS, seeds: Sequence[int] = (0, 1, 2),
-                  log: Callable = progress, pool: TaskPool | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
-    """All models → ({model: summary}, {model: val predictions (first seed)}; empty without val)."""
-    return collect_benchmark(submit_benchmark(pool or TaskPool(), s, models, seeds), seeds, log)
 
 
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,

@@ -117,8 +117,7 @@ def make_folds(rec: Recording, spec: RobotSpec, smap: ServoMap,
         tr, te = torch.from_numpy(tr), torch.from_numpy(te)
         cc = CalibratedCC(spec, **(cc_options or {}))
         fit_cc(cc, x[tr], rec.tip[tr])
-        for p in cc.parameters():
-            p.requires_grad_(False)
+        cc.requires_grad_(False)
         split = make_split(rec, spec, smap, cc)
         labels = list(rec.labels)
         folds.append(Fold(name, FitContext(cc, smap, rec.servo_ids, split.rows(tr), cache_dir), split.rows(te),

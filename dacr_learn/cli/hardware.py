@@ -20,8 +20,7 @@ from pathlib import Path
 
 import torch
 
-from ...console import run_cli
-from .benchmark import (
+from ..hardware.study.benchmark import (
     SelectionResult,
     Setup,
     collect_benchmark,
@@ -36,11 +35,17 @@ from .benchmark import (
     submit_selection,
     submit_warmups,
 )
-from .heldout import SIGMA_PROXIES, collect_held_out, held_out_from_selection, sigma_models_of, submit_held_out
-from .pool import TaskPool
-from .registry import MODELS, model_info
-from .selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, default_choice
-from .table import markdown_table
+from ..hardware.study.heldout import (
+    SIGMA_PROXIES,
+    collect_held_out,
+    held_out_from_selection,
+    sigma_models_of,
+    submit_held_out,
+)
+from ..hardware.study.pool import TaskPool
+from ..hardware.study.registry import MODELS, model_info
+from ..hardware.study.selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, default_choice
+from ..hardware.study.table import markdown_table
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -122,9 +127,9 @@ def _selection_folds(setup: Setup, args: argparse.Namespace) -> dict:
 
 def _fit_all(setup: Setup, args: argparse.Namespace, start: float
              ) -> tuple[SelectionResult | None, dict | None, dict, dict, dict]:
-    """(the proxies or None, the default's choice (:func:`.benchmark.select_default`) or None, final results,
+    """(the proxies or None, the default's choice (``study.benchmark.select_default``) or None, final results,
     val predictions, what ``--save`` needs): every fit handed to one pool before any is collected — first the
-    pieces several fits share (the Cosserat calibrations, :func:`.benchmark.submit_warmups`), then the proxies,
+    pieces several fits share (the Cosserat calibrations, ``study.benchmark.submit_warmups``), then the proxies,
     then the final runs. With ``--save`` the final runs of the default candidates return their fitted models, so
     the saved ensemble is the one whose results are reported (not trained a second time), and the σ model's
     held-out rows are the default's own proxy fits when its proxy seeds are ``--seeds`` (else they are fitted
@@ -221,7 +226,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None, setup: Setup, start: 
     if preds:
         write_predictions(args.out / "val_predictions.csv", setup.val_rec, preds)
     if preds and not args.no_visuals:
-        from .visual import log_rerun, plot_paths
+        from ..hardware.study.visual import log_rerun, plot_paths
 
         # the CC model, the best static Clarke model and the default (without proxies: the best Clarke model)
         third = default or report["best_clarke_model"]
@@ -240,8 +245,8 @@ def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     report, setup, saving = run(args, argv)
     if args.save and report["default_model"] is not None:
-        from ..deploy.checkpoint import save_hardware_model, support_warning
-        from .benchmark import fit_hardware_model
+        from ..hardware.deploy.checkpoint import save_hardware_model, support_warning
+        from ..hardware.study.benchmark import fit_hardware_model
 
         model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]},
                                    members=saving["members"].get(report["default_model"]))
@@ -254,6 +259,3 @@ def main(argv: list[str] | None = None) -> dict:
             print(warning)
     return report
 
-
-if __name__ == "__main__":
-    sys.exit(run_cli(main))

@@ -11,8 +11,17 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from .report import write_reports
-from .runner import append_rows, check_frozen, finished_rows, load_config, make_jobs, read_rows, rewrite, run_job
+from ..ablation.report import write_reports
+from ..ablation.runner import (
+    append_rows,
+    check_frozen,
+    finished_rows,
+    load_config,
+    make_jobs,
+    read_rows,
+    rewrite,
+    run_job,
+)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -70,7 +79,7 @@ def _run_in_pool(cfg, jobs, sink, workers: int) -> None:
 def _run_on_cluster(cfg, jobs, sink, address: str) -> None:
     """Every pending job submitted at once to the Dask scheduler at ``address`` (it queues them, and
     workers that join later take their share)."""
-    from .cluster import connect, portable_config, run_job_one_thread
+    from ..ablation.cluster import connect, portable_config, run_job_one_thread
 
     client = connect(address)
     try:

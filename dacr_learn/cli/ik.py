@@ -9,12 +9,15 @@ S.npz: q (B, K, N) float64 joint vectors (the robot's joint order, what ClarkeDe
 [mm] for a hardware model), success (B, K) bool (the solver's verdict: pose within --tolerance, inside every
 limit of the robot file, on the displacement constraint), pos_err (B, K) [m], rot_err (B, K) [rad] (0 with
 --position-only), iterations (B, K), distinct (B, K) (solutions kept as distinct from the earlier ones of their
-target); for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution (each
+target); with --scene S.yaml [--clearance D] also clearance (B, K) [m], the signed clearance of the body (and the
+arm's links) to the obstacles from the returned joints alone, and success needs it >= D (docs/body.md);
+for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution (each
 command on its own, no motion memory).
 
 --ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
 run/checkpoint or a learned IK sampler (the analytic CC model of its robot, seeded by the network), or a saved
-hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only).
+hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only); the file is
+recognised by its contents (:func:`dacr_learn.cli.loading.load_solver_model`), not by its name.
 
 --arm ARM.urdf --arm-tip LINK --mount M.npy: whole-body IK of the arm carrying that robot (docs/arm.md): targets
 in the arm's base frame, q (B, K, n_arm + N) = (the arm's joints in the URDF chain's order [rad, m], then the
@@ -32,21 +35,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .solver import IKOptions, IKResult, solve_ik
-from .targets import check_targets
-
-_F64 = torch.float64
-
-
-def _load_array(path: str, flag: str) -> np.ndarray:
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{flag} {path}: no such file; expected a .npy array")
-    try:
-        return np.load(p, allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise ValueError(f"{flag} {path}: expected a .npy array (numpy.save), found a file numpy cannot read "
-                         f"({err})") from err
+from ..checks import F64
+from ..ik import IKOptions, IKResult, as_solver_model, check_targets, solve_ik
+from ..ik.collision import add_scene_arguments, scene_options
+from .loading import composite_from_files, describe, load_array, load_solver_model
 
 
 def _out_path(path: str) -> Path:
@@ -74,41 +66,6 @@ def _save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
         raise
 
 
-def load_solver_model(robot: str | None, ckpt: str | None):
-    """(model_or_spec, seed function or None, description) for --robot / --ckpt."""
-    if robot is not None:
-        from ..robot import RobotSpec
-        spec = RobotSpec.from_yaml(robot)
-        return spec, None, f"analytic constant-curvature model of {robot}"
-    path = Path(ckpt)
-    if path.is_file() and path.suffix == ".pt":
-        from ..hardware.deploy.checkpoint import load_hardware_model
-        return load_hardware_model(path), None, f"hardware model {ckpt} (servo commands [mm])"
-    from ..runs import load_model
-    net = load_model(path, dtype=_F64)
-    if net.task == "fk":
-        return net, None, f"learned FK {ckpt} (accuracy with respect to the network)"
-    if net.task == "sampler":     # seeds need no float64 (the solver refines them in float64): float32 samples faster
-        seeds = _network_seeds(net.float())
-        return net.spec, seeds, f"analytic CC model of {ckpt}'s robot, seeded by its learned sampler"
-    return net.spec, _network_seeds(net), f"analytic CC model of {ckpt}'s robot, seeded by its IK network"
-
-
-def _network_seeds(net):
-    """Seeds (B, S, D) from a trained IK network (its prediction for each pose target) or a learned sampler."""
-    from ..clarke_space import ClarkeSpace
-    space = ClarkeSpace(net.spec)
-
-    def seeds(target: torch.Tensor, count: int) -> torch.Tensor | None:
-        if hasattr(net, "sample_features"):                       # a learned multi-solution sampler
-            return net.sample_features(target, count)
-        if target.dim() != 3:
-            return None                                           # an IK network needs whole poses
-        with torch.no_grad():
-            return space.features(net(target).to(_F64)).unsqueeze(1)
-    return seeds
-
-
 def main(argv: list[str] | None = None) -> IKResult:
     p = argparse.ArgumentParser(prog="python -m dacr_learn.ik", description=__doc__.split("\n\n")[0])
     src = p.add_mutually_exclusive_group(required=True)
@@ -129,7 +86,9 @@ def main(argv: list[str] | None = None) -> IKResult:
     p.add_argument("--arm", help="URDF of an arm carrying the robot: whole-body IK (docs/arm.md)")
     p.add_argument("--arm-tip", help="with --arm: the link the robot is mounted on")
     p.add_argument("--mount", help="with --arm: float64 (4, 4) .npy, the tip link → robot base transform [m]")
+    add_scene_arguments(p)
     args = p.parse_args(argv)
+    scene = scene_options(args)
     if args.solutions < 1:
         raise ValueError(f"--solutions: expected >= 1, got {args.solutions}")
     if args.batch < 1:
@@ -139,16 +98,14 @@ def main(argv: list[str] | None = None) -> IKResult:
     out = _out_path(args.out)
     started = time.perf_counter()
     try:
-        targets = check_targets(torch.from_numpy(_load_array(args.targets, "--targets")), args.position_only)
+        targets = check_targets(torch.from_numpy(load_array(args.targets, "--targets")), args.position_only)
     except ValueError as err:
         raise ValueError(f"--targets {args.targets}: {err}") from err
-    q0 = None if args.q0 is None else torch.from_numpy(_load_array(args.q0, "--q0"))
+    q0 = None if args.q0 is None else torch.from_numpy(load_array(args.q0, "--q0"))
     model, seeder, description = load_solver_model(args.robot, args.ckpt)
-    options = IKOptions(tolerance=tuple(args.tolerance), seed=args.seed)
-    from .models import as_solver_model
+    options = IKOptions(pos_tolerance=args.tolerance[0], rot_tolerance=args.tolerance[1], seed=args.seed)
     solver_model = as_solver_model(model)
     if args.arm is not None:                                         # whole-body: arm + mount + this robot
-        from ..arm.files import composite_from_files, describe
         solver_model = composite_from_files(args.arm, args.arm_tip, args.mount, solver_model)
         seeder = solver_model.seeds
         description = f"{args.arm} ({args.arm_tip}) carrying the {description}; {describe(solver_model)}"
@@ -160,20 +117,20 @@ def main(argv: list[str] | None = None) -> IKResult:
         q0_chunk = q0 if q0 is None or q0.dim() == 1 else q0[start:start + args.batch]
         seeds = None if seeder is None else seeder(t, args.solutions)
         parts.append(solve_ik(solver_model, t, args.solutions, q0=q0_chunk, position_only=args.position_only,
-                              options=options, seeds=seeds))
+                              options=options, seeds=seeds, **scene))
         progress.update()
     progress.close()
-    result = IKResult(*(torch.cat([getattr(r, f) for r in parts]) for f in
-                        ("q", "success", "pos_err", "rot_err", "iterations", "distinct")))
+    result = IKResult.concat(parts)
     arrays = {k: v for k, v in result.numpy().items()}
     arrays["q"] = arrays["q"].astype(np.float64)
     if hasattr(solver_model, "hardware"):                            # a hardware model: σ of each solution
         b, k, n = result.q.shape
         _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n), static=True)
-        arrays["sigma"] = sigma.reshape(b, k, 3).to(_F64).numpy()
+        arrays["sigma"] = sigma.reshape(b, k, 3).to(F64).numpy()
     _save_npz(out, arrays)
     if args.rerun:
-        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show])
+        _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show],
+                **scene)
     ok = result.success
     print(f"solved {int(ok.any(1).sum())}/{ok.shape[0]} targets ({int(ok.sum())}/{ok.numel()} solutions, "
           f"{result.distinct.sum(1).double().mean():.1f} distinct per target) on the {description} "
@@ -181,7 +138,8 @@ def main(argv: list[str] | None = None) -> IKResult:
     return result
 
 
-def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor) -> None:
+def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: torch.Tensor, scene=None,
+            clearance: float = 0.0) -> None:
     """Rerun recording of a solve: target frames, solutions' backbones (:func:`dacr_learn.viz.ik.log_ik_solutions`)."""
     import rerun as rr
 
@@ -192,11 +150,16 @@ def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: 
     if spec is None or targets.dim() != 3:
         raise ValueError("--rerun: needs a robot model (not a hardware model) and pose targets (B, 4, 4)")
     b, k, n = q.shape
-    lines = backbone_points(spec, ClarkeEncoder(spec).to(_F64)(q.reshape(-1, n))).view(b, k, -1, 3)
+    lines = backbone_points(spec, ClarkeEncoder(spec).to(F64)(q.reshape(-1, n))).view(b, k, -1, 3)
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("dacr_learn_ik")
     rec.save(str(path), default_blueprint=ik_blueprint())
-    log_ik_solutions(rec, "ik", targets, lines, success)
+    if scene is None:
+        log_ik_solutions(rec, "ik", targets, lines, success)
+    else:                                        # obstacles, and the body coloured by clearance
+        from ..body import body_profile
+        from ..viz.obstacles import log_scene_solutions
+        log_scene_solutions(rec, "ik", scene, targets, lines, body_profile(spec, 16)[1], success, clearance)
     rec.flush()
 
 
@@ -212,7 +175,3 @@ def _progress(total: int):
     from tqdm import tqdm
     return tqdm(total=total, desc="IK", unit="batch", file=sys.stderr)
 
-
-def package_main(argv: list[str] | None = None) -> None:
-    """The CLI without its return value (``run_cli`` exits with the status it returns)."""
-    main(argv)

@@ -12,21 +12,17 @@ iterations reach micrometres (docs/ik.md); far from a solution use :func:`~.solv
 """
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
-from ..console import run_cli
-from ..deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
-from ..robot import RobotSpec
-from .models import ConstantCurvature
-from .refine import fused_matmul, limited_step, residual, spd_solve_unrolled
-
-_F64 = torch.float64
+from ...checks import F64
+from ...deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
+from ...robot import RobotSpec
+from ..adapters import ConstantCurvature
+from ..refine import fused_matmul, limited_step, lm_accept, residual, spd_solve_unrolled
 
 
 class IKRefinement(nn.Module):
@@ -54,13 +50,8 @@ class IKRefinement(nn.Module):
         for _ in range(self.iterations):
             xt = limited_step(lim, x, r, jac, lam, solve=spd_solve_unrolled, matmul=fused_matmul)
             rt, jt, pe, re = residual(self.model, xt, position, rotation, fused_matmul)
-            ct = (rt * rt).sum(-1)
-            better = ct < cost
-            keep = better.unsqueeze(-1)
-            x, r, cost = torch.where(keep, xt, x), torch.where(keep, rt, r), torch.where(better, ct, cost)
-            jac = torch.where(keep.unsqueeze(-1), jt, jac)
-            pos_err, rot_err = torch.where(better, pe, pos_err), torch.where(better, re, rot_err)
-            lam = torch.where(better, torch.clamp(lam / 3, min=1e-12), lam * 4)
+            (x, r, jac, pos_err, rot_err), cost, lam = lm_accept((x, r, jac, pos_err, rot_err), (xt, rt, jt, pe, re),
+                                                                 cost, (rt * rt).sum(-1), lam)
         return self.model.joints(x), pos_err, rot_err
 
 
@@ -76,9 +67,9 @@ def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterati
     x = module.model.limits.sample(64, g)
     pos, rot, _ = module.model.tip_and_jacobian(x)
     q0 = module.model.joints(module.model.limits.project(x + 0.02 * module.model.limits.scale * torch.randn(
-        x.shape, generator=g, dtype=_F64)))
+        x.shape, generator=g, dtype=F64)))
     target = pos if position_only else torch.cat([torch.cat([rot, pos.unsqueeze(-1)], -1),
-                                                  torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=_F64).expand(64, 1, 4)],
+                                                  torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=F64).expand(64, 1, 4)],
                                                  -2)
     target_shape = [3] if position_only else [4, 4]
     source = {"path": str(robot), "sha256": file_sha256(robot)} if isinstance(robot, (str, Path)) else None
@@ -90,21 +81,3 @@ def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterati
     return write_export(out, meta, {"refine": module}, {"refine": (target, q0)}, {"refine": module}, aoti=aoti,
                         autotune=False, against="the eager refinement")
 
-
-def main(argv: list[str] | None = None) -> dict[str, Any]:
-    p = argparse.ArgumentParser(prog="python -m dacr_learn.ik.exported", description=__doc__.split("\n\n")[0])
-    p.add_argument("--robot", required=True, help="robot YAML file")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--iterations", type=int, default=3, help="LM iterations per call (default 3)")
-    p.add_argument("--position-only", action="store_true", help="targets are tip positions (B, 3)")
-    p.add_argument("--no-aoti", action="store_true", help="skip the AOTInductor package (about a minute)")
-    args = p.parse_args(argv)
-    meta = export_refinement(args.robot, args.out, iterations=args.iterations, position_only=args.position_only,
-                             aoti=not args.no_aoti)
-    for name, dev in meta["max_abs_deviation"].items():
-        print(f"{Path(args.out) / name}: max deviation from the eager refinement {dev:.2e}")
-    return meta
-
-
-if __name__ == "__main__":
-    sys.exit(run_cli(lambda argv=None: main(argv) and None))

@@ -21,17 +21,20 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
+from ..body import BodyPoints, cc_body
+from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
+from ..lie import twist_jacobian
 from ..models import actuated_columns, actuated_to_features
 from ..robot import RobotSpec
 from .limits import Limits
 
-_F64 = torch.float64
 _COLUMN = {"rho_re": 0, "rho_im": 1, "beta": 2, "alpha": 3}
 
 
@@ -44,6 +47,17 @@ class Check:
     rotation: Tensor | None
     inside: Tensor
     constraint: Tensor
+
+
+class TipJacobian(NamedTuple):
+    """What :meth:`SolverModel.tip_and_jacobian` returns for variables x (B, D), float64: the tip ``position``
+    (B, 3) [m], its ``rotation`` (B, 3, 3) or None (position-only models), and ``jacobian`` (B, 6 or 3, D): the
+    tip point's velocity (then angular velocity) in the base frame per unit of each variable. A tuple: ``pos, rot,
+    jac = model.tip_and_jacobian(x)`` unpacks it."""
+
+    position: Tensor
+    rotation: Tensor | None
+    jacobian: Tensor
 
 
 class SolverModel:
@@ -62,9 +76,10 @@ class SolverModel:
     num_joints: int
     spec: RobotSpec | None = None
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor | None, Tensor]:
-        """Variables (B, D) → tip position (B, 3) [m], rotation (B, 3, 3) or None, J (B, 6 or 3, D):
-        the tip point's velocity (and angular velocity) in the base frame per unit of each variable."""
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
+        """Variables (B, D) → :class:`TipJacobian`: tip position (B, 3) [m], rotation (B, 3, 3) or None,
+        J (B, 6 or 3, D): the tip point's velocity (and angular velocity) in the base frame per unit of each
+        variable."""
         raise NotImplementedError
 
     def joints(self, x: Tensor) -> Tensor:
@@ -78,6 +93,19 @@ class SolverModel:
     def check(self, q: Tensor) -> Check:
         raise NotImplementedError
 
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """Points on the robot's body at variables x (B, D), differentiable in x (:class:`~dacr_learn.body.BodyPoints`:
+        points (B, 1 + m·K, 3) [m] in the model's base frame — the arm's base frame for an arm composite —, their
+        arc length (P,) and envelope radius (P,); K = ``points_per_segment``). Collision-free IK (``solve_ik(...,
+        scene=)``) needs it. A model without a body raises ValueError."""
+        raise ValueError(f"{type(self).__name__}: has no body: this model knows its tip only (collision checks "
+                         f"need a model with a backbone, e.g. the analytic CC model of a robot file)")
+
+    def links(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """Rigid links around the body (an arm's) at variables x (B, D) as capsules: ends a, b (B, C, 3) [m], radius
+        (C,) [m], near_mount (C,) bool (not checked against the robot's body); None for a robot alone."""
+        return None
+
 
 class _ClarkeVariables(SolverModel):
     """Actuated Clarke features of a RobotSpec as the variables: limits, decoder and encoder."""
@@ -86,7 +114,7 @@ class _ClarkeVariables(SolverModel):
         self.spec, self.num_joints, self.length = spec, spec.num_joints, spec.total_length
         self.space = ClarkeSpace(spec)
         self.limits = clarke_limits(spec)
-        self.rest = self.space.fold.e0.to(_F64)           # the straight robot at nominal lengths, no twist
+        self.rest = self.space.fold.e0.to(F64)           # the straight robot at nominal lengths, no twist
 
     def joints(self, x: Tensor) -> Tensor:
         return self.space.joints(x)
@@ -104,25 +132,15 @@ class _ClarkeVariables(SolverModel):
 def clarke_limits(spec: RobotSpec) -> Limits:
     """The limits of a robot's actuated features (``models.actuated_columns`` order): per segment a disk
     ‖(ρ_re, ρ_im)‖ ≤ d·bend, boxes for β (length range) and α (twist range); scales d·bend and the half-ranges."""
-    lower, upper, scale, names, disks, radius = [], [], [], [], [], []
-    for i, (k, name) in enumerate(actuated_columns(spec)):
+    parts = []
+    for k, name in actuated_columns(spec):
         seg = spec.segments[k]
-        names.append(f"segments[{k}].{name}")
-        if name.startswith("rho"):
-            lower.append(-float("inf"))
-            upper.append(float("inf"))
-            scale.append(seg.bend * seg.radius)
-            if name == "rho_re":
-                disks.append([i, i + 1])
-                radius.append(seg.bend * seg.radius)
-            continue
-        lo, hi = seg.length_range if name == "beta" else seg.twist_range
-        lower.append(lo)
-        upper.append(hi)
-        scale.append((hi - lo) / 2)
-    t = lambda v: torch.tensor(v, dtype=_F64)  # noqa: E731
-    return Limits(t(lower), t(upper), torch.tensor(disks, dtype=torch.long).reshape(-1, 2), t(radius), t(scale),
-                  tuple(names))
+        if name == "rho_re":
+            parts.append(Limits.disk(seg.bend * seg.radius, (f"segments[{k}].rho_re", f"segments[{k}].rho_im")))
+        elif name in ("beta", "alpha"):
+            lo, hi = seg.length_range if name == "beta" else seg.twist_range
+            parts.append(Limits.boxes([lo], [hi], (f"segments[{k}].{name}",)))
+    return Limits.concatenate(*parts)
 
 
 class ConstantCurvature(_ClarkeVariables):
@@ -135,14 +153,18 @@ class ConstantCurvature(_ClarkeVariables):
     def features(self, x: Tensor) -> Tensor:
         return actuated_to_features(x, self.space.selection, self.space.base)
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         pose, jac = cc_pose_and_jacobian(self.spec, self.features(x), self._columns)
-        return pose[..., :3, 3], pose[..., :3, :3], jac
+        return TipJacobian(pose[..., :3, 3], pose[..., :3, :3], jac)
 
     def check(self, q: Tensor) -> Check:
         f, inside, residual = self._features_check(q)
         pose = forward_kinematics(self.spec, self.features(f))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
+
+    def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
+        """The exact constant-curvature arcs (:func:`~dacr_learn.body.cc_body`) in the robot's base frame."""
+        return cc_body(self.spec, self.features(x), points_per_segment)
 
 
 class LearnedFK(_ClarkeVariables):
@@ -156,25 +178,22 @@ class LearnedFK(_ClarkeVariables):
 
     def __init__(self, model: nn.Module):
         super().__init__(model.spec)
-        self.model = model.to(_F64).eval()
+        self.model = model.to(F64).eval()
         self.jacobian_module = _folded_jacobian(self.model)
 
-    def tip_and_jacobian(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
         if self.jacobian_module is not None:
             pose, jac_f, _ = self.jacobian_module(self.joints(x))
-            return pose[..., :3, 3], pose[..., :3, :3], jac_f
+            return TipJacobian(pose[..., :3, 3], pose[..., :3, :3], jac_f)
         with torch.no_grad():
             pose = self.model(self.joints(x))
         dpose = torch.func.vmap(torch.func.jacfwd(lambda f: self.model(self.joints(f.unsqueeze(0)))[0]))(x)
-        rot = pose[..., :3, :3]
-        skew = torch.einsum("bijk,blj->bilk", dpose[:, :3, :3], rot)                        # dR·Rᵀ per column
-        omega = torch.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], dim=1)
-        return pose[..., :3, 3], rot, torch.cat([dpose[:, :3, 3], omega], dim=1)
+        return TipJacobian(pose[..., :3, 3], pose[..., :3, :3], twist_jacobian(pose, dpose))
 
     @torch.no_grad()
     def check(self, q: Tensor) -> Check:
         _, inside, residual = self._features_check(q)
-        pose = self.model(q.to(_F64))
+        pose = self.model(q.to(F64))
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
 
 
@@ -184,8 +203,8 @@ def _folded_jacobian(model: nn.Module) -> nn.Module | None:
     from ..deploy.inference import InferenceJacobian
     from ..deploy.inference_compositional import InferenceCompositionalJacobian
     if isinstance(model, CompositionalFK):
-        return InferenceCompositionalJacobian(model, _F64) if model.rotation == "twist" else None
-    return InferenceJacobian(model, _F64)
+        return InferenceCompositionalJacobian(model, F64) if model.rotation == "twist" else None
+    return InferenceJacobian(model, F64)
 
 
 ADAPTERS: dict[type, Callable[[object], SolverModel]] = {}

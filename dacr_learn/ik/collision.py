@@ -1,0 +1,160 @@
+"""Collision-free IK: the clearance of a model's body (and an arm's links) to a scene, for the solver.
+
+Two paths, like the tip's:
+
+- the independent check (:meth:`Avoidance.clearance_of_joints`): from joint vectors alone (encoder → the
+  model's body at :data:`CHECK_POINTS` points per segment), the signed clearance of the swept body (robot and arm
+  links) to every obstacle, and of the robot's body to the arm's links away from the mount (docs/body.md), as a
+  rigorous lower bound (:mod:`dacr_learn.scene.clearance`); a solution succeeds when it is ≥ the clearance D;
+- in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment; if
+  its clearance falls short of D by more than :data:`HINGE_WITHIN` it is restarted, else it takes
+  (:meth:`Avoidance.residual`) hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle)
+  pairs, d the signed distance of a body point's ball, with their Jacobian by forward differences (one batched
+  evaluation of the body at the D perturbed variable vectors: any model with a body, meshes included);
+  δ (a tenth of the longest chord between body points) makes the hinge push the points far enough for the chord
+  bound to pass. A start has converged when its tip has and the bound of its body
+  (:data:`SOLVER_POINTS` per segment) is ≥ D.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..scene import Scene, capsule_chain, capsule_clearance, chain_clearance, join, swept_body
+from ..scene.shapes import capsule_distance
+from .adapters import SolverModel
+
+SOLVER_POINTS = 8     # body points per segment inside the refinement
+CHECK_POINTS = 32     # body points per segment of the independent check
+PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
+LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
+HINGE_WITHIN = 0.001  # [m] a converged start short of the clearance by less than this is pushed clear, else restarted
+STEP = 1e-7           # forward-difference step, in units of each variable's scale
+
+
+class Avoidance:
+    """Clearance of ``model``'s body to ``scene`` at least ``clearance`` [m] (module docstring); the ``extra``
+    condition of :class:`~.refine.Refinement` (``rows``, :meth:`satisfied`, :meth:`residual`)."""
+
+    rows = PAIRS
+
+    def __init__(self, model: SolverModel, scene: Scene, clearance: float):
+        if not clearance >= 0 or clearance == float("inf"):
+            raise ValueError(f"clearance: expected a finite distance >= 0 [m], got {clearance}")
+        self.model, self.scene, self.clearance = model, scene, float(clearance)
+        model.body(model.rest.to(torch.float64).unsqueeze(0), SOLVER_POINTS)     # ValueError without a body
+
+    def _balls(self, x: Tensor, points_per_segment: int):
+        """The body (:class:`~dacr_learn.body.BodyPoints`), the arm's link capsules or None, and the link capsules'
+        chain with its point radii (or None) at variables x (B, D)."""
+        body = self.model.body(x, points_per_segment)
+        links = self.model.links(x)
+        chain = None if links is None else capsule_chain(*links[:3], LINK_SPACING)
+        return body, links, chain
+
+    def _evaluate(self, x: Tensor, points_per_segment: int):
+        """(clearance bound (B,), ball distances (B, E) [m], longest body chord (B,)) at variables x (B, D); the
+        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links."""
+        body, links, chain = self._balls(x, points_per_segment)
+        swept = swept_body(body)
+        d_body = self.scene.distances(body.points)[0]                               # (B, P, O)
+        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)]
+        if links is None:
+            clear = chain_clearance(self.scene, swept, d_body)
+        else:
+            a, b, radius, near = links
+            d_links = self.scene.distances(chain[0].points)[0]
+            d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1), b[:, ~near].unsqueeze(1),
+                                      radius[~near], grad=False)[0]
+            parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1), (d_self - body.radius.unsqueeze(-1)).flatten(1)]
+            clear = torch.minimum(chain_clearance(self.scene, join(swept, chain[0]), torch.cat([d_body, d_links], 1)),
+                                  capsule_clearance(swept, a[:, ~near], b[:, ~near], radius[~near]))
+        longest = torch.linalg.vector_norm(body.points[:, 1:] - body.points[:, :-1], dim=-1).amax(-1)
+        return clear, torch.cat(parts, 1), longest
+
+    def _pair_distances(self, x: Tensor, pick: Tensor) -> Tensor:
+        """The distances (B, k) [m] of the pairs ``pick`` (B, k) (indices into :meth:`_evaluate`'s E) at x (B, D)."""
+        body, links, chain = self._balls(x, SOLVER_POINTS)
+        o, p = self.scene.num_obstacles, body.points.shape[1]
+        rows = torch.arange(x.shape[0]).unsqueeze(-1).expand_as(pick)
+        in_body = pick < p * o
+        point, obstacle = torch.where(in_body, pick, 0).div(o, rounding_mode="floor"), torch.where(in_body, pick, 0) % o
+        d_scene, _ = self.scene.pair_distances(body.points[rows, point], obstacle)
+        out = torch.where(in_body, d_scene - body.radius[point], 0.0)
+        if links is None:
+            return out
+        a, b, radius, near = links
+        q = chain[0].points.shape[1]
+        in_links = ~in_body & (pick < (p + q) * o)
+        j = torch.where(in_links, pick - p * o, 0)
+        d_link, _ = self.scene.pair_distances(chain[0].points[rows, j.div(o, rounding_mode="floor")], j % o)
+        out = torch.where(in_links, d_link - chain[1][j.div(o, rounding_mode="floor")], out)
+        c = int((~near).sum())
+        j = torch.where(~in_body & ~in_links, pick - (p + q) * o, 0)
+        pt, cap = j.div(max(c, 1), rounding_mode="floor"), j % max(c, 1)
+        far = (~near).nonzero().squeeze(-1)[cap] if c else cap
+        d_self, _ = capsule_distance(body.points[rows, pt], a[rows, far], b[rows, far], radius[far], grad=False)
+        return torch.where(~in_body & ~in_links, d_self - body.radius[pt], out)
+
+    @torch.no_grad()
+    def clearance_of(self, x: Tensor, points_per_segment: int = CHECK_POINTS) -> Tensor:
+        """Signed clearance lower bound (B,) [m] of variables x (B, D) (module docstring)."""
+        return self._evaluate(x, points_per_segment)[0]
+
+    def triage(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """(B,) bool each: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D; it is below
+        but within :data:`HINGE_WITHIN` of D (the refinement then pushes the body clear)."""
+        bound = self.clearance_of(x, SOLVER_POINTS)
+        return bound >= self.clearance, bound >= self.clearance - HINGE_WITHIN
+
+    def clearance_of_joints(self, q: Tensor) -> Tensor:
+        """The independent check: clearance (B,) [m] of joint vectors q (B, N) alone (:data:`CHECK_POINTS`)."""
+        return self.clearance_of(self.model.variables(q.to(torch.float64)), CHECK_POINTS)
+
+    @torch.no_grad()
+    def residual(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Hinge residuals (M, PAIRS) [units of L], their Jacobian (M, PAIRS, D) and whether each start's
+        clearance bound is ≥ D (M,) bool, at variables x (M, D)."""
+        m, dim = x.shape
+        clear, d, longest = self._evaluate(x, SOLVER_POINTS)
+        target = self.clearance + 0.1 * longest.unsqueeze(-1)
+        violation = target - d
+        r, jac = x.new_zeros(m, PAIRS), x.new_zeros(m, PAIRS, dim)
+        active = (violation.amax(-1) > 0).nonzero().squeeze(-1)
+        if active.numel() == 0:
+            return r, jac, clear >= self.clearance
+        k = min(PAIRS, d.shape[1])
+        pick = violation[active].topk(k, dim=-1).indices                              # (A, k)
+        step = STEP * self.model.limits.scale.to(x)                                  # (D,)
+        xa = x[active]
+        shifted = (xa.unsqueeze(1) + torch.diag(step)).reshape(-1, dim)              # (A·D, D)
+        d_shift = self._pair_distances(shifted, pick.repeat_interleave(dim, 0)).view(active.numel(), dim, k)
+        d_pick = d[active].gather(1, pick)
+        slope = (d_shift - d_pick.unsqueeze(1)) / step.view(1, -1, 1)
+        hinge = (target[active] - d_pick).clamp_min(0.0)
+        length = self.model.length
+        r[active, :k] = hinge / length
+        jac[active, :k] = -slope.transpose(1, 2) * (hinge > 0).to(x.dtype).unsqueeze(-1) / length
+        return r, jac, clear >= self.clearance
+
+
+def add_scene_arguments(parser) -> None:
+    """The command-line options ``--scene S.yaml --clearance D`` (an argparse parser)."""
+    parser.add_argument("--scene", help="scene YAML (obstacles, docs/body.md) in the robot's base frame (the arm's "
+                        "with --arm): success also needs the body at least --clearance from every obstacle")
+    parser.add_argument("--clearance", type=float, default=None, metavar="D",
+                        help="with --scene: the clearance [m] every solution keeps from the obstacles (default 0)")
+
+
+def scene_options(args) -> dict:
+    """``solve_ik`` keywords (scene, clearance) of parsed ``--scene/--clearance`` options; {} without a scene."""
+    from ..scene import load_scene
+    if args.scene is None:
+        if args.clearance is not None:
+            raise ValueError("--clearance goes with --scene S.yaml (the obstacles to keep clear of); "
+                             "--scene is missing")
+        return {}
+    clearance = 0.0 if args.clearance is None else args.clearance
+    if not clearance >= 0 or clearance == float("inf"):
+        raise ValueError(f"--clearance: expected a finite distance >= 0 [m], got {args.clearance}")
+    return {"scene": load_scene(args.scene), "clearance": clearance}

@@ -1,0 +1,149 @@
+"""Collision-free IK (solve_ik(..., scene=, clearance=)), the arm's link geometry and the CLI's --scene: every
+flagged solution is re-checked with NumPy geometry (the classic arcs of the joints' features, densely sampled,
+and the obstacles' distances by projection)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from arm_reference import UrdfArm
+from conftest import ROOT, reference_backbone, reference_joint_vector, spec_by_name
+
+from dacr_learn.arm import Composite, load_arm
+from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
+from dacr_learn.ik.collision import Avoidance
+from dacr_learn.kinematics import forward_kinematics
+from dacr_learn.layers import ClarkeEncoder
+from dacr_learn.scene import load_scene
+
+F64 = torch.float64
+SPEC = spec_by_name("tdcr_3seg_equal")
+SCENE_FILE = ROOT / "configs" / "scenes" / "spheres_tdcr3.yaml"
+D = 0.004
+
+
+def numpy_clearance(spec, q: np.ndarray, centers: np.ndarray, radii: np.ndarray, points: int = 600) -> float:
+    """Clearance of one joint vector's body to spheres: features by the encoder, accepted only when the
+    independent joint geometry reproduces q; then the classic arcs, densely sampled, minus the body radius."""
+    f = ClarkeEncoder(spec).to(F64)(torch.from_numpy(q)).numpy()
+    assert np.abs(reference_joint_vector(spec, f) - q).max() < 1e-9
+    arc = reference_backbone(spec, f, points)
+    d = np.linalg.norm(arc[:, None] - centers[None], axis=-1) - radii
+    return float(d.min() - spec.segments[0].body_radius)
+
+
+def clear_targets(model, scene, n: int, seed: int) -> torch.Tensor:
+    x = model.limits.sample(40 * n, torch.Generator().manual_seed(seed))
+    x = x[Avoidance(model, scene, D).clearance_of(x) >= D][:n]
+    return forward_kinematics(SPEC, model.features(x))
+
+
+def test_collision_free_solutions_pass_the_dense_numpy_check():
+    model, scene = ConstantCurvature(SPEC), load_scene(SCENE_FILE)
+    targets = clear_targets(model, scene, 5, seed=0)
+    res = solve_ik(model, targets, 4, scene=SCENE_FILE, clearance=D)
+    assert res.clearance.shape == (5, 4) and torch.isfinite(res.clearance).all()
+    assert res.success.any(1).all()
+    centers, radii = scene.sphere_center.numpy(), scene.sphere_radius.numpy()
+    for b, k in res.success.nonzero().tolist():
+        true = numpy_clearance(SPEC, res.q[b, k].numpy(), centers, radii)
+        assert true >= D and true - 5e-4 <= res.clearance[b, k].item() <= true
+    plain = solve_ik(model, targets, 4)
+    assert plain.clearance is None and "clearance" not in plain.numpy()
+
+
+def test_target_without_collision_free_solution_fails_cleanly():
+    """A tip inside an obstacle: no solution is collision-free, success is False, nothing is NaN."""
+    model = ConstantCurvature(SPEC)
+    x = model.rest.unsqueeze(0).clone()
+    target = forward_kinematics(SPEC, model.features(x))
+    scene = {"obstacles": [{"type": "sphere", "center": target[0, :3, 3].tolist(), "radius": 0.02}]}
+    res = solve_ik(model, target, 2, scene=scene, clearance=0.0, options=IKOptions(restarts=1, max_iterations=10))
+    assert not res.success.any()
+    assert torch.isfinite(res.q).all() and torch.isfinite(res.clearance).all() and (res.clearance < 0).all()
+
+
+def test_negative_clearance_is_refused():
+    with pytest.raises(ValueError, match="clearance"):
+        solve_ik(SPEC, torch.eye(4, dtype=F64).unsqueeze(0), 1, scene=SCENE_FILE, clearance=-1.0)
+
+
+URDF = """<robot name="two">
+  <link name="base"><collision><origin xyz="0 0 0.05"/><geometry><cylinder radius="0.04" length="0.1"/></geometry>
+  </collision></link>
+  <link name="upper"><collision><origin xyz="0 0 0.15" rpy="0 0 0.3"/><geometry><box size="0.05 0.06 0.3"/>
+  </geometry></collision></link>
+  <link name="hand"><collision><geometry><sphere radius="0.03"/></geometry></collision></link>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="upper"/><origin xyz="0 0 0.1"/>
+    <axis xyz="0 0 1"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="upper"/><child link="hand"/><origin xyz="0 0 0.3"/>
+    <axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+</robot>"""
+
+
+def test_link_capsules_contain_the_urdf_collision_geometry():
+    arm = load_arm(URDF, "hand")
+    g = arm.geometry
+    assert g.source == "urdf" and g.frame.tolist() == [0, 1, 2] and g.near_mount.tolist() == [False, False, True]
+    a, b, r = g.a.numpy(), g.b.numpy(), g.radius.numpy()
+    assert np.allclose([a[0], b[0]], [[0, 0, 0], [0, 0, 0.1]]) and r[0] == 0.04           # cylinder
+    assert np.allclose(np.sort([a[1][2], b[1][2]]), [0.0, 0.3]) and np.isclose(r[1], np.hypot(0.025, 0.03))
+    assert np.allclose(a[2], b[2]) and r[2] == 0.03                                       # sphere
+    rng = np.random.default_rng(0)                          # every corner region of the box lies in its capsule
+    corners = rng.uniform(-1, 1, (500, 3)) * [0.025, 0.03, 0.15]
+    c, s = np.cos(0.3), np.sin(0.3)
+    pts = corners @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + [0, 0, 0.15]
+    t = np.clip((pts - a[1]) @ (b[1] - a[1]) / np.dot(b[1] - a[1], b[1] - a[1]), 0, 1)
+    assert (np.linalg.norm(pts - (a[1] + t[:, None] * (b[1] - a[1])), axis=-1) <= r[1] + 1e-12).all()
+
+
+def test_panda_fallback_capsules_and_composite_body():
+    arm = load_arm(ROOT / "configs" / "arms" / "panda.urdf", "panda_link8")
+    g = arm.geometry
+    assert g.source == "fallback" and (g.radius == 0.06).all()
+    assert [arm.frame_names[i] for i in g.frame[g.near_mount].tolist()] == ["panda_link7"]
+    mount = torch.from_numpy(np.load(ROOT / "configs" / "arms" / "panda_mount.npy"))
+    whole = Composite(arm, mount, SPEC)
+    x = whole.limits.sample(3, torch.Generator().manual_seed(1))
+    body = whole.body(x, 4)
+    ref = UrdfArm(ROOT / "configs" / "arms" / "panda.urdf", "panda_link8")
+    robot = ConstantCurvature(SPEC).body(x[:, 7:], 4).points.numpy()
+    for i in range(3):
+        base = ref.tip_pose(x[i, :7].numpy()) @ mount.numpy()
+        assert np.abs(body.points[i].numpy() - (robot[i] @ base[:3, :3].T + base[:3, 3])).max() < 1e-12
+    a, b, radius, near = whole.links(x)
+    assert a.shape == (3, g.radius.numel(), 3) and near.tolist() == g.near_mount.tolist()
+
+
+def test_cli_scene_and_clearance(tmp_path):
+    from dacr_learn.cli.ik import main
+    model, scene = ConstantCurvature(SPEC), load_scene(SCENE_FILE)
+    np.save(tmp_path / "t.npy", clear_targets(model, scene, 2, seed=4).numpy())
+    args = ["--robot", str(ROOT / "configs" / "robots" / "tdcr_3seg_equal.yaml"), "--targets", str(tmp_path / "t.npy"),
+            "--out", str(tmp_path / "s.npz"), "--solutions", "2"]
+    with pytest.raises(ValueError, match="--clearance goes with --scene"):
+        main(args + ["--clearance", "0.01"])
+    main(args + ["--scene", str(SCENE_FILE), "--clearance", str(D)])
+    out = np.load(tmp_path / "s.npz")
+    assert out["clearance"].shape == (2, 2) and (out["clearance"][out["success"]] >= D).all()
+
+
+def test_rerun_draws_obstacles_and_the_body_coloured_by_clearance(tmp_path):
+    from rerun_testkit import rrd_data, rrd_verify
+
+    from dacr_learn.cli.ik import main
+    from dacr_learn.viz.obstacles import clearance_colors
+    model, scene = ConstantCurvature(SPEC), load_scene(SCENE_FILE)
+    np.save(tmp_path / "t.npy", clear_targets(model, scene, 2, seed=5).numpy())
+    main(["--robot", str(ROOT / "configs" / "robots" / "tdcr_3seg_equal.yaml"), "--targets", str(tmp_path / "t.npy"),
+          "--out", str(tmp_path / "s.npz"), "--solutions", "2", "--scene", str(SCENE_FILE), "--clearance", str(D),
+          "--rerun", str(tmp_path / "s.rrd"), "--show", "2"])
+    rrd_verify(tmp_path / "s.rrd")
+    data = rrd_data(tmp_path / "s.rrd")
+    for b in range(2):
+        centers = data[f"/ik/target_{b}/obstacles/spheres"]["Ellipsoids3D:centers"][-1]
+        assert np.allclose(np.array(centers), scene.sphere_center.numpy(), atol=1e-6)
+        balls = data[f"/ik/target_{b}/body/balls"]
+        assert len(balls["Points3D:positions"][-1]) == 1 + 3 * 16
+    assert clearance_colors(np.array([-0.001, 0.002, 0.02]), 0.004)[:, :3].tolist() == [
+        [220, 30, 30], [255, 150, 0], [40, 190, 60]]

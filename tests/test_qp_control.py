@@ -1,0 +1,267 @@
+"""Constrained QP control (dacr_learn.deploy.qp_control, dacr_learn.arm.qp_control): the step is the damped
+least-squares step when no constraint is active (against ResolvedRateController / WholeBodyController and a NumPy
+formula), meets every constraint on random seeded states (limits, bend disks, joint speeds, dampers, the port,
+URDF velocities; checked with independent Jacobians), relaxes an unmeetable damper instead of failing, the
+example's scene has no collision, and bad configuration is a clear ValueError."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import ROOT, TDCR3, load_example
+from scipy.spatial.transform import Rotation
+
+from dacr_learn.arm import Composite, load_arm
+from dacr_learn.arm.control import Port, WholeBodyConfig, WholeBodyController
+from dacr_learn.arm.qp_control import WholeBodyQPController
+from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
+from dacr_learn.deploy.qp_control import QPConfig, QPController, Sensing, disk_rows, solve_program
+from dacr_learn.ik import ConstantCurvature
+from dacr_learn.robot import RobotSpec
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+F64 = torch.float64
+TYPE3 = RobotSpec.coerce(ROOT / "configs" / "robots" / "type3.yaml")
+PANDA = ROOT / "configs" / "arms" / "panda.urdf"
+READY = torch.tensor([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.785], dtype=F64)
+TOL = 1e-9                                   # the solver's primal tolerance is ~1e-12 on these scaled steps
+
+
+def interior(model, n: int, seed: int, frac: float = 0.4) -> torch.Tensor:
+    """States (n, D) a fraction ``frac`` of the way from rest towards uniform admissible samples."""
+    x = model.limits.sample(n, torch.Generator().manual_seed(seed))
+    return model.rest + frac * (x - model.rest)
+
+
+class LinearClearance:
+    """A distance provider with fixed d (M,) [m] and ∂d/∂x (M, D) (the program sees only these numbers)."""
+
+    def __init__(self, d: np.ndarray, jac: np.ndarray):
+        self.d, self.jac = torch.from_numpy(d), torch.from_numpy(jac)
+
+    def __call__(self, x: torch.Tensor):
+        return self.d.expand(len(x), -1), self.jac.expand(len(x), -1, -1)
+
+
+def test_disk_polygon_is_inscribed_with_a_vertex_on_the_current_direction():
+    rng = np.random.default_rng(0)
+    for sides in (3, 8, 13):
+        for _ in range(20):
+            r = rng.uniform(0.001, 0.02)
+            y = r * rng.uniform(0, 1) * np.array([math.cos(a := rng.uniform(-4, 4)), math.sin(a)])
+            normals, room = (v[0] for v in disk_rows(y[None], np.array([r]), sides))
+            assert (room >= 0).all()                                                 # the current point is inside
+            vertices = r * np.stack([np.cos(a + 2 * np.pi * np.arange(sides) / sides),
+                                     np.sin(a + 2 * np.pi * np.arange(sides) / sides)], -1)
+            slack = r * math.cos(math.pi / sides) - vertices @ normals.T                # (vertex, edge)
+            assert slack.min() >= -1e-12 * r and (np.abs(slack) <= 1e-12 * r).sum(-1).tolist() == [2] * sides
+
+
+@pytest.mark.parametrize("pose", [False, True])
+def test_without_an_active_constraint_the_step_is_the_damped_least_squares_step(pose):
+    model = ConstantCurvature(TDCR3)
+    x = interior(model, 4, seed=1)
+    goal = model.limits.project(x + 0.05 * model.limits.scale * torch.randn(x.shape, generator=torch.Generator()
+                                                                              .manual_seed(2), dtype=F64))
+    position, rotation, _ = model.tip_and_jacobian(goal)
+    target = torch.eye(4, dtype=F64).repeat(4, 1, 1)
+    target[:, :3, :3], target[:, :3, 3] = rotation, position
+    cfg = QPConfig(gain=0.7, damping=2e-3, max_step=10.0)
+    qp = QPController(model, cfg)
+    got = qp.step_variables(x, target if pose else position)
+    assert qp.status == ["ok"] * 4 and qp.active == [0] * 4
+    if not pose:                                                     # today's controller, with its own Jacobian
+        rrc = ResolvedRateController(TDCR3, analytic_jacobian(TDCR3), ControllerConfig(0.7, 2e-3, max_step=10.0))
+        assert torch.allclose(model.variables(rrc.step(model.joints(x), position)), got, atol=1e-12, rtol=0)
+        return
+    p, r, jac = (t.numpy() for t in model.tip_and_jacobian(x))                      # the formula, in NumPy
+    w = TDCR3.total_length
+    for b in range(4):
+        rotvec = Rotation.from_matrix(target[b, :3, :3].numpy() @ r[b].T).as_rotvec()
+        e = 0.7 * np.concatenate([position[b].numpy() - p[b], w * rotvec])
+        js = np.concatenate([jac[b, :3], w * jac[b, 3:]]) * qp.scale
+        dz = js.T @ np.linalg.solve(js @ js.T + 2e-3**2 * np.eye(6), e)
+        assert np.allclose(got[b].numpy(), x[b].numpy() + qp.scale * dz, atol=1e-12, rtol=0)
+
+
+def assert_program_solution_meets_every_row(qp: QPController, x: torch.Tensor, target: torch.Tensor,
+                                            joints_of) -> dict[str, int]:
+    """Solve each sample's program and check the raw step x + s·z (before the final projection) against the
+    limits, the bend disks, the step bound, the joint speeds (Jacobian by autograd of ``joints_of``) and the
+    damper rows (from the provider's own numbers). Returns how many joint-speed and damper rows were tight."""
+    cfg, lim = qp.config, qp.limits
+    tight = {"joint_step": 0, "damper": 0}
+    sensed = qp.sense(x)
+    jac, err = qp.task(sensed, target, None)
+    for b in range(len(x)):
+        xb = x[b].numpy()
+        z, status = solve_program(qp.program(xb, jac[b].numpy(), err[b].numpy(), sensed, b), cfg.solver)
+        assert status == "ok"
+        step = qp.scale * z
+        new = torch.from_numpy(xb + step)
+        assert float(lim.violation(new)) <= TOL
+        assert np.abs(z).max() <= cfg.max_step * (1 + TOL)
+        if cfg.joint_step is not None:
+            rate = torch.func.jacrev(joints_of)(x[b]).numpy()                       # ∂q/∂x, not DecoderJacobian
+            assert np.abs(rate @ step).max() <= cfg.joint_step * (1 + 1e-7)
+            tight["joint_step"] += int((np.abs(rate @ step) >= cfg.joint_step * (1 - 1e-6)).sum())
+        if sensed.distance is not None:
+            d, jd = sensed.distance[b].numpy(), sensed.distance_jacobian[b].numpy()
+            near = d < cfg.influence
+            bound = -cfg.damper_gain * (d - cfg.safety) / (cfg.influence - cfg.safety)
+            assert (jd[near] @ step >= bound[near] - TOL * cfg.influence).all()
+            tight["damper"] += int((jd[near] @ step <= bound[near] + 1e-6 * cfg.damper_gain).sum())
+    moved = qp.step_variables(x, target)
+    assert bool(lim.inside(moved, tol=1e-12).all())
+    return tight
+
+
+@pytest.mark.parametrize("spec", [TDCR3, TYPE3], ids=["tdcr3", "type3_twisting"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_every_constraint_holds_on_random_states(spec, seed):
+    model = ConstantCurvature(spec)
+    gen = torch.Generator().manual_seed(seed)
+    x = model.limits.sample(6, gen)
+    x[:3] = model.limits.project(x[:3] + 10 * model.limits.scale * (torch.rand(x[:3].shape, generator=gen,
+                                                                                dtype=F64) - 0.5))   # on bounds
+    target = model.tip_and_jacobian(model.limits.sample(6, gen))[0]                        # far: steps saturate
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(0.0021, 0.008, size=8)                                      # near d_s: dampers bite
+    jac = rng.normal(size=(8, model.limits.num_variables))
+    cfg = QPConfig(max_step=0.08, joint_step=5e-4, safety=0.002, influence=0.02, damper_gain=0.004)
+    qp = QPController(model, cfg, LinearClearance(d, jac))
+    tight = assert_program_solution_meets_every_row(qp, x, target, lambda v: model.joints(v[None])[0])
+    assert tight["joint_step"] > 0 and tight["damper"] > 0                   # the rows were tested, not idle
+
+
+def test_a_clearance_below_safety_that_cannot_be_restored_is_relaxed_to_not_coming_closer():
+    model = ConstantCurvature(TDCR3)
+    x = model.rest.clone()[None]
+    beta = model.limits.names.index("segments[0].beta")
+    x[0, beta] = model.limits.upper[beta]                                      # moving away needs β₀ to grow
+    jac = np.zeros((1, model.limits.num_variables))
+    jac[0, beta] = 1.0
+    qp = QPController(model, QPConfig(), LinearClearance(np.array([0.001]), jac))
+    target = model.tip_and_jacobian(x)[0] + torch.tensor([0.0, 0.0, 0.01], dtype=F64)   # pulls β up too
+    moved = qp.step_variables(x, target)
+    assert qp.status == ["relaxed"] and abs(float(moved[0, beta] - x[0, beta])) <= 1e-12 * float(qp.scale[beta])
+
+
+def test_the_example_sphere_clearance_jacobian_matches_autograd():
+    example = load_example("qp_reach_behind_obstacle")
+    model = ConstantCurvature(TDCR3)
+    scene = example.SphereClearance(example.robot_points(model, 4), [[0.03, 0.01, 0.2], [-0.02, 0.0, 0.1]],
+                                    [0.02, 0.01], 0.008, model.limits.scale)
+    x = interior(model, 2, seed=3, frac=0.8)
+    d, jac = scene(x)
+    assert torch.allclose(d, scene.clearance(x), atol=1e-15, rtol=0)
+    for b in range(2):
+        ref = torch.func.jacrev(lambda v: scene.clearance(v[None])[0])(x[b])
+        assert torch.allclose(jac[b], ref, atol=1e-8, rtol=0)
+
+
+def test_the_example_robot_scene_has_no_collision_with_qp_and_one_without(tmp_path):
+    example = load_example("qp_reach_behind_obstacle")
+    summary = example.main(["--scene", "robot", "--steps", "80", "--hold", "20", "--points", "8",
+                            "--out", str(tmp_path)])
+    qp, rrc = summary["robot"]["results"]["qp"], summary["robot"]["results"]["resolved_rate"]
+    assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["min_clearance_mm"] > 0
+    assert rrc["collisions"] > 0 and rrc["limit_violations"] == 0
+    assert qp["final_error_mm"] < 1.0
+
+
+@pytest.fixture(scope="module")
+def arm_model():
+    return Composite(load_arm(PANDA, "panda_link8"), torch.from_numpy(np.load(ROOT / "configs" / "arms" /
+                                                                             "panda_mount.npy")), TDCR3)
+
+
+def test_whole_body_without_an_active_constraint_is_the_whole_body_controller(arm_model):
+    model = arm_model
+    x = torch.cat([READY, model.robot.rest])[None].repeat(2, 1)
+    x[:, model.num_arm:] = interior(model.robot, 2, seed=4, frac=0.3)
+    base = model.base_pose(x[:, :model.num_arm])[0, :3, 3]
+    port = Port(tuple(base.tolist()), 0.005)
+    tip = model.pose_of_variables(x)
+    target = tip.clone()
+    target[:, :3, 3] += torch.tensor([[0.002, -0.001, 0.001], [-0.001, 0.0, 0.002]], dtype=F64)
+    ref = WholeBodyController(model, WholeBodyConfig(gain=0.5, damping=1e-3, max_step=10.0), port)
+    qp = WholeBodyQPController(model, QPConfig(gain=0.5, damping=1e-3, max_step=10.0), port)
+    got = qp.step_variables(x, target)
+    assert qp.status == ["ok", "ok"] and qp.active == [0, 0]
+    assert torch.allclose(got, ref.step_variables(x, target), atol=1e-11, rtol=0)
+
+
+def test_whole_body_keeps_the_port_the_velocity_limits_and_the_dampers(arm_model):
+    model = arm_model
+    n = model.num_arm
+    gen = torch.Generator().manual_seed(5)
+    x = torch.cat([READY, model.robot.rest])[None].repeat(3, 1)
+    port = Port(tuple(model.base_pose(x[:1, :n])[0, :3, 3].tolist()), 0.005)
+    target = model.pose_of_variables(model.limits.project(x + 0.3 * model.limits.scale * (
+        torch.rand(x.shape, generator=gen, dtype=F64) - 0.5)))
+    rng = np.random.default_rng(5)
+    clearance = LinearClearance(rng.uniform(0.0021, 0.008, size=6), rng.normal(size=(6, n + 9)))
+    dt = 0.01
+    qp = WholeBodyQPController(model, QPConfig(max_step=0.1, joint_step=5e-4, damper_gain=0.003), port,
+                               clearance, dt=dt)
+    tight = assert_program_solution_meets_every_row(qp, x, target, lambda v: model.joints(v[None])[0, n:])
+    assert tight["damper"] > 0
+    velocity = torch.tensor(model.arm.chain.get_joint_velocity_limits()[1], dtype=F64)
+    for _ in range(15):
+        new = qp.step_variables(x, target)
+        assert bool(((new[:, :n] - x[:, :n]).abs() <= velocity * dt * (1 + 1e-9)).all())
+        x = new
+        offset = model.base_pose(x[:, :n])[:, :3, 3] - torch.tensor(port.centre, dtype=F64)
+        assert float(offset.norm(dim=-1).max()) <= port.radius
+
+
+def test_bad_configuration_is_a_clear_value_error(arm_model):
+    for kwargs, word in (({"gain": 0.0}, "gain"), ({"damping": 0.0}, "damping"), ({"max_step": -1.0}, "max_step"),
+                         ({"safety": 0.03, "influence": 0.02}, "influence"), ({"disk_sides": 2}, "disk_sides"),
+                         ({"damper_gain": 0.0}, "damper_gain"), ({"joint_step": 0.0}, "joint_step"),
+                         ({"rotation_length": -1.0}, "rotation_length"), ({"solver": "nope"}, "solver")):
+        with pytest.raises(ValueError, match=word):
+            QPConfig(**kwargs)
+    model = ConstantCurvature(TDCR3)
+    qp = QPController(model)
+    with pytest.raises(ValueError, match="x: expected"):
+        qp.step_variables(torch.zeros(1, 3, dtype=F64), torch.zeros(1, 3, dtype=F64))
+    with pytest.raises(ValueError, match="feedforward"):
+        qp.step_variables(model.rest[None], torch.zeros(1, 3, dtype=F64), torch.zeros(1, 6, dtype=F64))
+    with pytest.raises(ValueError, match="Composite"):
+        WholeBodyQPController(model)
+    with pytest.raises(ValueError, match="dt"):
+        WholeBodyQPController(arm_model, dt=0.0)
+    with pytest.raises(ValueError, match="port_weight"):
+        WholeBodyQPController(arm_model, port_weight=0.0)
+
+    servo = ConstantCurvature(TDCR3)
+    servo.space = None                                                # variables that are not Clarke features
+    with pytest.raises(ValueError, match="joint_step"):
+        QPController(servo, QPConfig(joint_step=1e-3))
+
+
+@pytest.mark.slow
+def test_the_example_arm_scene_has_no_collision_with_qp_and_keeps_the_port(tmp_path):
+    example = load_example("qp_reach_behind_obstacle")
+    summary = example.main(["--scene", "arm", "--steps", "48", "--hold", "30", "--points", "8",
+                            "--out", str(tmp_path)])
+    res = summary["arm"]["results"]
+    qp = res["whole_body_qp"]
+    assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["port_max_mm"] <= 5.0
+    assert res["whole_body"]["collisions"] > 0 and res["whole_body"]["limit_violations"] == 0
+
+
+def test_sensing_as_a_module_drives_the_same_step():
+    model = ConstantCurvature(TDCR3)
+    x = interior(model, 2, seed=6)
+    clearance = LinearClearance(np.array([0.004, 0.03]), np.ones((2, model.limits.num_variables)))
+    qp = QPController(model, QPConfig(), clearance)
+    fields = Sensing(qp)(x)
+    assert len(fields) == 7 and fields[5].shape == (2, 0) and fields[6].shape == (2, 0)    # no base: empty
+    fast = QPController(model, QPConfig(), sense=Sensing(qp))
+    target = model.tip_and_jacobian(model.rest[None].expand(2, -1))[0]
+    assert torch.equal(fast.step_variables(x, target), qp.step_variables(x, target))
