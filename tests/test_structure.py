@@ -156,12 +156,13 @@ LAYERS = {
     "data": ["data"],
     "learning": ["datamodule", "training", "training_sampler", "runs", "ablation", "combination_shift"],
     "viz": ["viz"],
-    "deploy": ["deploy", "ik", "arm"],
+    "deploy": ["deploy", "ik", "arm", "plan"],
     "hardware": ["hardware"],
     "hardware.deploy": ["hardware.deploy"],
     "hardware.study": ["hardware.study"],
     # the root, the command lines (cli) and the thin `python -m dacr_learn.<package>` shims that run them
-    "entry": ["", "export", "cli", "hardware.__main__", "ablation.__main__", "ik.__main__", "ik.exported.__main__"],
+    "entry": ["", "export", "cli", "hardware.__main__", "ablation.__main__", "ik.__main__", "ik.exported.__main__",
+              "plan.__main__"],
 }
 NO_LIGHTNING_OR_RERUN = ("core", "physics", "data", "deploy", "hardware", "hardware.deploy")
 

@@ -8,6 +8,7 @@ thin ``__main__`` of the package a user names (``python -m dacr_learn.<package>`
 - :mod:`.hardware`     ``python -m dacr_learn.hardware``: the model-selection study on hardware recordings
 - :mod:`.ablation`     ``python -m dacr_learn.ablation``: the Clarke-vs-raw ablation grid
 - :mod:`.loading`      what they read: .npy arrays, a model recognised by its file's contents, the arm files
+- :mod:`.plan`         ``python -m dacr_learn.plan ftl``: follow-the-leader insertion along a path
 
 Nothing in the library imports this package.
 """

@@ -1,0 +1,117 @@
+"""The peer planner's side of benchmarks/ftl.py, run in the peer's own virtual environment (numpy, scipy,
+scikit-learn): nothing of dacr_learn is imported here.
+
+Draws the benchmark's curves with the peer's own generators (src/PathGenerators: a quadratic Bézier through a
+control point, its S shape, its C shape; end and control points drawn uniformly within ±0.3 of the defaults of
+its run_example.py, the C shape's radial angle normally, σ = 20°), each twice: with the peer's waypoint count (its
+input) and densely (the path our planner takes and both are scored on). Builds the peer's threshold-cluster planner once
+(its library: the run_example.py defaults) and plans every curve: follow_path on the waypoints, then
+interpolate_mp. Writes curves.npz (the dense and sparse curves), peer_<i>.npz (per dense step: Clarke
+coordinates, base position and orientation, the peer's own tip) and peer.json (timings).
+
+    python benchmarks/ftl_peer.py --peer PEER_DIR --out DIR [--per-class 40] [--library 10000] [--seed 0]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+CLASSES = ("bezier", "s", "c")
+
+
+def arc_through(points: np.ndarray, n: int) -> np.ndarray:
+    """n points on the circular arc through points[0], points[len // 2], points[-1] (its C shape is an arc)."""
+    a, b, c = points[0], points[len(points) // 2], points[-1]
+    ab, ac = b - a, c - a
+    normal = np.cross(ab, ac)
+    centre = a + (np.dot(ac, ac) * np.cross(normal, ab) + np.dot(ab, ab) * np.cross(ac, normal)) / (
+        2 * np.dot(normal, normal))
+    u = (a - centre) / np.linalg.norm(a - centre)
+    w = np.cross(normal / np.linalg.norm(normal), u)
+    end = np.arctan2(np.dot(c - centre, w), np.dot(c - centre, u)) % (2 * np.pi)
+    theta = np.linspace(0.0, end, n)[:, None]
+    radius = np.linalg.norm(a - centre)
+    return centre + radius * (np.cos(theta) * u + np.sin(theta) * w)
+
+
+def draw_curves(generator, rng: np.random.Generator, per_class: int, waypoints: int, dense: int) -> list[dict]:
+    """per_class curves of each class: dict(kind, sparse (the generator's waypoints), dense (dense, 3) the same
+    curve densely: the generator again for the Bézier curves, the arc through the waypoints for the C shape (the
+    generator keeps the last 3/4 of its points, so another count starts elsewhere on the circle))."""
+    curves = []
+    spread = 0.3
+    for kind in CLASSES:
+        for _ in range(per_class):
+            jitter = lambda c: np.asarray(c, float) + rng.uniform(-spread, spread, 3)  # noqa: E731
+            if kind == "bezier":
+                start, end, control = np.zeros(3), jitter([2, 0, 1.3]), jitter([0, 0, 1.6])
+                sparse = generator.generate_curved_path(start, end, control, num_waypoints=waypoints)
+                fine = generator.generate_curved_path(start, end, control, num_waypoints=dense)
+            elif kind == "s":
+                end = jitter([-2.3, 0, 0.8])
+                sparse = generator.generate_s_shape_path(np.zeros(3), end, num_waypoints=waypoints)
+                fine = generator.generate_s_shape_path(np.zeros(3), end, num_waypoints=dense)
+            else:
+                end, angle = jitter([-2.3, 0, 0.8]), rng.normal(0.0, 20.0)
+                sparse = generator.generate_c_shape_path(np.zeros(3), end, radial_angle=angle,
+                                                         num_waypoints=waypoints)
+                fine = arc_through(sparse, dense)
+            curves.append({"kind": kind, "sparse": sparse, "dense": fine})
+    return curves
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--peer", required=True, help="the peer's source folder (holds src/)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--per-class", type=int, default=40)
+    p.add_argument("--library", type=int, default=10_000)
+    p.add_argument("--waypoints", type=int, default=10)
+    p.add_argument("--interpolation", type=int, default=40)
+    p.add_argument("--dense", type=int, default=1001)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+    sys.path.insert(0, str(Path(args.peer).resolve()))
+    from src.MasterClass import GeneralPathFollower
+    from src.PathGenerators.PathGenerator import TaskGenerator
+    from src.RobotModels.ConstantCurvatureModel import ConstantCurvature
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    np.random.seed(args.seed)
+    robot = ConstantCurvature(num_segments=3, segment_lengths=[1, 1, 1], tendon_offset=[0.2, 0.2, 0.2],
+                              points_resolution=0.05)
+    curves = draw_curves(TaskGenerator(robot), np.random.default_rng(args.seed), args.per_class, args.waypoints,
+                         args.dense)
+    np.savez(out / "curves.npz", kinds=np.array([c["kind"] for c in curves]),
+             **{f"sparse_{i}": c["sparse"] for i, c in enumerate(curves)},
+             **{f"dense_{i}": c["dense"] for i, c in enumerate(curves)})
+    general = GeneralPathFollower(robot)
+    t0 = time.perf_counter()
+    follower = general.get_sampling_threshold_cluster(num_samples=args.library, base_stability_weight=0.3,
+                                                      base_stability_weight_rot=0.3, similarity_threshold=2.5,
+                                                      random_seed=args.seed)
+    library = time.perf_counter() - t0
+    times = []
+    for i, c in enumerate(curves):
+        t0 = time.perf_counter()
+        history = follower.follow_path(c["sparse"], verbose=False)
+        dense, _ = general.interpolate_mp(history, steps_per_waypoint=args.interpolation, enable_optimization=True,
+                                          verbose=False)
+        times.append(time.perf_counter() - t0)
+        np.savez(out / f"peer_{i}.npz", clarke=np.array([h["clark_coords"] for h in dense]),
+                 base_position=np.array([h["base_position"] for h in dense]),
+                 base_orientation=np.array([h["base_orientation"] for h in dense]),
+                 tip=np.array([h["actual_tip"] for h in dense]))
+        print(f"peer curve {i + 1}/{len(curves)} ({c['kind']}): {times[-1]:.1f} s", flush=True)
+    (out / "peer.json").write_text(json.dumps({"library_s": library, "curve_s": times, "library": args.library,
+                                               "waypoints": args.waypoints, "interpolation": args.interpolation}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,284 @@
+"""Follow-the-leader planning: the insertion of a (possibly arm-mounted) continuum robot along a path.
+
+:func:`plan_ftl` returns T configurations whose tip advances along the path from its start, arc length s from 0
+to min(path length, L), while the inserted body stays on the traversed path (docs/plan.md):
+
+1. **first step** (s = 0): the multi-solution IK solver (:func:`dacr_learn.ik.solve_ik`, seeded by the arm's
+   pose bank) puts the tip on the path's start pointing along the path, at several rolls; each solution is
+   refined on the step problem (:mod:`.solve`: the whole body on the entry line, every point weighing alike)
+   and the lowest cost is kept (of equal ones, the arm's best-conditioned configuration);
+2. **coarse pass**: steps :attr:`FTLOptions.coarse_spacing` apart, each refined from the previous one
+   (Levenberg–Marquardt on tip + body residuals, limits inside the step) and its tip polished onto the path; a
+   step whose tip cannot be put on the path is retried from the IK solver's solutions nearest the previous
+   step (**recovery**);
+3. **fine pass**: all T steps at once, started from the coarse solutions interpolated in s, refined and
+   polished as one batch; a step that leaves its predecessor's branch (a variable changing by more than half
+   its continuity bound) or misses the path is solved again from its predecessor (continuation);
+4. **verdict**: from the joints alone (the model's own check): every tip within ``tolerance``·L of its path
+   point, inside every limit, and no variable changing by more than :meth:`FTLOptions.bounds` between
+   consecutive steps; else ``success`` False and ``reason`` names the first failure.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..arm import Composite
+from ..arm.chain import CONTINUOUS_RANGE
+from ..arm.seeds import PoseBank
+from ..checks import F64
+from ..ik import IKOptions, solve_ik
+from ..ik.adapters import SolverModel, as_solver_model
+from .body import body
+from .metric import shape_deviation
+from .path import Path
+from .solve import Problem, StepOptions
+
+BANK_SIZE = 2048   # admissible samples seeding the IK of the first step and of a recovery (dacr_learn.arm.seeds)
+ROLLS = 4          # rolls about the path's entry direction tried for the first step
+FIRST_ITERATIONS = 40   # LM steps of the first step (from IK solutions: the body may start far from the line)
+TIE = 1e-10         # step costs (units of L²) this close count as equally good for the first step
+REPAIR = 0.5      # a fine step changing a variable by more than this fraction of its bound is continued anew
+RECOVER = 1e-3     # a coarse step whose tip stays this far (relative to L) from its path point is recovered
+
+
+@dataclass(frozen=True)
+class FTLOptions:
+    """tolerance: tip error allowed, relative to the robot's length L; spacing: default step spacing along the
+    path, relative to L; coarse_spacing: of the sequential pass; coarse_iterations / fine_iterations: LM
+    steps per step of each pass; max_change: the continuity bound per step at the default spacing, in
+    rad for revolute arm joints, in units of L for prismatic ones, in units of the variable's scale for the
+    robot's (bend ρ: of its disk radius); coarse_regularization: the pull towards the previous step in the coarse
+    pass (strong: what the body leaves free stays where it was; the fine pass re-centres it and removes the bias);
+    solutions: IK solutions tried for the first step and a recovery."""
+
+    tolerance: float = 1e-6
+    spacing: float = 0.01
+    coarse_spacing: float = 0.04
+    coarse_iterations: int = 6
+    fine_iterations: int = 8
+    max_change: float = 0.1
+    coarse_regularization: float = 1e-2
+    solutions: int = 8
+    step: StepOptions = field(default_factory=StepOptions)
+
+    def __post_init__(self):
+        for name in ("tolerance", "spacing", "coarse_spacing", "max_change"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a finite value > 0, got {v}")
+
+
+@dataclass
+class FTLPlan:
+    """A plan of T steps. q (T, N) joint vectors (an arm's joints first, then the robot's); x (T, D) the
+    solver's variables; s (T,) [m] the tip's arc length along the path; tip_err (T,) [m]; shape_dev and
+    shape_dev_max (T,) [m] (:mod:`.metric`); success; reason ('' on success); length L [m]."""
+
+    q: Tensor
+    x: Tensor
+    s: Tensor
+    tip_err: Tensor
+    shape_dev: Tensor
+    shape_dev_max: Tensor
+    success: bool
+    reason: str
+    length: float
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The PLAN.npz arrays (docs/plan.md)."""
+        out = {k: getattr(self, k).detach().to(F64).numpy() for k in ("q", "s", "tip_err", "shape_dev",
+                                                                        "shape_dev_max")}
+        out["success"] = np.array(self.success)
+        out["reason"] = np.array(self.reason)
+        return out
+
+
+def robot_length(model: SolverModel) -> float:
+    """The continuum robot's nominal length L [m] (of the robot an arm carries)."""
+    return float(model.robot.length if isinstance(model, Composite) else model.length)
+
+
+def _entry_frames(path: Path, rolls: int) -> Tensor:
+    """Poses (rolls, 4, 4) at the path's start with z along its entry direction, rotated about it."""
+    z = path.entry
+    helper = torch.tensor([1.0, 0.0, 0.0] if abs(float(z[0])) < 0.9 else [0.0, 1.0, 0.0], dtype=F64)
+    x0 = torch.linalg.cross(helper, z)
+    x0 = x0 / torch.linalg.vector_norm(x0)
+    y0 = torch.linalg.cross(z, x0)
+    out = torch.eye(4, dtype=F64).repeat(rolls, 1, 1)
+    for k in range(rolls):
+        a = 2 * math.pi * k / rolls
+        xr = math.cos(a) * x0 + math.sin(a) * y0
+        out[k, :3, :3] = torch.stack([xr, torch.linalg.cross(z, xr), z], dim=1)
+        out[k, :3, 3] = path.points[0]
+    return out
+
+
+class _Planner:
+    def __init__(self, model: SolverModel, path: Path, options: FTLOptions):
+        self.model, self.path, self.opts = model, path, options
+        self.length = robot_length(model)
+        self.tol = options.tolerance * self.length
+        self.problem = Problem(model, path, self.length, options.step)
+        self.start = Problem(model, path, self.length, replace(options.step, outside_weight=1.0))
+        self.bank = None
+
+    def _candidates(self, targets: Tensor, position_only: bool, q0: Tensor | None = None) -> Tensor:
+        """Successful IK solutions (C, D) of targets (poses (B, 4, 4) or positions (B, 3)), without restarts
+        (a roll the robot cannot give its tip is not worth them: the body problem fixes the roll anyway)."""
+        k = self.opts.solutions if position_only else max(1, self.opts.solutions // targets.shape[0])
+        if self.bank is None and isinstance(self.model, Composite):
+            self.bank = PoseBank(self.model, BANK_SIZE)
+        seeds = None if self.bank is None else self.bank.seeds(targets, k)
+        res = solve_ik(self.model, targets, k, q0=q0, position_only=position_only, seeds=seeds,
+                       options=IKOptions(restarts=0))
+        q = res.q.reshape(-1, res.q.shape[-1])[res.success.reshape(-1)]
+        return self.model.variables(q)
+
+    def _best(self, cand: Tensor, s: float, ref: Tensor | None, iterations: int) -> tuple[Tensor, bool]:
+        """The candidate (D,) of least step cost after refinement and polish (tip on the path first)."""
+        sv = torch.full((cand.shape[0],), s, dtype=F64)
+        problem = self.problem if ref is not None else self.start   # the first step: the whole body on the line
+        x, cost, _ = problem.refine(cand, sv, cand if ref is None else ref.expand_as(cand), iterations)
+        x = self.problem.polish(x, sv, 1e-3 * self.tol)
+        ok = self.problem.tip_error(x, sv) <= self.tol
+        if ref is not None:       # a recovery: prefer the solution nearest the previous step
+            cost = cost + ((x - ref) / self.problem.scale).square().sum(-1) * 1e-6
+        cost = torch.where(ok, cost, cost + 1e6)
+        if ref is None and isinstance(self.model, Composite):   # first step: of the equally good, the arm's
+            tie = cost <= cost.min() + TIE                        # best-conditioned (far from its singularities)
+            jac = self.model.tip_and_jacobian(x)[2][:, :, :self.model.num_arm]
+            sigma = torch.linalg.svdvals(jac)[:, -1]
+            cost = torch.where(tie, -sigma, torch.full_like(sigma, float("inf")))
+        i = int(cost.argmin())
+        return x[i], bool(ok[i])
+
+    def _wrapped(self, x: Tensor) -> Tensor:
+        """x with the angles of continuous arm joints (box ±2π) wrapped into [−π, π): as far from their box as
+        they can be."""
+        if not isinstance(self.model, Composite):
+            return x
+        lim = self.model.arm.limits
+        free = ((lim.lower <= -CONTINUOUS_RANGE) & (lim.upper >= CONTINUOUS_RANGE)).nonzero().squeeze(-1)
+        x = x.clone()
+        x[:, free] = torch.remainder(x[:, free] + math.pi, 2 * math.pi) - math.pi
+        return x
+
+    def first(self) -> tuple[Tensor | None, str]:
+        cand = self._candidates(self.path.points[:1], True)
+        if self.model.has_rotation:
+            cand = torch.cat([self._candidates(_entry_frames(self.path, ROLLS), False), cand])
+        if cand.shape[0] == 0:
+            return None, f"the tip cannot reach the path's start {self.path.points[0].tolist()} (IK found no solution)"
+        x, ok = self._best(self._wrapped(cand), 0.0, None, FIRST_ITERATIONS)
+        return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
+
+    def coarse(self, x0: Tensor, s: Tensor) -> tuple[Tensor, str]:
+        xs, reason = [x0], ""
+        for k in range(1, s.shape[0]):
+            prev = xs[-1][None]             # from the previous step (an extrapolated start hopped branches)
+            sk = s[k:k + 1]
+            x, _, tip = self.problem.refine(prev.clone(), sk, prev, self.opts.coarse_iterations,
+                                            reg=self.opts.coarse_regularization)
+            if float(tip[0]) > RECOVER * self.length:                                   # recovery
+                cand = self._candidates(self.path.at(sk), True, q0=self.model.joints(prev))
+                if cand.shape[0]:
+                    best, ok = self._best(torch.cat([x, cand]), float(sk[0]), prev[0], self.opts.coarse_iterations)
+                    x = best[None]
+                if float(self.problem.tip_error(x, sk)[0]) > self.tol and not reason:
+                    reason = f"the tip cannot follow the path at s = {float(sk[0]):.6g} m (no IK solution there)"
+            xs.append(x[0])
+        return torch.stack(xs), reason
+
+    def fine(self, xc: Tensor, sc: Tensor, s: Tensor) -> Tensor:
+        i = (torch.searchsorted(sc, s, right=True) - 1).clamp(0, sc.shape[0] - 2)
+        t = ((s - sc[i]) / (sc[i + 1] - sc[i])).clamp(0.0, 1.0)[:, None]
+        x0 = xc[i] + t * (xc[i + 1] - xc[i])
+        x, _, _ = self.problem.refine(x0.clone(), s, x0, self.opts.fine_iterations)
+        x, _, _ = self.problem.refine(x, s, x.clone(), self.opts.fine_iterations)      # pull re-centred: no bias
+        x = self.problem.polish(x, s, 1e-3 * self.tol)
+        bad = self.problem.tip_error(x, s) > self.tol
+        bound = self.bounds(float((s[1:] - s[:-1]).max()) if s.shape[0] > 1 else 0.0)
+        for k in range(1, x.shape[0]):        # continuation: a row off its neighbour's branch, or missed, again
+            if not (bool(bad[k]) or bool(((x[k] - x[k - 1]).abs() > REPAIR * bound).any())):
+                continue
+            prev = x[k - 1:k]
+            xk, _, _ = self.problem.refine(prev.clone(), s[k:k + 1], prev, 2 * self.opts.coarse_iterations,
+                                           reg=self.opts.coarse_regularization)
+            for _ in range(2):                                       # the pull re-centred: converged, no bias
+                xk, _, _ = self.problem.refine(xk, s[k:k + 1], xk.clone(), self.opts.fine_iterations)
+            x[k] = self.problem.polish(xk, s[k:k + 1], 1e-3 * self.tol)[0]
+        return x
+
+    def bounds(self, ds: float) -> Tensor:
+        """The largest change of each variable (D,) allowed between consecutive steps ds [m] apart."""
+        factor = self.opts.max_change * max(1.0, ds / (self.opts.spacing * self.length))
+        scale = self.problem.scale.clone()
+        out = factor * scale
+        names = self.model.limits.names
+        for j, name in enumerate(names):     # lengths like the path's advance, twists like joint angles
+            if name.endswith(".beta"):
+                out[j] = factor * self.length
+            elif name.endswith(".alpha"):
+                out[j] = factor
+        if isinstance(self.model, Composite):
+            n = self.model.num_arm
+            kinds = self.model.arm.joint_types
+            out[:n] = torch.tensor([factor * (self.length if k == "prismatic" else 1.0) for k in kinds], dtype=F64)
+        return out
+
+    def verdict(self, x: Tensor, s: Tensor, reason: str) -> FTLPlan:
+        q = self.model.joints(x)
+        check = self.model.check(q)
+        tip_err = torch.linalg.vector_norm(check.position - self.path.at(s), dim=-1)
+        b = body(self.model, x)
+        dev, dev_max = shape_deviation(b.points, b.arc, self.path, s)
+        if not reason and bool((tip_err > self.tol).any()):
+            k = int((tip_err > self.tol).nonzero()[0])
+            reason = (f"tip error {float(tip_err[k]):.3g} m > tolerance {self.tol:.3g} m at step {k} "
+                      f"(s = {float(s[k]):.6g} m)")
+        if not reason and not bool(check.inside.all()):
+            k = int((~check.inside).nonzero()[0])
+            viol = self.model.limits.violation(x[k:k + 1])
+            reason = f"outside the limits at step {k} (s = {float(s[k]):.6g} m; worst violation {float(viol[0]):.3g})"
+        if not reason and x.shape[0] > 1:
+            ds = float((s[1:] - s[:-1]).max())
+            jump = (x[1:] - x[:-1]).abs() / self.bounds(ds)
+            if bool((jump > 1).any()):
+                k, j = divmod(int(jump.argmax()), x.shape[1])
+                reason = (f"discontinuous between steps {k} and {k + 1}: {self.model.limits.names[j]} changes by "
+                          f"{float((x[k + 1, j] - x[k, j]).abs()):.3g} (bound {float(self.bounds(ds)[j]):.3g})")
+        return FTLPlan(q, x, s, tip_err, dev, dev_max, not reason, reason, self.length)
+
+
+def plan_ftl(model, path, steps: int | None = None, options: FTLOptions = FTLOptions()) -> FTLPlan:
+    """Plan the follow-the-leader insertion of ``model`` (any SolverModel with a body, e.g. an arm
+    :class:`~dacr_learn.arm.Composite`; a robot file for the bare analytic model) along ``path`` ((W, 3) [m] in
+    the model's base frame, or a :class:`~.path.Path`) in ``steps`` steps (default: spacing ≤
+    ``options.spacing``·L). See the module docstring; the plan's figures are those of :mod:`.metric`."""
+    model = as_solver_model(model)
+    body(model, model.limits.project(torch.zeros(1, model.limits.num_variables, dtype=F64)))   # none: ValueError
+    path = path if isinstance(path, Path) else Path(path)
+    planner = _Planner(model, path, options)
+    stop = min(path.length, planner.length)
+    if steps is None:
+        steps = math.ceil(stop / (options.spacing * planner.length)) + 1
+    if steps < 2:
+        raise ValueError(f"steps: expected >= 2, got {steps}")
+    s = torch.linspace(0.0, stop, steps, dtype=F64)
+    x0, reason = planner.first()
+    if x0 is None:
+        n = model.limits.num_variables
+        x = model.limits.project(model.rest.to(F64)).expand(steps, n).clone()
+        plan = planner.verdict(x, s, reason)
+        return plan
+    n_coarse = max(2, math.ceil(stop / (options.coarse_spacing * planner.length)) + 1)
+    sc = torch.linspace(0.0, stop, n_coarse, dtype=F64)
+    xc, late = planner.coarse(x0, sc)
+    x = planner.fine(xc, sc, s)
+    return planner.verdict(x, s, reason or late)

@@ -1,0 +1,139 @@
+"""One follow-the-leader step as a least-squares problem, batched over steps: residuals, LM, the tip polish.
+
+At a step whose tip is at arc length s along the path, every backbone point at distance δ behind the tip (along
+the body) is asked to lie on the path point at arc s − δ: on the path when s − δ ≥ 0 (inserted), else on the
+straight entry line behind the path's start (:meth:`~.path.Path.at`), with the lower weight
+``outside_weight`` (a ramp over :data:`RAMP` of the length). The tip itself weighs :data:`TIP_WEIGHT` times a
+body point, and a small pull ``regularization`` towards reference variables (the previous step) fixes what the
+body leaves free (e.g. the roll of a free base about the robot's axis). Residuals are in units of the robot's
+length L; the variables are scaled by the limits' scale.
+
+:func:`refine` runs Levenberg–Marquardt on these residuals with the limits inside the step (blocked limits held,
+the trial point projected onto the admissible set, as in :mod:`dacr_learn.ik.refine`), solving the D × D normal
+equations (the body gives many more rows than variables). :func:`polish` then puts the tip on the path point
+exactly: minimum-norm Gauss–Newton steps on the tip residual alone (:func:`dacr_learn.ik.refine.limited_step`).
+Float64.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..checks import F64
+from ..ik.adapters import SolverModel
+from ..ik.refine import limited_step
+from .body import body_and_jacobian
+from .path import Path
+
+TIP_WEIGHT = 10.0      # the tip's weight relative to one body point (then polished to the tolerance)
+RAMP = 0.25            # length of the weight ramp at the entry point, relative to L
+
+
+@dataclass(frozen=True)
+class StepOptions:
+    """outside_weight: weight of body points not yet inserted (on the entry line); regularization: pull towards
+    the reference variables, per scaled unit, in units of L; damping: initial λ (relative to the mean diagonal of
+    the Gauss–Newton matrix); points_per_segment: backbone
+    points per segment in the residuals (the figures use :data:`~.body.POINTS_PER_SEGMENT`)."""
+
+    outside_weight: float = 0.1
+    regularization: float = 1e-4
+    damping: float = 1e-4
+    points_per_segment: int = 8
+
+
+class Problem:
+    """The FTL step problem of ``model`` along ``path`` (module docstring); L = ``length`` [m]."""
+
+    def __init__(self, model: SolverModel, path: Path, length: float, options: StepOptions):
+        self.model, self.path, self.length, self.opts = model, path, length, options
+        self.lim = model.limits.to(F64)
+        self.scale = self.lim.scale.to(F64)
+
+    def residual(self, x: Tensor, s: Tensor, ref: Tensor, reg: float | None = None) -> tuple[Tensor, Tensor]:
+        """r (B, R) and ∂r/∂x (B, R, D) at variables x (B, D), tip arc lengths s (B,) [m], references ref (B, D);
+        ``reg``: the pull towards ref (default ``regularization``)."""
+        b, d = x.shape
+        body, jac, jac_arc = body_and_jacobian(self.model, x, self.opts.points_per_segment)
+        p = body.points.shape[1]
+        along = s[:, None] - (body.arc[:, -1:] - body.arc)                              # (B, P) path arcs
+        target = self.path.at(along)
+        # the targets slide along the path with the arc lengths (an extensible robot): ∂target = t·∂along
+        d_along = jac_arc - jac_arc[:, -1:]                                              # (B, P, D)
+        jac = jac - self.path.tangent(along).unsqueeze(-1) * d_along.unsqueeze(-2)
+        ramp = RAMP * self.length
+        w = self.opts.outside_weight + (1 - self.opts.outside_weight) * ((along + ramp) / ramp).clamp(0.0, 1.0)
+        w = w.clone()
+        w[:, -1] = TIP_WEIGHT
+        w = w / (self.length * p ** 0.5)
+        r_body = (w[..., None] * (body.points - target)).reshape(b, 3 * p)
+        j_body = (w[..., None, None] * jac).reshape(b, 3 * p, d)
+        reg = self.opts.regularization if reg is None else reg
+        r_reg = reg * (x - ref) / self.scale
+        j_reg = torch.diag(reg / self.scale).expand(b, d, d)
+        return torch.cat([r_body, r_reg], dim=1), torch.cat([j_body, j_reg], dim=1)
+
+    def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int, tol: float = 1e-10,
+               reg: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """LM on the step residuals from x (B, D): at most ``iterations`` steps; a row stops when its cost
+        falls by less than ``tol`` (relative) or its λ exceeds 1e6; ``reg`` overrides the pull's weight. Returns
+        (x, cost (B,), the tip's distance to its path point (B,) [m], from the body's last point)."""
+        x = self.lim.project(x.to(F64))
+        r, jac = self.residual(x, s, ref, reg)
+        cost = (r * r).sum(-1)
+        lam = torch.full_like(cost, self.opts.damping)
+        live = torch.ones_like(cost, dtype=torch.bool)
+        for _ in range(iterations):
+            rows = live.nonzero().squeeze(-1)
+            if rows.numel() == 0:
+                break
+            xt = self._step(x[rows], r[rows], jac[rows], lam[rows])
+            rt, jt = self.residual(xt, s[rows], ref[rows], reg)
+            ct = (rt * rt).sum(-1)
+            better = ct < cost[rows]
+            gain = (cost[rows] - ct) / cost[rows].clamp_min(1e-300)
+            acc = rows[better]
+            x[acc], r[acc], jac[acc], cost[acc] = xt[better], rt[better], jt[better], ct[better]
+            lam[rows] = torch.where(better, (lam[rows] / 10).clamp_min(1e-15), lam[rows] * 10)
+            live[rows] = ~((better & (gain < tol)) | (lam[rows] > 1e6))
+        p = (r.shape[1] - x.shape[1]) // 3
+        tip = torch.linalg.vector_norm(r[:, 3 * p - 3:3 * p], dim=-1) * self.length * p ** 0.5 / TIP_WEIGHT
+        return x, cost, tip
+
+    def _step(self, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor) -> Tensor:
+        """The trial point: δz minimises ‖r + J̃P·δz‖² + λ·μ‖δz‖² (normal equations, D × D; μ the mean diagonal of
+        (J̃P)ᵀJ̃P, so λ is relative) in scaled variables
+        z = x/scale with the blocking limits held (projector P), then projected onto the admissible set."""
+        jz = jac * self.scale
+        grad = (jz.mT @ r.unsqueeze(-1)).squeeze(-1)
+        box, normals = self.lim.blocked(x, grad)
+        a = jz @ self.lim.free_directions(box, normals)
+        d = x.shape[1]
+        h = a.mT @ a
+        level = h.diagonal(dim1=-2, dim2=-1).mean(-1).clamp_min(1e-300)                # λ relative to ‖J̃‖²/D
+        h = h + (lam * level)[:, None, None] * torch.eye(d, dtype=F64)
+        dz = -torch.linalg.solve(h, (a.mT @ r.unsqueeze(-1))).squeeze(-1)
+        return self.lim.project(x + dz * self.scale)
+
+    def tip_error(self, x: Tensor, s: Tensor) -> Tensor:
+        """Tip distance (B,) [m] to the path point at s (the model's tip, not the body)."""
+        pos = self.model.tip_and_jacobian(x)[0]
+        return torch.linalg.vector_norm(pos - self.path.at(s), dim=-1)
+
+    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 6) -> Tensor:
+        """Tip onto the path point at s (B,): minimum-norm steps on the tip residual alone, inside the limits,
+        until the tip error is below ``tol`` [m] (or ``iterations``)."""
+        target = self.path.at(s)
+        for _ in range(iterations):
+            pos, _, jac = self.model.tip_and_jacobian(x)
+            err = pos - target
+            rows = (torch.linalg.vector_norm(err, dim=-1) > tol).nonzero().squeeze(-1)
+            if rows.numel() == 0:
+                break
+            lam = torch.full((rows.numel(),), 1e-14, dtype=F64)
+            x = x.clone()
+            x[rows] = limited_step(self.lim, x[rows], err[rows] / self.length, jac[rows, :3] / self.length, lam,
+                                   only_held=True)
+        return x
