@@ -1,4 +1,4 @@
-"""Body accuracy of the learned models against the data's true body (docs/body_learned.md).
+"""Body accuracy of the learned models against the data's true body (docs/body.md).
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/body_accuracy.py [--json out.json] [--scale 1.0]
     .venv/bin/python benchmarks/body_accuracy.py --ckpt runs/NAME/version_0/last.ckpt [--source cosserat]
