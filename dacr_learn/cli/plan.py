@@ -120,7 +120,8 @@ def main(argv: list[str] | None = None) -> FTLPlan:
     mean, worst = (100 * float(v) / length for v in (plan.shape_dev.mean(), plan.shape_dev_max.max()))
     print(f"{plan.s.shape[0]} steps along {path.length:.4g} m (s up to {float(plan.s[-1]):.4g} m) with the "
           f"{description}: tip error max {float(plan.tip_err.max()) / length:.2e} L, shape deviation mean "
-          f"{mean:.3f} % / max {worst:.3f} % of L = {length:.4g} m; {verdict}; "
+          f"{mean:.3f} % / max {worst:.3f} % of L = {length:.4g} m"
+          f"{f', clearance min {float(plan.clearance.min()):.3g} m' if scene else ''}; {verdict}; "
           f"{time.perf_counter() - started:.1f} s → {out}")
     return plan
 
