@@ -118,3 +118,35 @@ def test_a_model_without_a_body_is_refused():
         limits = clarke_limits(RobotSpec.from_yaml(ROBOT))
     with pytest.raises(ValueError, match="NoBody: has no body"):
         plan_ftl(NoBody(), line([0, 0, 0], [0, 0, 1]))
+
+
+def test_a_plan_through_a_wide_open_scene_keeps_its_clearance():
+    # one sphere 0.3 m beside the straight path: the clearance of each step by hand (the straight body on the
+    # z axis from z = 0.3 + s − L … 0.3 + s, swept by the last segment's envelope radius)
+    model = stage_model()
+    center, radius, envelope = np.array([0.3, 0.0, 0.45]), 0.05, model.robot.spec.segments[-1].body_radius
+    scene = {"obstacles": [{"type": "sphere", "center": center.tolist(), "radius": radius}]}
+    plan = plan_ftl(model, line([0, 0, 0.3], [0, 0, 0.55]), steps=12, options=FTLOptions(coarse_spacing=0.25),
+                    scene=scene, clearance=0.01)
+    assert plan.success, plan.reason
+    assert plan.clearance.shape == (12,) and plan.arrays()["clearance"].shape == (12,)
+    z = np.clip(center[2], 0.3 + plan.s.numpy() - model.robot.length, 0.3 + plan.s.numpy())
+    exact = np.hypot(center[0], center[2] - z) - radius - envelope
+    assert np.all(plan.clearance.numpy() >= 0.01)
+    assert np.all(plan.clearance.numpy() <= exact + 1e-12) and np.allclose(plan.clearance.numpy(), exact, atol=1e-4)
+
+
+def test_an_obstacle_on_the_path_fails_naming_the_clearance():
+    # a sphere of radius 10 mm on the path at z = 0.5: the tip (z = 0.3 + s) comes within D = 10 mm of its surface
+    model = stage_model()
+    envelope = model.robot.spec.segments[-1].body_radius
+    scene = {"obstacles": [{"type": "sphere", "center": [0.0, 0.0, 0.5], "radius": 0.01}]}
+    plan = plan_ftl(model, line([0, 0, 0.3], [0, 0, 0.55]), steps=12, options=FTLOptions(coarse_spacing=0.25),
+                    scene=scene, clearance=0.01)
+    assert not plan.success and "clearance" in plan.reason
+    s = plan.s.numpy()
+    first = int(np.argmax(0.49 - (0.3 + s) - envelope < 0.01))                     # by hand: the tip's ball
+    assert f"at step {first} " in plan.reason
+    below = 0.3 + s < 0.49
+    assert np.allclose(plan.clearance.numpy()[below], (0.49 - (0.3 + s) - envelope)[below], atol=1e-9)
+    assert float(plan.tip_err.max()) <= 1e-6 * model.robot.length             # the tip still follows: only checked

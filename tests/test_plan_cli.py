@@ -36,10 +36,11 @@ def test_the_plan_file_has_the_contracts_arrays(tmp_path):
     assert (tmp_path / "plan.rrd").stat().st_size > 0
     plan = dict(np.load(tmp_path / "PLAN.npz"))
     spec = RobotSpec.from_yaml(ROBOT)
-    assert set(plan) == {"q", "s", "tip_err", "shape_dev", "shape_dev_max", "success", "reason"}
+    assert set(plan) == {"q", "s", "tip_err", "shape_dev", "shape_dev_max", "clearance", "success", "reason"}
     assert plan["q"].shape == (9, 6 + spec.num_joints) and plan["q"].dtype == np.float64
-    for k in ("s", "tip_err", "shape_dev", "shape_dev_max"):
+    for k in ("s", "tip_err", "shape_dev", "shape_dev_max", "clearance"):
         assert plan[k].shape == (9,) and plan[k].dtype == np.float64, k
+    assert np.all(plan["clearance"] == np.inf)                                  # no scene
     assert plan["success"].shape == () and plan["success"].dtype == bool and bool(plan["success"])
     assert plan["reason"].shape == () and str(plan["reason"]) == ""
     length = np.linalg.norm(np.diff(points, axis=0), axis=1).sum()
@@ -66,7 +67,8 @@ def test_a_failed_plan_is_written_with_its_reason(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra, message", [
-    (("--scene", "S.yaml", "--clearance", "0.001"), "not yet supported"),
+    (("--clearance", "0.001"), "--scene is missing"),
+    (("--scene", "S.yaml", "--clearance", "-1"), "--clearance: expected a finite distance"),
     (("--steps", "1"), "--steps: expected >= 2"),
     (("--tolerance", "0"), "--tolerance"),
 ])
@@ -74,6 +76,21 @@ def test_bad_arguments_are_one_line_errors(tmp_path, capsys, extra, message):
     arc_path(tmp_path)
     assert run_cli(main, args(tmp_path, *extra)) == 2
     assert message in capsys.readouterr().err
+
+
+def test_a_scene_adds_the_clearance_of_each_step(tmp_path, capsys):
+    np.save(tmp_path / "P.npy", np.stack([np.zeros(51), np.zeros(51), np.linspace(0.3, 0.55, 51)], -1))
+    (tmp_path / "S.yaml").write_text("obstacles:\n- {type: sphere, center: [0.0, 0.0, 0.5], radius: 0.01}\n")
+    main(["ftl", "--robot", str(ROBOT), "--arm", str(ARMS / "insertion_stage.urdf"), "--arm-tip", "carriage",
+          "--mount", str(ARMS / "identity_mount.npy"), "--path", str(tmp_path / "P.npy"),
+          "--out", str(tmp_path / "PLAN.npz"), "--steps", "6", "--scene", str(tmp_path / "S.yaml"),
+          "--clearance", "0.005"])
+    plan = np.load(tmp_path / "PLAN.npz")
+    assert plan["clearance"].shape == (6,) and plan["clearance"].dtype == np.float64
+    assert not bool(plan["success"]) and str(plan["reason"]).startswith("clearance ")
+    envelope = RobotSpec.from_yaml(ROBOT).segments[-1].body_radius          # step 0: the tip 0.19 m below the sphere
+    assert abs(plan["clearance"][0] - (0.49 - 0.3 - envelope)) < 1e-9
+    assert "clearance min -0.018 m; FAILED: clearance" in capsys.readouterr().out
 
 
 def test_bad_path_files_are_named(tmp_path, capsys):

@@ -1,7 +1,8 @@
 """Plan a follow-the-leader insertion along a path (docs/plan.md).
 
     python -m dacr_learn.plan ftl (--robot R.yaml | --ckpt C) --arm ARM.urdf --arm-tip LINK --mount M.npy \
-        --path P.npy --out PLAN.npz [--steps T] [--tolerance REL] [--rerun FILE.rrd]
+        --path P.npy --out PLAN.npz [--steps T] [--tolerance REL] [--scene S.yaml [--clearance D]] \
+        [--rerun FILE.rrd]
 
 P.npy: float64 (W, 3) [m] in the arm's base frame, a dense polyline (spacing ≤ 1 % of the robot's length): the
 tip enters it at P[0] and follows it to P[-1]. Without --arm the robot's base is fixed and P is in its frame.
@@ -11,7 +12,9 @@ IK command line writes them); s (T,) [m] the tip's arc length along the path, 0 
 length); tip_err (T,) [m] the tip's distance to the path point at s; shape_dev, shape_dev_max (T,) [m] mean and
 max distance of the inserted body (the last min(s, L) of the backbone, resampled by arc length) to the traversed
 path P[0 … s]; success (bool): every tip within --tolerance·L, inside every limit (URDF and the robot file's),
-consecutive steps continuous (docs/plan.md); reason (str): why not, '' on success (also printed).
+consecutive steps continuous and, with --scene, every step's clearance ≥ D (docs/plan.md); clearance (T,) [m]
+the body's (and the arm links') clearance to the scene's obstacles (+inf without --scene); reason (str): why
+not, '' on success (also printed).
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ import numpy as np
 import torch
 
 from ..checks import F64
+from ..ik.collision import add_scene_arguments, scene_options
 from ..plan import FTLOptions, FTLPlan, plan_ftl
 from ..plan.path import Path as PolylinePath
 from .loading import composite_from_files, describe, load_array, load_solver_model
@@ -89,16 +93,14 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--steps", type=int, help="steps T (default: spacing ≤ 1 %% of the robot's length)")
     f.add_argument("--tolerance", type=float, default=1e-6,
                    help="tip tolerance relative to the robot's length (default 1e-6)")
-    f.add_argument("--scene", help="scene YAML of obstacles (with --clearance)")
-    f.add_argument("--clearance", type=float, help="with --scene: the body's least distance to the obstacles [m]")
+    add_scene_arguments(f)
     f.add_argument("--rerun", metavar="FILE.rrd", help="also write a Rerun recording of the insertion")
     return p
 
 
 def main(argv: list[str] | None = None) -> FTLPlan:
     args = _parser().parse_args(argv)
-    if args.scene is not None or args.clearance is not None:
-        raise ValueError("--scene/--clearance: obstacles are not yet supported by the planner; plan without them")
+    scene = scene_options(args)
     if args.steps is not None and args.steps < 2:
         raise ValueError(f"--steps: expected >= 2, got {args.steps}")
     if not (np.isfinite(args.tolerance) and args.tolerance > 0):
@@ -109,7 +111,7 @@ def main(argv: list[str] | None = None) -> FTLPlan:
     started = time.perf_counter()
     path = load_path(args.path)
     model, description = build_model(args)
-    plan = plan_ftl(model, path, args.steps, FTLOptions(tolerance=args.tolerance))
+    plan = plan_ftl(model, path, args.steps, FTLOptions(tolerance=args.tolerance), **scene)
     write_plan(out, plan)
     if args.rerun:
         record(Path(args.rerun), model, path, plan)
@@ -118,7 +120,8 @@ def main(argv: list[str] | None = None) -> FTLPlan:
     mean, worst = (100 * float(v) / length for v in (plan.shape_dev.mean(), plan.shape_dev_max.max()))
     print(f"{plan.s.shape[0]} steps along {path.length:.4g} m (s up to {float(plan.s[-1]):.4g} m) with the "
           f"{description}: tip error max {float(plan.tip_err.max()) / length:.2e} L, shape deviation mean "
-          f"{mean:.3f} % / max {worst:.3f} % of L = {length:.4g} m; {verdict}; "
+          f"{mean:.3f} % / max {worst:.3f} % of L = {length:.4g} m"
+          f"{f', clearance min {float(plan.clearance.min()):.3g} m' if scene else ''}; {verdict}; "
           f"{time.perf_counter() - started:.1f} s → {out}")
     return plan
 

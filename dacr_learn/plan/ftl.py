@@ -16,7 +16,10 @@ to min(path length, L), while the inserted body stays on the traversed path (doc
    its continuity bound) or misses the path is solved again from its predecessor (continuation);
 4. **verdict**: from the joints alone (the model's own check): every tip within ``tolerance``·L of its path
    point, inside every limit, and no variable changing by more than :meth:`FTLOptions.bounds` between
-   consecutive steps; else ``success`` False and ``reason`` names the first failure.
+   consecutive steps; with a scene, also the clearance of the body (and an arm's links) to the obstacles ≥ D
+   at every step (:meth:`dacr_learn.ik.collision.Avoidance.clearance_of_joints`, solve_ik's own check); else
+   ``success`` False and ``reason`` names the first failure. The scene is checked, not avoided: the steps'
+   least squares do not see the obstacles.
 """
 from __future__ import annotations
 
@@ -33,6 +36,8 @@ from ..arm.seeds import PoseBank
 from ..checks import F64
 from ..ik import IKOptions, solve_ik
 from ..ik.adapters import SolverModel, as_solver_model
+from ..ik.collision import Avoidance
+from ..scene import load_scene
 from .body import body
 from .metric import shape_deviation
 from .path import Path
@@ -77,7 +82,8 @@ class FTLOptions:
 class FTLPlan:
     """A plan of T steps. q (T, N) joint vectors (an arm's joints first, then the robot's); x (T, D) the
     solver's variables; s (T,) [m] the tip's arc length along the path; tip_err (T,) [m]; shape_dev and
-    shape_dev_max (T,) [m] (:mod:`.metric`); success; reason ('' on success); length L [m]."""
+    shape_dev_max (T,) [m] (:mod:`.metric`); clearance (T,) [m] of the body (and an arm's links) to the scene's
+    obstacles (+inf without a scene); success; reason ('' on success); length L [m]."""
 
     q: Tensor
     x: Tensor
@@ -88,11 +94,16 @@ class FTLPlan:
     success: bool
     reason: str
     length: float
+    clearance: Tensor | None = None
+
+    def __post_init__(self):
+        if self.clearance is None:
+            self.clearance = torch.full_like(self.s, float("inf"))
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The PLAN.npz arrays (docs/plan.md)."""
         out = {k: getattr(self, k).detach().to(F64).numpy() for k in ("q", "s", "tip_err", "shape_dev",
-                                                                        "shape_dev_max")}
+                                                                        "shape_dev_max", "clearance")}
         out["success"] = np.array(self.success)
         out["reason"] = np.array(self.reason)
         return out
@@ -120,8 +131,8 @@ def _entry_frames(path: Path, rolls: int) -> Tensor:
 
 
 class _Planner:
-    def __init__(self, model: SolverModel, path: Path, options: FTLOptions):
-        self.model, self.path, self.opts = model, path, options
+    def __init__(self, model: SolverModel, path: Path, options: FTLOptions, avoid: Avoidance | None = None):
+        self.model, self.path, self.opts, self.avoid = model, path, options, avoid
         self.length = robot_length(model)
         self.tol = options.tolerance * self.length
         self.problem = Problem(model, path, self.length, options.step)
@@ -253,18 +264,28 @@ class _Planner:
                 k, j = divmod(int(jump.argmax()), x.shape[1])
                 reason = (f"discontinuous between steps {k} and {k + 1}: {self.model.limits.names[j]} changes by "
                           f"{float((x[k + 1, j] - x[k, j]).abs()):.3g} (bound {float(self.bounds(ds)[j]):.3g})")
-        return FTLPlan(q, x, s, tip_err, dev, dev_max, not reason, reason, self.length)
+        clear = None if self.avoid is None else self.avoid.clearance_of_joints(q)
+        if not reason and clear is not None and bool((clear < self.avoid.clearance).any()):
+            k = int((clear < self.avoid.clearance).nonzero()[0])
+            reason = (f"clearance {float(clear[k]):.3g} m < {self.avoid.clearance:.3g} m to the obstacles at step {k} "
+                      f"(s = {float(s[k]):.6g} m)")
+        return FTLPlan(q, x, s, tip_err, dev, dev_max, not reason, reason, self.length, clear)
 
 
-def plan_ftl(model, path, steps: int | None = None, options: FTLOptions = FTLOptions()) -> FTLPlan:
+def plan_ftl(model, path, steps: int | None = None, options: FTLOptions = FTLOptions(), scene=None,
+             clearance: float = 0.0) -> FTLPlan:
     """Plan the follow-the-leader insertion of ``model`` (any SolverModel with a body, e.g. an arm
     :class:`~dacr_learn.arm.Composite`; a robot file for the bare analytic model) along ``path`` ((W, 3) [m] in
     the model's base frame, or a :class:`~.path.Path`) in ``steps`` steps (default: spacing ≤
-    ``options.spacing``·L). See the module docstring; the plan's figures are those of :mod:`.metric`."""
+    ``options.spacing``·L). scene: obstacles (a :class:`~dacr_learn.scene.Scene`, a scene YAML path or dict, in
+    the model's base frame, the arm's for an arm composite): success then also needs every step's body (and an
+    arm's links) at least ``clearance`` [m] from them. See the module docstring; the plan's figures are those of
+    :mod:`.metric`."""
     model = as_solver_model(model)
     body(model, model.limits.project(torch.zeros(1, model.limits.num_variables, dtype=F64)))   # none: ValueError
+    avoid = None if scene is None else Avoidance(model, load_scene(scene), clearance)
     path = path if isinstance(path, Path) else Path(path)
-    planner = _Planner(model, path, options)
+    planner = _Planner(model, path, options, avoid)
     stop = min(path.length, planner.length)
     if steps is None:
         steps = math.ceil(stop / (options.spacing * planner.length)) + 1
