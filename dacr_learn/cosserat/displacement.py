@@ -1,28 +1,15 @@
 """Displacement-controlled statics: the shape of a tendon robot whose actuators set tendon lengths.
 
-A displacement actuator (a servo winding a tendon) fixes each tendon's *unstretched* length ℓ_i between
-its anchor and the actuator, not its tension. Tendon i is then either taut, its path stretched to
-ℓ_i: L_i(τ) = ℓ_i (1 + c τ_i), or slack with τ_i = 0 and a path no longer than ℓ_i. With
-R_i(τ) = ``tendon_rest_lengths`` of :func:`~.statics.solve_statics` (= L_i/(1 + c τ_i)) and
-F_i(τ) = R_i(τ) − ℓ_i (positive: the path needs more tendon than the actuator gives), the tensions
-solve the complementarity problem
+A displacement actuator fixes each tendon's *unstretched* length ℓ_i, not its tension: tendon i is either
+taut, its path stretched to ℓ_i, or slack with τ_i = 0. With R_i(τ) = ``tendon_rest_lengths`` of
+:func:`~.statics.solve_statics` and F_i(τ) = R_i(τ) − ℓ_i, the tensions solve
 
     τ ≥ 0,   F(τ) ≤ 0,   τ_i F_i(τ) = 0 for every i.
 
-Method (per sample, batched): with A = −∂R/∂τ (T × T), symmetric positive definite for an elastic rod
-with elastic tendons (reciprocity: the path length is work-conjugate to the tension), each step solves
-the linearised problem
-
-    τ' ≥ 0,   w = −F(τ) + A (τ' − τ) ≥ 0,   τ'·w = 0
-
-exactly (a linear complementarity problem; primal-dual active-set iterations, projected Gauss–Seidel
-where they cycle), then evaluates F(τ') by one Cosserat solve. A is taken by central differences at
-the first iterate (2T solves; once for the whole batch when every sample starts from zero tension; or
-passed in from an earlier, nearby solve) and kept (a chord method):
-the map τ → R is close to linear (in the CC limit it is linear), so the steps contract fast. Where a
-step does not reduce the violation, A is retaken at the current iterate and the step is halved (a step
-to a failed shape is only halved); a sample whose step falls below 1/64 gives up.
-
+Method (docs/cosserat.md §10): a chord method with A = −∂R/∂τ (T × T, SPD) taken by central differences
+once (or passed in) and kept; each step solves the linearised complementarity problem exactly
+(:func:`solve_lcp`), then evaluates F by one Cosserat solve; a step that does not reduce the violation
+retakes A and is halved, and a sample whose step falls below 1/64 gives up.
 The solve is gradient-free (no autograd through it); its inputs are data, not parameters.
 """
 from __future__ import annotations

@@ -1,33 +1,14 @@
 """Calibration from single-tendon pulls: servo → (segment, joint), sign, zero, joint offsets.
 
-Input: a recording in which one tendon at a time is pulled and released while all other
-servos are parked at a slack level (see :mod:`dacr_learn.hardware.recording`). Pattern
-labels are *not* used. Method:
+Input: a recording in which one tendon at a time is pulled while the other servos are parked at a
+slack level (:mod:`dacr_learn.hardware.recording`); pattern labels are *not* used. The method (slack
+level and single pulls, rest tip, per-servo sign/direction/gain/taut onset from a line fit, the partition
+into segments, the joint slots and offsets) is described in docs/hardware.md ("Calibration from the
+single-tendon pulls"). The taut onset is reported, not applied (servo zero = 0; the CC model fits a
+pretension instead).
 
-1. Slack level = median of all servo values (most servos are parked in every row). A row is
-   a single pull of servo s when s is the only servo far from the slack level
-   (more than half the 95th percentile of the per-row largest deviation).
-2. Rest tip position = median over servos of the tip at their least-pulled row.
-3. Per servo: sign = sign of the correlation between its value and the tip's distance from
-   rest (the tip moves away only while the tendon is pulled). With u = sign·value, a line
-   tip_xy = c + k·u through the rows deflected by more than a quarter of the maximum gives
-   the bending direction ψ = atan2(k) (the segment bends towards the pulled tendon, docs/design.md §1),
-   the gain ‖k‖ (tip mm per tendon mm) and the taut onset: the value where the line passes
-   the rest. The onset is reported, not applied: it mixes slack with the hysteresis of the
-   previous pull, and using it as the servo zero made the CC model worse on held-out data
-   (zero = 0 in the map; the CC model fits one common pretension instead).
-4. Segments: servos of one segment share its joint layout up to a rotation, and proximal
-   segments have larger gains (longer lever arm). A partition into segments minimises
-   Σ (angle residual / 10°)² + Σ (log-gain spread / 0.1)², with the mean gains ordered like
-   the gains the nominal CC model predicts for each segment; local search over swaps from
-   the gain-sorted start and from seeded random starts.
-5. Joints: the slot permutation and rotation δ that best match the servo directions to the
-   segment's joint angles. For symmetric layouts the cyclic labelling is fixed by making the
-   first servo column of the segment joint 0; the offset is then δ.
-
-The result is a calibrated robot YAML (offsets) and a :class:`ServoMap` YAML; the fit quality
-(angle residuals, gains, and — from the CLI :mod:`dacr_learn.hardware.calibrate` — the tip
-error of the CC model fitted to the pulls) is reported.
+The result is a calibrated robot YAML (offsets) and a :class:`ServoMap` YAML, with the fit quality
+(angle residuals, gains) reported.
 """
 from __future__ import annotations
 

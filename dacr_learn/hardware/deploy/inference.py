@@ -5,24 +5,18 @@ K members); plain nn.Modules with every constant folded into buffers, exportable
 
 - :class:`HardwareFK`: servo (B, S) [mm, checkpoint column order] (+ state (B, m, 2) [m] for a
   history model) → tip (B, 3) [m, motion-capture frame] = the ensemble mean, tip_std (B, 3) [m]
-  (the members' spread, calibrated when the checkpoint has a σ calibration) (+ the new state).
+  (+ the new state).
 - :class:`HardwareJacobian`: the same inputs → tip (B, 3), J (B, 3, S) [m/mm] = ∂tip/∂servo
-  (+ the new state). For a history model the state is held fixed: J is the effect of the
-  *current* command given the history, what a controller's next step needs.
+  (+ the new state); for a history model J holds the state fixed (the effect of the current command).
 
-Pipeline (float32 by default): servo → the slack-aware Clarke encoder's QP, solved by active-set
-enumeration with the servo map (x = servo·A + a₀ + p) folded in: one product gives every one of the
-2ᴺ stretched-tendon sets' sign violations, the consistent set's affine map gives ρ and ∂ρ/∂servo
-(:func:`~.slack.active_set_gains`; the same minimiser as :func:`~.slack.solve_tendon_qp`, without its
-data-dependent iterations or linear solves) → ρ per segment → [play operator step] → per-member
-correction Δρ (the residual MLPs, batched over members) → CC kinematics (segment poses: the kernel's
-exponential of the CC twists, :mod:`dacr_learn.lie`, chained with the base pose) → tip. Written for few ops
-at batch 1: no einsum, linear solve or Python-side work in forward (N ≤ 12 tendons for the enumeration).
+Pipeline (float32 by default): servo → ρ by the slack-aware encoder's QP solved by active-set enumeration
+with the servo map folded in (:func:`~.slack.active_set_gains`: the same minimiser as
+:func:`~.slack.solve_tendon_qp`, no iterations or linear solves; N ≤ 12 tendons) → [play operator step] →
+per-member correction Δρ (batched over members) → CC segment poses (:mod:`dacr_learn.lie`) → tip.
 
-History models run causally: ``state`` is the play operator's state (the previous call's output);
-start a sequence with :meth:`HardwareFK.initial_state` of the first command (the batch training
-code starts the play at the first row the same way). Running a recording row by row this way
-gives the model's batch predictions.
+History models run causally: ``state`` is the play operator's state (the previous call's output); start
+a sequence with :meth:`HardwareFK.initial_state` of the first command. Row by row this gives the model's
+batch predictions.
 """
 from __future__ import annotations
 

@@ -1,29 +1,17 @@
 """Choosing a model on the training recording alone: two selection proxies and the default model.
 
-Real validation patterns (all segments loaded at once) are absent from training recordings
-(single segments and pairs), so a model must be chosen without them. Two train-only proxies,
-both offset-removed tip RMSE [mm] on held-out rows of the training recording:
+Both proxies are the offset-removed tip RMSE [mm] on held-out rows of the training recording
+(docs/hardware.md, "Choosing the default model on training data alone"):
 
-- ``cv``: leave-one-pattern-family-out cross-validation. Families (from the pattern labels):
-  ``single`` (one segment or one tendon moved: ``seg<k>…``, ``tendon<k>…``) and one per pair of
-  segments (``pair<jk>…``). Each fold holds one family out; the score is the mean over folds.
-- ``extrap``: singles → pairs. Fit on the single-segment family, test on every pair family: a
-  shift in the number of moving segments, like the one from training to validation.
+- ``cv``: leave-one-pattern-family-out cross-validation; families from the labels: ``single``
+  (``seg<k>…``, ``tendon<k>…``) and one per pair of segments (``pair<jk>…``). Mean over folds.
+- ``extrap``: singles → pairs, fit on the single family and test on every pair family.
 
-In every fold the calibrated CC model is refitted on the fold's training rows, history inputs
-run along the whole recording (causal), and each learned model is trained on the training rows
-only. Labels without a family raise (there is no proxy without families).
-
-The benchmark computes ``extrap`` by default (:data:`DEFAULT_PROXIES`, one fold per model) and the
-family CV (four more folds on FTDCR v4/v6, ~4× the cost) on request; both are the same computation
-whether or not the other is run.
-
-Before the models, :func:`choose_cc_variant` picks the calibrated CC model's variant
-(:data:`CC_VARIANTS`) by the CC model's own ``extrap`` score: the physical base of every
-Clarke-space model is chosen per robot on the same proxy.
-
-:func:`choose_default` picks the candidate with the lowest ``extrap`` (the proxy of the regime
-shift; docs/hardware.md shows on FTDCR v4 how each proxy's ranking compares with val's).
+In every fold the calibrated CC model is refitted on the fold's training rows, history inputs run along
+the whole recording (causal), and each learned model is trained on the training rows only. Labels
+without a family raise. :data:`DEFAULT_PROXIES` is ``extrap`` only (the family CV costs ~4× more).
+:func:`choose_cc_variant` picks the CC variant (:data:`CC_VARIANTS`) by the CC model's own ``extrap``;
+:func:`choose_default` picks the default model.
 """
 from __future__ import annotations
 
