@@ -1,40 +1,19 @@
-"""Slack-aware Clarke encoder for tendon robots (type-0 segments).
+"""Slack-aware Clarke encoder for tendon robots (type-0 segments; docs/hardware.md, "The calibrated CC model").
 
-The plain :class:`~dacr_learn.layers.ClarkeEncoder` is the least-squares projection
-w = B⁺(q − q₀). On hardware, released tendons go slack (commands of −10 mm while the path
-only needs −2 mm): such a joint no longer constrains the shape, and least squares lets it
-pull the estimate towards a configuration that bends away from it.
-
-Here tendons are one-sided springs and the backbone is an elastic rod. With Clarke
-coordinates ρ (..., 2m) (docs/design.md §1, coupled or independent routing), the path shortening
-of joint i is (G ρ)_i with G = −B_ρ, and the configuration minimises
+The plain :class:`~dacr_learn.layers.ClarkeEncoder` (least squares, w = B⁺(q − q₀)) lets a slack tendon
+pull the estimate. Here tendons are one-sided springs and the backbone an elastic rod: with Clarke
+coordinates ρ (..., 2m) (docs/design.md §1) and G = −B_ρ, the configuration minimises
 
     E(ρ) = ½ c Σ_k ‖ρ⁽ᵏ⁾‖² / (l_k d_k²)  +  ½ Σ_i max(0, x_i + p − (G ρ)_i)² / L_i
 
-- x_i [m]: commanded displacement of joint i (positive = pulled), p [m]: pretension stretch;
-- first term: bending energy of segment k (curvature ‖ρ⁽ᵏ⁾‖/(d_k l_k)) over the tendon
-  stiffness, c = EI/EA [m²] the *compliance* (c → 0: inextensible tendons);
-- second term: elastic energy of the tendons that are stretched (x_i + p > (Gρ)_i) — a
-  tendon whose command is shorter than its path demand is slack and contributes nothing.
-  L_i [m] is the path length of joint i (the segments it passes).
+x_i [m] the commanded displacement of joint i (positive = pulled), p [m] the pretension stretch,
+c = EI/EA [m²] the compliance, L_i [m] the path length of joint i. Commands with x = Gρ* and c → 0 give ρ*.
 
-Properties: for commands that satisfy the displacement constraint (x = Gρ*, e.g. the output
-of a :class:`~dacr_learn.layers.ClarkeDecoder`) and c → 0, ρ = ρ* exactly; a single pulled
-tendon with all others slack bends the segments it passes towards it with equal curvature
-(coupled routing) or only its own segment (independent routing).
-
-E is a convex piecewise quadratic. It is minimised by a semi-smooth Newton (active-set)
-iteration: guess the stretched tendons, solve the linear system, update the set, repeat.
-Batched over leading dims; gradients flow through the final linear solve (the active set
-is piecewise constant), so c, p, the radii and the joint-angle rotations can be fitted.
-
-For fixed parameters (inference, :mod:`.inference`) the same minimiser is found without
-iterating: :func:`active_set_gains` solves the linear system of every one of the 2ᴺ sets once
-(ρ_S = K_S x), and :func:`select_active_set` picks, per command, the set S whose solution is
-consistent with it — stretched exactly where x − Gρ_S > 0. Because E is strictly convex, that
-set is unique (it is the set at the minimiser) and ρ_S is the minimiser; in floating point the
-set with the least sign violation is taken, whose ρ_S is within ‖Gᵀ W v‖/min(bend_w) of the
-minimiser (v the violations: ∇E(ρ_S) = Gᵀ W v and E is min(bend_w)-strongly convex).
+E is a convex piecewise quadratic, minimised by a semi-smooth Newton (active-set) iteration; batched, with
+gradients through the final linear solve (so c, p, the radii and the rotations can be fitted). For fixed
+parameters :func:`active_set_gains` solves the linear system of each of the 2ᴺ sets once (ρ_S = K_S x) and
+:func:`select_active_set` picks the set consistent with the command (unique: E is strictly convex; in floating
+point the least sign violation, whose ρ_S is within ‖Gᵀ W v‖/min(bend_w) of the minimiser).
 """
 from __future__ import annotations
 
@@ -151,17 +130,12 @@ def enumerated_solution(x: Tensor, sets: Tensor, gain: Tensor, residual_map: Ten
 class SlackAwareEncoder(nn.Module):
     """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4).
 
-    Learnable physical parameters (nn.Parameters, float64):
-    ``log_radius_scale`` (m,): effective radius d_k = d_k,nominal·exp(·);
-    ``rotation`` (m,) [rad]: rotation of each segment's joint angles (refines the offsets);
-    ``log_compliance``: log c, c = EI/EA [m²]; ``pretension`` p [m]; with ``strain=True`` also
-    ``pretension_strain`` s [m]: tendon i's pretension stretch is p_i = p + s·(L_i/L̄ − 1), L_i its
-    path length, L̄ their mean (a common pretension *force* stretches each tendon ∝ its length; s = p
-    is pure strain). Without it every tendon has the same p (the model before; its default).
+    Learnable physical parameters (float64): ``log_radius_scale`` (m,), d_k = d_k,nominal·exp(·);
+    ``rotation`` (m,) [rad] of each segment's joint angles; ``log_compliance`` (log c [m²]); ``pretension``
+    p [m]; with ``strain=True`` also ``pretension_strain`` s [m]: p_i = p + s·(L_i/L̄ − 1), L̄ the mean path length.
 
     Output features follow docs/design.md §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
-    d_nominal/d_effective, β = l, α = 0, so that ``forward_kinematics(spec, features)`` gives
-    the shape with the effective radius.
+    d_nominal/d_effective, β = l, α = 0, so ``forward_kinematics(spec, features)`` gives the effective shape.
     """
 
     def __init__(self, spec: RobotSpec, compliance: float = 1e-6, pretension: float = 0.0, strain: bool = False):

@@ -1,39 +1,24 @@
 """Save and load a fitted hardware tip model: calibration, servo map, CC parameters, ensemble members.
 
-A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, so it
-loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
+A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, loadable with
+``torch.load(path, weights_only=True)``::
 
-    format: "dacr_learn.hardware_model/3" (CC Clarke-residual family) or "dacr_learn.hardware_model/2"
-        (compositional members: the ``structure`` and ``compositional`` entries below)
-    model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m];
-    robot: the calibrated RobotSpec as a dict; servo_map: ServoMap.to_dict(); servo_ids: column order
-    units: "mm" (unit of the servo commands a user passes in; tips are metres)
-    cc: CalibratedCC state dict (fitted physical parameters)
-    members: [state dict of each ensemble member (cc.* keys left out)]: /3 ``rho_std``, ``onehot``
-        and the residual network ``net.*``
-    structure (/2 only): "compositional"; a /3 (or /1) file is the structure "clarke_residual"
-    compositional (/2 only): {"context", "width", "depth", "torsion"} of the members'
-        :class:`~.compositional_model.CCCompositionalResidual` (their state dicts hold the network
-        weights and the feature normaliser's buffers)
-    sigma_calibration: {"scale", "floor" [m]} or None (ensemble std only; the σ when sigma_model is None)
-    sigma_model: SigmaModel.to_dict() ({"terms", "coefficients", "floor"}) or None (the σ of
-        :meth:`HardwareModel.predict`; absent in older checkpoints); support: SupportModel state dict or None
+    format: "dacr_learn.hardware_model/3" (CC Clarke-residual family, :class:`~.learned.CCClarkeResidual`
+        and :class:`~.learned.CCClarkeResidualHistory`) or "/2" (compositional members,
+        :class:`~.compositional_model.CCCompositionalResidual`: the ``structure`` and ``compositional`` entries)
+    model: registry name; history: bool; play_width [m]; robot: the calibrated RobotSpec as a dict;
+    servo_map: ServoMap.to_dict(); servo_ids: column order; units: "mm" (servo commands; tips are metres)
+    cc: CalibratedCC state dict; members: [each member's state dict without the cc.* keys]
+    structure (/2 only): "compositional"; compositional (/2 only): {"context", "width", "depth", "torsion"}
+    sigma_calibration: {"scale", "floor" [m]} or None; sigma_model: SigmaModel.to_dict() or None (the σ of
+        :meth:`HardwareModel.predict`); support: SupportModel state dict or None
     examples: (n, S) training commands [mm] in time order (to verify exports), or None
-    info: free-form dict (command line, …; ``servo_range_mm``: {"lower", "upper"} the range of every servo
-        command of the training recording [mm], written by the benchmark since 2026-11-28:
-        :meth:`HardwareModel.servo_range`)
+    info: free-form dict (command line; ``servo_range_mm``: {"lower", "upper"} [mm], the range of every servo
+        command of the training recording: :meth:`HardwareModel.servo_range`)
 
-Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
-history variant :class:`~.learned.CCClarkeResidualHistory`; registry ``cc``, ``cc_clarke_residual``,
-``cc_clarke_residual_history``), written as format /3, and the compositional CC model
-(:class:`~.compositional_model.CCCompositionalResidual`, registry ``cc_compositional_residual``), written
-as format /2. Older code rejects a format it does not know instead of misreading it.
-
-Format /1 (written until 2026-11-25) is /3 plus two entries of research options that no registered model
-used, ``clamp`` (False) and ``gate_width`` (None), and two member buffers only those options read
-(``rho_max``, ``train_clarke``). The loader still reads it: with those defaults the buffers are dropped and
-the model is the same; a file with the options set (a research variant) is a ValueError naming it. A /2 file
-written then also has the two entries (always the defaults).
+Format /1 (written until 2026-11-25) is /3 plus the research options ``clamp`` (False) and ``gate_width``
+(None) and the member buffers ``rho_max``, ``train_clarke``; it still loads (the buffers dropped), unless
+the options are set (ValueError). Older code rejects a format it does not know instead of misreading it.
 """
 from __future__ import annotations
 
