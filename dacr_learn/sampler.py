@@ -1,28 +1,19 @@
 """A learned multi-solution IK sampler: a conditional normalizing flow of the joints given the target (docs/ik.md).
 
-:class:`ClarkeSampler` models p(x | target) for a robot, the distribution of the joint configurations that reach a
-tip pose (or a tip position), so that its samples, spread over the whole solution set of a redundant robot, seed
-the IK solver's refinement (:func:`dacr_learn.ik.solve_ik`, ``seeds``). The flow is a conditional neural spline
-flow with coupling layers (``zuko.flows.NSF``, ``passes=2``: sampling costs one network pass per transform, like
-the density), on standardised variables y:
+:class:`ClarkeSampler` models p(x | target), the distribution of the joint configurations that reach a tip pose
+(or position), so that its samples seed the IK solver's refinement (:func:`dacr_learn.ik.solve_ik`, ``seeds``).
+The flow is ``zuko.flows.NSF`` (coupling, ``passes=2``) on standardised variables y:
 
 - ``features="clarke"``: y = standardise(squash⁻¹(x)), x the actuated Clarke features (``models.actuated_columns``
-  order). The squash maps ℝᴰ onto the limits of the robot file: a box coordinate (β, α) to its range by
-  mid + half·tanh(v), a segment's bending pair v ∈ ℝ² into its disk ‖ρ‖ ≤ d·bend by ρ = d·bend·tanh(‖v‖)·v/‖v‖.
-  Every sample lies inside the limits by construction, and every joint vector decoded from it satisfies the
-  displacement constraint.
-- ``features="raw"``: y = standardise(q), the joint vector. A sample is a joint vector off the constraint (its
-  components are independent outputs); it is encoded to features (the encoder's least-squares projection onto
-  the constraint) and then projected onto the limits (:meth:`ClarkeSpace.saturate`). The training joint vectors
-  lie on the constraint, a subspace of dimension D < N, where a density in ℝᴺ is degenerate: the training noise
-  (``SamplerModule.noise``) keeps it finite.
+  order). The squash maps ℝᴰ onto the robot's limits: a box coordinate (β, α) by mid + half·tanh(v), a bending
+  pair v ∈ ℝ² into its disk ‖ρ‖ ≤ d·bend by ρ = d·bend·tanh(‖v‖)·v/‖v‖, so every sample lies inside the limits.
+- ``features="raw"``: y = standardise(q); a sample is encoded to features (least squares onto the displacement
+  constraint) and projected onto the limits (:meth:`ClarkeSpace.saturate`); the training noise
+  (``SamplerModule.noise``) keeps the density on the constraint's subspace finite.
 
-Conditioning c (10,): the target as :func:`~dacr_learn.models.pose_to_vector` (position / L, the first two rows of
-R), standardised, and a flag that is 1 when the rotation is given; a position-only target has its rotation
-entries at 0 (their standardised mean) and the flag 0. A model trained with part of its targets' rotations hidden
-(``SamplerModule.position_fraction``) samples for poses and for positions alike.
-
-No Lightning here; the training module is :class:`dacr_learn.training_sampler.SamplerModule`.
+Conditioning c (10,): :func:`~dacr_learn.models.pose_to_vector` of the target (position / L, the first two rows of
+R), standardised, and a flag that is 1 when the rotation is given (a position-only target has its rotation entries
+at 0 and the flag 0). No Lightning here; the training module is :class:`dacr_learn.training_sampler.SamplerModule`.
 """
 from __future__ import annotations
 

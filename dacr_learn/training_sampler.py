@@ -1,14 +1,11 @@
 """LightningModule of the learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`), trained by maximum
 likelihood on the synthetic dataset of its robot (``train.py fit --config configs/ik_sampler_tdcr3.yaml``).
 
-Loss: the negative log-likelihood [nats per sample, standardised flow variables] of the training joint
-configurations given their tip poses; a fraction ``position_fraction`` of the poses has its rotation hidden, so
-one model samples for poses and for positions. Validation/test: ``nll_mean`` (rotation given, no noise), and the
-tip error of one sample per target under the analytic CC model, the model the IK CLI solves on (``pos_err_*``,
-``rot_err_*``: how far a seed lies from a solution before the solver refines it); for "raw" also the share of
-sampled joint vectors whose features leave the limits before the projection (``out_of_limits_pct``) and their
-distance from the displacement constraint (``constraint_residual_*``; "clarke" samples have neither, by
-construction, and do not report them).
+Loss: the negative log-likelihood [nats per sample, standardised flow variables] of the training joints given
+their tip poses (a ``position_fraction`` of the poses with the rotation hidden). Validation/test: ``nll_mean``
+(rotation given, no noise) and the tip error of one sample per target under the analytic CC model
+(``pos_err_*``, ``rot_err_*``); for "raw" also ``out_of_limits_pct`` (samples whose features leave the limits
+before the projection) and ``constraint_residual_*`` (their distance from the displacement constraint).
 """
 from __future__ import annotations
 

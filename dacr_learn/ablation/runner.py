@@ -1,21 +1,14 @@
 """Grid runner of the ablation "Clarke features vs raw joint lengths": config, jobs, one run, resume.
 
-One *job* = one training (robot, task, features, n_train, seed) through the LightningModules of
-``train.py`` (:class:`~dacr_learn.training.FKModule` / :class:`~dacr_learn.training.IKModule`)
-for a fixed number of optimisation steps, followed by evaluation on fixed test sets, one per
-test-time *condition*; every condition gives one CSV row:
+One *job* = one training (robot, task, features, n_train, seed, structure) through the LightningModules of
+``train.py`` for a fixed number of steps, evaluated on fixed test sets, one CSV row per test-time *condition*
+(docs/ablation.md, "Protocol"): fk ``clean``, ``joint_noise``, ``offset`` (a common-mode drift); ik ``clean``,
+``pose_noise``; for the robot ``transfer.from`` also ``transfer_n6`` (the network run on the robot
+``transfer.to`` through its Clarke layers; raw models cannot: NaN metrics and a note).
 
-- fk: ``clean``; ``joint_noise`` (Gaussian noise on every joint length); ``offset`` (the same
-  constant added to every joint length — a common-mode drift);
-- ik: ``clean``; ``pose_noise`` (noise on the input tip pose; errors against the clean pose);
-- both, for the robot named ``transfer.from``: ``transfer_n6`` — the trained network evaluated on
-  the robot ``transfer.to`` of the same geometry with a different number of joints, through that
-  robot's Clarke layers. Raw models cannot take that input: their row has NaN metrics and a note.
-
-``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and
-tests on Cosserat-rod datasets (:mod:`dacr_learn.data.cosserat`, the robots need a ``mechanics:``
-block), cached under DIR per robot, size and seed; only the ``clean`` condition (the noise conditions are
-the CC sampler's), and FK rows gain ``cc_pos_err_mean_pct``: the CC model on the same test set.
+``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and tests on
+Cosserat-rod datasets (:mod:`dacr_learn.data.cosserat`), cached under DIR; only ``clean``, and FK rows gain
+``cc_pos_err_mean_pct``: the CC model on the same test set.
 """
 from __future__ import annotations
 

@@ -1,23 +1,14 @@
 """Resolved-rate control of an exported hardware model in servo space: servo commands [mm] → tip, run causally.
 
 The controller linearises the exported ``jacobian`` module (J = ∂tip/∂servo [m/mm]) along the plant's last
-step (the command from the play state before it: while the play is being dragged this is the sliding
-derivative a continuing motion sees; evaluated at the state after the step, a dragged play sits exactly at
-its width and the one-sided "reversal" derivative ∝ 1/play width is taken, which made the loop diverge on a
-strongly history-dependent test model) and takes a damped least-squares step in servo space
-(:func:`dacr_learn.deploy.control.scaled_dls_step`, servo displacements scaled by their half-range), clipped
-to a box of commands (those of the training recording). A slack tendon's column of J is zero, so the tip task
-alone never re-tensions it; opt-in, a second task in J's null space pulls each slack servo in
-(``ServoControl.retension``, :func:`slack_pull`: docs/export.md for the trade-off).
+step (from the play state before it: the sliding derivative a continuing motion sees, not the one-sided
+reversal derivative, which made the loop diverge on a strongly history-dependent model) and takes a damped
+least-squares step (:func:`dacr_learn.deploy.control.scaled_dls_step`, servo steps scaled by their half-range),
+clipped to the training recording's box of commands. Opt-in, a null-space task re-tensions slack servos
+(``ServoControl.retension``, :func:`slack_pull`; docs/export.md).
 
-- :func:`initial_command`: the command to start at, :func:`dacr_learn.solve_ik` of the saved model for the first
-  target (position only), the solution nearest the current command;
-- :func:`run_control`: track targets with a plant (``fk``, e.g. the exported model itself) and a Jacobian;
-- :func:`static_targets`: reach the model's tips at a few training commands from the rest command;
-- :func:`load_hardware_export`, :func:`source_model`, :func:`training_commands`, :func:`servo_signs`, :func:`circle`,
-  :func:`tracking_errors`: the pieces around them.
-
-examples/control_hardware_model.py runs both tasks on an export and prints the tracking errors.
+:func:`initial_command` (the IK solution nearest the current command), :func:`run_control` (track targets with
+a plant and a Jacobian) and :func:`static_targets` are the tasks; examples/control_hardware_model.py runs them.
 """
 from __future__ import annotations
 

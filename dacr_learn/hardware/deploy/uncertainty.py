@@ -1,25 +1,15 @@
-"""Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores.
+"""Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores (docs/hardware.md).
 
-- :func:`ensemble_predict`: K independently trained members (different seeds) → mean tip and the
-  members' standard deviation per axis (n, 3) [m] — the spread of the learned part only.
-- :class:`SigmaModel`: a heteroscedastic σ, σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over terms
-  t of :data:`TERMS` (:func:`sigma_terms`): the ensemble std, the disagreement |mean − CC tip|
-  between the model and its physics, the support distance of the command and its total bend ‖ρ‖.
-  c_t and σ₀ are fitted by Gaussian maximum likelihood to *held-out* residuals (train-only folds:
-  :mod:`.heldout`; never the validation recording). The plain ensemble is over-confident and ranks
-  the errors poorly: its members share the calibrated CC model and the same data, so they agree
-  where the systematic (hysteresis, loading, marker) error is largest; that error grows with the bend.
-- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (the σ of a model
-  saved without a σ model; :meth:`SigmaCalibration.as_model`).
-- Scores of a σ on n rows with offset-removed residuals r = e − ē (e = prediction − measurement,
-  ē their mean over the n rows): :func:`coverage`, the fraction of the 3n entries with |r_a| ≤ 2σ_a,
-  and :func:`spearman`, the rank correlation between the per-row ‖σ‖ and ‖r‖ (Euclidean over axes).
-- :class:`SupportModel`: how far a command lies from the training commands, measured on its
-  Clarke coordinates ρ (n, m, 2) [m] (standardised per coordinate): the distance to the nearest
-  training row divided by a threshold chosen on the training recording alone — the 99th
-  percentile of each training row's distance to the nearest row of *another* pattern (label).
-  A score > 1 means "further from the training data than 99 % of the training patterns are from
-  each other": the prediction there is an extrapolation.
+- :func:`ensemble_predict`: K members (different seeds) → mean tip and the members' std per axis (n, 3) [m].
+- :class:`SigmaModel`: σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a over the terms of :data:`TERMS`
+  (:func:`sigma_terms`: ensemble std, |mean − CC tip|, support distance, total bend ‖ρ‖); c_t and σ₀ fitted
+  by Gaussian maximum likelihood to *held-out* residuals of train-only folds (:mod:`.heldout`).
+- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (:meth:`SigmaCalibration.as_model`).
+- Scores on n rows with offset-removed residuals r = e − ē (e = prediction − measurement): :func:`coverage`,
+  the fraction of the 3n entries with |r_a| ≤ 2σ_a, and :func:`spearman`, the rank correlation of ‖σ‖ and ‖r‖.
+- :class:`SupportModel`: the distance of a command's standardised Clarke coordinates ρ (n, m, 2) [m] to the
+  nearest training row over the 99th percentile of the training rows' distances to the nearest row of
+  another pattern; > 1: the prediction is an extrapolation.
 """
 from __future__ import annotations
 

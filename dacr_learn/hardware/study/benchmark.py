@@ -1,22 +1,16 @@
 """Benchmark of tip models on hardware recordings: calibrate, fit, select, train, evaluate, report.
 
-Steps (all generic: file names come from arguments, servo ids from the CSV header):
+Steps (file names from arguments, servo ids from the CSV header):
 
-1. Robot + servo map: the robot YAML's servo map (``servo_maps/<robot file name>`` next to
-   it, or ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls``
-   and write ``calibrated_robot.yaml`` / ``servo_maps/calibrated_robot.yaml`` into the run folder.
-2. Choose the calibrated CC model's variant (``--cc-variant auto``: the lower singles → pairs score
-   of the CC model, :func:`.selection.choose_cc_variant`) and fit its physical parameters on the
-   training recording.
-3. Score every model with the train-only selection proxies (:mod:`.selection`; ``extrap`` by
-   default, the family CV on request) and choose the default model among the Clarke-space candidates.
-4. Train every model of :mod:`.registry` (learned ones once per seed) on the whole training
-   recording and, when there is a validation recording, evaluate on it: offset-removed RMSE,
-   mean and p95 Euclidean error.
+1. Robot + servo map: ``servo_maps/<robot file name>`` next to the robot YAML (or ``--servo-map``); without
+   one, calibrate from ``--pulls`` and write ``calibrated_robot.yaml`` and its servo map into the run folder.
+2. Choose the CC variant (:func:`.selection.choose_cc_variant`) and fit the CC model on the training recording.
+3. Score every model with the train-only proxies (:mod:`.selection`) and choose the default model.
+4. Train every model of :mod:`.registry` (learned ones once per seed) on the training recording and evaluate
+   on the validation recording when there is one (offset-removed RMSE, mean and p95 error).
 
-Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool` (worker
-processes, or in line) and ``collect_*`` assembles the results in model order; ``run_*`` do both.
-Models fitted in no time (``linear_raw``, ``cc``: ``instant`` in the registry) run in this process.
+Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool`, ``collect_*``
+assembles the results in model order, ``run_*`` do both. ``instant`` models run in this process.
 """
 from __future__ import annotations
 
