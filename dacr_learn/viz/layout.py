@@ -160,13 +160,9 @@ def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesV
 
 
 def default_blueprint(metric_names: Iterable[str] = (), colour_note: str = "") -> rrb.Blueprint:
-    """Layout of a training recording.
-
-    Left: one full-range plot per quantity (train and val together, log10 values, linear for the
-    :data:`SIGNED` quantities; a second tab has the linear values). Right: the validation samples in
-    3D (backbones, true and predicted tip frames), below it the workspace error cloud (``colour_note``
-    names its fixed colour scale) beside a tab of the metrics table (latest train/val/test values),
-    hparams, CLI config and the text log. The time panel opens on ``step`` at the last step (follow mode).
+    """Layout of a training recording (docs/rerun.md): full-range metric plots (log10 and linear tabs) on the
+    left; the 3D validation samples, the workspace error cloud and tabs (metrics table, hparams, config, log) on
+    the right; the time panel on ``step`` at the last step (follow mode).
     """
     groups = metric_groups(metric_names)
     log_plots = _plots(groups, log10=True) or [rrb.TimeSeriesView(origin=LOG10_ROOT, name="metrics, log10")]

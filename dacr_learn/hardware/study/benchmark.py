@@ -234,11 +234,10 @@ class SelectionResult:
 
 def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]],
                    log: Callable | None = None, start: float | None = None) -> list[Future]:
-    """The shared pieces (Cosserat calibrations, then their synthetic tips) that the fits [(context, model,
-    seeds)] will need (:func:`..cosserat_learned.warmups`), each handed to the pool once, ahead of the fits:
-    with several workers the fits then read them instead of computing them in every worker or waiting for
-    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted). ``log``: called
-    with a line as each piece finishes (the calibrations can take many minutes before any model's line)."""
+    """Hand each shared piece the fits [(context, model, seeds)] need (Cosserat calibrations, then their synthetic
+    tips: :func:`..cosserat_learned.warmups`) to the pool once, ahead of the fits (nothing with ``jobs=1``: the fits
+    compute them when first asked). ``log``: called with a line as each piece finishes.
+    """
     if pool.jobs == 1:
         return []
     pieces: dict[str, tuple] = {}
@@ -334,11 +333,10 @@ def select_default(scores: dict, replicates: dict | None = None) -> dict:
 
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
                        info: dict | None = None, members: list[nn.Module] | None = None) -> HardwareModel:
-    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
-    per seed on the whole training recording of a :class:`Setup` and bundle the ensemble with
-    the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
-    fitted on held-out residuals. ``members``: the models already fitted that way, one per seed (e.g. by
-    the benchmark's final runs), bundled instead of trained again (ignored for ``cc``)."""
+    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc``) once per seed on the
+    training recording and bundle the ensemble with the support model of the training commands and, if given, a
+    σ calibration. ``members``: models already fitted that way, one per seed, bundled instead (ignored for ``cc``).
+    """
     if name == "cc":                    # deterministic: one member, the CC model itself
         members = [cc_as_residual(setup.train, setup.cc)]
     elif members is not None:

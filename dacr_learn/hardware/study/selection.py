@@ -209,12 +209,9 @@ def proxy_scores(name: str, folds: dict[str, list[Fold]], seeds: Sequence[int]) 
 
 def choose_cc_variant(rec: Recording, spec: RobotSpec, smap: ServoMap,
                       variants: Sequence[str] = tuple(CC_VARIANTS)) -> tuple[str, dict[str, float]]:
-    """(name, {variant: singles → pairs RMSE [mm] of the CC model alone}): the calibrated CC variant of
-    :data:`CC_VARIANTS` with the lowest ``extrap`` score, ties to the earlier one (``base`` first).
-
-    The CC model is the physical base of every Clarke-space model, so its variant is chosen per robot
-    before them, on the same train-only proxy (one CC fit per variant on the single-segment family).
-    Raises ValueError when the labels name no pattern families."""
+    """(name, {variant: singles → pairs RMSE [mm] of the CC model alone}): the variant of :data:`CC_VARIANTS`
+    with the lowest ``extrap`` score, ties to the earlier one (``base`` first). ValueError without families.
+    """
     unknown = [v for v in variants if v not in CC_VARIANTS]
     if unknown or not variants:
         raise ValueError(f"cc variants: expected one or more of {tuple(CC_VARIANTS)}, got {list(variants)}")
@@ -234,18 +231,16 @@ def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: st
 
 def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
                    replicates: Mapping[str, Tensor] | None = None, tie_sigmas: float = TIE_SIGMAS) -> dict:
-    """The default model by the one-standard-error rule, and why.
+    """The default model by the one-standard-error rule (docs/hardware.md), and why.
 
-    ``best`` is the candidate with the lowest ``proxy`` score. A candidate is *tied* with it when its score is
-    higher by at most ``tie_sigmas`` × the standard deviation of the bootstrapped difference of the two
-    (``replicates``: {model: bootstrap replicates (B,) of its proxy}, paired over the held-out pattern groups,
-    :func:`bootstrap_replicates`): the proxy cannot tell them apart. The default is the simplest tied
-    candidate (:func:`~.registry.complexity`; equal ones: the earlier candidate): a more complex model becomes
-    the default only when it beats every simpler one by more than their combined uncertainty. Without
-    ``replicates`` no difference has a spread and the lowest score wins.
+    ``best`` has the lowest ``proxy`` score; a candidate is *tied* with it when its score is higher by at most
+    ``tie_sigmas`` × the std of their bootstrapped difference (``replicates``: {model: (B,)} of
+    :func:`bootstrap_replicates`, paired over the held-out pattern groups). The default is the simplest tied
+    candidate (:func:`~.registry.complexity`; equal ones: the earlier). Without ``replicates`` the lowest wins.
 
     Returns {"default", "best", "tied": [models], "rule", "reason", "candidates": {model: {"score_mm",
-    "std_mm", "gap_mm", "gap_std_mm", "tied"}}} (std: of the model's own replicates)."""
+    "std_mm", "gap_mm", "gap_std_mm", "tied"}}} (std: of the model's own replicates).
+    """
     scored = [c for c in candidates if c in scores and proxy in scores[c]]
     if not scored:
         raise ValueError(f"choose_default: none of the candidates {list(candidates)} has a {proxy!r} score")

@@ -117,14 +117,10 @@ def _hidden(entities: list[str]) -> dict[str, list]:
 def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown: int = 3, default: str | None = None):
     """Layout for :func:`log_rerun`; ``errors``: model -> offset-removed errors [mm].
 
-    Left, large: the 3D view (measured path, the CC model and the :func:`shown_models` — the
-    ``default`` model and the best others by val RMSE, ``shown`` in all — with their ±2σ bands);
-    below it the offset-removed error per val sample of the shown models only (every sample, y
-    from 0 to :func:`error_axis_max` of them, so the three-line legend lies above the curves)
-    and, when ``with_std``, their predicted 2σ. Right: every model's val RMSE as a bar chart (one
-    bar per model, best first, in the model's colour; the legend reads rank and name) above the
-    RMSE table (same ranks). Every other model stays in the recording, hidden in the 3D view and
-    the plots (one click away in the blueprint panel). Opens at the last sample (follow mode).
+    Left: the 3D view (measured path, the CC model and the :func:`shown_models`, with their ±2σ bands), below
+    it the shown models' error per val sample (y up to :func:`error_axis_max`) and, with ``with_std``, their
+    predicted 2σ. Right: every model's val RMSE as bars (best first, in its colour) above the RMSE table.
+    Every other model stays in the recording, hidden (one click away). Opens at the last sample.
     """
     import rerun.blueprint as rrb
 
@@ -244,14 +240,11 @@ def _summary(setup: Setup, rmse: dict[str, float], default: str | None = None) -
 
 def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
               std: dict[str, torch.Tensor] | None = None, default: str | None = None) -> None:
-    """Rerun .rrd of the val recording, with its own blueprint (:func:`hardware_blueprint`).
+    """Rerun .rrd of the val recording, with its own blueprint (:func:`hardware_blueprint`, showing ``default``).
 
-    Static: the measured and predicted val paths [m], for models in ``std`` (σ per sample [m],
-    shape (N,) or (N, 3)) a ±2σ band of ellipsoids, and every model's val RMSE as a bar
-    (``rmse/…``). On the timeline ``sample``: the measured and predicted tips, the CC model's
-    backbone, each model's offset-removed error [mm] (colours as in 3D, RMSE in the legend) and
-    its predicted 2σ [mm]. The layout shows ``default`` (the benchmark's default model, if any)
-    and the two best others by val RMSE; every other model is one click away.
+    Static: the measured and predicted val paths [m], a ±2σ band of ellipsoids for models in ``std`` (σ per
+    sample [m], (N,) or (N, 3)) and every model's val RMSE bar (``rmse/…``). On the timeline ``sample``: the
+    tips, the CC model's backbone, each model's offset-removed error [mm] and its predicted 2σ [mm].
     """
     import rerun as rr
 
