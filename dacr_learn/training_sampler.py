@@ -24,13 +24,11 @@ from .training import KinematicsModule
 class SamplerModule(KinematicsModule):
     """Learned multi-solution IK sampler: a conditional normalizing flow of the joints given the tip pose.
 
-    Args (beyond :class:`~dacr_learn.training.KinematicsModule`'s): features "clarke" (the flow models the actuated
-    Clarke features, squashed into the limits: samples inside them by construction) | "raw" (the joint vector:
-    samples encoded, then projected onto the limits); transforms, bins: coupling spline transforms of the flow and
-    their bins; width, depth, activation: each transform's network. noise: std of the Gaussian noise added to the
-    standardised training variables (keeps the density finite on the solution manifolds; > 0 needed for "raw",
-    whose joint vectors span fewer dimensions than N). position_fraction: share of training poses whose rotation
-    is hidden (0: a pose-only sampler; > 0: it also samples for tip positions).
+    Args (beyond :class:`~dacr_learn.training.KinematicsModule`'s): features "clarke" | "raw" (module docstring of
+    :mod:`dacr_learn.sampler`); transforms, bins: coupling spline transforms and their bins; width, depth,
+    activation: each transform's network; noise: std of the Gaussian noise on the standardised training variables
+    (> 0 needed for "raw"); position_fraction: share of training poses whose rotation is hidden (> 0: the model
+    also samples for tip positions).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",

@@ -133,21 +133,16 @@ KeepingResidual = Callable[[Tensor, Tensor], "tuple[Tensor, Tensor | None]"]
 
 def newton(fun: KeepingResidual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
            halvings: int = 10) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Damped quasi-Newton on r(x) = 0, each sample on its own and only while it has not converged.
+    """Damped quasi-Newton on r(x) = 0, per sample while it has not converged (docs/cosserat.md §3).
 
-    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None): the residual of the n rows x of samples ``idx``, and
-    whatever the caller needs of the point besides r (e.g. the states at the grid nodes); ``newton`` returns the
-    ``kept`` of each sample's final x, so nothing is passed back through side effects of ``fun``.
-    J from forward differences of ``coarse`` (the same residual on a coarser grid, default ``fun``'s r) at x0,
-    then Broyden's rank-one update with ``fun``'s residuals after every step, refreshed by differences
-    where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, …
-    (``halvings`` tries, one evaluation each) until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); the
-    accepted trial's residual is the next residual, so a step costs one integration. Where no trial meets
-    that, the best trial if it lowers ‖r‖₂, else the sample stays where it is: never a worse point. A sample
-    that cannot move gets J differenced again, on ``coarse`` and then on ``fun`` itself (the coarse grid's J
-    may be too rough where the rod bends hard); one that cannot move even then has stalled and stops (reported
-    with its residual).
-    Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,), kept (B, ...) or None)."""
+    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None): the residual of the n rows x of samples ``idx`` and what
+    the caller keeps of the point (e.g. the states at the grid nodes), returned for each sample's final x.
+    J: forward differences of ``coarse`` (default ``fun``'s r) at x0, Broyden updates after every step, refreshed
+    where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, … (``halvings`` tries)
+    until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); else the best trial if it lowers ‖r‖₂, else the sample stays
+    and J is differenced again (on ``coarse``, then on ``fun``); a sample that cannot move even then stops.
+    Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,), kept (B, ...) or None).
+    """
     x = x0.clone()
     every = torch.arange(x.shape[0])
     fine = lambda z, idx: fun(z, idx)[0]  # noqa: E731

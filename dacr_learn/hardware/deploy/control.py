@@ -35,12 +35,10 @@ __all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", 
 @dataclass(frozen=True)
 class ServoControl(ControllerConfig):
     """gain, damping (λ [m] of the DLS), max_step (largest scaled servo step ‖Δu / s‖ per control step, s: each
-    servo's half-range): as :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step ‖Δu / s‖
-    per control step by which each *slack* servo (a zero column of J) is pulled in, in [0, max_step] (0: off, the
-    default). The tip task alone never moves a slack tendon's
-    servo (its column of J is zero), so a target that needs the tendon taut again can stall. The pull is in
-    J's null space, so it does not move the tip until the tendon goes taut (its column turns non-zero and
-    the pull stops); the step that crosses the taut onset does move it (docs/export.md: a trade-off)."""
+    servo's half-range): as :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step per
+    control step by which each *slack* servo (a zero column of J) is pulled in, in [0, max_step] (0: off), in
+    J's null space, so the tip moves only once the tendon turns taut (docs/export.md: a trade-off).
+    """
 
     damping: float = 2e-3
     retension: float = 0.0
@@ -67,14 +65,12 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
                     options: IKOptions | None = None) -> tuple[Tensor, float]:
     """The command to start a control loop at: (u0 (S,) [mm, ``model.servo_ids`` order], its tip error [m]).
 
-    :func:`dacr_learn.solve_ik` of the saved hardware ``model`` (:func:`.checkpoint.load_hardware_model`) for the
-    tip position ``target`` (3,) [m] (position only), warm-started at the ``current`` command (S,) [mm] (e.g. the
-    rest command 0): of ``solutions`` solutions, the first successful one, which is the one nearest ``current``
-    (largest servo difference). It lies in the recorded servo range (:meth:`.checkpoint.HardwareModel.servo_range`)
-    and the model's own static prediction there (a history model's play state at the command itself) is within
-    ``options.pos_tolerance`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
-    returned. ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the
-    wrong shape."""
+    :func:`dacr_learn.solve_ik` of the saved hardware ``model`` for the tip position ``target`` (3,) [m], warm-started
+    at the ``current`` command (S,) [mm]: of ``solutions`` solutions the first successful one, the nearest to
+    ``current``. It lies in :meth:`.checkpoint.HardwareModel.servo_range` and the model's static prediction there is
+    within ``options.pos_tolerance`` (:class:`dacr_learn.ik.IKOptions`) of the target. ValueError when no solution
+    reaches the target (naming the smallest miss) or for inputs of the wrong shape.
+    """
     options = IKOptions() if options is None else options
     target = torch.as_tensor(target, dtype=F64)
     current = torch.as_tensor(current, dtype=F64)
@@ -97,13 +93,11 @@ def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | 
     """Track ``targets`` (T, 3) [m] from command ``servo0`` (S,) [mm] and play state ``state0`` (1, m, 2)
     (None: a static model). ``fk`` / ``jacobian``: the exported modules (or HardwareFK / HardwareJacobian).
 
-    Each step: the plant (``fk``) executes the command u with the current state → tip and the new state;
-    J = ∂tip/∂u at (u, the state before this step: the tangent of the plant's step, module docstring);
-    u ← clip(u + DLS(J, gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper),
-    ``pull_sign`` (S,): +1 where a larger command pulls the tendon in, −1 where a smaller one does (the servo
-    map's signs; default all +1). The first
-    ``settle`` steps hold targets[0] and are not returned. Returns numpy arrays of the tracking phase:
-    desired, actual (T, 3) [m], servo (T, S) [mm], step_us (T,) (controller step: Jacobian + DLS + clip).
+    Each step: the plant (``fk``) executes u → tip and the new state; J = ∂tip/∂u at the state before the step;
+    u ← clip(u + DLS(J, gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper).
+    ``pull_sign`` (S,): +1 where a larger command pulls the tendon in, −1 where a smaller one does (default all
+    +1). The first ``settle`` steps hold targets[0] and are not returned. Returns numpy arrays of the tracking
+    phase: desired, actual (T, 3) [m], servo (T, S) [mm], step_us (T,) (controller step: Jacobian + DLS + clip).
     """
     scale = ((upper - lower) / 2).to(F64).clamp_min(1e-9)
     lower, upper = lower.to(F64), upper.to(F64)
