@@ -71,7 +71,7 @@ def rest_position(rec: Recording, rows: list[np.ndarray], level: float) -> np.nd
 
 
 def fit_pull(rec: Recording, s: int, idx: np.ndarray, rest: np.ndarray) -> PullFit:
-    """Line fit of servo column s over its single-pull rows (step 3 of the module doc)."""
+    """Line fit of servo column s over its single-pull rows (docs/hardware.md, calibration step 2)."""
     if len(idx) < 3:
         raise ValueError(f"{rec.source}: servo {rec.servo_ids[s]} has {len(idx)} single-pull rows, need >= 3")
     v = rec.servo[idx, s].numpy()
