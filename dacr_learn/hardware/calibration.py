@@ -117,13 +117,13 @@ def fit_layout(psi: np.ndarray, phi: np.ndarray) -> tuple[float, tuple[int, ...]
     return best[1], best[2], best[3]
 
 
-def _layouts(spec: RobotSpec) -> list[np.ndarray]:
-    """Joint angles of each segment relative to its first joint."""
-    return [np.asarray(s.joint_angles) - s.joint_angles[0] for s in spec.segments]
+def _layout(seg) -> np.ndarray:
+    """Joint angles of a segment relative to its first joint [rad]."""
+    return np.asarray(seg.joint_angles) - seg.joint_angles[0]
 
 
 def partition_score(groups, psi, log_gain, layouts, log_pred) -> float:
-    """Objective of step 4 for labelled groups (lists of servo columns, one per segment)."""
+    """Objective of the partition into segments (docs/hardware.md, calibration step 3); groups: columns per segment."""
     score, means = 0.0, []
     for g, phi in zip(groups, layouts, strict=True):
         res = fit_layout(psi[g], phi)[2]
@@ -154,12 +154,12 @@ def _local_search(groups, score_fn):
 
 
 def assign_segments(spec: RobotSpec, fits: list[PullFit], restarts: int = 20) -> list[list[int]]:
-    """Servo columns of each segment (step 4)."""
+    """Servo columns of each segment (the partition minimising :func:`partition_score`)."""
     psi = np.array([f.direction for f in fits])
     log_gain = np.log([f.gain for f in fits])
     log_pred = np.log(predicted_gains(spec))
     sizes = [s.num_joints for s in spec.segments]
-    score_fn = lambda g: partition_score(g, psi, log_gain, _layouts(spec), log_pred)  # noqa: E731
+    score_fn = lambda g: partition_score(g, psi, log_gain, [_layout(s) for s in spec.segments], log_pred)  # noqa: E731
 
     def chunk(order):
         seg_order = np.argsort(-log_pred, kind="stable")
@@ -178,7 +178,7 @@ def assign_segments(spec: RobotSpec, fits: list[PullFit], restarts: int = 20) ->
 
 def _segment_joints(seg, group: list[int], psi: np.ndarray) -> tuple[float, dict[int, int], np.ndarray]:
     """(δ, {column: joint}, residuals) for one segment, cyclic labels fixed for symmetric layouts."""
-    phi = np.asarray(seg.joint_angles) - seg.joint_angles[0]
+    phi = _layout(seg)
     delta, slots, res = fit_layout(psi[group], phi)
     joint = dict(zip(group, slots, strict=True))
     if seg.symmetric:
@@ -203,11 +203,10 @@ def calibrate(rec: Recording, spec: RobotSpec) -> tuple[RobotSpec, ServoMap, dic
     servos, per_servo, per_segment = [], {}, []
     for j, (seg, group) in enumerate(zip(spec.segments, groups, strict=True)):
         delta, joint, res = _segment_joints(seg, group, psi)
-        phi = np.asarray(seg.joint_angles) - seg.joint_angles[0]
         if seg.symmetric:
             d["segments"][j]["offset"] = delta
         else:
-            d["segments"][j]["joint_angles"] = [float(wrap(a + delta)) for a in phi]
+            d["segments"][j]["joint_angles"] = [float(wrap(a + delta)) for a in _layout(seg)]
         for c, r in zip(group, res, strict=True):
             f = fits[c]
             servos.append(ServoAssignment(f.servo, j, joint[c], f.sign, 0.0))
