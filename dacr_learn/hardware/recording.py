@@ -1,19 +1,13 @@
-"""Hardware recordings: CSV files of servo commands and motion-capture tip positions.
+"""Hardware recordings: CSV files of servo commands and motion-capture tip positions (docs/hardware.md).
 
 File format (one row per sample, time ordered)::
 
     timestamp,pattern_label,servo_<id>_mm,...,servo_<id>_mm,tip_x,tip_y,tip_z
 
-- ``timestamp`` [s]; ``pattern_label`` a free-form string naming the motion pattern.
-- one ``servo_<id>_<unit>`` column per actuator, in hardware order: the commanded tendon
-  displacement (larger = pulled). ``<id>`` is any token without underscores or commas.
-- ``tip_x, tip_y, tip_z``: the tracked tip position in the motion-capture frame.
-
-Everything is returned in SI units (metres) as float64 tensors. Checks raise ``ValueError``
-with the file and column named: missing columns, empty files, NaN/inf or unparsable values,
-non-increasing timestamps, a unit suffix that disagrees with ``units``, and values whose
-magnitude does not fit the declared unit and the robot's size (metres recorded as mm or
-the other way round).
+``timestamp`` [s]; ``pattern_label`` names the motion pattern; one ``servo_<id>_<unit>`` column per actuator in
+hardware order, the commanded tendon displacement (larger = pulled; ``<id>`` without underscores or commas);
+``tip_x, tip_y, tip_z`` the tracked tip in the motion-capture frame. Everything is returned in metres as
+float64 tensors; checks raise ``ValueError`` naming the file and column.
 """
 from __future__ import annotations
 
