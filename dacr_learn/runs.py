@@ -283,14 +283,11 @@ def load_model(path: str | Path, dtype: torch.dtype = torch.float32, blob: Any =
             :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`); ``path`` then names that file.
 
     Returns:
-        An ``nn.Module`` with ``.spec`` (the :class:`~dacr_learn.robot.RobotSpec` it was trained for):
-        an FK model maps joint lengths ``(..., N)`` [m] to tip poses ``(..., 4, 4)`` [m];
-        an IK model maps tip poses ``(..., 4, 4)`` to joint lengths ``(..., N)`` [m];
-        a learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`) draws joint configurations for tip
-        poses or positions (``sample_features(target, count)`` → ``(B, count, D)`` float64, the IK solver's seeds).
-        Its ``.task`` attribute is ``"fk"``, ``"ik"`` or ``"sampler"``. FK / IK models take inputs of any floating
-        dtype (cast to ``dtype``, e.g. the float64 joints of ``ResolvedRateController.step``); an FK model raises a
-        ValueError for joint lengths far outside the robot's limits (millimetres instead of metres).
+        An ``nn.Module`` with ``.spec`` (its :class:`~dacr_learn.robot.RobotSpec`) and ``.task``: "fk" (joint
+        lengths (..., N) [m] → tip poses (..., 4, 4) [m]), "ik" (the reverse) or "sampler"
+        (:class:`~dacr_learn.sampler.ClarkeSampler`: ``sample_features(target, count)`` → (B, count, D) float64).
+        FK / IK models cast floating inputs to ``dtype``; an FK model raises a ValueError for joint lengths far
+        outside the robot's limits (millimetres instead of metres).
 
     Raises:
         FileNotFoundError: nothing to load at ``path``.

@@ -89,13 +89,10 @@ class LimitSquash:
 class ClarkeSampler(nn.Module):
     """Conditional normalizing flow of a robot's joint configurations given a tip pose or position.
 
-    features: "clarke" | "raw" (module docstring). transforms: coupling transforms of the flow; width, depth:
-    the hidden layers of each transform's network; activation: their activation (``models.ACTIVATIONS``);
-    bins: spline bins. The hyper-parameters of a ``train.py`` sampler checkpoint build it
-    (:func:`~dacr_learn.compositional.model_from_hparams`, task "sampler").
-
-    ``position_trained``: whether the training hid some targets' rotations (set by the training module and stored
-    as a buffer, so a loaded model knows whether it can take position-only targets).
+    features: "clarke" | "raw" (module docstring); transforms: coupling transforms; width, depth, activation
+    (``models.ACTIVATIONS``): each transform's network; bins: spline bins. Built from a ``train.py`` checkpoint's
+    hyper-parameters by :func:`~dacr_learn.compositional.model_from_hparams` (task "sampler").
+    ``position_trained`` (a buffer): whether training hid some targets' rotations (position-only targets allowed).
     """
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", transforms: int = 4, width: int = 128,

@@ -108,21 +108,16 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
                         spring_lengths: Tensor | None = None, steps_per_segment: int = 8, tol: float = 1e-9,
                         max_iter: int = 30, on_failure: str = "raise", workers: int | None = None,
                         passing: str = "own") -> DisplacementSolution:
-    """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector
-    order) and the robot's weight (``gravity`` (3,) [m/s²], base frame, as :func:`solve_statics`, or one per
-    sample, (..., 3)).
+    """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector order) and
+    the robot's weight (``gravity`` (3,) or (..., 3) [m/s²], base frame, as :func:`solve_statics`).
 
-    ``spring_lengths`` (T,) [m]: when given, each tendon is a linear spring of that fixed length (its
-    stretch τ·c·L_s with c = ``mechanics.tendon_compliance``: e.g. a tendon that also runs from the base to
-    its actuator, or the CC model's convention L_s = the straight path length), so R = L − c·L_s·τ instead of
-    L/(1 + cτ) (the stretch spread over the tendon's own, command-dependent unstretched length); or one per
-    sample, (..., T) (e.g. several tendon compliances c' solved at once as lengths L_s·c'/c).
-    Per-sample gravities and spring lengths let one call solve a batch of parameter sets that share the robot
-    (a fit's finite differences).
-    ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration
-    (e.g. from the solution of a nearby command or parameter set). ``tol`` [m]: the largest tendon-length
-    violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". ``passing``: as
-    :func:`solve_statics`. Float64, no gradient."""
+    ``spring_lengths`` (T,) or (..., T) [m]: each tendon a linear spring of that fixed length L_s (stretch τ·c·L_s,
+    c = ``mechanics.tendon_compliance``, e.g. the CC model's straight path length), so R = L − c·L_s·τ instead of
+    L/(1 + cτ); per-sample values (and gravities) let one call solve several parameter sets (a fit's finite
+    differences). ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration.
+    ``tol`` [m]: the largest tendon-length violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag".
+    ``passing``: as :func:`solve_statics`. Float64, no gradient.
+    """
     check_solve_arguments(spec, on_failure)
     if not (isinstance(max_iter, int) and max_iter >= 1):
         raise ValueError(f"max_iter: got {max_iter!r}, expected a positive integer")

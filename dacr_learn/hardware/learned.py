@@ -44,12 +44,10 @@ NORM_DTYPE = torch.float32
 def play_operator(values: Tensor, width: float | Tensor) -> Tensor:
     """Vector play (backlash) operator along the rows (time order) of values (n, ..., k).
 
-    The state starts at the first row and is dragged along whenever the input moves more
-    than the width away from it: state_t = v_t + (s_{t−1} − v_t)·min(1, w_t/‖s_{t−1} − v_t‖).
-    ``width`` [same unit as values] is a constant or per-row widths broadcastable to
-    values.shape[:-1] (a width that changes with the state). With k = 1 it is the scalar
-    play, state_t = clamp(s_{t−1}, v_t − w_t, v_t + w_t). (values − state)/width lies in the
-    unit disc and encodes the recent direction of motion.
+    The state starts at the first row and is dragged along when the input moves more than the width away:
+    state_t = v_t + (s_{t−1} − v_t)·min(1, w_t/‖s_{t−1} − v_t‖) (k = 1: the scalar play). ``width`` [unit of
+    the values]: a constant or per-row widths broadcastable to values.shape[:-1]. (values − state)/width lies in
+    the unit disc and encodes the recent direction of motion.
     """
     w = torch.as_tensor(width, dtype=values.dtype, device=values.device)
     rows = tuple(values.shape[:-1])
