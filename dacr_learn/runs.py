@@ -159,12 +159,9 @@ def checkpoint_task(ckpt: Path, raw: Any) -> str:
         RobotSpec.coerce(hparams["robot"])
     except (ValueError, OSError) as err:
         raise ValueError(f"{ckpt}: hyper_parameters.robot: {err}") from err
-    if isinstance(weights, dict) and "model.front.norm.mean" in weights:
-        return "fk"
-    if isinstance(weights, dict) and "model.in_norm.mean" in weights:
-        return "ik"
-    if isinstance(weights, dict) and "model.target_norm.mean" in weights:
-        return "sampler"
+    for task, key in (("fk", "front.norm"), ("ik", "in_norm"), ("sampler", "target_norm")):
+        if isinstance(weights, dict) and f"model.{key}.mean" in weights:
+            return task
     raise bad("a state_dict without model.front.norm / model.in_norm / model.target_norm weights "
               f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -206,11 +207,6 @@ def spearman(a: Tensor, b: Tensor) -> float:
     return float(torch.corrcoef(torch.stack(ranks))[0, 1])
 
 
-def _groups_from_labels(labels: Sequence[str]) -> Tensor:
-    index: dict[str, int] = {}
-    return torch.tensor([index.setdefault(label, len(index)) for label in labels])
-
-
 class SupportModel(nn.Module):
     """Out-of-support score of commands from their Clarke coordinates (see the module docstring).
 
@@ -244,9 +240,9 @@ class SupportModel(nn.Module):
         self.mean.copy_(points.mean(0))
         self.std.copy_(points.std(0).clamp_min(1e-12))
         self.points = (points - self.mean) / self.std
-        groups = torch.arange(points.shape[0]) if labels is None else _groups_from_labels(labels)
-        if int(groups.max()) == 0:                    # one pattern only: leave-one-out
-            groups = torch.arange(points.shape[0])
+        groups = torch.arange(points.shape[0])        # no labels, or one pattern only: leave-one-out
+        if labels is not None and len(set(labels)) > 1:
+            groups = torch.from_numpy(np.unique(labels, return_inverse=True)[1])
         dist = torch.cdist(self.points, self.points, compute_mode=_EXACT)
         dist[groups[:, None] == groups[None, :]] = float("inf")
         self.threshold.copy_(torch.quantile(dist.min(1).values, self.quantile))
