@@ -12,11 +12,9 @@ t_i = s_i/‖s_i‖ (the tendon's unit tangent in the body frame), and
     d = −û K_se (v − e3) − Rᵀ f_e − Σ_i τ_i u × t_i,
     c = −û K_bt u − v̂ K_se (v − e3) − Σ_i τ_i r_i × (u × t_i),
 
-f_e = ρA·g [N/m] the weight per length (the distributed moment l_e is zero). The rod's internal force
-and moment in the body frame are n = K_se (v − e3) [N] and m = K_bt u [N·m]. The state is flat,
-(B, 18 + T): p (3) [m], R (9, row-major), ε = v − e3 (3), u (3) [1/m], tendon path lengths L (T) [m].
-The state holds ε rather than v ≈ e3 so that the small axial and shear strains (and n = K_se ε) keep
-their relative precision: with v itself, n would carry an absolute error of EA·eps.
+f_e = ρA·g [N/m] the weight per length. Internal force n = K_se (v − e3) [N], moment m = K_bt u [N·m].
+The flat state (B, 18 + T) is p (3) [m], R (9, row-major), ε = v − e3 (3) (not v: keeps n = K_se ε
+precise for a stiff EA), u (3) [1/m] and the tendon path lengths L (T) [m].
 """
 from __future__ import annotations
 

@@ -1,19 +1,14 @@
 """Synthetic constant-curvature datasets: sampling of features, joint vectors and tip poses (files: :mod:`.store`).
 
-Sampling (per segment, from the robot's limits): the bending vector u = φ·(cos θ, sin θ) is
-uniform in area over the disk φ ≤ bend (φ = bend·√U₁, θ = 2πU₂), ρ = d·u; β and α are
-uniform in their ranges. Joint vectors come from :class:`ClarkeDecoder`, tip poses from
-:func:`forward_kinematics`. Generation is deterministic for a seed (a private generator).
+Per segment the bending vector u = φ·(cos θ, sin θ) is uniform in area over the disk φ ≤ bend (φ = bend·√U₁,
+θ = 2πU₂), ρ = d·u; β and α are uniform in their ranges. Joint vectors come from :class:`ClarkeDecoder`, tip
+poses from :func:`forward_kinematics`; deterministic for a seed (a private generator). With ``max_bending``
+each sample bends a uniformly drawn subset of at most that many segments (the empty one included; the others
+straight, ρ = 0, their β and α still sampled); ``None`` bends every segment.
 
-Tensors of a dataset (all in SI units):
-  q (N, num_joints) [m, rad] — measured joint vector (after noise and common-mode offset),
-  q_clean (N, num_joints) — noise-free joint vector, features (N, m, 4) — sampled features,
-  pose (N, 4, 4) — measured tip pose (after pose noise), pose_clean (N, 4, 4),
-  optional segment_frames (N, m, 4, 4) — noise-free pose of every segment's end in the base frame.
-
-Combination regimes (``max_bending``): each sample bends only a subset of at most ``max_bending``
-segments, drawn uniformly among all such subsets (the empty one included); the others are
-straight (ρ = 0), their β and α still sampled. ``None`` (default) bends every segment.
+Tensors (SI units): q (N, num_joints) [m, rad] the measured joint vector (after noise and common-mode offset),
+q_clean (N, num_joints), features (N, m, 4), pose (N, 4, 4) the measured tip pose (after pose noise),
+pose_clean (N, 4, 4), optional segment_frames (N, m, 4, 4): the noise-free end of every segment, base frame.
 """
 from __future__ import annotations
 

@@ -139,16 +139,12 @@ def read_rows(path: str | Path) -> tuple[list[str], list[list[str]]]:
 
 
 def load_recording(path: str | Path, spec: RobotSpec | None = None, units: str = "mm") -> Recording:
-    """Read a recording CSV into SI tensors (float64).
+    """Read a recording CSV (format of the module docstring) into SI tensors (float64).
 
-    Args:
-        path: CSV file in the format of the module docstring.
-        spec: the robot; when given, the number of servo columns must equal its number of
-            joint lengths and magnitudes are checked against its total length.
-        units: unit of the servo and tip columns, "mm" or "m".
-    Raises:
-        ValueError: missing columns, NaN/inf, bad numbers, time going backwards, a column
-        unit other than ``units``, or magnitudes that do not fit the unit.
+    ``spec``: when given, the number of servo columns must equal its number of joint lengths and magnitudes are
+    checked against its total length; ``units``: unit of the servo and tip columns, "mm" or "m". ValueError for
+    missing columns, NaN/inf, bad numbers, time going backwards, a column unit other than ``units``, or magnitudes
+    that do not fit the unit.
     """
     source = str(path)
     if units not in UNIT_SCALE:

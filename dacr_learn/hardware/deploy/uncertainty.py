@@ -42,17 +42,10 @@ TERMS = ("ensemble", "disagreement", "support", "bend")
 
 
 def sigma_terms(preds: Tensor, cc_tip: Tensor, rho: Tensor, support_distance: Tensor) -> dict[str, Tensor]:
-    """The inputs of a :class:`SigmaModel` for n commands.
-
-    Args:
-        preds: (K, n, 3) tips of the K ensemble members [m].
-        cc_tip: (n, 3) tips of the calibrated CC model alone [m] (no learned correction).
-        rho: (n, m, 2) Clarke coordinates of the commands [m].
-        support_distance: (n,) :meth:`SupportModel.distance` of the commands [training std].
-
-    Returns {"ensemble": members' std (n, 3) [m] (zeros for K = 1), "disagreement": |mean − CC| (n, 3) [m]
-    (the learned correction: how far the model moved from the physics), "support": distance (n, 1),
-    "bend": ‖ρ‖ over all segments (n, 1) [m]}.
+    """The inputs of a :class:`SigmaModel` for n commands: preds (K, n, 3) [m] of the K members, cc_tip (n, 3) [m]
+    of the calibrated CC model alone, rho (n, m, 2) [m], support_distance (n,) [training std]
+    (:meth:`SupportModel.distance`). Returns {"ensemble": members' std (n, 3) [m] (zeros for K = 1),
+    "disagreement": |mean − CC| (n, 3) [m], "support": (n, 1), "bend": ‖ρ‖ over all segments (n, 1) [m]}.
     """
     check_tensor(cc_tip, "cc_tip", (3,))
     if preds.dim() != 3 or preds.shape[1:] != cc_tip.shape:
@@ -208,14 +201,8 @@ def spearman(a: Tensor, b: Tensor) -> float:
 
 
 class SupportModel(nn.Module):
-    """Out-of-support score of commands from their Clarke coordinates (see the module docstring).
-
-    Built for ``num_segments`` segments, fitted on the training commands with :meth:`fit`.
-
-    Args:
-        num_segments: m, the number of segments (ρ has shape (..., m, 2)).
-        quantile: the quantile of the training rows' cross-pattern distances used as threshold.
-    """
+    """Out-of-support score of commands from their Clarke coordinates ρ (..., m, 2), m = ``num_segments`` (module
+    docstring); the threshold is the ``quantile`` of the training rows' cross-pattern distances (:meth:`fit`)."""
 
     def __init__(self, num_segments: int, quantile: float = SUPPORT_QUANTILE):
         super().__init__()
