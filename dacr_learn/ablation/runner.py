@@ -116,12 +116,8 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
 
 
 def make_jobs(cfg: dict) -> list[Job]:
-    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds.
-
-    The ``structures`` axis (default ``[monolithic]``) applies to FK with Clarke features only: a
-    compositional model needs the per-segment features that raw joint lengths do not give, and
-    there is no compositional IK.
-    """
+    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds. The ``structures``
+    axis applies to FK with Clarke features only (a compositional model needs per-segment features; no IK)."""
     return [Job(r, t, f, int(n), int(s), st) for s in cfg["seeds"] for n in cfg["n_train"] for r in cfg["robots"]
             for t in cfg["tasks"] for f in cfg["features"] for st in cfg.get("structures", ["monolithic"])
             if st == "monolithic" or (t == "fk" and f == "clarke")]
@@ -224,12 +220,8 @@ def build_module(cfg: dict, task: str, robot: str | dict, features: str,
 
 @torch.no_grad()
 def evaluate(module: pl.LightningModule, task: str, data: dict[str, Tensor]) -> dict[str, float]:
-    """Summary metrics of a trained module on a test set; errors against the clean targets.
-
-    FK: predicted pose of the measured joint vector ``q`` vs ``pose_clean``. IK: the predicted joint
-    vector of the measured pose ``pose``, through the analytic CC kinematics (as
-    ``IKModule.errors``), vs ``pose_clean``; joint error vs ``q_clean``.
-    """
+    """Summary metrics of a trained module on a test set, errors against the clean targets: FK the pose of ``q``
+    vs ``pose_clean``; IK the CC pose of the joints predicted for ``pose`` vs ``pose_clean``, joints vs ``q_clean``."""
     module.eval()
     model, spec = module.model, module.spec
     if task == "fk":

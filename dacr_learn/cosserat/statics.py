@@ -43,14 +43,11 @@ class ConvergenceError(RuntimeError):
 class CosseratSolution:
     """The static equilibrium of a batch (...,) of problems, all in the robot base frame, SI units.
 
-    frames (..., K, 4, 4): backbone pose at every grid node; arc (K,): the nodes' reference arc [m].
-    tendon_lengths (..., T): each tendon's path length from the base to its termination [m];
-    tendon_rest_lengths (..., T): the unstretched tendon length that spans it, L/(1 + c·τ) [m].
-    curvature u, stretch v (..., K, 3): body-frame strains [1/m], [-] (proximal value at a jump).
-    base_wrench (..., 6): the rod's internal (n [N], m [N·m]) at the base. residual (...,): scaled
-    max-abs shooting residual; converged (...,) bool (residual <= tol and an admissible shape);
-    iterations (...,) Newton steps. Samples that did not converge hold NaN in frames, lengths, strains
-    and base_wrench.
+    frames (..., K, 4, 4): backbone pose at the grid nodes, arc (K,) [m]; tendon_lengths (..., T) [m]: path
+    lengths to each termination; tendon_rest_lengths (..., T) [m]: L/(1 + c·τ); curvature u, stretch v
+    (..., K, 3) [1/m], [-] (proximal value at a jump); base_wrench (..., 6): internal (n [N], m [N·m]) at the base;
+    residual (...,): scaled max-abs shooting residual; converged (...,) bool (residual <= tol and an admissible
+    shape); iterations (...,). Samples that did not converge hold NaN in frames, lengths, strains and base_wrench.
     """
 
     frames: Tensor

@@ -122,12 +122,9 @@ FIT_SCALES = {"encoder.log_radius_scale": 0.1, "encoder.rotation": 0.05, "encode
 
 def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, frozen: tuple[str, ...] = (),
            scales: Mapping[str, float] | None = None) -> dict:
-    """Least-squares fit of the physical parameters to (x (n, N), tip (n, 3)) [m] with L-BFGS.
-
-    Parameters named in ``frozen`` keep their values. ``scales`` adds or overrides the typical
-    magnitude of parameters (:data:`FIT_SCALES`), e.g. for a subclass with extra physics.
-    The base translation starts at the mean residual. Returns the time taken and the
-    root-mean-square tip error [m].
+    """Least-squares fit of the physical parameters to (x (n, N), tip (n, 3)) [m] with L-BFGS, on parameter / scale
+    (:data:`FIT_SCALES`, added to or overridden by ``scales``); ``frozen`` parameters keep their values; the base
+    translation starts at the mean residual. Returns {"seconds", "rms_m"}.
     """
     start = time.perf_counter()
     scale = {**FIT_SCALES, **(scales or {})}

@@ -1,9 +1,8 @@
 """Tip-error metrics for hardware benchmarks (inputs in metres, reports in millimetres).
 
-The lab's metric is the *offset-removed RMSE*: with errors e_k = pred_k − meas_k (n, 3) and
-their mean ē, RMSE = sqrt(mean_k ‖e_k − ē‖²). It forgives a constant offset (motion-capture
-marker placement, base registration) and measures the shape of the predicted paths.
-The mean and 95th percentile of the plain Euclidean errors ‖e_k‖ are reported alongside.
+The lab's metric is the *offset-removed RMSE*: with errors e_k = pred_k − meas_k (n, 3) and their mean ē,
+RMSE = sqrt(mean_k ‖e_k − ē‖²): it forgives a constant offset (marker placement, base registration). The mean
+and 95th percentile of the plain Euclidean errors ‖e_k‖ are reported alongside.
 """
 from __future__ import annotations
 

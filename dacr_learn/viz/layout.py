@@ -126,12 +126,9 @@ def full_range_plot(
     timeline: str, *, name: str, origin: str = "/", contents: Iterable[str] | str = "$origin/**",
     from_zero: bool = False, legend: rrb.Corner2D | None = rrb.Corner2D.RightTop, **kwargs,
 ) -> rrb.TimeSeriesView:
-    """A named time-series plot of ``origin``/``contents`` that shows every point of ``timeline``.
-
-    Rerun's default is a window around the time cursor (±1000 steps), which hides most of a long
-    curve: here the visible range and the x axis cover the whole timeline (from 0 with
-    ``from_zero``; LinkAxis.LinkToGlobal would bring the window back). ``legend``: its corner, or
-    None for no legend. Other keyword arguments (``axis_y``, ``overrides``, …) go to
+    """A named time-series plot of ``origin``/``contents`` that shows every point of ``timeline`` (Rerun's default is
+    a ±1000-step window around the cursor): the visible range and x axis cover the whole timeline (from 0 with
+    ``from_zero``). ``legend``: its corner, or None. Other keyword arguments (``axis_y``, ``overrides``, …) go to
     rrb.TimeSeriesView.
     """
     whole = rrb.VisibleTimeRange(timeline, start=rrb.TimeRangeBoundary.infinite(),
