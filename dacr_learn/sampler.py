@@ -50,9 +50,8 @@ class LimitSquash:
     """The bijection between ℝᴰ and the (open) admissible set of a robot's actuated features (module docstring).
 
     :meth:`forward`: v (..., D) → features x (..., D) inside the limits; :meth:`inverse`: x → v (a feature on a
-    limit is first moved :data:`EDGE` of its half-range inside). The limits are those of the robot file, held by
-    :class:`~dacr_learn.clarke_space.ClarkeSpace` in float64 (the bend disk, the length and twist ranges) and
-    cast to the input's dtype, so a float64 sample is inside them to rounding whatever the model's dtype.
+    limit is first moved :data:`EDGE` of its half-range inside). The limits (float64,
+    :class:`~dacr_learn.clarke_space.ClarkeSpace`) are cast to the input's dtype: a float64 sample is inside them.
     """
 
     def __init__(self, space: ClarkeSpace):
@@ -191,12 +190,10 @@ class ClarkeSampler(nn.Module):
 
     @torch.no_grad()
     def sample_features(self, target, count: int, temperature: float = 1.0) -> Tensor:
-        """``count`` actuated-feature samples per target: (B, count, D) float64 [m, rad], inside the limits.
-
-        target: (B, 4, 4) tip poses or (B, 3) tip positions [m] (positions need a model trained with
-        ``position_fraction`` > 0). "clarke": inside the limits by construction (the squash); "raw": the sampled
-        joint vectors encoded (least-squares projection onto the displacement constraint), then projected onto
-        the limits. These are the ``seeds`` of :func:`dacr_learn.ik.solve_ik` (the IK CLI calls this method)."""
+        """``count`` actuated-feature samples per target (B, count, D) float64 [m, rad], inside the limits: the
+        ``seeds`` of :func:`dacr_learn.ik.solve_ik`. target: (B, 4, 4) tip poses or (B, 3) tip positions [m]
+        (positions need a model trained with ``position_fraction`` > 0). "raw" samples are encoded, then projected.
+        """
         v = self.sample_variables(target, count, temperature)
         if self.features == "clarke":
             return self.squash(v.to(F64))

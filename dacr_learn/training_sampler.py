@@ -80,11 +80,10 @@ class SamplerModule(KinematicsModule):
 
     @torch.no_grad()
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
-        """Rerun scene (keys of :func:`dacr_learn.viz.scene.log_scene`): ``visual_samples`` sampled configurations of
-        the first validation pose as orange ghost backbones (``backbone_pred``) with their tip frames
-        (``pose_pred``, joined to the target frame ``pose_true`` by the tip-error lines), the dataset's own
-        configuration of that pose in grey (``backbone``), and the validation tip positions coloured by the tip
-        error of one sample each (``workspace_error``)."""
+        """Rerun scene (keys of :func:`dacr_learn.viz.scene.log_scene`): ``visual_samples`` samples for the first
+        validation pose (``backbone_pred``, ``pose_pred`` against ``pose_true``), the dataset's own configuration
+        (``backbone``) and the validation tips coloured by the error of one sample each (``workspace_error``).
+        """
         val, k, space = self.trainer.datamodule.splits["val"], self.hparams.visual_samples, self.model.space
         target = val["pose"][:1].to(self.device)
         f = self.model.sample_features(target, k)[0]

@@ -18,12 +18,9 @@ from ..robot import RobotSpec
 
 @dataclass(frozen=True)
 class TendonRouting:
-    """Float64 constants of the routing; T tendons, m segments.
-
-    offsets: (T, 3) body-frame offsets r_i [m].
-    segment: (T,) index of the segment at whose distal end tendon i terminates.
-    ends: (m + 1,) reference arc length of the segment boundaries, ends[0] = 0 [m].
-    segment_offsets: (m, T, 3) offset of tendon i inside segment k where it differs from r_i, else None.
+    """Float64 constants of the routing, T tendons, m segments: offsets (T, 3) body-frame r_i [m]; segment (T,) at
+    whose distal end tendon i terminates; ends (m + 1,) segment boundaries [m], ends[0] = 0; segment_offsets
+    (m, T, 3) offset of tendon i inside segment k where it differs from r_i, else None.
     """
 
     offsets: Tensor

@@ -123,11 +123,9 @@ def log_workspace(
     cmap: str = "viridis", radius: float = 0.0006, error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
     max_points: int | None = None,
 ) -> float:
-    """Log workspace points ``(N, 3)`` [m] coloured by ``error`` ``(N,)`` [m]; return max error [m].
-
-    Colours use the fixed log scale ``error_range`` (:func:`error_colours`); at most
-    ``max_points`` evenly strided points are drawn (all by default), the statistics use all.
-    A rr.TextLog on the same entity states the max and mean error in mm and the colour scale.
+    """Log workspace points (N, 3) [m] coloured by ``error`` (N,) [m] on the fixed log scale ``error_range``
+    (:func:`error_colours`), at most ``max_points`` evenly strided (the statistics use all), with a rr.TextLog of
+    the max and mean error [mm]; returns the max error [m].
     """
     pts = _checked("workspace_points", points, (3,), 2)
     err = _checked("workspace_error", error, (pts.shape[0],), 1)

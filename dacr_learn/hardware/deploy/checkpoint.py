@@ -86,11 +86,8 @@ class HardwareModel:
         return dataclasses.replace(split, memory=torch.zeros_like(split.memory)) if static else split
 
     def predict(self, commands: torch.Tensor | Split, static: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split; ``static``:
-        each command on its own (:meth:`split`), e.g. the candidates of an IK solve rather than a sequence.
-
-        σ is the stored σ model's (:class:`~.uncertainty.SigmaModel`) when there is one, else the
-        ensemble std through the σ calibration (or raw without one): :meth:`sigma_of`."""
+        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m], :meth:`sigma_of`) of servo commands (n, S) [mm] or a Split;
+        ``static``: each command on its own (:meth:`split`), e.g. the candidates of an IK solve, not a sequence."""
         split = commands if isinstance(commands, Split) else self.split(commands, static)
         with torch.no_grad():
             preds = torch.stack([m(split) for m in self.members])
@@ -188,11 +185,8 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
 
 
 def load_hardware_model(path: str | Path) -> HardwareModel:
-    """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``).
-
-    Raises ValueError naming the file for anything that is not such a checkpoint (another file
-    type, another format version, missing entries, weights that do not fit the robot).
-    """
+    """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``); ValueError naming the file
+    for anything else (another file type or format version, missing entries, weights that do not fit the robot)."""
     path = Path(path)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
@@ -243,10 +237,8 @@ class ModelFile(NamedTuple):
 
 def read_model_file(path: str | Path) -> ModelFile:
     """The checkpoint ``path`` names (a file, a ``train.py`` run or version folder:
-    :func:`~dacr_learn.runs.find_checkpoint`), loaded once (``weights_only``) and recognised by its contents,
-    whatever the file is called. FileNotFoundError / ValueError naming the path when there is none or it is not
-    a torch file. Used by every entry that takes a checkpoint (``python -m dacr_learn.export``,
-    ``python -m dacr_learn.ik --ckpt``)."""
+    :func:`~dacr_learn.runs.find_checkpoint`), loaded once (``weights_only``) and recognised by its contents.
+    FileNotFoundError / ValueError naming the path when there is none or it is not a torch file."""
     ckpt = find_checkpoint(path)
     blob = load_torch_file(ckpt, CHECKPOINT)
     return ModelFile(ckpt, blob, is_hardware_blob(blob))

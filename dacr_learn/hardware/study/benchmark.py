@@ -94,11 +94,9 @@ def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: 
 
 def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map: Path | None = None,
                pulls: Path | None = None, units: str = "mm", cc_variant: str = "base") -> Setup:
-    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None.
-
-    ``cc_variant``: a name of :data:`.selection.CC_VARIANTS`, or ``"auto"``: the one with the lowest
-    singles → pairs score of the CC model (:func:`.selection.choose_cc_variant`; ``base`` when the
-    labels name no pattern families). ``cc_fit["variant"]`` records the choice and its scores."""
+    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None. ``cc_variant``: a name
+    of :data:`.selection.CC_VARIANTS` or ``"auto"`` (:func:`.selection.choose_cc_variant`; ``base`` without pattern
+    families), recorded in ``cc_fit["variant"]``."""
     spec, smap, cal = resolve_robot(robot, servo_map, pulls, out, units)
     train_rec = load_recording(train, spec, units)
     val_rec = load_recording(val, spec, units) if val is not None else None
