@@ -34,13 +34,10 @@ LCP_GAUSS_SEIDEL_SWEEPS = 400
 
 @dataclass(frozen=True)
 class DisplacementSolution:
-    """Statics under commanded tendon lengths, batch (...,), SI units.
-
-    statics: the :class:`~.statics.CosseratSolution` at the tensions found. tension (..., T) [N].
-    compliance (..., T, T) [m/N]: A = −∂R/∂τ, the symmetric chord matrix used (pass it back as
-    ``compliance_guess`` to warm-start a nearby solve). violation (...,) [m]: max over tendons of |F_i|
-    on taut tendons and max(F_i, 0) on slack ones. converged (...,) bool; iterations (...,) Cosserat
-    solves per sample after the Jacobian.
+    """Statics under commanded tendon lengths, batch (...,), SI units: statics (the
+    :class:`~.statics.CosseratSolution` at the tensions found), tension (..., T) [N], compliance (..., T, T) [m/N]
+    (A = −∂R/∂τ, the chord matrix used: a ``compliance_guess`` for a nearby solve), violation (...,) [m] (max |F_i|
+    of taut and max(F_i, 0) of slack tendons), converged (...,) bool, iterations (...,) (Cosserat solves).
     """
 
     statics: CosseratSolution

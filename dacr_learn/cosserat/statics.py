@@ -133,15 +133,12 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
                   stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
                   on_failure: str = "raise", chunk_size: int = CHUNK, workers: int | None = None,
                   passing: str = "own") -> CosseratSolution:
-    """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame:
-    ``gravity`` (3,) or (..., 3) [m/s²] (acts through ``mechanics.density``), ``tip_wrench`` (..., 6)
-    (F [N], M [N·m]) at the tip, ``point_wrenches`` [(arc [m], wrench (..., 6))] at the backbone.
-    Computed in float64 (inputs are cast), ``chunk_size`` samples at a time (the arrays then stay in
-    cache); differentiable w.r.t. tensions and loads (implicit gradient, see shooting.py).
-    ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False).
-    ``workers``: chunks solved at once in threads (default ``torch.get_num_threads()``); a solve that must
-    carry a gradient runs its chunks one after another. ``passing``: the radius of a tendon inside a segment
-    it passes, "own" or "segment" (:func:`~.tendon.tendon_routing`)."""
+    """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame: ``gravity`` (3,)
+    or (..., 3) [m/s²] (through ``mechanics.density``), ``tip_wrench`` (..., 6) (F [N], M [N·m]), ``point_wrenches``
+    [(arc [m], wrench (..., 6))]. Float64, ``chunk_size`` samples at a time, ``workers`` chunks at once in threads
+    (default ``torch.get_num_threads()``; one at a time for a solve with a gradient); differentiable w.r.t.
+    tensions and loads (implicit gradient, shooting.py). ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN
+    outputs, converged = False). ``passing``: "own" or "segment" (:func:`~.tendon.tendon_routing`)."""
     check_solve_arguments(spec, on_failure)
     for name, value in (("chunk_size", chunk_size), ("workers", workers)):
         if value is not None and (not isinstance(value, int) or value < 1):

@@ -31,13 +31,8 @@ _SERVO_RE = re.compile(r"^servo_([^_,]+)_([a-z]+)$")
 
 @dataclass(frozen=True)
 class Recording:
-    """One recording, SI units.
-
-    servo_ids: actuator ids in hardware (column) order, e.g. ("4", "3", ...).
-    servo: (N, S) commanded displacements [m], columns in ``servo_ids`` order.
-    tip: (N, 3) tip positions in the motion-capture frame [m].
-    labels: N pattern labels; timestamp: (N,) [s]; source: the file it came from.
-    """
+    """One recording, SI units: servo_ids (hardware column order), servo (N, S) commanded displacements [m],
+    tip (N, 3) [m] motion-capture frame, labels (N pattern labels), timestamp (N,) [s], source (the file)."""
 
     servo_ids: tuple[str, ...]
     servo: Tensor

@@ -43,19 +43,13 @@ def _rotations(angle: Tensor) -> Tensor:
 
 def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iters: int = 30,
                     force_map: Tensor | None = None, load: Tensor | None = None) -> Tensor:
-    """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched.
+    """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched: x (B, N) commanded displacements
+    (pretension included) [m], g (N, D) the map G, bend_w (D,), tendon_w (N,) positive weights → ρ (B, D).
 
-    Args:
-        x: (B, N) commanded displacements (pretension included) [m].
-        g: (N, D) displacement map G; bend_w: (D,) and tendon_w: (N,) positive weights.
-        force_map: optional (B, N, D) map F of the tendon forces into the bending equations.
-            The solution then satisfies the force balance bend_w·ρ = Fᵀ(tendon_w·max(0, x − Gρ))
-            instead of the energy minimum (F = G), e.g. with tensions reduced by friction.
-        load: optional (B, D) external generalised force added to that balance (in the units of
-            bend_w·ρ [m], i.e. force/EA), e.g. gravity: bend_w·ρ = Fᵀ(…) + load.
-    Returns:
-        ρ (B, D). Starts from the set of pulled tendons (x > 0); stops when the set of
-        stretched tendons repeats (usually 2–5 iterations).
+    ``force_map`` (B, N, D): a map F of the tendon forces into the bending equations; the solution then satisfies
+    bend_w·ρ = Fᵀ(tendon_w·max(0, x − Gρ)) (+ ``load`` (B, D), an external generalised force in the units of
+    bend_w·ρ [m], e.g. gravity) instead of the energy minimum (F = G). Starts from the pulled tendons (x > 0);
+    stops when the set of stretched tendons repeats (usually 2–5 iterations).
     """
     f = g if force_map is None else force_map
     active = x > 0
@@ -77,15 +71,9 @@ MAX_ENUMERATED_TENDONS = 12  # 2^N sets: 4096 gains of (2m × N) at most
 
 
 def active_set_gains(g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> tuple[Tensor, Tensor]:
-    """Every set S of stretched tendons and its linear solution map, ρ_S = K_S x.
-
-    Args:
-        g: (N, D) displacement map G; bend_w (D,), tendon_w (N,) positive weights (as in
-            :func:`solve_tendon_qp`, energy form).
-    Returns:
-        sets (2ᴺ, N) bool (row k: bit i of k set ⇔ tendon i stretched) and
-        K (2ᴺ, D, N) = (diag(bend_w) + Gᵀ W_S G)⁻¹ Gᵀ W_S, W_S = diag(tendon_w·1_S).
-    """
+    """Every set S of stretched tendons and its linear solution map ρ_S = K_S x, for g (N, D), bend_w (D,),
+    tendon_w (N,) as in :func:`solve_tendon_qp` (energy form): sets (2ᴺ, N) bool (row k: bit i of k ⇔ tendon i
+    stretched) and K (2ᴺ, D, N) = (diag(bend_w) + Gᵀ W_S G)⁻¹ Gᵀ W_S, W_S = diag(tendon_w·1_S)."""
     n = g.shape[0]
     if n > MAX_ENUMERATED_TENDONS:
         raise ValueError(f"g: enumerating the active sets needs at most {MAX_ENUMERATED_TENDONS} tendons "

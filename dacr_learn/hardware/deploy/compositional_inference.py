@@ -42,13 +42,11 @@ def _check_servo(servo: Tensor, num_servos: int) -> None:
 
 
 def _stacked_networks(members) -> tuple[dict[str, Tensor], str, str]:
-    """The K members' per-segment networks side by side (float64 buffers), their activation and context.
-
-    ``rho_mean``/``rho_std`` (K, 1, 2) and ``z_fixed`` (K, m, 2): the normaliser (ρ part; the fixed columns
-    standardised once, in the member's dtype, as training saw them); ``w{i}`` (K, in, out), ``b{i}`` (K, 1, out)
-    the linear layers of f_θ (:func:`~dacr_learn.folding.stacked_linear`); ``skip`` (K, in, 6); the last layer
-    and skip scaled by the twist mask and, for the translation rows, the segment length unit L_s, so that
-    ξ = a_last + z·skip directly."""
+    """The K members' per-segment networks side by side (float64 buffers), their activation and context:
+    ``rho_mean``/``rho_std`` (K, 1, 2), ``z_fixed`` (K, m, 2) (the standardised fixed columns, in the member's dtype),
+    ``w{i}`` (K, in, out), ``b{i}`` (K, 1, out) (:func:`~dacr_learn.folding.stacked_linear`) and ``skip`` (K, in, 6),
+    the last layer and skip scaled by the twist mask and L_s, so that ξ = a_last + z·skip directly.
+    """
     fks = [m.fk for m in members]
     context = fks[0].front.context
     if any(fk.front.context != context or fk.rotation != "twist" or fk.units != "metric" for fk in fks):
