@@ -167,12 +167,9 @@ def checkpoint_task(ckpt: Path, raw: Any) -> str:
 
 
 def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
-    """(task "fk" | "ik" | "sampler", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
-    ``blob``: the file's content when the caller has loaded it already (weights-only).
-
-    Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
-    (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
-    """
+    """(task "fk" | "ik" | "sampler", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer
+    (``blob``: its content, when already loaded weights-only). FileNotFoundError for a missing file, ValueError
+    naming the file for anything else (not a torch file, truncated, not ours, weights that do not fit)."""
     from .training import FKModule, IKModule  # Lightning is imported only to read a checkpoint
     from .training_sampler import SamplerModule
 
@@ -187,12 +184,10 @@ def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
 
 
 def load_checkpoint_model(ckpt: str | Path, blob: Any = None) -> tuple[str, torch.nn.Module]:
-    """(task "fk" | "ik" | "sampler", the trained network in eval mode, float32) of a checkpoint written by train.py
-    or a Trainer, rebuilt from its hyper-parameters and weights without Lightning
-    (:func:`~dacr_learn.compositional.model_from_hparams`). A checkpoint whose hyper-parameters lack part of
-    the architecture (:data:`~dacr_learn.compositional.REQUIRED_HPARAMS`; the LightningModule's defaults fill
-    them) is read through :func:`load_lightning_checkpoint`. ``blob``: the file's content when the caller has
-    loaded it (weights-only). Errors as :func:`load_lightning_checkpoint`."""
+    """(task, the trained network in eval mode, float32) of a checkpoint, rebuilt from its hyper-parameters and
+    weights without Lightning (:func:`~dacr_learn.compositional.model_from_hparams`), or through
+    :func:`load_lightning_checkpoint` when the hyper-parameters lack part of the architecture
+    (:data:`~dacr_learn.compositional.REQUIRED_HPARAMS`). ``blob`` and errors as :func:`load_lightning_checkpoint`."""
     ckpt = Path(ckpt)
     blob = load_torch_file(ckpt, CHECKPOINT) if blob is None else blob
     task = checkpoint_task(ckpt, blob)

@@ -60,11 +60,8 @@ def tension_scale(spec: RobotSpec) -> float:
 
 
 def solve_lcp(a: Tensor, q: Tensor) -> Tensor:
-    """τ (B, T) with τ ≥ 0, w = Aτ + q ≥ 0, τ·w = 0 for symmetric positive definite A (B, T, T), q (B, T).
-
-    Primal-dual active-set iterations (each an exact solve on the set of positive τ), which end when the
-    set repeats; samples whose set has not settled after ``LCP_ACTIVE_SET_STEPS`` are finished by projected
-    Gauss–Seidel sweeps (convergent for SPD A)."""
+    """τ (B, T) with τ ≥ 0, w = Aτ + q ≥ 0, τ·w = 0 for SPD A (B, T, T), q (B, T): primal-dual active-set iterations
+    until the set repeats, then projected Gauss–Seidel for samples unsettled after ``LCP_ACTIVE_SET_STEPS``."""
     active = q < 0
     tau = torch.zeros_like(q)
     done = torch.zeros(q.shape[0], dtype=torch.bool)

@@ -26,12 +26,9 @@ from ..robot import RobotSpec
 
 @dataclass(frozen=True)
 class SamplerOptions:
-    """Noise model of a synthetic dataset (SI units, standard deviations unless noted).
-
-    joint_noise [m]: Gaussian noise on every joint length; pose_noise_pos [m]: on each tip
-    coordinate; pose_noise_rot [rad]: rotation by a random axis-angle vector with this std per
-    component; common_offset [m]: the same constant added to every joint length (drift).
-    """
+    """Noise model of a synthetic dataset (SI units, standard deviations): joint_noise [m] on every joint length;
+    pose_noise_pos [m] on each tip coordinate; pose_noise_rot [rad] per component of a random axis-angle rotation;
+    common_offset [m]: one constant added to every joint length (drift)."""
 
     source: ClassVar[str] = "cc"     # recorded in meta.json (the Cosserat options say "cosserat")
     joint_noise: float = 0.0

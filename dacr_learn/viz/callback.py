@@ -32,11 +32,8 @@ def _plain(value: Any) -> Any:
 
 
 def run_info(trainer: Trainer) -> dict[str, Any]:
-    """What a run's hparams miss: the global seed, the trainer's settings and the datamodule's.
-
-    ``data`` holds the datamodule's ``hparams`` if it saved any, else its public plain attributes
-    (numbers, strings, dataclasses such as the robot spec, tuples of those).
-    """
+    """What a run's hparams miss: the global seed, the trainer's settings and the datamodule's (its ``hparams``, else
+    its public plain attributes: numbers, strings, dataclasses such as the robot spec, tuples of those)."""
     seed = os.environ.get("PL_GLOBAL_SEED")
     settings = {"max_epochs": trainer.max_epochs, "max_steps": trainer.max_steps, "precision": trainer.precision,
                 "accumulate_grad_batches": trainer.accumulate_grad_batches, "world_size": trainer.world_size,

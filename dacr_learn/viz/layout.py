@@ -87,11 +87,8 @@ def series_style(name: str) -> tuple[str, tuple[int, int, int]]:
 
 
 def metric_groups(names: Iterable[str]) -> dict[str, list[str]]:
-    """Plot title -> plotted metric names (train and val of one quantity in one unit, sorted).
-
-    A quantity logged in several units (``pos_err_mean_mm`` and ``pos_err_mean_pct``) is plotted
-    once, in the first unit of ``UNIT_PREFERENCE``; the others stay in the summary table.
-    """
+    """Plot title -> plotted metric names (train and val of one quantity in one unit, sorted); a quantity logged in
+    several units is plotted in the first of ``UNIT_PREFERENCE`` (the others stay in the summary table)."""
     by_quantity: dict[str, dict[str, list[str]]] = {}
     for name in sorted(n for n in set(names) if is_plotted(n)):
         quantity, _, unit = _parse(_split_key(name)[1])

@@ -243,11 +243,8 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
-        """Log each metric as rr.Scalars under ``metrics/<name>`` at ``step``.
-
-        Train/val metrics also get ``log10(value)`` under ``metrics_log10/<name>`` (non-positive
-        values are skipped there); test metrics and others update the summary table only.
-        """
+        """Log each metric as rr.Scalars at ``metrics/<name>`` and ``step``; train/val metrics also as log10 at
+        ``metrics_log10/<name>`` (positive values only); test metrics and others update the summary table only."""
         rec = self.experiment
         new = set(metrics) - self._metric_names
         if new:  # plots are grouped by quantity: refresh the layout when new names appear

@@ -63,11 +63,8 @@ def log_frames(
     recording: rr.RecordingStream, entity: str, poses: Any, *, axis_length: float = 0.01,
     colors: np.ndarray = AXIS_COLORS, radius: float | None = None,
 ) -> None:
-    """Log frames ``(k, 4, 4)`` (homogeneous, metres) as three arrows each (x, y, z axes).
-
-    ``colors`` is a ``(3, 3)`` uint8 array with the x/y/z colours; arrows are ``axis_length``
-    [m] long and ``radius`` thick (default ``axis_length / 15``).
-    """
+    """Log frames (k, 4, 4) [m] as x/y/z arrows of ``axis_length`` [m], ``radius`` thick (default
+    ``axis_length / 15``), coloured by ``colors`` (3, 3) uint8."""
     T = _checked(f"poses of {entity!r}", poses, (4, 4), 3)
     axes = T[:, :3, :3].transpose(0, 2, 1).reshape(-1, 3)  # rows: x, y, z axis of each frame
     origins = np.repeat(T[:, :3, 3], 3, axis=0)
