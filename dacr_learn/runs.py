@@ -64,10 +64,8 @@ def numbered(parent: str | Path, prefix: str) -> list[Path]:
 
 
 def new_numbered_dir(parent: str | Path, prefix: str) -> Path:
-    """Create and return ``parent/<prefix><n>`` for the smallest ``n`` above every existing one.
-
-    The folder is made with an exclusive ``mkdir``: a concurrent caller gets the next number, never
-    the same folder, and an existing folder is never reused."""
+    """Create and return ``parent/<prefix><n>`` for the smallest ``n`` above every existing one, with an exclusive
+    ``mkdir`` (a concurrent caller gets the next number; an existing folder is never reused)."""
     parent = Path(parent)
     parent.mkdir(parents=True, exist_ok=True)
     n = max((k for k, _ in _numbered(parent, prefix)), default=-1) + 1

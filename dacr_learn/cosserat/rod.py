@@ -166,11 +166,8 @@ def total_wrench(y: Tensor, tension: Tensor, offsets: Tensor, section: Section) 
 def match_total_wrench(y: Tensor, total: Tensor, tension: Tensor, offsets: Tensor, section: Section,
                        iterations: int = JUMP_NEWTON_STEPS) -> Tensor:
     """The state with its strains (ε, u) replaced so that ``total_wrench`` with the tendons (offsets (Ta, 3),
-    tensions (B, Ta)) equals ``total`` (B, 6): the jump across a disk where tendons end or a point load
-    acts. Tendons that continue through the disk kink there (their tangent follows the new strains), so
-    the condition is implicit; Newton with the Jacobian K + Σ E_i A_i E_iᵀ of ``derivative``, from the
-    explicit guess with the old tangents; it contracts like (τ d²/EI)^(2^k), ``iterations`` fixed
-    (batched, differentiable)."""
+    tensions (B, Ta)) equals ``total`` (B, 6): the jump across a disk. Implicit (passing tendons kink with the new
+    strains): a fixed number of Newton ``iterations`` with the Jacobian of ``derivative`` (batched, differentiable)."""
     kk = torch.cat([section.kse, section.kbt]).to(y.dtype)
     if not offsets.shape[0]:
         return torch.cat([y[:, :12], total / kk, y[:, 18:]], dim=-1)

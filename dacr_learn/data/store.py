@@ -71,11 +71,8 @@ def _read_tensors(directory: Path) -> dict[str, Tensor]:
 
 
 def load_dataset(directory: str | Path, spec: RobotSpec | None = None) -> tuple[dict[str, Tensor], dict]:
-    """Read a dataset written by :func:`save_dataset`; refuse a checksum or robot-spec mismatch.
-
-    Every refusal is a ValueError naming the directory or file (unreadable, truncated, modified,
-    generated for another robot).
-    """
+    """Read a dataset written by :func:`save_dataset`; a ValueError naming the directory or file refuses an
+    unreadable, truncated or modified one, or one generated for another robot."""
     directory = Path(directory)
     for f in (TENSOR_FILE, META_FILE):
         if not (directory / f).is_file():

@@ -195,11 +195,9 @@ class CalibratedCosserat:
     # -- fitting ---------------------------------------------------------------------------------------------
     def fit(self, x: Tensor, tip: Tensor, rows: int = FIT_ROWS, iterations: int = FIT_ITERATIONS,
             seed: int = 0, free_frame: bool = True, starts: tuple[float, ...] = AXIAL_STARTS, log=None) -> dict:
-        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows, from each
-        backbone axial radius in ``starts`` [m] (the fit cannot leave the nearly flat inextensible end on its
-        own); keeps the start with the lowest RMS on that subset. Returns the RMS before (of the model as
-        given) and after on the subset [m], each start's RMS, the iterations and the time.
-        ``free_frame=False`` keeps the CC model's base pose and marker (the predictions share its frame)."""
+        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows, from each backbone
+        axial radius in ``starts`` [m], keeping the start of lowest RMS. Returns the RMS before and after [m], each
+        start's RMS, the iterations and the time. ``free_frame=False`` keeps the CC model's base pose and marker."""
         begin = time.perf_counter()
         if x.shape[0] > rows:
             pick = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:rows]

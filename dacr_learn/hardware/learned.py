@@ -266,11 +266,9 @@ class CCClarkeResidualHistory(CCClarkeResidual):
 
 def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], n: int, seed: int,
                     tip_fn=None) -> Split:
-    """Synthetic recording of the calibrated CC robot: Clarke features drawn uniformly in each
-    segment's bending disc (|ρ| ≤ bend·d, the YAML's limits), joint lengths from the
-    ClarkeDecoder, displacements x = path length − q, then the same pipeline as real data.
-    ``tip_fn``: displacements (n, N) [m] → tips (n, 3) [m] of another model of the robot (e.g. the calibrated
-    Cosserat rod) in place of the CC model's; the features stay the CC encoder's (the networks' input)."""
+    """Synthetic recording of the calibrated CC robot: Clarke features uniform in each segment's bending disc
+    (|ρ| ≤ bend·d), x = path length − q (ClarkeDecoder), then the pipeline of real data. ``tip_fn``: displacements
+    (n, N) [m] → tips (n, 3) [m] of another model (e.g. the calibrated Cosserat rod) in place of the CC model's."""
     spec = cc.spec
     g = torch.Generator().manual_seed(seed)
     m = spec.num_segments

@@ -225,10 +225,9 @@ def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
 
 
 class ModelFile(NamedTuple):
-    """A model file read once (:func:`read_model_file`): ``path`` the checkpoint file, ``blob`` its weights-only
-    content, ``hardware`` True for a saved hardware model (:func:`save_hardware_model`; build it with
-    :func:`hardware_model_from_blob`), False for anything else, read as a ``train.py`` checkpoint
-    (:func:`dacr_learn.runs.load_model` with ``blob``, which names what is wrong when it is not one)."""
+    """A model file read once (:func:`read_model_file`): ``path``, ``blob`` (its weights-only content) and
+    ``hardware``: a saved hardware model (:func:`hardware_model_from_blob`), else a ``train.py`` checkpoint
+    (:func:`dacr_learn.runs.load_model` with ``blob``)."""
 
     path: Path
     blob: Any

@@ -75,11 +75,8 @@ def mean_and_sigma(preds: Tensor, cc_tip: Tensor, rho: Tensor, sigma: SigmaModel
 
 
 class SigmaModel(nn.Module):
-    """σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over the chosen terms t of :data:`TERMS`.
-
-    The features f_t come from :func:`sigma_terms`; the coefficients c_t ≥ 0 and the floor σ₀ [m]
-    are fitted by Gaussian maximum likelihood on *held-out* offset-removed residuals (:meth:`fit`).
-    """
+    """σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a over terms t of :data:`TERMS` (features: :func:`sigma_terms`);
+    c_t ≥ 0 and σ₀ [m] fitted by Gaussian maximum likelihood on held-out offset-removed residuals (:meth:`fit`)."""
 
     def __init__(self, terms: Sequence[str], coefficients: Sequence[float], floor: float):
         super().__init__()

@@ -184,11 +184,9 @@ def fold_weights(groups: Mapping[str, Sequence[str]], replicates: int = BOOTSTRA
 
 def bootstrap_replicates(errors: Mapping[str, Sequence[Tensor]], weights: Mapping[str, Tensor],
                          name: str = "") -> Tensor:
-    """Bootstrap replicates (B,) of a proxy: the mean over folds of the mean over seeds of the offset-removed
-    RMSE, from each fold's errors per seed [(n_fold, 3)] (any unit; the replicates are in it) and its row
-    weights (B, n_fold) (:func:`fold_weights`). Each replicate also draws the seeds with replacement (the
-    seed-to-seed spread of a learned model; one seed: none), with a generator seeded by ``name`` (a model's
-    replicates do not depend on which other models are scored)."""
+    """Bootstrap replicates (B,) of a proxy (mean over folds of the mean over seeds of the offset-removed RMSE) from
+    each fold's errors per seed [(n_fold, 3)] (any unit) and row weights (B, n_fold) (:func:`fold_weights`); each
+    replicate also draws the seeds with replacement, from a generator seeded by ``name`` (independent of the others)."""
     g = torch.Generator().manual_seed(BOOTSTRAP_SEED + 1 + zlib.crc32(name.encode()))
     per_fold = []
     for fold, errs in errors.items():
