@@ -120,10 +120,8 @@ def checkpoint_run_dir(ckpt: str | Path) -> Path | None:
 
 
 def find_checkpoint(path: str | Path) -> Path:
-    """The checkpoint a path names: a ``.ckpt`` file itself; a version folder → its ``checkpoints/last.ckpt``;
-    a run name's folder → ``last.ckpt`` of its newest version that has one.
-
-    FileNotFoundError names the path and what was looked for."""
+    """The checkpoint a path names: a ``.ckpt`` file itself; a version folder → its ``checkpoints/last.ckpt``; a run
+    name's folder → ``last.ckpt`` of its newest version that has one. FileNotFoundError says what was looked for."""
     path = Path(path)
     if path.is_file():
         return path

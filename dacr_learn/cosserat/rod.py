@@ -166,8 +166,8 @@ def total_wrench(y: Tensor, tension: Tensor, offsets: Tensor, section: Section) 
 def match_total_wrench(y: Tensor, total: Tensor, tension: Tensor, offsets: Tensor, section: Section,
                        iterations: int = JUMP_NEWTON_STEPS) -> Tensor:
     """The state with its strains (ε, u) replaced so that ``total_wrench`` with the tendons (offsets (Ta, 3),
-    tensions (B, Ta)) equals ``total`` (B, 6): the jump across a disk. Implicit (passing tendons kink with the new
-    strains): a fixed number of Newton ``iterations`` with the Jacobian of ``derivative`` (batched, differentiable)."""
+    tensions (B, Ta)) equals ``total`` (B, 6): the jump across a disk. Implicit (passing tendons kink), solved by
+    ``iterations`` Newton steps with the Jacobian of ``derivative``, contracting like (τ d²/EI)^(2^k) (batched)."""
     kk = torch.cat([section.kse, section.kbt]).to(y.dtype)
     if not offsets.shape[0]:
         return torch.cat([y[:, :12], total / kk, y[:, 18:]], dim=-1)

@@ -98,10 +98,9 @@ def _saved_spec(directory: Path, meta: dict) -> RobotSpec:
 def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
                      options: Any = None,
                      make: Callable[[RobotSpec, int, int, Any], dict[str, Tensor]] | None = None) -> dict[str, Tensor]:
-    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, source, options), else generate
-    it with ``make(spec, n, seed, options)`` (default :func:`generate`) and save it. A dataset written
-    before sources existed (no ``source`` in meta.json) counts as "cc". ``options``: default
-    :class:`~.cc.SamplerOptions` ()."""
+    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, source, options; no ``source``: "cc"),
+    else generate it with ``make(spec, n, seed, options)`` (default :func:`generate`, :class:`~.cc.SamplerOptions`)
+    and save it."""
     directory, options = Path(directory), SamplerOptions() if options is None else options
     if (directory / META_FILE).is_file():
         meta = _read_meta(directory)

@@ -219,10 +219,8 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def finalize(self, status: str) -> None:
-        """Flush and close every sink so the ``.rrd`` file is complete and readable.
-
-        With ``close_on_finalize=False`` a successful stage only flushes; call :meth:`close`.
-        """
+        """Flush and close every sink so the ``.rrd`` file is complete (with ``close_on_finalize=False`` a successful
+        stage only flushes; call :meth:`close`)."""
         if self._rec is None:
             return
         if status == "success" and not self._close_on_finalize:

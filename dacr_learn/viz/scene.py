@@ -48,10 +48,7 @@ def log_path(
     recording: rr.RecordingStream, entity: str, points: Any, color: Any = BACKBONE_COLOR,
     radius: float = 0.001,
 ) -> None:
-    """Log one curve ``(N, 3)`` or a batch of curves ``(k, N, 3)`` [m] as rr.LineStrips3D.
-
-    ``color`` is one RGB(A) colour (0-255) for all curves; ``radius`` is in metres.
-    """
+    """Log one curve (N, 3) or curves (k, N, 3) [m] as rr.LineStrips3D, one RGB(A) ``color``, ``radius`` [m]."""
     pts = _to_numpy(points)
     if pts.ndim not in (2, 3) or pts.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3) or (k, N, 3), got {tuple(pts.shape)}")
@@ -86,10 +83,8 @@ def colour_note(error_range: tuple[float, float] = DEFAULT_ERROR_RANGE, cmap: st
 
 
 def error_colours(error: np.ndarray, error_range: tuple[float, float], cmap: str = "viridis") -> np.ndarray:
-    """RGB uint8 colours ``(N, 3)`` of errors [m] on a fixed log scale (clipped to ``error_range``).
-
-    The scale is the same at every step and in every run, so colours compare across epochs.
-    """
+    """RGB uint8 colours (N, 3) of errors [m] on a fixed log scale (clipped to ``error_range``): the same at every
+    step and in every run."""
     lo, hi = error_range
     if not 0 < lo < hi:
         raise ValueError(f"error_range must be (low, high) with 0 < low < high [m], got {error_range}")

@@ -26,10 +26,8 @@ _EXACT = "donot_use_mm_for_euclid_dist"  # no cancellation: a training row is at
 
 
 def ensemble_predict(members: Sequence[Callable], x) -> tuple[Tensor, Tensor]:
-    """Mean and standard deviation over ensemble members: each ``member(x)`` → (n, 3) [m].
-
-    Returns (mean (n, 3), std (n, 3)) in the members' dtype; std uses K − 1 (zeros for K = 1).
-    """
+    """(mean (n, 3), std (n, 3)) over ensemble members ``member(x)`` → (n, 3) [m], in their dtype; std with K − 1
+    (zeros for K = 1)."""
     if len(members) == 0:
         raise ValueError("members: expected at least one model, got an empty sequence")
     with torch.no_grad():
@@ -167,9 +165,7 @@ class SigmaCalibration(nn.Module):
 
     @classmethod
     def fit(cls, residual: Tensor, std: Tensor, iters: int = 200) -> SigmaCalibration:
-        """Maximise Σ log N(residual; 0, σ_cal²) over (s, σ₀) ≥ 0; residual, std (n, 3) [m], held out.
-
-        Residuals should be offset-removed (the lab's metric forgives a constant offset).
+        """Maximise Σ log N(residual; 0, σ_cal²) over (s, σ₀) ≥ 0; residual (offset-removed, held out), std (n, 3) [m]
         """
         check_tensor(residual, "residual", (3,))
         check_tensor(std, "std", (3,))

@@ -134,10 +134,9 @@ def model_seeds(name: str, seeds: Sequence[int]) -> list[int]:
 
 def summarize_scores(rmse: dict[str, dict[str, list[float]]], seeds: list[int], seconds: float,
                      replicates: Mapping[str, Tensor] | None = None) -> dict:
-    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, proxy + "_per_seed": [mean over
-    folds per seed], "seeds", "seconds"} from {proxy: {fold: [RMSE [mm] per seed]}}; with ``replicates``
-    ({proxy: bootstrap replicates (B,) [mm]}, :func:`bootstrap_replicates`) also proxy + "_std": their standard
-    deviation, the proxy's uncertainty."""
+    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, proxy + "_per_seed", "seeds",
+    "seconds"} from {proxy: {fold: [RMSE [mm] per seed]}}; with ``replicates`` ({proxy: (B,) [mm]},
+    :func:`bootstrap_replicates`) also proxy + "_std", the proxy's uncertainty."""
     out: dict = {}
     for proxy, folds in rmse.items():
         per = {fold: float(np.mean(values)) for fold, values in folds.items()}
