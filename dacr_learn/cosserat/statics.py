@@ -172,10 +172,9 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
 
 
 def _map_chunks(solve, n: int, chunk_size: int, workers: int) -> list:
-    """``solve(rows)`` over slices of n rows, at most ``chunk_size`` each, in order. With workers > 1 the
-    chunks run in that many threads (torch releases the GIL inside its kernels; the per-kernel arrays of a
-    chunk are too small for torch's own intra-op threads) and their number is a multiple of ``workers``,
-    of equal size, so the threads finish together. Gradient-free only: grad mode is per thread."""
+    """``solve(rows)`` over slices of at most ``chunk_size`` of n rows, in order; with workers > 1 in that many
+    threads (torch releases the GIL in its kernels), a multiple of ``workers`` equal chunks so the threads finish
+    together. Gradient-free only: grad mode is per thread."""
     count = max(math.ceil(n / chunk_size), 1)
     if workers > 1 and n > 1:
         count = min(math.ceil(count / workers) * workers, n)

@@ -82,10 +82,8 @@ def _rotation_noise(n: int, std: float, generator: torch.Generator, dtype) -> Te
 
 def generate(spec: RobotSpec, n: int, seed: int, options: SamplerOptions = SamplerOptions(),
              dtype=torch.float32, *, segment_frames: bool = False, max_bending: int | None = None) -> dict[str, Tensor]:
-    """Generate n samples (see module docstring for the tensors). Bit-identical for a seed.
-
-    ``segment_frames``: also return the per-segment end frames; ``max_bending``: see the module docstring.
-    """
+    """Generate n samples (tensors of the module docstring), bit-identical for a seed; ``segment_frames``: with the
+    per-segment end frames; ``max_bending``: see the module docstring."""
     g = torch.Generator().manual_seed(int(seed))
     features = sample_features(spec, n, g, dtype, max_bending)
     q_clean = ClarkeDecoder(spec)(features)

@@ -240,9 +240,6 @@ def write_calibration(spec: RobotSpec, smap: ServoMap, robot_path: str | Path, m
 
 
 def default_map_path(robot_path: str | Path) -> Path:
-    """servo_maps/<robot file name> in the robot YAML's folder.
-
-    A sub-folder, so that a glob for robot YAMLs (``configs/robots/*.yaml``) never meets a map.
-    """
+    """servo_maps/<robot file name> in the robot YAML's folder (a glob for robot YAMLs never meets a map)."""
     p = Path(robot_path)
     return p.parent / "servo_maps" / p.name

@@ -30,10 +30,8 @@ CONTEXT, DEPTH, WEIGHT_DECAY, TORSION = "none", 2, 3.0, False   # chosen on the 
 
 
 class CCCompositionalResidual(nn.Module):
-    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists.
-
-    Built from the calibrated CC model and the network's shape; :meth:`fit` standardises the features with
-    the training split's statistics (:meth:`fit_normalization`) and trains the network."""
+    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists;
+    :meth:`fit` standardises the features (:meth:`fit_normalization`) and trains the network."""
 
     def __init__(self, cc: CalibratedCC, context: str = CONTEXT, width: int = RESIDUAL_HIDDEN,
                  depth: int = DEPTH, weight_decay: float = WEIGHT_DECAY, torsion: bool = TORSION, steps: int = STEPS,

@@ -13,10 +13,8 @@ from ..checks import check_tensor
 
 
 def offset_removed_errors(pred: Tensor, meas: Tensor) -> Tensor:
-    """‖e_k − ē‖ per row of e = pred − meas, shapes (n, 3) → (n,) (same unit, pred's dtype).
-
-    The terms of the offset-removed RMSE; ē is the mean over all n rows.
-    """
+    """‖e_k − ē‖ per row of e = pred − meas (ē: the mean over all n rows), shapes (n, 3) → (n,) (same unit, pred's
+    dtype): the terms of the offset-removed RMSE."""
     check_tensor(pred, "pred", (3,))
     check_tensor(meas, "meas", (3,))
     if pred.shape != meas.shape or pred.dim() != 2 or pred.shape[0] == 0:

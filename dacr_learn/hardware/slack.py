@@ -85,10 +85,9 @@ def active_set_gains(g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> tuple[Tenso
 
 
 def select_active_set(residual: Tensor, sets: Tensor, tendon_w: Tensor) -> Tensor:
-    """Index of the consistent set: residual (..., 2ᴺ, N) = x − Gρ_S of every set's solution,
-    sets (2ᴺ, N) bool, tendon_w (N,) → (...,) long, the set whose stretched tendons are exactly
-    those with a positive residual (the least tendon-weighted sign violation in floating point;
-    ties go to the lowest index, the fewest stretched tendons of the tied sets)."""
+    """Index (...,) long of the consistent set: residual (..., 2ᴺ, N) = x − Gρ_S of every set, sets (2ᴺ, N) bool,
+    tendon_w (N,); the set stretched exactly where the residual is positive (least tendon-weighted sign violation;
+    ties to the lowest index, the fewest stretched tendons)."""
     sign = torch.where(sets, -1.0, 1.0).to(residual.dtype)                       # + where it must be ≤ 0
     violation = (torch.relu(residual * sign) * tendon_w.to(residual.dtype)).sum(-1)
     return violation.argmin(-1)

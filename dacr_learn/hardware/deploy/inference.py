@@ -136,13 +136,9 @@ class HardwareFK(nn.Module):
         return memory, new, torch.where(inside.unsqueeze(-1), eye / self.play_width, drag)
 
     def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None] | None = None):
-        """Corrected ρ' (B, K, m, 2) of every member and, given the tangents (∂ρ (B, m, 2, T), ∂memory or None)
-        of the inputs, its tangents (B, K, m, 2, T) (else None).
-
-        Forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`): the input value and its T tangents
-        are 1 + T rows through the same products; the shared input goes through all K first layers in one product,
-        the hidden and output layers are batched over the members (bmm: fewer flops than one block-diagonal product).
-        """
+        """Corrected ρ' (B, K, m, 2) of every member and, given input tangents (∂ρ (B, m, 2, T), ∂memory or None), its
+        tangents (B, K, m, 2, T) (else None): forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`),
+        the first layers of all K members in one product, the further layers batched over the members (bmm)."""
         x = rho if memory is None else torch.cat([rho, memory], -1)                        # (B, m, I)
         rows = x.unsqueeze(2)                                                              # (B, m, 1, I)
         if tangent is not None:
