@@ -263,23 +263,17 @@ def check_same_schedule(ckpt: str | Path, blob: Any, config: dict[str, Any]) -> 
 def load_model(path: str | Path, dtype: torch.dtype = torch.float32, blob: Any = None) -> torch.nn.Module:
     """The trained network of a ``train.py`` run, in eval mode, ready to predict.
 
-    Args:
-        path: a run folder (``runs/<run_name>``: its newest version), a version folder
-            (``runs/<run_name>/version_<n>``) or a checkpoint file (``.ckpt``).
-        dtype: floating dtype of the returned model's parameters.
-        blob: the checkpoint file's content when the caller has loaded it (weights-only, e.g.
-            :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`); ``path`` then names that file.
+    ``path``: a run folder (``runs/<run_name>``: its newest version), a version folder
+    (``runs/<run_name>/version_<n>``) or a checkpoint file; ``dtype``: of the returned model's parameters;
+    ``blob``: the file's content when the caller has loaded it (weights-only, e.g.
+    :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`), ``path`` then names that file.
 
-    Returns:
-        An ``nn.Module`` with ``.spec`` (its :class:`~dacr_learn.robot.RobotSpec`) and ``.task``: "fk" (joint
-        lengths (..., N) [m] → tip poses (..., 4, 4) [m]), "ik" (the reverse) or "sampler"
-        (:class:`~dacr_learn.sampler.ClarkeSampler`: ``sample_features(target, count)`` → (B, count, D) float64).
-        FK / IK models cast floating inputs to ``dtype``; an FK model raises a ValueError for joint lengths far
-        outside the robot's limits (millimetres instead of metres).
-
-    Raises:
-        FileNotFoundError: nothing to load at ``path``.
-        ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
+    Returns an ``nn.Module`` with ``.spec`` (its :class:`~dacr_learn.robot.RobotSpec`) and ``.task``: "fk" (joint
+    lengths (..., N) [m] → tip poses (..., 4, 4) [m]), "ik" (the reverse) or "sampler"
+    (:class:`~dacr_learn.sampler.ClarkeSampler`: ``sample_features(target, count)`` → (B, count, D) float64).
+    FK / IK models cast floating inputs to ``dtype``; an FK model raises a ValueError for joint lengths far outside
+    the robot's limits (millimetres instead of metres). FileNotFoundError: nothing at ``path``; ValueError: not a
+    checkpoint of an FK / IK module (the message names the file).
     """
     task, model = load_checkpoint_model(find_checkpoint(path), blob)
     model = model.to(dtype).eval()

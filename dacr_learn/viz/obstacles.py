@@ -75,10 +75,9 @@ def log_body_clearance(recording: rr.RecordingStream, path: str, scene: Scene, p
 
 def log_scene_solutions(recording: rr.RecordingStream, prefix: str, scene: Scene, targets, bodies, radius, success,
                         required: float) -> None:
-    """An IK solve in a scene: per target b (side by side along x), under ``<prefix>/target_<b>``, the obstacles,
-    the target frame, every solution's backbone (translucent; red where it failed) and the first solution's
-    body coloured by clearance (:func:`log_body_clearance`). targets (B, 4, 4), bodies (B, K, P, 3) [m], radius
-    (P,) [m], success (B, K), required: the clearance asked for [m]."""
+    """An IK solve in a scene, per target b side by side along x under ``<prefix>/target_<b>``: the obstacles, the
+    target frame, every solution's backbone and the first solution's body coloured by clearance. targets (B, 4, 4),
+    bodies (B, K, P, 3) [m], radius (P,) [m], success (B, K), required: the clearance asked for [m]."""
     from .ik import log_ik_solutions
     poses = torch.as_tensor(targets, dtype=torch.float64)
     lines = torch.as_tensor(bodies, dtype=torch.float64)

@@ -90,14 +90,13 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
 def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | None, lower: Tensor,
                 upper: Tensor, config: ServoControl = ServoControl(), settle: int = 0,
                 pull_sign: Tensor | None = None) -> dict[str, np.ndarray]:
-    """Track ``targets`` (T, 3) [m] from command ``servo0`` (S,) [mm] and play state ``state0`` (1, m, 2)
-    (None: a static model). ``fk`` / ``jacobian``: the exported modules (or HardwareFK / HardwareJacobian).
-
-    Each step: the plant (``fk``) executes u → tip and the new state; J = ∂tip/∂u at the state before the step;
-    u ← clip(u + DLS(J, gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper).
-    ``pull_sign`` (S,): +1 where a larger command pulls the tendon in, −1 where a smaller one does (default all
-    +1). The first ``settle`` steps hold targets[0] and are not returned. Returns numpy arrays of the tracking
-    phase: desired, actual (T, 3) [m], servo (T, S) [mm], step_us (T,) (controller step: Jacobian + DLS + clip).
+    """Track ``targets`` (T, 3) [m] from command ``servo0`` (S,) [mm] and play state ``state0`` (1, m, 2) (None: a
+    static model) with the exported ``fk`` / ``jacobian`` modules (or HardwareFK / HardwareJacobian). Each step the
+    plant executes u → tip and the new state; J = ∂tip/∂u at the state before the step; u ← clip(u + DLS(J,
+    gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper). ``pull_sign`` (S,): +1 where
+    a larger command pulls the tendon in, −1 where a smaller one does (default +1). The first ``settle`` steps hold
+    targets[0] and are not returned. Returns numpy arrays: desired, actual (T, 3) [m], servo (T, S) [mm], step_us
+    (T,) (controller step: Jacobian + DLS + clip).
     """
     scale = ((upper - lower) / 2).to(F64).clamp_min(1e-9)
     lower, upper = lower.to(F64), upper.to(F64)
@@ -161,10 +160,9 @@ def load_hardware_export(export: str | Path):
 
 
 def source_model(export: str | Path, meta: dict, ckpt: str | Path | None = None) -> HardwareModel:
-    """The saved hardware model an export was made from: ``ckpt``, else the checkpoint named in its metadata
-    (``source_checkpoint``; a relative path is tried as written, then next to the export's folder); checked
-    against the export's checksum of it and its servo ids. FileNotFoundError when it is not found, ValueError
-    when it is another model than the one exported."""
+    """The saved hardware model an export was made from: ``ckpt``, else its metadata's ``source_checkpoint`` (as
+    written, then next to the export), checked against the export's checksum and servo ids (FileNotFoundError,
+    ValueError)."""
     export = Path(export)
     if ckpt is None:
         named = Path(meta["source_checkpoint"]["path"])
