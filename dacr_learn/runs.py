@@ -298,10 +298,9 @@ JOINT_UNIT_FACTOR = 2.0    # joint lengths beyond this many times the longest po
 
 
 class _FriendlyInput:
-    """Forward pre-hook of :func:`load_model`'s FK / IK models: floating inputs of another dtype (the float64
-    joints ``ResolvedRateController.step`` returns) are cast to the model's; an FK model refuses joint lengths
-    far outside the robot's limits (a ValueError: millimetres instead of metres would give a tip metres away).
-    Skipped while tracing (torch.export / compile) and under torch.func transforms, like check_tensor."""
+    """Forward pre-hook of :func:`load_model`'s FK / IK models: floating inputs of another dtype are cast to the
+    model's; an FK model refuses joint lengths far outside the robot's limits (millimetres instead of metres).
+    Skipped while tracing and under torch.func transforms, like check_tensor."""
 
     def __init__(self, task: str):
         self.task = task

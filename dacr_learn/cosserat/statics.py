@@ -72,10 +72,9 @@ class CosseratSolution:
         return self.frames[..., self.grid.index(arcs), :, :]
 
     def body(self, spec: RobotSpec, points_per_segment: int | None = None) -> BodyPoints:
-        """The rod's own body: its nodes at the fractions j/K of every segment's reference length, (..., 1 + m·K, 3)
-        [m] in the base frame (the layout of :mod:`dacr_learn.body`; NaN where the solve failed). ``spec``: the
-        solved robot (its envelope radii). K (None: the solve's ``steps_per_segment``) must divide the steps per
-        segment (ValueError otherwise: solve with a multiple of K steps)."""
+        """The rod's body (:mod:`dacr_learn.body` layout): its nodes at the fractions j/K of every segment,
+        (..., 1 + m·K, 3) [m], base frame (NaN where the solve failed); ``spec``: the solved robot. K (None: the solve's
+        ``steps_per_segment``) must divide the steps per segment (ValueError otherwise)."""
         k = self.grid.steps if points_per_segment is None else check_points_per_segment(points_per_segment)
         arcs, _ = body_layout(spec, k)
         if self.grid.steps % k or abs(float(arcs[-1]) - self.grid.ends[-1]) > 1e-12 * self.grid.ends[-1]:

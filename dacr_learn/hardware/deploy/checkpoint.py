@@ -94,10 +94,9 @@ class HardwareModel:
         return mean_and_sigma(preds, split.cc_tip, split.features[..., :2], self.sigma_of(), self.support)
 
     def body(self, servo_mm: torch.Tensor, points_per_segment: int = 16) -> BodyPoints:
-        """The body of servo commands (n, S) [mm, ``servo_ids`` order]: the calibrated physical model's
-        (:meth:`~..ccmodel.CalibratedCC.body`: the CC arcs of the fitted encoder's features), in the motion-capture
-        frame of the tips, float64. The learned residual corrects the tip only, so near the tip the body can be off
-        the predicted tip by up to the residual (:meth:`predict` minus the calibrated CC tip)."""
+        """The body of servo commands (n, S) [mm, ``servo_ids`` order]: the calibrated CC model's
+        (:meth:`~..ccmodel.CalibratedCC.body`), motion-capture frame, float64; near the tip it can be off the predicted
+        tip by the learned residual (which corrects the tip only)."""
         servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
         if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
             raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")

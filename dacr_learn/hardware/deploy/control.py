@@ -63,13 +63,11 @@ def training_commands(servo_ids: list[str], recording: Path) -> Tensor:
 
 def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solutions: int = 4,
                     options: IKOptions | None = None) -> tuple[Tensor, float]:
-    """The command to start a control loop at: (u0 (S,) [mm, ``model.servo_ids`` order], its tip error [m]).
-
-    :func:`dacr_learn.solve_ik` of the saved hardware ``model`` for the tip position ``target`` (3,) [m], warm-started
-    at the ``current`` command (S,) [mm]: of ``solutions`` solutions the first successful one, the nearest to
-    ``current``. It lies in :meth:`.checkpoint.HardwareModel.servo_range` and the model's static prediction there is
-    within ``options.pos_tolerance`` (:class:`dacr_learn.ik.IKOptions`) of the target. ValueError when no solution
-    reaches the target (naming the smallest miss) or for inputs of the wrong shape.
+    """The command to start a control loop at: (u0 (S,) [mm, ``model.servo_ids`` order], its tip error [m]):
+    :func:`dacr_learn.solve_ik` of the saved ``model`` for the tip position ``target`` (3,) [m], warm-started at the
+    ``current`` command (S,) [mm], the first successful of ``solutions`` (the nearest to ``current``), inside
+    :meth:`.checkpoint.HardwareModel.servo_range`, within ``options.pos_tolerance`` (:class:`dacr_learn.ik.IKOptions`).
+    ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the wrong shape.
     """
     options = IKOptions() if options is None else options
     target = torch.as_tensor(target, dtype=F64)

@@ -21,11 +21,10 @@ from .inference import HardwareJacobian
 class HardwareTip(SolverModel):
     """A saved hardware model (``dacr_learn.hardware.deploy.load_hardware_model``) inverted in servo space.
 
-    Variables and joints are the servo commands [mm] (checkpoint column order) in the box of
-    :meth:`~.checkpoint.HardwareModel.servo_range`; the tip is the model's position in the motion-capture frame
-    [m] (position-only IK), its Jacobian ∂tip/∂servo [m/mm] from the folded inference module (float64). A history
-    model is solved with its play state at the command itself (the static answer). :meth:`check` is the model's
-    own ``predict(q, static=True)`` (the eager ensemble, not the folded module the solver iterates with).
+    Variables are the servo commands [mm] (checkpoint column order) in the box of
+    :meth:`~.checkpoint.HardwareModel.servo_range`; the tip is the model's position [m] (position-only IK), its
+    Jacobian [m/mm] from the folded inference module (float64); a history model is held static (play state at the
+    command). :meth:`check` is the eager ``predict(q, static=True)``, not the folded module the solver iterates with.
     """
 
     has_rotation = False
