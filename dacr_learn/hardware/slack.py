@@ -115,14 +115,11 @@ def enumerated_solution(x: Tensor, sets: Tensor, gain: Tensor, residual_map: Ten
 
 
 class SlackAwareEncoder(nn.Module):
-    """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4).
-
-    Learnable physical parameters (float64): ``log_radius_scale`` (m,), d_k = d_k,nominal·exp(·);
-    ``rotation`` (m,) [rad] of each segment's joint angles; ``log_compliance`` (log c [m²]); ``pretension``
-    p [m]; with ``strain=True`` also ``pretension_strain`` s [m]: p_i = p + s·(L_i/L̄ − 1), L̄ the mean path length.
-
-    Output features follow docs/design.md §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
-    d_nominal/d_effective, β = l, α = 0, so ``forward_kinematics(spec, features)`` gives the effective shape.
+    """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4), in the convention of docs/design.md §3
+    for the *nominal* spec ((ρ_re, ρ_im)·d_nominal/d_effective, β = l, α = 0): ``forward_kinematics(spec, features)``
+    gives the effective shape. Learnable (float64): ``log_radius_scale`` (m,), d_k = d_k,nominal·exp(·); ``rotation``
+    (m,) [rad] of each segment's joint angles; ``log_compliance`` (log c [m²]); ``pretension`` p [m]; with
+    ``strain=True`` also ``pretension_strain`` s [m]: p_i = p + s·(L_i/L̄ − 1), L̄ the mean path length.
     """
 
     def __init__(self, spec: RobotSpec, compliance: float = 1e-6, pretension: float = 0.0, strain: bool = False):

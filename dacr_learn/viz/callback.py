@@ -55,12 +55,10 @@ def find_rerun_logger(trainer: Trainer) -> RerunLogger | None:
 
 
 class RerunVisualCallback(Callback):
-    """The run's context and 3D scenes for a :class:`RerunLogger`.
-
-    At fit start: :func:`run_info` with the hparams, and the CLI config (``pl_module.run_config``) when there is
-    one. After every ``every_n_epochs``-th validation: ``pl_module.visual_batch()`` (the dict of :func:`log_scene`,
-    CPU tensors, metres) under ``prefix`` at the global step, with at most ``max_workspace_points`` points on the
-    log scale ``error_range`` [m]. Skipped in the sanity check, on ranks other than 0, without a
+    """The run's context and 3D scenes for a :class:`RerunLogger`: at fit start :func:`run_info` and the CLI config
+    (``pl_module.run_config``); after every ``every_n_epochs``-th validation ``pl_module.visual_batch()`` (the dict of
+    :func:`log_scene`, CPU tensors, metres) under ``prefix`` at the global step, at most ``max_workspace_points``
+    points on the log scale ``error_range`` [m]. Skipped in the sanity check, on ranks other than 0, without a
     :class:`RerunLogger`, and (with one warning) for a module without ``visual_batch``.
     """
 

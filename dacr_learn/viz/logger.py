@@ -78,17 +78,14 @@ def _rerun_executable() -> str | None:
 class RerunLogger(Logger):
     """Lightning logger writing metrics and hyper-parameters to a Rerun recording.
 
-    The recording is saved to ``<save_dir>/<name>/rerun.rrd`` (``<save_dir>/<name>/<version>/`` when ``version``
-    is given; an int becomes ``version_<n>``), never over an existing file: the first free name of ``rerun.rrd``,
-    ``rerun_1.rrd``, … Optionally streamed to a spawned viewer (``spawn=True``, port 9876) and/or a running one
-    (``connect="rerun+http://host:9876/proxy"``); ``save_dir=None`` writes no file. Only rank 0 logs;
-    ``.experiment`` / ``.recording`` is the :class:`rerun.RecordingStream`.
-
-    ``finalize`` flushes and closes all sinks unless ``close_on_finalize=False`` and the run succeeded (one file
-    across ``fit`` and a following ``test``, until :meth:`close`). A logger used again afterwards writes the next
-    free ``rerun_<k>.rrd`` with the same recording id (the viewer merges them). ``recording_id`` (default: a new
-    UUID) lets a resumed run continue a recording; ``recording_name`` is the viewer's name for it (default
-    ``name`` or ``name/version``). ``live_flush_s``: how often rows are sent when streaming to a viewer.
+    Saved to ``<save_dir>/<name>/rerun.rrd`` (``<save_dir>/<name>/<version>/`` with ``version``; an int becomes
+    ``version_<n>``), never over an existing file (the first free of ``rerun.rrd``, ``rerun_1.rrd``, …); ``spawn=True``
+    streams to a spawned viewer (port 9876), ``connect`` to a running one; ``save_dir=None`` writes no file. Only
+    rank 0 logs; ``.experiment`` / ``.recording`` is the :class:`rerun.RecordingStream`. ``finalize`` closes the sinks
+    unless ``close_on_finalize=False`` and the run succeeded (until :meth:`close`); used again, the logger writes the
+    next free ``rerun_<k>.rrd`` with the same ``recording_id`` (default a new UUID; a resumed run passes its own).
+    ``recording_name``: the viewer's name (default ``name`` or ``name/version``); ``live_flush_s``: how often rows
+    are sent when streaming.
     """
 
     def __init__(

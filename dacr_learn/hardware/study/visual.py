@@ -115,12 +115,9 @@ def _hidden(entities: list[str]) -> dict[str, list]:
 
 
 def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown: int = 3, default: str | None = None):
-    """Layout for :func:`log_rerun`; ``errors``: model -> offset-removed errors [mm].
-
-    Left: the 3D view (measured path, the CC model and the :func:`shown_models`, with their ±2σ bands), below
-    it the shown models' error per val sample (y up to :func:`error_axis_max`) and, with ``with_std``, their
-    predicted 2σ. Right: every model's val RMSE as bars (best first, in its colour) above the RMSE table.
-    Every other model stays in the recording, hidden (one click away). Opens at the last sample.
+    """Layout for :func:`log_rerun` (``errors``: model -> offset-removed errors [mm]): left the 3D view and the
+    :func:`shown_models`' error per val sample (and predicted 2σ with ``with_std``), right every model's val RMSE bar
+    and table; the other models hidden (one click away). Opens at the last sample.
     """
     import rerun.blueprint as rrb
 
