@@ -127,11 +127,10 @@ def _selection_folds(setup: Setup, args: argparse.Namespace) -> dict:
 
 def _fit_all(setup: Setup, args: argparse.Namespace, start: float
              ) -> tuple[SelectionResult | None, dict | None, dict, dict, dict]:
-    """(the proxies or None, the default's choice or None, final results, val predictions, what ``--save`` needs):
-    every fit handed to one pool before any is collected (shared Cosserat pieces, proxies, final runs). With
-    ``--save`` the saved ensemble is the final runs' own members, and the σ model's held-out rows are the default's
-    proxy fits when its proxy seeds are ``--seeds`` (else fitted once more): {"members": {model: models per seed},
-    "held_out": [HeldOut]} (empty without ``--save``).
+    """(proxies or None, the default's choice or None, final results, val predictions, what ``--save`` needs):
+    every fit handed to one pool before any is collected. With ``--save`` the saved ensemble is the final runs'
+    members, and the σ model's held-out rows are the default's proxy fits when its proxy seeds are ``--seeds``:
+    {"members": {model: models per seed}, "held_out": [HeldOut]} (empty without ``--save``).
     """
     keep = default_candidates(list(args.models)) if args.save else ()
     fitted: dict = {}

@@ -34,10 +34,9 @@ __all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", 
 
 @dataclass(frozen=True)
 class ServoControl(ControllerConfig):
-    """gain, damping (λ [m] of the DLS), max_step (largest scaled servo step ‖Δu / s‖ per control step, s: each
-    servo's half-range): as :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step per
-    control step by which each *slack* servo (a zero column of J) is pulled in, in [0, max_step] (0: off), in
-    J's null space, so the tip moves only once the tendon turns taut (docs/export.md: a trade-off).
+    """gain, damping (λ [m]), max_step (largest scaled servo step ‖Δu / s‖, s: each servo's half-range): as
+    :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step in [0, max_step] pulling each slack
+    servo (zero column of J) in, in J's null space (0: off; docs/export.md: a trade-off).
     """
 
     damping: float = 2e-3

@@ -228,14 +228,11 @@ def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: st
 
 def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
                    replicates: Mapping[str, Tensor] | None = None, tie_sigmas: float = TIE_SIGMAS) -> dict:
-    """The default model by the one-standard-error rule (docs/hardware.md), and why.
-
-    ``best`` has the lowest ``proxy`` score; a candidate is *tied* with it when its score is higher by at most
-    ``tie_sigmas`` × the std of their bootstrapped difference (``replicates``: {model: (B,)} of
-    :func:`bootstrap_replicates`, paired over the held-out pattern groups). The default is the simplest tied
-    candidate (:func:`~.registry.complexity`; equal ones: the earlier). Without ``replicates`` the lowest wins.
-
-    Returns {"default", "best", "tied": [models], "rule", "reason", "candidates": {model: {"score_mm",
+    """The default model by the one-standard-error rule (docs/hardware.md), and why: ``best`` has the lowest
+    ``proxy`` score; a candidate is *tied* with it when higher by at most ``tie_sigmas`` × the std of their paired
+    bootstrapped difference (``replicates``: {model: (B,)} of :func:`bootstrap_replicates`); the default is the
+    simplest tied candidate (:func:`~.registry.complexity`; equal ones: the earlier). Without ``replicates`` the
+    lowest wins. Returns {"default", "best", "tied": [models], "rule", "reason", "candidates": {model: {"score_mm",
     "std_mm", "gap_mm", "gap_std_mm", "tied"}}} (std: of the model's own replicates).
     """
     scored = [c for c in candidates if c in scores and proxy in scores[c]]

@@ -237,11 +237,9 @@ def _summary(setup: Setup, rmse: dict[str, float], default: str | None = None) -
 
 def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
               std: dict[str, torch.Tensor] | None = None, default: str | None = None) -> None:
-    """Rerun .rrd of the val recording, with its own blueprint (:func:`hardware_blueprint`, showing ``default``).
-
-    Static: the measured and predicted val paths [m], a ±2σ band of ellipsoids for models in ``std`` (σ per
-    sample [m], (N,) or (N, 3)) and every model's val RMSE bar (``rmse/…``). On the timeline ``sample``: the
-    tips, the CC model's backbone, each model's offset-removed error [mm] and its predicted 2σ [mm].
+    """Rerun .rrd of the val recording with :func:`hardware_blueprint` (showing ``default``): static paths [m],
+    ±2σ ellipsoids for models in ``std`` (σ [m], (N,) or (N, 3)) and RMSE bars; on the ``sample`` timeline the tips,
+    the CC backbone, each model's offset-removed error [mm] and predicted 2σ [mm].
     """
     import rerun as rr
 
