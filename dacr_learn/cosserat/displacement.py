@@ -104,13 +104,11 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
                         passing: str = "own") -> DisplacementSolution:
     """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector order) and
     the robot's weight (``gravity`` (3,) or (..., 3) [m/s²], base frame, as :func:`solve_statics`).
-
-    ``spring_lengths`` (T,) or (..., T) [m]: each tendon a linear spring of that fixed length L_s (stretch τ·c·L_s,
-    c = ``mechanics.tendon_compliance``, e.g. the CC model's straight path length), so R = L − c·L_s·τ instead of
-    L/(1 + cτ); per-sample values (and gravities) let one call solve several parameter sets (a fit's finite
-    differences). ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration.
-    ``tol`` [m]: the largest tendon-length violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag".
-    ``passing``: as :func:`solve_statics`. Float64, no gradient.
+    ``spring_lengths`` (T,) or (..., T) [m]: each tendon a linear spring of that length L_s (R = L − c·L_s·τ instead
+    of L/(1 + cτ), c = ``mechanics.tendon_compliance``); per-sample values let one call solve several parameter sets.
+    ``tension_guess`` (..., T) [N], ``compliance_guess`` (..., T, T) [m/N]: warm start. ``tol`` [m]: the largest
+    tendon-length violation accepted. ``on_failure``: "raise" | "flag"; ``passing``: as :func:`solve_statics`.
+    Float64, no gradient.
     """
     check_solve_arguments(spec, on_failure)
     if not (isinstance(max_iter, int) and max_iter >= 1):

@@ -53,10 +53,9 @@ def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -
 
 def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions: Tensor, base_pose: Tensor,
                         tip_marker: Tensor) -> tuple[Tensor, Tensor]:
-    """Marker point base · T₁ ⋯ T_m · marker (:func:`cc_segment_poses`, :func:`chained_marker_point`) and its
-    derivative: ρ (..., m, 2) [m] → tip (..., 3) [m], ∂tip/∂ρ (..., m, 2, 3) [m/m]. The kernel's exponential
-    with its tangents along ``directions`` = :func:`cc_twist_directions` (radius) and its chain rule with the
-    base pose and the marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
+    """ρ (..., m, 2) [m] → marker point base · T₁ ⋯ T_m · marker (..., 3) [m] and ∂tip/∂ρ (..., m, 2, 3): the kernel's
+    exponential along ``directions`` (:func:`cc_twist_directions`) and its chain rule with the base pose and the
+    marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
     u = components(rho / radius.unsqueeze(-1))                                        # u_x, u_y (..., m)
     dw = directions[..., 3:5].permute(1, 2, 0).unflatten(-1, (*[1] * (rho.dim() - 2), -1))   # dω_x, dω_y (T, 1.., m)
     xi, dxi = (None, None, length, -u[1], u[0], None), (None, None, None, dw[:, 0], dw[:, 1], None)   # zeros skipped
@@ -221,10 +220,9 @@ class InitialState(nn.Module):
 
 
 def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
-    """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
-    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, S, 2m) and ``rho_offset`` (2ᴺ, 1, 2m) give
-    ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
-    give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
+    """The slack QP folded per active set S (:func:`~.slack.active_set_gains`, float64), x = servo·A + a₀ + p [m]:
+    ``rho_gain`` (2ᴺ, S, 2m), ``rho_offset`` (2ᴺ, 1, 2m) give ρ_S·d_nominal/d_effective of servo [mm];
+    ``violation_map`` (S, 2ᴺ·N), ``violation_offset`` the signed, weighted residuals of select_active_set."""
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
     a0 = model.smap.command_displacements(spec, model.servo_ids, torch.zeros(1, s, dtype=F64))[0]
     a = model.smap.command_displacements(spec, model.servo_ids, 1e-3 * torch.eye(s, dtype=F64)) - a0   # (S, N)

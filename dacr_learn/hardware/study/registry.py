@@ -63,11 +63,10 @@ def _pretrained(inputs: str) -> Callable[[FitContext, int], nn.Module]:
 
 @dataclass(frozen=True)
 class ModelInfo:
-    """One registered model. ``inputs``: "raw" (servo values) or "clarke"; ``static``: one command → one tip
-    (False: uses the command history); ``deterministic``: the same for every seed (trained once);
-    ``deployable``: ``--save`` and ``dacr_learn.export`` take it; ``outputs``: learned outputs per segment of a
-    CC-based model (0: the CC model itself; large for models that are not per-segment corrections);
-    ``pretrained``: first trained on another model's synthetic data. See :func:`complexity`.
+    """One registered model: ``inputs`` "raw" | "clarke"; ``static`` (False: uses the command history);
+    ``deterministic`` (trained once); ``deployable`` (``--save`` and the export take it); ``outputs``: learned outputs
+    per segment of a CC-based model (0: the CC model; large: not a per-segment correction); ``pretrained``: first
+    trained on another model's synthetic data. See :func:`complexity`.
     """
 
     name: str
