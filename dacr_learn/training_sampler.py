@@ -22,13 +22,10 @@ from .training import KinematicsModule
 
 
 class SamplerModule(KinematicsModule):
-    """Learned multi-solution IK sampler: a conditional normalizing flow of the joints given the tip pose.
-
-    Args (beyond :class:`~dacr_learn.training.KinematicsModule`'s): features "clarke" | "raw" (module docstring of
-    :mod:`dacr_learn.sampler`); transforms, bins: coupling spline transforms and their bins; width, depth,
-    activation: each transform's network; noise: std of the Gaussian noise on the standardised training variables
-    (> 0 needed for "raw"); position_fraction: share of training poses whose rotation is hidden (> 0: the model
-    also samples for tip positions).
+    """Learned multi-solution IK sampler: a conditional normalizing flow of the joints given the tip pose. Args beyond
+    :class:`~dacr_learn.training.KinematicsModule`'s: features "clarke" | "raw" (:mod:`dacr_learn.sampler`);
+    transforms, bins, width, depth, activation: the flow; noise: std of the Gaussian noise on the standardised
+    training variables (> 0 for "raw"); position_fraction: share of training poses with the rotation hidden.
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",

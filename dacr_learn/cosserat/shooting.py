@@ -133,14 +133,13 @@ KeepingResidual = Callable[[Tensor, Tensor], "tuple[Tensor, Tensor | None]"]
 
 def newton(fun: KeepingResidual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
            halvings: int = 10) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Damped quasi-Newton on r(x) = 0, per sample while it has not converged (docs/cosserat.md §3).
+    """Damped quasi-Newton on r(x) = 0 per sample while it has not converged (docs/cosserat.md §3).
 
-    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None): the residual of the n rows x of samples ``idx`` and what
-    the caller keeps of the point (e.g. the states at the grid nodes), returned for each sample's final x.
-    J: forward differences of ``coarse`` (default ``fun``'s r) at x0, Broyden updates after every step, refreshed
-    where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, … (``halvings`` tries)
-    until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); else the best trial if it lowers ‖r‖₂, else the sample stays
-    and J is differenced again (on ``coarse``, then on ``fun``); a sample that cannot move even then stops.
+    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None) for rows x of samples ``idx``; ``kept`` (e.g. node states)
+    is returned for each sample's final x. J: forward differences of ``coarse`` (default ``fun``'s r), Broyden
+    updates, refreshed where ‖r‖₂ fell by less than ``REFRESH``. Steps x − α·J⁻¹r, α = 1, 1/2, … (``halvings``
+    tries, Armijo factor 1 − 1e-4·α), else the best trial if it lowers ‖r‖₂, else J is differenced again (on
+    ``coarse``, then ``fun``) and a sample that still cannot move stops.
     Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,), kept (B, ...) or None).
     """
     x = x0.clone()

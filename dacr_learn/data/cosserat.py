@@ -106,11 +106,9 @@ def _tip_forces(n: int, force_max: float, generator: torch.Generator) -> Tensor:
 
 def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = CosseratOptions(),
              dtype=torch.float32, *, progress: bool = True, chunk: int = PROGRESS_CHUNK) -> dict[str, Tensor]:
-    """n samples (tensors of the module docstring), solved ``chunk`` at a time with a progress bar.
-
-    Raises DatasetConvergenceError (a ConvergenceError and a ValueError; after trying every sample) naming how
-    many samples failed, the worst residual and the options to change; ValueError without a ``mechanics:`` block.
-    """
+    """n samples (tensors of the module docstring), solved ``chunk`` at a time with a progress bar. Raises
+    DatasetConvergenceError (after trying every sample) naming the failures, the worst residual and the options to
+    change; ValueError without a ``mechanics:`` block."""
     if spec.mechanics is None:
         raise ValueError(f"robot {spec.name!r}: data source 'cosserat' needs a mechanics: block in the robot "
                          "description (docs/cosserat.md §1)")
