@@ -34,11 +34,9 @@ LCP_GAUSS_SEIDEL_SWEEPS = 400
 
 @dataclass(frozen=True)
 class DisplacementSolution:
-    """Statics under commanded tendon lengths, batch (...,), SI units: statics (the
-    :class:`~.statics.CosseratSolution` at the tensions found), tension (..., T) [N], compliance (..., T, T) [m/N]
-    (A = −∂R/∂τ, the chord matrix used: a ``compliance_guess`` for a nearby solve), violation (...,) [m] (max |F_i|
-    of taut and max(F_i, 0) of slack tendons), converged (...,) bool, iterations (...,) (Cosserat solves).
-    """
+    """Statics under commanded tendon lengths, batch (...,), SI units: statics (the CosseratSolution at the tensions
+    found), tension (..., T) [N], compliance (..., T, T) [m/N] (A = −∂R/∂τ: a ``compliance_guess`` for a nearby
+    solve), violation (...,) [m] (max |F_i| taut, max(F_i, 0) slack), converged (...,) bool, iterations (...,)."""
 
     statics: CosseratSolution
     tension: Tensor

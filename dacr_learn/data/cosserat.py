@@ -41,11 +41,9 @@ class DatasetConvergenceError(ConvergenceError, ValueError):
 
 @dataclass(frozen=True)
 class CosseratOptions:
-    """Sampling and solver options of a Cosserat dataset (the ``data.cosserat`` block of a config; docs/cosserat.md §6).
-
-    tension_max [N]; tendons_pulled (1 … a segment's tendons); gravity (3,) [m/s²] in the base frame;
-    tip_force_max [N] (0: none); steps_per_segment (RK4); tol, max_iter: Newton's (solve_statics).
-    """
+    """Sampling and solver options of a Cosserat dataset (``data.cosserat``; docs/cosserat.md §6): tension_max [N];
+    tendons_pulled (per segment); gravity (3,) [m/s²], base frame; tip_force_max [N] (0: none); steps_per_segment
+    (RK4); tol, max_iter: Newton's (solve_statics)."""
 
     source: ClassVar[str] = "cosserat"
     tension_max: float = 2.0

@@ -138,14 +138,11 @@ def log_scene(
     axis_length: float = 0.01, cmap: str = "viridis", error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
     max_points: int | None = None,
 ) -> None:
-    """Log a visual batch under ``prefix`` at the recording's current time (set it first, e.g.
-    ``recording.set_time("step", sequence=step)``).
-
-    ``visual`` may hold any subset of (tensors or arrays, metres): ``backbone`` (k, P, 3) (grey: the CC backbone),
-    ``backbone_true`` (k, P', 3) (blue: the data's own backbone, e.g. Cosserat), ``backbone_pred`` (k, P'', 3)
-    (orange: the learned segment ends or body), ``pose_true``, ``pose_pred`` (k, 4, 4), ``workspace_points`` (N, 3)
-    with optional ``workspace_error`` (N,) (:func:`log_workspace`; a static colour bar at
-    ``<prefix>/workspace/colour_scale`` the first time). Unknown keys are a ValueError.
+    """Log a visual batch under ``prefix`` at the recording's current time (set it first). ``visual`` may hold any
+    of (tensors or arrays, metres): ``backbone`` (k, P, 3) (grey: CC), ``backbone_true`` (k, P', 3) (blue: the data's
+    own, e.g. Cosserat), ``backbone_pred`` (k, P'', 3) (orange: learned segment ends or body), ``pose_true``,
+    ``pose_pred`` (k, 4, 4), ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,) (:func:`log_workspace`;
+    a static colour bar at ``<prefix>/workspace/colour_scale`` the first time). Unknown keys are a ValueError.
     """
     unknown = sorted(set(visual) - set(VISUAL_KEYS))
     if unknown:
