@@ -108,10 +108,9 @@ def tendon_monomials(offsets: Tensor) -> Tensor:
 
 def tendon_block(v: Tensor, u: Tensor, tension: Tensor, offsets: Tensor,
                  monomials: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Σ_i E_i A_i E_iᵀ (B, 6, 6), A_i = (τ_i/‖s_i‖)(I − t_i t_iᵀ), for tendons at offsets (Ta, 3) with tensions
-    (B, Ta), and per tendon ‖s_i‖ (B, Ta) and w_i (B, Ta, 6); ``monomials`` = tendon_monomials(offsets).
-    I − t tᵀ is formed without cancellation (1 − t_z² = t_x² + t_y²), then contracted with the monomials
-    and mapped by ``_block_map``: two small GEMMs instead of B·Ta outer products."""
+    """Σ_i E_i A_i E_iᵀ (B, 6, 6), A_i = (τ_i/‖s_i‖)(I − t_i t_iᵀ), for tendons at offsets (Ta, 3), tensions (B, Ta),
+    ‖s_i‖ (B, Ta), w_i (B, Ta, 6), ``monomials`` = tendon_monomials(offsets): I − t tᵀ without cancellation
+    (1 − t_z² = t_x² + t_y²), contracted with the monomials and mapped by ``_block_map`` (two small GEMMs)."""
     norm, w = tendon_wrench_directions(v, u, offsets)
     tx, ty, tz = w[..., 0], w[..., 1], w[..., 2]
     coef = tension / norm
