@@ -165,7 +165,7 @@ class SigmaCalibration(nn.Module):
 
     @classmethod
     def fit(cls, residual: Tensor, std: Tensor, iters: int = 200) -> SigmaCalibration:
-        """Maximise Σ log N(residual; 0, σ_cal²) over (s, σ₀) ≥ 0; residual (offset-removed, held out), std (n, 3)."""
+        """Maximise Σ log N(r; 0, σ_cal²) over (s, σ₀) ≥ 0: residual r (offset-removed, held out), std (n, 3) [m]."""
         check_tensor(residual, "residual", (3,))
         check_tensor(std, "std", (3,))
         if residual.shape != std.shape or residual.shape[0] < 2:
