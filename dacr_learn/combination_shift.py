@@ -82,9 +82,8 @@ def shift_study(seeds: list[int], steps: int, n_train: int, n_test: int, batch_s
         split = combination_split(spec, n_train, n_test, seed)
         for name, params in (models or MODELS).items():
             module, seconds = train_fk(spec, split["train"], params, steps, batch_size, seed)
-            with torch.no_grad():
-                rows += [_row("shift", name, seed, test, evaluate(module, "fk", split[test]), steps, seconds)
-                         for test in ("heldout", "all_bending")]
+            rows += [_row("shift", name, seed, test, evaluate(module, "fk", split[test]), steps, seconds)
+                     for test in ("heldout", "all_bending")]
     return rows
 
 
@@ -98,11 +97,10 @@ def transfer_study(seeds: list[int], steps: int, n_train: int, n_test: int, batc
         module, seconds = train_fk(source, generate(source, n_train, seed), COMPOSITIONAL, steps, batch_size, seed)
         moved = FKModule(robot=target.to_dict(), **COMPOSITIONAL)
         moved.model = transfer(module.model, target)
-        with torch.no_grad():
-            rows.append(_row("transfer", "compositional", seed, f"{source.name} (trained)",
-                             evaluate(module, "fk", generate(source, n_test, 20_000 + seed)), steps, seconds))
-            rows.append(_row("transfer", "compositional", seed, f"{target.name} (transferred)",
-                             evaluate(moved.eval(), "fk", generate(target, n_test, 20_000 + seed)), steps, seconds))
+        rows.append(_row("transfer", "compositional", seed, f"{source.name} (trained)",
+                         evaluate(module, "fk", generate(source, n_test, 20_000 + seed)), steps, seconds))
+        rows.append(_row("transfer", "compositional", seed, f"{target.name} (transferred)",
+                         evaluate(moved, "fk", generate(target, n_test, 20_000 + seed)), steps, seconds))
     return rows
 
 

@@ -64,10 +64,8 @@ def numbered(parent: str | Path, prefix: str) -> list[Path]:
 
 
 def new_numbered_dir(parent: str | Path, prefix: str) -> Path:
-    """Create and return ``parent/<prefix><n>`` for the smallest ``n`` above every existing one.
-
-    The folder is made with an exclusive ``mkdir``: a concurrent caller gets the next number, never
-    the same folder, and an existing folder is never reused."""
+    """Create and return ``parent/<prefix><n>`` for the smallest ``n`` above every existing one, with an exclusive
+    ``mkdir`` (a concurrent caller gets the next number; an existing folder is never reused)."""
     parent = Path(parent)
     parent.mkdir(parents=True, exist_ok=True)
     n = max((k for k, _ in _numbered(parent, prefix)), default=-1) + 1
@@ -122,10 +120,8 @@ def checkpoint_run_dir(ckpt: str | Path) -> Path | None:
 
 
 def find_checkpoint(path: str | Path) -> Path:
-    """The checkpoint a path names: a ``.ckpt`` file itself; a version folder → its ``checkpoints/last.ckpt``;
-    a run name's folder → ``last.ckpt`` of its newest version that has one.
-
-    FileNotFoundError names the path and what was looked for."""
+    """The checkpoint a path names: a ``.ckpt`` file itself; a version folder → its ``checkpoints/last.ckpt``; a run
+    name's folder → ``last.ckpt`` of its newest version that has one. FileNotFoundError says what was looked for."""
     path = Path(path)
     if path.is_file():
         return path
@@ -159,23 +155,17 @@ def checkpoint_task(ckpt: Path, raw: Any) -> str:
         RobotSpec.coerce(hparams["robot"])
     except (ValueError, OSError) as err:
         raise ValueError(f"{ckpt}: hyper_parameters.robot: {err}") from err
-    if isinstance(weights, dict) and "model.front.norm.mean" in weights:
-        return "fk"
-    if isinstance(weights, dict) and "model.in_norm.mean" in weights:
-        return "ik"
-    if isinstance(weights, dict) and "model.target_norm.mean" in weights:
-        return "sampler"
+    for task, key in (("fk", "front.norm"), ("ik", "in_norm"), ("sampler", "target_norm")):
+        if isinstance(weights, dict) and f"model.{key}.mean" in weights:
+            return task
     raise bad("a state_dict without model.front.norm / model.in_norm / model.target_norm weights "
               f"(keys: {sorted(map(str, weights))[:8] if isinstance(weights, dict) else type(weights).__name__})")
 
 
 def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
-    """(task "fk" | "ik" | "sampler", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer.
-    ``blob``: the file's content when the caller has loaded it already (weights-only).
-
-    Raises FileNotFoundError for a missing file and ValueError naming the file for anything else
-    (not a torch file, truncated, not a checkpoint of ours, weights that do not fit the hyper-parameters).
-    """
+    """(task "fk" | "ik" | "sampler", LightningModule in eval mode) of a checkpoint written by train.py or a Trainer
+    (``blob``: its content, when already loaded weights-only). FileNotFoundError for a missing file, ValueError
+    naming the file for anything else (not a torch file, truncated, not ours, weights that do not fit)."""
     from .training import FKModule, IKModule  # Lightning is imported only to read a checkpoint
     from .training_sampler import SamplerModule
 
@@ -190,12 +180,10 @@ def load_lightning_checkpoint(ckpt: str | Path, blob: Any = None):
 
 
 def load_checkpoint_model(ckpt: str | Path, blob: Any = None) -> tuple[str, torch.nn.Module]:
-    """(task "fk" | "ik" | "sampler", the trained network in eval mode, float32) of a checkpoint written by train.py
-    or a Trainer, rebuilt from its hyper-parameters and weights without Lightning
-    (:func:`~dacr_learn.compositional.model_from_hparams`). A checkpoint whose hyper-parameters lack part of
-    the architecture (:data:`~dacr_learn.compositional.REQUIRED_HPARAMS`; the LightningModule's defaults fill
-    them) is read through :func:`load_lightning_checkpoint`. ``blob``: the file's content when the caller has
-    loaded it (weights-only). Errors as :func:`load_lightning_checkpoint`."""
+    """(task, the trained network in eval mode, float32) of a checkpoint, rebuilt from its hyper-parameters and
+    weights without Lightning (:func:`~dacr_learn.compositional.model_from_hparams`), or through
+    :func:`load_lightning_checkpoint` when the hyper-parameters lack part of the architecture
+    (:data:`~dacr_learn.compositional.REQUIRED_HPARAMS`). ``blob`` and errors as :func:`load_lightning_checkpoint`."""
     ckpt = Path(ckpt)
     blob = load_torch_file(ckpt, CHECKPOINT) if blob is None else blob
     task = checkpoint_task(ckpt, blob)
@@ -275,26 +263,17 @@ def check_same_schedule(ckpt: str | Path, blob: Any, config: dict[str, Any]) -> 
 def load_model(path: str | Path, dtype: torch.dtype = torch.float32, blob: Any = None) -> torch.nn.Module:
     """The trained network of a ``train.py`` run, in eval mode, ready to predict.
 
-    Args:
-        path: a run folder (``runs/<run_name>``: its newest version), a version folder
-            (``runs/<run_name>/version_<n>``) or a checkpoint file (``.ckpt``).
-        dtype: floating dtype of the returned model's parameters.
-        blob: the checkpoint file's content when the caller has loaded it (weights-only, e.g.
-            :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`); ``path`` then names that file.
+    ``path``: a run folder (``runs/<run_name>``: its newest version), a version folder
+    (``runs/<run_name>/version_<n>``) or a checkpoint file; ``dtype``: of the returned model's parameters;
+    ``blob``: the file's content when the caller has loaded it (weights-only, e.g.
+    :func:`~dacr_learn.hardware.deploy.checkpoint.read_model_file`), ``path`` then names that file.
 
-    Returns:
-        An ``nn.Module`` with ``.spec`` (the :class:`~dacr_learn.robot.RobotSpec` it was trained for):
-        an FK model maps joint lengths ``(..., N)`` [m] to tip poses ``(..., 4, 4)`` [m];
-        an IK model maps tip poses ``(..., 4, 4)`` to joint lengths ``(..., N)`` [m];
-        a learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`) draws joint configurations for tip
-        poses or positions (``sample_features(target, count)`` → ``(B, count, D)`` float64, the IK solver's seeds).
-        Its ``.task`` attribute is ``"fk"``, ``"ik"`` or ``"sampler"``. FK / IK models take inputs of any floating
-        dtype (cast to ``dtype``, e.g. the float64 joints of ``ResolvedRateController.step``); an FK model raises a
-        ValueError for joint lengths far outside the robot's limits (millimetres instead of metres).
-
-    Raises:
-        FileNotFoundError: nothing to load at ``path``.
-        ValueError: the file is not a checkpoint of an FK / IK module (the message names the file).
+    Returns an ``nn.Module`` with ``.spec`` (its :class:`~dacr_learn.robot.RobotSpec`) and ``.task``: "fk" (joint
+    lengths (..., N) [m] → tip poses (..., 4, 4) [m]), "ik" (the reverse) or "sampler"
+    (:class:`~dacr_learn.sampler.ClarkeSampler`: ``sample_features(target, count)`` → (B, count, D) float64).
+    FK / IK models cast floating inputs to ``dtype``; an FK model raises a ValueError for joint lengths far outside
+    the robot's limits (millimetres instead of metres). FileNotFoundError: nothing at ``path``; ValueError: not a
+    checkpoint of an FK / IK module (the message names the file).
     """
     task, model = load_checkpoint_model(find_checkpoint(path), blob)
     model = model.to(dtype).eval()
@@ -319,10 +298,9 @@ JOINT_UNIT_FACTOR = 2.0    # joint lengths beyond this many times the longest po
 
 
 class _FriendlyInput:
-    """Forward pre-hook of :func:`load_model`'s FK / IK models: floating inputs of another dtype (the float64
-    joints ``ResolvedRateController.step`` returns) are cast to the model's; an FK model refuses joint lengths
-    far outside the robot's limits (a ValueError: millimetres instead of metres would give a tip metres away).
-    Skipped while tracing (torch.export / compile) and under torch.func transforms, like check_tensor."""
+    """Forward pre-hook of :func:`load_model`'s FK / IK models: floating inputs of another dtype are cast to the
+    model's; an FK model refuses joint lengths far outside the robot's limits (millimetres instead of metres).
+    Skipped while tracing and under torch.func transforms, like check_tensor."""
 
     def __init__(self, task: str):
         self.task = task

@@ -1,28 +1,19 @@
 """A learned multi-solution IK sampler: a conditional normalizing flow of the joints given the target (docs/ik.md).
 
-:class:`ClarkeSampler` models p(x | target) for a robot, the distribution of the joint configurations that reach a
-tip pose (or a tip position), so that its samples, spread over the whole solution set of a redundant robot, seed
-the IK solver's refinement (:func:`dacr_learn.ik.solve_ik`, ``seeds``). The flow is a conditional neural spline
-flow with coupling layers (``zuko.flows.NSF``, ``passes=2``: sampling costs one network pass per transform, like
-the density), on standardised variables y:
+:class:`ClarkeSampler` models p(x | target), the distribution of the joint configurations that reach a tip pose
+(or position), so that its samples seed the IK solver's refinement (:func:`dacr_learn.ik.solve_ik`, ``seeds``).
+The flow is ``zuko.flows.NSF`` (coupling, ``passes=2``) on standardised variables y:
 
 - ``features="clarke"``: y = standardise(squash⁻¹(x)), x the actuated Clarke features (``models.actuated_columns``
-  order). The squash maps ℝᴰ onto the limits of the robot file: a box coordinate (β, α) to its range by
-  mid + half·tanh(v), a segment's bending pair v ∈ ℝ² into its disk ‖ρ‖ ≤ d·bend by ρ = d·bend·tanh(‖v‖)·v/‖v‖.
-  Every sample lies inside the limits by construction, and every joint vector decoded from it satisfies the
-  displacement constraint.
-- ``features="raw"``: y = standardise(q), the joint vector. A sample is a joint vector off the constraint (its
-  components are independent outputs); it is encoded to features (the encoder's least-squares projection onto
-  the constraint) and then projected onto the limits (:meth:`ClarkeSpace.saturate`). The training joint vectors
-  lie on the constraint, a subspace of dimension D < N, where a density in ℝᴺ is degenerate: the training noise
-  (``SamplerModule.noise``) keeps it finite.
+  order). The squash maps ℝᴰ onto the robot's limits: a box coordinate (β, α) by mid + half·tanh(v), a bending
+  pair v ∈ ℝ² into its disk ‖ρ‖ ≤ d·bend by ρ = d·bend·tanh(‖v‖)·v/‖v‖, so every sample lies inside the limits.
+- ``features="raw"``: y = standardise(q); a sample is encoded to features (least squares onto the displacement
+  constraint) and projected onto the limits (:meth:`ClarkeSpace.saturate`); the training noise
+  (``SamplerModule.noise``) keeps the density on the constraint's subspace finite.
 
-Conditioning c (10,): the target as :func:`~dacr_learn.models.pose_to_vector` (position / L, the first two rows of
-R), standardised, and a flag that is 1 when the rotation is given; a position-only target has its rotation
-entries at 0 (their standardised mean) and the flag 0. A model trained with part of its targets' rotations hidden
-(``SamplerModule.position_fraction``) samples for poses and for positions alike.
-
-No Lightning here; the training module is :class:`dacr_learn.training_sampler.SamplerModule`.
+Conditioning c (10,): :func:`~dacr_learn.models.pose_to_vector` of the target (position / L, the first two rows of
+R), standardised, and a flag that is 1 when the rotation is given (a position-only target has its rotation entries
+at 0 and the flag 0). No Lightning here; the training module is :class:`dacr_learn.training_sampler.SamplerModule`.
 """
 from __future__ import annotations
 
@@ -59,9 +50,8 @@ class LimitSquash:
     """The bijection between ℝᴰ and the (open) admissible set of a robot's actuated features (module docstring).
 
     :meth:`forward`: v (..., D) → features x (..., D) inside the limits; :meth:`inverse`: x → v (a feature on a
-    limit is first moved :data:`EDGE` of its half-range inside). The limits are those of the robot file, held by
-    :class:`~dacr_learn.clarke_space.ClarkeSpace` in float64 (the bend disk, the length and twist ranges) and
-    cast to the input's dtype, so a float64 sample is inside them to rounding whatever the model's dtype.
+    limit is first moved :data:`EDGE` of its half-range inside). The limits (float64,
+    :class:`~dacr_learn.clarke_space.ClarkeSpace`) are cast to the input's dtype: a float64 sample is inside them.
     """
 
     def __init__(self, space: ClarkeSpace):
@@ -98,13 +88,10 @@ class LimitSquash:
 class ClarkeSampler(nn.Module):
     """Conditional normalizing flow of a robot's joint configurations given a tip pose or position.
 
-    features: "clarke" | "raw" (module docstring). transforms: coupling transforms of the flow; width, depth:
-    the hidden layers of each transform's network; activation: their activation (``models.ACTIVATIONS``);
-    bins: spline bins. The hyper-parameters of a ``train.py`` sampler checkpoint build it
-    (:func:`~dacr_learn.compositional.model_from_hparams`, task "sampler").
-
-    ``position_trained``: whether the training hid some targets' rotations (set by the training module and stored
-    as a buffer, so a loaded model knows whether it can take position-only targets).
+    features: "clarke" | "raw" (module docstring); transforms: coupling transforms; width, depth, activation
+    (``models.ACTIVATIONS``): each transform's network; bins: spline bins. Built from a ``train.py`` checkpoint's
+    hyper-parameters by :func:`~dacr_learn.compositional.model_from_hparams` (task "sampler").
+    ``position_trained`` (a buffer): whether training hid some targets' rotations (position-only targets allowed).
     """
 
     def __init__(self, spec: RobotSpec, features: str = "clarke", transforms: int = 4, width: int = 128,
@@ -203,12 +190,10 @@ class ClarkeSampler(nn.Module):
 
     @torch.no_grad()
     def sample_features(self, target, count: int, temperature: float = 1.0) -> Tensor:
-        """``count`` actuated-feature samples per target: (B, count, D) float64 [m, rad], inside the limits.
-
-        target: (B, 4, 4) tip poses or (B, 3) tip positions [m] (positions need a model trained with
-        ``position_fraction`` > 0). "clarke": inside the limits by construction (the squash); "raw": the sampled
-        joint vectors encoded (least-squares projection onto the displacement constraint), then projected onto
-        the limits. These are the ``seeds`` of :func:`dacr_learn.ik.solve_ik` (the IK CLI calls this method)."""
+        """``count`` actuated-feature samples per target (B, count, D) float64 [m, rad], inside the limits: the
+        ``seeds`` of :func:`dacr_learn.ik.solve_ik`. target: (B, 4, 4) tip poses or (B, 3) tip positions [m]
+        (positions need a model trained with ``position_fraction`` > 0). "raw" samples are encoded, then projected.
+        """
         v = self.sample_variables(target, count, temperature)
         if self.features == "clarke":
             return self.squash(v.to(F64))

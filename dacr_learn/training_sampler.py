@@ -1,14 +1,11 @@
 """LightningModule of the learned IK sampler (:class:`~dacr_learn.sampler.ClarkeSampler`), trained by maximum
 likelihood on the synthetic dataset of its robot (``train.py fit --config configs/ik_sampler_tdcr3.yaml``).
 
-Loss: the negative log-likelihood [nats per sample, standardised flow variables] of the training joint
-configurations given their tip poses; a fraction ``position_fraction`` of the poses has its rotation hidden, so
-one model samples for poses and for positions. Validation/test: ``nll_mean`` (rotation given, no noise), and the
-tip error of one sample per target under the analytic CC model, the model the IK CLI solves on (``pos_err_*``,
-``rot_err_*``: how far a seed lies from a solution before the solver refines it); for "raw" also the share of
-sampled joint vectors whose features leave the limits before the projection (``out_of_limits_pct``) and their
-distance from the displacement constraint (``constraint_residual_*``; "clarke" samples have neither, by
-construction, and do not report them).
+Loss: the negative log-likelihood [nats per sample, standardised flow variables] of the training joints given
+their tip poses (a ``position_fraction`` of the poses with the rotation hidden). Validation/test: ``nll_mean``
+(rotation given, no noise) and the tip error of one sample per target under the analytic CC model
+(``pos_err_*``, ``rot_err_*``); for "raw" also ``out_of_limits_pct`` (samples whose features leave the limits
+before the projection) and ``constraint_residual_*`` (their distance from the displacement constraint).
 """
 from __future__ import annotations
 
@@ -25,15 +22,10 @@ from .training import KinematicsModule
 
 
 class SamplerModule(KinematicsModule):
-    """Learned multi-solution IK sampler: a conditional normalizing flow of the joints given the tip pose.
-
-    Args (beyond :class:`~dacr_learn.training.KinematicsModule`'s): features "clarke" (the flow models the actuated
-    Clarke features, squashed into the limits: samples inside them by construction) | "raw" (the joint vector:
-    samples encoded, then projected onto the limits); transforms, bins: coupling spline transforms of the flow and
-    their bins; width, depth, activation: each transform's network. noise: std of the Gaussian noise added to the
-    standardised training variables (keeps the density finite on the solution manifolds; > 0 needed for "raw",
-    whose joint vectors span fewer dimensions than N). position_fraction: share of training poses whose rotation
-    is hidden (0: a pose-only sampler; > 0: it also samples for tip positions).
+    """Learned multi-solution IK sampler: a conditional normalizing flow of the joints given the tip pose. Args beyond
+    :class:`~dacr_learn.training.KinematicsModule`'s: features "clarke" | "raw" (:mod:`dacr_learn.sampler`);
+    transforms, bins, width, depth, activation: the flow; noise: std of the Gaussian noise on the standardised
+    training variables (> 0 for "raw"); position_fraction: share of training poses with the rotation hidden.
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
@@ -85,11 +77,10 @@ class SamplerModule(KinematicsModule):
 
     @torch.no_grad()
     def visual_batch(self, num_workspace: int = 2000) -> dict[str, Tensor]:
-        """Rerun scene (keys of :func:`dacr_learn.viz.scene.log_scene`): ``visual_samples`` sampled configurations of
-        the first validation pose as orange ghost backbones (``backbone_pred``) with their tip frames
-        (``pose_pred``, joined to the target frame ``pose_true`` by the tip-error lines), the dataset's own
-        configuration of that pose in grey (``backbone``), and the validation tip positions coloured by the tip
-        error of one sample each (``workspace_error``)."""
+        """Rerun scene (keys of :func:`dacr_learn.viz.scene.log_scene`): ``visual_samples`` samples for the first
+        validation pose (``backbone_pred``, ``pose_pred`` against ``pose_true``), the dataset's own configuration
+        (``backbone``) and the validation tips coloured by the error of one sample each (``workspace_error``).
+        """
         val, k, space = self.trainer.datamodule.splits["val"], self.hparams.visual_samples, self.model.space
         target = val["pose"][:1].to(self.device)
         f = self.model.sample_features(target, k)[0]

@@ -5,14 +5,10 @@
     dask worker tcp://HOST:8786 --nthreads 1        # on every machine, as many as wanted
     python -m dacr_learn.ablation --config ... --out ... --cluster tcp://HOST:8786
 
-The workers need the same ``dacr_learn`` installed (they import :func:`runner.run_job`); the
-robot YAMLs are read by the submitting process and shipped as spec dicts, so the workers need no
-checkout of ``configs/``. Jobs are submitted through ``Client.get_executor()`` — a
-``concurrent.futures.Executor`` — so the command line drives a cluster and the local process pool
-with one loop. A worker that dies mid-job loses only that job's attempt: the scheduler runs it
-again on another worker (up to ``distributed.scheduler.allowed-failures`` times, then the run
-fails with ``KilledWorker``), and rows are written by the submitting process once per finished
-job, so none is lost or written twice.
+The workers need the same ``dacr_learn`` installed; robot YAMLs are shipped as spec dicts. Jobs go through
+``Client.get_executor()`` (a ``concurrent.futures.Executor``, like the local pool). A worker that dies loses
+only that attempt (the scheduler retries it, then fails with ``KilledWorker``); rows are written by the
+submitting process once per finished job.
 """
 from __future__ import annotations
 

@@ -125,12 +125,9 @@ def plot_curves(rows: list[dict], out: Path, robots_order: list[str] | None = No
                 if pts:
                     ax.errorbar([p[0] for p in pts], [p[1][0] for p in pts], yerr=[p[1][1] for p in pts],
                                 label=feat, capsize=3, **style)
-            ax.set_xscale("log")
-            ax.set_yscale("log")
+            ax.set(xscale="log", yscale="log", xlabel="n_train", ylabel="mean tip position error [mm]")
             ax.set_title(robot, fontsize=10)
             ax.grid(True, which="both", alpha=0.3)
-            ax.set_xlabel("n_train")
-            ax.set_ylabel("mean tip position error [mm]")
             ax.legend(fontsize=8)
         for ax in list(axes.flat)[len(present):]:
             ax.axis("off")

@@ -1,21 +1,14 @@
 """Grid runner of the ablation "Clarke features vs raw joint lengths": config, jobs, one run, resume.
 
-One *job* = one training (robot, task, features, n_train, seed) through the LightningModules of
-``train.py`` (:class:`~dacr_learn.training.FKModule` / :class:`~dacr_learn.training.IKModule`)
-for a fixed number of optimisation steps, followed by evaluation on fixed test sets, one per
-test-time *condition*; every condition gives one CSV row:
+One *job* = one training (robot, task, features, n_train, seed, structure) through the LightningModules of
+``train.py`` for a fixed number of steps, evaluated on fixed test sets, one CSV row per test-time *condition*
+(docs/ablation.md, "Protocol"): fk ``clean``, ``joint_noise``, ``offset`` (a common-mode drift); ik ``clean``,
+``pose_noise``; for the robot ``transfer.from`` also ``transfer_n6`` (the network run on the robot
+``transfer.to`` through its Clarke layers; raw models cannot: NaN metrics and a note).
 
-- fk: ``clean``; ``joint_noise`` (Gaussian noise on every joint length); ``offset`` (the same
-  constant added to every joint length — a common-mode drift);
-- ik: ``clean``; ``pose_noise`` (noise on the input tip pose; errors against the clean pose);
-- both, for the robot named ``transfer.from``: ``transfer_n6`` — the trained network evaluated on
-  the robot ``transfer.to`` of the same geometry with a different number of joints, through that
-  robot's Clarke layers. Raw models cannot take that input: their row has NaN metrics and a note.
-
-``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and
-tests on Cosserat-rod datasets (:mod:`dacr_learn.data.cosserat`, the robots need a ``mechanics:``
-block), cached under DIR per robot, size and seed; only the ``clean`` condition (the noise conditions are
-the CC sampler's), and FK rows gain ``cc_pos_err_mean_pct``: the CC model on the same test set.
+``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and tests on
+Cosserat-rod datasets (:mod:`dacr_learn.data.cosserat`), cached under DIR; only ``clean``, and FK rows gain
+``cc_pos_err_mean_pct``: the CC model on the same test set.
 """
 from __future__ import annotations
 
@@ -123,12 +116,8 @@ def load_config(path: str | Path, quick: bool = False) -> dict:
 
 
 def make_jobs(cfg: dict) -> list[Job]:
-    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds.
-
-    The ``structures`` axis (default ``[monolithic]``) applies to FK with Clarke features only: a
-    compositional model needs the per-segment features that raw joint lengths do not give, and
-    there is no compositional IK.
-    """
+    """Every training of the grid; seeds outermost so a stopped grid has complete early seeds. The ``structures``
+    axis applies to FK with Clarke features only (a compositional model needs per-segment features; no IK)."""
     return [Job(r, t, f, int(n), int(s), st) for s in cfg["seeds"] for n in cfg["n_train"] for r in cfg["robots"]
             for t in cfg["tasks"] for f in cfg["features"] for st in cfg.get("structures", ["monolithic"])
             if st == "monolithic" or (t == "fk" and f == "clarke")]
@@ -231,12 +220,8 @@ def build_module(cfg: dict, task: str, robot: str | dict, features: str,
 
 @torch.no_grad()
 def evaluate(module: pl.LightningModule, task: str, data: dict[str, Tensor]) -> dict[str, float]:
-    """Summary metrics of a trained module on a test set; errors against the clean targets.
-
-    FK: predicted pose of the measured joint vector ``q`` vs ``pose_clean``. IK: the predicted joint
-    vector of the measured pose ``pose``, through the analytic CC kinematics (as
-    ``IKModule.errors``), vs ``pose_clean``; joint error vs ``q_clean``.
-    """
+    """Summary metrics of a trained module on a test set, errors against the clean targets: FK the pose of ``q``
+    vs ``pose_clean``; IK the CC pose of the joints predicted for ``pose`` vs ``pose_clean``, joints vs ``q_clean``."""
     module.eval()
     model, spec = module.model, module.spec
     if task == "fk":

@@ -127,13 +127,11 @@ def _selection_folds(setup: Setup, args: argparse.Namespace) -> dict:
 
 def _fit_all(setup: Setup, args: argparse.Namespace, start: float
              ) -> tuple[SelectionResult | None, dict | None, dict, dict, dict]:
-    """(the proxies or None, the default's choice (``study.benchmark.select_default``) or None, final results,
-    val predictions, what ``--save`` needs): every fit handed to one pool before any is collected — first the
-    pieces several fits share (the Cosserat calibrations, ``study.benchmark.submit_warmups``), then the proxies,
-    then the final runs. With ``--save`` the final runs of the default candidates return their fitted models, so
-    the saved ensemble is the one whose results are reported (not trained a second time), and the σ model's
-    held-out rows are the default's own proxy fits when its proxy seeds are ``--seeds`` (else they are fitted
-    once more): {"members": {model: fitted models per seed}, "held_out": [HeldOut]} (empty without ``--save``)."""
+    """(proxies or None, the default's choice or None, final results, val predictions, what ``--save`` needs):
+    every fit handed to one pool before any is collected. With ``--save`` the saved ensemble is the final runs'
+    members, and the σ model's held-out rows are the default's proxy fits when its proxy seeds are ``--seeds``:
+    {"members": {model: models per seed}, "held_out": [HeldOut]} (empty without ``--save``).
+    """
     keep = default_candidates(list(args.models)) if args.save else ()
     fitted: dict = {}
     models = tuple(args.models)

@@ -1,28 +1,15 @@
 """Displacement-controlled statics: the shape of a tendon robot whose actuators set tendon lengths.
 
-A displacement actuator (a servo winding a tendon) fixes each tendon's *unstretched* length ℓ_i between
-its anchor and the actuator, not its tension. Tendon i is then either taut, its path stretched to
-ℓ_i: L_i(τ) = ℓ_i (1 + c τ_i), or slack with τ_i = 0 and a path no longer than ℓ_i. With
-R_i(τ) = ``tendon_rest_lengths`` of :func:`~.statics.solve_statics` (= L_i/(1 + c τ_i)) and
-F_i(τ) = R_i(τ) − ℓ_i (positive: the path needs more tendon than the actuator gives), the tensions
-solve the complementarity problem
+A displacement actuator fixes each tendon's *unstretched* length ℓ_i, not its tension: tendon i is either
+taut, its path stretched to ℓ_i, or slack with τ_i = 0. With R_i(τ) = ``tendon_rest_lengths`` of
+:func:`~.statics.solve_statics` and F_i(τ) = R_i(τ) − ℓ_i, the tensions solve
 
     τ ≥ 0,   F(τ) ≤ 0,   τ_i F_i(τ) = 0 for every i.
 
-Method (per sample, batched): with A = −∂R/∂τ (T × T), symmetric positive definite for an elastic rod
-with elastic tendons (reciprocity: the path length is work-conjugate to the tension), each step solves
-the linearised problem
-
-    τ' ≥ 0,   w = −F(τ) + A (τ' − τ) ≥ 0,   τ'·w = 0
-
-exactly (a linear complementarity problem; primal-dual active-set iterations, projected Gauss–Seidel
-where they cycle), then evaluates F(τ') by one Cosserat solve. A is taken by central differences at
-the first iterate (2T solves; once for the whole batch when every sample starts from zero tension; or
-passed in from an earlier, nearby solve) and kept (a chord method):
-the map τ → R is close to linear (in the CC limit it is linear), so the steps contract fast. Where a
-step does not reduce the violation, A is retaken at the current iterate and the step is halved (a step
-to a failed shape is only halved); a sample whose step falls below 1/64 gives up.
-
+Method (docs/cosserat.md §10): a chord method with A = −∂R/∂τ (T × T, SPD) taken by central differences
+once (or passed in) and kept; each step solves the linearised complementarity problem exactly
+(:func:`solve_lcp`), then evaluates F by one Cosserat solve; a step that does not reduce the violation
+retakes A and is halved, and a sample whose step falls below 1/64 gives up.
 The solve is gradient-free (no autograd through it); its inputs are data, not parameters.
 """
 from __future__ import annotations
@@ -47,14 +34,9 @@ LCP_GAUSS_SEIDEL_SWEEPS = 400
 
 @dataclass(frozen=True)
 class DisplacementSolution:
-    """Statics under commanded tendon lengths, batch (...,), SI units.
-
-    statics: the :class:`~.statics.CosseratSolution` at the tensions found. tension (..., T) [N].
-    compliance (..., T, T) [m/N]: A = −∂R/∂τ, the symmetric chord matrix used (pass it back as
-    ``compliance_guess`` to warm-start a nearby solve). violation (...,) [m]: max over tendons of |F_i|
-    on taut tendons and max(F_i, 0) on slack ones. converged (...,) bool; iterations (...,) Cosserat
-    solves per sample after the Jacobian.
-    """
+    """Statics under commanded tendon lengths, batch (...,), SI units: statics (the CosseratSolution at the tensions
+    found), tension (..., T) [N], compliance (..., T, T) [m/N] (A = −∂R/∂τ: a ``compliance_guess`` for a nearby
+    solve), violation (...,) [m] (max |F_i| taut, max(F_i, 0) slack), converged (...,) bool, iterations (...,)."""
 
     statics: CosseratSolution
     tension: Tensor
@@ -76,11 +58,8 @@ def tension_scale(spec: RobotSpec) -> float:
 
 
 def solve_lcp(a: Tensor, q: Tensor) -> Tensor:
-    """τ (B, T) with τ ≥ 0, w = Aτ + q ≥ 0, τ·w = 0 for symmetric positive definite A (B, T, T), q (B, T).
-
-    Primal-dual active-set iterations (each an exact solve on the set of positive τ), which end when the
-    set repeats; samples whose set has not settled after ``LCP_ACTIVE_SET_STEPS`` are finished by projected
-    Gauss–Seidel sweeps (convergent for SPD A)."""
+    """τ (B, T) with τ ≥ 0, w = Aτ + q ≥ 0, τ·w = 0 for SPD A (B, T, T), q (B, T): primal-dual active-set iterations
+    until the set repeats, then projected Gauss–Seidel for samples unsettled after ``LCP_ACTIVE_SET_STEPS``."""
     active = q < 0
     tau = torch.zeros_like(q)
     done = torch.zeros(q.shape[0], dtype=torch.bool)
@@ -121,21 +100,14 @@ def solve_displacements(spec: RobotSpec, rest_lengths: Tensor, *, gravity: Tenso
                         spring_lengths: Tensor | None = None, steps_per_segment: int = 8, tol: float = 1e-9,
                         max_iter: int = 30, on_failure: str = "raise", workers: int | None = None,
                         passing: str = "own") -> DisplacementSolution:
-    """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector
-    order) and the robot's weight (``gravity`` (3,) [m/s²], base frame, as :func:`solve_statics`, or one per
-    sample, (..., 3)).
-
-    ``spring_lengths`` (T,) [m]: when given, each tendon is a linear spring of that fixed length (its
-    stretch τ·c·L_s with c = ``mechanics.tendon_compliance``: e.g. a tendon that also runs from the base to
-    its actuator, or the CC model's convention L_s = the straight path length), so R = L − c·L_s·τ instead of
-    L/(1 + cτ) (the stretch spread over the tendon's own, command-dependent unstretched length); or one per
-    sample, (..., T) (e.g. several tendon compliances c' solved at once as lengths L_s·c'/c).
-    Per-sample gravities and spring lengths let one call solve a batch of parameter sets that share the robot
-    (a fit's finite differences).
-    ``tension_guess`` (..., T) [N] and ``compliance_guess`` (..., T, T) [m/N] warm-start the iteration
-    (e.g. from the solution of a nearby command or parameter set). ``tol`` [m]: the largest tendon-length
-    violation accepted. ``on_failure``: "raise" (ConvergenceError) or "flag". ``passing``: as
-    :func:`solve_statics`. Float64, no gradient."""
+    """Static shape under commanded unstretched tendon lengths ``rest_lengths`` (..., T) [m] (joint-vector order) and
+    the robot's weight (``gravity`` (3,) or (..., 3) [m/s²], base frame, as :func:`solve_statics`).
+    ``spring_lengths`` (T,) or (..., T) [m]: each tendon a linear spring of that length L_s (R = L − c·L_s·τ instead
+    of L/(1 + cτ), c = ``mechanics.tendon_compliance``); per-sample values let one call solve several parameter sets.
+    ``tension_guess`` (..., T) [N], ``compliance_guess`` (..., T, T) [m/N]: warm start. ``tol`` [m]: the largest
+    tendon-length violation accepted. ``on_failure``: "raise" | "flag"; ``passing``: as :func:`solve_statics`.
+    Float64, no gradient.
+    """
     check_solve_arguments(spec, on_failure)
     if not (isinstance(max_iter, int) and max_iter >= 1):
         raise ValueError(f"max_iter: got {max_iter!r}, expected a positive integer")

@@ -12,11 +12,9 @@ t_i = s_i/‖s_i‖ (the tendon's unit tangent in the body frame), and
     d = −û K_se (v − e3) − Rᵀ f_e − Σ_i τ_i u × t_i,
     c = −û K_bt u − v̂ K_se (v − e3) − Σ_i τ_i r_i × (u × t_i),
 
-f_e = ρA·g [N/m] the weight per length (the distributed moment l_e is zero). The rod's internal force
-and moment in the body frame are n = K_se (v − e3) [N] and m = K_bt u [N·m]. The state is flat,
-(B, 18 + T): p (3) [m], R (9, row-major), ε = v − e3 (3), u (3) [1/m], tendon path lengths L (T) [m].
-The state holds ε rather than v ≈ e3 so that the small axial and shear strains (and n = K_se ε) keep
-their relative precision: with v itself, n would carry an absolute error of EA·eps.
+f_e = ρA·g [N/m] the weight per length. Internal force n = K_se (v − e3) [N], moment m = K_bt u [N·m].
+The flat state (B, 18 + T) is p (3) [m], R (9, row-major), ε = v − e3 (3) (not v: keeps n = K_se ε
+precise for a stiff EA), u (3) [1/m] and the tendon path lengths L (T) [m].
 """
 from __future__ import annotations
 
@@ -110,10 +108,9 @@ def tendon_monomials(offsets: Tensor) -> Tensor:
 
 def tendon_block(v: Tensor, u: Tensor, tension: Tensor, offsets: Tensor,
                  monomials: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Σ_i E_i A_i E_iᵀ (B, 6, 6), A_i = (τ_i/‖s_i‖)(I − t_i t_iᵀ), for tendons at offsets (Ta, 3) with tensions
-    (B, Ta), and per tendon ‖s_i‖ (B, Ta) and w_i (B, Ta, 6); ``monomials`` = tendon_monomials(offsets).
-    I − t tᵀ is formed without cancellation (1 − t_z² = t_x² + t_y²), then contracted with the monomials
-    and mapped by ``_block_map``: two small GEMMs instead of B·Ta outer products."""
+    """Σ_i E_i A_i E_iᵀ (B, 6, 6), A_i = (τ_i/‖s_i‖)(I − t_i t_iᵀ), for tendons at offsets (Ta, 3), tensions (B, Ta),
+    ‖s_i‖ (B, Ta), w_i (B, Ta, 6), ``monomials`` = tendon_monomials(offsets): I − t tᵀ without cancellation
+    (1 − t_z² = t_x² + t_y²), contracted with the monomials and mapped by ``_block_map`` (two small GEMMs)."""
     norm, w = tendon_wrench_directions(v, u, offsets)
     tx, ty, tz = w[..., 0], w[..., 1], w[..., 2]
     coef = tension / norm
@@ -168,11 +165,8 @@ def total_wrench(y: Tensor, tension: Tensor, offsets: Tensor, section: Section) 
 def match_total_wrench(y: Tensor, total: Tensor, tension: Tensor, offsets: Tensor, section: Section,
                        iterations: int = JUMP_NEWTON_STEPS) -> Tensor:
     """The state with its strains (ε, u) replaced so that ``total_wrench`` with the tendons (offsets (Ta, 3),
-    tensions (B, Ta)) equals ``total`` (B, 6): the jump across a disk where tendons end or a point load
-    acts. Tendons that continue through the disk kink there (their tangent follows the new strains), so
-    the condition is implicit; Newton with the Jacobian K + Σ E_i A_i E_iᵀ of ``derivative``, from the
-    explicit guess with the old tangents; it contracts like (τ d²/EI)^(2^k), ``iterations`` fixed
-    (batched, differentiable)."""
+    tensions (B, Ta)) equals ``total`` (B, 6): the jump across a disk. Implicit (passing tendons kink), solved by
+    ``iterations`` Newton steps with the Jacobian of ``derivative``, contracting like (τ d²/EI)^(2^k) (batched)."""
     kk = torch.cat([section.kse, section.kbt]).to(y.dtype)
     if not offsets.shape[0]:
         return torch.cat([y[:, :12], total / kk, y[:, 18:]], dim=-1)

@@ -1,28 +1,16 @@
-"""Shooting for the static Cosserat rod: Newton on the base wrench, implicit gradient.
+"""Shooting for the static Cosserat rod: Newton on the base wrench, implicit gradient (docs/cosserat.md §3).
 
 The unknowns are the rod's internal force n(0) [N] and moment m(0) [N·m] at the base (body frame =
-robot base frame, z along the straight backbone). Integrating the ODE of ``rod.derivative`` from the
-base leaves the internal wrench beyond the tip, which must vanish. At a disk where tendons end, and
-where a point load acts, the total wrench carried by rod and tendons together is continuous except
-for the point load (−Rᵀ[F; M]); the rod's strains beyond the disk follow from it
-(``rod.match_total_wrench``, which includes the kink force of the tendons that pass through).
-The residual is the wrench beyond the tip scaled to a dimensionless bending measure,
-(n·L²/EI, m·L/EI), L the rod length; a sample has converged when its largest entry is ≤ ``tol``.
-Newton's unknowns are scaled the same way, so both are of order one.
+robot base frame, z along the straight backbone). Integrating ``rod.derivative`` from the base leaves
+the internal wrench beyond the tip, which must vanish; at disks and point loads the total wrench of rod
+and tendons is continuous except for the point load (``rod.match_total_wrench``). Residual and unknowns
+are scaled to dimensionless bending measures, (n·L²/EI, m·L/EI), L the rod length; a sample has
+converged when its largest residual entry is ≤ ``tol``.
 
-Jacobian (6×6 per sample): forward differences (7 evaluations in one batch) on a grid with a quarter
-of the steps at the start (its O(h⁴) error only slows the iteration slightly, at a quarter of the
-cost), Broyden updates with the fine residuals after each step, differences again where progress is
-slow (``newton``). The residual itself
-is exact; J only steers the iteration, which still reaches the rounding level (about 1e-15).
-Damped by halving the step until ‖r‖ decreases (never moving to a worse point). For the gradient, J is
-recomputed at the solution by central differences (error ≈ 1e-10).
-
-Gradient: Newton runs without a graph; at the solution z* one more Newton step
-z = z* − J⁻¹·r(z*, θ) is taken with the graph on and J held fixed. Its value is z* (r ≈ 0) and its
-derivative −J⁻¹ ∂r/∂θ is the implicit-function gradient (accurate to J's ≈ 1e-10), at the cost of
-a 13-fold batch without a graph and one integration with a graph, instead of back-propagating
-through every iteration.
+Jacobian (6×6 per sample): forward differences on a coarser grid, Broyden updates, differences again
+where progress is slow (``newton``); damped by halving the step until ‖r‖ decreases.
+Gradient: Newton runs without a graph; at z* one more step z = z* − J⁻¹·r(z*, θ) is taken with the graph
+on and J (central differences at z*) held fixed: value z*, derivative −J⁻¹ ∂r/∂θ.
 """
 from __future__ import annotations
 
@@ -145,21 +133,15 @@ KeepingResidual = Callable[[Tensor, Tensor], "tuple[Tensor, Tensor | None]"]
 
 def newton(fun: KeepingResidual, x0: Tensor, tol: float, max_iter: int, coarse: Residual | None = None,
            halvings: int = 10) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
-    """Damped quasi-Newton on r(x) = 0, each sample on its own and only while it has not converged.
+    """Damped quasi-Newton on r(x) = 0 per sample while it has not converged (docs/cosserat.md §3).
 
-    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None): the residual of the n rows x of samples ``idx``, and
-    whatever the caller needs of the point besides r (e.g. the states at the grid nodes); ``newton`` returns the
-    ``kept`` of each sample's final x, so nothing is passed back through side effects of ``fun``.
-    J from forward differences of ``coarse`` (the same residual on a coarser grid, default ``fun``'s r) at x0,
-    then Broyden's rank-one update with ``fun``'s residuals after every step, refreshed by differences
-    where a step reduced ‖r‖₂ by less than ``REFRESH``. Step x − α·J⁻¹r with α = 1, 1/2, …
-    (``halvings`` tries, one evaluation each) until ‖r‖₂ decreases (Armijo factor 1 − 1e-4·α); the
-    accepted trial's residual is the next residual, so a step costs one integration. Where no trial meets
-    that, the best trial if it lowers ‖r‖₂, else the sample stays where it is: never a worse point. A sample
-    that cannot move gets J differenced again, on ``coarse`` and then on ``fun`` itself (the coarse grid's J
-    may be too rough where the rod bends hard); one that cannot move even then has stalled and stops (reported
-    with its residual).
-    Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,), kept (B, ...) or None)."""
+    ``fun(x, idx)`` → (r (n, 6), kept (n, ...) or None) for rows x of samples ``idx``; ``kept`` (e.g. node states)
+    is returned for each sample's final x. J: forward differences of ``coarse`` (default ``fun``'s r), Broyden
+    updates, refreshed where ‖r‖₂ fell by less than ``REFRESH``. Steps x − α·J⁻¹r, α = 1, 1/2, … (``halvings``
+    tries, Armijo factor 1 − 1e-4·α), else the best trial if it lowers ‖r‖₂, else J is differenced again (on
+    ``coarse``, then ``fun``) and a sample that still cannot move stops.
+    Returns (x (B, 6), residual max-abs (B,) (inf where non-finite), steps taken (B,), kept (B, ...) or None).
+    """
     x = x0.clone()
     every = torch.arange(x.shape[0])
     fine = lambda z, idx: fun(z, idx)[0]  # noqa: E731

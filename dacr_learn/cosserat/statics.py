@@ -43,14 +43,11 @@ class ConvergenceError(RuntimeError):
 class CosseratSolution:
     """The static equilibrium of a batch (...,) of problems, all in the robot base frame, SI units.
 
-    frames (..., K, 4, 4): backbone pose at every grid node; arc (K,): the nodes' reference arc [m].
-    tendon_lengths (..., T): each tendon's path length from the base to its termination [m];
-    tendon_rest_lengths (..., T): the unstretched tendon length that spans it, L/(1 + c·τ) [m].
-    curvature u, stretch v (..., K, 3): body-frame strains [1/m], [-] (proximal value at a jump).
-    base_wrench (..., 6): the rod's internal (n [N], m [N·m]) at the base. residual (...,): scaled
-    max-abs shooting residual; converged (...,) bool (residual <= tol and an admissible shape);
-    iterations (...,) Newton steps. Samples that did not converge hold NaN in frames, lengths, strains
-    and base_wrench.
+    frames (..., K, 4, 4): backbone pose at the grid nodes, arc (K,) [m]; tendon_lengths (..., T) [m]: path
+    lengths to each termination; tendon_rest_lengths (..., T) [m]: L/(1 + c·τ); curvature u, stretch v
+    (..., K, 3) [1/m], [-] (proximal value at a jump); base_wrench (..., 6): internal (n [N], m [N·m]) at the base;
+    residual (...,): scaled max-abs shooting residual; converged (...,) bool (residual <= tol and an admissible
+    shape); iterations (...,). Samples that did not converge hold NaN in frames, lengths, strains and base_wrench.
     """
 
     frames: Tensor
@@ -75,10 +72,9 @@ class CosseratSolution:
         return self.frames[..., self.grid.index(arcs), :, :]
 
     def body(self, spec: RobotSpec, points_per_segment: int | None = None) -> BodyPoints:
-        """The rod's own body: its nodes at the fractions j/K of every segment's reference length, (..., 1 + m·K, 3)
-        [m] in the base frame (the layout of :mod:`dacr_learn.body`; NaN where the solve failed). ``spec``: the
-        solved robot (its envelope radii). K (None: the solve's ``steps_per_segment``) must divide the steps per
-        segment (ValueError otherwise: solve with a multiple of K steps)."""
+        """The rod's body (:mod:`dacr_learn.body` layout): its nodes at the fractions j/K of every segment,
+        (..., 1 + m·K, 3) [m], base frame (NaN where the solve failed); ``spec``: the solved robot. K (None: the solve's
+        ``steps_per_segment``) must divide the steps per segment (ValueError otherwise)."""
         k = self.grid.steps if points_per_segment is None else check_points_per_segment(points_per_segment)
         arcs, _ = body_layout(spec, k)
         if self.grid.steps % k or abs(float(arcs[-1]) - self.grid.ends[-1]) > 1e-12 * self.grid.ends[-1]:
@@ -136,15 +132,12 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
                   stations: Sequence[float] = (), tol: float = 1e-10, max_iter: int = 40,
                   on_failure: str = "raise", chunk_size: int = CHUNK, workers: int | None = None,
                   passing: str = "own") -> CosseratSolution:
-    """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame:
-    ``gravity`` (3,) or (..., 3) [m/s²] (acts through ``mechanics.density``), ``tip_wrench`` (..., 6)
-    (F [N], M [N·m]) at the tip, ``point_wrenches`` [(arc [m], wrench (..., 6))] at the backbone.
-    Computed in float64 (inputs are cast), ``chunk_size`` samples at a time (the arrays then stay in
-    cache); differentiable w.r.t. tensions and loads (implicit gradient, see shooting.py).
-    ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN outputs and converged = False).
-    ``workers``: chunks solved at once in threads (default ``torch.get_num_threads()``); a solve that must
-    carry a gradient runs its chunks one after another. ``passing``: the radius of a tendon inside a segment
-    it passes, "own" or "segment" (:func:`~.tendon.tendon_routing`)."""
+    """Static shape under tendon tensions (..., T) [N] (joint-vector order) and loads, base frame: ``gravity`` (3,)
+    or (..., 3) [m/s²] (through ``mechanics.density``), ``tip_wrench`` (..., 6) (F [N], M [N·m]), ``point_wrenches``
+    [(arc [m], wrench (..., 6))]. Float64, ``chunk_size`` samples at a time, ``workers`` chunks at once in threads
+    (default ``torch.get_num_threads()``; one at a time for a solve with a gradient); differentiable w.r.t.
+    tensions and loads (implicit gradient, shooting.py). ``on_failure``: "raise" (ConvergenceError) or "flag" (NaN
+    outputs, converged = False). ``passing``: "own" or "segment" (:func:`~.tendon.tendon_routing`)."""
     check_solve_arguments(spec, on_failure)
     for name, value in (("chunk_size", chunk_size), ("workers", workers)):
         if value is not None and (not isinstance(value, int) or value < 1):
@@ -178,10 +171,9 @@ def solve_statics(spec: RobotSpec, tension: Tensor, *, gravity: Tensor | None = 
 
 
 def _map_chunks(solve, n: int, chunk_size: int, workers: int) -> list:
-    """``solve(rows)`` over slices of n rows, at most ``chunk_size`` each, in order. With workers > 1 the
-    chunks run in that many threads (torch releases the GIL inside its kernels; the per-kernel arrays of a
-    chunk are too small for torch's own intra-op threads) and their number is a multiple of ``workers``,
-    of equal size, so the threads finish together. Gradient-free only: grad mode is per thread."""
+    """``solve(rows)`` over slices of at most ``chunk_size`` of n rows, in order; with workers > 1 in that many
+    threads (torch releases the GIL in its kernels), a multiple of ``workers`` equal chunks so the threads finish
+    together. Gradient-free only: grad mode is per thread."""
     count = max(math.ceil(n / chunk_size), 1)
     if workers > 1 and n > 1:
         count = min(math.ceil(count / workers) * workers, n)

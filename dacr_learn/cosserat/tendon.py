@@ -1,15 +1,10 @@
-"""Tendon routing geometry of a tendon-driven robot for the Cosserat-rod model (docs/cosserat.md).
+"""Tendon routing geometry of a tendon-driven robot for the Cosserat-rod model (docs/cosserat.md §1).
 
-Tendon i is joint i of the joint vector (segment 1's joints first, docs/design.md §3). It runs
-straight (parallel to the backbone) at the constant body-frame offset r_i = d_i·(cos ψ_i, sin ψ_i, 0)
-[m], with (ψ_i, d_i) its joint angle and radius from the RobotSpec, from the robot base to the distal
-end of its own segment, where it terminates. With ``routing: coupled`` the tendons of segment k pass
-through segments 1..k at their own angle (as in ``clarke.joint_space_maps``); a one-segment robot has
-no routing choice. Where a tendon passes a segment other than its own it runs at its own radius (the
-default, as the Clarke maps) or, with ``passing="segment"``, at the radius of the segment it passes (at
-its own angle), kinking radially at the disk between two segments: the geometry the hardware CC model's
-per-segment effective radius describes. Independent routing of several segments would need a model of how a distal
-tendon bypasses the proximal segments (sheath, central channel) and is refused.
+Tendon i is joint i of the joint vector (docs/design.md §3). It runs straight at the body-frame offset
+r_i = d_i·(cos ψ_i, sin ψ_i, 0) [m] from the base to the distal end of its own segment. With ``routing:
+coupled`` it passes the segments before at its own angle, at its own radius (the default, as the Clarke maps)
+or, with ``passing="segment"``, at the radius of the segment it passes (the hardware CC model's geometry).
+Independent routing of several segments is refused (it would need a model of how distal tendons bypass).
 """
 from __future__ import annotations
 
@@ -23,12 +18,9 @@ from ..robot import RobotSpec
 
 @dataclass(frozen=True)
 class TendonRouting:
-    """Float64 constants of the routing; T tendons, m segments.
-
-    offsets: (T, 3) body-frame offsets r_i [m].
-    segment: (T,) index of the segment at whose distal end tendon i terminates.
-    ends: (m + 1,) reference arc length of the segment boundaries, ends[0] = 0 [m].
-    segment_offsets: (m, T, 3) offset of tendon i inside segment k where it differs from r_i, else None.
+    """Float64 constants of the routing, T tendons, m segments: offsets (T, 3) body-frame r_i [m]; segment (T,) at
+    whose distal end tendon i terminates; ends (m + 1,) segment boundaries [m], ends[0] = 0; segment_offsets
+    (m, T, 3) offset of tendon i inside segment k where it differs from r_i, else None.
     """
 
     offsets: Tensor

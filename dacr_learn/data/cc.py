@@ -1,19 +1,14 @@
 """Synthetic constant-curvature datasets: sampling of features, joint vectors and tip poses (files: :mod:`.store`).
 
-Sampling (per segment, from the robot's limits): the bending vector u = φ·(cos θ, sin θ) is
-uniform in area over the disk φ ≤ bend (φ = bend·√U₁, θ = 2πU₂), ρ = d·u; β and α are
-uniform in their ranges. Joint vectors come from :class:`ClarkeDecoder`, tip poses from
-:func:`forward_kinematics`. Generation is deterministic for a seed (a private generator).
+Per segment the bending vector u = φ·(cos θ, sin θ) is uniform in area over the disk φ ≤ bend (φ = bend·√U₁,
+θ = 2πU₂), ρ = d·u; β and α are uniform in their ranges. Joint vectors come from :class:`ClarkeDecoder`, tip
+poses from :func:`forward_kinematics`; deterministic for a seed (a private generator). With ``max_bending``
+each sample bends a uniformly drawn subset of at most that many segments (the empty one included; the others
+straight, ρ = 0, their β and α still sampled); ``None`` bends every segment.
 
-Tensors of a dataset (all in SI units):
-  q (N, num_joints) [m, rad] — measured joint vector (after noise and common-mode offset),
-  q_clean (N, num_joints) — noise-free joint vector, features (N, m, 4) — sampled features,
-  pose (N, 4, 4) — measured tip pose (after pose noise), pose_clean (N, 4, 4),
-  optional segment_frames (N, m, 4, 4) — noise-free pose of every segment's end in the base frame.
-
-Combination regimes (``max_bending``): each sample bends only a subset of at most ``max_bending``
-segments, drawn uniformly among all such subsets (the empty one included); the others are
-straight (ρ = 0), their β and α still sampled. ``None`` (default) bends every segment.
+Tensors (SI units): q (N, num_joints) [m, rad] the measured joint vector (after noise and common-mode offset),
+q_clean (N, num_joints), features (N, m, 4), pose (N, 4, 4) the measured tip pose (after pose noise),
+pose_clean (N, 4, 4), optional segment_frames (N, m, 4, 4): the noise-free end of every segment, base frame.
 """
 from __future__ import annotations
 
@@ -31,12 +26,9 @@ from ..robot import RobotSpec
 
 @dataclass(frozen=True)
 class SamplerOptions:
-    """Noise model of a synthetic dataset (SI units, standard deviations unless noted).
-
-    joint_noise [m]: Gaussian noise on every joint length; pose_noise_pos [m]: on each tip
-    coordinate; pose_noise_rot [rad]: rotation by a random axis-angle vector with this std per
-    component; common_offset [m]: the same constant added to every joint length (drift).
-    """
+    """Noise model of a synthetic dataset (SI units, standard deviations): joint_noise [m] on every joint length;
+    pose_noise_pos [m] on each tip coordinate; pose_noise_rot [rad] per component of a random axis-angle rotation;
+    common_offset [m]: one constant added to every joint length (drift)."""
 
     source: ClassVar[str] = "cc"     # recorded in meta.json (the Cosserat options say "cosserat")
     joint_noise: float = 0.0
@@ -90,10 +82,8 @@ def _rotation_noise(n: int, std: float, generator: torch.Generator, dtype) -> Te
 
 def generate(spec: RobotSpec, n: int, seed: int, options: SamplerOptions = SamplerOptions(),
              dtype=torch.float32, *, segment_frames: bool = False, max_bending: int | None = None) -> dict[str, Tensor]:
-    """Generate n samples (see module docstring for the tensors). Bit-identical for a seed.
-
-    ``segment_frames``: also return the per-segment end frames; ``max_bending``: see the module docstring.
-    """
+    """Generate n samples (tensors of the module docstring), bit-identical for a seed; ``segment_frames``: with the
+    per-segment end frames; ``max_bending``: see the module docstring."""
     g = torch.Generator().manual_seed(int(seed))
     features = sample_features(spec, n, g, dtype, max_bending)
     q_clean = ClarkeDecoder(spec)(features)

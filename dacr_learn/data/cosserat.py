@@ -1,12 +1,9 @@
-"""Displacement-actuated datasets from the Cosserat-rod model (docs/cosserat.md, "Datasets").
+"""Displacement-actuated datasets from the Cosserat-rod model (docs/cosserat.md §6, "Datasets").
 
-Sampling: per segment, ``tendons_pulled`` neighbouring tendons (a random first one) get a tension
-uniform in [0, ``tension_max``] N, the others are slack; optionally a tip force of random direction and
-magnitude uniform in [0, ``tip_force_max``] N. :func:`~dacr_learn.cosserat.solve_statics` gives the
-static shape under these tensions, the robot's weight (``gravity``) and the load. The joint vector is
-what a displacement actuator sets: the unstretched tendon lengths (``tendon_rest_lengths``), so a
-dataset maps joint lengths to the pose that the mechanics CC ignores (sag, compression, coupling)
-produce. Deterministic for a seed (tensions drawn up front by a private generator, then solved in chunks).
+Per segment ``tendons_pulled`` neighbouring tendons get tensions uniform in [0, ``tension_max``] N (the others
+slack), optionally a random tip force; :func:`~dacr_learn.cosserat.solve_statics` gives the shape. The joint
+vector is the unstretched tendon lengths (``tendon_rest_lengths``), what a displacement actuator sets.
+Deterministic for a seed (tensions drawn up front by a private generator, then solved in chunks).
 
 Tensors (SI units; names as the CC datasets of :mod:`.cc`, so the datamodule serves both):
   q, q_clean (N, T) [m] — unstretched tendon lengths (equal: no measurement noise),
@@ -44,15 +41,9 @@ class DatasetConvergenceError(ConvergenceError, ValueError):
 
 @dataclass(frozen=True)
 class CosseratOptions:
-    """Sampling and solver options of a Cosserat dataset (the ``data.cosserat`` block of a config).
-
-    tension_max [N]: largest tension of a pulled tendon. tendons_pulled: neighbouring tendons pulled per
-    segment (1 … its number of tendons). gravity (3,) [m/s²]: in the base frame ((-9.81, 0, 0): the
-    robot horizontal, sagging along −x; (0, 0, 0): no weight). tip_force_max [N]: random tip force
-    (0: none; it is not part of q, so it is an unobserved disturbance for a q → pose model).
-    steps_per_segment: RK4 steps per segment (8: tip within ≈ 1.4e-5 of the length of 64 steps).
-    tol, max_iter: Newton's residual tolerance and step limit (solve_statics).
-    """
+    """Sampling and solver options of a Cosserat dataset (``data.cosserat``; docs/cosserat.md §6): tension_max [N];
+    tendons_pulled (per segment); gravity (3,) [m/s²], base frame; tip_force_max [N] (0: none); steps_per_segment
+    (RK4); tol, max_iter: Newton's (solve_statics)."""
 
     source: ClassVar[str] = "cosserat"
     tension_max: float = 2.0
@@ -113,12 +104,9 @@ def _tip_forces(n: int, force_max: float, generator: torch.Generator) -> Tensor:
 
 def generate(spec: RobotSpec, n: int, seed: int, options: CosseratOptions = CosseratOptions(),
              dtype=torch.float32, *, progress: bool = True, chunk: int = PROGRESS_CHUNK) -> dict[str, Tensor]:
-    """n samples (tensors of the module docstring), solved ``chunk`` at a time with a progress bar.
-
-    Raises DatasetConvergenceError (a ConvergenceError and a ValueError; after trying every sample, before
-    anything is returned) naming how many samples failed, the worst residual and the options to change;
-    ValueError for a robot without a ``mechanics:`` block.
-    """
+    """n samples (tensors of the module docstring), solved ``chunk`` at a time with a progress bar. Raises
+    DatasetConvergenceError (after trying every sample) naming the failures, the worst residual and the options to
+    change; ValueError without a ``mechanics:`` block."""
     if spec.mechanics is None:
         raise ValueError(f"robot {spec.name!r}: data source 'cosserat' needs a mechanics: block in the robot "
                          "description (docs/cosserat.md §1)")

@@ -71,11 +71,8 @@ def _read_tensors(directory: Path) -> dict[str, Tensor]:
 
 
 def load_dataset(directory: str | Path, spec: RobotSpec | None = None) -> tuple[dict[str, Tensor], dict]:
-    """Read a dataset written by :func:`save_dataset`; refuse a checksum or robot-spec mismatch.
-
-    Every refusal is a ValueError naming the directory or file (unreadable, truncated, modified,
-    generated for another robot).
-    """
+    """Read a dataset written by :func:`save_dataset`; a ValueError naming the directory or file refuses an
+    unreadable, truncated or modified one, or one generated for another robot."""
     directory = Path(directory)
     for f in (TENSOR_FILE, META_FILE):
         if not (directory / f).is_file():
@@ -101,10 +98,9 @@ def _saved_spec(directory: Path, meta: dict) -> RobotSpec:
 def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,
                      options: Any = None,
                      make: Callable[[RobotSpec, int, int, Any], dict[str, Tensor]] | None = None) -> dict[str, Tensor]:
-    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, source, options), else generate
-    it with ``make(spec, n, seed, options)`` (default :func:`generate`) and save it. A dataset written
-    before sources existed (no ``source`` in meta.json) counts as "cc". ``options``: default
-    :class:`~.cc.SamplerOptions` ()."""
+    """Load ``directory`` if it holds exactly this dataset (spec, n, seed, source, options; no ``source``: "cc"),
+    else generate it with ``make(spec, n, seed, options)`` (default :func:`generate`, :class:`~.cc.SamplerOptions`)
+    and save it."""
     directory, options = Path(directory), SamplerOptions() if options is None else options
     if (directory / META_FILE).is_file():
         meta = _read_meta(directory)

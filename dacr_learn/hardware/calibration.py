@@ -1,33 +1,14 @@
 """Calibration from single-tendon pulls: servo → (segment, joint), sign, zero, joint offsets.
 
-Input: a recording in which one tendon at a time is pulled and released while all other
-servos are parked at a slack level (see :mod:`dacr_learn.hardware.recording`). Pattern
-labels are *not* used. Method:
+Input: a recording in which one tendon at a time is pulled while the other servos are parked at a
+slack level (:mod:`dacr_learn.hardware.recording`); pattern labels are *not* used. The method (slack
+level and single pulls, rest tip, per-servo sign/direction/gain/taut onset from a line fit, the partition
+into segments, the joint slots and offsets) is described in docs/hardware.md ("Calibration from the
+single-tendon pulls"). The taut onset is reported, not applied (servo zero = 0; the CC model fits a
+pretension instead).
 
-1. Slack level = median of all servo values (most servos are parked in every row). A row is
-   a single pull of servo s when s is the only servo far from the slack level
-   (more than half the 95th percentile of the per-row largest deviation).
-2. Rest tip position = median over servos of the tip at their least-pulled row.
-3. Per servo: sign = sign of the correlation between its value and the tip's distance from
-   rest (the tip moves away only while the tendon is pulled). With u = sign·value, a line
-   tip_xy = c + k·u through the rows deflected by more than a quarter of the maximum gives
-   the bending direction ψ = atan2(k) (the segment bends towards the pulled tendon, docs/design.md §1),
-   the gain ‖k‖ (tip mm per tendon mm) and the taut onset: the value where the line passes
-   the rest. The onset is reported, not applied: it mixes slack with the hysteresis of the
-   previous pull, and using it as the servo zero made the CC model worse on held-out data
-   (zero = 0 in the map; the CC model fits one common pretension instead).
-4. Segments: servos of one segment share its joint layout up to a rotation, and proximal
-   segments have larger gains (longer lever arm). A partition into segments minimises
-   Σ (angle residual / 10°)² + Σ (log-gain spread / 0.1)², with the mean gains ordered like
-   the gains the nominal CC model predicts for each segment; local search over swaps from
-   the gain-sorted start and from seeded random starts.
-5. Joints: the slot permutation and rotation δ that best match the servo directions to the
-   segment's joint angles. For symmetric layouts the cyclic labelling is fixed by making the
-   first servo column of the segment joint 0; the offset is then δ.
-
-The result is a calibrated robot YAML (offsets) and a :class:`ServoMap` YAML; the fit quality
-(angle residuals, gains, and — from the CLI :mod:`dacr_learn.hardware.calibrate` — the tip
-error of the CC model fitted to the pulls) is reported.
+The result is a calibrated robot YAML (offsets) and a :class:`ServoMap` YAML, with the fit quality
+(angle residuals, gains) reported.
 """
 from __future__ import annotations
 
@@ -90,7 +71,7 @@ def rest_position(rec: Recording, rows: list[np.ndarray], level: float) -> np.nd
 
 
 def fit_pull(rec: Recording, s: int, idx: np.ndarray, rest: np.ndarray) -> PullFit:
-    """Line fit of servo column s over its single-pull rows (step 3 of the module doc)."""
+    """Line fit of servo column s over its single-pull rows (docs/hardware.md, calibration step 2)."""
     if len(idx) < 3:
         raise ValueError(f"{rec.source}: servo {rec.servo_ids[s]} has {len(idx)} single-pull rows, need >= 3")
     v = rec.servo[idx, s].numpy()
@@ -136,13 +117,13 @@ def fit_layout(psi: np.ndarray, phi: np.ndarray) -> tuple[float, tuple[int, ...]
     return best[1], best[2], best[3]
 
 
-def _layouts(spec: RobotSpec) -> list[np.ndarray]:
-    """Joint angles of each segment relative to its first joint."""
-    return [np.asarray(s.joint_angles) - s.joint_angles[0] for s in spec.segments]
+def _layout(seg) -> np.ndarray:
+    """Joint angles of a segment relative to its first joint [rad]."""
+    return np.asarray(seg.joint_angles) - seg.joint_angles[0]
 
 
 def partition_score(groups, psi, log_gain, layouts, log_pred) -> float:
-    """Objective of step 4 for labelled groups (lists of servo columns, one per segment)."""
+    """Objective of the partition into segments (docs/hardware.md, calibration step 3); groups: columns per segment."""
     score, means = 0.0, []
     for g, phi in zip(groups, layouts, strict=True):
         res = fit_layout(psi[g], phi)[2]
@@ -173,12 +154,12 @@ def _local_search(groups, score_fn):
 
 
 def assign_segments(spec: RobotSpec, fits: list[PullFit], restarts: int = 20) -> list[list[int]]:
-    """Servo columns of each segment (step 4)."""
+    """Servo columns of each segment (the partition minimising :func:`partition_score`)."""
     psi = np.array([f.direction for f in fits])
     log_gain = np.log([f.gain for f in fits])
     log_pred = np.log(predicted_gains(spec))
     sizes = [s.num_joints for s in spec.segments]
-    score_fn = lambda g: partition_score(g, psi, log_gain, _layouts(spec), log_pred)  # noqa: E731
+    score_fn = lambda g: partition_score(g, psi, log_gain, [_layout(s) for s in spec.segments], log_pred)  # noqa: E731
 
     def chunk(order):
         seg_order = np.argsort(-log_pred, kind="stable")
@@ -197,7 +178,7 @@ def assign_segments(spec: RobotSpec, fits: list[PullFit], restarts: int = 20) ->
 
 def _segment_joints(seg, group: list[int], psi: np.ndarray) -> tuple[float, dict[int, int], np.ndarray]:
     """(δ, {column: joint}, residuals) for one segment, cyclic labels fixed for symmetric layouts."""
-    phi = np.asarray(seg.joint_angles) - seg.joint_angles[0]
+    phi = _layout(seg)
     delta, slots, res = fit_layout(psi[group], phi)
     joint = dict(zip(group, slots, strict=True))
     if seg.symmetric:
@@ -222,11 +203,10 @@ def calibrate(rec: Recording, spec: RobotSpec) -> tuple[RobotSpec, ServoMap, dic
     servos, per_servo, per_segment = [], {}, []
     for j, (seg, group) in enumerate(zip(spec.segments, groups, strict=True)):
         delta, joint, res = _segment_joints(seg, group, psi)
-        phi = np.asarray(seg.joint_angles) - seg.joint_angles[0]
         if seg.symmetric:
             d["segments"][j]["offset"] = delta
         else:
-            d["segments"][j]["joint_angles"] = [float(wrap(a + delta)) for a in phi]
+            d["segments"][j]["joint_angles"] = [float(wrap(a + delta)) for a in _layout(seg)]
         for c, r in zip(group, res, strict=True):
             f = fits[c]
             servos.append(ServoAssignment(f.servo, j, joint[c], f.sign, 0.0))
@@ -260,9 +240,6 @@ def write_calibration(spec: RobotSpec, smap: ServoMap, robot_path: str | Path, m
 
 
 def default_map_path(robot_path: str | Path) -> Path:
-    """servo_maps/<robot file name> in the robot YAML's folder.
-
-    A sub-folder, so that a glob for robot YAMLs (``configs/robots/*.yaml``) never meets a map.
-    """
+    """servo_maps/<robot file name> in the robot YAML's folder (a glob for robot YAMLs never meets a map)."""
     p = Path(robot_path)
     return p.parent / "servo_maps" / p.name

@@ -6,23 +6,15 @@
 Fitted physical parameters (14 for a 3-segment robot, 16 with ``lateral_marker``): per segment the
 effective radius and a rotation of the joint angles, the tendon compliance EI/EA and pretension
 (encoder), the base tilt (2 angles) and translation (3), and the marker offset d_marker in the tip
-frame: the full 3-vector (x, y, t) (``lateral_marker=True``, the default: the tracked marker sits off
-the backbone axis), or along the tip axis, d = (0, 0, t) (``lateral_marker=False``, the model before).
-The lateral offset improves both train-only selection proxies of the CC model on FTDCR v4 and v6
-(docs/hardware.md, "Lateral marker offset").
-With ``pretension_strain=True`` (+1 parameter) the pretension stretch of tendon i grows with its
-path length L_i, p_i = p + s·(L_i/L̄ − 1) (:class:`~.slack.SlackAwareEncoder`): a common pretension
-force stretches each tendon in proportion to its length. It is a per-robot choice, made on the
-train-only singles → pairs score of the CC model (:func:`.selection.choose_cc_variant`; FTDCR v4
-6.16 → 5.26 mm, v6 8.71 → 10.03 mm, so v4 takes it and v6 does not; docs/hardware.md).
+frame: the full 3-vector (x, y, t) (``lateral_marker=True``, the default), or d = (0, 0, t).
+With ``pretension_strain=True`` (+1 parameter) tendon i's pretension stretch is p_i = p + s·(L_i/L̄ − 1)
+(:class:`~.slack.SlackAwareEncoder`), a per-robot choice made by :func:`.selection.choose_cc_variant`.
 Segment lengths stay nominal (they trade off against the radii and made the fit degenerate).
+Both variants and their scores: docs/hardware.md.
 
-Identifiability of the lateral offset: the CC tip frame has no twist (it equals the base frame when
-straight), so (x, y) acts like a base translation on a straight robot and is separated from it only
-by the bends. A common rotation φ of all joint angles (the model's base yaw) maps the predictions to
-Rz(φ)·(p_tip + R_tip·Rz(−φ)·d): it turns the lateral offset as well as the whole tip cloud, so the
-two are not traded against each other (there is no separate base yaw that could compensate); the
-fitted (x, y) is the physical offset in the robot frame whose yaw the joint rotations define.
+The lateral offset is identifiable: the CC tip frame has no twist, so (x, y) acts like a base translation
+on a straight robot and is separated from it by the bends; a common rotation of the joint angles turns
+the offset with the whole tip cloud, so the two are not traded against each other.
 """
 from __future__ import annotations
 
@@ -130,12 +122,9 @@ FIT_SCALES = {"encoder.log_radius_scale": 0.1, "encoder.rotation": 0.05, "encode
 
 def fit_cc(model: CalibratedCC, x: Tensor, tip: Tensor, max_iter: int = 200, frozen: tuple[str, ...] = (),
            scales: Mapping[str, float] | None = None) -> dict:
-    """Least-squares fit of the physical parameters to (x (n, N), tip (n, 3)) [m] with L-BFGS.
-
-    Parameters named in ``frozen`` keep their values. ``scales`` adds or overrides the typical
-    magnitude of parameters (:data:`FIT_SCALES`), e.g. for a subclass with extra physics.
-    The base translation starts at the mean residual. Returns the time taken and the
-    root-mean-square tip error [m].
+    """Least-squares fit of the physical parameters to (x (n, N), tip (n, 3)) [m] with L-BFGS, on parameter / scale
+    (:data:`FIT_SCALES`, added to or overridden by ``scales``); ``frozen`` parameters keep their values; the base
+    translation starts at the mean residual. Returns {"seconds", "rms_m"}.
     """
     start = time.perf_counter()
     scale = {**FIT_SCALES, **(scales or {})}

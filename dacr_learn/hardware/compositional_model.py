@@ -1,34 +1,16 @@
 """Compositional hardware tip model: the calibrated CC segment transforms, each corrected by a shared network.
 
-Per segment k the calibrated CC model gives T_k^CC(x_k) (base of segment k → its end,
-:func:`~dacr_learn.kinematics.segment_poses` of the slack-aware encoder's features x_k). The model
-right-multiplies each by a learned rigid correction and composes the robot like the CC model:
-
     T_k = T_k^CC(x_k) · exp(ξ_k^),   ξ_k = s · f_θ(z_k, c_k),   T_tip = T_1 · T_2 ⋯ T_m,
     tip = R_base · (p_tip + R_tip · d_marker) + t_base             (the CC model's calibration)
 
-f_θ is the per-segment network of :class:`dacr_learn.compositional.CompositionalFK` (an MLP plus a
-linear skip shared by all segments, twist head: ξ = (v · L_s, ω), exp in closed form), fed with the
-standardised features z_k of segment k and a context c_k: "none", "segment" (one-hot index) or
-"distal" (the sum of the standardised features of the segments beyond k, whose tendons pass through
-segment k and load it on a coupled tendon robot). s = :data:`TWIST_SCALE` sets the output unit
-(s·L_s of translation, s rad of rotation) and the output layers start at zero, so an untrained model
-is the calibrated CC model. With ``torsion=False`` the rotation about the segment's end axis (ω_z) is
-held at 0: from tip positions of single-segment moves it is unobservable at a bent segment (the
-distal segments are straight, so a roll about their axis moves no tip), and the network would
-extrapolate it freely to the pairs, where it turns the distal bending planes.
-
-Training: full-batch Adam on the mean squared tip error [mm²] plus ``weight_decay`` × the sum of
-squared network weights (biases excluded), the CC parameters frozen.
-
-With ``history=True`` (registry name ``cc_compositional_history``) the network also sees segment k's
-play memory (ρ_k − play(ρ_k))/PLAY_WIDTH, the motion-direction input of ``cc_clarke_residual_history``,
-so each correction depends on how the segment got there (hysteresis) as well as where it is.
-
-Deployable: :mod:`.checkpoint` saves and loads it (format /2), :mod:`.compositional_inference` has its
-exportable FK and Jacobian modules (``python -m dacr_learn.export``) — without history; the history
-variant is scored by the benchmark but cannot be saved yet (its exported modules would need the play
-state passed in and out, as :class:`~.inference.HardwareFK` does).
+T_k^CC: :func:`~dacr_learn.kinematics.segment_poses` of the slack-aware encoder's features x_k; f_θ: the
+per-segment network of :class:`dacr_learn.compositional.CompositionalFK` on the standardised features z_k
+and a context c_k ("none", "segment" one-hot, or "distal": the sum of the features of the segments beyond
+k). s = :data:`TWIST_SCALE` and zero output layers make an untrained model the calibrated CC model.
+``torsion=False`` holds ω_z at 0 (unobservable from single-segment tip positions). Trained with full-batch
+Adam on the mean squared tip error [mm²] + ``weight_decay`` × Σ squared weights, the CC parameters frozen.
+``history=True`` (``cc_compositional_history``) adds segment k's play memory as an input; it is scored but
+cannot be saved. Model and results: docs/compositional.md ("On the real robots").
 """
 from __future__ import annotations
 
@@ -48,10 +30,8 @@ CONTEXT, DEPTH, WEIGHT_DECAY, TORSION = "none", 2, 3.0, False   # chosen on the 
 
 
 class CCCompositionalResidual(nn.Module):
-    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists.
-
-    Built from the calibrated CC model and the network's shape; :meth:`fit` standardises the features with
-    the training split's statistics (:meth:`fit_normalization`) and trains the network."""
+    """Tip (n, 3) [m] from a :class:`Split`: calibrated CC segment transforms × learned per-segment twists;
+    :meth:`fit` standardises the features (:meth:`fit_normalization`) and trains the network."""
 
     def __init__(self, cc: CalibratedCC, context: str = CONTEXT, width: int = RESIDUAL_HIDDEN,
                  depth: int = DEPTH, weight_decay: float = WEIGHT_DECAY, torsion: bool = TORSION, steps: int = STEPS,

@@ -1,21 +1,14 @@
 """Hardware tip models built on the calibrated Cosserat rod (:mod:`.cosserat_model`), for the registry.
 
-``cosserat``: the Cosserat model of the robot alone, calibrated on the training rows (starting from the
-fitted CC model of the fold). ``cc_clarke_residual_cosserat``: the CC Clarke-residual model
-(:class:`~.learned.CCClarkeResidual`, deployable and exported like it) whose correction network is first
-trained on synthetic commands that bend all segments at once, with tips from the Cosserat model
-calibrated on the same training rows in the CC model's frame, then fine-tuned on the recording with the
-synthetic set kept in the loss (rehearsal), as ``pretrained_clarke`` does with CC data.
-``cc_clarke_residual_history_cosserat``: the same with the history input of
-:class:`~.learned.CCClarkeResidualHistory` (each segment's play memory; zero on the synthetic commands, which
-have no history): the hysteresis term on the Cosserat-informed model, deployed and exported as a
-``cc_clarke_residual_history`` model (the play state passed in and out).
+``cosserat``: the Cosserat model alone, calibrated on the training rows from the fold's CC fit.
+``cc_clarke_residual_cosserat``: :class:`~.learned.CCClarkeResidual` pre-trained on synthetic all-segment
+commands with tips of that Cosserat model (in the CC model's frame), then fine-tuned with rehearsal like
+``pretrained_clarke``; ``cc_clarke_residual_history_cosserat``: the same with the history input (memory 0 on
+the synthetic commands). Both save and export as their CC Clarke-residual counterparts (docs/hardware.md).
 
 The calibration and the synthetic tips are deterministic functions of the training rows, the CC model and the
-options, so they are computed once and shared: within a process (the seeds of one fold), and, given a
-``cache_dir`` (the benchmark's, :attr:`~.study.registry.FitContext.cache_dir`), between the benchmark's worker
-processes through files (one computes, the others wait for it and read; :func:`warmups` lists the pieces
-that the benchmark hands to its pool first).
+options, so they are computed once and shared: within a process and, given a ``cache_dir``
+(:attr:`~.study.registry.FitContext.cache_dir`), between worker processes through files (:func:`warmups`).
 """
 from __future__ import annotations
 

@@ -3,26 +3,19 @@
     x (n, N) [m] ──rest lengths ℓ = L₀ − x − p──▶ solve_displacements ──▶ tip pose (base frame)
     tip = R_base · (p_tip + R_tip · d_marker) + t_base      (motion-capture frame, metres)
 
-The mechanics are those of :mod:`dacr_learn.cosserat` (Rucker & Webster's rod with straight tendons,
-coupled routing, the robot's own weight), driven by displacements: the servos set each tendon's
-unstretched length, the tensions follow (:func:`~dacr_learn.cosserat.displacement.solve_displacements`).
-It starts from the calibrated CC model (:class:`~.ccmodel.CalibratedCC`), whose parameters have the same
-meaning here: effective tendon radius and joint-angle rotation per segment, the tendon compliance EI/EA_t
-(with the nominal rod's EI it sets the tendons' 1/(E_t A_t)), the pretension (per tendon with the
-``strain`` variant), the base tilt and translation and the marker offset; tendons pass each segment at its
-effective radius (``passing="segment"``). New: the robot's weight per length as a vector
-g = w·u [N/m] of the motion-capture frame — a weight w ≥ 0 (the physical sign, by construction) along a free
-direction u (two angles): gravity need not lie along a motion-capture axis, nor along the robot's base axis
-(w ≤ :data:`WEIGHT_MAX`) — and the backbone's axial stiffness EA/EI (a solid rod of radius r_a has 4/r_a²).
-With w = 0 and an inextensible backbone the model is the CC model (a test checks
-the two agree to 5 µm), so the fit starts at the CC fit.
+The mechanics are those of :mod:`dacr_learn.cosserat`, driven by displacements
+(:func:`~dacr_learn.cosserat.displacement.solve_displacements`). It starts from the calibrated CC model
+(:class:`~.ccmodel.CalibratedCC`), whose parameters mean the same here (the tendon compliance EI/EA_t sets,
+with the nominal rod's EI, the tendons' 1/(E_t A_t)); tendons pass each segment at its effective radius
+(``passing="segment"``). New: the robot's weight per length g = w·u [N/m] in the motion-capture frame,
+w ∈ [0, :data:`WEIGHT_MAX`] along a free direction u (two angles), and the backbone's axial stiffness EA/EI.
+With w = 0 and an inextensible backbone the model is the CC model, so the fit starts at the CC fit.
 
-:data:`BENDING_STIFFNESS` (a 1 mm NiTi wire's EI) is the scale against which the fitted tendon compliance,
-axial stiffness and weight act; the tip depends on the ratios only. Fitted by Levenberg–Marquardt on a
-subset of the training rows (:data:`FIT_ROWS`) from each of :data:`AXIAL_STARTS`: the parameters that change
-the mechanics by finite differences of warm-started solves, the frame parameters (tilt, marker) at fixed
-shapes, the base translation in closed form (the mean residual). Gradient-free: this model is scored and
-used to generate data; it is not exported.
+:data:`BENDING_STIFFNESS` (a 1 mm NiTi wire's EI) is the scale; the tip depends on the ratios only.
+Fitted by Levenberg–Marquardt on :data:`FIT_ROWS` training rows from each of :data:`AXIAL_STARTS`: the
+mechanical parameters by finite differences of warm-started solves, the frame parameters (tilt, marker)
+at fixed shapes, the base translation in closed form. Gradient-free: scored and used to generate data,
+not exported.
 """
 from __future__ import annotations
 
@@ -202,11 +195,9 @@ class CalibratedCosserat:
     # -- fitting ---------------------------------------------------------------------------------------------
     def fit(self, x: Tensor, tip: Tensor, rows: int = FIT_ROWS, iterations: int = FIT_ITERATIONS,
             seed: int = 0, free_frame: bool = True, starts: tuple[float, ...] = AXIAL_STARTS, log=None) -> dict:
-        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows, from each
-        backbone axial radius in ``starts`` [m] (the fit cannot leave the nearly flat inextensible end on its
-        own); keeps the start with the lowest RMS on that subset. Returns the RMS before (of the model as
-        given) and after on the subset [m], each start's RMS, the iterations and the time.
-        ``free_frame=False`` keeps the CC model's base pose and marker (the predictions share its frame)."""
+        """Levenberg–Marquardt on (x (n, N), tip (n, 3)) [m] over a seeded subset of ``rows`` rows, from each backbone
+        axial radius in ``starts`` [m], keeping the start of lowest RMS. Returns the RMS before and after [m], each
+        start's RMS, the iterations and the time. ``free_frame=False`` keeps the CC model's base pose and marker."""
         begin = time.perf_counter()
         if x.shape[0] > rows:
             pick = torch.randperm(x.shape[0], generator=torch.Generator().manual_seed(seed))[:rows]

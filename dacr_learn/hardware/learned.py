@@ -1,34 +1,17 @@
 """Tip models for hardware recordings: baselines, Clarke-feature networks and CC residuals.
 
 Every model maps a :class:`Split` (one recording, with inputs precomputed by the fitted
-:class:`~dacr_learn.hardware.ccmodel.CalibratedCC`) to tip positions (n, 3) [m]:
-
-=====================  ==============================================================
-``linear_raw``         least squares, tip = W·servo + b (raw servo values)
-``mlp_raw``            MLP on the raw servo values
-``mlp_clarke``         MLP on the calibrated Clarke features (ρ_re, ρ_im per segment)
-``cc``                 the calibrated constant-curvature model alone
-``cc_tip_residual``    CC tip + MLP(Clarke features) correction in tip space
-``cc_clarke_residual`` CC with a learned per-segment correction Δρ⁽ᵏ⁾ = f(ρ⁽ᵏ⁾, k) in Clarke
-                       space, before the forward kinematics (one network shared by segments)
-``pretrained_clarke``  ``mlp_clarke`` pre-trained on synthetic data of the calibrated CC
-                       robot (all segments bending at once), fine-tuned on the recording
-                       with the synthetic set kept in the loss (rehearsal)
-``pretrained_raw``     the same for raw servo values (synthetic commands via the servo map)
-``cc_clarke_residual_history``  ``cc_clarke_residual`` whose correction also sees the
-                       recent motion direction of each segment (a play operator on the
-                       Clarke coordinates, :func:`play_operator`): a hysteresis model that
-                       uses the command history (rows in time order), not a static map
-=====================  ==============================================================
+:class:`~dacr_learn.hardware.ccmodel.CalibratedCC`) to tip positions (n, 3) [m]. The registry names
+(``linear_raw``, ``mlp_raw``, ``mlp_clarke``, ``cc``, ``cc_tip_residual``, ``cc_clarke_residual``,
+``pretrained_clarke``, ``pretrained_raw``, ``cc_clarke_residual_history``) are described in
+docs/hardware.md ("The models"); history models use the command history (rows in time order) through
+:func:`play_operator`.
 
 Networks are 2×128 SiLU MLPs (2×64 for the per-segment Clarke corrections; :func:`dacr_learn.models.mlp`,
 inputs standardised by :class:`dacr_learn.models.Standardizer`) trained full batch with Adam and a cosine
-schedule (float32).
-
-A model is built from shapes and configuration only (numbers of inputs, the fitted CC model, …), then
-trained with ``fit(train)``, whose first step sets its data-dependent statistics (``fit_normalization``:
-the standardisers, the Clarke scale σ). A checkpoint loads into a model built the same way.
-:func:`command_split` makes the inputs of servo commands without a recording.
+schedule (float32). A model is built from shapes and configuration only, then trained with ``fit(train)``,
+whose first step sets its data-dependent statistics (``fit_normalization``); a checkpoint loads into a
+model built the same way. :func:`command_split` makes the inputs of servo commands without a recording.
 """
 from __future__ import annotations
 
@@ -61,12 +44,10 @@ NORM_DTYPE = torch.float32
 def play_operator(values: Tensor, width: float | Tensor) -> Tensor:
     """Vector play (backlash) operator along the rows (time order) of values (n, ..., k).
 
-    The state starts at the first row and is dragged along whenever the input moves more
-    than the width away from it: state_t = v_t + (s_{t−1} − v_t)·min(1, w_t/‖s_{t−1} − v_t‖).
-    ``width`` [same unit as values] is a constant or per-row widths broadcastable to
-    values.shape[:-1] (a width that changes with the state). With k = 1 it is the scalar
-    play, state_t = clamp(s_{t−1}, v_t − w_t, v_t + w_t). (values − state)/width lies in the
-    unit disc and encodes the recent direction of motion.
+    The state starts at the first row and is dragged along when the input moves more than the width away:
+    state_t = v_t + (s_{t−1} − v_t)·min(1, w_t/‖s_{t−1} − v_t‖) (k = 1: the scalar play). ``width`` [unit of
+    the values]: a constant or per-row widths broadcastable to values.shape[:-1]. (values − state)/width lies in
+    the unit disc and encodes the recent direction of motion.
     """
     w = torch.as_tensor(width, dtype=values.dtype, device=values.device)
     rows = tuple(values.shape[:-1])
@@ -285,11 +266,9 @@ class CCClarkeResidualHistory(CCClarkeResidual):
 
 def synthetic_split(cc: CalibratedCC, smap: ServoMap, servo_ids: tuple[str, ...], n: int, seed: int,
                     tip_fn=None) -> Split:
-    """Synthetic recording of the calibrated CC robot: Clarke features drawn uniformly in each
-    segment's bending disc (|ρ| ≤ bend·d, the YAML's limits), joint lengths from the
-    ClarkeDecoder, displacements x = path length − q, then the same pipeline as real data.
-    ``tip_fn``: displacements (n, N) [m] → tips (n, 3) [m] of another model of the robot (e.g. the calibrated
-    Cosserat rod) in place of the CC model's; the features stay the CC encoder's (the networks' input)."""
+    """Synthetic recording of the calibrated CC robot: Clarke features uniform in each segment's bending disc
+    (|ρ| ≤ bend·d), x = path length − q (ClarkeDecoder), then the pipeline of real data. ``tip_fn``: displacements
+    (n, N) [m] → tips (n, 3) [m] of another model (e.g. the calibrated Cosserat rod) in place of the CC model's."""
     spec = cc.spec
     g = torch.Generator().manual_seed(seed)
     m = spec.num_segments

@@ -1,9 +1,8 @@
 """Tip-error metrics for hardware benchmarks (inputs in metres, reports in millimetres).
 
-The lab's metric is the *offset-removed RMSE*: with errors e_k = pred_k − meas_k (n, 3) and
-their mean ē, RMSE = sqrt(mean_k ‖e_k − ē‖²). It forgives a constant offset (motion-capture
-marker placement, base registration) and measures the shape of the predicted paths.
-The mean and 95th percentile of the plain Euclidean errors ‖e_k‖ are reported alongside.
+The lab's metric is the *offset-removed RMSE*: with errors e_k = pred_k − meas_k (n, 3) and their mean ē,
+RMSE = sqrt(mean_k ‖e_k − ē‖²): it forgives a constant offset (marker placement, base registration). The mean
+and 95th percentile of the plain Euclidean errors ‖e_k‖ are reported alongside.
 """
 from __future__ import annotations
 
@@ -14,10 +13,8 @@ from ..checks import check_tensor
 
 
 def offset_removed_errors(pred: Tensor, meas: Tensor) -> Tensor:
-    """‖e_k − ē‖ per row of e = pred − meas, shapes (n, 3) → (n,) (same unit, pred's dtype).
-
-    The terms of the offset-removed RMSE; ē is the mean over all n rows.
-    """
+    """‖e_k − ē‖ per row of e = pred − meas (ē: the mean over all n rows), shapes (n, 3) → (n,) (same unit, pred's
+    dtype): the terms of the offset-removed RMSE."""
     check_tensor(pred, "pred", (3,))
     check_tensor(meas, "meas", (3,))
     if pred.shape != meas.shape or pred.dim() != 2 or pred.shape[0] == 0:

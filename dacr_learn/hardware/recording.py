@@ -1,19 +1,13 @@
-"""Hardware recordings: CSV files of servo commands and motion-capture tip positions.
+"""Hardware recordings: CSV files of servo commands and motion-capture tip positions (docs/hardware.md).
 
 File format (one row per sample, time ordered)::
 
     timestamp,pattern_label,servo_<id>_mm,...,servo_<id>_mm,tip_x,tip_y,tip_z
 
-- ``timestamp`` [s]; ``pattern_label`` a free-form string naming the motion pattern.
-- one ``servo_<id>_<unit>`` column per actuator, in hardware order: the commanded tendon
-  displacement (larger = pulled). ``<id>`` is any token without underscores or commas.
-- ``tip_x, tip_y, tip_z``: the tracked tip position in the motion-capture frame.
-
-Everything is returned in SI units (metres) as float64 tensors. Checks raise ``ValueError``
-with the file and column named: missing columns, empty files, NaN/inf or unparsable values,
-non-increasing timestamps, a unit suffix that disagrees with ``units``, and values whose
-magnitude does not fit the declared unit and the robot's size (metres recorded as mm or
-the other way round).
+``timestamp`` [s]; ``pattern_label`` names the motion pattern; one ``servo_<id>_<unit>`` column per actuator in
+hardware order, the commanded tendon displacement (larger = pulled; ``<id>`` without underscores or commas);
+``tip_x, tip_y, tip_z`` the tracked tip in the motion-capture frame. Everything is returned in metres as
+float64 tensors; checks raise ``ValueError`` naming the file and column.
 """
 from __future__ import annotations
 
@@ -37,13 +31,8 @@ _SERVO_RE = re.compile(r"^servo_([^_,]+)_([a-z]+)$")
 
 @dataclass(frozen=True)
 class Recording:
-    """One recording, SI units.
-
-    servo_ids: actuator ids in hardware (column) order, e.g. ("4", "3", ...).
-    servo: (N, S) commanded displacements [m], columns in ``servo_ids`` order.
-    tip: (N, 3) tip positions in the motion-capture frame [m].
-    labels: N pattern labels; timestamp: (N,) [s]; source: the file it came from.
-    """
+    """One recording, SI units: servo_ids (hardware column order), servo (N, S) commanded displacements [m],
+    tip (N, 3) [m] motion-capture frame, labels (N pattern labels), timestamp (N,) [s], source (the file)."""
 
     servo_ids: tuple[str, ...]
     servo: Tensor
@@ -145,16 +134,12 @@ def read_rows(path: str | Path) -> tuple[list[str], list[list[str]]]:
 
 
 def load_recording(path: str | Path, spec: RobotSpec | None = None, units: str = "mm") -> Recording:
-    """Read a recording CSV into SI tensors (float64).
+    """Read a recording CSV (format of the module docstring) into SI tensors (float64).
 
-    Args:
-        path: CSV file in the format of the module docstring.
-        spec: the robot; when given, the number of servo columns must equal its number of
-            joint lengths and magnitudes are checked against its total length.
-        units: unit of the servo and tip columns, "mm" or "m".
-    Raises:
-        ValueError: missing columns, NaN/inf, bad numbers, time going backwards, a column
-        unit other than ``units``, or magnitudes that do not fit the unit.
+    ``spec``: when given, the number of servo columns must equal its number of joint lengths and magnitudes are
+    checked against its total length; ``units``: unit of the servo and tip columns, "mm" or "m". ValueError for
+    missing columns, NaN/inf, bad numbers, time going backwards, a column unit other than ``units``, or magnitudes
+    that do not fit the unit.
     """
     source = str(path)
     if units not in UNIT_SCALE:

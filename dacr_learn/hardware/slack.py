@@ -1,40 +1,19 @@
-"""Slack-aware Clarke encoder for tendon robots (type-0 segments).
+"""Slack-aware Clarke encoder for tendon robots (type-0 segments; docs/hardware.md, "The calibrated CC model").
 
-The plain :class:`~dacr_learn.layers.ClarkeEncoder` is the least-squares projection
-w = B⁺(q − q₀). On hardware, released tendons go slack (commands of −10 mm while the path
-only needs −2 mm): such a joint no longer constrains the shape, and least squares lets it
-pull the estimate towards a configuration that bends away from it.
-
-Here tendons are one-sided springs and the backbone is an elastic rod. With Clarke
-coordinates ρ (..., 2m) (docs/design.md §1, coupled or independent routing), the path shortening
-of joint i is (G ρ)_i with G = −B_ρ, and the configuration minimises
+The plain :class:`~dacr_learn.layers.ClarkeEncoder` (least squares, w = B⁺(q − q₀)) lets a slack tendon
+pull the estimate. Here tendons are one-sided springs and the backbone an elastic rod: with Clarke
+coordinates ρ (..., 2m) (docs/design.md §1) and G = −B_ρ, the configuration minimises
 
     E(ρ) = ½ c Σ_k ‖ρ⁽ᵏ⁾‖² / (l_k d_k²)  +  ½ Σ_i max(0, x_i + p − (G ρ)_i)² / L_i
 
-- x_i [m]: commanded displacement of joint i (positive = pulled), p [m]: pretension stretch;
-- first term: bending energy of segment k (curvature ‖ρ⁽ᵏ⁾‖/(d_k l_k)) over the tendon
-  stiffness, c = EI/EA [m²] the *compliance* (c → 0: inextensible tendons);
-- second term: elastic energy of the tendons that are stretched (x_i + p > (Gρ)_i) — a
-  tendon whose command is shorter than its path demand is slack and contributes nothing.
-  L_i [m] is the path length of joint i (the segments it passes).
+x_i [m] the commanded displacement of joint i (positive = pulled), p [m] the pretension stretch,
+c = EI/EA [m²] the compliance, L_i [m] the path length of joint i. Commands with x = Gρ* and c → 0 give ρ*.
 
-Properties: for commands that satisfy the displacement constraint (x = Gρ*, e.g. the output
-of a :class:`~dacr_learn.layers.ClarkeDecoder`) and c → 0, ρ = ρ* exactly; a single pulled
-tendon with all others slack bends the segments it passes towards it with equal curvature
-(coupled routing) or only its own segment (independent routing).
-
-E is a convex piecewise quadratic. It is minimised by a semi-smooth Newton (active-set)
-iteration: guess the stretched tendons, solve the linear system, update the set, repeat.
-Batched over leading dims; gradients flow through the final linear solve (the active set
-is piecewise constant), so c, p, the radii and the joint-angle rotations can be fitted.
-
-For fixed parameters (inference, :mod:`.inference`) the same minimiser is found without
-iterating: :func:`active_set_gains` solves the linear system of every one of the 2ᴺ sets once
-(ρ_S = K_S x), and :func:`select_active_set` picks, per command, the set S whose solution is
-consistent with it — stretched exactly where x − Gρ_S > 0. Because E is strictly convex, that
-set is unique (it is the set at the minimiser) and ρ_S is the minimiser; in floating point the
-set with the least sign violation is taken, whose ρ_S is within ‖Gᵀ W v‖/min(bend_w) of the
-minimiser (v the violations: ∇E(ρ_S) = Gᵀ W v and E is min(bend_w)-strongly convex).
+E is a convex piecewise quadratic, minimised by a semi-smooth Newton (active-set) iteration; batched, with
+gradients through the final linear solve (so c, p, the radii and the rotations can be fitted). For fixed
+parameters :func:`active_set_gains` solves the linear system of each of the 2ᴺ sets once (ρ_S = K_S x) and
+:func:`select_active_set` picks the set consistent with the command (unique: E is strictly convex; in floating
+point the least sign violation, whose ρ_S is within ‖Gᵀ W v‖/min(bend_w) of the minimiser).
 """
 from __future__ import annotations
 
@@ -64,19 +43,13 @@ def _rotations(angle: Tensor) -> Tensor:
 
 def solve_tendon_qp(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor, iters: int = 30,
                     force_map: Tensor | None = None, load: Tensor | None = None) -> Tensor:
-    """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched.
+    """argmin_ρ ½ Σ bend_w ρ² + ½ Σ tendon_w·max(0, x − Gρ)², batched: x (B, N) commanded displacements
+    (pretension included) [m], g (N, D) the map G, bend_w (D,), tendon_w (N,) positive weights → ρ (B, D).
 
-    Args:
-        x: (B, N) commanded displacements (pretension included) [m].
-        g: (N, D) displacement map G; bend_w: (D,) and tendon_w: (N,) positive weights.
-        force_map: optional (B, N, D) map F of the tendon forces into the bending equations.
-            The solution then satisfies the force balance bend_w·ρ = Fᵀ(tendon_w·max(0, x − Gρ))
-            instead of the energy minimum (F = G), e.g. with tensions reduced by friction.
-        load: optional (B, D) external generalised force added to that balance (in the units of
-            bend_w·ρ [m], i.e. force/EA), e.g. gravity: bend_w·ρ = Fᵀ(…) + load.
-    Returns:
-        ρ (B, D). Starts from the set of pulled tendons (x > 0); stops when the set of
-        stretched tendons repeats (usually 2–5 iterations).
+    ``force_map`` (B, N, D): a map F of the tendon forces into the bending equations; the solution then satisfies
+    bend_w·ρ = Fᵀ(tendon_w·max(0, x − Gρ)) (+ ``load`` (B, D), an external generalised force in the units of
+    bend_w·ρ [m], e.g. gravity) instead of the energy minimum (F = G). Starts from the pulled tendons (x > 0);
+    stops when the set of stretched tendons repeats (usually 2–5 iterations).
     """
     f = g if force_map is None else force_map
     active = x > 0
@@ -98,15 +71,9 @@ MAX_ENUMERATED_TENDONS = 12  # 2^N sets: 4096 gains of (2m × N) at most
 
 
 def active_set_gains(g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> tuple[Tensor, Tensor]:
-    """Every set S of stretched tendons and its linear solution map, ρ_S = K_S x.
-
-    Args:
-        g: (N, D) displacement map G; bend_w (D,), tendon_w (N,) positive weights (as in
-            :func:`solve_tendon_qp`, energy form).
-    Returns:
-        sets (2ᴺ, N) bool (row k: bit i of k set ⇔ tendon i stretched) and
-        K (2ᴺ, D, N) = (diag(bend_w) + Gᵀ W_S G)⁻¹ Gᵀ W_S, W_S = diag(tendon_w·1_S).
-    """
+    """Every set S of stretched tendons and its linear solution map ρ_S = K_S x, for g (N, D), bend_w (D,),
+    tendon_w (N,) as in :func:`solve_tendon_qp` (energy form): sets (2ᴺ, N) bool (row k: bit i of k ⇔ tendon i
+    stretched) and K (2ᴺ, D, N) = (diag(bend_w) + Gᵀ W_S G)⁻¹ Gᵀ W_S, W_S = diag(tendon_w·1_S)."""
     n = g.shape[0]
     if n > MAX_ENUMERATED_TENDONS:
         raise ValueError(f"g: enumerating the active sets needs at most {MAX_ENUMERATED_TENDONS} tendons "
@@ -118,10 +85,9 @@ def active_set_gains(g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> tuple[Tenso
 
 
 def select_active_set(residual: Tensor, sets: Tensor, tendon_w: Tensor) -> Tensor:
-    """Index of the consistent set: residual (..., 2ᴺ, N) = x − Gρ_S of every set's solution,
-    sets (2ᴺ, N) bool, tendon_w (N,) → (...,) long, the set whose stretched tendons are exactly
-    those with a positive residual (the least tendon-weighted sign violation in floating point;
-    ties go to the lowest index, the fewest stretched tendons of the tied sets)."""
+    """Index (...,) long of the consistent set: residual (..., 2ᴺ, N) = x − Gρ_S of every set, sets (2ᴺ, N) bool,
+    tendon_w (N,); the set stretched exactly where the residual is positive (least tendon-weighted sign violation;
+    ties to the lowest index, the fewest stretched tendons)."""
     sign = torch.where(sets, -1.0, 1.0).to(residual.dtype)                       # + where it must be ≤ 0
     violation = (torch.relu(residual * sign) * tendon_w.to(residual.dtype)).sum(-1)
     return violation.argmin(-1)
@@ -149,19 +115,11 @@ def enumerated_solution(x: Tensor, sets: Tensor, gain: Tensor, residual_map: Ten
 
 
 class SlackAwareEncoder(nn.Module):
-    """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4).
-
-    Learnable physical parameters (nn.Parameters, float64):
-    ``log_radius_scale`` (m,): effective radius d_k = d_k,nominal·exp(·);
-    ``rotation`` (m,) [rad]: rotation of each segment's joint angles (refines the offsets);
-    ``log_compliance``: log c, c = EI/EA [m²]; ``pretension`` p [m]; with ``strain=True`` also
-    ``pretension_strain`` s [m]: tendon i's pretension stretch is p_i = p + s·(L_i/L̄ − 1), L_i its
-    path length, L̄ their mean (a common pretension *force* stretches each tendon ∝ its length; s = p
-    is pure strain). Without it every tendon has the same p (the model before; its default).
-
-    Output features follow docs/design.md §3 for the *nominal* spec: (ρ_re, ρ_im) scaled by
-    d_nominal/d_effective, β = l, α = 0, so that ``forward_kinematics(spec, features)`` gives
-    the shape with the effective radius.
+    """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4), in the convention of docs/design.md §3
+    for the *nominal* spec ((ρ_re, ρ_im)·d_nominal/d_effective, β = l, α = 0): ``forward_kinematics(spec, features)``
+    gives the effective shape. Learnable (float64): ``log_radius_scale`` (m,), d_k = d_k,nominal·exp(·); ``rotation``
+    (m,) [rad] of each segment's joint angles; ``log_compliance`` (log c [m²]); ``pretension`` p [m]; with
+    ``strain=True`` also ``pretension_strain`` s [m]: p_i = p + s·(L_i/L̄ − 1), L̄ the mean path length.
     """
 
     def __init__(self, spec: RobotSpec, compliance: float = 1e-6, pretension: float = 0.0, strain: bool = False):

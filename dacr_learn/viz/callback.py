@@ -32,11 +32,8 @@ def _plain(value: Any) -> Any:
 
 
 def run_info(trainer: Trainer) -> dict[str, Any]:
-    """What a run's hparams miss: the global seed, the trainer's settings and the datamodule's.
-
-    ``data`` holds the datamodule's ``hparams`` if it saved any, else its public plain attributes
-    (numbers, strings, dataclasses such as the robot spec, tuples of those).
-    """
+    """What a run's hparams miss: the global seed, the trainer's settings and the datamodule's (its ``hparams``, else
+    its public plain attributes: numbers, strings, dataclasses such as the robot spec, tuples of those)."""
     seed = os.environ.get("PL_GLOBAL_SEED")
     settings = {"max_epochs": trainer.max_epochs, "max_steps": trainer.max_steps, "precision": trainer.precision,
                 "accumulate_grad_batches": trainer.accumulate_grad_batches, "world_size": trainer.world_size,
@@ -58,16 +55,11 @@ def find_rerun_logger(trainer: Trainer) -> RerunLogger | None:
 
 
 class RerunVisualCallback(Callback):
-    """The run's context and 3D scenes for a :class:`RerunLogger`.
-
-    At fit start it records :func:`run_info` (seed, trainer, data) with the hparams and, when the
-    module carries the CLI config (``pl_module.run_config``), that YAML. At the end of every
-    ``every_n_epochs``-th validation it logs ``pl_module.visual_batch()`` — the dict described in
-    :func:`log_scene` (CPU tensors, metres) — under ``prefix`` at the trainer's global step, with
-    at most ``max_workspace_points`` workspace points coloured on the fixed log scale
-    ``error_range`` [m]. Skipped during the sanity check, on ranks other than 0, without a
-    :class:`RerunLogger` among the trainer's loggers, and (with one warning) when the module has
-    no ``visual_batch``.
+    """The run's context and 3D scenes for a :class:`RerunLogger`: at fit start :func:`run_info` and the CLI config
+    (``pl_module.run_config``); after every ``every_n_epochs``-th validation ``pl_module.visual_batch()`` (the dict of
+    :func:`log_scene`, CPU tensors, metres) under ``prefix`` at the global step, at most ``max_workspace_points``
+    points on the log scale ``error_range`` [m]. Skipped in the sanity check, on ranks other than 0, without a
+    :class:`RerunLogger`, and (with one warning) for a module without ``visual_batch``.
     """
 
     def __init__(

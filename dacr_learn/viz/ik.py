@@ -22,12 +22,9 @@ FAILED_COLOR = (220, 40, 40, 200)
 
 def log_ik_solutions(recording: rr.RecordingStream, prefix: str, targets: Any, backbones: Any, success: Any, *,
                      spacing: float | None = None, axis_length: float = 0.02, alpha: int = 110) -> None:
-    """Log targets (B, 4, 4) [m] and the backbones of their solutions (B, K, P, 3) [m] with success (B, K).
-
-    Entities: ``<prefix>/target_<b>/frame`` (the target frame) and ``<prefix>/target_<b>/solution_<k>`` (one line
-    strip each, translucent; red where the solution failed). ``spacing``: the x offset between targets [m]
-    (default 1.2 × the largest backbone extent, so they do not overlap).
-    """
+    """Log targets (B, 4, 4) [m] at ``<prefix>/target_<b>/frame`` and their solutions' backbones (B, K, P, 3) [m] at
+    ``<prefix>/target_<b>/solution_<k>`` (translucent; red where success (B, K) is False), the targets ``spacing`` [m]
+    apart along x (default 1.2 × the largest backbone extent)."""
     poses, lines = (np.asarray(a.detach().cpu() if hasattr(a, "detach") else a, dtype=np.float32)
                     for a in (targets, backbones))
     ok = np.asarray(success, dtype=bool)

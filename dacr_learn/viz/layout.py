@@ -87,11 +87,8 @@ def series_style(name: str) -> tuple[str, tuple[int, int, int]]:
 
 
 def metric_groups(names: Iterable[str]) -> dict[str, list[str]]:
-    """Plot title -> plotted metric names (train and val of one quantity in one unit, sorted).
-
-    A quantity logged in several units (``pos_err_mean_mm`` and ``pos_err_mean_pct``) is plotted
-    once, in the first unit of ``UNIT_PREFERENCE``; the others stay in the summary table.
-    """
+    """Plot title -> plotted metric names (train and val of one quantity in one unit, sorted); a quantity logged in
+    several units is plotted in the first of ``UNIT_PREFERENCE`` (the others stay in the summary table)."""
     by_quantity: dict[str, dict[str, list[str]]] = {}
     for name in sorted(n for n in set(names) if is_plotted(n)):
         quantity, _, unit = _parse(_split_key(name)[1])
@@ -126,12 +123,9 @@ def full_range_plot(
     timeline: str, *, name: str, origin: str = "/", contents: Iterable[str] | str = "$origin/**",
     from_zero: bool = False, legend: rrb.Corner2D | None = rrb.Corner2D.RightTop, **kwargs,
 ) -> rrb.TimeSeriesView:
-    """A named time-series plot of ``origin``/``contents`` that shows every point of ``timeline``.
-
-    Rerun's default is a window around the time cursor (±1000 steps), which hides most of a long
-    curve: here the visible range and the x axis cover the whole timeline (from 0 with
-    ``from_zero``; LinkAxis.LinkToGlobal would bring the window back). ``legend``: its corner, or
-    None for no legend. Other keyword arguments (``axis_y``, ``overrides``, …) go to
+    """A named time-series plot of ``origin``/``contents`` that shows every point of ``timeline`` (Rerun's default is
+    a ±1000-step window around the cursor): the visible range and x axis cover the whole timeline (from 0 with
+    ``from_zero``). ``legend``: its corner, or None. Other keyword arguments (``axis_y``, ``overrides``, …) go to
     rrb.TimeSeriesView.
     """
     whole = rrb.VisibleTimeRange(timeline, start=rrb.TimeRangeBoundary.infinite(),
@@ -160,13 +154,9 @@ def _plots(groups: Mapping[str, list[str]], log10: bool) -> list[rrb.TimeSeriesV
 
 
 def default_blueprint(metric_names: Iterable[str] = (), colour_note: str = "") -> rrb.Blueprint:
-    """Layout of a training recording.
-
-    Left: one full-range plot per quantity (train and val together, log10 values, linear for the
-    :data:`SIGNED` quantities; a second tab has the linear values). Right: the validation samples in
-    3D (backbones, true and predicted tip frames), below it the workspace error cloud (``colour_note``
-    names its fixed colour scale) beside a tab of the metrics table (latest train/val/test values),
-    hparams, CLI config and the text log. The time panel opens on ``step`` at the last step (follow mode).
+    """Layout of a training recording (docs/rerun.md): full-range metric plots (log10 and linear tabs) on the
+    left; the 3D validation samples, the workspace error cloud and tabs (metrics table, hparams, config, log) on
+    the right; the time panel on ``step`` at the last step (follow mode).
     """
     groups = metric_groups(metric_names)
     log_plots = _plots(groups, log10=True) or [rrb.TimeSeriesView(origin=LOG10_ROOT, name="metrics, log10")]

@@ -1,30 +1,19 @@
 """Rerun logging for Lightning: the logger (its 3D visual callback: :mod:`.callback`; blueprints: :mod:`.layout`;
-scene helpers: :mod:`.scene`).
+scene helpers: :mod:`.scene`). What a recording shows: docs/rerun.md.
 
-Everything goes to a dedicated :class:`rerun.RecordingStream` (never the global one), so
-several loggers, tests or scripts can log side by side. The scene is in metres.
+Everything goes to a dedicated :class:`rerun.RecordingStream` (never the global one), so several loggers,
+tests or scripts can log side by side. The scene is in metres. Entity paths::
 
-Layout of a recording (entity paths)::
+    metrics/<name>, metrics_log10/<name>   rr.Scalars on the "step" timeline (+ static rr.SeriesLines), log10
+    summary, hparams, config               rr.TextDocument: latest metrics table; hparams (JSON); CLI YAML
+    scene                                  static rr.ViewCoordinates (right-handed, z up)
+    scene/backbone, scene/tip_error        rr.LineStrips3D: ground-truth backbones; true tip -> predicted tip
+    scene/tip_true, scene/tip_pred         rr.Arrows3D: true and predicted tip frames
+    scene/workspace(/colour_scale)         rr.Points3D coloured by position error (fixed log scale), colour bar
+    run/status                             rr.TextLog written by ``finalize``
 
-    metrics/<name>           rr.Scalars on the "step" sequence timeline (+ static rr.SeriesLines name, colour)
-    metrics_log10/<name>     log10 of each train/val metric (Rerun plots have no log axis)
-    summary                  rr.TextDocument: table of the latest train/val/test value of every metric
-    hparams                  rr.TextDocument (static, JSON): model hparams, data, trainer, seed
-    config                   rr.TextDocument (static): the CLI's YAML config, when the module carries one
-    scene                    static rr.ViewCoordinates (right-handed, z up)
-    scene/backbone           rr.LineStrips3D, ground-truth backbone curves
-    scene/tip_true           rr.Arrows3D, ground-truth tip frames (saturated x/y/z colours)
-    scene/tip_pred           rr.Arrows3D, predicted tip frames (lighter colours)
-    scene/tip_error          rr.LineStrips3D, segments true tip -> predicted tip
-    scene/workspace          rr.Points3D coloured by position error (fixed log scale) + rr.TextLog summary
-    scene/workspace/colour_scale  static labelled points: the colour bar
-    run/status               rr.TextLog written by ``finalize``
-
-The default blueprint (:func:`dacr_learn.viz.layout.default_blueprint`) shows full-range curves,
-the 3D views and the metrics table, and opens at the last step. Rows are batched by the
-recording's chunk batcher and written when it is flushed (at ``finalize``; every
-``live_flush_s`` when streaming to a viewer), so a run is a few chunks per entity, not one per row.
-Open a run with ``.venv/bin/rerun runs/<name>/rerun.rrd``. Written for rerun-sdk 0.41.
+Rows are batched by the recording's chunk batcher and written when it is flushed (at ``finalize``; every
+``live_flush_s`` when streaming to a viewer). Written for rerun-sdk 0.41.
 """
 
 from __future__ import annotations
@@ -89,27 +78,14 @@ def _rerun_executable() -> str | None:
 class RerunLogger(Logger):
     """Lightning logger writing metrics and hyper-parameters to a Rerun recording.
 
-    The recording is saved to ``<save_dir>/<name>/rerun.rrd`` (``<save_dir>/<name>/<version>/``
-    when ``version`` is given; an int becomes ``version_<n>``); an existing ``.rrd`` file is never
-    overwritten: the logger writes the first free name of ``rerun.rrd``, ``rerun_1.rrd``, … Optionally
-    streamed to a
-    spawned viewer (``spawn=True``, port 9876) and/or a running one
-    (``connect="rerun+http://host:9876/proxy"``).
-    ``save_dir=None`` writes no file. Metrics go to ``metrics/<name>`` on the ``step`` timeline.
-    Only rank 0 logs; ``.experiment`` / ``.recording`` is the :class:`rerun.RecordingStream`.
-
-    ``finalize`` flushes and closes all sinks, so the file is complete — unless
-    ``close_on_finalize=False`` and the run succeeded: then the recording stays open (one file
-    across ``fit`` and a following ``test``) until :meth:`close` is called. If the logger is used
-    again afterwards (``trainer.fit`` then ``trainer.test``) the next part goes to
-    the next free ``rerun_<k>.rrd`` with the same recording id: open them together and the viewer
-    merges them into one recording. ``recording_id`` (default: a new UUID) lets a resumed run write
-    its parts into the recording of the run it continues; ``recording_name`` is what the viewer calls
-    the recording (default ``name`` or ``name/version``).
-
-    ``live_flush_s``: how often rows are sent when streaming to a viewer (``spawn``/``connect``);
-    writing only a file, rows are batched until :meth:`finalize` (a run is then one chunk per
-    entity and component set, instead of one per logged row).
+    Saved to ``<save_dir>/<name>/rerun.rrd`` (``<save_dir>/<name>/<version>/`` with ``version``; an int becomes
+    ``version_<n>``), never over an existing file (the first free of ``rerun.rrd``, ``rerun_1.rrd``, …); ``spawn=True``
+    streams to a spawned viewer (port 9876), ``connect`` to a running one; ``save_dir=None`` writes no file. Only
+    rank 0 logs; ``.experiment`` / ``.recording`` is the :class:`rerun.RecordingStream`. ``finalize`` closes the sinks
+    unless ``close_on_finalize=False`` and the run succeeded (until :meth:`close`); used again, the logger writes the
+    next free ``rerun_<k>.rrd`` with the same ``recording_id`` (default a new UUID; a resumed run passes its own).
+    ``recording_name``: the viewer's name (default ``name`` or ``name/version``); ``live_flush_s``: how often rows
+    are sent when streaming.
     """
 
     def __init__(
@@ -240,10 +216,8 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def finalize(self, status: str) -> None:
-        """Flush and close every sink so the ``.rrd`` file is complete and readable.
-
-        With ``close_on_finalize=False`` a successful stage only flushes; call :meth:`close`.
-        """
+        """Flush and close every sink so the ``.rrd`` file is complete (with ``close_on_finalize=False`` a successful
+        stage only flushes; call :meth:`close`)."""
         if self._rec is None:
             return
         if status == "success" and not self._close_on_finalize:
@@ -264,11 +238,8 @@ class RerunLogger(Logger):
 
     @rank_zero_only
     def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
-        """Log each metric as rr.Scalars under ``metrics/<name>`` at ``step``.
-
-        Train/val metrics also get ``log10(value)`` under ``metrics_log10/<name>`` (non-positive
-        values are skipped there); test metrics and others update the summary table only.
-        """
+        """Log each metric as rr.Scalars at ``metrics/<name>`` and ``step``; train/val metrics also as log10 at
+        ``metrics_log10/<name>`` (positive values only); test metrics and others update the summary table only."""
         rec = self.experiment
         new = set(metrics) - self._metric_names
         if new:  # plots are grouped by quantity: refresh the layout when new names appear

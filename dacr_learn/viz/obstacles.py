@@ -12,21 +12,11 @@ import rerun as rr
 import torch
 
 from ..scene import Scene
+from .arm import z_to
 
 __all__ = ["clearance_colors", "log_body_clearance", "log_obstacles", "log_scene_solutions"]
 
 OBSTACLE_COLOR = (150, 150, 160, 150)
-
-
-def _quaternion_z_to(direction: np.ndarray) -> np.ndarray:
-    """xyzw quaternions (N, 4) turning +z onto unit directions (N, 3)."""
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(z, direction)
-    w = 1.0 + direction @ z
-    q = np.concatenate([axis, w[:, None]], 1)
-    flip = w < 1e-9                                                  # pointing down: a half turn about x
-    q[flip] = [1.0, 0.0, 0.0, 0.0]
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def _rotation_quaternion(rot: np.ndarray) -> np.ndarray:
@@ -48,7 +38,7 @@ def log_obstacles(recording: rr.RecordingStream, path: str, scene: Scene, color=
         direction = (b - a) / np.maximum(length, 1e-300)[:, None]
         direction[length == 0] = [0.0, 0.0, 1.0]
         recording.log(f"{path}/capsules", rr.Capsules3D(lengths=length, radii=scene.capsule_radius.numpy(),
-                                                         translations=a, quaternions=_quaternion_z_to(direction),
+                                                         translations=a, quaternions=z_to(direction),
                                                          colors=color))
     if scene.box_half.shape[0]:
         recording.log(f"{path}/boxes", rr.Boxes3D(centers=scene.box_center.numpy(), half_sizes=scene.box_half.numpy(),
@@ -85,10 +75,9 @@ def log_body_clearance(recording: rr.RecordingStream, path: str, scene: Scene, p
 
 def log_scene_solutions(recording: rr.RecordingStream, prefix: str, scene: Scene, targets, bodies, radius, success,
                         required: float) -> None:
-    """An IK solve in a scene: per target b (side by side along x), under ``<prefix>/target_<b>``, the obstacles,
-    the target frame, every solution's backbone (translucent; red where it failed) and the first solution's
-    body coloured by clearance (:func:`log_body_clearance`). targets (B, 4, 4), bodies (B, K, P, 3) [m], radius
-    (P,) [m], success (B, K), required: the clearance asked for [m]."""
+    """An IK solve in a scene, per target b side by side along x under ``<prefix>/target_<b>``: the obstacles, the
+    target frame, every solution's backbone and the first solution's body coloured by clearance. targets (B, 4, 4),
+    bodies (B, K, P, 3) [m], radius (P,) [m], success (B, K), required: the clearance asked for [m]."""
     from .ik import log_ik_solutions
     poses = torch.as_tensor(targets, dtype=torch.float64)
     lines = torch.as_tensor(bodies, dtype=torch.float64)

@@ -48,10 +48,7 @@ def log_path(
     recording: rr.RecordingStream, entity: str, points: Any, color: Any = BACKBONE_COLOR,
     radius: float = 0.001,
 ) -> None:
-    """Log one curve ``(N, 3)`` or a batch of curves ``(k, N, 3)`` [m] as rr.LineStrips3D.
-
-    ``color`` is one RGB(A) colour (0-255) for all curves; ``radius`` is in metres.
-    """
+    """Log one curve (N, 3) or curves (k, N, 3) [m] as rr.LineStrips3D, one RGB(A) ``color``, ``radius`` [m]."""
     pts = _to_numpy(points)
     if pts.ndim not in (2, 3) or pts.shape[-1] != 3:
         raise ValueError(f"points must have shape (N, 3) or (k, N, 3), got {tuple(pts.shape)}")
@@ -63,11 +60,8 @@ def log_frames(
     recording: rr.RecordingStream, entity: str, poses: Any, *, axis_length: float = 0.01,
     colors: np.ndarray = AXIS_COLORS, radius: float | None = None,
 ) -> None:
-    """Log frames ``(k, 4, 4)`` (homogeneous, metres) as three arrows each (x, y, z axes).
-
-    ``colors`` is a ``(3, 3)`` uint8 array with the x/y/z colours; arrows are ``axis_length``
-    [m] long and ``radius`` thick (default ``axis_length / 15``).
-    """
+    """Log frames (k, 4, 4) [m] as x/y/z arrows of ``axis_length`` [m], ``radius`` thick (default
+    ``axis_length / 15``), coloured by ``colors`` (3, 3) uint8."""
     T = _checked(f"poses of {entity!r}", poses, (4, 4), 3)
     axes = T[:, :3, :3].transpose(0, 2, 1).reshape(-1, 3)  # rows: x, y, z axis of each frame
     origins = np.repeat(T[:, :3, 3], 3, axis=0)
@@ -89,10 +83,8 @@ def colour_note(error_range: tuple[float, float] = DEFAULT_ERROR_RANGE, cmap: st
 
 
 def error_colours(error: np.ndarray, error_range: tuple[float, float], cmap: str = "viridis") -> np.ndarray:
-    """RGB uint8 colours ``(N, 3)`` of errors [m] on a fixed log scale (clipped to ``error_range``).
-
-    The scale is the same at every step and in every run, so colours compare across epochs.
-    """
+    """RGB uint8 colours (N, 3) of errors [m] on a fixed log scale (clipped to ``error_range``): the same at every
+    step and in every run."""
     lo, hi = error_range
     if not 0 < lo < hi:
         raise ValueError(f"error_range must be (low, high) with 0 < low < high [m], got {error_range}")
@@ -123,11 +115,9 @@ def log_workspace(
     cmap: str = "viridis", radius: float = 0.0006, error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
     max_points: int | None = None,
 ) -> float:
-    """Log workspace points ``(N, 3)`` [m] coloured by ``error`` ``(N,)`` [m]; return max error [m].
-
-    Colours use the fixed log scale ``error_range`` (:func:`error_colours`); at most
-    ``max_points`` evenly strided points are drawn (all by default), the statistics use all.
-    A rr.TextLog on the same entity states the max and mean error in mm and the colour scale.
+    """Log workspace points (N, 3) [m] coloured by ``error`` (N,) [m] on the fixed log scale ``error_range``
+    (:func:`error_colours`), at most ``max_points`` evenly strided (the statistics use all), with a rr.TextLog of
+    the max and mean error [mm]; returns the max error [m].
     """
     pts = _checked("workspace_points", points, (3,), 2)
     err = _checked("workspace_error", error, (pts.shape[0],), 1)
@@ -148,17 +138,11 @@ def log_scene(
     axis_length: float = 0.01, cmap: str = "viridis", error_range: tuple[float, float] = DEFAULT_ERROR_RANGE,
     max_points: int | None = None,
 ) -> None:
-    """Log a visual batch under ``prefix`` at the recording's current time.
-
-    ``visual`` may hold any subset of (tensors or arrays, metres):
-    ``backbone`` (k, P, 3) (grey: the CC backbone of the samples' features), ``backbone_true`` (k, P', 3)
-    (blue: the data's own backbone where it is not CC, e.g. Cosserat), ``backbone_pred`` (k, P'', 3)
-    (orange: the learned base and segment ends, or a learned body), ``pose_true`` (k, 4, 4), ``pose_pred`` (k, 4, 4),
-    ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,).
-    The workspace cloud uses :func:`log_workspace` (``error_range``, ``max_points``) and gets a
-    static colour bar at ``<prefix>/workspace/colour_scale`` the first time.
-    Unknown keys are a ValueError. Set the time first, e.g.
-    ``recording.set_time("step", sequence=step)``.
+    """Log a visual batch under ``prefix`` at the recording's current time (set it first). ``visual`` may hold any
+    of (tensors or arrays, metres): ``backbone`` (k, P, 3) (grey: CC), ``backbone_true`` (k, P', 3) (blue: the data's
+    own, e.g. Cosserat), ``backbone_pred`` (k, P'', 3) (orange: learned segment ends or body), ``pose_true``,
+    ``pose_pred`` (k, 4, 4), ``workspace_points`` (N, 3) with optional ``workspace_error`` (N,) (:func:`log_workspace`;
+    a static colour bar at ``<prefix>/workspace/colour_scale`` the first time). Unknown keys are a ValueError.
     """
     unknown = sorted(set(visual) - set(VISUAL_KEYS))
     if unknown:

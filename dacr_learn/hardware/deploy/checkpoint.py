@@ -1,39 +1,24 @@
 """Save and load a fitted hardware tip model: calibration, servo map, CC parameters, ensemble members.
 
-A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, so it
-loads with ``torch.load(path, weights_only=True)`` (no pickled classes)::
+A checkpoint is one ``torch.save`` file of plain dicts, lists, numbers, strings and tensors, loadable with
+``torch.load(path, weights_only=True)``::
 
-    format: "dacr_learn.hardware_model/3" (CC Clarke-residual family) or "dacr_learn.hardware_model/2"
-        (compositional members: the ``structure`` and ``compositional`` entries below)
-    model: registry name (e.g. "cc_clarke_residual_history"); history: bool; play_width [m];
-    robot: the calibrated RobotSpec as a dict; servo_map: ServoMap.to_dict(); servo_ids: column order
-    units: "mm" (unit of the servo commands a user passes in; tips are metres)
-    cc: CalibratedCC state dict (fitted physical parameters)
-    members: [state dict of each ensemble member (cc.* keys left out)]: /3 ``rho_std``, ``onehot``
-        and the residual network ``net.*``
-    structure (/2 only): "compositional"; a /3 (or /1) file is the structure "clarke_residual"
-    compositional (/2 only): {"context", "width", "depth", "torsion"} of the members'
-        :class:`~.compositional_model.CCCompositionalResidual` (their state dicts hold the network
-        weights and the feature normaliser's buffers)
-    sigma_calibration: {"scale", "floor" [m]} or None (ensemble std only; the σ when sigma_model is None)
-    sigma_model: SigmaModel.to_dict() ({"terms", "coefficients", "floor"}) or None (the σ of
-        :meth:`HardwareModel.predict`; absent in older checkpoints); support: SupportModel state dict or None
+    format: "dacr_learn.hardware_model/3" (CC Clarke-residual family, :class:`~.learned.CCClarkeResidual`
+        and :class:`~.learned.CCClarkeResidualHistory`) or "/2" (compositional members,
+        :class:`~.compositional_model.CCCompositionalResidual`: the ``structure`` and ``compositional`` entries)
+    model: registry name; history: bool; play_width [m]; robot: the calibrated RobotSpec as a dict;
+    servo_map: ServoMap.to_dict(); servo_ids: column order; units: "mm" (servo commands; tips are metres)
+    cc: CalibratedCC state dict; members: [each member's state dict without the cc.* keys]
+    structure (/2 only): "compositional"; compositional (/2 only): {"context", "width", "depth", "torsion"}
+    sigma_calibration: {"scale", "floor" [m]} or None; sigma_model: SigmaModel.to_dict() or None (the σ of
+        :meth:`HardwareModel.predict`); support: SupportModel state dict or None
     examples: (n, S) training commands [mm] in time order (to verify exports), or None
-    info: free-form dict (command line, …; ``servo_range_mm``: {"lower", "upper"} the range of every servo
-        command of the training recording [mm], written by the benchmark since 2026-11-28:
-        :meth:`HardwareModel.servo_range`)
+    info: free-form dict (command line; ``servo_range_mm``: {"lower", "upper"} [mm], the range of every servo
+        command of the training recording: :meth:`HardwareModel.servo_range`)
 
-Supported models: the CC Clarke-residual family (:class:`~.learned.CCClarkeResidual` and its
-history variant :class:`~.learned.CCClarkeResidualHistory`; registry ``cc``, ``cc_clarke_residual``,
-``cc_clarke_residual_history``), written as format /3, and the compositional CC model
-(:class:`~.compositional_model.CCCompositionalResidual`, registry ``cc_compositional_residual``), written
-as format /2. Older code rejects a format it does not know instead of misreading it.
-
-Format /1 (written until 2026-11-25) is /3 plus two entries of research options that no registered model
-used, ``clamp`` (False) and ``gate_width`` (None), and two member buffers only those options read
-(``rho_max``, ``train_clarke``). The loader still reads it: with those defaults the buffers are dropped and
-the model is the same; a file with the options set (a research variant) is a ValueError naming it. A /2 file
-written then also has the two entries (always the defaults).
+Format /1 (written until 2026-11-25) is /3 plus the research options ``clamp`` (False) and ``gate_width``
+(None) and the member buffers ``rho_max``, ``train_clarke``; it still loads (the buffers dropped), unless
+the options are set (ValueError). Older code rejects a format it does not know instead of misreading it.
 """
 from __future__ import annotations
 
@@ -101,21 +86,17 @@ class HardwareModel:
         return dataclasses.replace(split, memory=torch.zeros_like(split.memory)) if static else split
 
     def predict(self, commands: torch.Tensor | Split, static: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m]) of servo commands (n, S) [mm] or of a Split; ``static``:
-        each command on its own (:meth:`split`), e.g. the candidates of an IK solve rather than a sequence.
-
-        σ is the stored σ model's (:class:`~.uncertainty.SigmaModel`) when there is one, else the
-        ensemble std through the σ calibration (or raw without one): :meth:`sigma_of`."""
+        """(tip (n, 3) [m] = ensemble mean, σ (n, 3) [m], :meth:`sigma_of`) of servo commands (n, S) [mm] or a Split;
+        ``static``: each command on its own (:meth:`split`), e.g. the candidates of an IK solve, not a sequence."""
         split = commands if isinstance(commands, Split) else self.split(commands, static)
         with torch.no_grad():
             preds = torch.stack([m(split) for m in self.members])
         return mean_and_sigma(preds, split.cc_tip, split.features[..., :2], self.sigma_of(), self.support)
 
     def body(self, servo_mm: torch.Tensor, points_per_segment: int = 16) -> BodyPoints:
-        """The body of servo commands (n, S) [mm, ``servo_ids`` order]: the calibrated physical model's
-        (:meth:`~..ccmodel.CalibratedCC.body`: the CC arcs of the fitted encoder's features), in the motion-capture
-        frame of the tips, float64. The learned residual corrects the tip only, so near the tip the body can be off
-        the predicted tip by up to the residual (:meth:`predict` minus the calibrated CC tip)."""
+        """The body of servo commands (n, S) [mm, ``servo_ids`` order]: the calibrated CC model's
+        (:meth:`~..ccmodel.CalibratedCC.body`), motion-capture frame, float64; near the tip it can be off the predicted
+        tip by the learned residual (which corrects the tip only)."""
         servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
         if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
             raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
@@ -203,11 +184,8 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
 
 
 def load_hardware_model(path: str | Path) -> HardwareModel:
-    """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``).
-
-    Raises ValueError naming the file for anything that is not such a checkpoint (another file
-    type, another format version, missing entries, weights that do not fit the robot).
-    """
+    """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``); ValueError naming the file
+    for anything else (another file type or format version, missing entries, weights that do not fit the robot)."""
     path = Path(path)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
@@ -246,10 +224,9 @@ def hardware_model_from_blob(blob: Any, path: str | Path) -> HardwareModel:
 
 
 class ModelFile(NamedTuple):
-    """A model file read once (:func:`read_model_file`): ``path`` the checkpoint file, ``blob`` its weights-only
-    content, ``hardware`` True for a saved hardware model (:func:`save_hardware_model`; build it with
-    :func:`hardware_model_from_blob`), False for anything else, read as a ``train.py`` checkpoint
-    (:func:`dacr_learn.runs.load_model` with ``blob``, which names what is wrong when it is not one)."""
+    """A model file read once (:func:`read_model_file`): ``path``, ``blob`` (its weights-only content) and
+    ``hardware``: a saved hardware model (:func:`hardware_model_from_blob`), else a ``train.py`` checkpoint
+    (:func:`dacr_learn.runs.load_model` with ``blob``)."""
 
     path: Path
     blob: Any
@@ -258,10 +235,8 @@ class ModelFile(NamedTuple):
 
 def read_model_file(path: str | Path) -> ModelFile:
     """The checkpoint ``path`` names (a file, a ``train.py`` run or version folder:
-    :func:`~dacr_learn.runs.find_checkpoint`), loaded once (``weights_only``) and recognised by its contents,
-    whatever the file is called. FileNotFoundError / ValueError naming the path when there is none or it is not
-    a torch file. Used by every entry that takes a checkpoint (``python -m dacr_learn.export``,
-    ``python -m dacr_learn.ik --ckpt``)."""
+    :func:`~dacr_learn.runs.find_checkpoint`), loaded once (``weights_only``) and recognised by its contents.
+    FileNotFoundError / ValueError naming the path when there is none or it is not a torch file."""
     ckpt = find_checkpoint(path)
     blob = load_torch_file(ckpt, CHECKPOINT)
     return ModelFile(ckpt, blob, is_hardware_blob(blob))

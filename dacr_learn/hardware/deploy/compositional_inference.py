@@ -6,22 +6,15 @@ every constant in buffers, exportable with torch.export (``python -m dacr_learn.
 
 - :class:`CompositionalHardwareFK`: servo (B, S) [mm, checkpoint column order] → tip (B, 3) [m,
   motion-capture frame] = the ensemble mean, tip_std (B, 3) [m] = the model's σ
-  (:meth:`~.checkpoint.HardwareModel.sigma_of`: floor, ensemble spread and bend terms, the same buffer
-  and formula as HardwareFK).
-- :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm]:
-  forward-mode tangents (∂ρ/∂servo of the active set's affine map; through the networks as stacked rows,
-  :func:`~dacr_learn.folding.tangent_rows`; the kernel's exponential with its tangents and chain rule,
+  (:meth:`~.checkpoint.HardwareModel.sigma_of`, as HardwareFK).
+- :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm]
+  by forward-mode tangents (:func:`~dacr_learn.folding.tangent_rows`,
   :meth:`CompositionalHardwareFK.tips_and_rho_jacobian`).
 
-Pipeline: servo → ρ per segment (the slack-aware encoder's active-set fast path of HardwareFK: the
-same buffers, :func:`~.inference.active_set_maps`, and the same method, HardwareFK.clarke) → CC
-segment poses T_k^CC(ρ_k) (:func:`~.inference.cc_segment_poses`) → each member's correction exp(ξ_k^),
-ξ_k = s·f_θ(z_k, c_k) (the K networks batched: weights (K, in, out); the feature normaliser kept as
-(ρ − μ)/σ with the standardised fixed columns β = l, α = 0 precomputed per segment in the member's
-own dtype; the twist scale s, the torsion mask and the translation unit L_s folded into the output layer
-and the skip; the first layer and the skip, affine in ρ, folded into one map; exp: the kernel's
-:func:`~dacr_learn.lie.twist_exp`) → base pose · T_1 ⋯ T_m · marker → ensemble mean and σ. No history: the
-model is static.
+Pipeline: servo → ρ (HardwareFK's active-set fast path, :func:`~.inference.active_set_maps`) → CC segment
+poses (:func:`~.inference.cc_segment_poses`) → each member's correction exp(ξ_k^) (the K networks batched,
+twist scale, torsion mask and L_s folded into the output layer and skip) → base pose · T_1 ⋯ T_m · marker →
+ensemble mean and σ. No history: the model is static.
 """
 from __future__ import annotations
 
@@ -49,13 +42,11 @@ def _check_servo(servo: Tensor, num_servos: int) -> None:
 
 
 def _stacked_networks(members) -> tuple[dict[str, Tensor], str, str]:
-    """The K members' per-segment networks side by side (float64 buffers), their activation and context.
-
-    ``rho_mean``/``rho_std`` (K, 1, 2) and ``z_fixed`` (K, m, 2): the normaliser (ρ part; the fixed columns
-    standardised once, in the member's dtype, as training saw them); ``w{i}`` (K, in, out), ``b{i}`` (K, 1, out)
-    the linear layers of f_θ (:func:`~dacr_learn.folding.stacked_linear`); ``skip`` (K, in, 6); the last layer
-    and skip scaled by the twist mask and, for the translation rows, the segment length unit L_s, so that
-    ξ = a_last + z·skip directly."""
+    """The K members' per-segment networks side by side (float64 buffers), their activation and context:
+    ``rho_mean``/``rho_std`` (K, 1, 2), ``z_fixed`` (K, m, 2) (the standardised fixed columns, in the member's dtype),
+    ``w{i}`` (K, in, out), ``b{i}`` (K, 1, out) (:func:`~dacr_learn.folding.stacked_linear`) and ``skip`` (K, in, 6),
+    the last layer and skip scaled by the twist mask and L_s, so that ξ = a_last + z·skip directly.
+    """
     fks = [m.fk for m in members]
     context = fks[0].front.context
     if any(fk.front.context != context or fk.rotation != "twist" or fk.units != "metric" for fk in fks):

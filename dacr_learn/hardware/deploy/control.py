@@ -1,23 +1,14 @@
 """Resolved-rate control of an exported hardware model in servo space: servo commands [mm] → tip, run causally.
 
 The controller linearises the exported ``jacobian`` module (J = ∂tip/∂servo [m/mm]) along the plant's last
-step (the command from the play state before it: while the play is being dragged this is the sliding
-derivative a continuing motion sees; evaluated at the state after the step, a dragged play sits exactly at
-its width and the one-sided "reversal" derivative ∝ 1/play width is taken, which made the loop diverge on a
-strongly history-dependent test model) and takes a damped least-squares step in servo space
-(:func:`dacr_learn.deploy.control.scaled_dls_step`, servo displacements scaled by their half-range), clipped
-to a box of commands (those of the training recording). A slack tendon's column of J is zero, so the tip task
-alone never re-tensions it; opt-in, a second task in J's null space pulls each slack servo in
-(``ServoControl.retension``, :func:`slack_pull`: docs/export.md for the trade-off).
+step (from the play state before it: the sliding derivative a continuing motion sees, not the one-sided
+reversal derivative, which made the loop diverge on a strongly history-dependent model) and takes a damped
+least-squares step (:func:`dacr_learn.deploy.control.scaled_dls_step`, servo steps scaled by their half-range),
+clipped to the training recording's box of commands. Opt-in, a null-space task re-tensions slack servos
+(``ServoControl.retension``, :func:`slack_pull`; docs/export.md).
 
-- :func:`initial_command`: the command to start at, :func:`dacr_learn.solve_ik` of the saved model for the first
-  target (position only), the solution nearest the current command;
-- :func:`run_control`: track targets with a plant (``fk``, e.g. the exported model itself) and a Jacobian;
-- :func:`static_targets`: reach the model's tips at a few training commands from the rest command;
-- :func:`load_hardware_export`, :func:`source_model`, :func:`training_commands`, :func:`servo_signs`, :func:`circle`,
-  :func:`tracking_errors`: the pieces around them.
-
-examples/control_hardware_model.py runs both tasks on an export and prints the tracking errors.
+:func:`initial_command` (the IK solution nearest the current command), :func:`run_control` (track targets with
+a plant and a Jacobian) and :func:`static_targets` are the tasks; examples/control_hardware_model.py runs them.
 """
 from __future__ import annotations
 
@@ -43,13 +34,10 @@ __all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", 
 
 @dataclass(frozen=True)
 class ServoControl(ControllerConfig):
-    """gain, damping (λ [m] of the DLS), max_step (largest scaled servo step ‖Δu / s‖ per control step, s: each
-    servo's half-range): as :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step ‖Δu / s‖
-    per control step by which each *slack* servo (a zero column of J) is pulled in, in [0, max_step] (0: off, the
-    default). The tip task alone never moves a slack tendon's
-    servo (its column of J is zero), so a target that needs the tendon taut again can stall. The pull is in
-    J's null space, so it does not move the tip until the tendon goes taut (its column turns non-zero and
-    the pull stops); the step that crosses the taut onset does move it (docs/export.md: a trade-off)."""
+    """gain, damping (λ [m]), max_step (largest scaled servo step ‖Δu / s‖, s: each servo's half-range): as
+    :class:`~dacr_learn.deploy.control.ControllerConfig`; retension: scaled step in [0, max_step] pulling each slack
+    servo (zero column of J) in, in J's null space (0: off; docs/export.md: a trade-off).
+    """
 
     damping: float = 2e-3
     retension: float = 0.0
@@ -74,16 +62,12 @@ def training_commands(servo_ids: list[str], recording: Path) -> Tensor:
 
 def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solutions: int = 4,
                     options: IKOptions | None = None) -> tuple[Tensor, float]:
-    """The command to start a control loop at: (u0 (S,) [mm, ``model.servo_ids`` order], its tip error [m]).
-
-    :func:`dacr_learn.solve_ik` of the saved hardware ``model`` (:func:`.checkpoint.load_hardware_model`) for the
-    tip position ``target`` (3,) [m] (position only), warm-started at the ``current`` command (S,) [mm] (e.g. the
-    rest command 0): of ``solutions`` solutions, the first successful one, which is the one nearest ``current``
-    (largest servo difference). It lies in the recorded servo range (:meth:`.checkpoint.HardwareModel.servo_range`)
-    and the model's own static prediction there (a history model's play state at the command itself) is within
-    ``options.pos_tolerance`` of the target (options: :class:`dacr_learn.ik.IKOptions`, default ones): the error
-    returned. ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the
-    wrong shape."""
+    """The command to start a control loop at: (u0 (S,) [mm, ``model.servo_ids`` order], its tip error [m]):
+    :func:`dacr_learn.solve_ik` of the saved ``model`` for the tip position ``target`` (3,) [m], warm-started at the
+    ``current`` command (S,) [mm], the first successful of ``solutions`` (the nearest to ``current``), inside
+    :meth:`.checkpoint.HardwareModel.servo_range`, within ``options.pos_tolerance`` (:class:`dacr_learn.ik.IKOptions`).
+    ValueError when no solution reaches the target (naming the smallest miss) or for inputs of the wrong shape.
+    """
     options = IKOptions() if options is None else options
     target = torch.as_tensor(target, dtype=F64)
     current = torch.as_tensor(current, dtype=F64)
@@ -103,16 +87,13 @@ def initial_command(model: HardwareModel, target: Tensor, current: Tensor, solut
 def run_control(fk, jacobian, targets: Tensor, servo0: Tensor, state0: Tensor | None, lower: Tensor,
                 upper: Tensor, config: ServoControl = ServoControl(), settle: int = 0,
                 pull_sign: Tensor | None = None) -> dict[str, np.ndarray]:
-    """Track ``targets`` (T, 3) [m] from command ``servo0`` (S,) [mm] and play state ``state0`` (1, m, 2)
-    (None: a static model). ``fk`` / ``jacobian``: the exported modules (or HardwareFK / HardwareJacobian).
-
-    Each step: the plant (``fk``) executes the command u with the current state → tip and the new state;
-    J = ∂tip/∂u at (u, the state before this step: the tangent of the plant's step, module docstring);
-    u ← clip(u + DLS(J, gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper),
-    ``pull_sign`` (S,): +1 where a larger command pulls the tendon in, −1 where a smaller one does (the servo
-    map's signs; default all +1). The first
-    ``settle`` steps hold targets[0] and are not returned. Returns numpy arrays of the tracking phase:
-    desired, actual (T, 3) [m], servo (T, S) [mm], step_us (T,) (controller step: Jacobian + DLS + clip).
+    """Track ``targets`` (T, 3) [m] from command ``servo0`` (S,) [mm] and play state ``state0`` (1, m, 2) (None: a
+    static model) with the exported ``fk`` / ``jacobian`` modules (or HardwareFK / HardwareJacobian). Each step the
+    plant executes u → tip and the new state; J = ∂tip/∂u at the state before the step; u ← clip(u + DLS(J,
+    gain·(p* − tip) + Δp*; slack servos pulled in, :func:`slack_pull`), lower, upper). ``pull_sign`` (S,): +1 where
+    a larger command pulls the tendon in, −1 where a smaller one does (default +1). The first ``settle`` steps hold
+    targets[0] and are not returned. Returns numpy arrays: desired, actual (T, 3) [m], servo (T, S) [mm], step_us
+    (T,) (controller step: Jacobian + DLS + clip).
     """
     scale = ((upper - lower) / 2).to(F64).clamp_min(1e-9)
     lower, upper = lower.to(F64), upper.to(F64)
@@ -176,10 +157,9 @@ def load_hardware_export(export: str | Path):
 
 
 def source_model(export: str | Path, meta: dict, ckpt: str | Path | None = None) -> HardwareModel:
-    """The saved hardware model an export was made from: ``ckpt``, else the checkpoint named in its metadata
-    (``source_checkpoint``; a relative path is tried as written, then next to the export's folder); checked
-    against the export's checksum of it and its servo ids. FileNotFoundError when it is not found, ValueError
-    when it is another model than the one exported."""
+    """The saved hardware model an export was made from: ``ckpt``, else its metadata's ``source_checkpoint`` (as
+    written, then next to the export), checked against the export's checksum and servo ids (FileNotFoundError,
+    ValueError)."""
     export = Path(export)
     if ckpt is None:
         named = Path(meta["source_checkpoint"]["path"])

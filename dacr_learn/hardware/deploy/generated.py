@@ -1,22 +1,17 @@
 """Exportable FK of a hardware model generated from the eager model's own code (no folded copy of its maths).
 
-:class:`GeneratedHardwareFK` runs :meth:`~.checkpoint.HardwareModel.predict` on tensors, call by call, with the
-same functions: the servo map's displacements, the slack-aware encoder (its QP solved by enumerating the
-active sets, :func:`~..slack.enumerated_solution`: the minimiser of :func:`~..slack.solve_tendon_qp` without
-its data-dependent iterations; the sets' gains computed once, :func:`~..slack.active_set_gains` of the
-encoder's :meth:`~..slack.SlackAwareEncoder.qp_terms`), one step of the play operator
-(:func:`~..learned.play_step`) for a history model, the members' own ``forward`` on the
-:func:`~..learned.encoded_split` of the commands, and :func:`~.uncertainty.mean_and_sigma`. torch.export
-traces it into a program (and AOTInductor compiles that) like the folded modules of :mod:`.inference` and
-:mod:`.compositional_inference`:
+:class:`GeneratedHardwareFK` runs :meth:`~.checkpoint.HardwareModel.predict` on tensors with the same
+functions: the servo map, the slack-aware encoder's QP by enumeration (:func:`~..slack.enumerated_solution`,
+gains of :meth:`~..slack.SlackAwareEncoder.qp_terms` computed once), :func:`~..learned.play_step` for a
+history model, the members' own ``forward`` on :func:`~..learned.encoded_split`, and
+:func:`~.uncertainty.mean_and_sigma`; torch.export traces it like the modules of :mod:`.inference`:
 
 - servo (B, S) [mm, checkpoint column order] (+ state (B, m, 2) [m] for a history model) → tip (B, 3) [m,
   motion-capture frame] = the ensemble mean, tip_std (B, 3) [m] = the model's σ (+ the new state).
 - :meth:`GeneratedHardwareFK.initial_state`: servo (B, S) → the play state (B, m, 2) [m] to start a sequence.
 
-The numerics are the eager model's: float64 encoder, play and σ, members in their own dtype (float32 for the
-registry's models); ``dtype`` is the dtype of the inputs and outputs (the state is rounded to it between
-calls). The play width is :data:`~..learned.PLAY_WIDTH`, the one ``predict`` uses.
+Float64 encoder, play and σ, members in their own dtype; ``dtype`` is that of the inputs and outputs (the
+state is rounded to it between calls). The play width is :data:`~..learned.PLAY_WIDTH`.
 """
 from __future__ import annotations
 

@@ -21,14 +21,10 @@ from .inference import HardwareJacobian
 class HardwareTip(SolverModel):
     """A saved hardware model (``dacr_learn.hardware.deploy.load_hardware_model``) inverted in servo space.
 
-    Variables and joints are the servo commands [mm] (checkpoint column order), limited to the box of the
-    commands recorded in training (:meth:`~.checkpoint.HardwareModel.servo_range`: the whole recording's; in
-    files saved before 2026-11-28, that of the stored ``examples``, the recording's first rows); the tip is the
-    model's position in the motion-capture frame [m] (no orientation: position-only IK), its Jacobian
-    ∂tip/∂servo [m/mm] from the folded inference module (float64). A history model is solved with its play
-    state at the command itself (no motion memory: the static answer, each command as the start of a
-    sequence). Accuracy is with respect to the model; :meth:`check` is the model's own
-    ``predict(q, static=True)`` (the eager ensemble, not the folded module the solver iterates with).
+    Variables are the servo commands [mm] (checkpoint column order) in the box of
+    :meth:`~.checkpoint.HardwareModel.servo_range`; the tip is the model's position [m] (position-only IK), its
+    Jacobian [m/mm] from the folded inference module (float64); a history model is held static (play state at the
+    command). :meth:`check` is the eager ``predict(q, static=True)``, not the folded module the solver iterates with.
     """
 
     has_rotation = False

@@ -5,24 +5,18 @@ K members); plain nn.Modules with every constant folded into buffers, exportable
 
 - :class:`HardwareFK`: servo (B, S) [mm, checkpoint column order] (+ state (B, m, 2) [m] for a
   history model) → tip (B, 3) [m, motion-capture frame] = the ensemble mean, tip_std (B, 3) [m]
-  (the members' spread, calibrated when the checkpoint has a σ calibration) (+ the new state).
+  (+ the new state).
 - :class:`HardwareJacobian`: the same inputs → tip (B, 3), J (B, 3, S) [m/mm] = ∂tip/∂servo
-  (+ the new state). For a history model the state is held fixed: J is the effect of the
-  *current* command given the history, what a controller's next step needs.
+  (+ the new state); for a history model J holds the state fixed (the effect of the current command).
 
-Pipeline (float32 by default): servo → the slack-aware Clarke encoder's QP, solved by active-set
-enumeration with the servo map (x = servo·A + a₀ + p) folded in: one product gives every one of the
-2ᴺ stretched-tendon sets' sign violations, the consistent set's affine map gives ρ and ∂ρ/∂servo
-(:func:`~.slack.active_set_gains`; the same minimiser as :func:`~.slack.solve_tendon_qp`, without its
-data-dependent iterations or linear solves) → ρ per segment → [play operator step] → per-member
-correction Δρ (the residual MLPs, batched over members) → CC kinematics (segment poses: the kernel's
-exponential of the CC twists, :mod:`dacr_learn.lie`, chained with the base pose) → tip. Written for few ops
-at batch 1: no einsum, linear solve or Python-side work in forward (N ≤ 12 tendons for the enumeration).
+Pipeline (float32 by default): servo → ρ by the slack-aware encoder's QP solved by active-set enumeration
+with the servo map folded in (:func:`~.slack.active_set_gains`: the same minimiser as
+:func:`~.slack.solve_tendon_qp`, no iterations or linear solves; N ≤ 12 tendons) → [play operator step] →
+per-member correction Δρ (batched over members) → CC segment poses (:mod:`dacr_learn.lie`) → tip.
 
-History models run causally: ``state`` is the play operator's state (the previous call's output);
-start a sequence with :meth:`HardwareFK.initial_state` of the first command (the batch training
-code starts the play at the first row the same way). Running a recording row by row this way
-gives the model's batch predictions.
+History models run causally: ``state`` is the play operator's state (the previous call's output); start
+a sequence with :meth:`HardwareFK.initial_state` of the first command. Row by row this gives the model's
+batch predictions.
 """
 from __future__ import annotations
 
@@ -59,10 +53,9 @@ def chained_marker_point(base_pose: Tensor, poses: Tensor, tip_marker: Tensor) -
 
 def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions: Tensor, base_pose: Tensor,
                         tip_marker: Tensor) -> tuple[Tensor, Tensor]:
-    """Marker point base · T₁ ⋯ T_m · marker (:func:`cc_segment_poses`, :func:`chained_marker_point`) and its
-    derivative: ρ (..., m, 2) [m] → tip (..., 3) [m], ∂tip/∂ρ (..., m, 2, 3) [m/m]. The kernel's exponential
-    with its tangents along ``directions`` = :func:`cc_twist_directions` (radius) and its chain rule with the
-    base pose and the marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
+    """ρ (..., m, 2) [m] → marker point base · T₁ ⋯ T_m · marker (..., 3) [m] and ∂tip/∂ρ (..., m, 2, 3): the kernel's
+    exponential along ``directions`` (:func:`cc_twist_directions`) and its chain rule with the base pose and the
+    marker as fixed ends (:func:`~dacr_learn.lie.twist_chain_jacobian`)."""
     u = components(rho / radius.unsqueeze(-1))                                        # u_x, u_y (..., m)
     dw = directions[..., 3:5].permute(1, 2, 0).unflatten(-1, (*[1] * (rho.dim() - 2), -1))   # dω_x, dω_y (T, 1.., m)
     xi, dxi = (None, None, length, -u[1], u[0], None), (None, None, None, dw[:, 0], dw[:, 1], None)   # zeros skipped
@@ -142,14 +135,9 @@ class HardwareFK(nn.Module):
         return memory, new, torch.where(inside.unsqueeze(-1), eye / self.play_width, drag)
 
     def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None] | None = None):
-        """Corrected ρ' (B, K, m, 2) of every member and, given the tangents (∂ρ (B, m, 2, T), ∂memory or None)
-        of the inputs, its tangents (B, K, m, 2, T) (else None).
-
-        Forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`): per (batch, segment) the input
-        value and its T tangents are 1 + T rows through the same products, the shared input through all K first
-        layers in one product, the K hidden and output layers batched over the members (bmm: a third of the
-        work of one block-diagonal product; v4 model's AOTI runner of the FK part 23.0 → 14.7 µs, of the
-        Jacobian 94.9 → 79.3 µs)."""
+        """Corrected ρ' (B, K, m, 2) of every member and, given input tangents (∂ρ (B, m, 2, T), ∂memory or None), its
+        tangents (B, K, m, 2, T) (else None): forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`),
+        the first layers of all K members in one product, the further layers batched over the members (bmm)."""
         x = rho if memory is None else torch.cat([rho, memory], -1)                        # (B, m, I)
         rows = x.unsqueeze(2)                                                              # (B, m, 1, I)
         if tangent is not None:
@@ -232,10 +220,9 @@ class InitialState(nn.Module):
 
 
 def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
-    """The slack QP of the commands folded per active set S (:func:`~.slack.active_set_gains`, float64):
-    with x = servo·A + a₀ + p [m], ρ_S = K_S x, ``rho_gain`` (2ᴺ, S, 2m) and ``rho_offset`` (2ᴺ, 1, 2m) give
-    ρ_S·d_nominal/d_effective from servo [mm]; ``violation_map`` (S, 2ᴺ·N) and ``violation_offset``
-    give the residuals x − Gρ_S signed (+ where they must be ≤ 0) and weighted as in select_active_set."""
+    """The slack QP folded per active set S (:func:`~.slack.active_set_gains`, float64), x = servo·A + a₀ + p [m]:
+    ``rho_gain`` (2ᴺ, S, 2m), ``rho_offset`` (2ᴺ, 1, 2m) give ρ_S·d_nominal/d_effective of servo [mm];
+    ``violation_map`` (S, 2ᴺ·N), ``violation_offset`` the signed, weighted residuals of select_active_set."""
     spec, enc, s = model.spec, model.cc.encoder, len(model.servo_ids)
     a0 = model.smap.command_displacements(spec, model.servo_ids, torch.zeros(1, s, dtype=F64))[0]
     a = model.smap.command_displacements(spec, model.servo_ids, 1e-3 * torch.eye(s, dtype=F64)) - a0   # (S, N)

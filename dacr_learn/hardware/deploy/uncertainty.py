@@ -1,30 +1,21 @@
-"""Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores.
+"""Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores (docs/hardware.md).
 
-- :func:`ensemble_predict`: K independently trained members (different seeds) → mean tip and the
-  members' standard deviation per axis (n, 3) [m] — the spread of the learned part only.
-- :class:`SigmaModel`: a heteroscedastic σ, σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over terms
-  t of :data:`TERMS` (:func:`sigma_terms`): the ensemble std, the disagreement |mean − CC tip|
-  between the model and its physics, the support distance of the command and its total bend ‖ρ‖.
-  c_t and σ₀ are fitted by Gaussian maximum likelihood to *held-out* residuals (train-only folds:
-  :mod:`.heldout`; never the validation recording). The plain ensemble is over-confident and ranks
-  the errors poorly: its members share the calibrated CC model and the same data, so they agree
-  where the systematic (hysteresis, loading, marker) error is largest; that error grows with the bend.
-- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (the σ of a model
-  saved without a σ model; :meth:`SigmaCalibration.as_model`).
-- Scores of a σ on n rows with offset-removed residuals r = e − ē (e = prediction − measurement,
-  ē their mean over the n rows): :func:`coverage`, the fraction of the 3n entries with |r_a| ≤ 2σ_a,
-  and :func:`spearman`, the rank correlation between the per-row ‖σ‖ and ‖r‖ (Euclidean over axes).
-- :class:`SupportModel`: how far a command lies from the training commands, measured on its
-  Clarke coordinates ρ (n, m, 2) [m] (standardised per coordinate): the distance to the nearest
-  training row divided by a threshold chosen on the training recording alone — the 99th
-  percentile of each training row's distance to the nearest row of *another* pattern (label).
-  A score > 1 means "further from the training data than 99 % of the training patterns are from
-  each other": the prediction there is an extrapolation.
+- :func:`ensemble_predict`: K members (different seeds) → mean tip and the members' std per axis (n, 3) [m].
+- :class:`SigmaModel`: σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a over the terms of :data:`TERMS`
+  (:func:`sigma_terms`: ensemble std, |mean − CC tip|, support distance, total bend ‖ρ‖); c_t and σ₀ fitted
+  by Gaussian maximum likelihood to *held-out* residuals of train-only folds (:mod:`.heldout`).
+- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (:meth:`SigmaCalibration.as_model`).
+- Scores on n rows with offset-removed residuals r = e − ē (e = prediction − measurement): :func:`coverage`,
+  the fraction of the 3n entries with |r_a| ≤ 2σ_a, and :func:`spearman`, the rank correlation of ‖σ‖ and ‖r‖.
+- :class:`SupportModel`: the distance of a command's standardised Clarke coordinates ρ (n, m, 2) [m] to the
+  nearest training row over the 99th percentile of the training rows' distances to the nearest row of
+  another pattern; > 1: the prediction is an extrapolation.
 """
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -35,10 +26,8 @@ _EXACT = "donot_use_mm_for_euclid_dist"  # no cancellation: a training row is at
 
 
 def ensemble_predict(members: Sequence[Callable], x) -> tuple[Tensor, Tensor]:
-    """Mean and standard deviation over ensemble members: each ``member(x)`` → (n, 3) [m].
-
-    Returns (mean (n, 3), std (n, 3)) in the members' dtype; std uses K − 1 (zeros for K = 1).
-    """
+    """(mean (n, 3), std (n, 3)) over ensemble members ``member(x)`` → (n, 3) [m], in their dtype; std with K − 1
+    (zeros for K = 1)."""
     if len(members) == 0:
         raise ValueError("members: expected at least one model, got an empty sequence")
     with torch.no_grad():
@@ -51,17 +40,10 @@ TERMS = ("ensemble", "disagreement", "support", "bend")
 
 
 def sigma_terms(preds: Tensor, cc_tip: Tensor, rho: Tensor, support_distance: Tensor) -> dict[str, Tensor]:
-    """The inputs of a :class:`SigmaModel` for n commands.
-
-    Args:
-        preds: (K, n, 3) tips of the K ensemble members [m].
-        cc_tip: (n, 3) tips of the calibrated CC model alone [m] (no learned correction).
-        rho: (n, m, 2) Clarke coordinates of the commands [m].
-        support_distance: (n,) :meth:`SupportModel.distance` of the commands [training std].
-
-    Returns {"ensemble": members' std (n, 3) [m] (zeros for K = 1), "disagreement": |mean − CC| (n, 3) [m]
-    (the learned correction: how far the model moved from the physics), "support": distance (n, 1),
-    "bend": ‖ρ‖ over all segments (n, 1) [m]}.
+    """The inputs of a :class:`SigmaModel` for n commands: preds (K, n, 3) [m] of the K members, cc_tip (n, 3) [m]
+    of the calibrated CC model alone, rho (n, m, 2) [m], support_distance (n,) [training std]
+    (:meth:`SupportModel.distance`). Returns {"ensemble": members' std (n, 3) [m] (zeros for K = 1),
+    "disagreement": |mean − CC| (n, 3) [m], "support": (n, 1), "bend": ‖ρ‖ over all segments (n, 1) [m]}.
     """
     check_tensor(cc_tip, "cc_tip", (3,))
     if preds.dim() != 3 or preds.shape[1:] != cc_tip.shape:
@@ -91,11 +73,8 @@ def mean_and_sigma(preds: Tensor, cc_tip: Tensor, rho: Tensor, sigma: SigmaModel
 
 
 class SigmaModel(nn.Module):
-    """σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a, over the chosen terms t of :data:`TERMS`.
-
-    The features f_t come from :func:`sigma_terms`; the coefficients c_t ≥ 0 and the floor σ₀ [m]
-    are fitted by Gaussian maximum likelihood on *held-out* offset-removed residuals (:meth:`fit`).
-    """
+    """σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a over terms t of :data:`TERMS` (features: :func:`sigma_terms`);
+    c_t ≥ 0 and σ₀ [m] fitted by Gaussian maximum likelihood on held-out offset-removed residuals (:meth:`fit`)."""
 
     def __init__(self, terms: Sequence[str], coefficients: Sequence[float], floor: float):
         super().__init__()
@@ -186,10 +165,7 @@ class SigmaCalibration(nn.Module):
 
     @classmethod
     def fit(cls, residual: Tensor, std: Tensor, iters: int = 200) -> SigmaCalibration:
-        """Maximise Σ log N(residual; 0, σ_cal²) over (s, σ₀) ≥ 0; residual, std (n, 3) [m], held out.
-
-        Residuals should be offset-removed (the lab's metric forgives a constant offset).
-        """
+        """Maximise Σ log N(r; 0, σ_cal²) over (s, σ₀) ≥ 0: residual r (offset-removed, held out), std (n, 3) [m]."""
         check_tensor(residual, "residual", (3,))
         check_tensor(std, "std", (3,))
         if residual.shape != std.shape or residual.shape[0] < 2:
@@ -216,20 +192,9 @@ def spearman(a: Tensor, b: Tensor) -> float:
     return float(torch.corrcoef(torch.stack(ranks))[0, 1])
 
 
-def _groups_from_labels(labels: Sequence[str]) -> Tensor:
-    index: dict[str, int] = {}
-    return torch.tensor([index.setdefault(label, len(index)) for label in labels])
-
-
 class SupportModel(nn.Module):
-    """Out-of-support score of commands from their Clarke coordinates (see the module docstring).
-
-    Built for ``num_segments`` segments, fitted on the training commands with :meth:`fit`.
-
-    Args:
-        num_segments: m, the number of segments (ρ has shape (..., m, 2)).
-        quantile: the quantile of the training rows' cross-pattern distances used as threshold.
-    """
+    """Out-of-support score of commands from their Clarke coordinates ρ (..., m, 2), m = ``num_segments`` (module
+    docstring); the threshold is the ``quantile`` of the training rows' cross-pattern distances (:meth:`fit`)."""
 
     def __init__(self, num_segments: int, quantile: float = SUPPORT_QUANTILE):
         super().__init__()
@@ -254,9 +219,9 @@ class SupportModel(nn.Module):
         self.mean.copy_(points.mean(0))
         self.std.copy_(points.std(0).clamp_min(1e-12))
         self.points = (points - self.mean) / self.std
-        groups = torch.arange(points.shape[0]) if labels is None else _groups_from_labels(labels)
-        if int(groups.max()) == 0:                    # one pattern only: leave-one-out
-            groups = torch.arange(points.shape[0])
+        groups = torch.arange(points.shape[0])        # no labels, or one pattern only: leave-one-out
+        if labels is not None and len(set(labels)) > 1:
+            groups = torch.from_numpy(np.unique(labels, return_inverse=True)[1])
         dist = torch.cdist(self.points, self.points, compute_mode=_EXACT)
         dist[groups[:, None] == groups[None, :]] = float("inf")
         self.threshold.copy_(torch.quantile(dist.min(1).values, self.quantile))

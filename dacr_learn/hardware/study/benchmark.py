@@ -1,22 +1,16 @@
 """Benchmark of tip models on hardware recordings: calibrate, fit, select, train, evaluate, report.
 
-Steps (all generic: file names come from arguments, servo ids from the CSV header):
+Steps (file names from arguments, servo ids from the CSV header):
 
-1. Robot + servo map: the robot YAML's servo map (``servo_maps/<robot file name>`` next to
-   it, or ``--servo-map``); without one, calibrate from the single-pull recording ``--pulls``
-   and write ``calibrated_robot.yaml`` / ``servo_maps/calibrated_robot.yaml`` into the run folder.
-2. Choose the calibrated CC model's variant (``--cc-variant auto``: the lower singles → pairs score
-   of the CC model, :func:`.selection.choose_cc_variant`) and fit its physical parameters on the
-   training recording.
-3. Score every model with the train-only selection proxies (:mod:`.selection`; ``extrap`` by
-   default, the family CV on request) and choose the default model among the Clarke-space candidates.
-4. Train every model of :mod:`.registry` (learned ones once per seed) on the whole training
-   recording and, when there is a validation recording, evaluate on it: offset-removed RMSE,
-   mean and p95 Euclidean error.
+1. Robot + servo map: ``servo_maps/<robot file name>`` next to the robot YAML (or ``--servo-map``); without
+   one, calibrate from ``--pulls`` and write ``calibrated_robot.yaml`` and its servo map into the run folder.
+2. Choose the CC variant (:func:`.selection.choose_cc_variant`) and fit the CC model on the training recording.
+3. Score every model with the train-only proxies (:mod:`.selection`) and choose the default model.
+4. Train every model of :mod:`.registry` (learned ones once per seed) on the training recording and evaluate
+   on the validation recording when there is one (offset-removed RMSE, mean and p95 error).
 
-Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool` (worker
-processes, or in line) and ``collect_*`` assembles the results in model order; ``run_*`` do both.
-Models fitted in no time (``linear_raw``, ``cc``: ``instant`` in the registry) run in this process.
+Steps 3 and 4 are independent fits: ``submit_*`` hands them to a :class:`.pool.TaskPool`, ``collect_*``
+assembles the results in model order, ``run_*`` do both. ``instant`` models run in this process.
 """
 from __future__ import annotations
 
@@ -100,11 +94,9 @@ def resolve_robot(robot: Path, servo_map: Path | None, pulls: Path | None, out: 
 
 def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map: Path | None = None,
                pulls: Path | None = None, units: str = "mm", cc_variant: str = "base") -> Setup:
-    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None.
-
-    ``cc_variant``: a name of :data:`.selection.CC_VARIANTS`, or ``"auto"``: the one with the lowest
-    singles → pairs score of the CC model (:func:`.selection.choose_cc_variant`; ``base`` when the
-    labels name no pattern families). ``cc_fit["variant"]`` records the choice and its scores."""
+    """Robot, servo map, recordings and the CC model fitted on ``train``; ``val`` may be None. ``cc_variant``: a name
+    of :data:`.selection.CC_VARIANTS` or ``"auto"`` (:func:`.selection.choose_cc_variant`; ``base`` without pattern
+    families), recorded in ``cc_fit["variant"]``."""
     spec, smap, cal = resolve_robot(robot, servo_map, pulls, out, units)
     train_rec = load_recording(train, spec, units)
     val_rec = load_recording(val, spec, units) if val is not None else None
@@ -240,11 +232,10 @@ class SelectionResult:
 
 def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequence[int]]],
                    log: Callable | None = None, start: float | None = None) -> list[Future]:
-    """The shared pieces (Cosserat calibrations, then their synthetic tips) that the fits [(context, model,
-    seeds)] will need (:func:`..cosserat_learned.warmups`), each handed to the pool once, ahead of the fits:
-    with several workers the fits then read them instead of computing them in every worker or waiting for
-    one (in line, ``jobs=1``, the fits compute them when first asked: nothing is submitted). ``log``: called
-    with a line as each piece finishes (the calibrations can take many minutes before any model's line)."""
+    """Hand each shared piece the fits [(context, model, seeds)] need (Cosserat calibrations, then their synthetic
+    tips: :func:`..cosserat_learned.warmups`) to the pool once, ahead of the fits (nothing with ``jobs=1``: the fits
+    compute them when first asked). ``log``: called with a line as each piece finishes.
+    """
     if pool.jobs == 1:
         return []
     pieces: dict[str, tuple] = {}
@@ -340,11 +331,10 @@ def select_default(scores: dict, replicates: dict | None = None) -> dict:
 
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,
                        info: dict | None = None, members: list[nn.Module] | None = None) -> HardwareModel:
-    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc`` itself) once
-    per seed on the whole training recording of a :class:`Setup` and bundle the ensemble with
-    the support model of the training commands (labels = pattern labels) and, if given, a σ calibration
-    fitted on held-out residuals. ``members``: the models already fitted that way, one per seed (e.g. by
-    the benchmark's final runs), bundled instead of trained again (ignored for ``cc``)."""
+    """Train model ``name`` (a CC Clarke-residual model, the compositional CC model, or ``cc``) once per seed on the
+    training recording and bundle the ensemble with the support model of the training commands and, if given, a
+    σ calibration. ``members``: models already fitted that way, one per seed, bundled instead (ignored for ``cc``).
+    """
     if name == "cc":                    # deterministic: one member, the CC model itself
         members = [cc_as_residual(setup.train, setup.cc)]
     elif members is not None:

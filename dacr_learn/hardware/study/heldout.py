@@ -1,11 +1,9 @@
 """Held-out predictions of a hardware model on the train-only selection folds, and the σ model fitted to them.
 
-A σ model (:class:`~.uncertainty.SigmaModel`) must be fitted on residuals the model did not train on,
-and without the validation recording: the folds of :func:`~.selection.proxy_masks` (family CV and
-singles → pairs) provide them. Per fold the CC model is refitted on the fold's training rows
-(:func:`~.selection.make_folds`), the model is trained there once per seed, and on the held-out rows
-the σ features (:func:`~.uncertainty.sigma_terms`, the support distance measured to the fold's
-training rows) and the offset-removed residual of the ensemble mean are kept.
+A σ model (:class:`~.uncertainty.SigmaModel`) needs residuals the model did not train on, without the
+validation recording: per fold of :func:`~.selection.proxy_masks` the CC model is refitted on the training
+rows (:func:`~.selection.make_folds`), the model is trained there once per seed, and on the held-out rows the
+σ features (:func:`~.uncertainty.sigma_terms`) and the offset-removed residual of the ensemble mean are kept.
 """
 from __future__ import annotations
 

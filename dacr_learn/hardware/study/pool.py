@@ -1,12 +1,9 @@
 """Independent fits of the hardware benchmark on several CPU cores: a process pool, or in line.
 
-Every fit seeds torch itself (:func:`.registry.build_model`) and runs on ``threads`` torch threads
-in its worker, so a fit gives the same numbers in a worker as in the main process. Workers are
-spawned (not forked: a forked torch process may hang on the parent's thread pools) and each task
-is timed where it runs, so the reported seconds are the task's own, not its time in the queue.
-Tasks and results travel as plain pickles (tensors by value): torch's own multiprocessing pickler
-passes tensors as file descriptors through a socket per tensor, which a loaded machine with many
-queued tasks refused ("Connection refused" in a worker, the benchmark lost).
+Every fit seeds torch itself (:func:`.registry.build_model`) and runs on ``threads`` torch threads, so it
+gives the same numbers in a worker as in the main process. Workers are spawned (a forked torch process may
+hang on the parent's thread pools); each task is timed where it runs. Tasks and results travel as plain
+pickles: torch's multiprocessing pickler passes tensors through a socket each, which a loaded machine refused.
 """
 from __future__ import annotations
 

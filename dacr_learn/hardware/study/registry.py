@@ -63,14 +63,11 @@ def _pretrained(inputs: str) -> Callable[[FitContext, int], nn.Module]:
 
 @dataclass(frozen=True)
 class ModelInfo:
-    """One registered model. ``inputs``: "raw" (servo values) or "clarke" (calibrated Clarke features);
-    ``static``: maps one command to one tip (False: also uses the command history);
-    ``deterministic``: the same for every seed (trained once); ``deployable``: ``--save`` can write it and
-    ``dacr_learn.export`` can export it (the CC Clarke-residual family and the compositional CC model of
-    :mod:`.checkpoint`); ``outputs``: the learned outputs per segment of a CC-based model (0: none, the CC model
-    itself; a large number for models that are not per-segment corrections); ``pretrained``: the network is
-    first trained on another model's synthetic data. The last two, with ``static``, order the models by
-    :func:`complexity`."""
+    """One registered model: ``inputs`` "raw" | "clarke"; ``static`` (False: uses the command history);
+    ``deterministic`` (trained once); ``deployable`` (``--save`` and the export take it); ``outputs``: learned outputs
+    per segment of a CC-based model (0: the CC model; large: not a per-segment correction); ``pretrained``: first
+    trained on another model's synthetic data. See :func:`complexity`.
+    """
 
     name: str
     build: Callable[[FitContext, int], nn.Module]
@@ -126,12 +123,9 @@ def model_info(model: str) -> ModelInfo:
 
 
 def complexity(model: str) -> tuple[int, int, int]:
-    """How much a model adds to the calibrated CC model, the order in which the default is chosen among models
-    the selection proxy cannot tell apart (:func:`.selection.default_choice`; lower is simpler), written down
-    before any of this order's v4 val figures: (1) a static map before one that needs the command history (a
-    state the controller must carry; memory inputs fit the loading paths of the training patterns), (2) fewer
-    learned outputs per segment (the CC model's 0, a Clarke correction's 2, a compositional twist's 5),
-    (3) without pre-training before with (pre-training inherits a second model's errors)."""
+    """The order (lower is simpler) in which :func:`.selection.default_choice` prefers models the proxy cannot tell
+    apart (docs/hardware.md): static before history, fewer learned outputs per segment, no pre-training first.
+    """
     info = model_info(model)
     return (int(not info.static), info.outputs, int(info.pretrained))
 

@@ -1,29 +1,17 @@
 """Choosing a model on the training recording alone: two selection proxies and the default model.
 
-Real validation patterns (all segments loaded at once) are absent from training recordings
-(single segments and pairs), so a model must be chosen without them. Two train-only proxies,
-both offset-removed tip RMSE [mm] on held-out rows of the training recording:
+Both proxies are the offset-removed tip RMSE [mm] on held-out rows of the training recording
+(docs/hardware.md, "Choosing the default model on training data alone"):
 
-- ``cv``: leave-one-pattern-family-out cross-validation. Families (from the pattern labels):
-  ``single`` (one segment or one tendon moved: ``seg<k>…``, ``tendon<k>…``) and one per pair of
-  segments (``pair<jk>…``). Each fold holds one family out; the score is the mean over folds.
-- ``extrap``: singles → pairs. Fit on the single-segment family, test on every pair family: a
-  shift in the number of moving segments, like the one from training to validation.
+- ``cv``: leave-one-pattern-family-out cross-validation; families from the labels: ``single``
+  (``seg<k>…``, ``tendon<k>…``) and one per pair of segments (``pair<jk>…``). Mean over folds.
+- ``extrap``: singles → pairs, fit on the single family and test on every pair family.
 
-In every fold the calibrated CC model is refitted on the fold's training rows, history inputs
-run along the whole recording (causal), and each learned model is trained on the training rows
-only. Labels without a family raise (there is no proxy without families).
-
-The benchmark computes ``extrap`` by default (:data:`DEFAULT_PROXIES`, one fold per model) and the
-family CV (four more folds on FTDCR v4/v6, ~4× the cost) on request; both are the same computation
-whether or not the other is run.
-
-Before the models, :func:`choose_cc_variant` picks the calibrated CC model's variant
-(:data:`CC_VARIANTS`) by the CC model's own ``extrap`` score: the physical base of every
-Clarke-space model is chosen per robot on the same proxy.
-
-:func:`choose_default` picks the candidate with the lowest ``extrap`` (the proxy of the regime
-shift; docs/hardware.md shows on FTDCR v4 how each proxy's ranking compares with val's).
+In every fold the calibrated CC model is refitted on the fold's training rows, history inputs run along
+the whole recording (causal), and each learned model is trained on the training rows only. Labels
+without a family raise. :data:`DEFAULT_PROXIES` is ``extrap`` only (the family CV costs ~4× more).
+:func:`choose_cc_variant` picks the CC variant (:data:`CC_VARIANTS`) by the CC model's own ``extrap``;
+:func:`choose_default` picks the default model.
 """
 from __future__ import annotations
 
@@ -146,10 +134,9 @@ def model_seeds(name: str, seeds: Sequence[int]) -> list[int]:
 
 def summarize_scores(rmse: dict[str, dict[str, list[float]]], seeds: list[int], seconds: float,
                      replicates: Mapping[str, Tensor] | None = None) -> dict:
-    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, proxy + "_per_seed": [mean over
-    folds per seed], "seeds", "seconds"} from {proxy: {fold: [RMSE [mm] per seed]}}; with ``replicates``
-    ({proxy: bootstrap replicates (B,) [mm]}, :func:`bootstrap_replicates`) also proxy + "_std": their standard
-    deviation, the proxy's uncertainty."""
+    """{proxy: mean over folds [mm], proxy + "_folds": {fold: mean over seeds}, proxy + "_per_seed", "seeds",
+    "seconds"} from {proxy: {fold: [RMSE [mm] per seed]}}; with ``replicates`` ({proxy: (B,) [mm]},
+    :func:`bootstrap_replicates`) also proxy + "_std", the proxy's uncertainty."""
     out: dict = {}
     for proxy, folds in rmse.items():
         per = {fold: float(np.mean(values)) for fold, values in folds.items()}
@@ -196,11 +183,9 @@ def fold_weights(groups: Mapping[str, Sequence[str]], replicates: int = BOOTSTRA
 
 def bootstrap_replicates(errors: Mapping[str, Sequence[Tensor]], weights: Mapping[str, Tensor],
                          name: str = "") -> Tensor:
-    """Bootstrap replicates (B,) of a proxy: the mean over folds of the mean over seeds of the offset-removed
-    RMSE, from each fold's errors per seed [(n_fold, 3)] (any unit; the replicates are in it) and its row
-    weights (B, n_fold) (:func:`fold_weights`). Each replicate also draws the seeds with replacement (the
-    seed-to-seed spread of a learned model; one seed: none), with a generator seeded by ``name`` (a model's
-    replicates do not depend on which other models are scored)."""
+    """Bootstrap replicates (B,) of a proxy (mean over folds of the mean over seeds of the offset-removed RMSE) from
+    each fold's errors per seed [(n_fold, 3)] (any unit) and row weights (B, n_fold) (:func:`fold_weights`); each
+    replicate also draws the seeds with replacement, from a generator seeded by ``name`` (independent of the others)."""
     g = torch.Generator().manual_seed(BOOTSTRAP_SEED + 1 + zlib.crc32(name.encode()))
     per_fold = []
     for fold, errs in errors.items():
@@ -221,12 +206,9 @@ def proxy_scores(name: str, folds: dict[str, list[Fold]], seeds: Sequence[int]) 
 
 def choose_cc_variant(rec: Recording, spec: RobotSpec, smap: ServoMap,
                       variants: Sequence[str] = tuple(CC_VARIANTS)) -> tuple[str, dict[str, float]]:
-    """(name, {variant: singles → pairs RMSE [mm] of the CC model alone}): the calibrated CC variant of
-    :data:`CC_VARIANTS` with the lowest ``extrap`` score, ties to the earlier one (``base`` first).
-
-    The CC model is the physical base of every Clarke-space model, so its variant is chosen per robot
-    before them, on the same train-only proxy (one CC fit per variant on the single-segment family).
-    Raises ValueError when the labels name no pattern families."""
+    """(name, {variant: singles → pairs RMSE [mm] of the CC model alone}): the variant of :data:`CC_VARIANTS`
+    with the lowest ``extrap`` score, ties to the earlier one (``base`` first). ValueError without families.
+    """
     unknown = [v for v in variants if v not in CC_VARIANTS]
     if unknown or not variants:
         raise ValueError(f"cc variants: expected one or more of {tuple(CC_VARIANTS)}, got {list(variants)}")
@@ -246,18 +228,13 @@ def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: st
 
 def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
                    replicates: Mapping[str, Tensor] | None = None, tie_sigmas: float = TIE_SIGMAS) -> dict:
-    """The default model by the one-standard-error rule, and why.
-
-    ``best`` is the candidate with the lowest ``proxy`` score. A candidate is *tied* with it when its score is
-    higher by at most ``tie_sigmas`` × the standard deviation of the bootstrapped difference of the two
-    (``replicates``: {model: bootstrap replicates (B,) of its proxy}, paired over the held-out pattern groups,
-    :func:`bootstrap_replicates`): the proxy cannot tell them apart. The default is the simplest tied
-    candidate (:func:`~.registry.complexity`; equal ones: the earlier candidate): a more complex model becomes
-    the default only when it beats every simpler one by more than their combined uncertainty. Without
-    ``replicates`` no difference has a spread and the lowest score wins.
-
-    Returns {"default", "best", "tied": [models], "rule", "reason", "candidates": {model: {"score_mm",
-    "std_mm", "gap_mm", "gap_std_mm", "tied"}}} (std: of the model's own replicates)."""
+    """The default model by the one-standard-error rule (docs/hardware.md), and why: ``best`` has the lowest
+    ``proxy`` score; a candidate is *tied* with it when higher by at most ``tie_sigmas`` × the std of their paired
+    bootstrapped difference (``replicates``: {model: (B,)} of :func:`bootstrap_replicates`); the default is the
+    simplest tied candidate (:func:`~.registry.complexity`; equal ones: the earlier). Without ``replicates`` the
+    lowest wins. Returns {"default", "best", "tied": [models], "rule", "reason", "candidates": {model: {"score_mm",
+    "std_mm", "gap_mm", "gap_std_mm", "tied"}}} (std: of the model's own replicates).
+    """
     scored = [c for c in candidates if c in scores and proxy in scores[c]]
     if not scored:
         raise ValueError(f"choose_default: none of the candidates {list(candidates)} has a {proxy!r} score")

@@ -115,16 +115,9 @@ def _hidden(entities: list[str]) -> dict[str, list]:
 
 
 def hardware_blueprint(errors: dict[str, np.ndarray], with_std: bool, shown: int = 3, default: str | None = None):
-    """Layout for :func:`log_rerun`; ``errors``: model -> offset-removed errors [mm].
-
-    Left, large: the 3D view (measured path, the CC model and the :func:`shown_models` — the
-    ``default`` model and the best others by val RMSE, ``shown`` in all — with their ±2σ bands);
-    below it the offset-removed error per val sample of the shown models only (every sample, y
-    from 0 to :func:`error_axis_max` of them, so the three-line legend lies above the curves)
-    and, when ``with_std``, their predicted 2σ. Right: every model's val RMSE as a bar chart (one
-    bar per model, best first, in the model's colour; the legend reads rank and name) above the
-    RMSE table (same ranks). Every other model stays in the recording, hidden in the 3D view and
-    the plots (one click away in the blueprint panel). Opens at the last sample (follow mode).
+    """Layout for :func:`log_rerun` (``errors``: model -> offset-removed errors [mm]): left the 3D view and the
+    :func:`shown_models`' error per val sample (and predicted 2σ with ``with_std``), right every model's val RMSE bar
+    and table; the other models hidden (one click away). Opens at the last sample.
     """
     import rerun.blueprint as rrb
 
@@ -244,14 +237,9 @@ def _summary(setup: Setup, rmse: dict[str, float], default: str | None = None) -
 
 def log_rerun(setup: Setup, preds: dict[str, torch.Tensor], path: Path,
               std: dict[str, torch.Tensor] | None = None, default: str | None = None) -> None:
-    """Rerun .rrd of the val recording, with its own blueprint (:func:`hardware_blueprint`).
-
-    Static: the measured and predicted val paths [m], for models in ``std`` (σ per sample [m],
-    shape (N,) or (N, 3)) a ±2σ band of ellipsoids, and every model's val RMSE as a bar
-    (``rmse/…``). On the timeline ``sample``: the measured and predicted tips, the CC model's
-    backbone, each model's offset-removed error [mm] (colours as in 3D, RMSE in the legend) and
-    its predicted 2σ [mm]. The layout shows ``default`` (the benchmark's default model, if any)
-    and the two best others by val RMSE; every other model is one click away.
+    """Rerun .rrd of the val recording with :func:`hardware_blueprint` (showing ``default``): static paths [m],
+    ±2σ ellipsoids for models in ``std`` (σ [m], (N,) or (N, 3)) and RMSE bars; on the ``sample`` timeline the tips,
+    the CC backbone, each model's offset-removed error [mm] and predicted 2σ [mm].
     """
     import rerun as rr
 
