@@ -255,8 +255,8 @@ def test_a_typo_in_the_robot_file_is_one_line_naming_the_file(tmp_path):
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     lines = [line for line in (proc.stdout + proc.stderr).splitlines() if line.strip()]
-    assert lines == [f"error: {robot}: segments[0]: got ['lenght'], expected only keys joint_angles, "
-                      "joint_radii, joints, length, limits, offset, radius, type"]
+    assert lines == [f"error: {robot}: segments[0]: got ['lenght'], expected only keys body_radius, "
+                      "joint_angles, joint_radii, joints, length, limits, offset, radius, type"]
     assert not (tmp_path / "runs").exists()                     # no run folder for a run that never started
 
 
