@@ -40,10 +40,12 @@ import qpsolvers
 import torch
 from torch import Tensor, nn
 
+from ..body import BodyPoints, check_points_per_segment
 from ..checks import F64
 from ..clarke_space import DecoderJacobian
-from ..ik.adapters import SolverModel
+from ..ik.adapters import SolverModel, TipJacobian
 from .control import ControllerConfig, tip_task
+from .qp_clearance import SceneLike, as_scene, clearance_rows, tip_and_body
 
 DistanceFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 """x (B, D) → (d (B, M) [m], ∂d/∂x (B, M, D)): clearances of the body to the obstacles and their Jacobians."""
@@ -150,6 +152,9 @@ class QPController:
         config: :class:`QPConfig`. distances: the clearance provider (:data:`DistanceFn`), or None (no obstacles).
         sense: replaces the model's evaluation, x (B, D) → :class:`Sensed` or its fields as a tuple, empty tensors
             for those not given (e.g. the AOTInductor package of :class:`Sensing`, for a kHz loop at batch 1).
+        scene: the obstacles (a :class:`~dacr_learn.scene.Scene`, a scene YAML path or its dict), instead of
+            ``distances``: the clearances of the model's body (``points_per_segment`` points per segment) to every
+            obstacle, with their Jacobians (:mod:`.qp_clearance`); the model needs a body.
 
     :meth:`step`: joint vectors q (B, N), targets (B, 4, 4) poses or (B, 3) positions [m], optional feedforward
     (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, N). After a step, ``status`` holds each sample's
@@ -157,8 +162,15 @@ class QPController:
     """
 
     def __init__(self, model: SolverModel, config: QPConfig = QPConfig(), distances: DistanceFn | None = None,
-                 sense: Callable[[Tensor], Sensed | tuple] | None = None):
+                 sense: Callable[[Tensor], Sensed | tuple] | None = None, scene: SceneLike | None = None,
+                 points_per_segment: int = 8):
+        if scene is not None and distances is not None:
+            raise ValueError("scene, distances: expected one clearance provider, got both")
         self.model, self.config, self.distances, self.custom_sense = model, config, distances, sense
+        self.scene, self.points_per_segment = None, check_points_per_segment(points_per_segment)
+        if scene is not None:
+            self.scene = as_scene(scene)
+            model.body(model.rest[None], points_per_segment)                 # a model without a body: ValueError
         self.limits = model.limits.to(F64)
         self.scale = self.limits.scale.numpy()
         self.lower, self.upper = self.limits.lower.numpy(), self.limits.upper.numpy()
@@ -184,11 +196,18 @@ class QPController:
 
     # -- evaluation --------------------------------------------------------------------------------------------
 
+    def tip_and_body(self, x: Tensor) -> tuple[TipJacobian, BodyPoints, Tensor]:
+        """Tip, body and ∂p/∂x (B, P, 3, D) at x (B, D) (:func:`.qp_clearance.tip_and_body`)."""
+        return tip_and_body(self.model, x, self.points_per_segment)
+
     def sense(self, x: Tensor) -> Sensed:
         """The model (or the ``sense`` given) at x (B, D), with the clearances when there are obstacles."""
         if self.custom_sense is not None:
             out = self.custom_sense(x)
             return out if isinstance(out, Sensed) else Sensed(*(None if t.numel() == 0 else t for t in out))
+        if self.scene is not None:
+            tip, body, jac_p = self.tip_and_body(x)
+            return Sensed(*tip, *clearance_rows(self.scene, body, jac_p))
         position, rotation, jac = self.model.tip_and_jacobian(x)
         d, jd = (None, None) if self.distances is None else self.distances(x)
         return Sensed(position, rotation, jac, d, jd)
