@@ -1,26 +1,31 @@
 """Reach behind an obstacle: constrained (QP) control side by side with today's resolved-rate controllers.
 
-Two scenes, each from the same start along the same target path, with the same gains and every limit:
+Two scenes (scene files in configs/scenes/, loaded with :func:`dacr_learn.scene.load_scene`), each from the same
+start along the same target path, with the same gains and every limit:
 
-- ``robot``: the 3-segment TDCR (configs/robots/tdcr_3seg_coupled.yaml) on a fixed base; a sphere stands beside
-  its upper half and the tip target moves from the straight tip to a point behind the sphere. Compared:
-  :class:`dacr_learn.deploy.control.ResolvedRateController` (damped least squares, limits by saturation) and
-  :class:`dacr_learn.deploy.qp_control.QPController` (one QP per step: limits, joint speeds, clearance dampers).
-- ``arm``: the Panda holds the robot through a 5 mm port (as in examples/track_port.py); the tip tracks a circle
-  behind the port while a sphere sits inside the cone the body sweeps. Compared:
-  :class:`~dacr_learn.arm.control.WholeBodyController`, :class:`~dacr_learn.arm.control.DecoupledController` and
-  :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`, all with the Panda's URDF velocity limits at
-  ``--dt`` (10 ms).
+- ``robot`` (configs/scenes/reach_tdcr3.yaml): the 3-segment TDCR (configs/robots/tdcr_3seg_coupled.yaml) on a
+  fixed base; a sphere stands beside its upper half and the tip target moves from the straight tip to a point
+  behind the sphere. Compared: :class:`dacr_learn.deploy.control.ResolvedRateController` (damped least squares,
+  limits by saturation) and :class:`dacr_learn.deploy.qp_control.QPController` (one QP per step: limits, joint
+  speeds, clearance dampers).
+- ``arm`` (configs/scenes/reach_panda_port.yaml): the Panda holds the robot through a 5 mm port just above a wall
+  with a 40 mm opening (as in examples/track_port.py); the tip tracks a circle behind the port while a sphere sits
+  inside the cone the body sweeps. Compared: :class:`~dacr_learn.arm.control.WholeBodyController`,
+  :class:`~dacr_learn.arm.control.DecoupledController` and :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`,
+  all with the Panda's URDF velocity limits at ``--dt`` (10 ms).
 
-The obstacle distances come from a minimal sphere scene in this file (:class:`SphereClearance`: the robot's
-backbone points, :func:`dacr_learn.kinematics.backbone_points`, swept by the envelope radius); the controllers take any
-provider x → (d, ∂d/∂x). Printed per controller (and in ``summary.json``): collision steps and the minimum
-clearance [mm] (a dense check: 64 points per segment), the tip position error (RMS, max) [mm] over the path and
-at its end, steps with a variable at a limit, limit violations of the commanded joints (the model's own check
-from the joints), the port's worst excursion (arm scene) and the median step time [µs] (eager, batch 1).
+The QP controllers take the scene (``scene=``): their dampers act on the clearances of the robot's body
+(``--points`` per segment) to every obstacle, with the scene's closed-form distance gradients times the body's
+analytic Jacobian (:mod:`dacr_learn.deploy.qp_clearance`). Printed per controller (and in ``summary.json``;
+the joint paths in ``paths.npz``): collision steps and the minimum clearance [mm] (a dense check: 64 points
+per segment), the tip position error (RMS, max) [mm] over the path and at its end, steps with a variable at a
+limit, limit violations of the commanded joints (the model's own check from the joints), the port's worst
+excursion (arm scene) and the median step time [µs] (eager, batch 1). ``--rerun FILE`` writes a recording: per
+controller (side by side in y) the obstacles, the target and tracked tip paths, and the body coloured by its
+clearance (red: penetrating, orange: closer than the dampers' safety distance, green: clear).
 
     .venv/bin/python examples/qp_reach_behind_obstacle.py                 # both scenes, ~1-2 min on a laptop CPU
-    .venv/bin/python examples/qp_reach_behind_obstacle.py --scene robot
+    .venv/bin/python examples/qp_reach_behind_obstacle.py --scene robot --rerun runs/qp_reach/qp_reach.rrd
 """
 from __future__ import annotations
 
@@ -43,46 +48,16 @@ from dacr_learn.cli.loading import composite_from_files  # noqa: E402
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController  # noqa: E402
 from dacr_learn.deploy.qp_control import QPConfig, QPController  # noqa: E402
 from dacr_learn.ik import ConstantCurvature  # noqa: E402
-from dacr_learn.kinematics import backbone_points  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
+from dacr_learn.scene import Scene, load_scene  # noqa: E402
 
 F64 = torch.float64
 ROBOT = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
 PANDA_READY = (0.0, -0.3, 0.0, -2.2, 0.0, 2.0, math.pi / 4)
-ENVELOPE = 0.008        # [m] the robot's body radius: its largest joint radius (the spacer disks)
-
-
-class SphereClearance:
-    """Clearance of a body to spheres: d_jk = ‖p_j − c_k‖ − r_k − a [m] for body points p_j = ``points(x)``
-    (B, P, 3) with envelope radius a, spheres (centres (K, 3), radii (K,)); ∂d/∂x (B, P·K, D) by central
-    differences of the points with steps 1e-5 of each variable's ``scale`` (relative error ~1e-10 in float64).
-    ``__call__`` is the controllers' distance provider; :meth:`clearance` the distances alone."""
-
-    def __init__(self, points: Callable[[torch.Tensor], torch.Tensor], centres, radii, envelope: float,
-                 scale: torch.Tensor):
-        self.points, self.envelope = points, envelope
-        self.centres, self.radii = torch.as_tensor(centres, dtype=F64), torch.as_tensor(radii, dtype=F64)
-        self.steps = 1e-5 * scale.to(F64)
-
-    def of_points(self, p: torch.Tensor) -> torch.Tensor:
-        d = torch.linalg.vector_norm(p.unsqueeze(-2) - self.centres, dim=-1) - self.radii - self.envelope
-        return d.flatten(-2)                                                      # (..., P·K)
-
-    def clearance(self, x: torch.Tensor) -> torch.Tensor:
-        return self.of_points(self.points(x))
-
-    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        b, dim = x.shape
-        shift = torch.diag(self.steps)
-        probe = torch.cat([x.unsqueeze(1), x.unsqueeze(1) + shift, x.unsqueeze(1) - shift], dim=1)
-        pts = self.points(probe.reshape(-1, dim)).unflatten(0, (b, 2 * dim + 1))  # (B, 2D + 1, P, 3)
-        centre, plus, minus = pts[:, 0], pts[:, 1:dim + 1], pts[:, dim + 1:]
-        jac_p = ((plus - minus) / (2 * self.steps)[:, None, None]).permute(0, 2, 3, 1)   # (B, P, 3, D)
-        diff = centre.unsqueeze(-2) - self.centres                                # (B, P, K, 3)
-        norm = torch.linalg.vector_norm(diff, dim=-1, keepdim=True)
-        d = (norm.squeeze(-1) - self.radii - self.envelope).flatten(1)
-        jac = ((diff / norm).unsqueeze(-1) * jac_p.unsqueeze(2)).sum(-2)          # (B, P, K, D)
-        return d, jac.flatten(1, 2)
+SPACING = 0.35         # [m] in y between the controllers in the recording
+TIMELINE = "step"
+SCENES = {"robot": ROOT / "configs" / "scenes" / "reach_tdcr3.yaml",
+          "arm": ROOT / "configs" / "scenes" / "reach_panda_port.yaml"}
 
 
 def cc_jacobian(model: ConstantCurvature) -> Callable:
@@ -95,19 +70,11 @@ def cc_jacobian(model: ConstantCurvature) -> Callable:
     return jacobian
 
 
-def robot_points(model: ConstantCurvature, per_segment: int) -> Callable[[torch.Tensor], torch.Tensor]:
-    return lambda x: backbone_points(model.spec, model.features(x), per_segment)
-
-
-def arm_points(model, per_segment: int) -> Callable[[torch.Tensor], torch.Tensor]:
-    """The robot's backbone in the arm's base frame: x (B, n + D) → (B, P, 3)."""
-    n = model.num_arm
-
-    def points(x: torch.Tensor) -> torch.Tensor:
-        base = model.base_pose(x[:, :n])
-        local = backbone_points(model.robot.spec, model.robot.features(x[:, n:]), per_segment)
-        return local @ base[:, :3, :3].mT + base[:, None, :3, 3]
-    return points
+def body_clearance(model, scene: Scene, x: torch.Tensor, per_segment: int = 64) -> torch.Tensor:
+    """The smallest clearance (B,) [m] of the model's body at x (B, D), ``per_segment`` points per segment (balls
+    of the envelope radius), to the scene's obstacles."""
+    body = model.body(x, per_segment)
+    return (scene.distances(body.points)[0] - body.radius[:, None]).flatten(1).amin(-1)
 
 
 def at_limit(limits, x: torch.Tensor, margin: float = 1e-6) -> torch.Tensor:
@@ -119,18 +86,19 @@ def at_limit(limits, x: torch.Tensor, margin: float = 1e-6) -> torch.Tensor:
     return hit
 
 
-def run(model, controller, q0: torch.Tensor, path: torch.Tensor, check: SphereClearance,
-        port: Port | None = None) -> dict:
+def run(model, controller, q0: torch.Tensor, path: torch.Tensor, scene: Scene, port: Port | None = None
+        ) -> tuple[dict, np.ndarray]:
     """Track ``path`` (S, 3) or (S, 4, 4) from q0 (N,); the state at step i is measured against target i, then
-    commanded towards it with the feedforward to target i + 1. Metrics of the whole run."""
+    commanded towards it with the feedforward to target i + 1. Metrics of the whole run and the joints (S, N)."""
     pos_path = path if path.dim() == 2 else path[:, :3, 3]
     nxt = torch.cat([pos_path[1:], pos_path[-1:]])
-    q, rows = q0[None].clone(), {k: [] for k in ("error", "clearance", "at_limit", "inside", "port", "time")}
+    q, rows = q0[None].clone(), {k: [] for k in ("error", "clearance", "at_limit", "inside", "port", "time", "q")}
     for i in range(len(path)):
         c = model.check(q)
         x = model.variables(q)
+        rows["q"].append(q[0].numpy())
         rows["error"].append(float((c.position[0] - pos_path[i]).norm()))
-        rows["clearance"].append(float(check.clearance(x).min()))
+        rows["clearance"].append(float(body_clearance(model, scene, x)[0]))
         rows["at_limit"].append(bool(at_limit(model.limits, x)[0]))
         rows["inside"].append(bool(c.inside[0]) and float(c.constraint[0]) <= 1e-9)
         if port is not None:
@@ -148,7 +116,7 @@ def run(model, controller, q0: torch.Tensor, path: torch.Tensor, check: SphereCl
            "step_p50_us": float(1e6 * np.median(rows["time"]))}
     if port is not None:
         out["port_max_mm"] = float(1e3 * max(rows["port"]))
-    return out
+    return out, np.stack(rows["q"])
 
 
 def ramp(start: torch.Tensor, goal: torch.Tensor, move: int, hold: int) -> torch.Tensor:
@@ -158,27 +126,24 @@ def ramp(start: torch.Tensor, goal: torch.Tensor, move: int, hold: int) -> torch
 
 
 def robot_setup(args) -> dict:
-    """The robot alone: a sphere beside its upper half, the tip target behind it. The model, the controllers, the
-    start q0 (N,), the target path (S, 3), the dense clearance check and the sphere."""
+    """The robot alone (configs/scenes/reach_tdcr3.yaml): the model, the controllers, the start q0 (N,), the target
+    path (S, 3) and the scene."""
     spec = RobotSpec.coerce(args.robot)
     model = ConstantCurvature(spec)
     length = spec.total_length
-    sphere = ([0.26 * length, 0.0, 0.7 * length], 0.09 * length)
+    scene = load_scene(SCENES["robot"])
     goal = torch.tensor([0.65 * length, 0.05 * length, 0.55 * length], dtype=F64)
     path = ramp(model.tip_and_jacobian(model.rest[None])[0][0], goal, args.steps, args.hold)
-    sensed = SphereClearance(robot_points(model, args.points), [sphere[0]], [sphere[1]], ENVELOPE,
-                             model.limits.scale)
     controllers = {"resolved_rate": ResolvedRateController(spec, cc_jacobian(model), ControllerConfig(
                        gain=args.gain, damping=QPConfig().damping, max_step=args.max_step)),
-                   "qp": QPController(model, qp_config(args), sensed)}
+                   "qp": QPController(model, qp_config(args), scene=scene, points_per_segment=args.points)}
     return {"model": model, "controllers": controllers, "q0": model.joints(model.rest[None])[0], "path": path,
-            "check": SphereClearance(robot_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale),
-            "sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}}
+            "scene": scene}
 
 
 def arm_setup(args) -> dict:
-    """The Panda through a port; the tip circles behind it, a sphere inside the cone the body sweeps (as
-    :func:`robot_setup`, the path (S, 3), and the port)."""
+    """The Panda through a port (configs/scenes/reach_panda_port.yaml); the tip circles behind it (as
+    :func:`robot_setup`, and the port)."""
     model = composite_from_files(ROOT / "configs" / "arms" / "panda.urdf", "panda_link8",
                                  ROOT / "configs" / "arms" / "panda_mount.npy", args.robot)
     n = model.num_arm
@@ -190,15 +155,14 @@ def arm_setup(args) -> dict:
     ex, ey, ez = base[:3, 0], base[:3, 1], base[:3, 2]
     circle = base[:3, 3] + 0.22 * ez + 0.06 * (torch.cos(t)[:, None] * ex + torch.sin(t)[:, None] * ey)
     path = torch.cat([ramp(model.tip_and_jacobian(x0[None])[0][0], circle[0], args.hold, 0), circle])
-    sphere = ((base[:3, 3] + 0.19 * ez + 0.03 * ey).tolist(), 0.012)      # inside the cone the body sweeps
-    sensed = SphereClearance(arm_points(model, args.points), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale)
+    scene = load_scene(SCENES["arm"])
     wb = WholeBodyConfig(gain=args.gain, max_step=args.max_step, dt=args.dt)
     controllers = {"whole_body": WholeBodyController(model, wb, port),
                    "decoupled": DecoupledController(model, wb, port),
-                   "whole_body_qp": WholeBodyQPController(model, qp_config(args), port, sensed, dt=args.dt)}
+                   "whole_body_qp": WholeBodyQPController(model, qp_config(args), port, dt=args.dt, scene=scene,
+                                                          points_per_segment=args.points)}
     return {"model": model, "controllers": controllers, "q0": model.joints(x0[None])[0], "path": path,
-            "check": SphereClearance(arm_points(model, 64), [sphere[0]], [sphere[1]], ENVELOPE, model.limits.scale),
-            "sphere": {"centre_m": sphere[0], "radius_m": sphere[1]}, "port": port}
+            "scene": scene, "port": port}
 
 
 def qp_config(args) -> QPConfig:
@@ -206,13 +170,13 @@ def qp_config(args) -> QPConfig:
                     damper_gain=args.damper_gain, joint_step=args.joint_step)
 
 
-def run_scene(setup: dict) -> dict:
-    """Every controller of a setup over its path (:func:`run`)."""
-    port = setup.get("port")
-    results = {k: run(setup["model"], c, setup["q0"], setup["path"], setup["check"], port)
-               for k, c in setup["controllers"].items()}
-    return {"sphere": setup["sphere"], **({"port_radius_mm": 1e3 * port.radius} if port else {}),
-            "results": results}
+def run_scene(setup: dict) -> tuple[dict, dict[str, np.ndarray]]:
+    """Every controller of a setup over its path (:func:`run`): the summary and each controller's joints (S, N)."""
+    port, results, paths = setup.get("port"), {}, {}
+    for k, c in setup["controllers"].items():
+        results[k], paths[k] = run(setup["model"], c, setup["q0"], setup["path"], setup["scene"], port)
+    return ({"obstacles": list(setup["scene"].labels), **({"port_radius_mm": 1e3 * port.radius} if port else {}),
+             "results": results}, paths)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -227,14 +191,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--safety", type=float, default=0.002, help="d_s [m]")
     p.add_argument("--influence", type=float, default=0.02, help="d_i [m]")
     p.add_argument("--damper-gain", type=float, default=0.002, help="ξ [m per step]")
-    p.add_argument("--points", type=int, default=16, help="body points per segment the QP sees")
+    p.add_argument("--points", type=int, default=8, help="body points per segment the QP sees")
     p.add_argument("--dt", type=float, default=0.01, help="control period [s] for the arm's URDF velocity limits")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "qp_reach")
+    p.add_argument("--rerun", type=Path, default=None, help="write a Rerun recording (.rrd) of the runs")
+    p.add_argument("--every", type=int, default=5, help="steps between the bodies drawn in the recording")
     return p.parse_args(argv)
 
 
 def print_table(name: str, scene: dict) -> None:
-    print(f"\n{name}: sphere r = {1e3 * scene['sphere']['radius_m']:.1f} mm")
+    print(f"\n{name}: {len(scene['obstacles'])} obstacles")
     cols = [("collisions", "collisions", "d"), ("min_clearance_mm", "min clear mm", ".2f"),
             ("error_rms_mm", "err RMS mm", ".2f"), ("error_max_mm", "err max mm", ".2f"),
             ("final_error_mm", "err end mm", ".2f"), ("steps_at_a_limit", "at limit", "d"),
@@ -246,17 +212,57 @@ def print_table(name: str, scene: dict) -> None:
         print("  " + f"{ctrl:>14}" + "".join(f"{r[k]:>14{f}}" for k, _, f in cols))
 
 
+def write_recording(file: Path, setups: dict, paths: dict, args) -> None:
+    """The Rerun recording of the module docstring: per scene and controller (side by side in y, ``SPACING``
+    apart) the obstacles, the target path, the tracked tip path and every ``args.every`` steps the body coloured
+    by its clearance (and the arm, in the arm scene)."""
+    import rerun as rr
+
+    from dacr_learn.viz.arm import log_arm
+    from dacr_learn.viz.obstacles import log_body_clearance, log_obstacles
+    from dacr_learn.viz.scene import log_path
+    file.parent.mkdir(parents=True, exist_ok=True)
+    rec = rr.RecordingStream("dacr_qp_reach")
+    rec.set_sinks(rr.FileSink(str(file)))
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    for name, setup in setups.items():
+        model, scene, path = setup["model"], setup["scene"], setup["path"]
+        for j, (ctrl, q) in enumerate(paths[name].items()):
+            root = f"world/{name}/{ctrl}"
+            rec.log(root, rr.Transform3D(translation=[0.0, SPACING * j, 0.0]), static=True)
+            rec.log(f"{root}/label", rr.Points3D([path[0].numpy() + [0.0, 0.0, 0.05]], labels=[ctrl],
+                                                 show_labels=True, radii=0.001), static=True)
+            log_obstacles(rec, f"{root}/obstacles", scene)
+            log_path(rec, f"{root}/target_path", path.numpy(), color=(60, 90, 220), radius=0.0012)
+            x = model.variables(torch.from_numpy(q))
+            tips = model.check(torch.from_numpy(q)).position.numpy()
+            body = model.body(x, 16)
+            for k in range(0, len(q), args.every):
+                rec.set_time(TIMELINE, sequence=k)
+                log_path(rec, f"{root}/tracked_path", tips[:k + 1], color=(230, 120, 20), radius=0.0008)
+                log_body_clearance(rec, f"{root}/body", scene, body.points[k], body.radius, args.safety)
+                if name == "arm":
+                    log_arm(rec, f"{root}/arm", model.arm.frames(x[k:k + 1, :model.num_arm])[0], radius=0.03,
+                            mount=model.base_pose(x[k:k + 1, :model.num_arm])[0])
+    rec.disconnect()
+
+
 def main(argv: list[str] | None = None) -> dict:
     args = parse_args(argv)
     torch.set_num_threads(1)
-    summary = {"config": {k: v for k, v in vars(args).items() if k != "out"}}
+    summary, setups, paths = {"config": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()
+                                         if k != "out"}}, {}, {}
     for name, setup in (("robot", robot_setup), ("arm", arm_setup)):
         if args.scene in (name, "both"):
-            summary[name] = run_scene(setup(args))
+            setups[name] = setup(args)
+            summary[name], paths[name] = run_scene(setups[name])
             print_table(name, summary[name])
-    summary["config"]["robot"] = str(args.robot)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "summary.json").write_text(json.dumps(summary, indent=2))
+    np.savez(args.out / "paths.npz", **{f"{s}/{c}": q for s, runs in paths.items() for c, q in runs.items()})
+    if args.rerun is not None:
+        write_recording(args.rerun, setups, paths, args)
+        print(f"recording: {args.rerun}")
     return summary
 
 

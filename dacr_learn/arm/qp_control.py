@@ -59,8 +59,8 @@ class WholeBodyQPController(QPController):
         if scene is not None and not model.has_rotation:
             raise ValueError("scene: the arm's body Jacobian needs a robot with a tip rotation, got a position-only "
                              "robot model")
-        super().__init__(model, config or QPConfig(), distances, sense, scene, points_per_segment)
         self.port, self.port_weight, self.num_arm = port, port_weight, model.num_arm
+        super().__init__(model, config or QPConfig(), distances, sense, scene, points_per_segment)
         self.centre = None if port is None else torch.tensor(port.centre, dtype=F64)
         if dt is not None:
             velocity = np.asarray(model.arm.chain.get_joint_velocity_limits()[1], dtype=float)

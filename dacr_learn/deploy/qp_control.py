@@ -60,7 +60,7 @@ class QPConfig(ControllerConfig):
     units); rotation_length: w [m/rad] for a pose target (None: the robot's length); joint_step: largest |Δq| of
     the robot's joints per step [m, rad] (None: not applied); safety d_s ≥ 0 [m] and influence d_i > d_s [m] of
     the dampers, damper_gain ξ > 0 [m per step]; disk_sides K ≥ 3 of the bend-disk polygon; solver: a qpsolvers
-    backend ("daqp", "proxqp", …).
+    backend ("daqp", "proxqp", …); direct: call "daqp" through its own Python API (False: through qpsolvers).
     """
 
     damping: float = 1e-3
@@ -71,6 +71,7 @@ class QPConfig(ControllerConfig):
     damper_gain: float = 0.002
     disk_sides: int = 8
     solver: str = "daqp"
+    direct: bool = True
 
     def __post_init__(self):
         super().__post_init__()
@@ -119,26 +120,43 @@ class Program(NamedTuple):
 def disk_rows(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.ndarray, np.ndarray]:
     """Half-planes n_k·(y + Δy) ≤ r·cos(π/K) of the K-gon inscribed in each disk ‖y‖ ≤ r with a vertex on the
     direction of y: pairs y (m, 2), radii r (m,) → (normals (m, K, 2), room (m, K) = r·cos(π/K) − n_k·y,
-    ≥ 0 for ‖y‖ ≤ r)."""
+    ≥ 0 for ‖y‖ ≤ r). The normals are the K fixed directions at angles π(2k + 1)/K rotated onto y."""
+    offset = math.pi / sides * (2 * np.arange(sides) + 1)
     norm = np.hypot(pairs[:, 0], pairs[:, 1])
-    start = np.where(norm > 1e-15 * radius, np.arctan2(pairs[:, 1], pairs[:, 0]), 0.0)
-    angle = start[:, None] + math.pi / sides * (2 * np.arange(sides) + 1)
-    nx, ny = np.cos(angle), np.sin(angle)
+    ok = norm > 1e-15 * radius
+    c = np.where(ok, pairs[:, 0] / np.where(ok, norm, 1.0), 1.0)[:, None]
+    sn = np.where(ok, pairs[:, 1] / np.where(ok, norm, 1.0), 0.0)[:, None]
+    nx, ny = c * np.cos(offset) - sn * np.sin(offset), sn * np.cos(offset) + c * np.sin(offset)
     room = radius[:, None] * math.cos(math.pi / sides) - nx * pairs[:, :1] - ny * pairs[:, 1:]
     return np.stack([nx, ny], axis=-1), np.maximum(room, 0.0)
 
 
-def solve_program(program: Program, solver: str) -> tuple[np.ndarray, str]:
+def _daqp(H, g, G, h, lb, ub) -> np.ndarray | None:
+    """DAQP through its own Python API: bounds as its simple bounds, rows G z ≤ h."""
+    import daqp
+    upper, lower = np.concatenate([ub, h]), np.concatenate([lb, np.full(len(h), -1e30)])
+    z, _, flag, _ = daqp.solve(H, g, G, upper, lower, np.zeros(len(upper), dtype=np.intc))
+    return z if flag > 0 else None
+
+
+def solve_program(program: Program, solver: str, direct: bool = True) -> tuple[np.ndarray, str]:
     """The scaled step z (D,) of a program and a status: "ok"; "relaxed" (the damper rows asking to move away
-    could not be met and were relaxed to "do not come closer"); "held" (no solution: z = 0)."""
+    could not be met and were relaxed to "do not come closer"); "held" (no solution: z = 0). ``direct``: the
+    "daqp" solver through DAQP's own API (the same solver without qpsolvers' generic conversions), else through
+    :func:`qpsolvers.solve_qp`."""
     p = program
-    z = qpsolvers.solve_qp(p.H, p.g, p.G if len(p.h) else None, p.h if len(p.h) else None, lb=p.lb, ub=p.ub,
-                           solver=solver)
+    if direct and solver == "daqp":
+        solve = _daqp
+    else:
+        def solve(H, g, G, h, lb, ub):
+            return qpsolvers.solve_qp(H, g, G if len(h) else None, h if len(h) else None, lb=lb, ub=ub,
+                                      solver=solver)
+    z = solve(p.H, p.g, p.G, p.h, p.lb, p.ub)
     if z is not None:
         return z, "ok"
     pushing = p.damper & (p.h < 0)
     if pushing.any():
-        z = qpsolvers.solve_qp(p.H, p.g, p.G, np.where(pushing, 0.0, p.h), lb=p.lb, ub=p.ub, solver=solver)
+        z = solve(p.H, p.g, p.G, np.where(pushing, 0.0, p.h), p.lb, p.ub)
         if z is not None:
             return z, "relaxed"
     return np.zeros_like(p.g), "held"
@@ -191,6 +209,8 @@ class QPController:
             self.decoder = DecoderJacobian(robot.spec)
             space = robot.space
             self.rate_matrix = space.dec_matrix.numpy() if space.linear else None   # constant without twist
+        self.disk_block = np.zeros((len(self.disks) * k, d))                 # refilled each step (fixed pattern)
+        self.rate_rows = None if self.rate_matrix is None else self.speed_rows(np.zeros(d))
         self.status: list[str] = []
         self.active: list[int] = []
 
@@ -229,6 +249,11 @@ class QPController:
             return self.rate_matrix
         return self.decoder(torch.from_numpy(x)[None])[0].numpy()
 
+    def speed_rows(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The joint-speed rows ±(∂q/∂x·s) z ≤ joint_step at variables x (D,): (2N, D), (2N,)."""
+        rate = self.joint_rate(x) * self.scale
+        return np.concatenate([rate, -rate]), np.full(2 * len(rate), self.config.joint_step)
+
     def program(self, x: np.ndarray, jac: np.ndarray, err: np.ndarray, s: Sensed, b: int) -> Program:
         """The program of one sample: variables x (D,), task rows J (k, D) and e (k,) (module docstring)."""
         cfg, scale = self.config, self.scale
@@ -240,16 +265,16 @@ class QPController:
         rows, room = [], []
         if len(self.disks):
             normals, free = disk_rows(x[self.disks], self.radius, cfg.disk_sides)
-            block = np.zeros((free.size, len(x)))
+            block = self.disk_block
             row, first, second = self.disk_index
             block[row, first] = normals[..., 0].ravel() * self.disk_scale[0]
             block[row, second] = normals[..., 1].ravel() * self.disk_scale[1]
             rows.append(block)
             room.append(free.ravel())
         if self.decoder is not None:
-            rate = self.joint_rate(x) * scale
-            rows += [rate, -rate]
-            room.append(np.full(2 * len(rate), cfg.joint_step))
+            speed, speed_room = self.speed_rows(x) if self.rate_rows is None else self.rate_rows
+            rows.append(speed)
+            room.append(speed_room)
         extra_g, extra_h = self.extra_rows(x, s, b)
         rows.append(extra_g)
         room.append(extra_h)
@@ -275,7 +300,7 @@ class QPController:
         self.status, self.active = [], []
         for b in range(len(xs)):
             p = self.program(xs[b], jac[b], err[b], s, b)
-            z, status = solve_program(p, self.config.solver)
+            z, status = solve_program(p, self.config.solver, self.config.direct)
             self.active.append(np.count_nonzero(p.G @ z >= p.h - 1e-9)
                                + np.count_nonzero((z <= p.lb + 1e-9) | (z >= p.ub - 1e-9)))
             self.status.append(status)
