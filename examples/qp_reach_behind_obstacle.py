@@ -9,7 +9,7 @@ start along the same target path, with the same gains and every limit:
   limits by saturation) and :class:`dacr_learn.deploy.qp_control.QPController` (one QP per step: limits, joint
   speeds, clearance dampers).
 - ``arm`` (configs/scenes/reach_panda_port.yaml): the Panda holds the robot through a 5 mm port just above a wall
-  with a 40 mm opening (as in examples/track_port.py); the tip tracks a circle behind the port while a sphere sits
+  with a 50 mm opening (as in examples/track_port.py); the tip tracks a circle behind the port while a sphere sits
   inside the cone the body sweeps. Compared: :class:`~dacr_learn.arm.control.WholeBodyController`,
   :class:`~dacr_learn.arm.control.DecoupledController` and :class:`~dacr_learn.arm.qp_control.WholeBodyQPController`,
   all with the Panda's URDF velocity limits at ``--dt`` (10 ms).

@@ -1,25 +1,35 @@
 """Constrained QP control (dacr_learn.deploy.qp_control, dacr_learn.arm.qp_control): the step is the damped
 least-squares step when no constraint is active (against ResolvedRateController / WholeBodyController and a NumPy
 formula), meets every constraint on random seeded states (limits, bend disks, joint speeds, dampers, the port,
-URDF velocities; checked with independent Jacobians), relaxes an unmeetable damper instead of failing, the
-example's scene has no collision, and bad configuration is a clear ValueError."""
+URDF velocities; checked with independent Jacobians), relaxes an unmeetable damper instead of failing; the body's
+closed-form Jacobian (robot alone and on the arm) and the scene's clearance rows against central differences and
+NumPy distances; DAQP directly and through qpsolvers agree; the example's QP runs have no collision and no limit
+violation by an independent check (classic arcs, NumPy URDF chain, NumPy distances from the scene file), and bad
+configuration is a clear ValueError."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import ROOT, TDCR3, load_example
+import yaml
+from arm_reference import UrdfArm, robot_check
+from conftest import ROOT, TDCR3, load_example, reference_backbone, reference_joint_vector, spec_by_name
 from scipy.spatial.transform import Rotation
 
 from dacr_learn.arm import Composite, load_arm
 from dacr_learn.arm.control import Port, WholeBodyConfig, WholeBodyController
 from dacr_learn.arm.qp_control import WholeBodyQPController
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
+from dacr_learn.deploy.qp_clearance import cc_body_and_jacobian
 from dacr_learn.deploy.qp_control import QPConfig, QPController, Sensing, disk_rows, solve_program
 from dacr_learn.ik import ConstantCurvature
+from dacr_learn.ik.adapters import SolverModel
+from dacr_learn.layers import ClarkeEncoder
 from dacr_learn.robot import RobotSpec
+from dacr_learn.scene import load_scene
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
@@ -149,17 +159,105 @@ def test_a_clearance_below_safety_that_cannot_be_restored_is_relaxed_to_not_comi
     assert qp.status == ["relaxed"] and abs(float(moved[0, beta] - x[0, beta])) <= 1e-12 * float(qp.scale[beta])
 
 
-def test_the_example_sphere_clearance_jacobian_matches_autograd():
-    example = load_example("qp_reach_behind_obstacle")
-    model = ConstantCurvature(TDCR3)
-    scene = example.SphereClearance(example.robot_points(model, 4), [[0.03, 0.01, 0.2], [-0.02, 0.0, 0.1]],
-                                    [0.02, 0.01], 0.008, model.limits.scale)
-    x = interior(model, 2, seed=3, frac=0.8)
-    d, jac = scene(x)
-    assert torch.allclose(d, scene.clearance(x), atol=1e-15, rtol=0)
+SCENE = {"obstacles": [{"type": "sphere", "center": [0.05, 0.01, 0.2], "radius": 0.02},
+                       {"type": "capsule", "a": [-0.06, -0.05, 0.05], "b": [-0.02, 0.06, 0.15], "radius": 0.01},
+                       {"type": "box", "center": [0.02, -0.07, 0.12], "half_extents": [0.01, 0.02, 0.03],
+                        "rpy": [0.3, -0.2, 0.5]}]}
+
+
+def central_differences(fn, x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """∂fn/∂x (..., D) of fn: (D,) → (...) by central differences with steps (D,) (error O(step²))."""
+    cols = [(fn(x + step[i] * e) - fn(x - step[i] * e)) / (2 * step[i]) for i, e in enumerate(torch.eye(len(x),
+                                                                                                    dtype=F64))]
+    return torch.stack(cols, dim=-1)
+
+
+@pytest.mark.parametrize("name", ["tdcr_3seg_coupled", "type3", "hetero_4seg_types"])
+def test_the_body_jacobian_in_closed_form_matches_central_differences(name):
+    model = ConstantCurvature(spec_by_name(name))
+    x = interior(model, 2, seed=7, frac=0.9)
+    tip, body, jac = cc_body_and_jacobian(model, x, 5)
+    ref_body = model.body(x, 5)
+    assert torch.allclose(body.points, ref_body.points, atol=1e-15, rtol=0)
+    assert torch.equal(body.radius, ref_body.radius) and torch.equal(body.arc_length, ref_body.arc_length)
+    for got, ref in zip(tip, model.tip_and_jacobian(x), strict=True):                      # the tip is the last point
+        assert torch.allclose(got, ref, atol=1e-14, rtol=0)
+    step = 1e-6 * model.limits.scale
     for b in range(2):
-        ref = torch.func.jacrev(lambda v: scene.clearance(v[None])[0])(x[b])
-        assert torch.allclose(jac[b], ref, atol=1e-8, rtol=0)
+        fd = central_differences(lambda v: model.body(v[None], 5).points[0], x[b], step)
+        assert (jac[b] - fd).abs().max() <= 1e-7 * fd.abs().max()
+
+
+def test_clearance_rows_are_the_scene_distances_and_their_gradients_along_the_body():
+    model = ConstantCurvature(TDCR3)
+    qp = QPController(model, QPConfig(), scene=SCENE, points_per_segment=4)
+    x = interior(model, 2, seed=8, frac=0.9)
+    s = qp.sense(x)
+    scene = load_scene(SCENE)
+    assert s.distance.shape == (2, 13 * 3) and s.distance_jacobian.shape == (2, 13 * 3, 9)
+
+    def clearance(v: torch.Tensor) -> torch.Tensor:
+        body = model.body(v[None], 4)
+        return (scene.distances(body.points[0])[0] - body.radius[:, None]).flatten()
+    for b in range(2):
+        points = reference_backbone(TDCR3, model.features(x[b:b + 1])[0].numpy(), 4)          # classic arcs
+        assert np.allclose(s.distance[b].numpy(), numpy_distances(points, SCENE).ravel() - 0.008, atol=1e-12)
+        fd = central_differences(clearance, x[b], 1e-6 * model.limits.scale)
+        assert (s.distance_jacobian[b] - fd).abs().max() <= 1e-6 * fd.abs().max()
+
+
+def test_the_whole_body_jacobian_composes_the_arm_and_the_robot(arm_model):
+    model = arm_model
+    x = torch.cat([READY, model.robot.rest])[None].repeat(2, 1)
+    x[:, model.num_arm:] = interior(model.robot, 2, seed=9, frac=0.8)
+    x[1, :model.num_arm] += 0.1
+    qp = WholeBodyQPController(model, scene=SCENE, points_per_segment=4)
+    body, jac = qp.body_of(x, model.kinematics(x))
+    assert torch.allclose(body.points, model.body(x, 4).points, atol=1e-15, rtol=0)
+    step = 1e-6 * model.limits.scale
+    for b in range(2):
+        fd = central_differences(lambda v: model.body(v[None], 4).points[0], x[b], step)
+        assert (jac[b] - fd).abs().max() <= 1e-7 * fd.abs().max()
+
+
+def test_direct_daqp_and_qpsolvers_give_the_same_step():
+    model = ConstantCurvature(TDCR3)
+    x = interior(model, 4, seed=10, frac=0.9)
+    target = model.tip_and_jacobian(model.limits.sample(4, torch.Generator().manual_seed(11)))[0]
+    steps = [QPController(model, QPConfig(max_step=0.08, joint_step=5e-4, direct=direct), scene=SCENE)
+             .step_variables(x, target) for direct in (True, False)]
+    assert torch.allclose(steps[0], steps[1], atol=1e-9, rtol=0)
+
+
+def numpy_distances(points: np.ndarray, scene: dict) -> np.ndarray:
+    """Signed distances (P, O) [m] of points (P, 3) to a scene dict's spheres and boxes (and capsules), in NumPy
+    from the file's own numbers (URDF rpy: R = Rz·Ry·Rx)."""
+    cols = []
+    for o in scene["obstacles"]:
+        if o["type"] == "sphere":
+            cols.append(np.linalg.norm(points - o["center"], axis=-1) - o["radius"])
+        elif o["type"] == "capsule":
+            a, b = np.asarray(o["a"]), np.asarray(o["b"])
+            t = np.clip((points - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+            cols.append(np.linalg.norm(points - a - t[:, None] * (b - a), axis=-1) - o["radius"])
+        else:
+            rot = Rotation.from_euler("xyz", o.get("rpy", [0, 0, 0])).as_matrix()
+            q = np.abs((points - o["center"]) @ rot) - o["half_extents"]
+            cols.append(np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(-1), 0))
+    return np.stack(cols, -1)
+
+
+def independent_clearance(spec, q: np.ndarray, scene_file, base: np.ndarray | None = None) -> float:
+    """The smallest clearance [m] of one joint vector's body (the encoder's features, accepted only when the
+    independent joint geometry reproduces q; classic arcs at 64 points per segment, moved by ``base`` (4, 4)) to
+    the scene file's obstacles, read with a YAML parser."""
+    f = ClarkeEncoder(spec).to(F64)(torch.from_numpy(np.ascontiguousarray(q))).numpy()
+    assert np.abs(reference_joint_vector(spec, f) - q).max() < 1e-9
+    points = reference_backbone(spec, f, 64)
+    if base is not None:
+        points = points @ base[:3, :3].T + base[:3, 3]
+    obstacles = yaml.safe_load(Path(scene_file).read_text())
+    return float(numpy_distances(points, obstacles).min() - spec.segments[0].body_radius)
 
 
 def test_the_example_robot_scene_has_no_collision_with_qp_and_one_without(tmp_path):
@@ -170,6 +268,11 @@ def test_the_example_robot_scene_has_no_collision_with_qp_and_one_without(tmp_pa
     assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["min_clearance_mm"] > 0
     assert rrc["collisions"] > 0 and rrc["limit_violations"] == 0
     assert qp["final_error_mm"] < 1.0
+    paths = np.load(tmp_path / "paths.npz")
+    clear = [independent_clearance(TDCR3, q, example.SCENES["robot"]) for q in paths["robot/qp"]]
+    assert min(clear) > 0 and abs(1e3 * min(clear) - qp["min_clearance_mm"]) < 0.05
+    assert all(robot_check(TDCR3, q)[1] for q in paths["robot/qp"])
+    assert min(independent_clearance(TDCR3, q, example.SCENES["robot"]) for q in paths["robot/resolved_rate"]) < 0
 
 
 @pytest.fixture(scope="module")
@@ -238,6 +341,15 @@ def test_bad_configuration_is_a_clear_value_error(arm_model):
     with pytest.raises(ValueError, match="port_weight"):
         WholeBodyQPController(arm_model, port_weight=0.0)
 
+    with pytest.raises(ValueError, match="scene, distances"):
+        QPController(model, scene=SCENE, distances=LinearClearance(np.zeros(1), np.zeros((1, 9))))
+    with pytest.raises(ValueError, match="scene: expected"):
+        QPController(model, scene=3.0)
+    with pytest.raises(ValueError, match="has no body"):
+        QPController(type("TipOnly", (ConstantCurvature,), {"body": SolverModel.body})(TDCR3), scene=SCENE)
+    with pytest.raises(ValueError, match="points_per_segment"):
+        QPController(model, scene=SCENE, points_per_segment=0)
+
     servo = ConstantCurvature(TDCR3)
     servo.space = None                                                # variables that are not Clarke features
     with pytest.raises(ValueError, match="joint_step"):
@@ -253,6 +365,11 @@ def test_the_example_arm_scene_has_no_collision_with_qp_and_keeps_the_port(tmp_p
     qp = res["whole_body_qp"]
     assert qp["collisions"] == 0 and qp["limit_violations"] == 0 and qp["port_max_mm"] <= 5.0
     assert res["whole_body"]["collisions"] > 0 and res["whole_body"]["limit_violations"] == 0
+    arm, mount = UrdfArm(PANDA, "panda_link8"), np.load(ROOT / "configs" / "arms" / "panda_mount.npy")
+    n = len(arm.names)
+    for q in np.load(tmp_path / "paths.npz")["arm/whole_body_qp"]:                # NumPy URDF chain, classic arcs
+        assert arm.inside(q[:n]) and robot_check(TDCR3, q[n:])[1]
+        assert independent_clearance(TDCR3, q[n:], example.SCENES["arm"], arm.tip_pose(q[:n]) @ mount) > 0
 
 
 def test_sensing_as_a_module_drives_the_same_step():

@@ -30,6 +30,7 @@ import functools
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -53,14 +54,16 @@ def as_scene(scene: SceneLike) -> Scene:
 
 
 @functools.lru_cache(maxsize=16)
-def _virtual(spec: RobotSpec, points_per_segment: int) -> tuple[RobotSpec, Tensor, list[tuple[int, int]], Tensor]:
+def _virtual(spec: RobotSpec, points_per_segment: int) -> tuple[RobotSpec, np.ndarray, list[tuple[int, int]],
+                                                                 np.ndarray]:
     """The virtual robots of the module docstring: their spec (every segment extending), the multipliers W
-    (m·K, m, 4) of the features, the actuated (segment, column) pairs and t_ji (m·K, D)."""
+    (m·K, m, 4) of the features, the actuated (segment, column) pairs and t_ji (m·K, D). Arrays, not tensors: a
+    cached tensor made while torch.export traces a call would be a fake one in later eager calls."""
     extend = {"0": "I", "II": "III"}
     virtual = dataclasses.replace(spec, segments=tuple(dataclasses.replace(s, type=extend.get(s.type, s.type))
                                                        for s in spec.segments))
     m, k = spec.num_segments, points_per_segment
-    weight = torch.zeros(m * k, m, 4, dtype=torch.float64)
+    weight = np.zeros((m * k, m, 4))
     for seg in range(m):
         for j in range(k):
             row = weight[seg * k + j]
@@ -77,8 +80,8 @@ def cc_body_and_jacobian(model: ConstantCurvature, x: Tensor, points_per_segment
     analytic model at x (B, D), in closed form from one kinematics call (module docstring)."""
     virtual, weight, columns, chain = _virtual(model.spec, points_per_segment)
     features = effective_features(model.spec, model.features(x))                  # (B, m, 4)
-    pose, jac = cc_pose_and_jacobian(virtual, features.unsqueeze(1) * weight.to(x), columns)   # (B, mK, 4, 4) ...
-    jac = jac * chain.to(x).unsqueeze(1)                                             # (B, mK, 6, D)
+    pose, jac = cc_pose_and_jacobian(virtual, features.unsqueeze(1) * torch.from_numpy(weight).to(x), columns)   # (B, mK, 4, 4) ...
+    jac = jac * torch.from_numpy(chain).to(x).unsqueeze(1)                                             # (B, mK, 6, D)
     points = torch.cat([torch.zeros_like(pose[:, :1, :3, 3]), pose[:, :, :3, 3]], 1)
     point_jac = torch.cat([torch.zeros_like(jac[:, :1, :3]), jac[:, :, :3]], 1)
     body = BodyPoints(points, *body_layout(model.spec, points_per_segment, x.dtype, x.device))

@@ -30,6 +30,7 @@ NumPy + qpsolvers for the program, torch for the model. Pure Python; no Lightnin
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -120,15 +121,21 @@ class Program(NamedTuple):
 def disk_rows(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.ndarray, np.ndarray]:
     """Half-planes n_k·(y + Δy) ≤ r·cos(π/K) of the K-gon inscribed in each disk ‖y‖ ≤ r with a vertex on the
     direction of y: pairs y (m, 2), radii r (m,) → (normals (m, K, 2), room (m, K) = r·cos(π/K) − n_k·y,
-    ≥ 0 for ‖y‖ ≤ r). The normals are the K fixed directions at angles π(2k + 1)/K rotated onto y."""
+    ≥ 0 for ‖y‖ ≤ r). The normals are the K directions at angles π(2k + 1)/K turned onto y (onto x at y = 0)."""
+    cos, sin = _polygon(sides)
+    norm = np.hypot(pairs[:, 0], pairs[:, 1])[:, None]
+    small = norm <= 1e-15 * radius[:, None]
+    unit = np.where(small, (1.0, 0.0), pairs / np.where(small, 1.0, norm))
+    c, sn = unit[:, :1], unit[:, 1:]
+    normals = np.stack([c * cos - sn * sin, sn * cos + c * sin], axis=-1)             # (m, K, 2)
+    room = radius[:, None] * math.cos(math.pi / sides) - np.maximum(norm, 0.0) * cos   # n_k·y = ‖y‖·cos(offset_k)
+    return normals, np.maximum(room, 0.0)
+
+
+@functools.lru_cache(maxsize=8)
+def _polygon(sides: int) -> tuple[np.ndarray, np.ndarray]:
     offset = math.pi / sides * (2 * np.arange(sides) + 1)
-    norm = np.hypot(pairs[:, 0], pairs[:, 1])
-    ok = norm > 1e-15 * radius
-    c = np.where(ok, pairs[:, 0] / np.where(ok, norm, 1.0), 1.0)[:, None]
-    sn = np.where(ok, pairs[:, 1] / np.where(ok, norm, 1.0), 0.0)[:, None]
-    nx, ny = c * np.cos(offset) - sn * np.sin(offset), sn * np.cos(offset) + c * np.sin(offset)
-    room = radius[:, None] * math.cos(math.pi / sides) - nx * pairs[:, :1] - ny * pairs[:, 1:]
-    return np.stack([nx, ny], axis=-1), np.maximum(room, 0.0)
+    return np.cos(offset), np.sin(offset)
 
 
 def _daqp(H, g, G, h, lb, ub) -> np.ndarray | None:
@@ -258,10 +265,13 @@ class QPController:
         """The program of one sample: variables x (D,), task rows J (k, D) and e (k,) (module docstring)."""
         cfg, scale = self.config, self.scale
         js = jac * scale
-        H = js.T @ js + self.damping_matrix
-        g = -js.T @ err
-        lb = np.minimum(np.maximum(-self.step_bound, (self.lower - x) / scale), 0.0)
-        ub = np.maximum(np.minimum(self.step_bound, (self.upper - x) / scale), 0.0)
+        H = js.T @ js
+        H += self.damping_matrix
+        g = js.T @ err
+        np.negative(g, out=g)
+        lb, ub = (self.lower - x) / scale, (self.upper - x) / scale
+        np.clip(lb, -self.step_bound, 0.0, out=lb)
+        np.clip(ub, 0.0, self.step_bound, out=ub)
         rows, room = [], []
         if len(self.disks):
             normals, free = disk_rows(x[self.disks], self.radius, cfg.disk_sides)
@@ -276,17 +286,20 @@ class QPController:
             rows.append(speed)
             room.append(speed_room)
         extra_g, extra_h = self.extra_rows(x, s, b)
-        rows.append(extra_g)
-        room.append(extra_h)
-        damper = [np.zeros(sum(len(r) for r in room), dtype=bool)]
+        if len(extra_h):
+            rows.append(extra_g)
+            room.append(extra_h)
+        fixed = sum(len(r) for r in room)
         if s.distance is not None:
-            d, jd = s.distance[b].numpy(), s.distance_jacobian[b].numpy()
-            near = d < cfg.influence
-            if near.any():
-                rows.append(-jd[near] * scale)
-                room.append(cfg.damper_gain * (d[near] - cfg.safety) / (cfg.influence - cfg.safety))
-                damper.append(np.ones(int(near.sum()), dtype=bool))
-        return Program(H, g, np.concatenate(rows), np.concatenate(room), lb, ub, np.concatenate(damper))
+            d = s.distance[b].numpy()
+            near = np.flatnonzero(d < cfg.influence)
+            if len(near):
+                rows.append(s.distance_jacobian[b].numpy()[near] * -scale)
+                room.append((d[near] - cfg.safety) * (cfg.damper_gain / (cfg.influence - cfg.safety)))
+        G, h = (np.concatenate(rows), np.concatenate(room)) if rows else (np.zeros((0, len(x))), np.zeros(0))
+        damper = np.zeros(len(h), dtype=bool)
+        damper[fixed:] = True
+        return Program(H, g, G, h, lb, ub, damper)
 
     def step_variables(self, x: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in variables: x (B, D) → x' (B, D), inside the limits."""
