@@ -37,11 +37,11 @@ class WholeBodyQPController(QPController):
     """Constrained resolved-rate control of the whole body (module docstring).
 
     Args: model: the :class:`Composite`; config: :class:`~dacr_learn.deploy.qp_control.QPConfig` (None: the
-    defaults); port: a
-    :class:`Port` or None; distances: the clearance provider x (B, n + D) → (d (B, M) [m], ∂d/∂x (B, M, n + D)) or
-    None; scene: the obstacles in the arm's base frame (a Scene, a scene YAML path or its dict) instead, with
-    ``points_per_segment`` body points per segment; dt: control period [s] for the URDF velocity limits (None: not applied); port_weight: k > 0 of the port
-    rows; sense: replaces the model's evaluation (x → :class:`Sensed` with ``base`` and ``base_jacobian``).
+    defaults); port: a :class:`Port` or None; distances: the clearance provider x (B, n + D) → (d (B, M) [m],
+    ∂d/∂x (B, M, n + D)) or None; scene: the obstacles in the arm's base frame (a Scene, a scene YAML path or its
+    dict) instead, with ``points_per_segment`` body points per segment; dt: control period [s] for the URDF
+    velocity limits (None: not applied); port_weight: k > 0 of the port rows; sense: replaces the model's
+    evaluation (x → :class:`Sensed` with ``base`` and ``base_jacobian``).
     ``step(q (B, n + N), target (B, 4, 4) or (B, 3), feedforward (B, 6) or (B, 3))`` → q' (B, n + N).
     """
 

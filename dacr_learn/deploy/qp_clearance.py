@@ -38,7 +38,7 @@ from ..body import BodyPoints, body_layout
 from ..ik.adapters import ConstantCurvature, TipJacobian
 from ..kinematics import cc_pose_and_jacobian, effective_features
 from ..models import FEATURE_COLUMNS, actuated_columns
-from ..robot import EXTENDING_TYPES, RobotSpec
+from ..robot import RobotSpec
 from ..scene import Scene, load_scene
 
 SceneLike = Scene | str | Path | dict[str, Any]
@@ -80,8 +80,9 @@ def cc_body_and_jacobian(model: ConstantCurvature, x: Tensor, points_per_segment
     analytic model at x (B, D), in closed form from one kinematics call (module docstring)."""
     virtual, weight, columns, chain = _virtual(model.spec, points_per_segment)
     features = effective_features(model.spec, model.features(x))                  # (B, m, 4)
-    pose, jac = cc_pose_and_jacobian(virtual, features.unsqueeze(1) * torch.from_numpy(weight).to(x), columns)   # (B, mK, 4, 4) ...
-    jac = jac * torch.from_numpy(chain).to(x).unsqueeze(1)                                             # (B, mK, 6, D)
+    virtual_features = features.unsqueeze(1) * torch.from_numpy(weight).to(x)        # (B, m·K, m, 4)
+    pose, jac = cc_pose_and_jacobian(virtual, virtual_features, columns)             # (B, m·K, 4, 4), (…, 6, D)
+    jac = jac * torch.from_numpy(chain).to(x).unsqueeze(1)
     points = torch.cat([torch.zeros_like(pose[:, :1, :3, 3]), pose[:, :, :3, 3]], 1)
     point_jac = torch.cat([torch.zeros_like(jac[:, :1, :3]), jac[:, :, :3]], 1)
     body = BodyPoints(points, *body_layout(model.spec, points_per_segment, x.dtype, x.device))
