@@ -122,14 +122,22 @@ def disk_rows(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.nda
     """Half-planes n_k·(y + Δy) ≤ r·cos(π/K) of the K-gon inscribed in each disk ‖y‖ ≤ r with a vertex on the
     direction of y: pairs y (m, 2), radii r (m,) → (normals (m, K, 2), room (m, K) = r·cos(π/K) − n_k·y,
     ≥ 0 for ‖y‖ ≤ r). The normals are the K directions at angles π(2k + 1)/K turned onto y (onto x at y = 0)."""
+    nx, ny, room = _disk_normals(pairs, radius, sides)
+    return np.stack([nx, ny], axis=-1), room
+
+
+def _disk_normals(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`disk_rows` as (n_x (m, K), n_y (m, K), room (m, K)), in few NumPy calls (it runs every step)."""
     cos, sin = _polygon(sides)
-    norm = np.hypot(pairs[:, 0], pairs[:, 1])[:, None]
-    small = norm <= 1e-15 * radius[:, None]
-    unit = np.where(small, (1.0, 0.0), pairs / np.where(small, 1.0, norm))
-    c, sn = unit[:, :1], unit[:, 1:]
-    normals = np.stack([c * cos - sn * sin, sn * cos + c * sin], axis=-1)             # (m, K, 2)
-    room = radius[:, None] * math.cos(math.pi / sides) - np.maximum(norm, 0.0) * cos   # n_k·y = ‖y‖·cos(offset_k)
-    return normals, np.maximum(room, 0.0)
+    norm = np.hypot(pairs[:, 0], pairs[:, 1])
+    if (norm <= 1e-15 * radius).any():                                    # no direction: take x
+        pairs, norm = pairs.copy(), norm.copy()
+        small = norm <= 1e-15 * radius
+        pairs[small], norm[small] = (1e-300, 0.0), 1e-300
+    c, sn = (pairs / norm[:, None]).T[:, :, None]
+    room = radius[:, None] * math.cos(math.pi / sides) - norm[:, None] * cos      # n_k·y = ‖y‖·cos(offset_k)
+    np.maximum(room, 0.0, out=room)
+    return c * cos - sn * sin, sn * cos + c * sin, room
 
 
 @functools.lru_cache(maxsize=8)
@@ -205,7 +213,8 @@ class QPController:
         self.damping_matrix = config.damping**2 * np.eye(d)
         k = config.disk_sides
         self.disk_index = (np.arange(len(self.disks) * k), self.disks[:, 0].repeat(k), self.disks[:, 1].repeat(k))
-        self.disk_scale = (self.scale[self.disks[:, 0]].repeat(k), self.scale[self.disks[:, 1]].repeat(k))
+        self.disk_scale = (self.scale[self.disks[:, 0], None], self.scale[self.disks[:, 1], None])     # (m, 1)
+        self.lower_scaled, self.upper_scaled = self.lower / self.scale, self.upper / self.scale
         robot = getattr(model, "robot", model)
         self.weight = float(robot.length) if config.rotation_length is None else config.rotation_length
         self.decoder = self.rate_matrix = None
@@ -269,16 +278,17 @@ class QPController:
         H += self.damping_matrix
         g = js.T @ err
         np.negative(g, out=g)
-        lb, ub = (self.lower - x) / scale, (self.upper - x) / scale
-        np.clip(lb, -self.step_bound, 0.0, out=lb)
-        np.clip(ub, 0.0, self.step_bound, out=ub)
+        xs = x / scale
+        lb, ub = self.lower_scaled - xs, self.upper_scaled - xs
+        np.minimum(np.maximum(lb, -self.step_bound, out=lb), 0.0, out=lb)
+        np.maximum(np.minimum(ub, self.step_bound, out=ub), 0.0, out=ub)
         rows, room = [], []
         if len(self.disks):
-            normals, free = disk_rows(x[self.disks], self.radius, cfg.disk_sides)
+            nx, ny, free = _disk_normals(x[self.disks], self.radius, cfg.disk_sides)
             block = self.disk_block
             row, first, second = self.disk_index
-            block[row, first] = normals[..., 0].ravel() * self.disk_scale[0]
-            block[row, second] = normals[..., 1].ravel() * self.disk_scale[1]
+            block[row, first] = (nx * self.disk_scale[0]).ravel()
+            block[row, second] = (ny * self.disk_scale[1]).ravel()
             rows.append(block)
             room.append(free.ravel())
         if self.decoder is not None:
