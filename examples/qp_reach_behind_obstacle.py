@@ -55,6 +55,7 @@ F64 = torch.float64
 ROBOT = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
 PANDA_READY = (0.0, -0.3, 0.0, -2.2, 0.0, 2.0, math.pi / 4)
 SPACING = 0.35         # [m] in y between the controllers in the recording
+SCENE_OFFSET = {"robot": -0.6, "arm": 0.0}    # [m] in x: the robot-alone scene beside the arm's
 TIMELINE = "step"
 SCENES = {"robot": ROOT / "configs" / "scenes" / "reach_tdcr3.yaml",
           "arm": ROOT / "configs" / "scenes" / "reach_panda_port.yaml"}
@@ -229,7 +230,8 @@ def write_recording(file: Path, setups: dict, paths: dict, args) -> None:
         model, scene, path = setup["model"], setup["scene"], setup["path"]
         for j, (ctrl, q) in enumerate(paths[name].items()):
             root = f"world/{name}/{ctrl}"
-            rec.log(root, rr.Transform3D(translation=[0.0, SPACING * j, 0.0]), static=True)
+            rec.set_time(TIMELINE, sequence=0)                    # obstacles and target from the first step on
+            rec.log(root, rr.Transform3D(translation=[SCENE_OFFSET[name], SPACING * j, 0.0]), static=True)
             rec.log(f"{root}/label", rr.Points3D([path[0].numpy() + [0.0, 0.0, 0.05]], labels=[ctrl],
                                                  show_labels=True, radii=0.001), static=True)
             log_obstacles(rec, f"{root}/obstacles", scene)
@@ -242,7 +244,7 @@ def write_recording(file: Path, setups: dict, paths: dict, args) -> None:
                 log_path(rec, f"{root}/tracked_path", tips[:k + 1], color=(230, 120, 20), radius=0.0008)
                 log_body_clearance(rec, f"{root}/body", scene, body.points[k], body.radius, args.safety)
                 if name == "arm":
-                    log_arm(rec, f"{root}/arm", model.arm.frames(x[k:k + 1, :model.num_arm])[0], radius=0.03,
+                    log_arm(rec, f"{root}/arm", model.arm.frames(x[k:k + 1, :model.num_arm])[0], radius=0.015,
                             mount=model.base_pose(x[k:k + 1, :model.num_arm])[0])
     rec.disconnect()
 
