@@ -228,7 +228,8 @@ class QPController:
         self.disk_block = np.zeros((len(self.disks) * k, d))                 # refilled each step (fixed pattern)
         self.rate_rows = None if self.rate_matrix is None else self.speed_rows(np.zeros(d))
         self.status: list[str] = []
-        self.active: list[int] = []
+        self.solved: list[tuple[Program, np.ndarray]] = []                  # the last step's programs and steps
+        self.inside_box = (self.lower - 1e-12 * self.scale, self.upper + 1e-12 * self.scale)
 
     # -- evaluation --------------------------------------------------------------------------------------------
 
@@ -320,25 +321,31 @@ class QPController:
         jac, err = self.task(s, target, feedforward)
         xs, jac, err = x.numpy(), jac.numpy(), err.numpy()
         out = np.empty_like(xs)
-        self.status, self.active = [], []
+        self.status, self.solved = [], []
         for b in range(len(xs)):
             p = self.program(xs[b], jac[b], err[b], s, b)
             z, status = solve_program(p, self.config.solver, self.config.direct)
-            self.active.append(np.count_nonzero(p.G @ z >= p.h - 1e-9)
-                               + np.count_nonzero((z <= p.lb + 1e-9) | (z >= p.ub - 1e-9)))
+            self.solved.append((p, z))
             self.status.append(status)
             out[b] = xs[b] + self.scale * z
         out = torch.from_numpy(out)
         return self.limits.project(out) if self.outside(out) else out
 
-    def outside(self, x: Tensor, tol: float = 1e-12) -> bool:
-        """Whether some variable of x (B, D) lies outside a box or disk by more than ``tol`` of its scale (the
+    @property
+    def active(self) -> list[int]:
+        """Per sample of the last step, the number of rows its step met with equality (bounds included)."""
+        return [int(np.count_nonzero(p.G @ z >= p.h - 1e-9) + np.count_nonzero((z <= p.lb + 1e-9) | (z >= p.ub - 1e-9)))
+                for p, z in self.solved]
+
+    def outside(self, x: Tensor) -> bool:
+        """Whether some variable of x (B, D) lies outside a box or disk by more than 1e-12 of its scale (the
         solver's round-off): then :meth:`Limits.project` removes it."""
-        v, margin = x.numpy(), tol * self.scale
-        if ((v < self.lower - margin) | (v > self.upper + margin)).any():
+        v = x.numpy()
+        lower, upper = self.inside_box
+        if (v < lower).any() or (v > upper).any():
             return True
         return bool(len(self.disks)) and bool((np.hypot(v[:, self.disks[:, 0]], v[:, self.disks[:, 1]])
-                                                > self.radius * (1 + tol)).any())
+                                                > self.radius * (1 + 1e-12)).any())
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in joints: q (B, N) → q' (B, N) (module docstring)."""
