@@ -218,13 +218,18 @@ def write_recording(file: Path, setups: dict, paths: dict, args) -> None:
     apart) the obstacles, the target path, the tracked tip path and every ``args.every`` steps the body coloured
     by its clearance (and the arm, in the arm scene)."""
     import rerun as rr
+    import rerun.blueprint as rrb
 
     from dacr_learn.viz.arm import log_arm
+    from dacr_learn.viz.layout import time_panel_at_end
     from dacr_learn.viz.obstacles import log_body_clearance, log_obstacles
     from dacr_learn.viz.scene import log_path
     file.parent.mkdir(parents=True, exist_ok=True)
+    views = [rrb.Spatial3DView(origin=f"world/{name}", name=f"{name}: " + ", ".join(paths[name]))
+             for name in setups]
     rec = rr.RecordingStream("dacr_qp_reach")
-    rec.set_sinks(rr.FileSink(str(file)))
+    rec.set_sinks(rr.FileSink(str(file)), default_blueprint=rrb.Blueprint(
+        rrb.Horizontal(*views), time_panel_at_end(TIMELINE), collapse_panels=True))
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     for name, setup in setups.items():
         model, scene, path = setup["model"], setup["scene"], setup["path"]
