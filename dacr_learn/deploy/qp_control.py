@@ -1,4 +1,4 @@
-"""Constrained resolved-rate control: one quadratic program per control step (qpsolvers, DAQP backend).
+"""Constrained resolved-rate control: one quadratic program per control step (DAQP, directly or via qpsolvers).
 
 For any IK model (:class:`~dacr_learn.ik.SolverModel`: the Clarke features of a robot, a learned FK, a hardware
 model; the arm composite in :mod:`dacr_learn.arm.qp_control`) with variables x (D,), limits and scales s
@@ -17,8 +17,10 @@ least-squares step of :func:`~dacr_learn.deploy.control.scaled_dls_step`, z = J�
 - **Bend disk**: the regular K-gon inscribed in the disk with a vertex on the current direction of ρ (so the
   current point is feasible and the limit is exact along that direction); the polygon lies inside the disk, so
   a step never leaves it.
-- **Clearance**: ``distances(x) → (d (B, M) [m], ∂d/∂x (B, M, D) [m per variable unit])``, the signed distances
-  of body points to obstacles (negative: penetration) and their Jacobians. d_s = ``safety``, d_i =
+- **Clearance**: a ``scene`` (the model's body to its obstacles, the scene's closed-form distance gradients times
+  the body's Jacobian: :mod:`.qp_clearance`) or any ``distances(x) → (d (B, M) [m], ∂d/∂x (B, M, D) [m per
+  variable unit])``: signed distances of body points to obstacles (negative: penetration) and their Jacobians.
+  d_s = ``safety``, d_i =
   ``influence``, ξ = ``damper_gain`` [m per step]: d may shrink by at most the fraction ξ/(d_i − d_s) of its
   margin d − d_s per step, so it approaches d_s but (to first order) never crosses it.
 - A clearance already below d_s asks to move away; when that cannot be met the program is solved again with
@@ -26,7 +28,8 @@ least-squares step of :func:`~dacr_learn.deploy.control.scaled_dls_step`, z = J�
   fails ("held"). Zero always satisfies every other row, so the step is always inside the limits.
 
 x' = x + s·z, projected (:meth:`Limits.project`) only where the solver's round-off left a limit. Float64,
-NumPy + qpsolvers for the program, torch for the model. Pure Python; no Lightning, no Rerun.
+NumPy and DAQP (its own API, or qpsolvers for any backend) for the program, torch for the model (or its exported
+evaluation, :class:`Sensing`). Pure Python; no Lightning, no Rerun.
 """
 from __future__ import annotations
 
