@@ -15,7 +15,8 @@ rows are in the program). One thread, float64. Rows:
   program in NumPy and its solution): DAQP directly, through qpsolvers, proxqp through qpsolvers (if installed);
 - ``sensing_aoti`` / ``qp_aoti`` (with ``--aoti``): the evaluation (:class:`Sensing`: tip, Jacobian, clearances
   and their Jacobians) as an AOTInductor package (minutes to build; ``--reuse`` loads runs/qp_<scene>.pt2), alone
-  and driving the QP step.
+  and driving the QP step (``qp_aoti``: joints to joints; ``qp_aoti_variables``: in the IK variables,
+  :meth:`~QPController.step_variables`, for a loop that keeps its state in them).
 
 Candidates run interleaved (benchmarks/timing.py), so load slows them alike; eager rows (milliseconds) run
 ``--eager-rounds`` rounds, the fast rows ``--rounds`` rounds of 10 calls (≥ 1,000 calls each by default). Medians
@@ -126,6 +127,7 @@ def candidates(setup: dict, today, qp, q: torch.Tensor, target: torch.Tensor, ar
         out["aoti_max_deviation"] = float((compiled.step(q, target) - qp.step(q, target)).abs().max())
         fast["sensing_aoti"] = lambda: compiled.custom_sense(x)
         fast["qp_aoti"] = lambda: compiled.step(q, target)
+        fast["qp_aoti_variables"] = lambda: compiled.step_variables(x, target)
     return out | timed(eager, args.eager_rounds, 10) | timed(fast, args.rounds, 10)
 
 
