@@ -50,6 +50,7 @@ from torch import Tensor, nn
 
 from .body import BodyPoints, body_of_points, check_points_per_segment
 from .checks import check_tensor
+from .folding import activation_name
 from .kinematics import effective_features
 from .layers import ClarkeEncoder
 from .lie import chain_products, pose_from_parts, roll_z, twist_exp
@@ -331,7 +332,7 @@ def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
                              f"training robot {model.spec.name!r} has (type, length, radius, limits); "
                              f"expected one of {sorted(known, key=str)}, or a model trained with units 'strain'")
     net = model.net
-    new = CompositionalFK(target, "clarke", net[0].out_features, len(net) // 2, _activation(net),
+    new = CompositionalFK(target, "clarke", net[0].out_features, len(net) // 2, activation_name(net),
                           model.rotation, model.front.context, units=model.units,
                           twist_roll=model.rolls or not any(s.twists for s in model.spec.segments),
                           ).to(next(model.parameters()).dtype)
@@ -341,10 +342,3 @@ def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
     if unexpected or any(not k.startswith(ROBOT_BUFFERS) for k in missing):
         raise RuntimeError(f"transfer: state-dict mismatch: missing {missing}, unexpected {unexpected}")
     return new
-
-
-def _activation(net: nn.Sequential) -> str:
-    from .models import ACTIVATIONS
-
-    kind = type(net[1])
-    return next(name for name, cls in ACTIVATIONS.items() if cls is kind)

@@ -31,19 +31,13 @@ def summarize(errors: dict[str, Tensor], total_length: float) -> dict[str, float
     """
     out: dict[str, float] = {}
     e = {k: v.detach().double().flatten() for k, v in errors.items()}
-    if "pos_err" in e:
-        mm = e["pos_err"] * 1e3
-        out.update(pos_err_mean_mm=mm.mean().item(), pos_err_p95_mm=torch.quantile(mm, 0.95).item(),
-                   pos_err_max_mm=mm.max().item(), pos_err_mean_pct=(e["pos_err"].mean() / total_length * 100).item())
-    if "rot_err" in e:
-        deg = torch.rad2deg(e["rot_err"])
-        out.update(rot_err_mean_deg=deg.mean().item(), rot_err_p95_deg=torch.quantile(deg, 0.95).item(),
-                   rot_err_max_deg=deg.max().item())
-    if "body_err" in e:
-        mm = e["body_err"] * 1e3
-        out.update(body_err_mean_mm=mm.mean().item(), body_err_p95_mm=torch.quantile(mm, 0.95).item(),
-                   body_err_max_mm=mm.max().item(),
-                   body_err_mean_pct=(e["body_err"].mean() / total_length * 100).item())
+    for key, unit, scaled in (("pos_err", "mm", 1e3), ("rot_err", "deg", None), ("body_err", "mm", 1e3)):
+        if key in e:
+            x = e[key] * scaled if scaled else torch.rad2deg(e[key])
+            out.update({f"{key}_mean_{unit}": x.mean().item(), f"{key}_p95_{unit}": torch.quantile(x, 0.95).item(),
+                        f"{key}_max_{unit}": x.max().item()})
+            if unit == "mm":
+                out[f"{key}_mean_pct"] = (e[key].mean() / total_length * 100).item()
     if "joint_err" in e:
         out.update(joint_err_mean_mm=e["joint_err"].mean().item() * 1e3,
                    joint_err_max_mm=e["joint_err"].max().item() * 1e3)

@@ -245,11 +245,11 @@ class IKModel(nn.Module):
     def task_scale(self, q: Tensor) -> Tensor:
         """Output scales (D,) of the "task" standardisation at joint vectors q (B, num_joints) (see class)."""
         std = self.out_norm.std.double()
-        y = self.target(q.double()).detach().requires_grad_(True)
-        features = ClarkeEncoder(self.spec).double()(y) if self.features == "raw" else actuated_to_features(
-            y, self.selection.double(), self.base_features.double())
-        v = pose_to_vector(forward_kinematics(self.spec, features), self.length)
-        jac = torch.stack([torch.autograd.grad(v[:, i].sum(), y, retain_graph=True)[0] for i in range(v.shape[-1])])
+        to_features = ClarkeEncoder(self.spec).double() if self.features == "raw" else (
+            lambda y: actuated_to_features(y, self.selection.double(), self.base_features.double()))
+        jac = torch.autograd.functional.jacobian(                      # (9, B, D)
+            lambda y: pose_to_vector(forward_kinematics(self.spec, to_features(y)), self.length).sum(0),
+            self.target(q.double()).detach())
         gain = jac.norm(dim=0).median(dim=0).values                  # (D,) pose change per unit of y_i
         scale = 1 / gain.clamp_min(1e-12 * gain.max().item())
         return (scale * torch.exp(torch.log(std / scale).mean())).to(self.out_norm.std.dtype)
@@ -271,10 +271,7 @@ class IKModel(nn.Module):
 
     def decode(self, z: Tensor) -> Tensor:
         """Standardised network output (..., D) → joint vector (..., num_joints)."""
-        y = self.out_norm.inverse(z)
-        if self.features == "raw":
-            return y
-        return self.decoder(actuated_to_features(y, self.selection, self.base_features))
+        return self.out_norm.inverse(z) if self.features == "raw" else self.decoder(self.decode_features(z))
 
     def decode_features(self, z: Tensor) -> Tensor:
         """Standardised network output (..., D) → full Clarke feature tensor (..., m, 4) of the predicted

@@ -111,7 +111,8 @@ def main(argv: list[str] | None = None) -> IKResult:
         description = f"{args.arm} ({args.arm_tip}) carrying the {description}; {describe(solver_model)}"
     parts = []
     chunks = range(0, targets.shape[0], args.batch)
-    progress = _progress(len(chunks))
+    from tqdm import tqdm
+    progress = tqdm(total=len(chunks), desc="IK", unit="batch", file=sys.stderr, disable=len(chunks) < 2)
     for start in chunks:
         t = targets[start:start + args.batch]
         q0_chunk = q0 if q0 is None or q0.dim() == 1 else q0[start:start + args.batch]
@@ -161,17 +162,3 @@ def _record(path: Path, model, targets: torch.Tensor, q: torch.Tensor, success: 
         from ..viz.obstacles import log_scene_solutions
         log_scene_solutions(rec, "ik", scene, targets, lines, body_layout(spec, 16)[1], success, clearance)
     rec.flush()
-
-
-class _NoProgress:
-    def update(self) -> None: ...
-
-    def close(self) -> None: ...
-
-
-def _progress(total: int):
-    if total < 2:
-        return _NoProgress()
-    from tqdm import tqdm
-    return tqdm(total=total, desc="IK", unit="batch", file=sys.stderr)
-

@@ -147,14 +147,7 @@ def tip_task(jacobian: Tensor, position: Tensor, rotation: Tensor | None, target
 
 def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
     """Jacobian of a batched, per-sample map by reverse mode, one output entry at a time: x (B, k) → (B, *out, k)."""
-    x = x.detach().requires_grad_(True)
-    with torch.enable_grad():
-        y = fn(x)
-        flat = y.reshape(y.shape[0], -1)
-        rows = [torch.autograd.grad(flat[:, i].sum(), x, retain_graph=True, allow_unused=True)[0]
-                for i in range(flat.shape[1])]
-    rows = [torch.zeros_like(x) if r is None else r for r in rows]
-    return torch.stack(rows, dim=1).reshape(*y.shape, x.shape[-1]).detach()
+    return torch.autograd.functional.jacobian(lambda v: fn(v).sum(0), x.detach()).movedim(-2, 0)
 
 
 def analytic_jacobian(spec: RobotSpec) -> JacobianFn:

@@ -32,6 +32,7 @@ from torch import nn
 
 from ...body import BodyPoints
 from ...checks import load_torch_file
+from ...folding import linear_layers
 from ...robot import RobotSpec
 from ...runs import CHECKPOINT, find_checkpoint
 from ..ccmodel import CalibratedCC
@@ -141,7 +142,7 @@ def _member_state(member: nn.Module) -> dict[str, torch.Tensor]:
 
 def compositional_config(member: CCCompositionalResidual) -> dict[str, Any]:
     """The constructor arguments that shape a compositional member: context, width, depth, torsion."""
-    linear = [layer for layer in member.fk.net if isinstance(layer, nn.Linear)]
+    linear = linear_layers(member.fk.net)
     return {"context": member.fk.front.context, "width": int(linear[0].out_features), "depth": len(linear) - 1,
             "torsion": bool(member.twist_mask[5] != 0)}
 

@@ -24,16 +24,9 @@ from torch import Tensor, nn
 from ...checks import F64
 from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_twist, effective_features
-from ...lie import pose_from_parts, twist_chain_jacobian, twist_exp
+from ...lie import twist_chain_jacobian, twist_exp
 from .checkpoint import HardwareModel
-from .inference import (
-    HardwareFK,
-    active_set_maps,
-    cc_segment_poses,
-    cc_twist_directions,
-    chained_marker_point,
-    sigma_coefficients,
-)
+from .inference import HardwareFK, cc_segment_poses, cc_twist_directions, chained_marker_point, model_constants
 
 
 def _check_servo(servo: Tensor, num_servos: int) -> None:
@@ -84,17 +77,12 @@ class CompositionalHardwareFK(nn.Module):
         if not model.compositional:
             raise ValueError(f"model: expected CCCompositionalResidual members, got "
                              f"{[type(m).__name__ for m in model.members]} (use inference.HardwareFK)")
-        spec, cc = model.spec, model.cc
+        spec = model.spec
         self.num_segments, self.num_servos, self.ensemble = spec.num_segments, len(model.servo_ids), len(model.members)
         nets, self.activation, self.context = _stacked_networks(model.members)
         self.layers = sum(1 for k in nets if k[0] == "w" and k[1:].isdigit())    # linear layers of f_θ
         with torch.no_grad():
-            buffers = {**active_set_maps(model), **nets,
-                       "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
-                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=F64)]),   # homogeneous
-                       "sigma_coefficients": sigma_coefficients(model),
-                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=F64),
-                       "length": torch.tensor([s.length for s in spec.segments], dtype=F64)}
+            buffers = {**model_constants(model), **nets}
             # ∂ξ_k^CC along all 2m coordinates (m, 2m, 6): segment k's two directions, zero elsewhere
             eye = torch.eye(spec.num_segments, dtype=F64)[:, :, None, None]
             buffers["cc_directions"] = (eye * cc_twist_directions(buffers["radius"])).flatten(1, 2)

@@ -66,6 +66,17 @@ def cc_tip_and_jacobian(rho: Tensor, radius: Tensor, length: Tensor, directions:
 SIGMA_TERMS_EXPORTED = ("ensemble", "bend")
 
 
+def model_constants(model: HardwareModel) -> dict[str, Tensor]:
+    """The float64 constants of both hardware FKs: :func:`active_set_maps`, the segments' ``radius`` and ``length``
+    (m,) [m], the ``base_pose`` (4, 4), the homogeneous ``tip_marker`` (4,) and the :func:`sigma_coefficients`."""
+    spec, cc = model.spec, model.cc
+    return {**active_set_maps(model), "radius": torch.tensor([s.radius for s in spec.segments], dtype=F64),
+            "length": torch.tensor([s.length for s in spec.segments], dtype=F64),
+            "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
+            "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=F64)]),
+            "sigma_coefficients": sigma_coefficients(model)}
+
+
 def sigma_coefficients(model: HardwareModel) -> Tensor:
     """(σ₀ [m], c_ensemble, c_bend) float64 of σ = √(σ₀² + (c_ensemble·spread)² + (c_bend·‖ρ‖)²): the σ
     model of ``HardwareModel.predict`` (:meth:`~.checkpoint.HardwareModel.sigma_of`; absent terms 0).
@@ -84,18 +95,12 @@ class HardwareFK(nn.Module):
 
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()
-        spec, cc = model.spec, model.cc
+        spec = model.spec
         self.history, self.num_segments, self.num_servos = model.history, spec.num_segments, len(model.servo_ids)
         with torch.no_grad():
-            buffers = {**active_set_maps(model),
-                       "radius": torch.tensor([s.radius for s in spec.segments], dtype=F64),
-                       "length": torch.tensor([s.length for s in spec.segments], dtype=F64),
-                       "base_pose": pose_from_parts(cc.base_rotation(), cc.base_translation),
-                       "tip_marker": torch.cat([cc.marker_offset(), torch.ones(1, dtype=F64)]),   # homogeneous
-                       "play_width": torch.tensor(model.play_width, dtype=F64)}
+            buffers = {**model_constants(model), "play_width": torch.tensor(model.play_width, dtype=F64),
+                       **_stacked_members(model.members)}
             buffers["twist_directions"] = cc_twist_directions(buffers["radius"])
-            buffers.update(_stacked_members(model.members))
-            buffers["sigma_coefficients"] = sigma_coefficients(model)
         for name, value in buffers.items():   # contiguous: torch.export.save stores whole tensors, not views
             self.register_buffer(name, value.detach().to(dtype).contiguous())
         self.ensemble = len(model.members)

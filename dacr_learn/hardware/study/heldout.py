@@ -16,8 +16,8 @@ from torch import Tensor
 
 from ..deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 from .pool import TaskPool
-from .registry import build_model, model_info
-from .selection import PROXIES, make_folds, model_seeds, proxy_masks
+from .registry import build_model
+from .selection import PROXIES, Fold, make_folds, model_seeds, proxy_masks
 
 # The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
 # training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,
@@ -54,14 +54,22 @@ class HeldOut:
 def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[int], fold: str = "") -> HeldOut:
     """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``."""
     preds = []
-    for seed in (list(seeds)[:1] if model_info(name).deterministic else seeds):
+    for seed in model_seeds(name, seeds):
         model = build_model(name, ctx, seed)
         model.fit(ctx.train)
         with torch.no_grad():
             preds.append(model.eval()(test))
-    support = SupportModel(ctx.cc.spec.num_segments).fit(ctx.train.features[..., :2], list(train_labels))
-    rho = test.features[..., :2]
-    return HeldOut(fold, torch.stack(preds), test.cc_tip, test.tip, rho, support.distance(rho))
+    return _block(Fold(fold, ctx, test, train_labels=tuple(train_labels)), torch.stack(preds))
+
+
+def _block(fold: Fold, preds: Tensor, tag: str | None = None) -> HeldOut:
+    """:class:`HeldOut` of the members' predictions preds (K, n, 3) [m] on ``fold.test``, the support distance to
+    the fold's training rows (their pattern labels ``fold.train_labels``)."""
+    support = SupportModel(fold.ctx.cc.spec.num_segments).fit(fold.ctx.train.features[..., :2],
+                                                              list(fold.train_labels))
+    rho = fold.test.features[..., :2]
+    return HeldOut(fold.name if tag is None else tag, preds, fold.test.cc_tip, fold.test.tip, rho,
+                   support.distance(rho))
 
 
 def held_out_folds(setup, name: str, seeds: Sequence[int], proxies: Sequence[str] = PROXIES,
@@ -110,17 +118,8 @@ def held_out_from_selection(selection, name: str, seeds: Sequence[int],
         return None
     if any(proxy not in selection.folds or proxy not in selection.predictions[name] for proxy in proxies):
         return None
-    out = []
-    m = None
-    for proxy in proxies:
-        for fold in selection.folds[proxy]:
-            preds = torch.stack(selection.predictions[name][proxy][fold.name])
-            m = fold.ctx.cc.spec.num_segments
-            support = SupportModel(m).fit(fold.ctx.train.features[..., :2], list(fold.train_labels))
-            rho = fold.test.features[..., :2]
-            out.append(HeldOut(f"{proxy}:{fold.name}", preds, fold.test.cc_tip, fold.test.tip, rho,
-                               support.distance(rho)))
-    return out
+    return [_block(fold, torch.stack(selection.predictions[name][proxy][fold.name]), f"{proxy}:{fold.name}")
+            for proxy in proxies for fold in selection.folds[proxy]]
 
 
 def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaModel:

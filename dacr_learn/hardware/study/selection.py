@@ -263,8 +263,3 @@ def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: st
     return {"default": default, "best": best, "tied": tied, "candidates": rows, "reason": reason,
             "rule": f"one-standard-error: the simplest candidate whose {proxy} score is within {tie_sigmas:g}σ "
                     "(bootstrap over held-out pattern groups and proxy seeds, paired) of the lowest"}
-
-
-def rank(values: dict[str, float]) -> list[str]:
-    """Names sorted by value (lowest first)."""
-    return sorted(values, key=values.get)

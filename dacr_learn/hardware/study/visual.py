@@ -62,10 +62,9 @@ def plot_paths(setup: Setup, preds: dict[str, torch.Tensor], path: Path) -> None
     for ax, (a, b) in zip(axes[:2], [("x", "y"), ("x", "z")], strict=True):
         ax.set_xlabel(f"{a} [mm]"), ax.set_ylabel(f"{b} [mm]"), ax.set_aspect("equal"), ax.grid(alpha=0.3)
     axes[0].set_title("top view"), axes[1].set_title("side view"), axes[0].legend(loc="best", fontsize=8)
-    for k, (name, pred) in enumerate(preds.items(), start=1):
-        err = centered_errors_mm(pred, setup.val.tip)
-        rmse = float(np.sqrt((err**2).mean()))
-        axes[2].plot(err, color=np.array(_color(name, k)) / 255, lw=1, label=f"{name} (RMSE {rmse:.2f} mm)")
+    errors = {name: centered_errors_mm(pred, setup.val.tip) for name, pred in preds.items()}
+    for k, (name, rmse) in enumerate(rmse_mm(errors).items(), start=1):
+        axes[2].plot(errors[name], color=np.array(_color(name, k)) / 255, lw=1, label=f"{name} (RMSE {rmse:.2f} mm)")
     for r in runs:
         axes[2].axvline(r.start, color="0.85", lw=0.5)
     axes[2].set_xlabel("val sample (grey lines: pattern starts)"), axes[2].set_ylabel("offset-removed error [mm]")
@@ -196,10 +195,9 @@ def _log_samples(rec, setup: Setup, preds: dict[str, torch.Tensor], errors: dict
         backbone = setup.cc.backbone(setup.val.x).numpy()
     rec.log("world/robot/cc_backbone", rr.LineStrips3D.from_fields(colors=[COLORS["cc"]], radii=0.001), static=True)
     rec.send_columns("world/robot/cc_backbone", index, rr.LineStrips3D.columns(strips=backbone))
-    rmse = {}
+    rmse = rmse_mm(errors)
     for k, (name, pred) in enumerate(preds.items(), start=1):
         color, err = _color(name, k), errors[name]
-        rmse[name] = float(np.sqrt((err**2).mean()))
         rec.log(f"world/tip/{name}", rr.Points3D.from_fields(colors=[color], radii=0.0015), static=True)
         rec.send_columns(f"world/tip/{name}", index, rr.Points3D.columns(positions=pred.numpy()))
         legend = f"{name} ({rmse[name]:.2f} mm{', default' if name == default else ''})"
