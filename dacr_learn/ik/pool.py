@@ -112,11 +112,11 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             slots, x0 = [first], [starts[first]]
             free -= first.numel()
             if free > 0 and queued == m:
-                alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, batch.slot[keep], True)
+                alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
                 needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
                 if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
                     share = max(1, -(-(TAIL_ROWS - keep.numel()) // needy.numel()))
-                    each = torch.minimum(budget - taken[needy], taken[needy].clamp(max=min(max_fan_out, share)))
+                    each = torch.clamp(budget - taken[needy], max=min(max_fan_out, share))
                     more = needy.repeat_interleave(each)[:free]
                     slots.append(more)
                     x0.append(lim.sample(more.numel(), gen))
