@@ -111,19 +111,18 @@ def test_working_batch_and_grouped_restarts_agree_in_kind(position_only):
         assert (result.distinct.sum(1) >= 3).all() and (result.iterations >= 1).all()
 
 
-def test_sharded_solve_is_reproducible_and_independent_of_the_threads(monkeypatch):
-    """Targets split into shards (forced small here) give the same solutions on 1 and 2 threads and for the
-    same seed twice; every flagged solution verifies."""
+def test_sharded_solve_is_reproducible_and_independent_of_the_threads():
+    """Targets split into a given number of shards give the same solutions on 1 and 2 threads and for the same seed
+    twice; every flagged solution verifies."""
     from dacr_learn.ik import pool
-    monkeypatch.setattr(pool, "SHARD_SLOTS", 12)
-    assert [(s.start, s.stop) for s in pool.shards(9, 4)] == [(0, 3), (3, 6), (6, 9)]
-    target = targets_of(TDCR3, 9, seed=5)           # 3 shards of 3 targets
+    assert [(s.start, s.stop) for s in pool.shards(9, 4, 3)] == [(0, 3), (3, 6), (6, 9)]
+    target = targets_of(TDCR3, 9, seed=5)
     before = torch.get_num_threads()
     runs = []
     try:
         for threads in (1, 2, 2):
             torch.set_num_threads(threads)
-            runs.append(solve_ik(TDCR3, target, n_solutions=4, options=IKOptions(seed=3)))
+            runs.append(solve_ik(TDCR3, target, n_solutions=4, options=IKOptions(seed=3, shards=3)))
             assert torch.get_num_threads() == threads                  # restored after the threaded shards
     finally:
         torch.set_num_threads(before)

@@ -23,10 +23,10 @@ from ..checks import F64
 from .adapters import SolverModel
 from .refine import STALL_LAMBDA, lm_iteration, residual
 
-SHARD_SLOTS = 4096  # slots per shard: a solve of more slots splits its targets into shards, run on parallel threads
+SHARD_SLOTS = 2048  # the least slots per shard when the shards follow the threads
 REFILL = 1 / 16   # refill once this fraction of the batch has left it (or nothing is left)
 DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live rows than this fraction of slots
-TAIL_ROWS = 512  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
+TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
 def start_budget(restarts: int, fan_out: int, max_fan_out: int) -> int:
@@ -150,11 +150,12 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
 
 
 
-def shards(b: int, k: int) -> list[slice]:
-    """The target ranges of a solve of B targets × K slots, each at most :data:`SHARD_SLOTS` slots (K at least), a
-    function of B and K alone (so results do not depend on the threads)."""
-    count = max(1, -(-b * k // SHARD_SLOTS))
-    size = -(-b // count)
+def shards(b: int, k: int, count: int | None = None) -> list[slice]:
+    """The target ranges of a solve of B targets × K slots: ``count`` shards of about equal size, or by default
+    one per torch thread while each keeps at least :data:`SHARD_SLOTS` slots."""
+    if count is None:
+        count = min(torch.get_num_threads(), b * k // SHARD_SLOTS)
+    size = -(-b // max(1, min(count, b)))
     return [slice(i, min(b, i + size)) for i in range(0, b, size)]
 
 
