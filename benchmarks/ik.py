@@ -4,8 +4,8 @@ For each robot, 1,000 reachable targets (the FK of features uniform inside the l
 pose and position only: targets solved (at least one flagged solution), slots solved, flagged solutions that fail
 the independent NumPy check (benchmarks/ik_reference.py: no shared code), targets with ≥ K/2 distinct solutions,
 wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
-in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, its targets in
-shards on parallel threads, the default without a scene). For the 3-segment robot also: the warm-started
+in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
+without a scene; ``pool2``: its targets in 2 shards on parallel threads). For the 3-segment robot also: the warm-started
 refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
 ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
@@ -53,7 +53,7 @@ def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
     return forward_kinematics(spec, sample_features(spec, n, torch.Generator().manual_seed(seed), dtype=F64))
 
 
-PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions()}
+PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2)}
 
 
 def solve_row(name: str, n: int, k: int, position_only: bool, seed: int, path: str = "pool") -> dict:
@@ -151,7 +151,7 @@ def main(argv=None) -> dict:
     p.add_argument("--solutions", type=int, default=8)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--export", help="an export folder with the 'refine' module of tdcr_3seg_coupled")
-    p.add_argument("--paths", nargs="+", default=list(PATHS), choices=list(PATHS))
+    p.add_argument("--paths", nargs="+", default=["grouped", "pool"], choices=list(PATHS))
     p.add_argument("--skip", nargs="*", default=[], choices=["latency", "cli", "pk"])
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)

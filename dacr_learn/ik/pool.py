@@ -1,14 +1,14 @@
 """The starts of a batched IK solve in a working batch that stays full (docs/ik.md): restarts overlap with the
-other starts instead of running as a tail of few rows, and the targets split into shards that run on parallel
-threads.
+other starts instead of running as a tail of few rows; the targets may split into shards that run on parallel
+threads (:func:`run_sharded`).
 
 :func:`pool_multi_start` iterates the B·K slots' starts with :func:`~.refine.lm_iteration` on whole tensors (no row
 gathers or scatters per iteration). A row leaves the batch when it converges (its slot is solved; the slot's other
 starts leave too) or stalls (``max_iterations``, or λ past :data:`~.refine.STALL_LAMBDA`). Once :data:`REFILL` of
 the batch has left, it drops those rows and takes new ones: the slots' first starts not yet begun, then new uniform
-starts of the unsolved slots that have no live start — as many as the slot has taken before (doubling, at most
-``max_fan_out`` at once) while they fill the batch up to :data:`TAIL_ROWS` —, within the same budget of starts per
-slot as the grouped restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
+starts of the unsolved slots that have no live start — one each, more while they fill the batch up to
+:data:`TAIL_ROWS` (at most ``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
+restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
 solution of their target are reopened (twice at most), as in :mod:`.solver`.
 """
 from __future__ import annotations
@@ -23,7 +23,6 @@ from ..checks import F64
 from .adapters import SolverModel
 from .refine import STALL_LAMBDA, lm_iteration, residual
 
-SHARD_SLOTS = 2048  # the least slots per shard when the shards follow the threads
 REFILL = 1 / 16   # refill once this fraction of the batch has left it (or nothing is left)
 DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live rows than this fraction of slots
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
@@ -150,11 +149,8 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
 
 
 
-def shards(b: int, k: int, count: int | None = None) -> list[slice]:
-    """The target ranges of a solve of B targets × K slots: ``count`` shards of about equal size, or by default
-    one per torch thread while each keeps at least :data:`SHARD_SLOTS` slots."""
-    if count is None:
-        count = min(torch.get_num_threads(), b * k // SHARD_SLOTS)
+def shards(b: int, count: int) -> list[slice]:
+    """The target ranges of ``count`` shards of about equal size of B targets (fewer when B < count)."""
     size = -(-b // max(1, min(count, b)))
     return [slice(i, min(b, i + size)) for i in range(0, b, size)]
 

@@ -39,8 +39,8 @@ class IKOptions:
     [joint units: m, rad; mm for a servo model]; damping: initial λ (scaled units); seed: of the random
     starts (reproducible results for the same seed and shards); pool: rows of the working batch that stays full
     (:mod:`.pool`; without a scene), 0 for grouped restarts of shrinking batches (:func:`_multi_start`, always
-    used with a scene); shards: the pool's targets split into this many parts, run on parallel threads (None: one
-    per torch thread for large solves, :func:`~.pool.shards`; the solutions depend on it).
+    used with a scene); shards: the pool's targets split into this many parts, run on parallel threads (at most
+    torch's thread count at once; the solutions depend on the shards, not on the threads).
     """
 
     pos_tolerance: float = 1e-6
@@ -51,7 +51,7 @@ class IKOptions:
     damping: float = 1e-3
     seed: int = 0
     pool: int = 8192
-    shards: int | None = None
+    shards: int = 1
 
     def __post_init__(self):
         for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
@@ -60,8 +60,8 @@ class IKOptions:
         if self.max_iterations < 1 or self.restarts < 0:
             raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
                              f"{self.restarts}")
-        if self.pool < 0 or (self.shards is not None and self.shards < 1):
-            raise ValueError(f"pool >= 0 (0: grouped restarts) and shards >= 1 or None expected, got {self.pool}, "
+        if self.pool < 0 or self.shards < 1:
+            raise ValueError(f"pool >= 0 (0: grouped restarts) and shards >= 1 expected, got {self.pool}, "
                              f"{self.shards}")
         if not self.distinct >= 0 or not self.damping > 0:
             raise ValueError(f"distinct >= 0 and damping > 0 expected, got {self.distinct}, {self.damping}")
@@ -164,7 +164,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
 
     if avoid is None and options.pool > 0:
         tol = (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance)    # a decade below, as Refinement
-        parts = shards(b, k, options.shards)
+        parts = shards(b, options.shards)
         gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
             2 ** 62, (len(parts),), generator=gen)]
 
