@@ -3,14 +3,16 @@
 For each robot, 1,000 reachable targets (the FK of features uniform inside the limits), K = 8 solutions each,
 pose and position only: targets solved (at least one flagged solution), slots solved, flagged solutions that fail
 the independent NumPy check (benchmarks/ik_reference.py: no shared code), targets with ≥ K/2 distinct solutions,
-wall and CPU time, verified solutions per second. For the 3-segment robot also: the warm-started refinement of one
-target per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
+wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
+in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
+without a scene; ``pool2``: its targets in 2 shards on parallel threads). For the 3-segment robot also: the warm-started
+refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
 ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
 chord, ry φ/2, rz −θ — a relaxation: its solutions need not be constant-curvature shapes) on the same targets.
 
     .venv/bin/python benchmarks/ik.py                      # every row, 2 threads (~ minutes)
-    .venv/bin/python benchmarks/ik.py --robots tdcr_3seg_coupled --json
+    .venv/bin/python benchmarks/ik.py --robots tdcr_3seg_coupled --skip latency cli pk --json
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import ik_reference
 
 from dacr_learn.data import sample_features
-from dacr_learn.ik import ConstantCurvature, solve_ik
+from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
 from dacr_learn.ik.exported import IKRefinement
 from dacr_learn.kinematics import forward_kinematics
 from dacr_learn.robot import RobotSpec
@@ -51,18 +53,21 @@ def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
     return forward_kinematics(spec, sample_features(spec, n, torch.Generator().manual_seed(seed), dtype=F64))
 
 
-def solve_row(name: str, n: int, k: int, position_only: bool, seed: int) -> dict:
+PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2)}
+
+
+def solve_row(name: str, n: int, k: int, position_only: bool, seed: int, path: str = "pool") -> dict:
     spec = RobotSpec.from_yaml(robot_path(name))
     poses = targets(spec, n, seed)
     goal = poses[:, :3, 3] if position_only else poses
     wall, cpu = time.perf_counter(), time.process_time()
-    result = solve_ik(spec, goal, n_solutions=k, position_only=position_only)
+    result = solve_ik(spec, goal, n_solutions=k, position_only=position_only, options=PATHS[path])
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
     flagged = result.success.numpy()
     rows = np.nonzero(flagged)
     ref = ik_reference.check(robot_path(name), result.q.numpy()[rows], goal.numpy()[rows[0]])
     verified = int(ref["ok"].sum())
-    return {"robot": name, "task": "position" if position_only else "pose", "targets": n, "solutions": k,
+    return {"robot": name, "task": "position" if position_only else "pose", "path": path, "targets": n, "solutions": k,
             "targets_solved_pct": 100 * flagged.any(1).mean(), "slots_solved_pct": 100 * flagged.mean(),
             "false_success": int((~ref["ok"]).sum()), "verified": verified,
             "distinct_half_pct": 100 * float((result.distinct.sum(1) >= k / 2).double().mean()),
@@ -146,6 +151,7 @@ def main(argv=None) -> dict:
     p.add_argument("--solutions", type=int, default=8)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--export", help="an export folder with the 'refine' module of tdcr_3seg_coupled")
+    p.add_argument("--paths", nargs="+", default=["grouped", "pool"], choices=list(PATHS))
     p.add_argument("--skip", nargs="*", default=[], choices=["latency", "cli", "pk"])
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)
@@ -153,12 +159,13 @@ def main(argv=None) -> dict:
     rows = []
     for name in args.robots:
         for position_only in (False, True):
-            rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7))
-            r = rows[-1]
-            print(f"{name:22s} {r['task']:8s} solved {r['targets_solved_pct']:6.2f} % targets, "
-                  f"{r['slots_solved_pct']:6.2f} % slots, false flags {r['false_success']}, "
-                  f"≥K/2 distinct {r['distinct_half_pct']:6.2f} %, {r['wall_s']:.2f} s wall "
-                  f"({r['cpu_s']:.2f} s CPU), {r['verified_per_s']:.0f} verified solutions/s", flush=True)
+            for path in args.paths:
+                rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7, path=path))
+                r = rows[-1]
+                print(f"{name:22s} {r['task']:8s} {path:7s} solved {r['targets_solved_pct']:6.2f} % targets, "
+                      f"{r['slots_solved_pct']:6.2f} % slots, false flags {r['false_success']}, "
+                      f"≥K/2 distinct {r['distinct_half_pct']:6.2f} %, {r['wall_s']:.2f} s wall "
+                      f"({r['cpu_s']:.2f} s CPU), {r['verified_per_s']:.0f} verified solutions/s", flush=True)
     extra = {}
     if "tdcr_3seg_coupled" in args.robots:
         if "latency" not in args.skip:

@@ -97,6 +97,41 @@ def test_property_random_robots_of_every_type(spec, seed):
     assert result.success.any(1).all(), (result.pos_err, result.rot_err)
 
 
+@pytest.mark.parametrize("position_only", [False, True])
+def test_working_batch_and_grouped_restarts_agree_in_kind(position_only):
+    """Both paths of the solver (the working batch that stays full, with a batch smaller than the slots so starts
+    queue, and the grouped restarts) solve every slot, verified independently, with ≥ K/2 distinct solutions."""
+    spec = spec_by_name("hetero_3seg_coupled")
+    poses = targets_of(spec, 6, seed=4)
+    target = poses[:, :3, 3] if position_only else poses
+    for options in (IKOptions(pool=0), IKOptions(pool=16)):
+        result = solve_ik(spec, target, n_solutions=6, position_only=position_only, options=options)
+        assert result.success.all(), (options, result.success.sum(1))
+        assert_flagged_solutions_verify(spec, result, target)
+        assert (result.distinct.sum(1) >= 3).all() and (result.iterations >= 1).all()
+
+
+def test_sharded_solve_is_reproducible_and_independent_of_the_threads():
+    """Targets split into a given number of shards give the same solutions on 1 and 2 threads and for the same seed
+    twice; every flagged solution verifies."""
+    from dacr_learn.ik import pool
+    assert [(s.start, s.stop) for s in pool.shards(9, 3)] == [(0, 3), (3, 6), (6, 9)]
+    target = targets_of(TDCR3, 9, seed=5)
+    before = torch.get_num_threads()
+    runs = []
+    try:
+        for threads in (1, 2, 2):
+            torch.set_num_threads(threads)
+            runs.append(solve_ik(TDCR3, target, n_solutions=4, options=IKOptions(seed=3, shards=3)))
+            assert torch.get_num_threads() == threads                  # restored after the threaded shards
+    finally:
+        torch.set_num_threads(before)
+    for other in runs[1:]:
+        assert torch.equal(runs[0].q, other.q) and torch.equal(runs[0].success, other.success)
+    assert runs[0].success.all()
+    assert_flagged_solutions_verify(TDCR3, runs[0], target)
+
+
 def test_straight_and_boundary_targets():
     """The straight robot (the singular configuration of the Clarke parameterisation's θ) and targets at the
     bending and length limits are solved inside the limits."""

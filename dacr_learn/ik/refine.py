@@ -134,6 +134,20 @@ class Refinement:
         self._settle(rows)
 
 
+def lm_iteration(model: SolverModel, state: tuple[Tensor, ...], position: Tensor, rotation: Tensor | None
+                 ) -> tuple[Tensor, ...]:
+    """One LM iteration of every row of ``state`` = (x (M, D), r (M, R), J (M, R, D), cost (M,), λ (M,), pos_err
+    (M,) [m], rot_err (M,) [rad]) towards targets position (M, 3) [m] and rotation (M, 3, 3) or None: the step of
+    :meth:`Refinement.step` on whole tensors (no row gathers or scatters; no extra condition), returning the new
+    state. The working batch of :mod:`.pool` runs on it."""
+    x, r, jac, cost, lam, pos_err, rot_err = state
+    xt = limited_step(model.limits, x, r, jac, lam, only_held=True)
+    rt, jt, pe, re = residual(model, xt, position, rotation)
+    (x, r, jac, pos_err, rot_err), cost, lam = lm_accept((x, r, jac, pos_err, rot_err), (xt, rt, jt, pe, re), cost,
+                                                         (rt * rt).sum(-1), lam)
+    return x, r, jac, cost, lam, pos_err, rot_err
+
+
 def lm_accept(current: tuple[Tensor, ...], trial: tuple[Tensor, ...], cost: Tensor, trial_cost: Tensor,
               lam: Tensor) -> tuple[tuple[Tensor, ...], Tensor, Tensor]:
     """The LM acceptance rule of M rows: each row keeps its trial (every tensor of ``trial``, (M, ...), against the
@@ -202,19 +216,19 @@ def free_jacobian(lim: Limits, x: Tensor, ja: Tensor, gradient: Tensor, only_hel
     """The limits inside a step, in scaled variables z = x/s: at variables x (M, D), with J̃ (M, R, D) and the
     gradient J̃ᵀr (M, D) of the cost (descent along −J̃ᵀr), the limits that block descent are held
     (:meth:`~.limits.Limits.blocked`) and their directions removed from J̃ by the projector P
-    (:meth:`~.limits.Limits.free_directions`). Returns (J̃P (M, R, D), P (M, D, D)); with ``only_held`` P is
-    built only for the rows some limit holds (data-dependent; J̃ unchanged elsewhere) and returned as None.
-    ``matmul``: as in :func:`limited_step`."""
+    (:meth:`~.limits.Limits.free_directions`). Returns (J̃P (M, R, D), P (M, D, D)); with ``only_held`` P is not
+    formed: J̃P = J̃·diag(free) − Σ (J̃n)nᵀ over the blocked disk normals n, a few whole-tensor operations (J̃
+    unchanged where no limit holds), and None is returned for P. ``matmul``: as in :func:`limited_step`."""
     box, normals = lim.blocked(x, gradient)
     if not only_held:
         free = lim.free_directions(box, normals)
         return matmul(ja, free), free
-    held = box.any(-1) if normals is None else box.any(-1) | normals.abs().sum((-2, -1)).gt(0)
-    if held.any():
-        h = held.nonzero().squeeze(-1)
-        ja = ja.clone()
-        ja[h] = ja[h] @ lim.free_directions(box[h], None if normals is None else normals[h])
-    return ja, None
+    held = ja * (~box).to(ja.dtype).unsqueeze(-2)
+    if normals is not None:
+        n = normals.unsqueeze(-3)                                                     # (M, 1, k, 2)
+        along = (ja[..., lim.disks] * n).sum(-1, keepdim=True)                         # J̃n (M, R, k, 1)
+        held = held.index_add(-1, lim.disks.flatten(), (along * n).flatten(-2), alpha=-1)
+    return held, None
 
 
 STALL_LAMBDA = 1e6   # λ beyond which a start has no descent direction left (a local minimum, or unreachable)

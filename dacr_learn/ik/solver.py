@@ -23,6 +23,7 @@ from ..metrics import rotation_geodesic
 from ..scene import load_scene
 from .adapters import SolverModel, as_solver_model
 from .collision import Avoidance
+from .pool import pool_multi_start, run_sharded, shards, start_budget
 from .refine import STALL_LAMBDA, Refinement
 from .targets import check_q0, check_targets
 
@@ -36,7 +37,10 @@ class IKOptions:
     start; restarts: new starts a slot may take when its start stalls or duplicates another solution;
     distinct: two solutions of a target are distinct when some joint differs by at least this much
     [joint units: m, rad; mm for a servo model]; damping: initial λ (scaled units); seed: of the random
-    starts (reproducible results).
+    starts (reproducible results for the same seed and shards); pool: rows of the working batch that stays full
+    (:mod:`.pool`; without a scene), 0 for grouped restarts of shrinking batches (:func:`_multi_start`, always
+    used with a scene); shards: the pool's targets split into this many parts, run on parallel threads (at most
+    torch's thread count at once; the solutions depend on the shards, not on the threads).
     """
 
     pos_tolerance: float = 1e-6
@@ -46,6 +50,8 @@ class IKOptions:
     distinct: float = 5e-4
     damping: float = 1e-3
     seed: int = 0
+    pool: int = 8192
+    shards: int = 1
 
     def __post_init__(self):
         for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
@@ -54,6 +60,9 @@ class IKOptions:
         if self.max_iterations < 1 or self.restarts < 0:
             raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
                              f"{self.restarts}")
+        if self.pool < 0 or self.shards < 1:
+            raise ValueError(f"pool >= 0 (0: grouped restarts) and shards >= 1 expected, got {self.pool}, "
+                             f"{self.shards}")
         if not self.distinct >= 0 or not self.damping > 0:
             raise ValueError(f"distinct >= 0 and damping > 0 expected, got {self.distinct}, {self.damping}")
 
@@ -153,6 +162,22 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
 
+    if avoid is None and options.pool > 0:
+        tol = (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance)    # a decade below, as Refinement
+        parts = shards(b, options.shards)
+        gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
+            2 ** 62, (len(parts),), generator=gen)]
+
+        def shard(i: int) -> tuple[Tensor, Tensor]:
+            t = parts[i]
+            return pool_multi_start(
+                model, starts[t].reshape(-1, d), position[t], None if rotation is None else rotation[t], gens[i], k,
+                tol, options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT),
+                MAX_FAN_OUT, options.pool, d >= (3 if rotation is None else 6), q0 is not None,
+                lambda x, ok: _duplicates(model, x, ok, options.distinct))
+        x, iters = (torch.cat(t) for t in zip(*run_sharded(shard, len(parts)), strict=True))
+        return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
+                                lim.project(model.rest.to(F64)), options)
     rows = torch.arange(b).repeat_interleave(k)
     state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
                        (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
@@ -200,8 +225,7 @@ def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: 
             duplicates_checked += 1                         # most slots settled: look for duplicate solutions
             ok = (solution >= 0).view(b, k)
             x_slot = state.x[solution.clamp_min(0)]
-            order = torch.argsort((~ok).to(torch.int8), dim=1, stable=True)
-            dup = ok & ~_distinct_mask(model.joints(x_slot).view(b, k, -1), ok, order, opts.distinct)
+            dup = _duplicates(model, x_slot.view(b, k, -1), ok, opts.distinct)
             if keep_first:
                 dup[:, 0] = False
             again = dup.flatten() & (used < opts.restarts)
@@ -222,6 +246,14 @@ def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: 
         state.step(rows)
         since[rows] += 1
     return _slot_results(state, slot, solution, since, m)
+
+
+def _duplicates(model: SolverModel, x: Tensor, ok: Tensor, threshold: float) -> Tensor:
+    """(B, K) True for the successful slots (ok) whose joints, at variables x (B, K, D), duplicate an earlier
+    successful slot's (slot order) by :func:`_distinct_mask`."""
+    b, k, d = x.shape
+    order = torch.argsort((~ok).to(torch.int8), dim=1, stable=True)
+    return ok & ~_distinct_mask(model.joints(x.reshape(-1, d)).view(b, k, -1), ok, order, threshold)
 
 
 def _slot_results(state: Refinement, slot: Tensor, solution: Tensor, since: Tensor, m: int) -> tuple[Tensor, Tensor]:

@@ -1,0 +1,170 @@
+"""The starts of a batched IK solve in a working batch that stays full (docs/ik.md): restarts overlap with the
+other starts instead of running as a tail of few rows; the targets may split into shards that run on parallel
+threads (:func:`run_sharded`).
+
+:func:`pool_multi_start` iterates the B·K slots' starts with :func:`~.refine.lm_iteration` on whole tensors (no row
+gathers or scatters per iteration). A row leaves the batch when it converges (its slot is solved; the slot's other
+starts leave too) or stalls (``max_iterations``, or λ past :data:`~.refine.STALL_LAMBDA`). Once :data:`REFILL` of
+the batch has left, it drops those rows and takes new ones: the slots' first starts not yet begun, then new uniform
+starts of the unsolved slots that have no live start — one each, more while they fill the batch up to
+:data:`TAIL_ROWS` (at most ``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
+restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
+solution of their target are reopened (twice at most), as in :mod:`.solver`.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+from torch import Tensor
+
+from ..checks import F64
+from .adapters import SolverModel
+from .refine import STALL_LAMBDA, lm_iteration, residual
+
+REFILL = 1 / 16   # refill once this fraction of the batch has left it (or nothing is left)
+DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live rows than this fraction of slots
+TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
+
+
+def start_budget(restarts: int, fan_out: int, max_fan_out: int) -> int:
+    """Starts a slot may take in all: its first and those of ``restarts`` grouped restarts (fan_out, doubling, at
+    most max_fan_out each)."""
+    return 1 + sum(min(fan_out * 2 ** i, max_fan_out) for i in range(restarts))
+
+
+class _Batch:
+    """The working batch: per row its slot, target, LM state and iterations since its start."""
+
+    def __init__(self, model: SolverModel, position: Tensor, rotation: Tensor | None, damping: float, k: int):
+        self.model, self.position, self.rotation, self.damping, self.k = model, position, rotation, damping, k
+        self.slot = torch.zeros(0, dtype=torch.long)
+        self.since = torch.zeros(0, dtype=torch.long)
+        self.pos_rows = position.new_zeros(0, 3)
+        self.rot_rows = None if rotation is None else position.new_zeros(0, 3, 3)
+        self.state = None
+
+    def keep_and_add(self, keep: Tensor, slots: Tensor, x0: Tensor) -> None:
+        """Keep the rows ``keep`` (indices), add starts x0 (R, D) of ``slots`` (R,)."""
+        if slots.numel() == 0:
+            self.state = tuple(t[keep] for t in self.state)
+            self.pos_rows, self.slot, self.since = self.pos_rows[keep], self.slot[keep], self.since[keep]
+            self.rot_rows = None if self.rot_rows is None else self.rot_rows[keep]
+            return
+        target = slots // self.k
+        pos, rot = self.position[target], None if self.rotation is None else self.rotation[target]
+        x = self.model.limits.project(x0.to(F64))
+        r, jac, pe, re = residual(self.model, x, pos, rot)
+        cost = (r * r).sum(-1)
+        new = (x, r, jac, cost, torch.full_like(cost, self.damping), pe, re)
+        if self.state is not None and keep.numel():
+            new = tuple(torch.cat([old[keep], n]) for old, n in zip(self.state, new, strict=True))
+            pos = torch.cat([self.pos_rows[keep], pos])
+            rot = None if rot is None else torch.cat([self.rot_rows[keep], rot])
+            slots = torch.cat([self.slot[keep], slots])
+            since = torch.cat([self.since[keep], torch.zeros(target.shape[0], dtype=torch.long)])
+        else:
+            since = torch.zeros(target.shape[0], dtype=torch.long)
+        self.state, self.pos_rows, self.rot_rows, self.slot, self.since = new, pos, rot, slots, since
+
+    def step(self) -> None:
+        self.state = lm_iteration(self.model, self.state, self.pos_rows, self.rot_rows)
+        self.since += 1
+
+
+def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotation: Tensor | None,
+                     gen: torch.Generator, k: int, tolerance: tuple[float, float], damping: float,
+                     max_iterations: int, budget: int, max_fan_out: int, pool: int, redundant: bool,
+                     keep_first: bool, dedupe) -> tuple[Tensor, Tensor]:
+    """Refine the first starts (M, D) of the M = B·K slots (targets position (B, 3) [m], rotation (B, 3, 3) or
+    None; slot i belongs to target i // K) in a working batch of at most ``pool`` rows (module docstring).
+    ``tolerance``: (position [m], rotation [rad]) a start must reach (a decade below the solver's);
+    ``budget``: starts per slot (at most ``max_fan_out`` at once); ``dedupe(x (B, K, D), solved (B, K))`` → (B, K)
+    bool marks the solved slots to reopen (``redundant``: more variables than residuals, so solutions are not
+    isolated; ``keep_first``: slot 0 of a target, the warm start's, is never reopened).
+    Returns each slot's variables (M, D) — its converged start, else its start of least residual — and the LM
+    iterations spent on the slot (M,)."""
+    m, d = starts.shape
+    lim = model.limits
+    solved = torch.zeros(m, dtype=torch.bool)
+    out_x, out_cost = starts.to(F64).clone(), torch.full((m,), float("inf"), dtype=F64)
+    taken, iters = torch.zeros(m, dtype=torch.long), torch.zeros(m, dtype=torch.long)
+    batch = _Batch(model, position, rotation, damping, k)
+    queued, dedupe_rounds = 0, 0                                   # first starts begun; duplicate checks done
+    live = torch.zeros(0, dtype=torch.bool)
+    while True:
+        size = live.numel()
+        n_live = int(live.sum())
+        if size == 0 or size - n_live >= max(1, REFILL * size):
+            if queued == m and dedupe_rounds < 2 and redundant and n_live <= DUPLICATE_CHECK_BELOW * m:
+                dedupe_rounds += 1                    # few rows left: reopen solved slots that duplicate another
+                dup = dedupe(out_x.view(-1, k, d), solved.view(-1, k)).flatten()
+                if keep_first:
+                    dup.view(-1, k)[:, 0] = False
+                reopen = dup & (taken < budget)
+                solved &= ~reopen             # the duplicate stays the slot's candidate (its cost is tiny)
+            keep = live.nonzero().squeeze(-1)
+            free = pool - keep.numel()
+            first = torch.arange(queued, min(m, queued + free))
+            queued += first.numel()
+            slots, x0 = [first], [starts[first]]
+            free -= first.numel()
+            if free > 0 and queued == m:
+                alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
+                needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
+                if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
+                    share = max(1, -(-(TAIL_ROWS - keep.numel()) // needy.numel()))
+                    each = torch.clamp(budget - taken[needy], max=min(max_fan_out, share))
+                    more = needy.repeat_interleave(each)[:free]
+                    slots.append(more)
+                    x0.append(lim.sample(more.numel(), gen))
+            slots = torch.cat(slots)
+            taken.index_add_(0, slots, torch.ones_like(slots))
+            if slots.numel() == 0 and keep.numel() == 0:
+                break
+            batch.keep_and_add(keep, slots, torch.cat(x0))
+            live = torch.ones(batch.slot.numel(), dtype=torch.bool)
+        batch.step()
+        iters.index_add_(0, batch.slot, live.long())
+        x, _, _, cost, lam, pe, re = batch.state
+        conv = live & (pe <= tolerance[0]) & (re <= tolerance[1])
+        if conv.any():                                            # the first converged row of a slot solves it
+            rows = conv.nonzero().squeeze(-1)
+            win = torch.full((m,), batch.slot.numel(), dtype=torch.long).scatter_reduce(
+                0, batch.slot[rows], rows, "amin")
+            newly = (win < batch.slot.numel()) & ~solved
+            out_x[newly], out_cost[newly] = x[win[newly]], cost[win[newly]]
+            solved |= newly
+        stall = live & ~conv & ((batch.since >= max_iterations) | (lam >= STALL_LAMBDA))
+        if stall.any():                                           # a stalled row: a candidate of least residual
+            rows = stall.nonzero().squeeze(-1)
+            s, c = batch.slot[rows], cost[rows]
+            best = out_cost.scatter_reduce(0, s, c, "amin")
+            better = (c <= best[s]) & (c < out_cost[s]) & ~solved[s]
+            out_x[s[better]] = x[rows[better]]
+            out_cost = torch.where(solved, out_cost, best)
+        live = live & ~conv & ~stall & ~solved[batch.slot]
+    return out_x, iters
+
+
+
+def shards(b: int, count: int) -> list[slice]:
+    """The target ranges of ``count`` shards of about equal size of B targets (fewer when B < count)."""
+    size = -(-b // max(1, min(count, b)))
+    return [slice(i, min(b, i + size)) for i in range(0, b, size)]
+
+
+def run_sharded(fn: Callable[[int], object], count: int) -> list:
+    """[fn(0), …, fn(count − 1)], on min(count, torch threads) Python threads, each op then on one torch thread (the
+    shards' small operations use both cores, which intra-op threads do not); torch's thread count is restored."""
+    threads = min(count, torch.get_num_threads())
+    if threads < 2:
+        return [fn(i) for i in range(count)]
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(threads) as workers:
+            return list(workers.map(fn, range(count)))
+    finally:
+        torch.set_num_threads(before)
