@@ -5,7 +5,9 @@ the body) is asked to lie on the path point at arc s − δ: on the path when s 
 straight entry line behind the path's start (:meth:`~.path.Path.at`), with the lower weight
 ``outside_weight`` (a ramp over :data:`RAMP` of the length). The tip itself weighs :data:`TIP_WEIGHT` times a
 body point, and a small pull ``regularization`` towards reference variables (the previous step) fixes what the
-body leaves free (e.g. the roll of a free base about the robot's axis). Residuals are in units of the robot's
+body leaves free (e.g. the roll of a free base about the robot's axis). With a scene, the clearance hinges of
+:meth:`dacr_learn.ik.collision.Avoidance.residual` (its worst body/link–obstacle pairs, max(0, D + δ − d)/L)
+join with :data:`HINGE_WEIGHT`: the body keeps clear of the obstacles by D. Residuals are in units of the robot's
 length L; the variables are scaled by the limits' scale.
 
 :func:`refine` runs Levenberg–Marquardt on these residuals with the limits inside the step (blocked limits held,
@@ -23,12 +25,14 @@ from torch import Tensor
 
 from ..checks import F64
 from ..ik.adapters import SolverModel
+from ..ik.collision import Avoidance
 from ..ik.refine import limited_step
 from .body import body_and_jacobian
 from .path import Path
 
 TIP_WEIGHT = 10.0      # the tip's weight relative to one body point (then polished to the tolerance)
 RAMP = 0.25            # length of the weight ramp at the entry point, relative to L
+HINGE_WEIGHT = 10.0    # a clearance hinge's weight relative to one body point's (a tip's)
 
 
 @dataclass(frozen=True)
@@ -45,10 +49,12 @@ class StepOptions:
 
 
 class Problem:
-    """The FTL step problem of ``model`` along ``path`` (module docstring); L = ``length`` [m]."""
+    """The FTL step problem of ``model`` along ``path`` (module docstring); L = ``length`` [m]; ``avoid``: the
+    clearance to keep from a scene (or None)."""
 
-    def __init__(self, model: SolverModel, path: Path, length: float, options: StepOptions):
-        self.model, self.path, self.length, self.opts = model, path, length, options
+    def __init__(self, model: SolverModel, path: Path, length: float, options: StepOptions,
+                 avoid: Avoidance | None = None):
+        self.model, self.path, self.length, self.opts, self.avoid = model, path, length, options, avoid
         self.lim = model.limits.to(F64)
         self.scale = self.lim.scale.to(F64)
 
@@ -73,7 +79,13 @@ class Problem:
         reg = self.opts.regularization if reg is None else reg
         r_reg = reg * (x - ref) / self.scale
         j_reg = torch.diag(reg / self.scale).expand(b, d, d)
-        return torch.cat([r_body, r_reg], dim=1), torch.cat([j_body, j_reg], dim=1)
+        rows, jacs = [r_body, r_reg], [j_body, j_reg]
+        if self.avoid is not None:
+            r_hinge, j_hinge, _ = self.avoid.residual(x)
+            rows.append(HINGE_WEIGHT * r_hinge / p ** 0.5)
+            jacs.append(HINGE_WEIGHT * j_hinge / p ** 0.5)
+        self.tip_rows = slice(3 * p - 3, 3 * p)
+        return torch.cat(rows, dim=1), torch.cat(jacs, dim=1)
 
     def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int, tol: float = 1e-10,
                reg: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -98,8 +110,8 @@ class Problem:
             x[acc], r[acc], jac[acc], cost[acc] = xt[better], rt[better], jt[better], ct[better]
             lam[rows] = torch.where(better, (lam[rows] / 10).clamp_min(1e-15), lam[rows] * 10)
             live[rows] = ~((better & (gain < tol)) | (lam[rows] > 1e6))
-        p = (r.shape[1] - x.shape[1]) // 3
-        tip = torch.linalg.vector_norm(r[:, 3 * p - 3:3 * p], dim=-1) * self.length * p ** 0.5 / TIP_WEIGHT
+        p = self.tip_rows.stop // 3
+        tip = torch.linalg.vector_norm(r[:, self.tip_rows], dim=-1) * self.length * p ** 0.5 / TIP_WEIGHT
         return x, cost, tip
 
     def _step(self, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor) -> Tensor:
