@@ -150,8 +150,8 @@ class _Planner:
         sv = torch.full((cand.shape[0],), s, dtype=F64)
         problem = self.problem if ref is not None else self.start   # the first step: the whole body on the line
         x, cost, _ = problem.refine(cand, sv, cand if ref is None else ref.expand_as(cand), iterations)
-        x = self.problem.polish(x, sv, 1e-3 * self.tol)
-        ok = self.problem.tip_error(x, sv) <= self.tol
+        x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
+        ok = tip <= self.tol
         if ref is not None:       # a recovery: prefer the solution nearest the previous step
             cost = cost + ((x - ref) / self.problem.scale).square().sum(-1) * 1e-6
         cost = torch.where(ok, cost, cost + 1e6)
@@ -183,40 +183,40 @@ class _Planner:
         x, ok = self._best(self._wrapped(cand), 0.0, None, FIRST_ITERATIONS)
         return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
 
-    def _solve(self, prev: Tensor, s: float) -> Tensor:
-        """The step at tip arc length s continued from ``prev`` (1, D): LM pulled weakly towards prev, then the
-        tip polished onto its path point."""
+    def _solve(self, prev: Tensor, s: float) -> tuple[Tensor, Tensor]:
+        """The step (1, D) at tip arc length s continued from ``prev`` (1, D): LM pulled weakly towards prev, then
+        the tip polished onto its path point; and its tip error (1,) [m]."""
         sv = torch.tensor([s], dtype=F64)
         x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations)
         return self.problem.polish(x, sv, 1e-3 * self.tol)
 
-    def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> Tensor:
+    def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> tuple[Tensor, float]:
         """The solution (1, D) at s1 continued from ``prev`` (1, D), the solution at s0 < s1. A step that misses
         the path or changes a variable by more than its bound is taken in two halves (at most
         ``options.substeps`` halvings: the path turns fast there), then recovered from the IK solutions nearest
-        ``prev``."""
-        x = self._solve(prev, s1)
-        sv = torch.tensor([s1], dtype=F64)
-        missed = bool(self.problem.tip_error(x, sv)[0] > self.tol)
+        ``prev``. Returns it and its tip error [m]."""
+        x, tip = self._solve(prev, s1)
+        missed = float(tip[0]) > self.tol
         jump = float(((x - prev).abs() / self.bounds(s1 - s0)).max())
         if not missed and jump <= 1.0:
-            return x
+            return x, float(tip[0])
         if depth < self.opts.substeps:
             mid = 0.5 * (s0 + s1)
-            return self._advance(self._advance(prev, s0, mid, depth + 1), mid, s1, depth + 1)
+            return self._advance(self._advance(prev, s0, mid, depth + 1)[0], mid, s1, depth + 1)
         if missed:                                                                      # recovery
-            cand = self._candidates(self.path.at(sv), True, q0=self.model.joints(prev))
+            cand = self._candidates(self.path.at(torch.tensor([s1], dtype=F64)), True, q0=self.model.joints(prev))
             if cand.shape[0]:
                 x = self._best(torch.cat([x, cand]), s1, prev[0], self.opts.iterations)[0][None]
-        return x
+                tip = self.problem.tip_error(x, torch.tensor([s1], dtype=F64))
+        return x, float(tip[0])
 
     def follow(self, x0: Tensor, s: Tensor) -> tuple[Tensor, str]:
         """The steps (T, D) at tip arc lengths s (T,), each continued from the previous one; and a reason when
         the tip could not follow."""
         xs, reason = [x0[None]], ""
         for k in range(1, s.shape[0]):
-            x = self._advance(xs[-1], float(s[k - 1]), float(s[k]))
-            if not reason and float(self.problem.tip_error(x, s[k:k + 1])[0]) > self.tol:
+            x, tip = self._advance(xs[-1], float(s[k - 1]), float(s[k]))
+            if not reason and tip > self.tol:
                 reason = f"the tip cannot follow the path at s = {float(s[k]):.6g} m (step {k}; no IK solution there)"
             xs.append(x)
         return torch.cat(xs), reason

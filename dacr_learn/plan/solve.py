@@ -134,18 +134,19 @@ class Problem:
         pos = self.model.tip_and_jacobian(x)[0]
         return torch.linalg.vector_norm(pos - self.path.at(s), dim=-1)
 
-    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 6) -> Tensor:
+    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 6) -> tuple[Tensor, Tensor]:
         """Tip onto the path point at s (B,): minimum-norm steps on the tip residual alone, inside the limits,
-        until the tip error is below ``tol`` [m] (or ``iterations``)."""
+        until the tip error is below ``tol`` [m] (or ``iterations``). Returns x and its tip error (B,) [m]."""
         target = self.path.at(s)
         for _ in range(iterations):
             pos, _, jac = self.model.tip_and_jacobian(x)
             err = pos - target
-            rows = (torch.linalg.vector_norm(err, dim=-1) > tol).nonzero().squeeze(-1)
+            gap = torch.linalg.vector_norm(err, dim=-1)
+            rows = (gap > tol).nonzero().squeeze(-1)
             if rows.numel() == 0:
-                break
+                return x, gap
             lam = torch.full((rows.numel(),), 1e-14, dtype=F64)
             x = x.clone()
             x[rows] = limited_step(self.lim, x[rows], err[rows] / self.length, jac[rows, :3] / self.length, lam,
                                    only_held=True)
-        return x
+        return x, self.tip_error(x, s)
