@@ -128,8 +128,9 @@ class _Planner:
         self.model, self.path, self.opts, self.avoid = model, path, options, avoid
         self.length = robot_length(model)
         self.tol = options.tolerance * self.length
-        self.problem = Problem(model, path, self.length, options.step, avoid)
-        self.start = Problem(model, path, self.length, replace(options.step, outside_weight=1.0), avoid)
+        scene = () if avoid is None else (avoid.scene, avoid.clearance)
+        self.problem = Problem(model, path, self.length, options.step, *scene)
+        self.start = Problem(model, path, self.length, replace(options.step, outside_weight=1.0), *scene)
         self.bank = None
 
     def _candidates(self, targets: Tensor, position_only: bool, q0: Tensor | None = None) -> Tensor:
