@@ -1,8 +1,8 @@
 """Follow-the-leader side by side: dacr_learn.plan against the sampling-based FTL planner of the Continuum Robotics
 Laboratory (RSS 2026; its source in ../shared/reference/sb-ftl-cr-planner), same robot, same curves, same metric.
 
-    python benchmarks/ftl.py [--per-class 40] [--workers N] [--peer-python PATH] [--out DIR] [--resume]
-                             [--library 10000] [--seed 0]
+    python benchmarks/ftl.py [--per-class 40] [--workers N] [--peer-python PATH] [--peer DIR] [--out DIR]
+                             [--resume] [--library 10000] [--seed 0]
 
 1. the curves: the peer's generators draw them (quadratic Bézier, S, C; --per-class of each) through
    benchmarks/ftl_peer.py, run by the peer's Python: --peer-python, default a virtual environment made here
@@ -67,7 +67,7 @@ def peer_python(given: str | None) -> str:
 
 def peer(python: str, command: str, out: Path, *extra: str) -> dict:
     """benchmarks/ftl_peer.py COMMAND in the peer's Python, one thread; its last output line as JSON (or {})."""
-    done = subprocess.run([python, str(ROOT / "benchmarks" / "ftl_peer.py"), command, "--peer", str(PEER),
+    done = subprocess.run([python, str(ROOT / "benchmarks" / "ftl_peer.py"), command, "--peer", os.environ["FTL_PEER"],
                            "--out", str(out), *extra], check=True, capture_output=True, text=True,
                           env={**os.environ, **ONE_THREAD} if command == "plan" else os.environ)
     lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
@@ -155,12 +155,14 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=1, help="processes, one curve each at a time (default 1)")
     p.add_argument("--peer-python", help="a Python with numpy, scipy and scikit-learn for the peer "
                    "(default: .bench/ftl_peer_venv, made on first use)")
+    p.add_argument("--peer", default=str(PEER), help="the peer's source folder (default %(default)s)")
     p.add_argument("--out", default=str(BENCH / "ftl"), help="folder of the run (default .bench/ftl)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out (its curves, library, rows)")
     args = p.parse_args()
     if args.workers < 1 or args.per_class < 1:
         raise SystemExit("--workers and --per-class: expected >= 1")
     os.environ.update(ONE_THREAD)                       # the workers (spawned) start with one thread each
+    os.environ["FTL_PEER"] = str(Path(args.peer).resolve())
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     python = peer_python(args.peer_python)
