@@ -21,16 +21,18 @@ Laboratory (RSS 2026; its source in ../shared/reference/sb-ftl-cr-planner), same
    --resume continues it); at the end a Markdown table.
 
 Packages: the main process needs numpy; the workers torch, numpy and dacr_learn's own imports (pyyaml,
-pytorch-kinematics with arm-pytorch-utilities, pytorch-seed, lxml, absl-py, matplotlib, scipy); the peer's
-Python numpy, scipy, scikit-learn (tqdm, matplotlib). Pure-Python packages missing from the Python running
-this can be put in .bench/pydeps (``pip install --no-deps --target .bench/pydeps pytorch-kinematics
-arm-pytorch-utilities pytorch-seed``): it is put on the path when it exists.
+pytorch-kinematics with arm-pytorch-utilities and pytorch-seed, lxml, absl-py, matplotlib, scipy); the peer's
+Python numpy, scipy, scikit-learn (tqdm, matplotlib). ``--prepare`` (run with the project's Python) copies the
+three pure-Python ones into .bench/pydeps, put on the path when it exists, and the peer's source into
+.bench/peer: for a machine that has the others but neither these nor the peer's folder.
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -147,6 +149,19 @@ def run_curve(i: int, kind: str, out: str, python: str) -> dict:
 
 # ---- the driver ----
 
+PURE = ("pytorch_kinematics", "arm_pytorch_utilities", "pytorch_seed")
+
+
+def prepare(peer_dir: Path) -> None:
+    """.bench/pydeps (the pure-Python packages of :data:`PURE`, from this Python) and .bench/peer (the peer)."""
+    target = BENCH / "pydeps"
+    target.mkdir(parents=True, exist_ok=True)
+    for name in PURE:
+        origin = Path(importlib.util.find_spec(name).origin).parent
+        shutil.copytree(origin, target / name, dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(peer_dir, BENCH / "peer", dirs_exist_ok=True, ignore=shutil.ignore_patterns("__pycache__"))
+    print(f"{target} ({', '.join(PURE)}) and {BENCH / 'peer'} ready")
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--per-class", type=int, default=40)
@@ -158,7 +173,10 @@ def main() -> None:
     p.add_argument("--peer", default=str(PEER), help="the peer's source folder (default %(default)s)")
     p.add_argument("--out", default=str(BENCH / "ftl"), help="folder of the run (default .bench/ftl)")
     p.add_argument("--resume", action="store_true", help="continue the run in --out (its curves, library, rows)")
+    p.add_argument("--prepare", action="store_true", help="only copy .bench/pydeps and .bench/peer (see above)")
     args = p.parse_args()
+    if args.prepare:
+        return prepare(Path(args.peer))
     if args.workers < 1 or args.per_class < 1:
         raise SystemExit("--workers and --per-class: expected >= 1")
     os.environ.update(ONE_THREAD)                       # the workers (spawned) start with one thread each
