@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from ..arm import Composite
+from ..body import BodyPoints, transform_body
 from ..checks import F64
 from ..ik.adapters import ConstantCurvature, SolverModel
 from ..kinematics import backbone_points, effective_features
@@ -41,9 +42,7 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
     if isinstance(model, Composite):
         n = model.num_arm
         local = body(model.robot, x[:, n:], points_per_segment)
-        base = model.base_pose(x[:, :n])
-        pts = base[:, None, :3, 3] + local.points @ base[:, :3, :3].mT
-        return Body(pts, local.arc)
+        return Body(_moved(local.points, model.base_pose(x[:, :n])), local.arc)
     if isinstance(model, ConstantCurvature):             # the actual arc lengths (an extensible robot's change)
         features = model.features(x)                                                    # (B, m, 4)
         pts = backbone_points(model.spec, features, points_per_segment)
@@ -53,6 +52,13 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
         return Body(pts, arc)
     got = model.body(x, points_per_segment)             # the body API (ValueError: a model without a body)
     return Body(got.points, got.arc_length.to(F64).expand(got.points.shape[:2]))
+
+
+def _moved(points: Tensor, pose: Tensor) -> Tensor:
+    """Points (B, P, 3) given in a frame whose pose is ``pose`` (B, 4, 4), in the outer frame
+    (:func:`dacr_learn.body.transform_body`)."""
+    unused = points.new_zeros(points.shape[1])
+    return transform_body(BodyPoints(points, unused, unused), pose).points
 
 
 def _differences(model: SolverModel, x: Tensor, points_per_segment: int) -> tuple[Body, Tensor, Tensor]:
@@ -80,7 +86,7 @@ def body_and_jacobian(model: SolverModel, x: Tensor,
     jac_a, flange = model.arm.chain.jacobian_tensor(x[:, :n], ret_eef_pose=True)        # (B, 6, n), (B, 4, 4)
     base = flange @ model.mount
     rot = base[:, :3, :3]
-    pts = base[:, None, :3, 3] + local.points @ rot.mT
+    pts = _moved(local.points, base)
     jac_robot = torch.einsum("bij,bpjk->bpik", rot, jac_local)
     omega = jac_a[:, None, 3:].expand(-1, pts.shape[1], -1, -1)                          # (B, P, 3, n)
     rel = (pts - flange[:, None, :3, 3]).unsqueeze(-1).expand_as(omega)
