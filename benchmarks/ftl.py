@@ -136,15 +136,16 @@ def run_curve(i: int, kind: str, out: str, python: str) -> dict:
     model = _model()
     curves = np.load(out_dir / "curves.npz")
     dense, sparse = Polyline(curves[f"dense_{i}"]), Polyline(curves[f"sparse_{i}"])
-    t0 = time.perf_counter()
+    t0, cpu = time.perf_counter(), time.process_time()
     plan = plan_ftl(model, dense)
-    ours_s = time.perf_counter() - t0
+    ours_s, ours_cpu = time.perf_counter() - t0, time.process_time() - cpu
     run = dict(np.load(out_dir / f"peer_{i}.npz"))
     peer_scores, fk_gap = score_peer(model, run, dense)
     return {"curve": i, "kind": kind, "ours": score(model, plan.x, plan.s, dense, plan.tip_err),
-            "ours_success": bool(plan.success), "ours_reason": plan.reason, "ours_s": ours_s,
+            "ours_success": bool(plan.success), "ours_reason": plan.reason, "ours_s": ours_s, "ours_cpu_s": ours_cpu,
             "peer": peer_scores, "peer_own": score_peer(model, run, sparse)[0], "peer_s": peer_times["plan_s"],
-            "peer_load_s": peer_times["load_s"], "peer_wall_s": peer_wall, "fk_gap": fk_gap}
+            "peer_cpu_s": peer_times.get("cpu_s"), "peer_load_s": peer_times["load_s"], "peer_wall_s": peer_wall,
+            "fk_gap": fk_gap}
 
 
 # ---- the driver ----
@@ -268,6 +269,10 @@ def table(rows: list[dict], meta: dict) -> None:
           f"{o['dev_mean'] / pe['dev_mean']:.2f} (target ≤ 0.5); success {sum(r['ours_success'] for r in rows)}/"
           f"{len(rows)}; tip error max {o['tip_max']:.1e} L (target ≤ 1e-6). Peer FK vs ours: "
           f"{max(r['fk_gap'] for r in rows):.1e} m. Wall clock of the run {meta.get('wall_s', 0):.0f} s.")
+    cpu = [(r["ours_cpu_s"], r["peer_cpu_s"]) for r in rows if r.get("peer_cpu_s") is not None]
+    if cpu:
+        print(f"CPU time per curve, median: dacr_learn.plan {np.median([c[0] for c in cpu]):.1f} s, peer "
+              f"{np.median([c[1] for c in cpu]):.1f} s ({len(cpu)} curves)")
     for r in rows:
         if not r["ours_success"]:
             print(f"  curve {r['curve']} ({r['kind']}): {r['ours_reason']}")

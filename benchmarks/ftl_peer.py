@@ -16,7 +16,7 @@ library.pkl, library.json (its wall time).
 
 ``plan`` loads the pickled planner and plans curve I on one core: follow_path on the waypoints, then
 interpolate_mp (40 steps between waypoints); writes peer_<I>.npz (per dense step: Clarke coordinates, base position
-and orientation, the peer's own tip) and prints one JSON line (planning time, load time).
+and orientation, the peer's own tip) and prints one JSON line (planning wall and CPU time, load time).
 """
 from __future__ import annotations
 
