@@ -54,7 +54,8 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
     k = points_per_segment
     while True:                      # the body API (ValueError: a model without a body); a learned shape output
         try:                         # serves divisors of its own count: the nearest below
-            got = model.body(x, k)
+            with torch.no_grad():    # (differences, not autograd: no graph of a network's parameters)
+                got = model.body(x, k)
             break
         except ValueError as err:
             if "divisor" not in str(err) or k == 1:

@@ -168,9 +168,9 @@ class Problem:
             gap = torch.linalg.vector_norm(err, dim=-1)
             rows = (gap > tol).nonzero().squeeze(-1)
             if rows.numel() == 0:
-                return x, gap
+                return x.detach(), gap.detach()
             lam = torch.full((rows.numel(),), 1e-14, dtype=F64)
             x = x.clone()
             x[rows] = limited_step(self.lim, x[rows], err[rows] / self.length, jac[rows, :3] / self.length, lam,
                                    only_held=True)
-        return x, self.tip_error(x, s)
+        return x.detach(), self.tip_error(x, s).detach()
