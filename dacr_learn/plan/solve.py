@@ -158,7 +158,7 @@ class Problem:
         pos = self.model.tip_and_jacobian(x)[0]
         return torch.linalg.vector_norm(pos - self.path.at(s), dim=-1)
 
-    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 6) -> tuple[Tensor, Tensor]:
+    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 20) -> tuple[Tensor, Tensor]:
         """Tip onto the path point at s (B,): minimum-norm steps on the tip residual alone, inside the limits,
         until the tip error is below ``tol`` [m] (or ``iterations``). Returns x and its tip error (B,) [m]."""
         target = self.path.at(s)
