@@ -24,7 +24,10 @@ Packages: the main process needs numpy; the workers torch, numpy and dacr_learn'
 pytorch-kinematics with arm-pytorch-utilities and pytorch-seed, lxml, absl-py, matplotlib, scipy); the peer's
 Python numpy, scipy, scikit-learn (tqdm, matplotlib). ``--prepare`` (run with the project's Python) copies the
 three pure-Python ones into .bench/pydeps, put on the path when it exists, and the peer's source into
-.bench/peer: for a machine that has the others but neither these nor the peer's folder.
+.bench/peer: for a machine that has the others but neither these nor the peer's folder, e.g. 16 cores whose
+python3 has torch, numpy, scipy, scikit-learn, pyyaml, lxml, matplotlib and absl-py:
+
+    python benchmarks/ftl.py --workers 16 --peer-python python3 --peer .bench/peer --out OUT
 """
 from __future__ import annotations
 
