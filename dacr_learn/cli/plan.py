@@ -90,7 +90,8 @@ def _parser() -> argparse.ArgumentParser:
     f.add_argument("--mount", help="with --arm: float64 (4, 4) .npy, the tip link → robot base transform [m]")
     f.add_argument("--path", required=True, help="float64 (W, 3) .npy polyline [m] in the arm's base frame")
     f.add_argument("--out", required=True, help="the PLAN.npz file to write")
-    f.add_argument("--steps", type=int, help="steps T (default: spacing ≤ 1 %% of the robot's length)")
+    f.add_argument("--steps", type=int, help="steps T, evenly spaced along the path (default: spacing ≤ 1 %% of "
+                   "the robot's length; sub-steps the planner takes between them are not written)")
     f.add_argument("--tolerance", type=float, default=1e-6,
                    help="tip tolerance relative to the robot's length (default 1e-6)")
     add_scene_arguments(f)

@@ -5,7 +5,8 @@ robot's base to its tip, in the model's base frame (the arm's base for an arm co
 (B, P) [m] from the robot's base. The analytic constant-curvature model is served here directly
 (:func:`dacr_learn.kinematics.backbone_points` with the actual arc lengths, which an extensible robot changes:
 the body API's are nominal), an arm composite by composing its robot's body with the arm's FK and the mount, any
-other model through the body API (``model.body(x)``: a model without a body raises ValueError).
+other model through the body API (``model.body(x)``: a model without a body raises ValueError; a learned shape
+output of K points per segment serves the largest of ``points_per_segment``, its halves, … that divides K).
 
 :func:`body_and_jacobian` adds ∂points/∂x (B, P, 3, D) and ∂arc/∂x (B, P, D): for an arm composite the arm's
 columns in closed form (pytorch-kinematics' Jacobian at the tip link, shifted to each point: v_i + ω_i × (p − p_a))
@@ -21,6 +22,7 @@ import torch
 from torch import Tensor
 
 from ..arm import Composite
+from ..body import BodyPoints, transform_body
 from ..checks import F64
 from ..ik.adapters import ConstantCurvature, SolverModel
 from ..kinematics import backbone_points, effective_features
@@ -41,9 +43,7 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
     if isinstance(model, Composite):
         n = model.num_arm
         local = body(model.robot, x[:, n:], points_per_segment)
-        base = model.base_pose(x[:, :n])
-        pts = base[:, None, :3, 3] + local.points @ base[:, :3, :3].mT
-        return Body(pts, local.arc)
+        return Body(_moved(local.points, model.base_pose(x[:, :n])), local.arc)
     if isinstance(model, ConstantCurvature):             # the actual arc lengths (an extensible robot's change)
         features = model.features(x)                                                    # (B, m, 4)
         pts = backbone_points(model.spec, features, points_per_segment)
@@ -51,8 +51,24 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
         step = (beta / points_per_segment).repeat_interleave(points_per_segment, dim=-1)
         arc = torch.cat([torch.zeros_like(beta[:, :1]), torch.cumsum(step, -1)], dim=-1)
         return Body(pts, arc)
-    got = model.body(x, points_per_segment)             # the body API (ValueError: a model without a body)
+    k = points_per_segment
+    while True:                      # the body API (ValueError: a model without a body); a learned shape output
+        try:                         # serves divisors of its own count: the nearest below
+            with torch.no_grad():    # (differences, not autograd: no graph of a network's parameters)
+                got = model.body(x, k)
+            break
+        except ValueError as err:
+            if "divisor" not in str(err) or k == 1:
+                raise
+            k //= 2
     return Body(got.points, got.arc_length.to(F64).expand(got.points.shape[:2]))
+
+
+def _moved(points: Tensor, pose: Tensor) -> Tensor:
+    """Points (B, P, 3) given in a frame whose pose is ``pose`` (B, 4, 4), in the outer frame
+    (:func:`dacr_learn.body.transform_body`)."""
+    unused = points.new_zeros(points.shape[1])
+    return transform_body(BodyPoints(points, unused, unused), pose).points
 
 
 def _differences(model: SolverModel, x: Tensor, points_per_segment: int) -> tuple[Body, Tensor, Tensor]:
@@ -80,7 +96,7 @@ def body_and_jacobian(model: SolverModel, x: Tensor,
     jac_a, flange = model.arm.chain.jacobian_tensor(x[:, :n], ret_eef_pose=True)        # (B, 6, n), (B, 4, 4)
     base = flange @ model.mount
     rot = base[:, :3, :3]
-    pts = base[:, None, :3, 3] + local.points @ rot.mT
+    pts = _moved(local.points, base)
     jac_robot = torch.einsum("bij,bpjk->bpik", rot, jac_local)
     omega = jac_a[:, None, 3:].expand(-1, pts.shape[1], -1, -1)                          # (B, P, 3, n)
     rel = (pts - flange[:, None, :3, 3]).unsqueeze(-1).expand_as(omega)

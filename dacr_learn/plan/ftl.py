@@ -7,19 +7,17 @@ to min(path length, L), while the inserted body stays on the traversed path (doc
    pose bank) puts the tip on the path's start pointing along the path, at several rolls; each solution is
    refined on the step problem (:mod:`.solve`: the whole body on the entry line, every point weighing alike)
    and the lowest cost is kept (of equal ones, the arm's best-conditioned configuration);
-2. **coarse pass**: steps :attr:`FTLOptions.coarse_spacing` apart, each refined from the previous one
-   (Levenberg–Marquardt on tip + body residuals, limits inside the step) and its tip polished onto the path; a
-   step whose tip cannot be put on the path is retried from the IK solver's solutions nearest the previous
-   step (**recovery**);
-3. **fine pass**: all T steps at once, started from the coarse solutions interpolated in s, refined and
-   polished as one batch; a step that leaves its predecessor's branch (a variable changing by more than half
-   its continuity bound) or misses the path is solved again from its predecessor (continuation);
-4. **verdict**: from the joints alone (the model's own check): every tip within ``tolerance``·L of its path
+2. **continuation**: each of the T steps refined from the previous one (Levenberg–Marquardt on tip + body
+   residuals, limits inside the step, a weak pull towards the previous step) and its tip polished onto the path;
+   a step that misses the path or changes a variable by more than its bound is taken in halves (at most
+   :attr:`FTLOptions.substeps` halvings, where the path turns fast), then **recovered** from the IK solver's
+   solutions nearest the previous step;
+3. **verdict**: from the joints alone (the model's own check): every tip within ``tolerance``·L of its path
    point, inside every limit, and no variable changing by more than :meth:`FTLOptions.bounds` between
    consecutive steps; with a scene, also the clearance of the body (and an arm's links) to the obstacles ≥ D
    at every step (:meth:`dacr_learn.ik.collision.Avoidance.clearance_of_joints`, solve_ik's own check); else
-   ``success`` False and ``reason`` names the first failure. The scene is checked, not avoided: the steps'
-   least squares do not see the obstacles.
+   ``success`` False and ``reason`` names the first failure. With a scene, every step's least squares also
+   carries clearance hinges (:mod:`.solve`): the body avoids the obstacles as it follows the path.
 """
 from __future__ import annotations
 
@@ -47,32 +45,27 @@ BANK_SIZE = 2048   # admissible samples seeding the IK of the first step and of 
 ROLLS = 4          # rolls about the path's entry direction tried for the first step
 FIRST_ITERATIONS = 40   # LM steps of the first step (from IK solutions: the body may start far from the line)
 TIE = 1e-10         # step costs (units of L²) this close count as equally good for the first step
-REPAIR = 0.5      # a fine step changing a variable by more than this fraction of its bound is continued anew
-RECOVER = 1e-3     # a coarse step whose tip stays this far (relative to L) from its path point is recovered
 
 
 @dataclass(frozen=True)
 class FTLOptions:
     """tolerance: tip error allowed, relative to the robot's length L; spacing: default step spacing along the
-    path, relative to L; coarse_spacing: of the sequential pass; coarse_iterations / fine_iterations: LM
-    steps per step of each pass; max_change: the continuity bound per step at the default spacing, in
-    rad for revolute arm joints, in units of L for prismatic ones, in units of the variable's scale for the
-    robot's (bend ρ: of its disk radius); coarse_regularization: the pull towards the previous step in the coarse
-    pass (strong: what the body leaves free stays where it was; the fine pass re-centres it and removes the bias);
-    solutions: IK solutions tried for the first step and a recovery."""
+    path, relative to L; iterations: LM steps per step; substeps: halvings of a step that misses the path or
+    jumps; max_change: the continuity bound per step of the default spacing (proportional to the step's arc
+    length), in rad for revolute arm joints and twists, in units of L for prismatic ones and segment lengths,
+    in units of the variable's scale for the robot's others (bend ρ: of its disk radius); solutions: IK
+    solutions tried for the first step and a recovery."""
 
     tolerance: float = 1e-6
     spacing: float = 0.01
-    coarse_spacing: float = 0.04
-    coarse_iterations: int = 6
-    fine_iterations: int = 8
+    iterations: int = 12
+    substeps: int = 3
     max_change: float = 0.1
-    coarse_regularization: float = 1e-2
     solutions: int = 8
     step: StepOptions = field(default_factory=StepOptions)
 
     def __post_init__(self):
-        for name in ("tolerance", "spacing", "coarse_spacing", "max_change"):
+        for name in ("tolerance", "spacing", "max_change"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a finite value > 0, got {v}")
@@ -135,8 +128,9 @@ class _Planner:
         self.model, self.path, self.opts, self.avoid = model, path, options, avoid
         self.length = robot_length(model)
         self.tol = options.tolerance * self.length
-        self.problem = Problem(model, path, self.length, options.step)
-        self.start = Problem(model, path, self.length, replace(options.step, outside_weight=1.0))
+        scene = () if avoid is None else (avoid.scene, avoid.clearance)
+        self.problem = Problem(model, path, self.length, options.step, *scene)
+        self.start = Problem(model, path, self.length, replace(options.step, outside_weight=1.0), *scene)
         self.bank = None
 
     def _candidates(self, targets: Tensor, position_only: bool, q0: Tensor | None = None) -> Tensor:
@@ -146,8 +140,9 @@ class _Planner:
         if self.bank is None and isinstance(self.model, Composite):
             self.bank = PoseBank(self.model, BANK_SIZE)
         seeds = None if self.bank is None else self.bank.seeds(targets, k)
+        scene = {} if self.avoid is None else {"scene": self.avoid.scene, "clearance": self.avoid.clearance}
         res = solve_ik(self.model, targets, k, q0=q0, position_only=position_only, seeds=seeds,
-                       options=IKOptions(restarts=0))
+                       options=IKOptions(restarts=0), **scene)
         q = res.q.reshape(-1, res.q.shape[-1])[res.success.reshape(-1)]
         return self.model.variables(q)
 
@@ -156,8 +151,8 @@ class _Planner:
         sv = torch.full((cand.shape[0],), s, dtype=F64)
         problem = self.problem if ref is not None else self.start   # the first step: the whole body on the line
         x, cost, _ = problem.refine(cand, sv, cand if ref is None else ref.expand_as(cand), iterations)
-        x = self.problem.polish(x, sv, 1e-3 * self.tol)
-        ok = self.problem.tip_error(x, sv) <= self.tol
+        x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
+        ok = tip <= self.tol
         if ref is not None:       # a recovery: prefer the solution nearest the previous step
             cost = cost + ((x - ref) / self.problem.scale).square().sum(-1) * 1e-6
         cost = torch.where(ok, cost, cost + 1e6)
@@ -189,46 +184,47 @@ class _Planner:
         x, ok = self._best(self._wrapped(cand), 0.0, None, FIRST_ITERATIONS)
         return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
 
-    def coarse(self, x0: Tensor, s: Tensor) -> tuple[Tensor, str]:
-        xs, reason = [x0], ""
-        for k in range(1, s.shape[0]):
-            prev = xs[-1][None]             # from the previous step (an extrapolated start hopped branches)
-            sk = s[k:k + 1]
-            x, _, tip = self.problem.refine(prev.clone(), sk, prev, self.opts.coarse_iterations,
-                                            reg=self.opts.coarse_regularization)
-            if float(tip[0]) > RECOVER * self.length:                                   # recovery
-                cand = self._candidates(self.path.at(sk), True, q0=self.model.joints(prev))
-                if cand.shape[0]:
-                    best, ok = self._best(torch.cat([x, cand]), float(sk[0]), prev[0], self.opts.coarse_iterations)
-                    x = best[None]
-                if float(self.problem.tip_error(x, sk)[0]) > self.tol and not reason:
-                    reason = f"the tip cannot follow the path at s = {float(sk[0]):.6g} m (no IK solution there)"
-            xs.append(x[0])
-        return torch.stack(xs), reason
+    def _solve(self, prev: Tensor, s: float) -> tuple[Tensor, Tensor]:
+        """The step (1, D) at tip arc length s continued from ``prev`` (1, D): LM pulled weakly towards prev, then
+        the tip polished onto its path point; and its tip error (1,) [m]."""
+        sv = torch.tensor([s], dtype=F64)
+        x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations)
+        return self.problem.polish(x, sv, 1e-3 * self.tol)
 
-    def fine(self, xc: Tensor, sc: Tensor, s: Tensor) -> Tensor:
-        i = (torch.searchsorted(sc, s, right=True) - 1).clamp(0, sc.shape[0] - 2)
-        t = ((s - sc[i]) / (sc[i + 1] - sc[i])).clamp(0.0, 1.0)[:, None]
-        x0 = xc[i] + t * (xc[i + 1] - xc[i])
-        x, _, _ = self.problem.refine(x0.clone(), s, x0, self.opts.fine_iterations)
-        x, _, _ = self.problem.refine(x, s, x.clone(), self.opts.fine_iterations)      # pull re-centred: no bias
-        x = self.problem.polish(x, s, 1e-3 * self.tol)
-        bad = self.problem.tip_error(x, s) > self.tol
-        bound = self.bounds(float((s[1:] - s[:-1]).max()) if s.shape[0] > 1 else 0.0)
-        for k in range(1, x.shape[0]):        # continuation: a row off its neighbour's branch, or missed, again
-            if not (bool(bad[k]) or bool(((x[k] - x[k - 1]).abs() > REPAIR * bound).any())):
-                continue
-            prev = x[k - 1:k]
-            xk, _, _ = self.problem.refine(prev.clone(), s[k:k + 1], prev, 2 * self.opts.coarse_iterations,
-                                           reg=self.opts.coarse_regularization)
-            for _ in range(2):                                       # the pull re-centred: converged, no bias
-                xk, _, _ = self.problem.refine(xk, s[k:k + 1], xk.clone(), self.opts.fine_iterations)
-            x[k] = self.problem.polish(xk, s[k:k + 1], 1e-3 * self.tol)[0]
-        return x
+    def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> tuple[Tensor, float]:
+        """The solution (1, D) at s1 continued from ``prev`` (1, D), the solution at s0 < s1. A step that misses
+        the path or changes a variable by more than its bound is taken in two halves (at most
+        ``options.substeps`` halvings: the path turns fast there), then recovered from the IK solutions nearest
+        ``prev``. Returns it and its tip error [m]."""
+        x, tip = self._solve(prev, s1)
+        missed = float(tip[0]) > self.tol
+        jump = float(((x - prev).abs() / self.bounds(s1 - s0)).max())
+        if not missed and jump <= 1.0:
+            return x, float(tip[0])
+        if depth < self.opts.substeps:
+            mid = 0.5 * (s0 + s1)
+            return self._advance(self._advance(prev, s0, mid, depth + 1)[0], mid, s1, depth + 1)
+        if missed:                                                                      # recovery
+            cand = self._candidates(self.path.at(torch.tensor([s1], dtype=F64)), True, q0=self.model.joints(prev))
+            if cand.shape[0]:
+                x = self._best(torch.cat([x, cand]), s1, prev[0], self.opts.iterations)[0][None]
+                tip = self.problem.tip_error(x, torch.tensor([s1], dtype=F64))
+        return x, float(tip[0])
+
+    def follow(self, x0: Tensor, s: Tensor) -> tuple[Tensor, str]:
+        """The steps (T, D) at tip arc lengths s (T,), each continued from the previous one; and a reason when
+        the tip could not follow."""
+        xs, reason = [x0[None]], ""
+        for k in range(1, s.shape[0]):
+            x, tip = self._advance(xs[-1], float(s[k - 1]), float(s[k]))
+            if not reason and tip > self.tol:
+                reason = f"the tip cannot follow the path at s = {float(s[k]):.6g} m (step {k}; no IK solution there)"
+            xs.append(x)
+        return torch.cat(xs), reason
 
     def bounds(self, ds: float) -> Tensor:
         """The largest change of each variable (D,) allowed between consecutive steps ds [m] apart."""
-        factor = self.opts.max_change * max(1.0, ds / (self.opts.spacing * self.length))
+        factor = self.opts.max_change * ds / (self.opts.spacing * self.length)
         scale = self.problem.scale.clone()
         out = factor * scale
         names = self.model.limits.names
@@ -298,8 +294,5 @@ def plan_ftl(model, path, steps: int | None = None, options: FTLOptions = FTLOpt
         x = model.limits.project(model.rest.to(F64)).expand(steps, n).clone()
         plan = planner.verdict(x, s, reason)
         return plan
-    n_coarse = max(2, math.ceil(stop / (options.coarse_spacing * planner.length)) + 1)
-    sc = torch.linspace(0.0, stop, n_coarse, dtype=F64)
-    xc, late = planner.coarse(x0, sc)
-    x = planner.fine(xc, sc, s)
+    x, late = planner.follow(x0, s)
     return planner.verdict(x, s, reason or late)

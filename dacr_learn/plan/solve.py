@@ -5,8 +5,12 @@ the body) is asked to lie on the path point at arc s − δ: on the path when s 
 straight entry line behind the path's start (:meth:`~.path.Path.at`), with the lower weight
 ``outside_weight`` (a ramp over :data:`RAMP` of the length). The tip itself weighs :data:`TIP_WEIGHT` times a
 body point, and a small pull ``regularization`` towards reference variables (the previous step) fixes what the
-body leaves free (e.g. the roll of a free base about the robot's axis). Residuals are in units of the robot's
-length L; the variables are scaled by the limits' scale.
+body leaves free (e.g. the roll of a free base about the robot's axis). With a scene, a **clearance hinge**
+max(0, D + δ − c)/L joins for every (body point, obstacle) pair, weighing :data:`HINGE_WEIGHT` body points: c the
+point's clearance (the scene's signed distance less the body's envelope radius there), δ the larger chord sag
+(:func:`dacr_learn.body.chord_sag`) beside the point, so that the body between the points keeps D too; its
+Jacobian from the scene's distance gradients and the body's. Residuals are in units of the robot's length L; the
+variables are scaled by the limits' scale.
 
 :func:`refine` runs Levenberg–Marquardt on these residuals with the limits inside the step (blocked limits held,
 the trial point projected onto the admissible set, as in :mod:`dacr_learn.ik.refine`), solving the D × D normal
@@ -21,14 +25,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..body import chord_sag
 from ..checks import F64
 from ..ik.adapters import SolverModel
 from ..ik.refine import limited_step
+from ..scene import Scene
 from .body import body_and_jacobian
 from .path import Path
 
 TIP_WEIGHT = 10.0      # the tip's weight relative to one body point (then polished to the tolerance)
 RAMP = 0.25            # length of the weight ramp at the entry point, relative to L
+HINGE_WEIGHT = 10.0    # a clearance hinge's weight relative to one body point's (as the tip's)
 
 
 @dataclass(frozen=True)
@@ -45,12 +52,18 @@ class StepOptions:
 
 
 class Problem:
-    """The FTL step problem of ``model`` along ``path`` (module docstring); L = ``length`` [m]."""
+    """The FTL step problem of ``model`` along ``path`` (module docstring); L = ``length`` [m]; ``scene``: the
+    obstacles to keep ``clearance`` [m] from (or None)."""
 
-    def __init__(self, model: SolverModel, path: Path, length: float, options: StepOptions):
+    def __init__(self, model: SolverModel, path: Path, length: float, options: StepOptions,
+                 scene: Scene | None = None, clearance: float = 0.0):
         self.model, self.path, self.length, self.opts = model, path, length, options
+        self.scene, self.clearance = scene, clearance
         self.lim = model.limits.to(F64)
         self.scale = self.lim.scale.to(F64)
+        if scene is not None:                  # the envelope radius (P,) at the body points (the body API's)
+            rest = self.lim.project(model.rest.to(F64)[None])
+            self.radius = model.body(rest, options.points_per_segment).radius.to(F64)
 
     def residual(self, x: Tensor, s: Tensor, ref: Tensor, reg: float | None = None) -> tuple[Tensor, Tensor]:
         """r (B, R) and ∂r/∂x (B, R, D) at variables x (B, D), tip arc lengths s (B,) [m], references ref (B, D);
@@ -62,6 +75,7 @@ class Problem:
         target = self.path.at(along)
         # the targets slide along the path with the arc lengths (an extensible robot): ∂target = t·∂along
         d_along = jac_arc - jac_arc[:, -1:]                                              # (B, P, D)
+        jac_points = jac
         jac = jac - self.path.tangent(along).unsqueeze(-1) * d_along.unsqueeze(-2)
         ramp = RAMP * self.length
         w = self.opts.outside_weight + (1 - self.opts.outside_weight) * ((along + ramp) / ramp).clamp(0.0, 1.0)
@@ -73,7 +87,29 @@ class Problem:
         reg = self.opts.regularization if reg is None else reg
         r_reg = reg * (x - ref) / self.scale
         j_reg = torch.diag(reg / self.scale).expand(b, d, d)
-        return torch.cat([r_body, r_reg], dim=1), torch.cat([j_body, j_reg], dim=1)
+        rows, jacs = [r_body, r_reg], [j_body, j_reg]
+        if self.scene is not None:
+            r_hinge, j_hinge = self._hinges(body.points, jac_points)
+            rows.append(r_hinge)
+            jacs.append(j_hinge)
+        self.tip_rows = slice(3 * p - 3, 3 * p)
+        return torch.cat(rows, dim=1), torch.cat(jacs, dim=1)
+
+    def _hinges(self, points: Tensor, jac: Tensor) -> tuple[Tensor, Tensor]:
+        """The clearance hinges (B, P·O) of body points (B, P, 3) with Jacobian jac (B, P, 3, D), and theirs."""
+        b, p, _ = points.shape
+        if self.radius.shape[0] != p:
+            raise ValueError(f"{type(self.model).__name__}: the body API gives {self.radius.shape[0]} points, the "
+                             f"planner's body {p}; expected the same layout")
+        dist, grad = self.scene.distances(points, grad=True)                          # (B, P, O), (B, P, O, 3)
+        sag = chord_sag(points)                                                        # (B, P − 1)
+        pad = torch.zeros_like(sag[:, :1])
+        margin = torch.maximum(torch.cat([pad, sag], 1), torch.cat([sag, pad], 1))     # (B, P)
+        short = (self.clearance + margin).unsqueeze(-1) - (dist - self.radius[:, None])
+        active = (short > 0).to(F64)
+        w = HINGE_WEIGHT / (self.length * p ** 0.5)
+        j = -w * active.unsqueeze(-1) * torch.einsum("bpoi,bpid->bpod", grad, jac)
+        return (w * short.clamp_min(0.0)).reshape(b, -1), j.reshape(b, -1, jac.shape[-1])
 
     def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int, tol: float = 1e-10,
                reg: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -98,8 +134,8 @@ class Problem:
             x[acc], r[acc], jac[acc], cost[acc] = xt[better], rt[better], jt[better], ct[better]
             lam[rows] = torch.where(better, (lam[rows] / 10).clamp_min(1e-15), lam[rows] * 10)
             live[rows] = ~((better & (gain < tol)) | (lam[rows] > 1e6))
-        p = (r.shape[1] - x.shape[1]) // 3
-        tip = torch.linalg.vector_norm(r[:, 3 * p - 3:3 * p], dim=-1) * self.length * p ** 0.5 / TIP_WEIGHT
+        p = self.tip_rows.stop // 3
+        tip = torch.linalg.vector_norm(r[:, self.tip_rows], dim=-1) * self.length * p ** 0.5 / TIP_WEIGHT
         return x, cost, tip
 
     def _step(self, x: Tensor, r: Tensor, jac: Tensor, lam: Tensor) -> Tensor:
@@ -122,18 +158,19 @@ class Problem:
         pos = self.model.tip_and_jacobian(x)[0]
         return torch.linalg.vector_norm(pos - self.path.at(s), dim=-1)
 
-    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 6) -> Tensor:
+    def polish(self, x: Tensor, s: Tensor, tol: float, iterations: int = 20) -> tuple[Tensor, Tensor]:
         """Tip onto the path point at s (B,): minimum-norm steps on the tip residual alone, inside the limits,
-        until the tip error is below ``tol`` [m] (or ``iterations``)."""
+        until the tip error is below ``tol`` [m] (or ``iterations``). Returns x and its tip error (B,) [m]."""
         target = self.path.at(s)
         for _ in range(iterations):
             pos, _, jac = self.model.tip_and_jacobian(x)
             err = pos - target
-            rows = (torch.linalg.vector_norm(err, dim=-1) > tol).nonzero().squeeze(-1)
+            gap = torch.linalg.vector_norm(err, dim=-1)
+            rows = (gap > tol).nonzero().squeeze(-1)
             if rows.numel() == 0:
-                break
+                return x.detach(), gap.detach()
             lam = torch.full((rows.numel(),), 1e-14, dtype=F64)
             x = x.clone()
             x[rows] = limited_step(self.lim, x[rows], err[rows] / self.length, jac[rows, :3] / self.length, lam,
                                    only_held=True)
-        return x
+        return x.detach(), self.tip_error(x, s).detach()
