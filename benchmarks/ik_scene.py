@@ -49,32 +49,72 @@ def numpy_scene_distance(scene, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def numpy_clearance(model, spec: RobotSpec, scene, q: np.ndarray) -> np.ndarray:
+def rotations_z(a: np.ndarray) -> np.ndarray:
+    """Rz(a) (B, 3, 3) of angles (B,)."""
+    c, s, z, o = np.cos(a), np.sin(a), np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def rotations_y(a: np.ndarray) -> np.ndarray:
+    c, s, z, o = np.cos(a), np.sin(a), np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def dense_arcs(spec: RobotSpec, f: np.ndarray, n: int) -> np.ndarray:
+    """Backbone points (B, 1 + m·n, 3) of features (B, m, 4) by the classic arc formula (Webster & Jones:
+    R = Rz(θ)Ry(φ)Rz(−θ), p(s) = (β/φ)(cosθ(1 − cos sφ), sinθ(1 − cos sφ), sin sφ)), vectorised over samples
+    and points (the per-point loop of tests/conftest.reference_backbone, which it is checked against)."""
+    b, s = f.shape[0], np.arange(1, n + 1) / n
+    rot, pos, out = np.tile(np.eye(3), (b, 1, 1)), np.zeros((b, 3)), [np.zeros((b, 1, 3))]
+    for k, seg in enumerate(spec.segments):
+        theta = np.arctan2(f[:, k, 1], f[:, k, 0])
+        phi = np.hypot(f[:, k, 0], f[:, k, 1]) / seg.radius
+        beta = f[:, k, 2] if seg.extends else np.full(b, seg.length)
+        alpha = f[:, k, 3] if seg.twists else np.zeros(b)
+        sp = s[None] * phi[:, None]                                                  # (B, n)
+        bent = phi[:, None] > 0
+        scale = np.where(phi > 0, beta / np.where(phi > 0, phi, 1.0), 0.0)[:, None]
+        one_minus_cos = 2 * np.sin(sp / 2) ** 2
+        local = np.stack([np.cos(theta)[:, None] * one_minus_cos * scale, np.sin(theta)[:, None] * one_minus_cos
+                          * scale, np.where(bent, scale * np.sin(sp), s[None] * beta[:, None])], -1)  # (B, n, 3)
+        frame = rot @ rotations_z(alpha)
+        out.append(np.einsum("bij,bnj->bni", frame, local) + pos[:, None])
+        pos = pos + np.einsum("bij,bj->bi", frame, local[:, -1])
+        rot = frame @ rotations_z(theta) @ rotations_y(phi) @ rotations_z(-theta)
+    return np.concatenate(out, 1)
+
+
+def numpy_clearance(model, spec: RobotSpec, scene, q: np.ndarray, chunk: int = 256) -> np.ndarray:
     """Independent clearance (B,) of joint vectors (B, N): dense NumPy arcs (and link capsules) to the obstacles."""
     n_arm = getattr(model, "num_arm", 0)
     f = ClarkeEncoder(spec).to(F64)(torch.from_numpy(q[:, n_arm:])).numpy()
+    for i in range(min(3, len(f))):                              # the vectorised arcs are the per-point formula's
+        assert np.abs(dense_arcs(spec, f[i:i + 1], 50)[0] - reference_backbone(spec, f[i], 50)).max() < 1e-12
     radius = np.concatenate([[spec.segments[0].body_radius]] + [[s.body_radius] * 400 for s in spec.segments])
     out = np.empty(q.shape[0])
     if n_arm:
         theta = torch.from_numpy(q[:, :n_arm])
         base = (model.base_pose(theta)).numpy()
         a, b, r, near = (t.numpy() for t in model.links(model.variables(torch.from_numpy(q))))
-    for i in range(q.shape[0]):
-        pts = reference_backbone(spec, f[i], 400)
+    t = np.linspace(0, 1, 200)[:, None]
+    for start in range(0, q.shape[0], chunk):
+        rows = slice(start, start + chunk)
+        pts = dense_arcs(spec, f[rows], 400)                                         # (C, P, 3)
         if n_arm:
-            pts = pts @ base[i, :3, :3].T + base[i, :3, 3]
-        c = (numpy_scene_distance(scene, pts) - radius).min()
+            pts = np.einsum("bij,bpj->bpi", base[rows, :3, :3], pts) + base[rows, None, :3, 3]
+        c = (numpy_scene_distance(scene, pts.reshape(-1, 3)).reshape(pts.shape[:2]) - radius).min(-1)
         if n_arm:
-            t = np.linspace(0, 1, 200)[:, None]
             for j in range(a.shape[1]):
-                link = a[i, j] + t * (b[i, j] - a[i, j])
-                c = min(c, numpy_scene_distance(scene, link).min() - r[j])
+                ab = b[rows, j] - a[rows, j]                                            # (C, 3)
+                link = a[rows, j][:, None] + t[None] * ab[:, None]                      # (C, 200, 3)
+                c = np.minimum(c, numpy_scene_distance(scene, link.reshape(-1, 3)).reshape(link.shape[:2]).min(-1)
+                               - r[j])
                 if not near[j]:
-                    u = np.clip((pts - a[i, j]) @ (b[i, j] - a[i, j]) / max(np.sum((b[i, j] - a[i, j]) ** 2), 1e-300),
-                                0, 1)
-                    c = min(c, (np.linalg.norm(pts - (a[i, j] + u[:, None] * (b[i, j] - a[i, j])), axis=-1)
-                                - r[j] - radius).min())
-        out[i] = c
+                    u = np.clip(np.einsum("bpk,bk->bp", pts - a[rows, j][:, None], ab)
+                                / np.maximum((ab * ab).sum(-1), 1e-300)[:, None], 0, 1)
+                    gap = np.linalg.norm(pts - (a[rows, j][:, None] + u[..., None] * ab[:, None]), axis=-1)
+                    c = np.minimum(c, (gap - r[j] - radius).min(-1))
+        out[rows] = c
     return out
 
 

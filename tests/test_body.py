@@ -12,7 +12,7 @@ from conftest import random_features, reference_backbone, spec_by_name
 from dacr_learn.body import BodyPoints, cc_body, chord_sag
 from dacr_learn.ik import ConstantCurvature, SolverModel
 from dacr_learn.robot import RobotSpec
-from dacr_learn.scene import Swept, chain_clearance, load_scene, scene_from_dict, swept_body
+from dacr_learn.scene import Swept, chain_clearance, convex_bound, load_scene, scene_from_dict, swept_body
 
 F64 = torch.float64
 TDCR3 = spec_by_name("tdcr_3seg_equal")
@@ -128,6 +128,44 @@ def test_chain_clearance_is_a_tight_lower_bound_of_dense_arcs():
             true = (numpy_distances(dense) - spec.segments[0].body_radius).min()
             assert bound[i] <= true + 1e-12
             assert true - bound[i] < gap
+
+
+def test_sphere_distances_without_autograd_match_numpy():
+    """Without autograd the spheres take torch.cdist (no (..., O, 3) differences): the same distances."""
+    scene = scene_from_dict(SCENE)
+    pts = torch.from_numpy(np.random.default_rng(4).uniform([-0.12, -0.12, 0.0], [0.12, 0.12, 0.25], (3, 700, 3)))
+    with torch.no_grad():
+        d = scene.distances(pts)[0]
+    ref = numpy_distances(pts.numpy().reshape(-1, 3)).reshape(3, 700, 3)
+    order = [scene.labels.index(f"obstacles[{i}] ({o['type']})") for i, o in enumerate(SCENE["obstacles"])]
+    assert d.shape == (3, 700, 3) and np.abs(d[..., order].numpy() - ref).max() < 1e-14
+
+
+def _every_pair_bound(scene, swept: Swept) -> torch.Tensor:
+    """The chain bound with the convex bound taken for every (chord, obstacle) pair (no selection)."""
+    p = swept.points
+    d, g = scene.distances(p, grad=True)
+    chord = (p[:, 1:] - p[:, :-1]).unsqueeze(-2)
+    length = torch.linalg.vector_norm(chord, dim=-1)
+    shrink = (swept.radius + swept.sag).unsqueeze(-1)
+    lip = (d[:, :-1] + d[:, 1:] - length) / 2 - shrink
+    convex = convex_bound(d[:, :-1], d[:, 1:], (g[:, :-1] * chord).sum(-1), (g[:, 1:] * chord).sum(-1)) - shrink
+    return torch.maximum(lip, convex).flatten(1).amin(-1)
+
+
+def test_chain_clearance_selects_every_pair_that_can_decide():
+    """Refining only the pairs whose Lipschitz bound lies below the row's upper bound gives exactly the bound of
+    refining every pair; with ``decide`` the (looser) bound lies on the same side of the threshold."""
+    scene = scene_from_dict(SCENE)
+    f = random_features(TDCR3, (300,), seed=11)
+    for k in (4, 16):
+        swept = swept_body(cc_body(TDCR3, f, k))
+        full = chain_clearance(scene, swept)
+        assert torch.allclose(full, _every_pair_bound(scene, swept), rtol=0, atol=1e-15)
+        for threshold in (-0.01, 0.0, 0.004, float(full.median())):
+            decided = chain_clearance(scene, swept, decide=threshold)
+            assert (decided <= full + 1e-15).all()
+            assert torch.equal(decided >= threshold, full >= threshold)
 
 
 def test_chord_sag_bounds_the_arc():

@@ -147,3 +147,43 @@ def test_rerun_draws_obstacles_and_the_body_coloured_by_clearance(tmp_path):
         assert len(balls["Points3D:positions"][-1]) == 1 + 3 * 16
     assert clearance_colors(np.array([-0.001, 0.002, 0.02]), 0.004)[:, :3].tolist() == [
         [220, 30, 30], [255, 150, 0], [40, 190, 60]]
+
+
+def test_restarts_lie_near_a_solution_of_the_same_target_inside_the_limits():
+    from dacr_learn.ik.collision import RESTART_SPREAD
+    model = ConstantCurvature(SPEC)
+    gen = torch.Generator().manual_seed(3)
+    x = model.limits.sample(6, gen)
+    uniform = model.limits.sample(400, gen)
+    solved = torch.full((400, 3), -1, dtype=torch.long)
+    solved[:200, 1] = 4                                              # the first 200 starts' target has row 4 solved
+    solved[100:200, 2] = 5
+    out = Avoidance(model, load_scene(SCENE_FILE), D).restarts(uniform, x, solved, gen)
+    assert out.shape == uniform.shape and model.limits.inside(out).all()
+    assert torch.equal(out[200:], uniform[200:])                    # no solution of their target: uniform
+    moved = ~(out[:200] == uniform[:200]).all(-1)
+    assert 0.6 < moved.double().mean() < 0.9                        # about RESTART_NEAR of them
+    reach = RESTART_SPREAD * torch.linalg.vector_norm(model.limits.scale)
+    near4 = torch.linalg.vector_norm(out[:200] - x[4], dim=-1) <= reach + 1e-12
+    near5 = torch.linalg.vector_norm(out[:200] - x[5], dim=-1) <= reach + 1e-12
+    assert (near4[:100] | ~moved[:100]).all()
+    assert (near4[100:] | near5[100:] | ~moved[100:]).all() and (near5[100:] & moved[100:]).any()
+
+
+def test_hinge_residuals_and_their_jacobian():
+    """With ``hinge`` the residual's forward-difference Jacobian matches forward-mode autodiff of the same pair
+    distances, and a start short of the clearance gets positive hinge rows."""
+    model, scene = ConstantCurvature(SPEC), load_scene(SCENE_FILE)
+    avoid = Avoidance(model, scene, 0.01, hinge=True)
+    assert avoid.rows == 4 and Avoidance(model, scene, D).rows == 0
+    x = model.limits.sample(300, torch.Generator().manual_seed(2))
+    x = x[(avoid.clearance_of(x, 8) < 0.01) & (avoid.clearance_of(x, 8) > 0.0)][:5]
+    r, jac, ok = avoid.residual(x)
+    assert r.shape == (5, 4) and jac.shape == (5, 4, x.shape[1]) and (r[:, 0] > 0).all() and not ok.any()
+    _, d, longest = avoid._evaluate(x, 8)
+    pick = (0.01 + 0.1 * longest.unsqueeze(-1) - d).topk(4, dim=-1).indices
+    auto = torch.func.jacfwd(lambda v: avoid._pair_distances(v, pick))(x)          # (5, 4, 5, D)
+    auto = auto[torch.arange(5), :, torch.arange(5)]                                # (5, 4, D)
+    active = (r > 0).unsqueeze(-1)
+    scale = model.limits.scale
+    assert ((jac * model.length + auto).abs() * scale <= 1e-5 * active.to(F64) + 1e-12 + ~active * 1e9).all()

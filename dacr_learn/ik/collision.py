@@ -6,14 +6,17 @@ Two paths, like the tip's:
   model's body at :data:`CHECK_POINTS` points per segment), the signed clearance of the swept body (robot and arm
   links) to every obstacle, and of the robot's body to the arm's links away from the mount (docs/body.md), as a
   rigorous lower bound (:mod:`dacr_learn.scene.clearance`); a solution succeeds when it is ≥ the clearance D;
-- in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment; if
-  its clearance falls short of D by more than :data:`HINGE_WITHIN` it is restarted, else it takes
-  (:meth:`Avoidance.residual`) hinge residuals max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle)
-  pairs, d the signed distance of a body point's ball, with their Jacobian by forward differences (one batched
-  evaluation of the body at the D perturbed variable vectors: any model with a body, meshes included);
-  δ (a tenth of the longest chord between body points) makes the hinge push the points far enough for the chord
-  bound to pass. A start has converged when its tip has and the bound of its body
-  (:data:`SOLVER_POINTS` per segment) is ≥ D.
+- in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment
+  (:meth:`Avoidance.triage`: only the side of D matters, so the bound's convex refinement is skipped where the
+  Lipschitz bound or the points' own distances already decide). If it clears D it is a solution, else its slot
+  restarts, its new starts mostly near a collision-free solution of the same target (:meth:`Avoidance.restarts`).
+  With ``hinge=True`` a start short by less than :data:`HINGE_WITHIN` is instead pushed clear by hinge residuals
+  max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle) pairs (:meth:`Avoidance.residual`), d the
+  signed distance of a body point's ball, with their Jacobian by forward differences (one batched evaluation of
+  the body at the D perturbed variable vectors: any model with a body, meshes included); δ (a tenth of the
+  longest chord between body points) makes the hinge push the points far enough for the chord bound to pass.
+
+Clearances are evaluated in blocks of :data:`CHUNK` rows (their (rows, points, obstacles) arrays stay in cache).
 """
 from __future__ import annotations
 
@@ -28,20 +31,26 @@ SOLVER_POINTS = 8     # body points per segment inside the refinement
 CHECK_POINTS = 32     # body points per segment of the independent check
 PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
 LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
-HINGE_WITHIN = 0.001  # [m] a converged start short of the clearance by less than this is pushed clear, else restarted
+HINGE_WITHIN = 0.001  # [m] with ``hinge=True``: a converged start short of the clearance by less than this is pushed
+                      # clear, else restarted
 STEP = 1e-7           # forward-difference step, in units of each variable's scale
+RESTART_NEAR = 0.75   # fraction of new starts drawn near a collision-free solution of the same target (if any)
+RESTART_SPREAD = 0.1  # their offset from it: uniform in ± this many units of each variable's scale
+CHUNK = 512           # rows per block of a clearance evaluation (its (rows, points, obstacles) arrays stay in cache)
 
 
 class Avoidance:
     """Clearance of ``model``'s body to ``scene`` at least ``clearance`` [m] (module docstring); the ``extra``
-    condition of :class:`~.refine.Refinement` (``rows``, :meth:`satisfied`, :meth:`residual`)."""
+    condition of :class:`~.refine.Refinement` (``rows``, :meth:`triage`, :meth:`residual`). ``hinge``: push starts
+    that miss the clearance by less than :data:`HINGE_WITHIN` clear with hinge residuals (``rows`` =
+    :data:`PAIRS`); without it (the default, faster on both shipped scenes) every start that misses restarts and
+    the LM system keeps its size (``rows`` = 0)."""
 
-    rows = PAIRS
-
-    def __init__(self, model: SolverModel, scene: Scene, clearance: float):
+    def __init__(self, model: SolverModel, scene: Scene, clearance: float, hinge: bool = False):
         if not clearance >= 0 or clearance == float("inf"):
             raise ValueError(f"clearance: expected a finite distance >= 0 [m], got {clearance}")
         self.model, self.scene, self.clearance = model, scene, float(clearance)
+        self.rows, self.within = (PAIRS, HINGE_WITHIN) if hinge else (0, 0.0)
         model.body(model.rest.to(torch.float64).unsqueeze(0), SOLVER_POINTS)     # ValueError without a body
 
     def _balls(self, x: Tensor, points_per_segment: int):
@@ -52,23 +61,30 @@ class Avoidance:
         chain = None if links is None else capsule_chain(*links[:3], LINK_SPACING)
         return body, links, chain
 
-    def _evaluate(self, x: Tensor, points_per_segment: int):
+    def _evaluate(self, x: Tensor, points_per_segment: int, pairs: bool = True, decide: float | None = None):
         """(clearance bound (B,), ball distances (B, E) [m], longest body chord (B,)) at variables x (B, D); the
-        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links."""
+        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links.
+        Without ``pairs`` only the bound (the others None); ``decide``: as in
+        :func:`~dacr_learn.scene.chain_clearance`."""
         body, links, chain = self._balls(x, points_per_segment)
         swept = swept_body(body)
         d_body = self.scene.distances(body.points)[0]                               # (B, P, O)
-        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)]
+        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)] if pairs else []
         if links is None:
-            clear = chain_clearance(self.scene, swept, d_body)
+            clear = chain_clearance(self.scene, swept, d_body, decide)
         else:
             a, b, radius, near = links
             d_links = self.scene.distances(chain[0].points)[0]
-            d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1), b[:, ~near].unsqueeze(1),
-                                      radius[~near], grad=False)[0]
-            parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1), (d_self - body.radius.unsqueeze(-1)).flatten(1)]
-            clear = torch.minimum(chain_clearance(self.scene, join(swept, chain[0]), torch.cat([d_body, d_links], 1)),
+            clear = torch.minimum(chain_clearance(self.scene, join(swept, chain[0]), torch.cat([d_body, d_links], 1),
+                                                  decide),
                                   capsule_clearance(swept, a[:, ~near], b[:, ~near], radius[~near]))
+            if pairs:
+                d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1),
+                                          b[:, ~near].unsqueeze(1), radius[~near], grad=False)[0]
+                parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1),
+                          (d_self - body.radius.unsqueeze(-1)).flatten(1)]
+        if not pairs:
+            return clear, None, None
         longest = torch.linalg.vector_norm(body.points[:, 1:] - body.points[:, :-1], dim=-1).amax(-1)
         return clear, torch.cat(parts, 1), longest
 
@@ -97,15 +113,39 @@ class Avoidance:
         return torch.where(~in_body & ~in_links, d_self - body.radius[pt], out)
 
     @torch.no_grad()
-    def clearance_of(self, x: Tensor, points_per_segment: int = CHECK_POINTS) -> Tensor:
-        """Signed clearance lower bound (B,) [m] of variables x (B, D) (module docstring)."""
-        return self._evaluate(x, points_per_segment)[0]
+    def clearance_of(self, x: Tensor, points_per_segment: int = CHECK_POINTS, decide: float | None = None) -> Tensor:
+        """Signed clearance lower bound (B,) [m] of variables x (B, D) (module docstring); in blocks of
+        :data:`CHUNK` rows. ``decide``: only whether it is ≥ decide matters (a looser bound on the same side,
+        :func:`~dacr_learn.scene.chain_clearance`)."""
+        if x.shape[0] <= CHUNK:
+            return self._evaluate(x, points_per_segment, False, decide)[0]
+        return torch.cat([self._evaluate(part, points_per_segment, False, decide)[0] for part in x.split(CHUNK)])
 
     def triage(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """(B,) bool each: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D; it is below
-        but within :data:`HINGE_WITHIN` of D (the refinement then pushes the body clear)."""
-        bound = self.clearance_of(x, SOLVER_POINTS)
-        return bound >= self.clearance, bound >= self.clearance - HINGE_WITHIN
+        but within :data:`HINGE_WITHIN` of D with ``hinge`` (the refinement then pushes the body clear)."""
+        bound = self.clearance_of(x, SOLVER_POINTS, None if self.within else self.clearance)
+        return bound >= self.clearance, bound >= self.clearance - self.within
+
+    def restarts(self, uniform: Tensor, x: Tensor, solved: Tensor, gen: torch.Generator) -> Tensor:
+        """New starts (R, D) of slots whose start stalled: ``uniform`` samples (R, D) of the admissible set, each
+        replaced with probability :data:`RESTART_NEAR` by a solution of the same target (rows ``solved`` (R, K)
+        into x (M, D), −1 where a slot is unsolved; one picked at random) moved by up to :data:`RESTART_SPREAD`
+        scales per variable and projected onto the limits. Collision-free solutions lie on connected manifolds
+        of a redundant robot, so a start near one converges clear far more often than a uniform one (a robot on
+        an arm behind a port almost never clears from a uniform start)."""
+        has = solved >= 0
+        near = has.any(-1) & (torch.rand(uniform.shape[0], generator=gen, dtype=uniform.dtype) < RESTART_NEAR)
+        if not bool(near.any()):
+            return uniform
+        idx = near.nonzero().squeeze(-1)
+        pick = torch.multinomial(has[idx].to(uniform.dtype), 1, generator=gen).squeeze(-1)
+        centre = x[solved[idx, pick]]
+        lim = self.model.limits
+        offset = (2 * torch.rand(centre.shape, generator=gen, dtype=centre.dtype) - 1) * RESTART_SPREAD
+        out = uniform.clone()
+        out[idx] = lim.project(centre + offset * lim.scale.to(centre))
+        return out
 
     def clearance_of_joints(self, q: Tensor) -> Tensor:
         """The independent check: clearance (B,) [m] of joint vectors q (B, N) alone (:data:`CHECK_POINTS`)."""

@@ -234,7 +234,10 @@ def _multi_start(state: Refinement, gen: torch.Generator, b: int, k: int, opts: 
         if again.any():
             reopened = again.nonzero().squeeze(-1)
             slots = reopened.repeat_interleave(torch.clamp(FAN_OUT * 2 ** used[reopened], max=MAX_FAN_OUT))
-            state.append(lim.sample(slots.numel(), gen), state.position[slots],
+            fresh = lim.sample(slots.numel(), gen)
+            if state.extra is not None:           # a scene: most new starts near a solution of the same target
+                fresh = state.extra.restarts(fresh, state.x, solution.view(b, k)[slots // k], gen)
+            state.append(fresh, state.position[slots],
                          None if state.rotation is None else state.rotation[slots])
             slot = torch.cat([slot, slots])
             since = torch.cat([since, torch.zeros_like(slots)])

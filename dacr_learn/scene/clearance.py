@@ -82,11 +82,15 @@ def convex_bound(fa: Tensor, fb: Tensor, sa: Tensor, sb: Tensor) -> Tensor:
     return torch.minimum(bound, torch.minimum(fa, fb))
 
 
-def chain_clearance(scene: Scene, swept: Swept, distances: Tensor | None = None) -> Tensor:
+def chain_clearance(scene: Scene, swept: Swept, distances: Tensor | None = None,
+                    decide: float | None = None) -> Tensor:
     """Signed clearance (B,) [m] of a swept chain to a scene: the smallest lower bound over its valid chords and
     every obstacle (+inf for a scene without obstacles). Every (chord, obstacle) pair takes the Lipschitz bound;
-    those that may decide the minimum (within half a chord of the smallest) also the convex one. ``distances``:
-    the scene's distances (B, P, O) of the chain's points, when already computed."""
+    those whose Lipschitz bound lies below the smallest min(f_a, f_b) − radius − sag of the row (an upper bound of
+    the result: no other pair can decide the minimum) also the convex one. ``distances``: the scene's distances
+    (B, P, O) of the chain's points, when already computed. ``decide``: only whether the clearance is ≥ decide
+    matters: a row whose Lipschitz bound is ≥ decide, or whose upper bound is < decide, skips the convex bound
+    (the result is still a lower bound, on the same side of ``decide`` as the full one)."""
     pts = swept.points
     b = pts.shape[0]
     if scene.num_obstacles == 0 or not bool(swept.valid.any()):
@@ -95,10 +99,15 @@ def chain_clearance(scene: Scene, swept: Swept, distances: Tensor | None = None)
     chord = pts[:, 1:] - pts[:, :-1]
     length = torch.linalg.vector_norm(chord, dim=-1)                            # (B, P − 1)
     shrink = (swept.radius + swept.sag).unsqueeze(-1)
+    ends = torch.minimum(d[:, :-1], d[:, 1:])
     bound = (d[:, :-1] + d[:, 1:] - length.unsqueeze(-1)) / 2 - shrink          # Lipschitz, (B, P − 1, O)
-    bound = bound.masked_fill(~swept.valid.view(1, -1, 1), float("inf"))
-    low = bound.flatten(1).amin(-1)
-    reach = low + length.amax(-1) / 2
+    if not bool(swept.valid.all()):
+        bound = bound.masked_fill(~swept.valid.view(1, -1, 1), float("inf"))
+        ends = ends.masked_fill(~swept.valid.view(1, -1, 1), float("inf"))
+    reach = (ends - shrink).flatten(1).amin(-1)                                 # (B,) ≥ the result
+    if decide is not None:
+        low = bound.flatten(1).amin(-1)
+        reach = torch.where((low >= decide) | (reach < decide), -float("inf"), reach.clamp_max(decide))
     sel = ((bound < reach.view(-1, 1, 1)) & scene.convex.view(1, 1, -1)).nonzero()
     if sel.shape[0]:
         r, c, o = sel.unbind(-1)

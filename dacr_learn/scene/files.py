@@ -70,7 +70,12 @@ class Scene:
         """Signed distances (..., O) [m] of points (..., 3) to every obstacle (negative inside), differentiable in
         the points (meshes: the closest-point direction), and with ``grad`` their gradients (..., O, 3)."""
         p, parts = points.unsqueeze(-2), []
-        if self.sphere_radius.numel():
+        if self.sphere_radius.numel() and not grad and not torch.is_grad_enabled():
+            # no (..., O, 3) differences: torch.cdist (not under autograd: its gradient under torch.func is wrong)
+            flat = points.reshape(-1, 3)
+            d = torch.cdist(flat, self.sphere_center.to(flat), compute_mode="donot_use_mm_for_euclid_dist")
+            parts.append(((d - self.sphere_radius.to(flat)).view(*points.shape[:-1], -1), None))
+        elif self.sphere_radius.numel():
             parts.append(sphere_distance(p, self.sphere_center.to(p), self.sphere_radius.to(p), grad))
         if self.capsule_radius.numel():
             parts.append(capsule_distance(p, self.capsule_a.to(p), self.capsule_b.to(p), self.capsule_radius.to(p),
