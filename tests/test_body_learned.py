@@ -233,3 +233,27 @@ def test_a_shape_output_with_the_cc_prior_starts_at_the_cc_arcs():
     assert torch.allclose(model.body(data["q"]).points, cc_body(spec, data["features"], 4).points, rtol=0, atol=1e-14)
     with pytest.raises(ValueError, match="body_prior"):
         FKModel(spec, body_points=4, body_prior="arc")
+
+
+def test_a_denser_request_gets_the_shape_outputs_own_points_and_the_scene_check_runs():
+    """A shape output of K = 4 points per segment asked for 32 (the clearance check's count) or 3 serves the largest
+    divisor of K not above the request (4, 2); the scene check of such a model (a CC-prior network at its start, so
+    the CC arcs) is a lower bound of the dense clearance of the same arcs."""
+    from dacr_learn.ik.collision import Avoidance
+    from dacr_learn.scene import load_scene
+    spec = RobotSpec.from_yaml(ROBOTS / "type3.yaml")
+    data = generate(spec, 5, seed=3, dtype=F64)
+    model = FKModel(spec, width=16, depth=2, body_points=4, body_prior="cc").to(F64)
+    model.fit_normalization(data["q"])
+    adapter = as_solver_model(model)
+    x = adapter.variables(data["q"])
+    for asked, served in ((32, 4), (3, 2), (1, 1)):
+        got = adapter.body(x, asked)
+        assert got.points.shape[1] == 1 + spec.num_segments * served
+        assert torch.allclose(got.points, cc_body(spec, data["features"], served).points, rtol=0, atol=1e-12)
+    centre = cc_body(spec, data["features"][:1], 4).points[0, -1] + torch.tensor([0.02, 0.0, 0.0], dtype=F64)
+    scene = load_scene({"obstacles": [{"type": "sphere", "center": centre.tolist(), "radius": 0.005}]})
+    bound = Avoidance(adapter, scene, 0.0).clearance_of_joints(data["q"])
+    dense = cc_body(spec, data["features"], 256)
+    exact = ((dense.points - centre).norm(dim=-1) - 0.005 - dense.radius).amin(-1)
+    assert torch.isfinite(bound).all() and (bound <= exact + 1e-12).all()

@@ -197,9 +197,15 @@ class LearnedFK(_ClarkeVariables):
         return Check(pose[..., :3, 3], pose[..., :3, :3], inside, residual)
 
     def body(self, x: Tensor, points_per_segment: int = 16) -> BodyPoints:
-        """The network's learned body (the compositional model's segment twists, an FK model's shape output)."""
+        """The network's learned body (the compositional model's segment twists, an FK model's shape output). A
+        shape output of K points per segment serves the largest divisor of K not above ``points_per_segment``
+        (a denser request gets its K points: the swept-body bound then spans longer chords)."""
         if not hasattr(self.model, "body"):
             raise ValueError(f"{type(self.model).__name__}: has no body")
+        trained = getattr(self.model, "body_points", 0)
+        if trained:
+            points_per_segment = max(k for k in range(1, trained + 1)
+                                     if trained % k == 0 and k <= max(points_per_segment, 1))
         return self.model.body(self.joints(x), points_per_segment)
 
 

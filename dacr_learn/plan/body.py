@@ -6,7 +6,7 @@ robot's base to its tip, in the model's base frame (the arm's base for an arm co
 (:func:`dacr_learn.kinematics.backbone_points` with the actual arc lengths, which an extensible robot changes:
 the body API's are nominal), an arm composite by composing its robot's body with the arm's FK and the mount, any
 other model through the body API (``model.body(x)``: a model without a body raises ValueError; a learned shape
-output of K points per segment serves the largest of ``points_per_segment``, its halves, … that divides K).
+output of K points per segment serves the largest divisor of K not above ``points_per_segment``).
 
 :func:`body_and_jacobian` adds ∂points/∂x (B, P, 3, D) and ∂arc/∂x (B, P, D): for an arm composite the arm's
 columns in closed form (pytorch-kinematics' Jacobian at the tip link, shifted to each point: v_i + ω_i × (p − p_a))
@@ -51,16 +51,8 @@ def body(model: SolverModel, x: Tensor, points_per_segment: int = POINTS_PER_SEG
         step = (beta / points_per_segment).repeat_interleave(points_per_segment, dim=-1)
         arc = torch.cat([torch.zeros_like(beta[:, :1]), torch.cumsum(step, -1)], dim=-1)
         return Body(pts, arc)
-    k = points_per_segment
-    while True:                      # the body API (ValueError: a model without a body); a learned shape output
-        try:                         # serves divisors of its own count: the nearest below
-            with torch.no_grad():    # (differences, not autograd: no graph of a network's parameters)
-                got = model.body(x, k)
-            break
-        except ValueError as err:
-            if "divisor" not in str(err) or k == 1:
-                raise
-            k //= 2
+    with torch.no_grad():            # differences, not autograd: no graph of a network's parameters
+        got = model.body(x, points_per_segment)
     return Body(got.points, got.arc_length.to(F64).expand(got.points.shape[:2]))
 
 
