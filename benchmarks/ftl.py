@@ -18,7 +18,7 @@ Laboratory (RSS 2026; its source in ../shared/reference/sb-ftl-cr-planner), same
    (the peer's s: its tip projected onto the curve; its Clarke coordinates and base pose give its backbone
    through the same body code); the peer also against its own 10-waypoint polyline;
 5. each curve's result is appended to DIR/results.jsonl as it comes (an interrupted run loses nothing;
-   --resume continues it); at the end a Markdown table.
+   --resume continues it; the classes are interleaved, so a cut run covers each alike); at the end a Markdown table.
 
 Packages: the main process needs numpy; the workers torch, numpy and dacr_learn's own imports (pyyaml,
 pytorch-kinematics with arm-pytorch-utilities and pytorch-seed, lxml, absl-py, matplotlib, scipy); the peer's
@@ -206,7 +206,8 @@ def main() -> None:
         meta_file.write_text(json.dumps(meta))
     kinds = [str(k) for k in np.load(out / "curves.npz")["kinds"]]
     done = {r["curve"] for r in read_rows(rows_file)}
-    todo = [i for i in range(len(kinds)) if i not in done]
+    rank = {i: kinds[:i].count(k) for i, k in enumerate(kinds)}       # classes interleaved: a cut run covers all
+    todo = sorted((i for i in range(len(kinds)) if i not in done), key=lambda i: (rank[i], i))
     print(f"{len(todo)} of {len(kinds)} curves to run on {args.workers} workers", flush=True)
     with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
         futures = {pool.submit(run_curve, i, kinds[i], str(out), python): i for i in todo}
