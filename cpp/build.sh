@@ -14,7 +14,8 @@ prefix="$("$python" -c 'import torch; print(torch.utils.cmake_prefix_path)' 2> /
 generator=("-G" "Unix Makefiles")
 command -v ninja > /dev/null && generator=("-G" "Ninja")
 if [ ! -f "$build/CMakeCache.txt" ]; then
+  mkdir -p "$build"                        # its log inside the build folder, not beside it in the source tree
   cmake -S "$here" -B "$build" "${generator[@]}" -DCMAKE_BUILD_TYPE=Release -DCMAKE_PREFIX_PATH="$prefix" \
-    -Wno-dev > "$build.configure.log" 2>&1 || { cat "$build.configure.log" >&2; exit 1; }
+    -Wno-dev > "$build/configure.log" 2>&1 || { cat "$build/configure.log" >&2; exit 1; }
 fi
 cmake --build "$build" -j "$(nproc)"
