@@ -295,10 +295,11 @@ def test_export_round_trip(trained, tmp_path):
     with torch.no_grad():
         assert torch.allclose(loaded(q.reshape(4, 10, -1)).reshape(40, 4, 4), module(q), rtol=0,
                               atol=dexport.VERIFY_TOLERANCE)
-    pose, jac_f, jac_q = dexport.load(tmp_path, "jacobian")(q[:3])
+    jacobian = dexport.load(tmp_path, "jacobian")                   # loaded once (a load takes seconds)
+    pose, jac_f, jac_q = jacobian(q[:3])
     assert jac_f.shape == (3, 6, TDCR3.num_actuated_features) and jac_q.shape == (3, 6, TDCR3.num_joints)
     assert torch.allclose(pose, module(q[:3]), rtol=0, atol=dexport.VERIFY_TOLERANCE)
-    controller = ResolvedRateController(TDCR3, dexport.load(tmp_path, "jacobian"))   # drives a controller
+    controller = ResolvedRateController(TDCR3, jacobian)                            # drives a controller
     target = module(q[:1])[0, :3, 3] + torch.tensor([0.002, -0.001, 0.0])
     command = q[:1].double()
     for _ in range(30):

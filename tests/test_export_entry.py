@@ -52,6 +52,10 @@ print("lightning" in sys.modules)
 """)
     assert run.returncode == 0, run.stderr
     assert run.stdout.splitlines() == ["fk []", "hardware_fk []", "True"], run.stdout
+    # the hardware model written by main exports (test_legacy_checkpoints.py checks that it loads and predicts)
+    meta = dexport.read_metadata(tmp_path / "hardware_model.pt")
+    assert meta["task"] == "hardware_fk" and set(meta["modules"]) == {"fk", "jacobian", "initial_state"}
+    assert max(meta["max_abs_deviation"].values()) <= dexport.VERIFY_TOLERANCE
 
 
 @pytest.mark.parametrize("where", ["a file", "below a file"])

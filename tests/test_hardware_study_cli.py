@@ -198,7 +198,8 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     from the workers, and the σ model's held-out fits run in the workers too — nothing is trained in this
     process (fit_model / the held-out build_model here raise). A member predicts like the same model trained
     here for its seed, the reported train RMSE per seed is the saved member's, and the σ model equals
-    sigma_models computed here."""
+    sigma_models computed here. One proxy seed (the selection needs a proxy, not three seeds of it): unlike
+    ``--seeds`` it still leaves the σ model's held-out fits to their own worker tasks."""
     from dacr_learn.cli.hardware import main
     from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
     from dacr_learn.hardware.metrics import tip_metrics
@@ -215,7 +216,8 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
         patch.setattr(benchmark, "fit_model", no_fit_here)      # the spawned workers import their own, unpatched
         patch.setattr(heldout, "build_model", no_fit_here)
         report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), "--models",
-                       "cc_clarke_residual", "--seeds", "0", "1", "--jobs", "2", "--save", str(save)])
+                       "cc_clarke_residual", "--seeds", "0", "1", "--proxy-seeds", "0", "--jobs", "2",
+                       "--save", str(save)])
     assert report["default_model"] == "cc_clarke_residual"
     saved = load_hardware_model(save / "model.pt")
     setup = benchmark.load_setup(robot, data / "train.csv", None, tmp_path / "setup",
