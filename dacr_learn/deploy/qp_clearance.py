@@ -39,18 +39,10 @@ from ..ik.adapters import ConstantCurvature, TipJacobian
 from ..kinematics import cc_pose_and_jacobian, effective_features
 from ..models import FEATURE_COLUMNS, actuated_columns
 from ..robot import RobotSpec
-from ..scene import Scene, load_scene
+from ..scene import Scene
 
 SceneLike = Scene | str | Path | dict[str, Any]
 """A scene: a :class:`Scene`, the path of a scene YAML file (docs/body.md) or its dict."""
-
-
-def as_scene(scene: SceneLike) -> Scene:
-    """A :class:`Scene` from a Scene, a scene YAML path or a dict (ValueError naming the bad entry)."""
-    if not isinstance(scene, (Scene, str, Path, dict)):
-        raise ValueError(f"scene: expected a Scene, the path of a scene YAML file or its dict, "
-                         f"got {type(scene).__name__}")
-    return load_scene(scene)
 
 
 @functools.lru_cache(maxsize=16)

@@ -48,8 +48,9 @@ from ..body import BodyPoints, check_points_per_segment
 from ..checks import F64
 from ..clarke_space import DecoderJacobian
 from ..ik.adapters import SolverModel, TipJacobian
+from ..scene import load_scene
 from .control import ControllerConfig, tip_task
-from .qp_clearance import SceneLike, as_scene, clearance_rows, tip_and_body
+from .qp_clearance import SceneLike, clearance_rows, tip_and_body
 
 DistanceFn = Callable[[Tensor], tuple[Tensor, Tensor]]
 """x (B, D) → (d (B, M) [m], ∂d/∂x (B, M, D)): clearances of the body to the obstacles and their Jacobians."""
@@ -205,7 +206,7 @@ class QPController:
         self.model, self.config, self.distances, self.custom_sense = model, config, distances, sense
         self.scene, self.points_per_segment = None, check_points_per_segment(points_per_segment)
         if scene is not None:
-            self.scene = as_scene(scene)
+            self.scene = load_scene(scene)
             model.body(model.rest[None], points_per_segment)                 # a model without a body: ValueError
         self.limits = model.limits.to(F64)
         self.scale = self.limits.scale.numpy()

@@ -203,6 +203,9 @@ def load_scene(scene: str | Path | Mapping | Scene) -> Scene:
         return scene
     if isinstance(scene, Mapping):
         return scene_from_dict(scene)
+    if not isinstance(scene, (str, Path)):
+        raise ValueError(f"scene: expected a Scene, the path of a scene YAML file or its dict, "
+                         f"got {type(scene).__name__}")
     from ..checks import read_yaml
     data = read_yaml(scene, "a scene in YAML (obstacles: [...], see docs/body.md)")
     return scene_from_dict(data, Path(scene).parent, str(scene))
