@@ -25,8 +25,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..body import chord_sag
+from ..body import BodyPoints, chord_sag
 from ..checks import F64
+from ..deploy.qp_clearance import clearance_rows
 from ..ik.adapters import SolverModel
 from ..ik.refine import limited_step
 from ..scene import Scene
@@ -97,19 +98,18 @@ class Problem:
 
     def _hinges(self, points: Tensor, jac: Tensor) -> tuple[Tensor, Tensor]:
         """The clearance hinges (B, P·O) of body points (B, P, 3) with Jacobian jac (B, P, 3, D), and theirs."""
-        b, p, _ = points.shape
+        p = points.shape[1]
         if self.radius.shape[0] != p:
             raise ValueError(f"{type(self.model).__name__}: the body API gives {self.radius.shape[0]} points, the "
                              f"planner's body {p}; expected the same layout")
-        dist, grad = self.scene.distances(points, grad=True)                          # (B, P, O), (B, P, O, 3)
+        unused = self.radius.new_zeros(p)
+        clear, jd = clearance_rows(self.scene, BodyPoints(points, unused, self.radius), jac)   # (B, P·O), (B, P·O, D)
         sag = chord_sag(points)                                                        # (B, P − 1)
         pad = torch.zeros_like(sag[:, :1])
         margin = torch.maximum(torch.cat([pad, sag], 1), torch.cat([sag, pad], 1))     # (B, P)
-        short = (self.clearance + margin).unsqueeze(-1) - (dist - self.radius[:, None])
-        active = (short > 0).to(F64)
+        short = (self.clearance + margin).repeat_interleave(self.scene.num_obstacles, 1) - clear
         w = HINGE_WEIGHT / (self.length * p ** 0.5)
-        j = -w * active.unsqueeze(-1) * torch.einsum("bpoi,bpid->bpod", grad, jac)
-        return (w * short.clamp_min(0.0)).reshape(b, -1), j.reshape(b, -1, jac.shape[-1])
+        return w * short.clamp_min(0.0), -w * (short > 0).to(F64).unsqueeze(-1) * jd
 
     def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int, tol: float = 1e-10,
                reg: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
