@@ -52,23 +52,7 @@ except PackageNotFoundError:  # a source tree that was not pip-installed
     __version__ = "0.0.0+unknown"
 
 __all__ = [
-    "ClarkeDecoder",
-    "ClarkeEncoder",
-    "Composite",
-    "ControllerConfig",
-    "FKModel",
-    "IKModel",
-    "IKOptions",
-    "IKResult",
-    "ResolvedRateController",
-    "RobotSpec",
-    "__version__",
-    "analytic_inverse_kinematics",
-    "analytic_jacobian",
-    "backbone_points",
-    "forward_kinematics",
-    "load_arm",
-    "load_exported",
-    "load_model",
-    "solve_ik",
+    "ClarkeDecoder", "ClarkeEncoder", "Composite", "ControllerConfig", "FKModel", "IKModel", "IKOptions", "IKResult",
+    "ResolvedRateController", "RobotSpec", "__version__", "analytic_inverse_kinematics", "analytic_jacobian",
+    "backbone_points", "forward_kinematics", "load_arm", "load_exported", "load_model", "solve_ik",
 ]

@@ -18,11 +18,11 @@ from ..robot import RobotSpec
 Seeder = Callable[[torch.Tensor, int], "torch.Tensor | None"]
 
 
-def load_array(path: str | Path, flag: str) -> np.ndarray:
+def load_array(path: str | Path, flag: str, expected: str = "a .npy array") -> np.ndarray:
     """The .npy array a flag names (no pickles). FileNotFoundError / ValueError naming the flag."""
     p = Path(path)
     if not p.is_file():
-        raise FileNotFoundError(f"{flag} {path}: no such file; expected a .npy array")
+        raise FileNotFoundError(f"{flag} {path}: no such file; expected {expected}")
     try:
         return np.load(p, allow_pickle=False)
     except (ValueError, OSError) as err:
@@ -70,14 +70,7 @@ def network_seeds(net) -> Seeder:
 def load_mount(path: str | Path) -> torch.Tensor:
     """A mount file: float64 (4, 4) .npy, the tip link → robot base transform [m]. ValueError / FileNotFoundError
     naming --mount and what was wrong."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"--mount {path}: no such file; expected a float64 (4, 4) .npy transform")
-    try:
-        array = np.load(p, allow_pickle=False)
-    except (ValueError, OSError) as err:
-        raise ValueError(f"--mount {path}: expected a .npy array (numpy.save), found a file numpy cannot read "
-                         f"({err})") from err
+    array = load_array(path, "--mount", "a float64 (4, 4) .npy transform")
     if array.dtype != np.float64:
         raise ValueError(f"--mount {path}: expected float64, got {array.dtype}")
     from ..arm import check_mount
