@@ -23,7 +23,6 @@ from .robot import RobotSpec
 __all__ = ["ClarkeFold", "ClarkeSpace", "DecoderJacobian", "feature_columns"]
 
 
-
 def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Affine part of the actuated features, f_lin = E·u + e₀, u = [q − q_ref, g] (float64).
 

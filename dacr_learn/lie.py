@@ -36,7 +36,6 @@ __all__ = [
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
 
 
-
 def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
     """s = sin φ/φ and f = (1 − cos φ)/φ² as functions of φ² (..., ), finite with finite gradients at 0.
 

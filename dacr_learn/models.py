@@ -127,9 +127,6 @@ class FeatureFrontEnd(nn.Module):
         return self.norm(self.raw_features(q))
 
 
-
-
-
 def pose_to_vector(pose: Tensor, length: float) -> Tensor:
     """Pose (..., 4, 4) → (..., 9): position / total length and the 6D rotation (first two rows)."""
     return torch.cat([pose[..., :3, 3] / length, pose[..., :2, :3].flatten(-2)], dim=-1)

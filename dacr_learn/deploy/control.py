@@ -73,7 +73,6 @@ class ResolvedRateController:
         """Scaled DLS step: J_v (..., 3, D), Δx (..., 3) [m] → feature step Δf (..., D) [m, rad]."""
         return scaled_dls_step(jac_v, task_step, self.space.scale, self.damping, self.config.max_step)
 
-
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None,
              measured: Tensor | None = None) -> Tensor:
         """One control step: commanded q (..., N), target (..., 3) [m] → next command q' (..., N), float64.

@@ -29,7 +29,6 @@ from .inference import FoldedMLP
 __all__ = ["InferenceCompositionalFK", "InferenceCompositionalJacobian", "compositional_first_layer", "output_scale"]
 
 
-
 class InferenceCompositionalFK(nn.Module):
     """Compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`) with the front-end
     folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].

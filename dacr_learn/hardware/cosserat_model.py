@@ -324,7 +324,6 @@ class CalibratedCosserat:
                 k += n
 
 
-
 def _rms(r: Tensor) -> float:
     """Root-mean-square length of residual vectors r (n, 3) [m]."""
     return float(r.pow(2).sum(-1).mean().sqrt())

@@ -31,7 +31,6 @@ __all__ = ["ServoControl", "circle", "initial_command", "load_hardware_export", 
            "slack_pull", "source_model", "static_targets", "tracking_errors", "training_commands"]
 
 
-
 @dataclass(frozen=True)
 class ServoControl(ControllerConfig):
     """gain, damping (λ [m]), max_step (largest scaled servo step ‖Δu / s‖, s: each servo's half-range): as
