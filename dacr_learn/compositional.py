@@ -1,46 +1,23 @@
-"""Compositional learned FK: one network learns a segment's transform, products compose the robot.
+"""Compositional learned FK: one network learns a segment's transform, products compose the robot
+(docs/compositional.md, "Model", says why each choice below was made).
 
-The Clarke encoder removes the routing coupling, so its features are per segment: x_k =
-(ρ_re, ρ_im, β, α) of segment k (non-actuated columns at their fixed values, β = l, α = 0).
-A network f_θ, shared by all segments, maps the standardised x_k and a context c_k to the
-segment's transform T_k ∈ SE(3) (base of segment k → its end); the robot is the product
+A network f_θ, shared by all segments, maps the standardised per-segment Clarke features x_k = (ρ_re, ρ_im, β, α)
+of segment k (non-actuated columns at β = l, α = 0) and a context c_k to the segment's transform T_k ∈ SE(3) (base
+of segment k → its end); the robot is the product T_tip = T_1 · T_2 · … · T_m (end of segment k = T_1 ⋯ T_k,
+lie.chain_products).
 
-    T_tip = T_1 · T_2 · … · T_m,   end of segment k = T_1 ⋯ T_k      (lie.chain_products).
-
-Output heads ("rotation"):
-- "twist": f_θ outputs an se(3) twist ξ = (v · L_s, ω) (v: translation part scaled by the mean
-  segment length L_s of the training robot [m], ω [rad]) and T_k = exp(ξ^) (closed form,
-  :func:`twist_exp`). A constant-curvature arc is exactly exp of a twist that is linear in
-  (ρ, β) (v = (0, 0, β), ω = (−ρ_im, ρ_re, 0)/d), so on CC data the map the network must learn is
-  smooth and close to linear; the network is not told this map (nor d, the axes or the signs) and
-  learns it from tip poses. On a real segment ξ(x) is non-linear and the same head represents any SE(3).
-- "6d": position (· L_s) and a 6D rotation (models.pose_from_parts, rotation_6d_to_matrix).
-
-Roll of a twisting segment (types II/III, ``twist_roll``, on by default): the head's transform is applied after
-the roll α the twist actuator commands, T_k = Rz(α_k)·h(f_θ(x_k)), the order of the CC model
-(kinematics.cc_transform). The network then learns the segment in its rolled frame, where a CC segment is again
-exp of a twist linear in the features; without the roll the map to exp(ξ) is far from linear (log of
-Rz(α)·exp(ξ_cc); docs/compositional.md, "Twisting segments"). Any rigid transform stays representable (exp(ξ)
-spans SE(3)); segments that do not twist are not rolled (their α is 0), so their transforms are unchanged.
-With a rolled segment the weights of the α inputs (the first layer's and the skip's) start at zero, so the
-untrained network does not depend on α: a CC segment does not in its rolled frame, and random initial weights
-on α were the error left after the roll (docs/compositional.md); training may still make it depend on α.
-
-Units ("units"): "strain" (default) feeds the network x_k = (ρ_re/d_k, ρ_im/d_k, β/l_k, α), the bending
-vector [rad], the stretch β/l and the roll [rad] of segment k, and scales the twist's translation by the
-segment's own nominal length l_k: a CC segment's twist is then ξ = (0, 0, (β/l)·l; −ρ_im/d, ρ_re/d, 0), the
-same map for every segment whatever its length, radius, type or joint layout, so one network serves
-segments of any geometry and transfers to robots it was not trained on (:func:`transfer`). "metric" feeds
-the features in metres and scales by the mean segment length L_s of the training robot (segments of one
-geometry; the hardware residual models use it).
-
-Context c_k ("context"): "none" (CC data: a segment's shape depends on its own features only;
-the network then runs on any number of segments, see :func:`transfer`), "segment" (a one-hot
-segment index: per-segment first-layer bias, not transferable), "distal" (the sum of the
-standardised features of the segments beyond k, whose tendons pass through segment k and load it:
-the context for real tendon robots; transferable), "full" (the one-hot segment index and the
-standardised features of every segment: a segment under gravity bends with its orientation, which the
-proximal segments set, and with the weight beyond it; Cosserat data, docs/cosserat.md; not transferable).
+- Heads ("rotation"): "twist" — an se(3) twist ξ = (v · L_s, ω) [m, rad], T_k = exp(ξ^) (:func:`twist_exp`; a CC
+  arc is exactly exp of a twist linear in (ρ, β), which the network is not told); "6d" — position (· L_s) and a 6D
+  rotation (models.pose_from_parts, rotation_6d_to_matrix).
+- Roll (types II/III, ``twist_roll``, on by default): T_k = Rz(α_k)·h(f_θ(x_k)), the order of the CC model
+  (kinematics.cc_transform); the weights of the α inputs (first layer and skip) start at zero. Segments that do not
+  twist are not rolled.
+- Units ("units"): "strain" (default) feeds x_k = (ρ_re/d_k, ρ_im/d_k, β/l_k, α) and L_s = l_k, the same map for
+  every segment whatever its geometry, so the network transfers (:func:`transfer`); "metric" feeds metres and
+  L_s = the mean segment length of the training robot (segments of one geometry; the hardware residual models).
+- Context ("context"): "none" (transferable), "segment" (one-hot segment index), "distal" (the sum of the
+  standardised features of the segments beyond k; transferable), "full" (one-hot index and every segment's
+  standardised features; Cosserat data under gravity).
 """
 from __future__ import annotations
 

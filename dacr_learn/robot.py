@@ -14,12 +14,7 @@ Schema (docs/design.md §4)::
         limits: {bend: 1.57, length: [0.08, 0.12], twist: [-1.0, 1.0]}
         body_radius: 0.012      # optional envelope radius [m] (spacer disks / sheath) for collision checks;
                                 #   default: the largest joint radius of the segment
-    mechanics:                  # optional, for the Cosserat-rod model (dacr_learn.cosserat)
-      youngs_modulus: 2.0e+11   # E [Pa] (PyYAML reads 2.0e11 as a string: write the exponent sign)
-      poisson_ratio: 0.3        # ν in (-1, 0.5]; or shear_modulus: G [Pa] (exactly one of the two)
-      outer_radius: 0.0008      # backbone cross-section [m]; inner_radius [m] (default 0, a tube if > 0)
-      density: 7870             # [kg/m³], default 0 (weightless); the weight needs a gravity load
-      tendon_compliance: 0.0    # tendon strain per newton of tension, 1/(E_t A_t) [1/N], default 0
+    mechanics: {...}            # optional, for the Cosserat-rod model (its keys: docs/cosserat.md)
 
 Default sampling limits (used when ``limits`` or one of its keys is absent):
 ``bend = pi/2`` rad (maximum bending angle), ``length = [0.8 l, 1.2 l]`` m for extending
