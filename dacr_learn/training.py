@@ -1,13 +1,11 @@
 """LightningModules for learned FK and IK, with one shared step and rank-safe metrics.
 
-Loss: FK — mean squared error of the position divided by the total robot length plus
-``rot_weight`` × the squared Frobenius distance ‖R̂ − R‖²_F = 8 sin²(θ/2) of the rotations
-(smooth, and ≈ 2θ² for small geodesic errors θ). IK — mean squared error of the
-standardised network output (actuated Clarke features, or the joint vector for "raw"), optionally
-plus the same pose loss on the analytic FK of the predicted joints (:class:`IKModule`).
-
-Validation/test metrics are computed on all ranks' samples together (per-sample errors are
-all-gathered), so the same config runs unchanged with ``--trainer.strategy ddp``.
+Loss: FK — mean squared error of the position divided by the total robot length plus ``rot_weight`` × the
+squared Frobenius distance ‖R̂ − R‖²_F = 8 sin²(θ/2) of the rotations (smooth, ≈ 2θ² for small geodesic errors
+θ). IK — mean squared error of the standardised network output (actuated Clarke features, or the joint vector
+for "raw"), optionally plus the same pose loss on the analytic FK of the predicted joints (:class:`IKModule`).
+Validation/test metrics are computed on all ranks' samples together (per-sample errors are all-gathered), so the
+same config runs unchanged with ``--trainer.strategy ddp``.
 """
 from __future__ import annotations
 
@@ -125,8 +123,7 @@ class KinematicsModule(pl.LightningModule):
     def validation_step(self, batch, batch_idx):
         self._eval_step(batch)
 
-    def test_step(self, batch, batch_idx):
-        self._eval_step(batch)
+    test_step = validation_step
 
     def _gathered_summary(self) -> dict[str, float]:
         """Summary over every rank's samples (padding rows dropped)."""
@@ -244,40 +241,28 @@ class FKModule(KinematicsModule):
 class IKModule(KinematicsModule):
     """Learned inverse kinematics (tip pose → joint vector satisfying the constraint for "clarke").
 
-    Loss = ``feature_weight`` × MSE of the standardised network output against the sample's own
-    joint-space target (actuated Clarke features, or q for "raw") + ``pose_weight`` ×
-    :func:`pose_loss` of the analytic CC FK of the predicted joints against the input pose
-    (``rot_weight`` weighs its rotation term). A redundant robot (3 segments: 9 features for a 6-DOF
-    pose) has a manifold of joint solutions per pose; the feature term regresses to their
-    conditional mean, which is not a solution, while the pose term accepts any solution.
+    Loss = ``feature_weight`` × MSE of the standardised network output against the sample's joint-space target
+    (actuated Clarke features, or q for "raw") + ``pose_weight`` × :func:`pose_loss` (``rot_weight``) of the
+    analytic CC FK of the predicted joints against the input pose. On a redundant robot (3 segments: 9 features
+    for a 6-DOF pose) the feature term regresses to the conditional mean of the solutions, which is not one; the
+    pose term accepts any. ``output_scale``: the output standardisation (:class:`~dacr_learn.models.IKModel`).
 
-    ``output_scale``: the standardisation of the network output (:class:`~dacr_learn.models.IKModel`).
-    ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps predictions inside
-    the sampled joint limits (a loss that accepts any solution otherwise drifts out of them) at the
-    training poses. ``limit_noise`` > 0 adds the same penalty at the training inputs plus Gaussian noise
-    of that std (standardised input units; no target and no FK there), which keeps the predictions
-    between the training poses inside the limits too; with ``limit_noise_reference_n`` that term has weight
-    ``limit_weight`` at that many training samples and falls as 1/n_train² (:meth:`noise_weight`).
+    ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps the predictions at the training
+    poses inside the sampled joint limits; ``limit_noise`` > 0 adds that penalty at the training inputs plus
+    Gaussian noise of that std (standardised input units; no target, no FK), between the training poses too;
+    with ``limit_noise_reference_n`` its weight falls as (reference / n_train)² (:meth:`noise_weight`).
+    ``pose_noise`` > 0 augments the pose term: training inputs plus Gaussian noise of that std, mapped back to
+    valid poses (:meth:`~dacr_learn.models.IKModel.input_pose`), are compared with the analytic FK of the
+    network's prediction (no joint target needed), weighted by the pose weight × ``pose_noise_weight`` × the same
+    (reference / n_train)² (:meth:`noise_scale`).
 
-    ``pose_noise`` > 0 is input-noise augmentation of the pose term: the training inputs plus Gaussian noise of
-    that std (standardised input units, an independent draw), mapped back to valid poses
-    (:meth:`~dacr_learn.models.IKModel.input_pose`: position, Gram–Schmidt rotation), are fed to the network and
-    its analytic FK is compared with those perturbed poses — the pose loss needs no joint target, so a perturbed
-    training pose is a training example of its own (only the n_train training poses are perturbed; no other pose
-    is drawn). Weight: the current pose weight × ``pose_noise_weight`` × the same fall with the training set size
-    as the noisy limit term, (``limit_noise_reference_n`` / n_train)² (:meth:`noise_scale`).
-
-    ``pose_ramp`` (a fraction of the training steps) is a curriculum: the loss starts as the pure
-    feature term (weights 1, 0) and moves linearly to (``feature_weight``, ``pose_weight``) over
-    that fraction, then stays there. The network first learns the smooth conditional mean, and the
-    pose term then pulls it onto the nearest solution branch; a pose loss from a random start
-    converges much more slowly and leaves more predictions outside the joint limits.
-    ``pose_ramp_max_epochs`` caps that phase at so many passes over the training set (the steps per
-    epoch of the fit), so one config serves every data size: with few samples a long feature phase
-    memorises the pose-undetermined targets (docs/ablation.md, "Multi-segment IK with a pose loss").
-
-    Validation/test summaries add ``out_of_limits_pct``: the share of predictions beyond the joint limits
-    (:func:`limit_excess` above 1e-6, i.e. about 0.1 % relative overshoot).
+    ``pose_ramp`` (a fraction of the training steps): the weights move linearly from (1, 0), the pure feature
+    term, to (``feature_weight``, ``pose_weight``): the network learns the smooth conditional mean first, then
+    the pose term pulls it onto the nearest solution branch (a pose loss from a random start converges much
+    more slowly and leaves more predictions outside the limits). ``pose_ramp_max_epochs`` caps that phase at so
+    many epochs, so one config serves every data size (docs/ablation.md, "Multi-segment IK with a pose loss").
+    Validation/test summaries add ``out_of_limits_pct``: the share of predictions with :func:`limit_excess`
+    above 1e-6 (about 0.1 % relative overshoot).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
@@ -340,11 +325,8 @@ class IKModule(KinematicsModule):
         """Weight of the limit penalty at the noisy inputs: ``limit_weight``, × (``limit_noise_reference_n`` /
         n_train)² with a reference: needed where the training poses are sparse, and off where they are dense
         (at 100k samples a 1/n fall still cost accuracy: docs/ablation.md)."""
-        h = self.hparams
-        weight = h.get("limit_weight", 0.0)
-        if not h.get("limit_noise", 0.0):
-            return weight
-        return weight * self.noise_scale()
+        weight = self.hparams.get("limit_weight", 0.0)
+        return weight * self.noise_scale() if self.hparams.get("limit_noise", 0.0) else weight
 
     def loss_weights(self) -> tuple[float, float]:
         """(feature weight, pose weight) at the current step (see ``pose_ramp``); the final ones outside a fit."""
