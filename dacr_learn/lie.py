@@ -121,14 +121,12 @@ def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = 
     return torch.cat([top, bottom.expand(*top.shape[:-2], 1, 4)], dim=-2)
 
 
-# ------------------------------------------------------------------------------------------------------
 # Component form: vectors as 3 tensors, rotations as 9 (row-major), any common shape (...). Elementwise
 # torch ops on contiguous tensors of one shape are several times faster on CPU than ops that broadcast a
 # (..., 3) or (..., T, 3) layout, so the kernel computes in this form; the (..., 6) / (..., 4, 4) functions
 # below convert at the boundary. Tangent components carry T directions in front, (T, ...): per-sample
 # coefficients (...) broadcast over the leading dim, which keeps the inner loop contiguous. The arithmetic on
 # components (None = an exact zero) is :mod:`.component_algebra`.
-# ------------------------------------------------------------------------------------------------------
 
 
 def exp_components(v: Vec3, w: Vec3) -> tuple[Rot3, Vec3]:

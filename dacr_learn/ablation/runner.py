@@ -134,11 +134,7 @@ def conditions(cfg: dict, job: Job) -> list[str]:
     return names
 
 
-# ------------------------------------------------------------------------------------------
 # Data: training stream with a fixed number of steps, fixed test sets
-# ------------------------------------------------------------------------------------------
-
-
 class StepBatches:
     """Exactly ``steps`` training batches, drawn epoch by epoch from reshuffled permutations."""
 
@@ -199,11 +195,7 @@ def test_set(cfg: dict, spec: RobotSpec, condition: str) -> dict[str, Tensor]:
     return dataset(cfg, spec, int(cfg["test"]["n"]), int(cfg["test"]["seed"]), options)
 
 
-# ------------------------------------------------------------------------------------------
 # One job
-# ------------------------------------------------------------------------------------------
-
-
 def model_kwargs(cfg: dict, task: str, structure: str = "monolithic") -> dict:
     """Keyword arguments of a job's module: ``model``, then ``model_by_task[task]``, then (for a
     structure other than monolithic) ``model_by_structure[structure]`` and ``structure`` itself."""
@@ -307,11 +299,7 @@ def run_job(cfg: dict, job: Job) -> list[dict]:
     return rows
 
 
-# ------------------------------------------------------------------------------------------
 # Results file: append-and-flush, resume
-# ------------------------------------------------------------------------------------------
-
-
 def read_rows(csv_path: Path) -> list[dict]:
     """Rows of a results CSV (a truncated last line, e.g. after a kill, is dropped)."""
     if not csv_path.is_file():

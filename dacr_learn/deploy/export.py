@@ -3,24 +3,18 @@ of ``train.py`` checkpoints (FK / IK). The command line and the dispatch on a ch
 :mod:`dacr_learn.export` (``python -m dacr_learn.export``); the exporter of saved hardware models in
 :mod:`dacr_learn.hardware.deploy.export`.
 
-An export is a folder with, per module,
+An export is a folder (docs/export.md, "Export") with, per module, ``<name>.pt2`` (a ``torch.export`` program)
+and, unless ``aoti`` is off, ``<name>.aoti.pt2`` (an AOTInductor package: same torch version at load), plus
+``metadata.json``: format, task, robot spec, units, dtype, the sha256 of the source checkpoint and of each file,
+each loaded file's max deviation from its model (measured by :func:`write_export`; above
+:data:`VERIFY_TOLERANCE` the export fails) and a checksum of the metadata itself. :func:`load` refuses files
+whose checksums do not match and, if asked, a different robot, feature mode or source checkpoint (accidents,
+not attacks).
 
-- ``<name>.pt2``: a ``torch.export`` program (portable; runs op by op, or re-compile it), and
-- ``<name>.aoti.pt2``: an AOTInductor package (compiled C++, the lowest latency; needs the same
-  torch version and a C++ compiler at export time, about a minute per module), unless ``aoti`` is off,
-
-plus ``metadata.json``: the format, task, robot spec, units, dtype, the source checkpoint's sha256, each
-file's sha256, the max deviation of each loaded file from the model it was exported from (measured at export
-by :func:`write_export`; above :data:`VERIFY_TOLERANCE` the export fails), and a checksum of the metadata
-itself. :func:`load` refuses files whose checksums do not match (modified, truncated or from another export)
-and, if asked, a different robot, feature mode or source checkpoint. These checksums detect accidents, not
-attacks.
-
-From a ``train.py`` FK checkpoint (:func:`export_trained`): ``fk`` (joint vector (..., N) → pose (..., 4, 4))
-and ``jacobian`` (joint vector → pose, J_f (..., 6, D), J_q (..., 6, N)); from an IK checkpoint: ``ik``
-(pose (..., 4, 4) → joint vector (..., N)). See :mod:`dacr_learn.deploy.inference` for the modules
-(normalisation and Clarke layers folded in, SI units). The checkpoint's network is rebuilt from its
-hyper-parameters and weights (:func:`dacr_learn.runs.load_checkpoint_model`): no Lightning.
+From a ``train.py`` checkpoint (:func:`export_trained`, rebuilt without Lightning by
+:func:`dacr_learn.runs.load_checkpoint_model`): FK gives ``fk`` (joint vector (..., N) → pose (..., 4, 4)) and
+``jacobian`` (→ pose, J_f (..., 6, D), J_q (..., 6, N)); IK gives ``ik`` (pose (..., 4, 4) → joint vector (..., N)).
+The modules: :mod:`dacr_learn.deploy.inference` (SI units).
 """
 from __future__ import annotations
 
@@ -331,11 +325,7 @@ class ExportedModule(nn.Module):
         return outs[0] if len(outs) == 1 else tuple(outs)
 
 
-# ------------------------------------------------------------------------------------------------------
 # The exporter of train.py checkpoints
-# ------------------------------------------------------------------------------------------------------
-
-
 def export_trained(ckpt: str | Path, out: str | Path, blob: Any = None, *, dtype: torch.dtype = torch.float32,
                    aoti: bool | tuple[str, ...] = True, autotune: bool = False) -> dict[str, Any]:
     """Export an FK / IK checkpoint's inference modules to ``out`` (module docstring); returns the metadata.

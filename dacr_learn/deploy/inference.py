@@ -12,14 +12,9 @@ Built from a trained :class:`~dacr_learn.models.FKModel` / :class:`~dacr_learn.m
 - :class:`InferenceIK`: tip pose (B, 4, 4) → joint vector (B, N); for "clarke" models through the
   Clarke decoder, so every output satisfies the displacement constraint.
 
-Folding (docs/design.md §1): the Clarke encoder, the actuated-column selection and the input
-standardisation are affine in u = [q − q_ref, g], so they are folded into the first layer:
-a₁ = K·u + k₀. q_ref is the nominal (straight) joint vector, subtracted first so that float32
-keeps the small displacements exact. g_k = sqrt((α_k r_k)² + l_k²) − l_k is the helix term of a
-fixed-length twisting segment (type II), the only non-linearity before the least-squares solve.
-For type III the folded map yields the helix length h in the β column; the exact
-β = sqrt(h² − (α r)²) enters as a correction a₁ += K₃·(β − h). Position scale (total length)
-and the IK output de-standardisation are folded into the last layer. All folding is in float64.
+Folding (docs/export.md, "What is folded"; in float64): encoder, column selection and input standardisation
+into the first layer, a₁ = K·u + k₀ with u = [q − q_ref, g] (type III: a₁ += K₃·(β − h), the exact
+β = sqrt(h² − (α r)²)); the position scale and the IK output de-standardisation into the last layer.
 """
 from __future__ import annotations
 
