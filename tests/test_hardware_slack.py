@@ -1,6 +1,6 @@
 """The slack-aware encoder (dacr_learn.hardware.slack): exact for consistent commands, a single pull bends towards its
 tendon, gradients, the force balance (no torsion from straight tendons); the tendon QP by active-set enumeration
-(:func:`~dacr_learn.hardware.slack.solve_tendon_qp_enumerated`, used folded by HardwareFK) against the semi-smooth
+(:func:`solve_tendon_qp_enumerated` below, from the library's parts that HardwareFK uses folded) against the semi-smooth
 Newton iteration :func:`solve_tendon_qp` and the optimality condition of the energy, in float64 and float32.
 """
 from __future__ import annotations
@@ -12,7 +12,13 @@ from hardware_testkit import V4_ROBOT
 from hypothesis import given
 from hypothesis import strategies as st
 
-from dacr_learn.hardware.slack import SlackAwareEncoder, active_set_gains, solve_tendon_qp, solve_tendon_qp_enumerated
+from dacr_learn.hardware.slack import (
+    SlackAwareEncoder,
+    active_set_gains,
+    enumerated_solution,
+    residual_maps,
+    solve_tendon_qp,
+)
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
 from dacr_learn.robot import RobotSpec
 
@@ -22,6 +28,13 @@ SPECS = {"v4": RobotSpec.from_yaml(ROOT / "configs" / "robots" / "ftdcr_v4_calib
          "2seg-independent": RobotSpec.from_dict({"name": "two", "routing": "independent", "segments": [
              {"type": "0", "length": 0.08, "radius": 0.005, "joints": 4, "offset": 0.4},
              {"type": "0", "length": 0.07, "radius": 0.004, "joints": 3, "offset": -1.1}]})}
+
+
+def solve_tendon_qp_enumerated(x, g, bend_w, tendon_w):
+    """:func:`solve_tendon_qp` (energy form, no force map or load) by enumerating the active sets:
+    x (B, N) [m] → ρ (B, D). The same minimiser; differentiable in x (not in the weights)."""
+    sets, gain = active_set_gains(g, bend_w, tendon_w)
+    return enumerated_solution(x, sets, gain, residual_maps(g, gain), tendon_w)
 
 
 @pytest.mark.parametrize("routing", ["coupled", "independent"])

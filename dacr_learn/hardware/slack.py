@@ -93,13 +93,6 @@ def select_active_set(residual: Tensor, sets: Tensor, tendon_w: Tensor) -> Tenso
     return violation.argmin(-1)
 
 
-def solve_tendon_qp_enumerated(x: Tensor, g: Tensor, bend_w: Tensor, tendon_w: Tensor) -> Tensor:
-    """:func:`solve_tendon_qp` (energy form, no force map or load) by enumerating the active sets:
-    x (B, N) [m] → ρ (B, D). The same minimiser; differentiable in x (not in the weights)."""
-    sets, gain = active_set_gains(g, bend_w, tendon_w)
-    return enumerated_solution(x, sets, gain, residual_maps(g, gain), tendon_w)
-
-
 def residual_maps(g: Tensor, gain: Tensor) -> Tensor:
     """(2ᴺ, N, N): I − G K_S of every set, the map x ↦ x − Gρ_S (gains K_S (2ᴺ, D, N) of :func:`active_set_gains`)."""
     return torch.eye(g.shape[0], dtype=gain.dtype, device=gain.device) - g @ gain

@@ -246,8 +246,3 @@ class SupportModel(nn.Module):
     def forward(self, rho: Tensor) -> Tensor:
         """Out-of-support score (...,): > 1 means outside the training support."""
         return self.distance(rho) / self.threshold
-
-    def outside_box(self, rho: Tensor) -> Tensor:
-        """(...) bool: some Clarke coordinate beyond the training rows' range (min … max)."""
-        z = self._standardised(rho)
-        return ((z < self.points.min(0).values) | (z > self.points.max(0).values)).any(-1)
