@@ -5,23 +5,13 @@
     python -m dacr_learn.ik --robot ROBOT.yaml --arm ARM.urdf --arm-tip LINK --mount M.npy --targets T.npy ...
 
 T.npy: float64 (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3) tip positions with --position-only.
-S.npz: q (B, K, N) float64 joint vectors (the robot's joint order, what ClarkeDecoder returns; servo commands
-[mm] for a hardware model), success (B, K) bool (the solver's verdict: pose within --tolerance, inside every
-limit of the robot file, on the displacement constraint), pos_err (B, K) [m], rot_err (B, K) [rad] (0 with
---position-only), iterations (B, K), distinct (B, K) (solutions kept as distinct from the earlier ones of their
-target); with --scene S.yaml [--clearance D] also clearance (B, K) [m], the signed clearance of the body (and the
-arm's links) to the obstacles from the returned joints alone, and success needs it >= D (docs/body.md);
-for a hardware model also sigma (B, K, 3) [m], the model's σ of the tip at each solution (each
-command on its own, no motion memory).
-
---ckpt: a trained FK run/checkpoint (the network is inverted; accuracy is with respect to it), a trained IK
-run/checkpoint or a learned IK sampler (the analytic CC model of its robot, seeded by the network), or a saved
-hardware model (``model.pt``: servo commands [mm] inside the recorded servo range, --position-only); the file is
-recognised by its contents (:func:`dacr_learn.cli.loading.load_solver_model`), not by its name.
-
---arm ARM.urdf --arm-tip LINK --mount M.npy: whole-body IK of the arm carrying that robot (docs/arm.md): targets
-in the arm's base frame, q (B, K, n_arm + N) = (the arm's joints in the URDF chain's order [rad, m], then the
-robot's), success also inside the URDF's joint limits; M.npy float64 (4, 4), the tip link → robot base.
+S.npz: q (B, K, N) float64 joint vectors [m, rad] (servo commands [mm] for a hardware model), success (B, K) bool
+(the solver's verdict from the returned joints alone), pos_err (B, K) [m], rot_err (B, K) [rad], iterations (B, K),
+distinct (B, K); with --scene also clearance (B, K) [m]; for a hardware model also sigma (B, K, 3) [m]. What each
+means, and what --ckpt accepts (recognised by its contents, :func:`dacr_learn.cli.loading.load_solver_model`):
+docs/ik.md, "Interface"; --scene: docs/body.md. --arm: whole-body IK of the arm carrying the robot (docs/arm.md):
+targets in the arm's base frame, q (B, K, n_arm + N) (the arm's joints in the URDF chain's order, then the
+robot's), M.npy float64 (4, 4) the tip link → robot base.
 """
 from __future__ import annotations
 
