@@ -130,19 +130,11 @@ def _chain(err: BaseException) -> Iterator[BaseException]:
 
 
 def first_user_error(err: BaseException) -> ValueError | FileNotFoundError | None:
-    """The user's mistake behind ``err``, or None when there is none (a bug).
-
-    Walks ``err``'s chain outermost first (``__cause__``, unsuppressed ``__context__`` and the
-    per-member errors jsonargparse keeps for a Union-typed value, :func:`_union_alternatives`) and
-    returns the first :data:`USER_ERRORS` instance raised by our own code (dacr_learn, or the script
-    run as ``__main__``), so a library's wrapper around it is skipped: e.g. LightningCLI instantiating
-    a model whose ``__init__`` raised our ``ValueError("<robot.yaml>: segments[0]: …")`` raises
-    jsonargparse's ``ValueError("Does not validate against any of the Union subtypes …")``, and a
-    parse-time type conversion that failed arrives as ``argparse.ArgumentError`` wrappers; ours is
-    behind both. The outermost of our errors is the one returned: it is the one that names the
-    file (``raise ValueError(f"{path}: {err}") from err`` wraps a message without the path).
-    Without one of ours, the outermost :data:`USER_ERRORS` instance (e.g. one re-raised from a
-    worker process, whose traceback ends in concurrent.futures)."""
+    """The user's mistake behind ``err``, or None when there is none (a bug): the outermost :data:`USER_ERRORS`
+    instance in ``err``'s chain (:func:`_chain`) raised by our own code (dacr_learn, or the script run as
+    ``__main__``), the one that names the file, so a library's wrapper is skipped (jsonargparse's "Does not validate
+    against any of the Union subtypes …" around our ``ValueError("<robot.yaml>: segments[0]: …")``, argparse's
+    ArgumentError); without one of ours, the outermost instance (e.g. re-raised from a worker process)."""
     errors = [e for e in _chain(err) if isinstance(e, USER_ERRORS)]
     return next((e for e in errors if _raised_by_us(e)), errors[0] if errors else None)
 

@@ -1,24 +1,14 @@
 """Whole-body resolved-rate control of an arm carrying a continuum robot, with every limit; and the decoupled
-scheme (the arm first, then the robot) it is compared with (examples/track_port.py, docs/arm.md).
+scheme (the arm first, then the robot) it is compared with (examples/track_port.py).
 
-One whole-body step, with variables x = (θ, x_c) of a :class:`~.composite.Composite` (joint vector q ↔ x):
-
-1. tip pose, whole-body Jacobian J (6, n + D), robot base point p_b and its Jacobian J_b (:meth:`Composite.kinematics`);
-2. task e = gain·(p* − p, w·log(R*Rᵀ)) + feedforward (the target's displacement over the step), rows
-   (J_v, w·J_ω); w [m/rad] makes a rotation error count like a length (default: the robot's length);
-   with a :class:`Port`, rows k·J_b and task k·gain·(c − p_b) keep the robot's base (the flange's tool point)
-   at the port centre c (a remote centre of motion; k = ``port_weight``);
-3. limits inside the step as in the IK solver: in scaled variables z = x/s, a coordinate at a bound whose
-   descent points outward and a Clarke disk at its rim pushing outward are removed from J̃ (projector P of
-   :meth:`~dacr_learn.ik.Limits.free_directions`), and variables a scheme does not move (``moving``) too;
-4. Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹e (:func:`~dacr_learn.deploy.control.scaled_dls_step`, with the optional pull
-   towards the rest configuration in the null space), shortened to ``max_step`` and, with a time step ``dt``,
-   until no arm joint exceeds its URDF velocity limit;
-5. x' = the admissible point nearest x + s·Δz (URDF boxes, bend disks, length boxes), q' = joints(x').
-
-The decoupled scheme (:class:`DecoupledController`) runs the same step twice: the arm alone, as if the robot
-were straight at rest (the arm's IK aims the tool), then the robot alone with the arm where it now is.
-Everything float64; pure torch (no Lightning, no Rerun).
+One whole-body step in the variables x = (θ, x_c) of a :class:`~.composite.Composite` (docs/arm.md, "Whole-body
+resolved-rate control", numbers the five steps): the tip task (J_v, w·J_ω), w [m/rad], and with a :class:`Port`
+rows k·J_b keeping the robot's base at the port centre; limits inside the step as in the IK solver
+(:meth:`~dacr_learn.ik.Limits.free_directions`, and variables a scheme does not move); the damped least-squares
+step (:func:`~dacr_learn.deploy.control.scaled_dls_step`, optional null-space pull to a rest posture), shortened to
+``max_step`` and, with ``dt``, to the URDF velocity limits; then the admissible point nearest x + s·Δz.
+:class:`DecoupledController` runs the same step twice: the arm alone as if the robot were straight at rest, then
+the robot alone. Everything float64; pure torch (no Lightning, no Rerun).
 """
 from __future__ import annotations
 

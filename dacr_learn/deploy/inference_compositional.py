@@ -33,14 +33,10 @@ class InferenceCompositionalFK(nn.Module):
     """Compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`) with the front-end
     folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
 
-    Encoder, per-segment standardisation, context (front.with_context: "segment" a constant, "distal" a
-    sum of standardised features, "full" both kinds) and the first layer together with the learned
-    linear skip are affine in
-    u = [q − q_ref, g], so one matrix gives every segment's pre-activations at once,
-    (B, m·(W + O)); for type-III segments it acts on the exact features f instead (β = sqrt(h² − (αr)²)).
-    Feature units (ρ/d, β/l) are folded in; the outputs are scaled by each segment's translation unit
-    (``out_scale``, (m, O)). Then the shared MLP runs on (B, m, W), the head gives T_k and the products
-    compose the tip.
+    Encoder, feature units, per-segment standardisation, context and the first layer with the learned linear skip
+    are affine in u = [q − q_ref, g] (for type-III segments: in the exact features f), so one matrix gives every
+    segment's pre-activations (B, m·(W + O)); the outputs are scaled by each segment's translation unit
+    (``out_scale``, (m, O)); then the shared MLP on (B, m, W), the head T_k and the products.
     """
 
     def __init__(self, model, dtype: torch.dtype = torch.float32):
@@ -93,17 +89,11 @@ class InferenceCompositionalJacobian(nn.Module):
     feature (J_f) or joint (J_q = J_f·∂f/∂q), as :class:`~dacr_learn.deploy.inference.InferenceJacobian`. Twist head
     only (``rotation="twist"``; a ValueError otherwise).
 
-    Built for few operations (the control-loop case, batch 1):
-
-    - Forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`): per segment the value row and its
-      T tangent rows go through each layer in one product, (B, m, 1 + T, W). T counts only the features segment
-      k's first layer depends on (``columns`` (m, T), padded with zero seeds): 2 per type-I segment without
-      context, instead of all D.
-    - The segment transforms, their spatial tangents, the roll and the chain are the kernel's
-      (:func:`~dacr_learn.lie.twist_chain_jacobian`): pointwise, no 4 × 4 tangent products.
-    - The per-segment columns (B, 6, m·T) become J_f and J_q in one product with a constant map
-      [selection | selection·∂f/∂q] when ∂f/∂q is constant (no twisting segment); otherwise J_q =
-      J_f·∂f/∂q(q).
+    Built for few operations (batch 1 in a control loop): forward mode as stacked rows (value and T tangent rows
+    through each layer in one product, :func:`~dacr_learn.folding.tangent_rows`), T only the features segment k's
+    first layer depends on (2 per type-I segment without context, not all D); the transforms, tangents, roll and
+    chain by the kernel (:func:`~dacr_learn.lie.twist_chain_jacobian`); J_f and J_q in one product with a constant
+    map [selection | selection·∂f/∂q] when ∂f/∂q is constant, else J_q = J_f·∂f/∂q(q).
     """
 
     def __init__(self, model, dtype: torch.dtype = torch.float32):
