@@ -1,19 +1,11 @@
-"""Resolved-rate (damped least-squares) task-space position control in Clarke space.
+"""Resolved-rate (damped least-squares) task-space position control in Clarke space (docs/export.md,
+"Resolved-rate controller").
 
-One control step, with the commanded joint vector q (..., N) [m, rad] and a tip target p* [m]:
-
-1. (pose, J_f, J_q) = jacobian(q): the learned FK's tip pose and the Jacobian of the tip twist
-   w.r.t. the D actuated Clarke features f (an export from :mod:`dacr_learn.export`, or
-   :func:`analytic_jacobian` as the model-based reference);
-2. task step Δx = feedforward + gain·(p* − p), with p the measured tip position when the caller
-   has one (closed loop), else the learned FK's;
-3. Clarke-space step by damped least squares in scaled features z = f / s (s: each feature's
-   range, so ρ [m], β [m] and α [rad] weigh alike): Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx with J̃ = J_v·diag(s),
-   limited to ‖Δz‖ ≤ max_step;
-4. f' = sat(f + s·Δz): bending angle ‖ρ‖/d ≤ bend (radially), β in length_range, α in twist_range;
-5. q' = dec(f'): the Clarke decoder, so every command satisfies the displacement constraint.
-
-Everything runs in float64. Pure torch; no Lightning, no Rerun.
+One step from the commanded joint vector q (..., N) [m, rad] to a tip target p* [m]: (pose, J_f, J_q) =
+jacobian(q) (an exported ``jacobian`` or :func:`analytic_jacobian`); Δx = feedforward + gain·(p* − p), p the
+measured tip when the caller has one, else the learned FK's; Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx in scaled features
+z = f / s (J̃ = J_v·diag(s)), ‖Δz‖ ≤ max_step; f' = sat(f + s·Δz) (bend disk, length and twist ranges); q' = dec(f'),
+so every command satisfies the displacement constraint. Float64; pure torch (no Lightning, no Rerun).
 """
 from __future__ import annotations
 

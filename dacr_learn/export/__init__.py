@@ -1,8 +1,6 @@
 """Export a trained model's inference modules, and load them back: the one entry for every checkpoint format.
 
-    python -m dacr_learn.export --ckpt runs/default --out exports/default             # AOTInductor: ~1 min a module
-    python -m dacr_learn.export --ckpt runs/default --out exports/default --no-aoti   # torch.export programs: seconds
-    python -m dacr_learn.export --ckpt runs/ftdcr_v4_model/model.pt --out exports/ftdcr_v4 --no-aoti
+    python -m dacr_learn.export --ckpt runs/default --out exports/default [--no-aoti]    # docs/export.md
 
 (the command line: :mod:`dacr_learn.cli.export`)
 
