@@ -10,6 +10,7 @@ dacr_learn/ik/exported/). Files of capabilities added since (body, scenes, plann
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 from pathlib import Path
 
@@ -30,6 +31,7 @@ def main() -> None:
     parser.add_argument("--base", default="3a013fc")
     parser.add_argument("--target", type=float, default=0.05, help="the reduction asked for (0.05 = 5 %%)")
     args = parser.parse_args()
+    os.chdir(Path(__file__).resolve().parents[1])                 # the checkout this script is in
     base_files = [f for f in _git("ls-tree", "-r", "--name-only", args.base, "dacr_learn").split() if f.endswith(".py")]
     base = sum(_lines(_git("show", f"{args.base}:{f}")) for f in base_files)
     now_files = sorted(str(p) for p in Path("dacr_learn").rglob("*.py"))
