@@ -191,7 +191,8 @@ def _run(args: argparse.Namespace, argv: list[str] | None, setup: Setup, start: 
           f"({setup.cc_fit['seconds']:.1f} s); parameters {setup.cc_fit['parameters']}")
     selection, choice, results, preds, saving = _fit_all(setup, args, start)
     scores = selection.scores if selection is not None else {}
-    default = choice["default"] if choice else None
+    chosen = choice or {}
+    default = chosen.get("default")
     everyone = default_candidates(list(scores), deployable_only=False)
     reps = {m: r[SELECTION_PROXY] for m, r in selection.replicates.items()} if selection is not None else None
     proxy_best = default_choice(scores, everyone, SELECTION_PROXY, reps)["default"] if everyone else None
@@ -206,11 +207,9 @@ def _run(args: argparse.Namespace, argv: list[str] | None, setup: Setup, start: 
               "calibration": setup.calibration, "cc_fit": setup.cc_fit,
               "default_model": default,
               "selection": {"proxy": SELECTION_PROXY, "candidates": list(default_candidates(list(scores))),
-                            "rule": choice["rule"] if choice else None,
-                            "reason": choice["reason"] if choice else None,
-                            "best_by_proxy": choice["best"] if choice else None,
-                            "tied": choice["tied"] if choice else [],
-                            "comparison": choice["candidates"] if choice else {},
+                            "rule": chosen.get("rule"), "reason": chosen.get("reason"),
+                            "best_by_proxy": chosen.get("best"), "tied": chosen.get("tied", []),
+                            "comparison": chosen.get("candidates", {}),
                             "best_clarke_model_by_proxy": proxy_best,
                             "proxy_seeds": args.proxy_seeds, "proxies": [] if not scores else args.proxies,
                             "scores": scores},

@@ -235,7 +235,6 @@ class RerunLogger(Logger):
         self._flush(rec, self._flush_timeout)
         rec.disconnect()
 
-
     @rank_zero_only
     def log_metrics(self, metrics: Mapping[str, float], step: int | None = None) -> None:
         """Log each metric as rr.Scalars at ``metrics/<name>`` and ``step``; train/val metrics also as log10 at
