@@ -90,6 +90,14 @@ def _raise_bad_tensor(x, name: str, trailing: tuple[int, ...], nonempty: bool) -
                      f"in a tensor of shape {tuple(x.shape)}")
 
 
+def check_choice(name: str, value: Any, choices: tuple | dict) -> None:
+    """ValueError ``"<name>: expected one of <choices>, got <value!r>"`` unless ``value`` is one of ``choices``
+    (a dict's keys, listed sorted)."""
+    if value not in choices:
+        shown = sorted(choices) if isinstance(choices, dict) else choices
+        raise ValueError(f"{name}: expected one of {shown}, got {value!r}")
+
+
 def short_error(err: BaseException) -> str:
     """One line of an exception: its type and the first 160 characters of its message."""
     text = " ".join(str(err).split())

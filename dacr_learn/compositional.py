@@ -26,7 +26,7 @@ from pytorch_kinematics.transforms import rotation_6d_to_matrix
 from torch import Tensor, nn
 
 from .body import BodyPoints, body_of_points, check_points_per_segment
-from .checks import check_tensor
+from .checks import check_choice, check_tensor
 from .folding import activation_name
 from .kinematics import effective_features
 from .layers import ClarkeEncoder
@@ -44,8 +44,7 @@ def feature_units(spec: RobotSpec, units: str) -> Tensor:
     """(m, 4) divisors taking per-segment features (ρ_re, ρ_im, β, α) [m, m, m, rad] to network units:
     (d_k, d_k, l_k, 1) for "strain", ones for "metric". float64 (the model keeps these buffers in float64
     unless cast, so a float64 model's units are not float32-rounded; they are cast to the input's dtype)."""
-    if units not in UNITS:
-        raise ValueError(f"units: expected one of {UNITS}, got {units!r}")
+    check_choice("units", units, UNITS)
     if units == "metric":
         return torch.ones(spec.num_segments, 4, dtype=torch.float64)
     return torch.tensor([[s.radius, s.radius, s.length, 1.0] for s in spec.segments], dtype=torch.float64)
@@ -53,8 +52,7 @@ def feature_units(spec: RobotSpec, units: str) -> Tensor:
 
 def translation_units(spec: RobotSpec, units: str) -> Tensor:
     """(m,) length [m] the twist's translation part is scaled by: l_k ("strain") or the mean length ("metric")."""
-    if units not in UNITS:
-        raise ValueError(f"units: expected one of {UNITS}, got {units!r}")
+    check_choice("units", units, UNITS)
     if units == "metric":
         return torch.full((spec.num_segments,), spec.total_length / spec.num_segments, dtype=torch.float64)
     return torch.tensor([s.length for s in spec.segments], dtype=torch.float64)
@@ -78,8 +76,7 @@ class SegmentFrontEnd(nn.Module):
 
     def __init__(self, spec: RobotSpec, context: str = "none", units: str = "strain"):
         super().__init__()
-        if context not in CONTEXTS:
-            raise ValueError(f"context: expected one of {CONTEXTS}, got {context!r}")
+        check_choice("context", context, CONTEXTS)
         self.spec, self.context, self.units, m = spec, context, units, spec.num_segments
         self.encoder = ClarkeEncoder(spec)
         self.register_buffer("unit", feature_units(spec, units))    # x_k = features / unit
@@ -235,8 +232,7 @@ def build_fk_model(spec: RobotSpec, structure: str = "monolithic", context: str 
     model arguments (features, width, depth, activation, rotation). ``context`` and ``units`` are the
     compositional model's (the monolithic model takes their defaults only); ``body_points`` and ``body_prior`` the
     monolithic model's shape output (the compositional model's body comes from its segment twists: 0 only)."""
-    if structure not in STRUCTURES:
-        raise ValueError(f"structure: expected one of {STRUCTURES}, got {structure!r}")
+    check_choice("structure", structure, STRUCTURES)
     if structure == "compositional":
         if body_points:
             raise ValueError(f"body_points: the compositional model's body comes from its segment twists (no shape "

@@ -19,7 +19,7 @@ from pytorch_kinematics.transforms import quaternion_to_matrix, rotation_6d_to_m
 from torch import Tensor, nn
 
 from .body import BodyPoints, body_of_points, check_points_per_segment, subsample
-from .checks import check_tensor
+from .checks import check_choice, check_tensor
 from .kinematics import backbone_points, forward_kinematics
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .lie import pose_from_parts
@@ -33,8 +33,7 @@ ACTIVATIONS = {"silu": nn.SiLU, "relu": nn.ReLU, "gelu": nn.GELU, "tanh": nn.Tan
 
 def mlp(in_dim: int, out_dim: int, width: int, depth: int, activation: str) -> nn.Sequential:
     """``depth`` hidden layers of ``width`` units with ``activation``, then a linear output layer."""
-    if activation not in ACTIVATIONS:
-        raise ValueError(f"activation: expected one of {sorted(ACTIVATIONS)}, got {activation!r}")
+    check_choice("activation", activation, ACTIVATIONS)
     if width < 1 or depth < 1:
         raise ValueError(f"width/depth: expected >= 1, got width={width}, depth={depth}")
     layers, d = [], in_dim
@@ -104,8 +103,7 @@ class FeatureFrontEnd(nn.Module):
 
     def __init__(self, spec: RobotSpec, mode: str = "clarke"):
         super().__init__()
-        if mode not in FEATURE_MODES:
-            raise ValueError(f"features: expected one of {FEATURE_MODES}, got {mode!r}")
+        check_choice("features", mode, FEATURE_MODES)
         self.spec, self.mode = spec, mode
         self.encoder = ClarkeEncoder(spec) if mode == "clarke" else None
         if mode == "clarke":
@@ -151,13 +149,11 @@ class FKModel(nn.Module):
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
                  activation: str = "silu", rotation: str = "6d", body_points: int = 0, body_prior: str = "none"):
         super().__init__()
-        if rotation not in ROTATIONS:
-            raise ValueError(f"rotation: expected one of {sorted(ROTATIONS)}, got {rotation!r}")
+        check_choice("rotation", rotation, ROTATIONS)
         if isinstance(body_points, bool) or not isinstance(body_points, int) or body_points < 0:
             raise ValueError(f"body_points: expected an integer >= 0 (points per segment of the shape output; "
                              f"0: none), got {body_points!r}")
-        if body_prior not in BODY_PRIORS:
-            raise ValueError(f"body_prior: expected one of {BODY_PRIORS}, got {body_prior!r}")
+        check_choice("body_prior", body_prior, BODY_PRIORS)
         self.spec, self.rotation, self.body_points, self.body_prior = spec, rotation, body_points, body_prior
         self.front = FeatureFrontEnd(spec, features)
         self.net = mlp(self.front.dim, 3 + ROTATIONS[rotation][0], width, depth, activation)
@@ -211,10 +207,8 @@ class IKModel(nn.Module):
     def __init__(self, spec: RobotSpec, features: str = "clarke", width: int = 256, depth: int = 3,
                  activation: str = "silu", output_scale: str = "std"):
         super().__init__()
-        if features not in FEATURE_MODES:
-            raise ValueError(f"features: expected one of {FEATURE_MODES}, got {features!r}")
-        if output_scale not in OUTPUT_SCALES:
-            raise ValueError(f"output_scale: expected one of {OUTPUT_SCALES}, got {output_scale!r}")
+        check_choice("features", features, FEATURE_MODES)
+        check_choice("output_scale", output_scale, OUTPUT_SCALES)
         self.spec, self.features, self.length, self.output_scale = spec, features, spec.total_length, output_scale
         self.in_norm = Standardizer(9)
         self.encoder, self.decoder = ClarkeEncoder(spec), ClarkeDecoder(spec)

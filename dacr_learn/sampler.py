@@ -23,7 +23,7 @@ import torch
 import zuko
 from torch import Tensor, nn
 
-from .checks import F64, as_floating
+from .checks import F64, as_floating, check_choice
 from .clarke_space import ClarkeSpace
 from .layers import ClarkeEncoder
 from .models import ACTIVATIONS, FEATURE_MODES, Standardizer, actuated_selection, pose_to_vector
@@ -97,10 +97,8 @@ class ClarkeSampler(nn.Module):
     def __init__(self, spec: RobotSpec, features: str = "clarke", transforms: int = 4, width: int = 128,
                  depth: int = 2, activation: str = "relu", bins: int = 8):
         super().__init__()
-        if features not in FEATURE_MODES:
-            raise ValueError(f"features: expected one of {FEATURE_MODES}, got {features!r}")
-        if activation not in ACTIVATIONS:
-            raise ValueError(f"activation: expected one of {sorted(ACTIVATIONS)}, got {activation!r}")
+        check_choice("features", features, FEATURE_MODES)
+        check_choice("activation", activation, ACTIVATIONS)
         for name, value, least in (("transforms", transforms, 1), ("width", width, 1), ("depth", depth, 1),
                                    ("bins", bins, 2)):
             if not (isinstance(value, int) and value >= least):

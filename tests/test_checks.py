@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from dacr_learn.checks import check_tensor
+from dacr_learn.checks import check_choice, check_tensor
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -40,3 +40,11 @@ def test_check_tensor_accepts_finite_values_whose_sum_overflows(n):
     x = torch.full((n, 3), torch.finfo(torch.float32).max, dtype=torch.float32)   # float32 sum: inf
     check_tensor(x, "q", (3,))
     check_tensor(torch.full((n, 3), 1e308, dtype=torch.float64), "q", (3,))          # float64 sum: inf
+
+
+def test_check_choice_names_the_argument_and_every_choice():
+    check_choice("units", "metric", ("strain", "metric"))
+    with pytest.raises(ValueError, match=r"^units: expected one of \('strain', 'metric'\), got 'mm'$"):
+        check_choice("units", "mm", ("strain", "metric"))
+    with pytest.raises(ValueError, match=r"^activation: expected one of \['relu', 'silu'\], got 'elu'$"):
+        check_choice("activation", "elu", {"silu": 1, "relu": 2})           # a dict's keys, sorted
