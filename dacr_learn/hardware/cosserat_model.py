@@ -233,7 +233,6 @@ class CalibratedCosserat:
         done = 0
         for _ in range(iterations):
             rms_prev = _rms(r)
-            cols = []
             base = self.physics()
             batched, columns = [], []                           # physics: finite differences of warm solves
             for name in names:
@@ -250,8 +249,7 @@ class CalibratedCosserat:
             for k, poses in zip(batched, self._solve_trials(x, warm, base, [columns[k] for k in batched]),
                                 strict=True):
                 columns[k] = poses
-            cols = [((residual(p1) - r) / FD_FRACTION).reshape(-1) for p1 in columns]
-            jac = torch.stack(cols, -1)
+            jac = torch.stack([((residual(p1) - r) / FD_FRACTION).reshape(-1) for p1 in columns], -1)
             if frame:
                 jac = torch.cat([jac, _frame_jacobian(self.cc, frame, poses, tip)], -1)
             if not torch.isfinite(jac).all():
