@@ -48,13 +48,9 @@ class ControllerConfig:
 
 
 class ResolvedRateController:
-    """Damped least-squares position controller in Clarke space (see the module docstring).
-
-    Args:
-        spec: the robot. jacobian: callable q (..., N) → (pose (..., 4, 4), J_f (..., 6, D), J_q)
-            — e.g. ``dacr_learn.export.load(export_dir, "jacobian")`` or :func:`analytic_jacobian`.
-        config: gains and limits (:class:`ControllerConfig`).
-    """
+    """Damped least-squares position controller in Clarke space (the module docstring) of the robot ``spec``:
+    ``jacobian`` q (..., N) → (pose (..., 4, 4), J_f (..., 6, D), J_q), e.g. ``dacr_learn.export.load(export_dir,
+    "jacobian")`` or :func:`analytic_jacobian`; ``config``: gains and limits (:class:`ControllerConfig`)."""
 
     def __init__(self, spec: RobotSpec, jacobian: JacobianFn, config: ControllerConfig = ControllerConfig()):
         self.spec, self.jacobian, self.config = spec, jacobian, config
