@@ -173,19 +173,20 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
                1: ((gu[0] * ux - 1, gxy, fu[0]), (qxy, torch.addcmul(fb, q * uy, uy), sb * uy))}
     lin_dirs = [c_ for c_ in used if c_ != 3] or [0]                                  # directions in J's order
     order = lin_dirs + [c_ for c_ in used if c_ == 3]
-    ang = torch.stack([torch.stack([per_dir[c_][0][i] if c_ < 2 else zero for c_ in lin_dirs]) for i in range(3)])
-    lin = torch.stack([torch.stack([per_dir[c_][1][i] if c_ < 2 else dir_p[i] for c_ in lin_dirs]) for i in range(3)])
-    scale = torch.stack([(1 / radius) if c_ < 2 else extends.to(dtype) for c_ in lin_dirs]).unsqueeze(-1)
-    ang, lin = ang * scale, lin * scale                                                # (3, T', m, M) per unit ρ, β
+    t = len(lin_dirs)
+    local = torch.stack([per_dir[c_][j][i] if c_ < 2 else zero if j == 0 else dir_p[i]              # (3, 2T, m, M):
+                         for i in range(3) for j in range(2) for c_ in lin_dirs]).unflatten(0, (3, 2 * t))  # b's, dp's
+    scale = torch.stack([(1 / radius) if c_ < 2 else extends.to(dtype) for c_ in lin_dirs] * 2).unsqueeze(-1)
+    local = local * scale                                                              # per unit ρ, β
     if any(s_.twists for s_ in segs):
         alpha = torch.where(twists.unsqueeze(-1), f[3], 0.0)
         ca, sa = alpha.cos(), alpha.sin()
-        rot, pos, ang, lin = _rz(ca, sa, rot), _rz(ca, sa, pos), _rz(ca, sa, ang), _rz(ca, sa, lin)
+        rot, pos, local = _rz(ca, sa, rot), _rz(ca, sa, pos), _rz(ca, sa, local)
         if 3 in used:
             roll = twists.to(dtype).unsqueeze(-1)
-            ang = torch.cat([ang, torch.stack([zero, zero, roll.expand_as(zero)]).unsqueeze(1)], 1)
-            lin = torch.cat([lin, torch.stack([-roll * pos[1], roll * pos[0], zero]).unsqueeze(1)], 1)
-    t = ang.shape[1]
+            local = torch.cat([local[:, :t], torch.stack([zero, zero, roll.expand_as(zero)]).unsqueeze(1), local[:, t:],
+                               torch.stack([-roll * pos[1], roll * pos[0], zero]).unsqueeze(1)], 1)
+            t += 1
     tip_rot, tip_pos = rot[:, :, 0], pos[:, 0]                                         # the chain T_1⋯T_k
     bases, origins = [], [tip_pos]
     for k in range(1, m):
@@ -193,7 +194,6 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
         tip_pos = tip_pos + (tip_rot * pos[:, k].unsqueeze(0)).sum(1)
         tip_rot = (tip_rot.unsqueeze(2) * rot[:, :, k].unsqueeze(0)).sum(1)
         origins.append(tip_pos)
-    local = torch.cat([ang, lin], 1)                                                   # (3, 2T, m, M)
     if m > 1:
         local = torch.cat([local[:, :, :1], _rotate(torch.stack(bases, 2), local[:, :, 1:])], 2)
     omega, vel = local[:, :t], local[:, t:]
