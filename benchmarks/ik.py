@@ -13,12 +13,17 @@ chord, ry φ/2, rz −θ — a relaxation: its solutions need not be constant-cu
 
     .venv/bin/python benchmarks/ik.py                      # every row, 2 threads (~ minutes)
     .venv/bin/python benchmarks/ik.py --robots tdcr_3seg_coupled --skip latency cli pk --json
+    .venv/bin/python benchmarks/ik.py --robots tdcr_3seg_coupled --paths pool --against ../old --rounds 3
+
+``--against DIR`` runs the solve rows of this checkout and of another one (e.g. a checkout of the previous commit) as
+subprocesses, interleaved round by round (same targets, seeds and threads), and prints the medians side by side.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import os
 import platform
 import statistics
 import subprocess
@@ -144,6 +149,32 @@ def pseudo_inverse_ik(name: str, n: int, k: int, seed: int) -> dict:
             "slots_solved_pct": 100 * float(conv.double().mean()), "solutions_per_s": float(conv.sum()) / wall}
 
 
+def against(args) -> dict:
+    """The solve rows of this checkout and of ``args.against``, ``args.rounds`` interleaved rounds of subprocesses
+    (each its own checkout's benchmarks/ik.py), medians of wall and CPU time per (checkout, robot, task, path)."""
+    trees = {"this": ROOT, "other": Path(args.against).resolve()}
+    runs: dict[tuple, list[dict]] = {}
+    for i in range(args.rounds):
+        for label, tree in (trees.items() if i % 2 == 0 else reversed(trees.items())):    # alternate the order
+            cmd = [sys.executable, str(tree / "benchmarks" / "ik.py"), "--robots", *args.robots, "--paths", *args.paths,
+                   "--targets", str(args.targets), "--solutions", str(args.solutions), "--threads", str(args.threads),
+                   "--skip", "latency", "cli", "pk", "--json"]
+            out = subprocess.run(cmd, cwd=tree, env={**os.environ, "PYTHONPATH": str(tree)},
+                                 check=True, capture_output=True, text=True).stdout
+            for r in json.loads(out.strip().splitlines()[-1])["rows"]:
+                runs.setdefault((label, r["robot"], r["task"], r["path"]), []).append(r)
+    summary = []
+    for (label, robot, task, path), rs in sorted(runs.items(), key=lambda kv: kv[0][1:] + kv[0][:1]):
+        med = {k: statistics.median(r[k] for r in rs) for k in ("wall_s", "cpu_s", "verified_per_s")}
+        worst = {"slots_solved_pct": min(r["slots_solved_pct"] for r in rs),
+                 "false_success": max(r["false_success"] for r in rs)}
+        summary.append({"checkout": label, "robot": robot, "task": task, "path": path, **med, **worst})
+        print(f"{label:5s} {robot:22s} {task:8s} {path:6s} wall {med['wall_s']:.2f} s, CPU {med['cpu_s']:.2f} s, "
+              f"{med['verified_per_s']:.0f} verified/s (medians of {len(rs)}); slots solved ≥ "
+              f"{worst['slots_solved_pct']:.2f} %, false flags ≤ {worst['false_success']}", flush=True)
+    return {"against": str(trees["other"]), "rounds": args.rounds, "summary": summary}
+
+
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--robots", nargs="+", default=ROBOTS)
@@ -154,7 +185,14 @@ def main(argv=None) -> dict:
     p.add_argument("--paths", nargs="+", default=["grouped", "pool"], choices=list(PATHS))
     p.add_argument("--skip", nargs="*", default=[], choices=["latency", "cli", "pk"])
     p.add_argument("--json", action="store_true")
+    p.add_argument("--against", help="another checkout: its solve rows side by side with this one's (subprocesses)")
+    p.add_argument("--rounds", type=int, default=3, help="interleaved rounds with --against")
     args = p.parse_args(argv)
+    if args.against:
+        report = against(args)
+        if args.json:
+            print(json.dumps(report))
+        return report
     torch.set_num_threads(args.threads)
     rows = []
     for name in args.robots:

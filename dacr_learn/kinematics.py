@@ -18,11 +18,9 @@ from torch import Tensor
 
 from .checks import check_tensor
 from .lie import (
-    chain_components,
+    TAYLOR_BELOW,
     chain_products,
-    dense,
     exp_components,
-    exp_components_and_tangents,
     pose_of_components,
     roll_components,
 )
@@ -85,55 +83,135 @@ def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor
     return pose_of_components(*(rot, pos) if alpha is None else roll_components(alpha, rot, pos))
 
 
+# Taylor coefficients in y = φ² (degree 0 … 4) of s = sin φ/φ, f = (1 − cos φ)/φ², their y-derivatives s', f' and
+# g = (1 − s)/φ² = (φ − sin φ)/φ³: the series of :mod:`~.lie` (exact to ~1e-16 below TAYLOR_BELOW), one per row.
+_SERIES = ((1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),
+           (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),
+           (-1 / 6, 2 / 120, -3 / 5040, 4 / 362880, -5 / 39916800),
+           (-1 / 24, 2 / 720, -3 / 40320, 4 / 3628800, -5 / 479001600),
+           (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800))
+
+
+def _cc_coefficients(y: Tensor) -> Tensor:
+    """(s, f, s', f', g) stacked, (5, ...), of y = φ² (...): all five Taylor polynomials in one Horner pass below
+    :data:`~.lie.TAYLOR_BELOW`, the closed forms (f = 2·(sin(φ/2)/φ)², no cancellation) above it."""
+    small = y < TAYLOR_BELOW
+    series = torch.tensor(_SERIES, dtype=y.dtype, device=y.device).T.reshape(5, 5, *([1] * y.dim()))
+    taylor = torch.addcmul(series[3], series[4], y)
+    for j in (2, 1, 0):
+        taylor = torch.addcmul(series[j], taylor, y)
+    y_big = torch.where(small, 1.0, y)
+    phi = y_big.sqrt()
+    inv_phi = phi.reciprocal()
+    s = phi.sin() * inv_phi
+    half = (0.5 * phi).sin() * inv_phi
+    f = 2 * half * half
+    half_inv_y = 0.5 / y_big
+    big = torch.stack([s, f, (phi.cos() - s) * half_inv_y, (s - 2 * f) * half_inv_y, (1 - s) / y_big])
+    return torch.where(small, taylor, big)
+
+
+def _rz(ca: Tensor, sa: Tensor, v: Tensor) -> Tensor:
+    """Rz(α)·v for stacked vectors v (3, ..., m, M) and cos α, sin α (m, M)."""
+    return torch.stack([ca * v[0] - sa * v[1], sa * v[0] + ca * v[1], v[2]])
+
+
+def _rotate(rot: Tensor, v: Tensor) -> Tensor:
+    """rot·v for rotations rot (3, 3, m, M) and stacked vectors v (3, T, m, M) (T directions): nine fused
+    multiply-adds on contiguous (T, m, M) blocks, no (3, 3, T, m, M) temporary."""
+    return torch.stack([torch.addcmul(torch.addcmul(rot[i, 0] * v[0], rot[i, 1], v[1]), rot[i, 2], v[2])
+                        for i in range(3)])
+
+
 def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
                          columns: list[tuple[int, int]] | None = None) -> tuple[Tensor, Tensor]:
-    """Tip pose and its Jacobian w.r.t. feature columns, in closed form (the kernel's exponential with
-    tangents and chain rule, :mod:`~.lie`): features (..., m, 4) → pose (..., 4, 4) [m] and J: the tip point's
-    velocity [m] and angular velocity [rad] in the base frame per unit of each column. ``columns``: None for
-    every (ρ_re, ρ_im, β, α) of every segment, J (..., 6, m, 4), columns a segment does not actuate zero; or a
-    list of (segment, column index 0–3) pairs, J (..., 6, len(columns)) (e.g. the actuated features).
+    """Tip pose and its Jacobian w.r.t. feature columns, in closed form: features (..., m, 4) → pose (..., 4, 4) [m]
+    and J: the tip point's velocity [m] and angular velocity [rad] in the base frame per unit of each column.
+    ``columns``: None for every (ρ_re, ρ_im, β, α) of every segment, J (..., 6, m, 4), columns a segment does not
+    actuate zero; or a list of (segment, column index 0–3) pairs, J (..., 6, len(columns)) (e.g. the actuated
+    features).
 
-    Computed in the kernel's component form with the segments in front, (m, ...): the twist of segment k is
-    ξ = (0, 0, β; −u_y, u_x, 0) with u = ρ/d, so its directions along (ρ_re, ρ_im, β) are the sparse constants
-    dω_y = 1/d, dω_x = −1/d, dv_z = [extends] (a few operations each), and along α the roll's own velocity
-    (:func:`~.lie.roll_components`).
+    One batched evaluation for all segments of all samples (the op count does not grow with the batch and hardly
+    with m), in a batch-last layout: every quantity is a stack of contiguous (m, M) blocks, M the flattened batch.
+    Per segment, u = ρ/d, φ² = ‖u‖², s, f, s', f', g (:func:`_cc_coefficients`): the pose R = cos φ·I + s·ω^ + f·ωωᵀ,
+    p = β·(f·u_x, f·u_y, s) of the twist ξ = (0, 0, β; ω = (−u_y, u_x, 0)), and its spatial tangents along
+    (u_x, u_y, β): angular b = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω), i.e. b_x = (−g·u_x·u_y, 1 − g·u_y², −f·u_y),
+    b_y = (g·u_x² − 1, g·u_x·u_y, f·u_x), b_β = 0, and linear dp_x = β·(f + 2f'·u_x², 2f'·u_x·u_y, 2s'·u_x),
+    dp_y = β·(2f'·u_x·u_y, f + 2f'·u_y², 2s'·u_y), dp_β = (f·u_x, f·u_y, s); a twisting segment is rolled, Rz(α)·T,
+    its tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule (ω = R_{k−1}·b,
+    v = R_{k−1}·dp + ω × (p_tip − o_k), R_{k−1} the rotation of T_1⋯T_{k−1}, o_k the origin of T_1⋯T_k) transports
+    all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
+
+    The returned J and pose are views whose batch is innermost in memory (rows-last: ``J.permute(-2, -1, …)`` of a
+    contiguous (6, D, M) block); ``.contiguous()`` gives the row-major copy.
     """
-    u, beta, alpha = _segment_parameters(spec, features)
-    radius, _, extends, twists = _segment_constants(spec, features.dtype, features.device)
-    m, lead, dtype = spec.num_segments, beta.shape[:-1], features.dtype
-    per_seg = lambda c: c.to(dtype).view(m, *([1] * len(lead)))  # noqa: E731   (m,) → (m, 1…)
-    front = lambda x: x.movedim(-1, 0).contiguous()  # noqa: E731              (..., m) → (m, ...)
-    ux, uy, b = front(u[..., 0]), front(u[..., 1]), front(beta)
-    inv_d = per_seg(1 / radius)
-    basis = [((None, None, None), (None, inv_d, None)), ((None, None, None), (-inv_d, None, None)),
-             ((None, None, per_seg(extends)), (None, None, None)), ((None, None, None), (None, None, None))]
-    wanted = [(k, c) for k in range(m) for c in range(4)] if columns is None else list(columns)
-    # only the directions some wanted column uses (α only with a roll, β only where a segment extends)
-    used = [c for c in range(4) if any(cc == c for _, cc in wanted) and (c != 3 or alpha is not None)
-            and (c != 2 or any(s.extends for s in spec.segments))]
-    rot, pos, tangents = exp_components_and_tangents((None, None, b), (-uy, ux, None), [basis[c] for c in used])
-    if alpha is not None:
-        rot, pos, tangents = roll_components(front(alpha), rot, pos, tangents, (used.index(3), per_seg(twists)))
-    like = b[0]
-    seg = lambda c, k: tuple(None if x is None else x[k] for x in c)  # noqa: E731
-
-    def stacked(vectors: list, k: int) -> tuple:     # segment k's vectors of the used directions → components (T, ...)
-        parts = [[seg(v, k)[i] for v in vectors] for i in range(3)]
-        return tuple(None if all(p is None for p in c) else torch.stack(dense(c, like), dim=0) for c in parts)
-
-    tip_rot, tip_pos, cols = chain_components(        # the chain rotates the directions of a segment together
-        [seg(rot, k) for k in range(m)], [seg(pos, k) for k in range(m)],
-        [[(stacked([a for a, _ in tangents], k), stacked([v for _, v in tangents], k))] for k in range(m)])
-    zero = torch.zeros_like(like)
-    entries = []                                      # row-major (6, columns), each (...): one stack at the end
-    for i in range(6):
-        for k, c in wanted:
-            comp = (cols[k][0][0] + cols[k][0][1])[i] if c in used else None
-            entries.append(zero if comp is None else comp[used.index(c)])
-    jac = torch.stack(entries, dim=-1).unflatten(-1, (6, len(wanted)))
+    check_tensor(features, "features", (spec.num_segments, 4))
+    m, lead, dtype, device = spec.num_segments, features.shape[:-2], features.dtype, features.device
+    radius, length, extends, twists = _segment_constants(spec, dtype, device)
+    segs = spec.segments
+    f = features.reshape(-1, m, 4).permute(2, 1, 0).contiguous()                      # (4, m, M)
+    u = f[:2] * (1 / radius).unsqueeze(-1)                                             # (2, m, M)
+    ux, uy = u[0], u[1]
+    beta = f[2] if all(s.extends for s in segs) else torch.where(extends.unsqueeze(-1), f[2], length.unsqueeze(-1))
+    y = torch.addcmul(ux * ux, uy, uy)
+    s, fc, ds, df, g = _cc_coefficients(y)
+    fu, su, gu = fc * u, s * u, g * u
+    c = 1 - fc * y
+    fxy, gxy = fu[0] * uy, gu[0] * uy
+    rot = torch.stack([c + fu[1] * uy, -fxy, su[0], -fxy, c + fu[0] * ux, su[1], -su[0], -su[1], c]).unflatten(
+        0, (3, 3))                                                                     # (3, 3, m, M)
+    dir_p = torch.stack([fu[0], fu[1], s])                                             # dp_β = p / β
+    pos = beta * dir_p
+    q, sb = (2 * beta) * df, (2 * beta) * ds
+    qx, fb = q * ux, fc * beta
+    qxy = qx * uy
+    wanted = [(k, c_) for k in range(m) for c_ in range(4)] if columns is None else list(columns)
+    used = [c_ for c_ in range(4) if any(cc == c_ for _, cc in wanted)
+            and (c_ != 3 or any(s_.twists for s_ in segs)) and (c_ != 2 or any(s_.extends for s_ in segs))]
+    zero = torch.zeros_like(y)
+    per_dir = {0: ((-gxy, 1 - gu[1] * uy, -fu[1]), (torch.addcmul(fb, qx, ux), qxy, sb * ux)),
+               1: ((gu[0] * ux - 1, gxy, fu[0]), (qxy, torch.addcmul(fb, q * uy, uy), sb * uy))}
+    lin_dirs = [c_ for c_ in used if c_ != 3] or [0]                                  # directions in J's order
+    order = lin_dirs + [c_ for c_ in used if c_ == 3]
+    t = len(lin_dirs)
+    local = torch.stack([per_dir[c_][j][i] if c_ < 2 else zero if j == 0 else dir_p[i]              # (3, 2T, m, M):
+                         for i in range(3) for j in range(2) for c_ in lin_dirs]).unflatten(0, (3, 2 * t))  # b's, dp's
+    scale = torch.stack([(1 / radius) if c_ < 2 else extends.to(dtype) for c_ in lin_dirs] * 2).unsqueeze(-1)
+    local = local * scale                                                              # per unit ρ, β
+    if any(s_.twists for s_ in segs):
+        alpha = torch.where(twists.unsqueeze(-1), f[3], 0.0)
+        ca, sa = alpha.cos(), alpha.sin()
+        rot, pos, local = _rz(ca, sa, rot), _rz(ca, sa, pos), _rz(ca, sa, local)
+        if 3 in used:
+            roll = twists.to(dtype).unsqueeze(-1)
+            local = torch.cat([local[:, :t], torch.stack([zero, zero, roll.expand_as(zero)]).unsqueeze(1), local[:, t:],
+                               torch.stack([-roll * pos[1], roll * pos[0], zero]).unsqueeze(1)], 1)
+            t += 1
+    tip_rot, tip_pos = rot[:, :, 0], pos[:, 0]                                         # the chain T_1⋯T_k
+    bases, origins = [], [tip_pos]
+    for k in range(1, m):
+        bases.append(tip_rot)
+        tip_pos = tip_pos + (tip_rot * pos[:, k].unsqueeze(0)).sum(1)
+        tip_rot = (tip_rot.unsqueeze(2) * rot[:, :, k].unsqueeze(0)).sum(1)
+        origins.append(tip_pos)
+    if m > 1:
+        local = torch.cat([local[:, :, :1], _rotate(torch.stack(bases, 2), local[:, :, 1:])], 2)
+    omega, vel = local[:, :t], local[:, t:]
+    arm = (tip_pos.unsqueeze(1) - torch.stack(origins, 1)).unsqueeze(1)              # (3, 1, m, M)
+    vel = vel + torch.stack([torch.addcmul(omega[1] * arm[2], omega[2], arm[1], value=-1),
+                             torch.addcmul(omega[2] * arm[0], omega[0], arm[2], value=-1),
+                             torch.addcmul(omega[0] * arm[1], omega[1], arm[0], value=-1)])
+    jac = torch.cat([vel, omega]).flatten(1, 2)                                        # (6, T·m, M), index d·m + k
+    index = [order.index(c_) * m + k if c_ in used else t * m for k, c_ in wanted]
+    if t * m in index:                                                                 # a column no segment has
+        jac = torch.cat([jac, torch.zeros_like(jac[:, :1])], 1)
+    jac = jac.index_select(1, torch.tensor(index, device=device))                      # (6, D, M)
+    jac = jac.permute(2, 0, 1).reshape(*lead, 6, len(wanted))
     if columns is None:
         jac = jac.unflatten(-1, (m, 4))
-    return pose_of_components(tip_rot, tip_pos), jac
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device).view(1, 4, 1).expand(1, 4, y.shape[-1])
+    pose = torch.cat([torch.cat([tip_rot, tip_pos.unsqueeze(1)], 1), bottom]).permute(2, 0, 1)
+    return pose.reshape(*lead, 4, 4), jac
 
 
 def segment_poses(spec: RobotSpec, features: Tensor) -> Tensor:

@@ -265,3 +265,19 @@ def test_ik_options_name_a_bad_tolerance(field, value, unit):
     with pytest.raises(ValueError) as err:
         IKOptions(**{field: value})
     assert str(err.value) == f"{field}: expected a finite value > 0 [{unit}], got {value}"
+
+
+@pytest.mark.parametrize("robot", ["tdcr_3seg_coupled", "hetero_4seg_types"])
+def test_held_limits_without_the_projector_equal_the_projector(robot):
+    """free_jacobian's whole-tensor path (only_held) is J̃·P, P the projector of Limits.free_directions."""
+    from dacr_learn.ik.refine import free_jacobian
+    lim = ConstantCurvature(spec_by_name(robot)).limits
+    g = torch.Generator().manual_seed(5)
+    x = lim.project(lim.sample(400, g) * 1.6)                       # many on a rim or a bound
+    ja = torch.randn(400, 6, lim.num_variables, dtype=torch.float64, generator=g)
+    gradient = torch.randn(400, lim.num_variables, dtype=torch.float64, generator=g)
+    held, none = free_jacobian(lim, x, ja, gradient, only_held=True)
+    full, proj = free_jacobian(lim, x, ja, gradient)
+    box, normals = lim.blocked(x, gradient)
+    assert none is None and box.any() and (normals != 0).any()
+    assert (held - ja @ proj).abs().max() <= 1e-14 and (full - held).abs().max() <= 1e-14

@@ -224,10 +224,14 @@ def free_jacobian(lim: Limits, x: Tensor, ja: Tensor, gradient: Tensor, only_hel
         free = lim.free_directions(box, normals)
         return matmul(ja, free), free
     held = ja * (~box).to(ja.dtype).unsqueeze(-2)
-    if normals is not None:
-        n = normals.unsqueeze(-3)                                                     # (M, 1, k, 2)
-        along = (ja[..., lim.disks] * n).sum(-1, keepdim=True)                         # J̃n (M, R, k, 1)
-        held = held.index_add(-1, lim.disks.flatten(), (along * n).flatten(-2), alpha=-1)
+    if normals is not None:                 # − (J̃n)nᵀ per blocked disk, n (M, D) zero off the disks and where free
+        first, second = lim.disks.unbind(-1)
+        disk_of = torch.zeros(lim.num_variables, dtype=torch.long, device=x.device)
+        disk_of[first] = disk_of[second] = torch.arange(first.numel(), device=x.device)
+        n = torch.zeros_like(x).index_copy(-1, lim.disks.flatten(), normals.flatten(-2)).unsqueeze(-2)  # (M, 1, D)
+        a = ja * n
+        along = a.index_select(-1, first) + a.index_select(-1, second)                # J̃n (M, R, k)
+        held = held - along.index_select(-1, disk_of) * n
     return held, None
 
 
