@@ -237,3 +237,10 @@ REDUCTION_ORDER: dict[str, tuple[str, ...]] = {
 # is about 105 s, and these modules' second pass about 50 s).
 BESIDE_THE_SLOW_TESTS: frozenset[str] = frozenset({
     "test_compositional.py", "test_cosserat_solver.py", "test_hardware_cosserat.py"})
+
+
+if __name__ == "__main__":       # `python tests/reduction_order.py beside|rest`: the files of make test's second passes
+    import sys
+
+    beside = {"beside": True, "rest": False}[sys.argv[1]]
+    print(" ".join(f"tests/{m}" for m in sorted(REDUCTION_ORDER) if (m in BESIDE_THE_SLOW_TESTS) == beside))
