@@ -114,14 +114,35 @@ def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
 @pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0",
                     reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
-@pytest.mark.parametrize("autotune", [False, True])
-def test_aoti_package_equals_lightning(ckpts, samples, tmp_path, autotune):
-    meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",), autotune=autotune)
+def test_aoti_package_equals_lightning(ckpts, samples, tmp_path):
+    """The fk's package, autotuned (the package without autotuning: the next test's jacobian)."""
+    meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",), autotune=True)
     fk = dexport.load(tmp_path, "fk")
     lit = FKModule.load_from_checkpoint(ckpts["fk"], map_location="cpu").eval()
     with torch.no_grad():
         assert fk.kind == "aoti" and max_diff(fk(samples["q"]), lit(samples["q"])) <= F32_TOL
-    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is autotune
+    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is True
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0",
+                    reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
+def test_aoti_jacobian_package_equals_lightning(jacobian_aoti_package):
+    """The jacobian's package without autotuning (conftest's, shared with the C++ tests): its pose is the Lightning
+    model's, its Jacobians are jacrev's of the float64 model."""
+    meta = dexport.read_metadata(jacobian_aoti_package)
+    assert meta["max_abs_deviation"]["jacobian.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is False
+    jac = dexport.load(jacobian_aoti_package, "jacobian")
+    lit = FKModule.load_from_checkpoint(jacobian_aoti_package.parent / "fk.ckpt", map_location="cpu").eval()
+    q = generate(lit.spec, 64, seed=3)["q"]
+    with torch.no_grad():
+        pose, jac_f, jac_q = jac(q)
+        assert jac.kind == "aoti" and max_diff(pose, lit(q)) <= F32_TOL
+    model = lit.model.double()
+    for i in range(4):
+        ref_f, ref_q = autograd_jacobians(model, lit.spec, q[i].double())
+        assert max_diff(jac_q[i], ref_q) <= 1e-4 * ref_q.abs().max().item()
+        assert max_diff(jac_f[i], ref_f) <= 1e-4 * ref_f.abs().max().item()
 
 
 def test_autotune_needs_the_aoti_packages(ckpts, exports, tmp_path, capsys):
