@@ -237,7 +237,7 @@ REDUCTION_ORDER: dict[str, tuple[str, ...]] = {
 # 2026-11-28: the slow tests 558 s, the rest 488 s; without the exports of main's old files the rest's second pass
 # is about 105 s, and these modules' second pass about 50 s).
 BESIDE_THE_SLOW_TESTS: frozenset[str] = frozenset({
-    "test_compositional.py", "test_cosserat_solver.py", "test_hardware_cosserat.py", "test_ik_deploy.py"})
+    "test_cosserat_solver.py", "test_hardware_cosserat.py", "test_ik_deploy.py"})
 
 
 if __name__ == "__main__":       # `python tests/reduction_order.py beside|rest`: the files of make test's second passes
