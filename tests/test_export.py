@@ -18,7 +18,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
-from conftest import ROOT, TYPE1, autograd_jacobians, max_diff, names, roundoff_tol, truncated
+from conftest import ROOT, TYPE1, autograd_jacobians, first_pass_export, max_diff, names, roundoff_tol, truncated
 
 from dacr_learn import export as dexport
 from dacr_learn.cli import export as export_cli
@@ -48,19 +48,29 @@ def _train_checkpoint(module: pl.LightningModule, path: Path) -> Path:
     return path
 
 
+def _train(d: Path) -> dict:
+    torch.manual_seed(0)
+    _train_checkpoint(FKModule(robot=str(TYPE1), width=16, depth=2), d / "fk.ckpt")
+    _train_checkpoint(IKModule(robot=str(TYPE1), width=16, depth=2), d / "ik.ckpt")
+    return {}
+
+
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("ckpt")
-    torch.manual_seed(0)
-    return {"fk": _train_checkpoint(FKModule(robot=str(TYPE1), width=16, depth=2), d / "fk.ckpt"),
-            "ik": _train_checkpoint(IKModule(robot=str(TYPE1), width=16, depth=2), d / "ik.ckpt")}
+    """fk.ckpt and ik.ckpt (type 1, 2×16, one epoch; conftest.first_pass_export: under make test the second pass
+    runs the first pass's models, which its exports were made from)."""
+    d = first_pass_export("export_checkpoints", _train, tmp_path_factory)[0]
+    return {"fk": d / "fk.ckpt", "ik": d / "ik.ckpt"}
 
 
 @pytest.fixture(scope="module")
 def exports(ckpts, tmp_path_factory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("export")
-    for task in ("fk", "ik"):       # through the CLI: python -m dacr_learn.export --ckpt … --out … --no-aoti
-        export_cli.main(["--ckpt", str(ckpts[task]), "--out", str(d / task), "--no-aoti"])
+    def make(d: Path) -> dict:
+        for task in ("fk", "ik"):       # through the CLI: python -m dacr_learn.export --ckpt … --out … --no-aoti
+            export_cli.main(["--ckpt", str(ckpts[task]), "--out", str(d / task), "--no-aoti"])
+        return {}
+
+    d = first_pass_export("export_fk_ik", make, tmp_path_factory)[0]
     return {"fk": d / "fk", "ik": d / "ik"}
 
 
