@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import pickle
 import re
 import shutil
 import sys
@@ -396,21 +397,21 @@ SHARED_EXPORTS = Path(os.environ["DACR_TEST_EXPORTS"]).resolve() if os.environ.g
 
 def first_pass_export(name: str, make, tmp_path_factory) -> tuple[Path, dict]:
     """(folder, record): ``make(folder)`` writes an export (and the checkpoint it was made from) into the empty
-    ``folder`` and returns a record of it (its metadata, the warnings it raised: a dict that ``torch.load`` reads
-    with ``weights_only``). Under `make test` the folder is ``DACR_TEST_EXPORTS/name``, and the second pass (two
-    threads, portable kernels) finds the first pass's export there: it runs the programs exported in the first
-    pass, as a deployment runs an export made on another machine, against its own eager results instead of tracing
-    them again (torch.export takes seconds to tens of seconds per model). Elsewhere: a fresh temporary folder."""
+    ``folder`` and returns a record of it (its metadata, the warnings it raised: a dict that pickles). Under
+    `make test` the folder is ``DACR_TEST_EXPORTS/name``, and the second pass (two threads, portable kernels) finds
+    the first pass's export there: it runs the programs exported in the first pass, as a deployment runs an export
+    made on another machine, against its own eager results instead of tracing them again (torch.export takes
+    seconds to tens of seconds per model). Elsewhere: a fresh temporary folder."""
     if SHARED_EXPORTS is None:
         folder = tmp_path_factory.mktemp(name)
         return folder, make(folder)
-    folder, done = SHARED_EXPORTS / name, SHARED_EXPORTS / name / "record.pt"
-    if done.is_file():
-        return folder, torch.load(done, weights_only=True)
+    folder, done = SHARED_EXPORTS / name, SHARED_EXPORTS / name / "record.pickle"
+    if done.is_file():                                   # written by this make test's first pass, a moment ago
+        return folder, pickle.loads(done.read_bytes())
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     record = make(folder)
-    torch.save(record, done)
+    done.write_bytes(pickle.dumps(record))
     return folder, record
 
 
