@@ -2,8 +2,9 @@
 tampered or mismatched files, NaN inputs are refused, broken checkpoints are refused naming the file (the folding
 itself: tests/test_inference.py).
 
-AOTInductor packages take about a minute each to build, so this file exports torch.export
-programs only (``--no-aoti``); set DACR_TEST_AOTI=1 to also build and check one AOTI package
+AOTInductor packages take about a minute each to build, so the fast tests export torch.export programs only
+(``--no-aoti``); two slow tests check AOTI packages: an autotuned fk package, and the jacobian package without
+autotuning that the C++ tests share (conftest's jacobian_aoti_package). DACR_TEST_AOTI=0 skips both
 (benchmarks/latency.py builds and verifies all of them).
 """
 from __future__ import annotations
