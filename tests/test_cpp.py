@@ -3,7 +3,8 @@ AOTInductor packages called from C++ and from Python on the same recorded inputs
 
 The C++ build (``cpp/build.sh``: cmake + the libtorch of the installed wheel) goes into ``cpp/build`` (the folder of
 ``make cpp``; ``DACR_CPP_BUILD`` overrides it) and is incremental, so only the first run on a clone compiles (about
-1 min of CPU). The Jacobian package is exported here (one AOTInductor build), so the C++ tests are marked slow;
+1 min of CPU). The Jacobian package (conftest's jacobian_aoti_package, one AOTInductor build shared with
+test_export.py) is exported in the session, so the C++ tests are marked slow;
 ``DACR_TEST_AOTI=0`` skips them, as the other AOTInductor builds. The IK refinement's package takes several minutes of
 CPU to build (a one-iteration, position-only one: over 4 min on the 2-core machine), so its tests run only with
 ``DACR_TEST_CPP_REFINE=1``. Without cmake or a C++ compiler the C++ tests are skipped (AOTInductor needs the compiler
