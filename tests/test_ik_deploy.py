@@ -49,7 +49,8 @@ def test_refinement_position_only_and_bad_arguments():
 
 @pytest.mark.slow                                              # torch.export of the graph: ~10 s
 def test_exported_refinement_equals_the_eager_one(tmp_path_factory):
-    """(conftest.first_pass_export: under make test the second pass runs the first pass's export)"""
+    """The exported one-iteration refinement equals the eager one to 1e-12 (conftest.first_pass_export: under make
+    test the second pass runs the first pass's export)."""
     robot = ROOT / "configs" / "robots" / "type1.yaml"
     root, meta = first_pass_export("ik_refinement", lambda out: export_refinement(robot, out / "export", iterations=1,
                                                                                   aoti=False), tmp_path_factory)
