@@ -34,22 +34,30 @@ train: $(STAMP)
 # oneDNN limited to SSE4.1): other reduction orders, as on another CPU, so a test that only passes bit for bit
 # here fails here first. The slow process's output goes to .pytest_tmp/slow.log, shown at the end. OpenMP
 # threads sleep when idle (OMP_WAIT_POLICY=PASSIVE): spinning threads slow everything on a shared 2-core machine.
+# Pass 2 collects only the modules tests/reduction_order.py lists. Bytecode is written even where the environment
+# says otherwise (PYTHONDONTWRITEBYTECODE): the later processes and every subprocess a test starts then import the
+# tests' assertion-rewritten modules and the library from __pycache__ instead of compiling them again.
+# Each process's passes share a folder of exports (DACR_TEST_EXPORTS, tests/conftest.py first_pass_export): the
+# second pass runs the programs the first pass exported, against its own eager results, instead of tracing them again.
 ONE_THREAD := DACR_TEST_THREADS=1 OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE
 OTHER_ORDER := DACR_TEST_THREADS=2 OMP_NUM_THREADS=2 OPENBLAS_NUM_THREADS=2 OMP_WAIT_POLICY=PASSIVE \
 	ATEN_CPU_CAPABILITY=default ONEDNN_MAX_CPU_ISA=SSE41 DACR_TEST_AOTI=0
-PYTEST := $(PY) -m pytest -q -p no:cacheprovider
+PYTEST := PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q -p no:cacheprovider
 
 test: $(STAMP)
 	$(PY) -m ruff check .
 	@rm -rf .pytest_tmp && mkdir .pytest_tmp
 	@echo "two processes: the slow tests, then their share of pass 2 (output at the end) | the rest, then pass 2"
-	@( $(ONE_THREAD) $(PYTEST) -m slow --basetemp=.pytest_tmp/slow; one=$$?; \
+	@( export DACR_TEST_EXPORTS=.pytest_tmp/exports_slow; $(ONE_THREAD) $(PYTEST) -m slow --basetemp=.pytest_tmp/slow; one=$$?; \
 	  echo "pass 2 (beside the slow tests): two threads, portable kernels"; \
-	  $(OTHER_ORDER) $(PYTEST) -m "reduction_order and second_pass_beside_slow" --basetemp=.pytest_tmp/slow2; \
+	  $(OTHER_ORDER) $(PYTEST) -m "reduction_order and second_pass_beside_slow" --basetemp=.pytest_tmp/slow2 \
+	    $$($(PY) tests/reduction_order.py beside); \
 	  two=$$?; test $$one -eq 0 && test $$two -eq 0 ) > .pytest_tmp/slow.log 2>&1 & slow=$$!; \
+	export DACR_TEST_EXPORTS=.pytest_tmp/exports_rest; \
 	$(ONE_THREAD) $(PYTEST) -m "not slow" --basetemp=.pytest_tmp/rest; rest=$$?; \
 	echo "pass 2: the reduction_order tests, two threads, portable kernels"; \
-	$(OTHER_ORDER) $(PYTEST) -m "reduction_order and not second_pass_beside_slow" --basetemp=.pytest_tmp/pass2; \
+	$(OTHER_ORDER) $(PYTEST) -m "reduction_order and not second_pass_beside_slow" --basetemp=.pytest_tmp/pass2 \
+	  $$($(PY) tests/reduction_order.py rest); \
 	pass2=$$?; wait $$slow; slow=$$?; \
 	echo "the slow tests and their share of pass 2 (.pytest_tmp/slow.log):"; cat .pytest_tmp/slow.log; \
 	test $$rest -eq 0 && test $$pass2 -eq 0 && test $$slow -eq 0

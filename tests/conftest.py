@@ -11,7 +11,9 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import pickle
 import re
+import shutil
 import sys
 from pathlib import Path
 
@@ -307,7 +309,8 @@ def spec_by_name(name: str) -> RobotSpec:
         ROOT / "configs" / "robots" / f"{name}.yaml")
 
 
-TDCR3 = spec_by_name("tdcr_3seg_coupled")
+TDCR3_YAML = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
+TDCR3 = RobotSpec.from_yaml(TDCR3_YAML)
 
 
 def max_diff(a, b) -> float:
@@ -388,17 +391,70 @@ def compositional_models(v4_slice):
     return {config: compositional_ensemble(v4_slice, config) for config in COMPOSITIONAL_CONFIGS}
 
 
+# `make test` names one folder per process (DACR_TEST_EXPORTS) that its first and second pass share.
+SHARED_EXPORTS = Path(os.environ["DACR_TEST_EXPORTS"]).resolve() if os.environ.get("DACR_TEST_EXPORTS") else None
+
+
+def first_pass_export(name: str, make, tmp_path_factory) -> tuple[Path, dict]:
+    """(folder, record): ``make(folder)`` writes an export (and the checkpoint it was made from) into the empty
+    ``folder`` and returns a record of it (its metadata, the warnings it raised: a dict that pickles). Under
+    `make test` the folder is ``DACR_TEST_EXPORTS/name``, and the second pass (two threads, portable kernels) finds
+    the first pass's export there: it runs the programs exported in the first pass, as a deployment runs an export
+    made on another machine, against its own eager results instead of tracing them again (torch.export takes
+    seconds to tens of seconds per model). Elsewhere: a fresh temporary folder."""
+    if SHARED_EXPORTS is None:
+        folder = tmp_path_factory.mktemp(name)
+        return folder, make(folder)
+    folder, done = SHARED_EXPORTS / name, SHARED_EXPORTS / name / "record.pickle"
+    if done.is_file():                                   # written by this make test's first pass, a moment ago
+        return folder, pickle.loads(done.read_bytes())
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    record = make(folder)
+    done.write_bytes(pickle.dumps(record))
+    return folder, record
+
+
 @pytest.fixture(scope="session")
 def history_export(tmp_path_factory):
     """The 2-member history test model as --save writes it (hardware_testkit.saved_history_model), exported once for
-    the session without AOTI (an export takes seconds): (model, checkpoint, export folder, metadata, commands [mm],
-    the messages of the warnings the export raised). Shared read-only by the export and control tests."""
+    the session without AOTI (an export takes seconds; :func:`first_pass_export`): (model, checkpoint, export folder,
+    metadata, commands [mm], the messages of the warnings the export raised). Shared read-only by the export and
+    control tests."""
     from hardware_testkit import export_recording_warnings, saved_history_model
 
-    root = tmp_path_factory.mktemp("history_export")
-    model, ckpt, commands = saved_history_model(root, members=2)
-    meta, caught = export_recording_warnings(ckpt, root / "export")
-    return model, ckpt, root / "export", meta, commands, caught
+    from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
+
+    def make(root: Path) -> dict:
+        _, ckpt, commands = saved_history_model(root, members=2)
+        meta, caught = export_recording_warnings(ckpt, root / "export")
+        return {"meta": meta, "caught": caught, "commands": commands}
+
+    root, record = first_pass_export("history_export", make, tmp_path_factory)
+    ckpt = root / "model.pt"
+    return load_hardware_model(ckpt), ckpt, root / "export", record["meta"], record["commands"], record["caught"]
+
+
+@pytest.fixture(scope="session")
+def jacobian_aoti_package(tmp_path_factory) -> Path:
+    """The export folder (``fk.ckpt`` beside it) of a small FK model of the 3-segment coupled robot (2×16, random
+    weights, normalisation fitted to 2 048 samples) with the AOTInductor package of its jacobian (autotune off; its
+    fk only as a torch.export program). One AOTInductor build, shared read-only by the C++ tests and the export's."""
+    import lightning
+
+    from dacr_learn import export as dexport
+    from dacr_learn.data import generate
+    from dacr_learn.training import FKModule
+
+    d = tmp_path_factory.mktemp("aoti_package")
+    torch.manual_seed(0)
+    fk = FKModule(robot=str(TDCR3_YAML), width=16, depth=2)
+    data = generate(fk.spec, 2048, seed=0)
+    fk.model.fit_normalization(data["q"], data["pose"])
+    torch.save({"state_dict": fk.state_dict(), "hyper_parameters": dict(fk.hparams),
+                "pytorch-lightning_version": lightning.__version__}, d / "fk.ckpt")
+    dexport.export_checkpoint(d / "fk.ckpt", d / "fk", aoti=("jacobian",))
+    return d / "fk"
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,9 @@ test_compositional.py and test_hardware_deploy_export.py compare with the eager 
 
 `make test` runs the second pass in both of its processes, after their first-pass share: the modules of
 :data:`BESIDE_THE_SLOW_TESTS` after the slow tests (marker ``second_pass_beside_slow``), the others after the rest,
-so that the two processes end together. Any split is correct; this one balances the measured times.
+so that the two processes end together. Any split is correct; this one balances the measured times. The second pass
+of a test that exports a model (conftest.first_pass_export) runs the programs its first pass exported, so a module
+whose tests export runs its second pass in the process of its first (the slow tests' or the rest's).
 
 A listed name that no longer exists in its module is an error at collection (conftest.py), so a renamed test
 cannot drop out of the second pass silently. New tests of the kinds above belong here.
@@ -92,6 +94,7 @@ REDUCTION_ORDER: dict[str, tuple[str, ...]] = {
         "test_exported_ik_equals_lightning_and_satisfies_constraint",
         "test_loaded_module_handles_batch_dims_and_dtype",
         "test_aoti_package_equals_lightning",
+        "test_aoti_jacobian_package_equals_lightning",
         "test_exported_float32_jacobian_matches_jacrev",
         "test_metadata_records_spec_units_and_checkpoint",
     ),
@@ -232,8 +235,15 @@ REDUCTION_ORDER: dict[str, tuple[str, ...]] = {
     ),
 }
 
-# Modules whose second pass runs in the slow tests' process (balance only. Durations of a loaded `make test`,
-# 2026-11-28: the slow tests 558 s, the rest 488 s; without the exports of main's old files the rest's second pass
-# is about 105 s, and these modules' second pass about 50 s).
+# Modules whose second pass runs in the slow tests' process (balance; test_ik_deploy.py's export is a slow test, so
+# its second pass, which runs that export, belongs here. Quiet `make test` before this split: the slow tests 521 s and
+# their second pass 45 s (test_compositional.py's then among them), the rest 451 s and its second pass 114 s).
 BESIDE_THE_SLOW_TESTS: frozenset[str] = frozenset({
-    "test_compositional.py", "test_cosserat_solver.py", "test_hardware_cosserat.py"})
+    "test_cosserat_solver.py", "test_hardware_cosserat.py", "test_ik_deploy.py"})
+
+
+if __name__ == "__main__":       # `python tests/reduction_order.py beside|rest`: the files of make test's second passes
+    import sys
+
+    beside = {"beside": True, "rest": False}[sys.argv[1]]
+    print(" ".join(f"tests/{m}" for m in sorted(REDUCTION_ORDER) if (m in BESIDE_THE_SLOW_TESTS) == beside))

@@ -8,11 +8,12 @@ factor or a wrong head fails them.
 from __future__ import annotations
 
 import os
+import shutil
 
 import lightning
 import pytest
 import torch
-from conftest import TDCR3, roundoff_tol, spec_by_name
+from conftest import TDCR3, first_pass_export, roundoff_tol, spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.compositional import ROBOT_BUFFERS, CompositionalFK, build_fk_model, transfer
@@ -285,10 +286,17 @@ def test_checkpoint_round_trip(trained):
         assert torch.equal(loaded(q), module(q))
 
 
-def test_export_round_trip(trained, tmp_path):
-    module, path = trained
+def test_export_round_trip(trained, tmp_path_factory):
+    """The trained model's checkpoint exported (conftest.first_pass_export: under make test the second pass runs the
+    first pass's export) equals the model loaded from that checkpoint and drives a controller."""
     aoti = os.environ.get("DACR_TEST_AOTI") == "1"
-    meta = dexport.export_checkpoint(path, tmp_path, aoti=aoti)
+
+    def make(out):
+        shutil.copy(trained[1], out / "comp.ckpt")
+        return dexport.export_checkpoint(out / "comp.ckpt", out / "export", aoti=aoti)
+
+    root, meta = first_pass_export("compositional_fk", make, tmp_path_factory)
+    module, tmp_path = FKModule.load_from_checkpoint(root / "comp.ckpt", map_location="cpu").eval(), root / "export"
     assert set(meta["modules"]) == {"fk", "jacobian"} and meta.get("structure") == "compositional"
     loaded = dexport.load(tmp_path, "fk")
     q = generate(TDCR3, 40, seed=12)["q"]

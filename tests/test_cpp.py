@@ -3,7 +3,8 @@ AOTInductor packages called from C++ and from Python on the same recorded inputs
 
 The C++ build (``cpp/build.sh``: cmake + the libtorch of the installed wheel) goes into ``cpp/build`` (the folder of
 ``make cpp``; ``DACR_CPP_BUILD`` overrides it) and is incremental, so only the first run on a clone compiles (about
-1 min of CPU). The Jacobian package is exported here (one AOTInductor build), so the C++ tests are marked slow;
+1 min of CPU). The Jacobian package (conftest's jacobian_aoti_package, one AOTInductor build shared with
+test_export.py) is exported in the session, so the C++ tests are marked slow;
 ``DACR_TEST_AOTI=0`` skips them, as the other AOTInductor builds. The IK refinement's package takes several minutes of
 CPU to build (a one-iteration, position-only one: over 4 min on the 2-core machine), so its tests run only with
 ``DACR_TEST_CPP_REFINE=1``. Without cmake or a C++ compiler the C++ tests are skipped (AOTInductor needs the compiler
@@ -19,7 +20,6 @@ import sys
 import zipfile
 from pathlib import Path
 
-import lightning
 import numpy as np
 import pytest
 import torch
@@ -32,7 +32,6 @@ from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController
 from dacr_learn.deploy.package_metadata import PREFIX, package_metadata
 from dacr_learn.ik.exported import export_refinement
 from dacr_learn.robot import RobotSpec
-from dacr_learn.training import FKModule
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 ROBOT = ROOT / "configs" / "robots" / "tdcr_3seg_coupled.yaml"
@@ -116,18 +115,10 @@ needs_refine = pytest.mark.skipif(os.environ.get("DACR_TEST_CPP_REFINE") != "1",
 
 
 @pytest.fixture(scope="module")
-def packages(tmp_path_factory) -> dict[str, Path]:
-    """The AOTInductor package of the jacobian of a small FK model of the 3-segment robot (random weights, fitted
-    normalisation; its fk only as a torch.export program)."""
-    d = tmp_path_factory.mktemp("cpp_packages")
-    torch.manual_seed(0)
-    fk = FKModule(robot=str(ROBOT), width=16, depth=2)
-    data = generate(fk.spec, 2048, seed=0)
-    fk.model.fit_normalization(data["q"], data["pose"])
-    torch.save({"state_dict": fk.state_dict(), "hyper_parameters": dict(fk.hparams),
-                "pytorch-lightning_version": lightning.__version__}, d / "fk.ckpt")
-    dexport.export_checkpoint(d / "fk.ckpt", d / "fk", aoti=("jacobian",))
-    return {"fk": d / "fk"}
+def packages(jacobian_aoti_package) -> dict[str, Path]:
+    """The AOTInductor package of the jacobian of a small FK model of the 3-segment robot (conftest's
+    jacobian_aoti_package: random weights, fitted normalisation; its fk only as a torch.export program)."""
+    return {"fk": jacobian_aoti_package}
 
 
 @pytest.fixture(scope="module")

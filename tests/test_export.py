@@ -2,8 +2,9 @@
 tampered or mismatched files, NaN inputs are refused, broken checkpoints are refused naming the file (the folding
 itself: tests/test_inference.py).
 
-AOTInductor packages take about a minute each to build, so this file exports torch.export
-programs only (``--no-aoti``); set DACR_TEST_AOTI=1 to also build and check one AOTI package
+AOTInductor packages take about a minute each to build, so the fast tests export torch.export programs only
+(``--no-aoti``); two slow tests check AOTI packages: an autotuned fk package, and the jacobian package without
+autotuning that the C++ tests share (conftest's jacobian_aoti_package). DACR_TEST_AOTI=0 skips both
 (benchmarks/latency.py builds and verifies all of them).
 """
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 import lightning.pytorch as pl
 import pytest
 import torch
-from conftest import ROOT, TYPE1, autograd_jacobians, max_diff, names, roundoff_tol, truncated
+from conftest import ROOT, TYPE1, autograd_jacobians, first_pass_export, max_diff, names, roundoff_tol, truncated
 
 from dacr_learn import export as dexport
 from dacr_learn.cli import export as export_cli
@@ -48,19 +49,29 @@ def _train_checkpoint(module: pl.LightningModule, path: Path) -> Path:
     return path
 
 
+def _train(d: Path) -> dict:
+    torch.manual_seed(0)
+    _train_checkpoint(FKModule(robot=str(TYPE1), width=16, depth=2), d / "fk.ckpt")
+    _train_checkpoint(IKModule(robot=str(TYPE1), width=16, depth=2), d / "ik.ckpt")
+    return {}
+
+
 @pytest.fixture(scope="module")
 def ckpts(tmp_path_factory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("ckpt")
-    torch.manual_seed(0)
-    return {"fk": _train_checkpoint(FKModule(robot=str(TYPE1), width=16, depth=2), d / "fk.ckpt"),
-            "ik": _train_checkpoint(IKModule(robot=str(TYPE1), width=16, depth=2), d / "ik.ckpt")}
+    """fk.ckpt and ik.ckpt (type 1, 2×16, one epoch; conftest.first_pass_export: under make test the second pass
+    runs the first pass's models, which its exports were made from)."""
+    d = first_pass_export("export_checkpoints", _train, tmp_path_factory)[0]
+    return {"fk": d / "fk.ckpt", "ik": d / "ik.ckpt"}
 
 
 @pytest.fixture(scope="module")
 def exports(ckpts, tmp_path_factory) -> dict[str, Path]:
-    d = tmp_path_factory.mktemp("export")
-    for task in ("fk", "ik"):       # through the CLI: python -m dacr_learn.export --ckpt … --out … --no-aoti
-        export_cli.main(["--ckpt", str(ckpts[task]), "--out", str(d / task), "--no-aoti"])
+    def make(d: Path) -> dict:
+        for task in ("fk", "ik"):       # through the CLI: python -m dacr_learn.export --ckpt … --out … --no-aoti
+            export_cli.main(["--ckpt", str(ckpts[task]), "--out", str(d / task), "--no-aoti"])
+        return {}
+
+    d = first_pass_export("export_fk_ik", make, tmp_path_factory)[0]
     return {"fk": d / "fk", "ik": d / "ik"}
 
 
@@ -114,14 +125,35 @@ def test_loaded_module_handles_batch_dims_and_dtype(exports, samples):
 @pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0",
                     reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
-@pytest.mark.parametrize("autotune", [False, True])
-def test_aoti_package_equals_lightning(ckpts, samples, tmp_path, autotune):
-    meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",), autotune=autotune)
+def test_aoti_package_equals_lightning(ckpts, samples, tmp_path):
+    """The fk's package, autotuned (the package without autotuning: the next test's jacobian)."""
+    meta = dexport.export_checkpoint(ckpts["fk"], tmp_path, aoti=("fk",), autotune=True)
     fk = dexport.load(tmp_path, "fk")
     lit = FKModule.load_from_checkpoint(ckpts["fk"], map_location="cpu").eval()
     with torch.no_grad():
         assert fk.kind == "aoti" and max_diff(fk(samples["q"]), lit(samples["q"])) <= F32_TOL
-    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is autotune
+    assert meta["max_abs_deviation"]["fk.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is True
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("DACR_TEST_AOTI") == "0",
+                    reason="DACR_TEST_AOTI=0 skips the ~1 min AOTInductor build")
+def test_aoti_jacobian_package_equals_lightning(jacobian_aoti_package):
+    """The jacobian's package without autotuning (conftest's, shared with the C++ tests): its pose is the Lightning
+    model's, its Jacobians are jacrev's of the float64 model."""
+    meta = dexport.read_metadata(jacobian_aoti_package)
+    assert meta["max_abs_deviation"]["jacobian.aoti.pt2"] <= F32_TOL and meta["aoti_autotune"] is False
+    jac = dexport.load(jacobian_aoti_package, "jacobian")
+    lit = FKModule.load_from_checkpoint(jacobian_aoti_package.parent / "fk.ckpt", map_location="cpu").eval()
+    q = generate(lit.spec, 64, seed=3)["q"]
+    with torch.no_grad():
+        pose, jac_f, jac_q = jac(q)
+        assert jac.kind == "aoti" and max_diff(pose, lit(q)) <= F32_TOL
+    model = lit.model.double()
+    for i in range(4):
+        ref_f, ref_q = autograd_jacobians(model, lit.spec, q[i].double())
+        assert max_diff(jac_q[i], ref_q) <= 1e-4 * ref_q.abs().max().item()
+        assert max_diff(jac_f[i], ref_f) <= 1e-4 * ref_f.abs().max().item()
 
 
 def test_autotune_needs_the_aoti_packages(ckpts, exports, tmp_path, capsys):
