@@ -143,9 +143,36 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
   info.joint_names = split(r.text("joint_names"), ',');
   info.joint_units = split(r.text("joint_units"), ',');
   expect_size(path, "joint_units", info.joint_units.size(), info.joint_names.size());
+  if (info.task == "whole_body_control") {
+    info.arm_joints = std::atoi(r.text("arm_joints").c_str());
+    if (info.arm_joints < 1 || size_t(info.arm_joints) >= info.joint_names.size())
+      r.fail("arm_joints", "must count 1 … " + std::to_string(info.joint_names.size() - 1) + " of the joints");
+    const size_t a = size_t(info.arm_joints);
+    info.arm_lower = r.numbers("arm_lower", true);
+    info.arm_upper = r.numbers("arm_upper", true);
+    info.arm_velocity = r.numbers("arm_velocity", true);
+    info.mount = r.numbers("mount", true);
+    expect_size(path, "arm_lower", info.arm_lower.size(), a);
+    expect_size(path, "arm_upper", info.arm_upper.size(), a);
+    expect_size(path, "arm_velocity", info.arm_velocity.size(), a);
+    expect_size(path, "mount", info.mount.size(), 16);
+    for (size_t i = 0; i < a; ++i)
+      if (!(info.arm_lower[i] < info.arm_upper[i]) || !(info.arm_velocity[i] > 0))
+        r.fail("arm_lower", "of joint " + info.joint_names[i] + ": expected lower < upper and a velocity > 0");
+    info.port_centre = r.numbers("port_centre");
+    if (!info.port_centre.empty()) {
+      expect_size(path, "port_centre", info.port_centre.size(), 3);
+      auto radius = r.numbers("port_radius", true);
+      expect_size(path, "port_radius", radius.size(), 1);
+      info.port_radius = radius[0];
+    }
+    auto dt = r.numbers("dt");
+    info.dt = dt.empty() ? 0.0 : dt[0];
+  }
   if (info.task != "hardware_fk") {
     info.feature_names = split(r.text("feature_names"), ',');
-    const size_t d = info.feature_names.size(), n = info.joint_names.size();
+    // the robot's joints: the whole of q, or what follows the arm's
+    const size_t d = info.feature_names.size(), n = info.joint_names.size() - size_t(info.arm_joints);
     info.feature_lower = r.numbers("feature_lower", true);
     info.feature_upper = r.numbers("feature_upper", true);
     info.feature_scale = r.numbers("feature_scale", true);
@@ -183,8 +210,7 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
   return info;
 }
 
-Package::Package(const std::string& path, const std::string& module, const std::string& task,
-                 const Expectations& expect) {
+PackageInfo PackageInfo::read(const std::string& path) {
   if (!std::filesystem::is_regular_file(path))
     throw PackageError(path + ": no such package file (an exported <name>.aoti.pt2)");
   std::unordered_map<std::string, std::string> metadata;
@@ -195,7 +221,12 @@ Package::Package(const std::string& path, const std::string& module, const std::
     what = what.substr(0, std::min(what.find('\n'), size_t(160)));  // the first line of libtorch's message
     throw PackageError(path + ": not an AOTInductor package (" + what + ")");
   }
-  info_ = PackageInfo::parse(metadata, path);
+  return parse(metadata, path);
+}
+
+Package::Package(const std::string& path, const std::string& module, const std::string& task,
+                 const Expectations& expect) {
+  info_ = PackageInfo::read(path);
   const std::string here = TORCH_VERSION;
   if (info_.torch_version.substr(0, info_.torch_version.find('+')) != here)
     throw PackageError(path + ": built with torch " + info_.torch_version + ", this libtorch is " + here +
@@ -305,6 +336,26 @@ InverseKinematics::InverseKinematics(const std::string& path, const Expectations
 
 IKRefinement::IKRefinement(const std::string& path, const Expectations& expect)
     : package_(path, "refine", "ik_refinement", expect), n_(trailing(package_, true, 1, 0)) {}
+
+namespace {
+int whole_body_joints(const Package& p) {
+  const auto& info = p.info();
+  const int64_t n = int64_t(info.joint_names.size());
+  const auto shape = [](const std::vector<TensorSpec>& specs, size_t i) {
+    return i < specs.size() ? specs[i].shape : std::vector<int64_t>{};
+  };
+  if (info.inputs.size() != 3 || info.outputs.size() != 1 || shape(info.inputs, 0) != std::vector<int64_t>{n} ||
+      shape(info.inputs, 1) != std::vector<int64_t>{4, 4} || shape(info.inputs, 2) != std::vector<int64_t>{6} ||
+      shape(info.outputs, 0) != std::vector<int64_t>{n})
+    throw PackageError(info.path + ": the whole-body step's signature is (q:" + std::to_string(n) +
+                       ", target:4x4, feedforward:6) -> (q:" + std::to_string(n) + ") for its " + std::to_string(n) +
+                       " joints; the package says (" + info.raw.at("inputs") + ") -> (" + info.raw.at("outputs") + ")");
+  return static_cast<int>(n);
+}
+}  // namespace
+
+WholeBodyStep::WholeBodyStep(const std::string& path, const Expectations& expect)
+    : package_(path, "step", "whole_body_control", expect), n_(whole_body_joints(package_)) {}
 
 HardwareModule::HardwareModule(const std::string& path, const std::string& module, const Expectations& expect)
     : package_(path, module, "hardware_fk", expect), s_(trailing(package_, true, 0, 0)) {}

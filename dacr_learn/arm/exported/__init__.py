@@ -54,19 +54,28 @@ def export_control_step(model: Composite, out: str | Path, *, config: WholeBodyC
                         port: Port | None = None, aoti: bool = True,
                         sources: dict[str, str | Path] | None = None) -> dict[str, Any]:
     """Export the whole-body step of ``model`` with ``config`` and ``port`` as the module ``step`` into ``out``,
-    verified against the eager controller on :func:`examples`; returns the metadata. ``config``: default
-    :class:`~dacr_learn.arm.control.WholeBodyConfig` (). ``sources``: the files the
-    model was built from (name → path), recorded with their sha256. ValueError for a robot without a pose (the
-    step's target is a pose)."""
+    verified against the eager controller on :func:`examples`; returns the metadata (:func:`step_metadata`, completed
+    by :func:`~dacr_learn.deploy.export.write_export`). ``config``: default :class:`~dacr_learn.arm.control.
+    WholeBodyConfig` (). ``sources``: the files the model was built from (name → path), recorded with their sha256.
+    ValueError for a robot without a pose (the step's target is a pose)."""
     if not model.has_rotation:
         raise ValueError("robot: the exported whole-body step needs a robot with a tip pose (its target is a pose)")
     config = WholeBodyConfig() if config is None else config
     controller = WholeBodyController(model, config, port)
     module = WholeBodyStep(controller).eval()
     out = output_folder(out)
+    meta = step_metadata(controller, sources)
+    return write_export(out, meta, {"step": module}, {"step": examples(model)}, {"step": module}, aoti=aoti,
+                        autotune=False, against="the eager whole-body controller")
+
+
+def step_metadata(controller: WholeBodyController, sources: dict[str, str | Path] | None = None) -> dict[str, Any]:
+    """The export's metadata (``metadata.json`` before the files are added) of ``controller``'s step: the arm (joint
+    names, types, URDF limits, mount), the port, the gains and the module's signature."""
+    model, config, port = controller.model, controller.config, controller.port
     arm, n = model.arm, model.num_joints
     velocity = arm.chain.get_joint_velocity_limits()[1]
-    meta = {"format": FORMAT, "task": TASK, "dtype": "float64", "torch_version": torch.__version__,
+    return {"format": FORMAT, "task": TASK, "dtype": "float64", "torch_version": torch.__version__,
             "max_batch": MAX_BATCH, "aoti_autotune": False, "robot": model.robot.spec.to_dict(), "features": "clarke",
             "sources": {k: {"path": str(p), "sha256": file_sha256(p)} for k, p in (sources or {}).items()},
             "arm": {"tip": arm.tip, "joint_names": list(arm.joint_names), "joint_types": list(arm.joint_types),
@@ -78,5 +87,3 @@ def export_control_step(model: Composite, out: str | Path, *, config: WholeBodyC
                         "rest_gain": config.rest_gain, "dt": config.dt},
             "modules": {"step": {"inputs": [["q", [n]], ["target", [4, 4]], ["feedforward", [6]]],
                                  "outputs": [["q", [n]]]}}}
-    return write_export(out, meta, {"step": module}, {"step": examples(model)}, {"step": module}, aoti=aoti,
-                        autotune=False, against="the eager whole-body controller")
