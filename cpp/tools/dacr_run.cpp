@@ -16,6 +16,7 @@
 #include <cstring>
 #include <fstream>
 #include <functional>
+#include <memory>
 #include <iostream>
 #include <sstream>
 #include <string>
@@ -68,10 +69,14 @@ struct Opened {
   std::function<void(const double* const*, double* const*)> call;
 };
 
+dacr::Package& package_of(dacr::Package& p) { return p; }
+template <class M>
+dacr::Package& package_of(M& m) { return m.package(); }
+
 template <class M, class F>
 Opened opened(std::shared_ptr<M> m, F f) {
   Opened o;
-  o.package = &m->package();
+  o.package = &package_of(*m);
   o.call = [p = m.get(), f](const double* const* in, double* const* out) { f(*p, in, out); };
   o.owner = std::move(m);
   return o;
