@@ -39,6 +39,12 @@ std::string shape_str(const std::vector<int64_t>& shape) {
   return out + (shape.size() == 1 ? ",)" : ")");
 }
 
+void expect_size(const std::string& path, const std::string& what, size_t got, size_t want) {
+  if (got != want)
+    throw PackageError(path + ": metadata " + what + " has " + std::to_string(got) + " entries, expected " +
+                       std::to_string(want));
+}
+
 struct Reader {
   const std::unordered_map<std::string, std::string>& raw;
   const std::string& path;
@@ -66,6 +72,12 @@ struct Reader {
     }
     return out;
   }
+  // a required list of `n` numbers
+  std::vector<double> sized(const std::string& key, size_t n) const {
+    auto out = numbers(key, true);
+    expect_size(path, key, out.size(), n);
+    return out;
+  }
   std::vector<TensorSpec> tensors(const std::string& key) const {
     std::vector<TensorSpec> out;
     for (const auto& item : split(text(key), ',')) {
@@ -83,12 +95,6 @@ struct Reader {
     return out;
   }
 };
-
-void expect_size(const std::string& path, const std::string& what, size_t got, size_t want) {
-  if (got != want)
-    throw PackageError(path + ": metadata " + what + " has " + std::to_string(got) + " entries, expected " +
-                       std::to_string(want));
-}
 
 // Copy a tensor into `dst` in row-major order, whatever its strides (outputs of a package need not be contiguous,
 // e.g. a transposed Jacobian): no temporary tensor.
@@ -148,23 +154,17 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
     if (info.arm_joints < 1 || size_t(info.arm_joints) >= info.joint_names.size())
       r.fail("arm_joints", "must count 1 … " + std::to_string(info.joint_names.size() - 1) + " of the joints");
     const size_t a = size_t(info.arm_joints);
-    info.arm_lower = r.numbers("arm_lower", true);
-    info.arm_upper = r.numbers("arm_upper", true);
-    info.arm_velocity = r.numbers("arm_velocity", true);
-    info.mount = r.numbers("mount", true);
-    expect_size(path, "arm_lower", info.arm_lower.size(), a);
-    expect_size(path, "arm_upper", info.arm_upper.size(), a);
-    expect_size(path, "arm_velocity", info.arm_velocity.size(), a);
-    expect_size(path, "mount", info.mount.size(), 16);
+    info.arm_lower = r.sized("arm_lower", a);
+    info.arm_upper = r.sized("arm_upper", a);
+    info.arm_velocity = r.sized("arm_velocity", a);
+    info.mount = r.sized("mount", 16);
     for (size_t i = 0; i < a; ++i)
       if (!(info.arm_lower[i] < info.arm_upper[i]) || !(info.arm_velocity[i] > 0))
         r.fail("arm_lower", "of joint " + info.joint_names[i] + ": expected lower < upper and a velocity > 0");
     info.port_centre = r.numbers("port_centre");
     if (!info.port_centre.empty()) {
       expect_size(path, "port_centre", info.port_centre.size(), 3);
-      auto radius = r.numbers("port_radius", true);
-      expect_size(path, "port_radius", radius.size(), 1);
-      info.port_radius = radius[0];
+      info.port_radius = r.sized("port_radius", 1)[0];
     }
     auto dt = r.numbers("dt");
     info.dt = dt.empty() ? 0.0 : dt[0];
@@ -173,13 +173,10 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
     info.feature_names = split(r.text("feature_names"), ',');
     // the robot's joints: the whole of q, or what follows the arm's
     const size_t d = info.feature_names.size(), n = info.joint_names.size() - size_t(info.arm_joints);
-    info.feature_lower = r.numbers("feature_lower", true);
-    info.feature_upper = r.numbers("feature_upper", true);
-    info.feature_scale = r.numbers("feature_scale", true);
+    info.feature_lower = r.sized("feature_lower", d);
+    info.feature_upper = r.sized("feature_upper", d);
+    info.feature_scale = r.sized("feature_scale", d);
     info.feature_disk_radius = r.numbers("feature_disk_radius", true);
-    expect_size(path, "feature_lower", info.feature_lower.size(), d);
-    expect_size(path, "feature_upper", info.feature_upper.size(), d);
-    expect_size(path, "feature_scale", info.feature_scale.size(), d);
     for (const auto& pair : split(r.text("feature_disks"), ',')) {
       std::istringstream in(pair);
       std::array<int, 2> ij{-1, -1};
@@ -189,9 +186,7 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
       info.feature_disks.push_back(ij);
     }
     expect_size(path, "feature_disk_radius", info.feature_disk_radius.size(), info.feature_disks.size());
-    auto length = r.numbers("robot_length", true);
-    expect_size(path, "robot_length", length.size(), 1);
-    info.robot_length = length[0];
+    info.robot_length = r.sized("robot_length", 1)[0];
     info.decoder_matrix = r.numbers("decoder_matrix");
     info.decoder_offset = r.numbers("decoder_offset");
     info.encoder_matrix = r.numbers("encoder_matrix");
