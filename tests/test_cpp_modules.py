@@ -180,9 +180,11 @@ def test_whole_body_step_cpp_equals_python(cpp_build, composite, step_package, t
     run = cpp_build / "dacr_run"
     names = _run(run, "info", step_package).stdout.split("joint_names ")[1].split()[0].split(",")
     swapped = ",".join([names[1], names[0], *names[2:]])
-    bad = _edit_package(step_package, tmp_path / "a.pt2", lambda m: {**m, PREFIX + "arm_joints": "0"})
+    arm = _edit_package(step_package, tmp_path / "a.pt2", lambda m: {**m, PREFIX + "arm_joints": "0"})
+    two = _edit_package(step_package, tmp_path / "i.pt2", lambda m: {**m, PREFIX + "inputs": "q:19,target:4x4"})
     for args, message in [((step_package, "--joints", swapped), "joint order [panda_joint1,panda_joint2"),
-                          ((bad, "--module", "step"), "arm_joints must count 1 … 18 of the joints")]:
+                          ((arm, "--module", "step"), "arm_joints must count 1 … 18 of the joints"),
+                          ((two, "--module", "step"), "does not run on inputs of its metadata's shapes")]:
         out = _run(run, "loop", *args, "--steps", 1, "--out", tmp_path / "x", *_write(tmp_path, "x", q[:1], target[:1],
                                                                                          ff[:1]), check=False)
         assert out.returncode == 1 and message in out.stderr, (args, out.stderr)

@@ -33,6 +33,12 @@ std::string join(const std::vector<std::string>& items) {
   return out;
 }
 
+// the first line of libtorch's message (its later lines are a C++ stack)
+std::string first_line(const std::exception& err) {
+  const std::string what = err.what();
+  return what.substr(0, std::min(what.find('\n'), size_t(160)));
+}
+
 std::string shape_str(const std::vector<int64_t>& shape) {
   std::string out = "(";
   for (size_t i = 0; i < shape.size(); ++i) out += (i ? ", " : "") + std::to_string(shape[i]);
@@ -212,9 +218,7 @@ PackageInfo PackageInfo::read(const std::string& path) {
   try {
     metadata = torch::inductor::AOTIModelPackageLoader::load_metadata_from_package(path, "model");
   } catch (const std::exception& err) {
-    std::string what = err.what();
-    what = what.substr(0, std::min(what.find('\n'), size_t(160)));  // the first line of libtorch's message
-    throw PackageError(path + ": not an AOTInductor package (" + what + ")");
+    throw PackageError(path + ": not an AOTInductor package (" + first_line(err) + ")");
   }
   return parse(metadata, path);
 }
@@ -245,7 +249,13 @@ Package::Package(const std::string& path, const std::string& module, const std::
     shape.insert(shape.end(), spec.shape.begin(), spec.shape.end());
     batch1_.push_back(at::zeros(shape, at::TensorOptions().dtype(dtype_)));
   }
-  auto outs = runner_->run(batch1_);  // warm-up, and the outputs checked against the metadata
+  std::vector<at::Tensor> outs;  // warm-up, and the outputs checked against the metadata
+  try {
+    outs = runner_->run(batch1_);
+  } catch (const std::exception& err) {
+    throw PackageError(path + ": the package does not run on inputs of its metadata's shapes (" + first_line(err) +
+                       ")");
+  }
   if (outs.size() != info_.outputs.size())
     throw PackageError(path + ": the package returns " + std::to_string(outs.size()) + " outputs, its metadata lists " +
                        std::to_string(info_.outputs.size()));
