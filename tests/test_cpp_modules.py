@@ -84,8 +84,8 @@ def test_whole_body_step_metadata_describes_arm_and_robot(composite):
 def test_arm_exported_cli_writes_a_verified_program(composite, tmp_path):
     """python -m dacr_learn.arm.exported --no-aoti: the torch.export program, loaded back, is the eager controller's
     step in joints (the port at the given point, the period's velocity limits); metadata.json names its sources."""
-    ctrl = _controller(composite)
-    centre = [str(v) for v in ctrl.port.centre]
+    centre = [f"{v:.6f}" for v in _controller(composite).port.centre]       # no exponent: -1e-17 reads as a flag
+    ctrl = WholeBodyController(composite, WholeBodyConfig(dt=1e-3), Port(tuple(float(v) for v in centre), 0.005))
     meta = arm_exported.main(["--arm", str(URDF), "--arm-tip", TIP, "--mount", str(MOUNT), "--robot", str(ROBOT),
                               "--out", str(tmp_path), "--port", *centre, "--dt", "0.001", "--no-aoti"])
     assert set(meta["sources"]) == {"arm", "mount", "robot"} and meta["task"] == "whole_body_control"
