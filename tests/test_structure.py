@@ -162,6 +162,7 @@ LAYERS = {
     "hardware.study": ["hardware.study"],
     # the root, the command lines (cli) and the thin `python -m dacr_learn.<package>` shims that run them
     "entry": ["", "export", "cli", "hardware.__main__", "ablation.__main__", "ik.__main__", "ik.exported.__main__",
+              "arm.exported.__main__",
               "plan.__main__"],
 }
 NO_LIGHTNING_OR_RERUN = ("core", "physics", "data", "deploy", "hardware", "hardware.deploy")

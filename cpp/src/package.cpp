@@ -33,10 +33,22 @@ std::string join(const std::vector<std::string>& items) {
   return out;
 }
 
+// the first line of libtorch's message (its later lines are a C++ stack)
+std::string first_line(const std::exception& err) {
+  const std::string what = err.what();
+  return what.substr(0, std::min(what.find('\n'), size_t(160)));
+}
+
 std::string shape_str(const std::vector<int64_t>& shape) {
   std::string out = "(";
   for (size_t i = 0; i < shape.size(); ++i) out += (i ? ", " : "") + std::to_string(shape[i]);
   return out + (shape.size() == 1 ? ",)" : ")");
+}
+
+void expect_size(const std::string& path, const std::string& what, size_t got, size_t want) {
+  if (got != want)
+    throw PackageError(path + ": metadata " + what + " has " + std::to_string(got) + " entries, expected " +
+                       std::to_string(want));
 }
 
 struct Reader {
@@ -66,6 +78,12 @@ struct Reader {
     }
     return out;
   }
+  // a required list of `n` numbers
+  std::vector<double> sized(const std::string& key, size_t n) const {
+    auto out = numbers(key, true);
+    expect_size(path, key, out.size(), n);
+    return out;
+  }
   std::vector<TensorSpec> tensors(const std::string& key) const {
     std::vector<TensorSpec> out;
     for (const auto& item : split(text(key), ',')) {
@@ -83,12 +101,6 @@ struct Reader {
     return out;
   }
 };
-
-void expect_size(const std::string& path, const std::string& what, size_t got, size_t want) {
-  if (got != want)
-    throw PackageError(path + ": metadata " + what + " has " + std::to_string(got) + " entries, expected " +
-                       std::to_string(want));
-}
 
 // Copy a tensor into `dst` in row-major order, whatever its strides (outputs of a package need not be contiguous,
 // e.g. a transposed Jacobian): no temporary tensor.
@@ -143,16 +155,34 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
   info.joint_names = split(r.text("joint_names"), ',');
   info.joint_units = split(r.text("joint_units"), ',');
   expect_size(path, "joint_units", info.joint_units.size(), info.joint_names.size());
+  if (info.task == "whole_body_control") {
+    info.arm_joints = std::atoi(r.text("arm_joints").c_str());
+    if (info.arm_joints < 1 || size_t(info.arm_joints) >= info.joint_names.size())
+      r.fail("arm_joints", "must count 1 … " + std::to_string(info.joint_names.size() - 1) + " of the joints");
+    const size_t a = size_t(info.arm_joints);
+    info.arm_lower = r.sized("arm_lower", a);
+    info.arm_upper = r.sized("arm_upper", a);
+    info.arm_velocity = r.sized("arm_velocity", a);
+    info.mount = r.sized("mount", 16);
+    for (size_t i = 0; i < a; ++i)
+      if (!(info.arm_lower[i] < info.arm_upper[i]) || !(info.arm_velocity[i] > 0))
+        r.fail("arm_lower", "of joint " + info.joint_names[i] + ": expected lower < upper and a velocity > 0");
+    info.port_centre = r.numbers("port_centre");
+    if (!info.port_centre.empty()) {
+      expect_size(path, "port_centre", info.port_centre.size(), 3);
+      info.port_radius = r.sized("port_radius", 1)[0];
+    }
+    auto dt = r.numbers("dt");
+    info.dt = dt.empty() ? 0.0 : dt[0];
+  }
   if (info.task != "hardware_fk") {
     info.feature_names = split(r.text("feature_names"), ',');
-    const size_t d = info.feature_names.size(), n = info.joint_names.size();
-    info.feature_lower = r.numbers("feature_lower", true);
-    info.feature_upper = r.numbers("feature_upper", true);
-    info.feature_scale = r.numbers("feature_scale", true);
+    // the robot's joints: the whole of q, or what follows the arm's
+    const size_t d = info.feature_names.size(), n = info.joint_names.size() - size_t(info.arm_joints);
+    info.feature_lower = r.sized("feature_lower", d);
+    info.feature_upper = r.sized("feature_upper", d);
+    info.feature_scale = r.sized("feature_scale", d);
     info.feature_disk_radius = r.numbers("feature_disk_radius", true);
-    expect_size(path, "feature_lower", info.feature_lower.size(), d);
-    expect_size(path, "feature_upper", info.feature_upper.size(), d);
-    expect_size(path, "feature_scale", info.feature_scale.size(), d);
     for (const auto& pair : split(r.text("feature_disks"), ',')) {
       std::istringstream in(pair);
       std::array<int, 2> ij{-1, -1};
@@ -162,9 +192,7 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
       info.feature_disks.push_back(ij);
     }
     expect_size(path, "feature_disk_radius", info.feature_disk_radius.size(), info.feature_disks.size());
-    auto length = r.numbers("robot_length", true);
-    expect_size(path, "robot_length", length.size(), 1);
-    info.robot_length = length[0];
+    info.robot_length = r.sized("robot_length", 1)[0];
     info.decoder_matrix = r.numbers("decoder_matrix");
     info.decoder_offset = r.numbers("decoder_offset");
     info.encoder_matrix = r.numbers("encoder_matrix");
@@ -183,19 +211,21 @@ PackageInfo PackageInfo::parse(const std::unordered_map<std::string, std::string
   return info;
 }
 
-Package::Package(const std::string& path, const std::string& module, const std::string& task,
-                 const Expectations& expect) {
+PackageInfo PackageInfo::read(const std::string& path) {
   if (!std::filesystem::is_regular_file(path))
     throw PackageError(path + ": no such package file (an exported <name>.aoti.pt2)");
   std::unordered_map<std::string, std::string> metadata;
   try {
     metadata = torch::inductor::AOTIModelPackageLoader::load_metadata_from_package(path, "model");
   } catch (const std::exception& err) {
-    std::string what = err.what();
-    what = what.substr(0, std::min(what.find('\n'), size_t(160)));  // the first line of libtorch's message
-    throw PackageError(path + ": not an AOTInductor package (" + what + ")");
+    throw PackageError(path + ": not an AOTInductor package (" + first_line(err) + ")");
   }
-  info_ = PackageInfo::parse(metadata, path);
+  return parse(metadata, path);
+}
+
+Package::Package(const std::string& path, const std::string& module, const std::string& task,
+                 const Expectations& expect) {
+  info_ = PackageInfo::read(path);
   const std::string here = TORCH_VERSION;
   if (info_.torch_version.substr(0, info_.torch_version.find('+')) != here)
     throw PackageError(path + ": built with torch " + info_.torch_version + ", this libtorch is " + here +
@@ -219,7 +249,13 @@ Package::Package(const std::string& path, const std::string& module, const std::
     shape.insert(shape.end(), spec.shape.begin(), spec.shape.end());
     batch1_.push_back(at::zeros(shape, at::TensorOptions().dtype(dtype_)));
   }
-  auto outs = runner_->run(batch1_);  // warm-up, and the outputs checked against the metadata
+  std::vector<at::Tensor> outs;  // warm-up, and the outputs checked against the metadata
+  try {
+    outs = runner_->run(batch1_);
+  } catch (const std::exception& err) {
+    throw PackageError(path + ": the package does not run on inputs of its metadata's shapes (" + first_line(err) +
+                       ")");
+  }
   if (outs.size() != info_.outputs.size())
     throw PackageError(path + ": the package returns " + std::to_string(outs.size()) + " outputs, its metadata lists " +
                        std::to_string(info_.outputs.size()));
@@ -305,6 +341,26 @@ InverseKinematics::InverseKinematics(const std::string& path, const Expectations
 
 IKRefinement::IKRefinement(const std::string& path, const Expectations& expect)
     : package_(path, "refine", "ik_refinement", expect), n_(trailing(package_, true, 1, 0)) {}
+
+namespace {
+int whole_body_joints(const Package& p) {
+  const auto& info = p.info();
+  const int64_t n = int64_t(info.joint_names.size());
+  const auto shape = [](const std::vector<TensorSpec>& specs, size_t i) {
+    return i < specs.size() ? specs[i].shape : std::vector<int64_t>{};
+  };
+  if (info.inputs.size() != 3 || info.outputs.size() != 1 || shape(info.inputs, 0) != std::vector<int64_t>{n} ||
+      shape(info.inputs, 1) != std::vector<int64_t>{4, 4} || shape(info.inputs, 2) != std::vector<int64_t>{6} ||
+      shape(info.outputs, 0) != std::vector<int64_t>{n})
+    throw PackageError(info.path + ": the whole-body step's signature is (q:" + std::to_string(n) +
+                       ", target:4x4, feedforward:6) -> (q:" + std::to_string(n) + ") for its " + std::to_string(n) +
+                       " joints; the package says (" + info.raw.at("inputs") + ") -> (" + info.raw.at("outputs") + ")");
+  return static_cast<int>(n);
+}
+}  // namespace
+
+WholeBodyStep::WholeBodyStep(const std::string& path, const Expectations& expect)
+    : package_(path, "step", "whole_body_control", expect), n_(whole_body_joints(package_)) {}
 
 HardwareModule::HardwareModule(const std::string& path, const std::string& module, const Expectations& expect)
     : package_(path, module, "hardware_fk", expect), s_(trailing(package_, true, 0, 0)) {}

@@ -4,6 +4,7 @@ thin ``__main__`` of the package a user names (``python -m dacr_learn.<package>`
 
 - :mod:`.ik`           ``python -m dacr_learn.ik``: IK for a file of targets (a robot file, a checkpoint, an arm)
 - :mod:`.ik_exported`  ``python -m dacr_learn.ik.exported``: export the warm-started IK refinement
+- :mod:`.arm_exported` ``python -m dacr_learn.arm.exported``: export the whole-body control step
 - :mod:`.export`       ``python -m dacr_learn.export``: export a checkpoint of any format
 - :mod:`.hardware`     ``python -m dacr_learn.hardware``: the model-selection study on hardware recordings
 - :mod:`.ablation`     ``python -m dacr_learn.ablation``: the Clarke-vs-raw ablation grid

@@ -21,7 +21,13 @@ string, numbers as Python's ``repr`` of a float, lists separated by ``,``):
   per feature), ``robot_length`` [m] (the sum of the nominal segment lengths), and when the Clarke maps are
   affine (no twisting segment) ``decoder_matrix`` (N × D, row major) and ``decoder_offset`` (N): q = A·f + c,
   ``encoder_matrix`` (D × N) and ``encoder_offset`` (D): f = E·q + e;
-- ``iterations``, ``position_only`` (IK refinement); ``servo_ids``, ``history`` (hardware models).
+- ``iterations``, ``position_only`` (IK refinement); ``servo_ids``, ``history`` (hardware models);
+- the whole-body control step (task ``whole_body_control``, :mod:`dacr_learn.arm.exported`): ``joint_names`` /
+  ``joint_units`` are the arm's joints (URDF names, chain order, rad / m) then the robot's, ``arm_joints`` (their
+  count), ``arm_lower``, ``arm_upper`` [rad, m] and ``arm_velocity`` [rad/s, m/s] (URDF), ``mount`` (4 × 4, row
+  major) [m], the controller's ``gain``, ``damping``, ``max_step``, ``rotation_length``, ``port_weight``,
+  ``rest_gain`` and ``dt`` [s] (absent: no velocity limits), ``port_centre`` [m] and ``port_radius`` [m] (absent:
+  no port); the feature entries describe the robot.
 """
 from __future__ import annotations
 
@@ -87,6 +93,16 @@ def package_metadata(meta: dict[str, Any], name: str) -> dict[str, str]:
                    servo_ids=",".join(str(i) for i in meta["servo_ids"]), history=str(bool(meta["history"])).lower())
     else:
         out.update(robot_entries(RobotSpec.from_dict(meta["robot"])))
+    if meta["task"] == "whole_body_control":
+        arm, names, units = meta["arm"], *joint_names(RobotSpec.from_dict(meta["robot"]))
+        arm_units = ["m" if t == "prismatic" else "rad" for t in arm["joint_types"]]
+        out.update(joint_names=",".join([*arm["joint_names"], *names]), joint_units=",".join([*arm_units, *units]),
+                   arm_joints=str(len(arm["joint_names"])), arm_lower=_numbers(arm["lower"]),
+                   arm_upper=_numbers(arm["upper"]), arm_velocity=_numbers(arm["velocity"]),
+                   mount=_numbers(arm["mount"]),
+                   **{k: repr(float(v)) for k, v in meta["control"].items() if v is not None})
+        if meta["port"] is not None:
+            out.update(port_centre=_numbers(meta["port"]["centre"]), port_radius=repr(float(meta["port"]["radius"])))
     if meta["task"] == "ik_refinement":
         out.update(iterations=str(meta["iterations"]), position_only=str(bool(meta["position_only"])).lower())
     return {PREFIX + k: v for k, v in out.items()}

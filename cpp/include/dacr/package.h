@@ -1,5 +1,5 @@
-// dacr_learn's exported modules in C++: AOTInductor packages written by `python -m dacr_learn.export` and
-// `python -m dacr_learn.ik.exported`, loaded with libtorch, their embedded metadata read and checked.
+// dacr_learn's exported modules in C++: AOTInductor packages written by `python -m dacr_learn.export`,
+// `python -m dacr_learn.ik.exported` and `python -m dacr_learn.arm.exported`, loaded with libtorch, their embedded metadata read and checked.
 //
 // Two ways to call a module (docs/cpp.md, "API"):
 //  - plain buffers at batch 1 (`Package::call`, and the typed classes below): double arrays in, double arrays
@@ -59,10 +59,21 @@ struct PackageInfo {
   std::vector<double> decoder_matrix, decoder_offset, encoder_matrix, encoder_offset;
   int iterations = 0;          // IK refinement
   bool position_only = false;  // IK refinement
+  // whole-body control step (task whole_body_control): joint_names are the arm's `arm_joints` joints (URDF names,
+  // chain order) then the robot's; the feature entries above describe the robot (its joints: the rest of q)
+  int arm_joints = 0;
+  std::vector<double> arm_lower, arm_upper;  // URDF joint limits [rad, m]
+  std::vector<double> arm_velocity;          // URDF velocity limits [rad/s, m/s]
+  std::vector<double> mount;                 // arm tip link → robot base, 4 × 4 row major [m]
+  std::vector<double> port_centre;           // (3) [m] in the arm's base frame; empty: no port
+  double port_radius = 0.0;                  // [m]
+  double dt = 0.0;                           // the control period the step limits the arm's velocity for [s]; 0: none
   std::unordered_map<std::string, std::string> raw;  // every `dacr_learn.` entry, prefix removed
 
   // Parse the package's metadata map; PackageError naming `path` when an entry is missing or malformed.
   static PackageInfo parse(const std::unordered_map<std::string, std::string>& metadata, const std::string& path);
+  // Read and parse the metadata of the package at `path` without loading its code (which class to open it with).
+  static PackageInfo read(const std::string& path);
 };
 
 // What the caller expects of a package; an empty field is not checked. A mismatch is a PackageError.
@@ -171,12 +182,33 @@ class HardwareModule {
   void call(std::initializer_list<const double*> inputs, std::initializer_list<double*> outputs) {
     package_.call(inputs, outputs);
   }
+  void call(const double* const* inputs, double* const* outputs) { package_.call(inputs, outputs); }
   int num_servos() const { return s_; }
   Package& package() { return package_; }
 
  private:
   Package package_;
   int s_;
+};
+
+// step of `python -m dacr_learn.arm.exported` (task whole_body_control): one whole-body resolved-rate step of an arm
+// carrying a continuum robot, float64: joints q (N) [the arm's joints in chain order, rad / m, then the robot's
+// joint vector], target pose (4 × 4) [m, arm base frame], feedforward (6) (Δp [m], Δφ [rad] of the target over
+// the step) → next joints (N). Gains, port and period are fixed in the package (`info()`, `info().raw`). Checked
+// at load: the signature (q: N = joint_names, target 4 × 4, feedforward 6 → q: N) and the arm's limits.
+class WholeBodyStep {
+ public:
+  explicit WholeBodyStep(const std::string& path, const Expectations& expect = {});
+  void step(const double* q, const double* target, const double* feedforward, double* q_next) {
+    package_.call({q, target, feedforward}, {q_next});
+  }
+  int num_joints() const { return n_; }
+  int num_arm_joints() const { return package_.info().arm_joints; }
+  Package& package() { return package_; }
+
+ private:
+  Package package_;
+  int n_;
 };
 
 }  // namespace dacr
