@@ -198,8 +198,8 @@ class QPController:
 
     :meth:`step`: joint vectors q (B, N), targets (B, 4, 4) poses or (B, 3) positions [m], optional feedforward
     (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, N) (:class:`~.qp_export.ExportedStep`: the same step through an
-    AOTInductor package). After a step, ``status`` holds each sample's :func:`solve_program` status and ``active`` the number
-    of rows the step met with equality (bounds included).
+    AOTInductor package). After a step, ``status`` holds each sample's :func:`solve_program` status and
+    ``active`` the number of rows the step met with equality (bounds included).
     """
 
     def __init__(self, model: SolverModel, config: QPConfig = QPConfig(), distances: DistanceFn | None = None,
@@ -218,7 +218,8 @@ class QPController:
         d = self.limits.num_variables
         self.step_bound = torch.full((d,), float(config.max_step), dtype=F64)      # |z_i| (arm: velocity too)
         self.damping_matrix = config.damping**2 * torch.eye(d, dtype=F64)
-        self.lower_scaled, self.upper_scaled = self.limits.lower / self.limits.scale, self.limits.upper / self.limits.scale
+        lim = self.limits
+        self.lower_scaled, self.upper_scaled = lim.lower / lim.scale, lim.upper / lim.scale
         eye = torch.eye(d, dtype=F64) * self.limits.scale                            # column i: e_i·s_i
         self.disk_place = (eye[self.disks[:, 0]], eye[self.disks[:, 1]])             # (m, D) each
         robot = getattr(model, "robot", model)
@@ -233,7 +234,7 @@ class QPController:
             self.rate_matrix = space.dec_matrix.to(F64).clone() if space.linear else None  # constant without twist
         self.status: list[str] = []
         self.solved: list[tuple[Program, np.ndarray]] = []                  # the last step's programs and steps
-        self.inside_box = tuple((v - 1e-12 * self.limits.scale).numpy() for v in (self.limits.lower, -self.limits.upper))
+        self.inside_box = tuple((v - 1e-12 * lim.scale).numpy() for v in (lim.lower, -lim.upper))   # lower, −upper
 
     # -- evaluation --------------------------------------------------------------------------------------------
 
