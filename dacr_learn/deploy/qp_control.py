@@ -40,6 +40,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import daqp
 import numpy as np
 import qpsolvers
 import torch
@@ -155,7 +156,6 @@ def disk_rows(pairs: Tensor, radius: Tensor, sides: int) -> tuple[Tensor, Tensor
 
 def _daqp(H, g, G, h, lb, ub) -> np.ndarray | None:
     """DAQP through its own Python API: bounds as its simple bounds, rows G z ≤ h."""
-    import daqp
     upper, lower = np.concatenate([ub, h]), np.concatenate([lb, np.full(len(h), -1e30)])
     z, _, flag, _ = daqp.solve(H, g, G, upper, lower, np.zeros(len(upper), dtype=np.intc))
     return z if flag > 0 else None
@@ -234,7 +234,9 @@ class QPController:
             self.rate_matrix = space.dec_matrix.to(F64).clone() if space.linear else None  # constant without twist
         self.status: list[str] = []
         self.solved: list[tuple[Program, np.ndarray]] = []                  # the last step's programs and steps
-        self.inside_box = tuple((v - 1e-12 * lim.scale).numpy() for v in (lim.lower, -lim.upper))   # lower, −upper
+        tol = 1e-12 * lim.scale
+        self.inside_box = ((lim.lower - tol).numpy(), (lim.upper + tol).numpy())         # the round-off allowed
+        self.disk_columns = (self.disks[:, 0].numpy(), self.disks[:, 1].numpy(), (lim.radius * (1 + 1e-12)).numpy())
 
     # -- evaluation --------------------------------------------------------------------------------------------
 
@@ -325,8 +327,9 @@ class QPController:
             self.solved.append((p, z))
             self.status.append(status)
             out[b] = xs[b] + self.scale * z
+        outside = self.outside(out)
         out = torch.from_numpy(out)
-        return self.limits.project(out) if self.outside(out) else out
+        return self.limits.project(out) if outside else out
 
     def step_variables(self, x: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in variables, eager: x (B, D) → x' (B, D), inside the limits."""
@@ -343,16 +346,15 @@ class QPController:
         return [int(np.count_nonzero(p.G @ z >= p.h - 1e-9) + np.count_nonzero((z <= p.lb + 1e-9) | (z >= p.ub - 1e-9)))
                 for p, z in self.solved]
 
-    def outside(self, x: Tensor) -> bool:
+    def outside(self, x: Tensor | np.ndarray) -> bool:
         """Whether some variable of x (B, D) lies outside a box or disk by more than 1e-12 of its scale (the
         solver's round-off): then :meth:`Limits.project` removes it."""
-        v = x.numpy()
-        lower, minus_upper = self.inside_box
-        if (v < lower).any() or (-v < minus_upper).any():
+        v = x.numpy() if isinstance(x, Tensor) else x
+        lower, upper = self.inside_box
+        if (v < lower).any() or (v > upper).any():
             return True
-        disks = self.disks.numpy()
-        return bool(len(disks)) and bool((np.hypot(v[:, disks[:, 0]], v[:, disks[:, 1]])
-                                          > self.limits.radius.numpy() * (1 + 1e-12)).any())
+        first, second, rim = self.disk_columns
+        return len(rim) > 0 and bool((np.hypot(v[:, first], v[:, second]) > rim).any())
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in joints: q (B, N) → q' (B, N) (module docstring)."""
