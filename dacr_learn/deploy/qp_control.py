@@ -126,8 +126,8 @@ class Program(NamedTuple):
 
 class Rows(NamedTuple):
     """A batch's programs as tensors, with a fixed number R of rows: H (B, D, D), g (B, D), G (B, R, D), h (B, R),
-    lb, ub (B, D) and ``kind`` (B, R) int8: 1 a fixed row (bend disks, joint speeds, port), 2 a damper, 0 a
-    clearance at or beyond d_i (left out of the sample's :class:`Program`)."""
+    lb, ub (B, D) and ``kind`` (B, R): 1 a fixed row (bend disks, joint speeds, port), 2 a damper, 0 a
+    clearance at or beyond d_i (left out of the sample's :class:`Program`); float64 like the rest."""
 
     H: Tensor
     g: Tensor
@@ -299,11 +299,11 @@ class QPController:
         if extra is not None:
             rows.append(extra[0])
             room.append(extra[1])
-        kind = [torch.ones(b, sum(r.shape[1] for r in room), dtype=torch.int8, device=x.device)]
+        kind = [x.new_ones(b, sum(r.shape[1] for r in room))]            # float: an int cat would not compile inline
         if s.distance is not None:
             rows.append(s.distance_jacobian * -scale)
             room.append((s.distance - cfg.safety) * (cfg.damper_gain / (cfg.influence - cfg.safety)))
-            kind.append(torch.where(s.distance < cfg.influence, 2, 0).to(torch.int8))
+            kind.append(2.0 * (s.distance < cfg.influence).to(x.dtype))
         G = torch.cat(rows, dim=1) if rows else x.new_zeros(b, 0, d)
         h = torch.cat(room, dim=1) if room else x.new_zeros(b, 0)
         return Rows(H, g, G, h, lb, ub, torch.cat(kind, dim=1))

@@ -49,18 +49,49 @@ class StepProgram(nn.Module):
         return (x, *c.program_rows(x, s, jac, err))
 
 
+def _products(a: Tensor, b: Tensor) -> Tensor:
+    """a @ b as a sum of broadcast products (matmul's broadcasting; 1-D operands too): a loop the compiler writes
+    inline."""
+    if a.dim() == 1:
+        return (a.unsqueeze(-1) * b).sum(-2) if b.dim() > 1 else (a * b).sum(-1)
+    if b.dim() == 1:
+        return (a * b).sum(-1)
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+
+
+def _scaled_sum(c: Tensor, a: Tensor, b: Tensor, beta=1, alpha=1) -> Tensor:
+    return beta * c + alpha * _products(a, b)
+
+
+SMALL_MATMULS = {op: _products for op in (torch.ops.aten.matmul.default, torch.ops.aten.mm.default,
+                                          torch.ops.aten.bmm.default)} | {
+    op: _scaled_sum for op in (torch.ops.aten.addmm.default, torch.ops.aten.baddbmm.default)}
+"""Decompositions of the step's (small) matrix products: an external BLAS call in the compiled step would keep its
+temporaries off the stack (AOTInductor allocates every one on the heap then, tens of µs per call)."""
+
+
+def step_program(controller: QPController, q: Tensor, target: Tensor, feedforward: Tensor
+                 ) -> torch.export.ExportedProgram:
+    """:class:`StepProgram` exported at these shapes, its matrix products decomposed (:data:`SMALL_MATMULS`)."""
+    program = torch.export.export(StepProgram(controller), (q, target, feedforward))
+    table = torch.export.default_decompositions()
+    for op, fn in SMALL_MATMULS.items():
+        table[op] = fn
+    return program.run_decompositions(table)
+
+
 def export_step(controller: QPController, package: str | Path, q: Tensor, target: Tensor,
-                feedforward: Tensor | None = None) -> Path:
+                feedforward: Tensor | None = None, **inductor_configs) -> Path:
     """Export :class:`StepProgram` at the shapes of q (B, N), target and feedforward (None: zero) and compile it
-    with AOTInductor (temporaries on the stack) into ``package`` (.pt2). Scenes of primitives only (a mesh's
-    distance does not trace). Returns the package's path."""
+    with AOTInductor (temporaries on the stack) into ``package`` (.pt2); ``inductor_configs`` adds to its
+    configuration. Scenes of primitives only (a mesh's distance does not trace). Returns the package's path."""
     q, target = q.to(F64), target.to(F64)
     ff = step_feedforward(q, target) if feedforward is None else feedforward.to(F64)
-    program = torch.export.export(StepProgram(controller), (q, target, ff))
+    program = step_program(controller, q, target, ff)
     Path(package).parent.mkdir(parents=True, exist_ok=True)
     torch._inductor.aoti_compile_and_package(program, package_path=str(package), inductor_configs={
         "aot_inductor.allow_stack_allocation": True,
-        "aot_inductor.metadata": {SHAPES_KEY: shapes_text(q, target, ff)}})
+        "aot_inductor.metadata": {SHAPES_KEY: shapes_text(q, target, ff)}} | inductor_configs)
     return Path(package)
 
 
