@@ -12,8 +12,9 @@ unless said):
 - ``program_previous`` / ``program``: the step with the model's evaluation cached (``sense=`` returning it): the
   program built (previous: NumPy per sample; now: torch rows, eager) and solved (DAQP through its own API);
 - ``solve_daqp``: DAQP alone on this step's program (:func:`solve_program`), the floor of every row;
-- ``qp_exported_previous`` (with ``--aoti``): the previous exported path, its evaluation (``Sensing``) as an
-  AOTInductor package called through the package's Python wrapper, the program in NumPy;
+- ``qp_exported_previous`` (with ``--aoti``, where runs/qp_previous_<scene>.pt2 exists or with ``--aoti-previous``):
+  the previous exported path, its evaluation (``Sensing``) as an AOTInductor package called through the package's
+  Python wrapper, the program in NumPy;
 - ``qp_exported`` (with ``--aoti``): :class:`~dacr_learn.deploy.qp_export.ExportedStep`, the step up to the solve
   as one package (:func:`export_step`), then DAQP and the joints; ``step_program_exported``: its package call alone.
 
@@ -132,15 +133,16 @@ def candidates(setup: dict, today, qp, previous, modules, q, target, ff, args, n
         package = runs / f"qp_step_{name}.pt2"
         out["aoti_build_s"] = build(package, args.reuse, lambda p: export_step(qp, p, q, target, ff))
         exported = ExportedStep(qp, package)
-        old_package = runs / f"qp_previous_{name}.pt2"
-        out["aoti_build_previous_s"] = build(old_package, args.reuse, lambda p: (
-            torch._inductor.aoti_compile_and_package(torch.export.export(modules["deploy"].Sensing(previous), (x,)),
-                                                     package_path=str(p))))
-        exported_previous = copy.copy(previous)
-        exported_previous.custom_sense = torch._inductor.aoti_load_package(str(old_package))
-        fast |= {"qp_exported_previous": lambda: exported_previous.step(q, target, ff),
-                 "qp_exported": lambda: exported.step(q, target, ff),
+        fast |= {"qp_exported": lambda: exported.step(q, target, ff),
                  "step_program_exported": lambda: exported.loader.run([q, target, ff])}
+        old_package = runs / f"qp_previous_{name}.pt2"
+        if args.aoti_previous or old_package.exists():
+            out["aoti_build_previous_s"] = build(old_package, args.reuse, lambda p: (
+                torch._inductor.aoti_compile_and_package(torch.export.export(modules["deploy"].Sensing(previous),
+                                                                             (x,)), package_path=str(p))))
+            exported_previous = copy.copy(previous)
+            exported_previous.custom_sense = torch._inductor.aoti_load_package(str(old_package))
+            fast["qp_exported_previous"] = lambda: exported_previous.step(q, target, ff)
     for key, fn in (eager | fast).items():
         if key not in ("today", "solve_daqp", "step_program_exported"):
             out["deviation"][key] = dev = float((fn() - reference).abs().max())
@@ -156,6 +158,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--aoti", choices=("none", "robot", "all"), default="none")
     p.add_argument("--reuse", action="store_true", help="load runs/qp_step_<scene>.pt2, runs/qp_previous_<scene>.pt2 "
                                                         "where they exist (no rebuild)")
+    p.add_argument("--aoti-previous", action="store_true", help="also build runs/qp_previous_<scene>.pt2 (without "
+                                                                "it: that row only where the package exists)")
     p.add_argument("--previous", default=PREVIOUS, help="git commit of the previous QP modules")
     p.add_argument("--points", type=int, default=8, help="body points per segment the QP sees")
     p.add_argument("--scenes", default="robot,arm")
@@ -189,8 +193,7 @@ def main(argv: list[str] | None = None) -> dict:
         r = report[name]
         worst = max(r["deviation"].values())
         print(f"  {name}: {r['dampers_in_program']} damper rows; every row's step within {worst:.1e} of the previous "
-              f"step" + (f"; AOTI builds {r['aoti_build_s'] or 0:.0f} s, previous {r['aoti_build_previous_s'] or 0:.0f}"
-                         f" s (0: reused)" if "aoti_build_s" in r else ""))
+              f"step" + (f"; AOTI build {r['aoti_build_s'] or 0:.0f} s (0: reused)" if "aoti_build_s" in r else ""))
         for key, row in r.items():
             if isinstance(row, dict) and "p50" in row:
                 print(f"    {key:>24} {row['p50']:>10.0f} {row['p99']:>10.0f} {row['cpu']:>10.0f}"

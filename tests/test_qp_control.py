@@ -25,7 +25,7 @@ from dacr_learn.arm.qp_control import WholeBodyQPController
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
 from dacr_learn.deploy.qp_clearance import cc_body_and_jacobian
 from dacr_learn.deploy.qp_control import QPConfig, QPController, Sensing, disk_rows, solve_program
-from dacr_learn.deploy.qp_export import ExportedStep, StepProgram
+from dacr_learn.deploy.qp_export import SMALL_MATMULS, ExportedStep, step_program
 from dacr_learn.ik import ConstantCurvature
 from dacr_learn.ik.adapters import SolverModel
 from dacr_learn.layers import ClarkeEncoder
@@ -411,7 +411,10 @@ def test_the_step_program_exported_drives_the_same_step():
     q = model.joints(x)
     target = model.tip_and_jacobian(x)[0] + torch.tensor([[0.01, -0.01, 0.0]], dtype=F64)
     ff = torch.tensor([[0.001, 0.0, 0.0]], dtype=F64)
-    program = torch.export.export(StepProgram(qp), (q, target, ff)).module()
+    exported = step_program(qp, q, target, ff)
+    ops = {str(n.target) for n in exported.graph.nodes if n.op == "call_function"}
+    assert not ops & {"aten.mm.default", "aten.bmm.default", "aten.addmm.default", "aten.matmul.default"}
+    program = exported.module()
     assert int((program(q, target, ff)[-1] == 2).sum()) > 0                             # dampers in the program
     fast = ExportedStep.__new__(ExportedStep)                                   # the package's loader, unbuilt
     fast.controller, fast.shapes = qp, ((1, TDCR3.num_joints), (1, 3), (1, 3))
@@ -422,3 +425,17 @@ def test_the_step_program_exported_drives_the_same_step():
         assert torch.allclose(fast.step(q, target, feed), expected, atol=1e-12, rtol=0) and qp.status == status
     with pytest.raises(ValueError, match="exported shapes"):
         fast.step(q.repeat(2, 1), target.repeat(2, 1))
+
+
+def test_the_matrix_product_decompositions_are_the_products():
+    gen = torch.Generator().manual_seed(14)
+    for shapes in (((3, 4), (4, 5)), ((2, 3, 4), (2, 4, 1)), ((2, 1, 3, 4), (5, 4, 2)), ((4,), (2, 4, 3)),
+                   ((2, 3, 4), (4,)), ((4,), (4,))):
+        a, b = (torch.randn(sh, generator=gen, dtype=F64) for sh in shapes)
+        for op in ("matmul", "mm", "bmm"):
+            if op == "matmul" or (op == "mm" and a.dim() == b.dim() == 2) or (op == "bmm" and a.dim() == b.dim() == 3):
+                got = SMALL_MATMULS[getattr(torch.ops.aten, op).default](a, b)
+                assert torch.allclose(got, a @ b, atol=1e-14, rtol=0)
+    c, a, b = (torch.randn(sh, generator=gen, dtype=F64) for sh in ((3, 5), (3, 4), (4, 5)))
+    got = SMALL_MATMULS[torch.ops.aten.addmm.default](c, a, b, beta=0.5, alpha=2.0)
+    assert torch.allclose(got, torch.addmm(c, a, b, beta=0.5, alpha=2.0), atol=1e-14, rtol=0)
