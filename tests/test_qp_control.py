@@ -404,6 +404,7 @@ def test_the_program_holds_the_dampers_within_the_influence_distance_only():
         assert np.allclose(p.h[:fixed][-2 * TDCR3.num_joints:], 1e-3, atol=0, rtol=0)
 
 
+@pytest.mark.slow
 def test_the_step_program_exported_drives_the_same_step():
     model = ConstantCurvature(TDCR3)
     qp = QPController(model, QPConfig(joint_step=1e-3), scene=SCENE, points_per_segment=4)
