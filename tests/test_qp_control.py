@@ -25,6 +25,7 @@ from dacr_learn.arm.qp_control import WholeBodyQPController
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
 from dacr_learn.deploy.qp_clearance import cc_body_and_jacobian
 from dacr_learn.deploy.qp_control import QPConfig, QPController, Sensing, disk_rows, solve_program
+from dacr_learn.deploy.qp_export import SMALL_MATMULS, ExportedStep, step_program
 from dacr_learn.ik import ConstantCurvature
 from dacr_learn.ik.adapters import SolverModel
 from dacr_learn.layers import ClarkeEncoder
@@ -61,7 +62,8 @@ def test_disk_polygon_is_inscribed_with_a_vertex_on_the_current_direction():
         for _ in range(20):
             r = rng.uniform(0.001, 0.02)
             y = r * rng.uniform(0, 1) * np.array([math.cos(a := rng.uniform(-4, 4)), math.sin(a)])
-            normals, room = (v[0] for v in disk_rows(y[None], np.array([r]), sides))
+            normals, room = (v[0].numpy() for v in disk_rows(torch.from_numpy(y[None]), torch.tensor([r], dtype=F64),
+                                                              sides))
             assert (room >= 0).all()                                                 # the current point is inside
             vertices = r * np.stack([np.cos(a + 2 * np.pi * np.arange(sides) / sides),
                                      np.sin(a + 2 * np.pi * np.arange(sides) / sides)], -1)
@@ -105,9 +107,9 @@ def assert_program_solution_meets_every_row(qp: QPController, x: torch.Tensor, t
     tight = {"joint_step": 0, "damper": 0}
     sensed = qp.sense(x)
     jac, err = qp.task(sensed, target, None)
-    for b in range(len(x)):
+    for b, program in enumerate(qp.programs(qp.program_rows(x, sensed, jac, err))):
         xb = x[b].numpy()
-        z, status = solve_program(qp.program(xb, jac[b].numpy(), err[b].numpy(), sensed, b), cfg.solver)
+        z, status = solve_program(program, cfg.solver)
         assert status == "ok"
         step = qp.scale * z
         new = torch.from_numpy(xb + step)
@@ -382,3 +384,59 @@ def test_sensing_as_a_module_drives_the_same_step():
     fast = QPController(model, QPConfig(), sense=Sensing(qp))
     target = model.tip_and_jacobian(model.rest[None].expand(2, -1))[0]
     assert torch.equal(fast.step_variables(x, target), qp.step_variables(x, target))
+
+
+def test_the_program_holds_the_dampers_within_the_influence_distance_only():
+    model = ConstantCurvature(TDCR3)
+    x = interior(model, 2, seed=12)
+    d = np.array([0.003, 0.025, 0.0199, 0.02, 0.01])                           # d_i = 0.02: rows 0, 2, 4
+    jac = np.random.default_rng(12).normal(size=(5, model.limits.num_variables))
+    cfg = QPConfig(safety=0.002, influence=0.02, damper_gain=0.003, joint_step=1e-3)
+    qp = QPController(model, cfg, LinearClearance(d, jac))
+    s = qp.sense(x)
+    rows = qp.program_rows(x, s, *qp.task(s, model.tip_and_jacobian(x)[0], None))
+    fixed = 3 * cfg.disk_sides + 2 * TDCR3.num_joints
+    for p in qp.programs(rows):
+        assert p.G.shape == (fixed + 3, 9) and p.damper.tolist() == [False] * fixed + [True] * 3
+        near = [0, 2, 4]
+        assert np.allclose(p.G[fixed:], -jac[near] * qp.scale, atol=1e-15, rtol=0)
+        assert np.allclose(p.h[fixed:], 0.003 * (d[near] - 0.002) / 0.018, atol=1e-15, rtol=0)
+        assert np.allclose(p.h[:fixed][-2 * TDCR3.num_joints:], 1e-3, atol=0, rtol=0)
+
+
+@pytest.mark.slow
+def test_the_step_program_exported_drives_the_same_step():
+    model = ConstantCurvature(TDCR3)
+    qp = QPController(model, QPConfig(joint_step=1e-3), scene=SCENE, points_per_segment=4)
+    x = interior(model, 1, seed=13, frac=0.9)
+    q = model.joints(x)
+    target = model.tip_and_jacobian(x)[0] + torch.tensor([[0.01, -0.01, 0.0]], dtype=F64)
+    ff = torch.tensor([[0.001, 0.0, 0.0]], dtype=F64)
+    exported = step_program(qp, q, target, ff)
+    ops = {str(n.target) for n in exported.graph.nodes if n.op == "call_function"}
+    assert not ops & {"aten.mm.default", "aten.bmm.default", "aten.addmm.default", "aten.matmul.default"}
+    program = exported.module()
+    assert int((program(q, target, ff)[-1] == 2).sum()) > 0                             # dampers in the program
+    fast = ExportedStep.__new__(ExportedStep)                                   # the package's loader, unbuilt
+    fast.controller, fast.shapes = qp, ((1, TDCR3.num_joints), (1, 3), (1, 3))
+    fast.loader = type("Loader", (), {"run": staticmethod(lambda args: list(program(*args)))})()
+    for feed in (ff, None):
+        expected = qp.step(q, target, feed)
+        status = list(qp.status)
+        assert torch.allclose(fast.step(q, target, feed), expected, atol=1e-12, rtol=0) and qp.status == status
+    with pytest.raises(ValueError, match="exported shapes"):
+        fast.step(q.repeat(2, 1), target.repeat(2, 1))
+
+
+def test_the_matrix_product_decompositions_are_the_products():
+    gen = torch.Generator().manual_seed(14)
+    for shapes in (((3, 4), (4, 5)), ((2, 3, 4), (2, 4, 1)), ((2, 1, 3, 4), (5, 4, 2)), ((4,), (2, 4, 3)),
+                   ((2, 3, 4), (4,)), ((4,), (4,))):
+        a, b = (torch.randn(sh, generator=gen, dtype=F64) for sh in shapes)
+        for op in ("matmul", "mm", "bmm"):
+            if op == "matmul" or (op == "mm" and a.dim() == b.dim() == 2) or (op == "bmm" and a.dim() == b.dim() == 3):
+                got = SMALL_MATMULS[getattr(torch.ops.aten, op).default](a, b)
+                assert torch.allclose(got, a @ b, atol=1e-14, rtol=0)
+    c, a, b = (torch.randn(sh, generator=gen, dtype=F64) for sh in ((3, 5), (3, 4), (4, 5)))
+    got = SMALL_MATMULS[torch.ops.aten.addmm.default](c, a, b, beta=0.5, alpha=2.0)
+    assert torch.allclose(got, torch.addmm(c, a, b, beta=0.5, alpha=2.0), atol=1e-14, rtol=0)

@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -63,13 +62,11 @@ class WholeBodyQPController(QPController):
         super().__init__(model, config or QPConfig(), distances, sense, scene, points_per_segment)
         self.centre = None if port is None else torch.tensor(port.centre, dtype=F64)
         if dt is not None:
-            velocity = np.asarray(model.arm.chain.get_joint_velocity_limits()[1], dtype=float)
+            velocity = torch.as_tensor(model.arm.chain.get_joint_velocity_limits()[1], dtype=F64)
             n = self.num_arm
-            self.step_bound[:n] = np.minimum(self.step_bound[:n], velocity * dt / self.scale[:n])
+            self.step_bound[:n] = torch.minimum(self.step_bound[:n], velocity * dt / self.limits.scale[:n])
 
-    def sense(self, x: Tensor) -> Sensed:
-        if self.custom_sense is not None:
-            return super().sense(x)
+    def evaluate(self, x: Tensor) -> Sensed:
         kin = self.model.kinematics(x, with_base=self.port is not None)
         d, jd = (None, None) if self.distances is None else self.distances(x)
         if self.scene is not None:
@@ -97,17 +94,17 @@ class WholeBodyQPController(QPController):
         return (torch.cat([jac, k * s.base_jacobian], dim=1),
                 torch.cat([err, k * self.config.gain * (self.centre - s.base)], dim=-1))
 
-    def extra_rows(self, x: np.ndarray, s: Sensed, b: int) -> tuple[np.ndarray, np.ndarray]:
+    def extra_rows(self, x: Tensor, s: Sensed) -> tuple[Tensor, Tensor] | None:
         """The port cube: ±(J_b·s)·z ≤ bound ∓ (p_b − c) per axis, bound = max(r/√3, |p_b − c|)."""
         if self.centre is None:
-            return super().extra_rows(x, s, b)
-        offset = (s.base[b] - self.centre).numpy()
-        rows = s.base_jacobian[b].numpy() * self.scale
-        bound = np.maximum(self.port.radius / math.sqrt(3), np.abs(offset))
-        return np.concatenate([rows, -rows]), np.concatenate([bound - offset, bound + offset])
+            return super().extra_rows(x, s)
+        offset = s.base - self.centre                                                     # (B, 3)
+        rows = s.base_jacobian * self.limits.scale
+        bound = torch.clamp_min(offset.abs(), self.port.radius / math.sqrt(3))
+        return torch.cat([rows, -rows], dim=1), torch.cat([bound - offset, bound + offset], dim=1)
 
-    def joint_rate(self, x: np.ndarray) -> np.ndarray:
-        """∂q_c/∂x (N, n + D) of the robot's joints (zero in the arm's columns)."""
+    def joint_rate(self, x: Tensor) -> Tensor:
+        """∂q_c/∂x (N, n + D) or (B, N, n + D) of the robot's joints (zero in the arm's columns)."""
         n = self.num_arm
-        inner = super().joint_rate(x[n:])
-        return np.concatenate([np.zeros((inner.shape[0], n)), inner], axis=1)
+        inner = super().joint_rate(x[:, n:])
+        return torch.cat([inner.new_zeros(*inner.shape[:-1], n), inner], dim=-1)

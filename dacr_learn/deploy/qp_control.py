@@ -27,18 +27,20 @@ least-squares step of :func:`~dacr_learn.deploy.control.scaled_dls_step`, z = J�
   those rows relaxed to "do not come closer" (``status`` "relaxed"), and a step of zero is taken if even that
   fails ("held"). Zero always satisfies every other row, so the step is always inside the limits.
 
-x' = x + s·z, projected (:meth:`Limits.project`) only where the solver's round-off left a limit. Float64,
-NumPy and DAQP (its own API, or qpsolvers for any backend) for the program, torch for the model (or its exported
-evaluation, :class:`Sensing`). Pure Python; no Lightning, no Rerun.
+x' = x + s·z, projected (:meth:`Limits.project`) only where the solver's round-off left a limit. The program's
+matrices are built in torch, batched (:meth:`QPController.program_rows`: every clearance a row, those at or beyond
+d_i marked to be left out), so that the whole step up to the solve exports as one module (:mod:`.qp_export`);
+each sample's program is then solved by DAQP (its own API, or qpsolvers for any backend). Float64; pure Python,
+no Lightning, no Rerun.
 """
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import daqp
 import numpy as np
 import qpsolvers
 import torch
@@ -110,7 +112,7 @@ class Sensed(NamedTuple):
 
 
 class Program(NamedTuple):
-    """One step's program in scaled steps z (D,): objective ½zᵀHz + gᵀz, rows G z ≤ h, bounds lb ≤ z ≤ ub,
+    """One sample's program in scaled steps z (D,): objective ½zᵀHz + gᵀz, rows G z ≤ h, bounds lb ≤ z ≤ ub,
     and which rows are clearance dampers (``damper`` (rows,) bool)."""
 
     H: np.ndarray
@@ -122,37 +124,38 @@ class Program(NamedTuple):
     damper: np.ndarray
 
 
-def disk_rows(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.ndarray, np.ndarray]:
+class Rows(NamedTuple):
+    """A batch's programs as tensors, with a fixed number R of rows: H (B, D, D), g (B, D), G (B, R, D), h (B, R),
+    lb, ub (B, D) and ``kind`` (B, R): 1 a fixed row (bend disks, joint speeds, port), 2 a damper, 0 a
+    clearance at or beyond d_i (left out of the sample's :class:`Program`); float64 like the rest."""
+
+    H: Tensor
+    g: Tensor
+    G: Tensor
+    h: Tensor
+    lb: Tensor
+    ub: Tensor
+    kind: Tensor
+
+
+def disk_rows(pairs: Tensor, radius: Tensor, sides: int) -> tuple[Tensor, Tensor]:
     """Half-planes n_k·(y + Δy) ≤ r·cos(π/K) of the K-gon inscribed in each disk ‖y‖ ≤ r with a vertex on the
-    direction of y: pairs y (m, 2), radii r (m,) → (normals (m, K, 2), room (m, K) = r·cos(π/K) − n_k·y,
-    ≥ 0 for ‖y‖ ≤ r). The normals are the K directions at angles π(2k + 1)/K turned onto y (onto x at y = 0)."""
-    nx, ny, room = _disk_normals(pairs, radius, sides)
-    return np.stack([nx, ny], axis=-1), room
-
-
-def _disk_normals(pairs: np.ndarray, radius: np.ndarray, sides: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`disk_rows` as (n_x (m, K), n_y (m, K), room (m, K)), in few NumPy calls (it runs every step)."""
-    cos, sin = _polygon(sides)
-    norm = np.hypot(pairs[:, 0], pairs[:, 1])
-    if (norm <= 1e-15 * radius).any():                                    # no direction: take x
-        pairs, norm = pairs.copy(), norm.copy()
-        small = norm <= 1e-15 * radius
-        pairs[small], norm[small] = (1e-300, 0.0), 1e-300
-    c, sn = (pairs / norm[:, None]).T[:, :, None]
-    room = radius[:, None] * math.cos(math.pi / sides) - norm[:, None] * cos      # n_k·y = ‖y‖·cos(offset_k)
-    np.maximum(room, 0.0, out=room)
-    return c * cos - sn * sin, sn * cos + c * sin, room
-
-
-@functools.lru_cache(maxsize=8)
-def _polygon(sides: int) -> tuple[np.ndarray, np.ndarray]:
-    offset = math.pi / sides * (2 * np.arange(sides) + 1)
-    return np.cos(offset), np.sin(offset)
+    direction of y: pairs y (..., m, 2), radii r (m,) → (normals (..., m, K, 2), room (..., m, K) = r·cos(π/K) −
+    n_k·y, ≥ 0 for ‖y‖ ≤ r). The normals are the K directions at angles π(2k + 1)/K turned onto y (onto x at
+    y = 0)."""
+    offset = math.pi / sides * (2 * torch.arange(sides, dtype=pairs.dtype, device=pairs.device) + 1)
+    cos, sin = torch.cos(offset), torch.sin(offset)
+    norm = torch.hypot(pairs[..., 0], pairs[..., 1])
+    small = norm <= 1e-15 * radius                                                 # no direction: take x
+    safe = torch.where(small, 1.0, norm)
+    c = torch.where(small, 1.0, pairs[..., 0] / safe).unsqueeze(-1)
+    sn = torch.where(small, 0.0, pairs[..., 1] / safe).unsqueeze(-1)
+    room = radius.unsqueeze(-1) * math.cos(math.pi / sides) - torch.where(small, 0.0, norm).unsqueeze(-1) * cos
+    return torch.stack([c * cos - sn * sin, sn * cos + c * sin], dim=-1), torch.clamp_min(room, 0.0)
 
 
 def _daqp(H, g, G, h, lb, ub) -> np.ndarray | None:
     """DAQP through its own Python API: bounds as its simple bounds, rows G z ≤ h."""
-    import daqp
     upper, lower = np.concatenate([ub, h]), np.concatenate([lb, np.full(len(h), -1e30)])
     z, _, flag, _ = daqp.solve(H, g, G, upper, lower, np.zeros(len(upper), dtype=np.intc))
     return z if flag > 0 else None
@@ -188,14 +191,15 @@ class QPController:
         model: the model to control (a :class:`~dacr_learn.ik.SolverModel`, e.g. ``ConstantCurvature(spec)``).
         config: :class:`QPConfig`. distances: the clearance provider (:data:`DistanceFn`), or None (no obstacles).
         sense: replaces the model's evaluation, x (B, D) → :class:`Sensed` or its fields as a tuple, empty tensors
-            for those not given (e.g. the AOTInductor package of :class:`Sensing`, for a kHz loop at batch 1).
+            for those not given (e.g. the AOTInductor package of :class:`Sensing`).
         scene: the obstacles (a :class:`~dacr_learn.scene.Scene`, a scene YAML path or its dict), instead of
             ``distances``: the clearances of the model's body (``points_per_segment`` points per segment) to every
             obstacle, with their Jacobians (:mod:`.qp_clearance`); the model needs a body.
 
     :meth:`step`: joint vectors q (B, N), targets (B, 4, 4) poses or (B, 3) positions [m], optional feedforward
-    (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, N). After a step, ``status`` holds each sample's
-    :func:`solve_program` status and ``active`` the number of rows the step met with equality (bounds included).
+    (B, 6) (Δp [m], Δφ [rad]) or (B, 3) → q' (B, N) (:class:`~.qp_export.ExportedStep`: the same step through an
+    AOTInductor package). After a step, ``status`` holds each sample's :func:`solve_program` status and
+    ``active`` the number of rows the step met with equality (bounds included).
     """
 
     def __init__(self, model: SolverModel, config: QPConfig = QPConfig(), distances: DistanceFn | None = None,
@@ -210,15 +214,14 @@ class QPController:
             model.body(model.rest[None], points_per_segment)                 # a model without a body: ValueError
         self.limits = model.limits.to(F64)
         self.scale = self.limits.scale.numpy()
-        self.lower, self.upper = self.limits.lower.numpy(), self.limits.upper.numpy()
-        self.disks, self.radius = self.limits.disks.numpy(), self.limits.radius.numpy()
+        self.disks = self.limits.disks
         d = self.limits.num_variables
-        self.step_bound = np.full(d, config.max_step)                        # |z_i| per step (arm: velocity too)
-        self.damping_matrix = config.damping**2 * np.eye(d)
-        k = config.disk_sides
-        self.disk_index = (np.arange(len(self.disks) * k), self.disks[:, 0].repeat(k), self.disks[:, 1].repeat(k))
-        self.disk_scale = (self.scale[self.disks[:, 0], None], self.scale[self.disks[:, 1], None])     # (m, 1)
-        self.lower_scaled, self.upper_scaled = self.lower / self.scale, self.upper / self.scale
+        self.step_bound = torch.full((d,), float(config.max_step), dtype=F64)      # |z_i| (arm: velocity too)
+        self.damping_matrix = config.damping**2 * torch.eye(d, dtype=F64)
+        lim = self.limits
+        self.lower_scaled, self.upper_scaled = lim.lower / lim.scale, lim.upper / lim.scale
+        eye = torch.eye(d, dtype=F64) * self.limits.scale                            # column i: e_i·s_i
+        self.disk_place = (eye[self.disks[:, 0]], eye[self.disks[:, 1]])             # (m, D) each
         robot = getattr(model, "robot", model)
         self.weight = float(robot.length) if config.rotation_length is None else config.rotation_length
         self.decoder = self.rate_matrix = None
@@ -228,12 +231,12 @@ class QPController:
                                  f"got {type(robot).__name__}")
             self.decoder = DecoderJacobian(robot.spec)
             space = robot.space
-            self.rate_matrix = space.dec_matrix.numpy() if space.linear else None   # constant without twist
-        self.disk_block = np.zeros((len(self.disks) * k, d))                 # refilled each step (fixed pattern)
-        self.rate_rows = None if self.rate_matrix is None else self.speed_rows(np.zeros(d))
+            self.rate_matrix = space.dec_matrix.to(F64).clone() if space.linear else None  # constant without twist
         self.status: list[str] = []
         self.solved: list[tuple[Program, np.ndarray]] = []                  # the last step's programs and steps
-        self.inside_box = (self.lower - 1e-12 * self.scale, self.upper + 1e-12 * self.scale)
+        tol = 1e-12 * lim.scale
+        self.inside_box = ((lim.lower - tol).numpy(), (lim.upper + tol).numpy())         # the round-off allowed
+        self.disk_columns = (self.disks[:, 0].numpy(), self.disks[:, 1].numpy(), (lim.radius * (1 + 1e-12)).numpy())
 
     # -- evaluation --------------------------------------------------------------------------------------------
 
@@ -242,10 +245,14 @@ class QPController:
         return tip_and_body(self.model, x, self.points_per_segment)
 
     def sense(self, x: Tensor) -> Sensed:
-        """The model (or the ``sense`` given) at x (B, D), with the clearances when there are obstacles."""
-        if self.custom_sense is not None:
-            out = self.custom_sense(x)
-            return out if isinstance(out, Sensed) else Sensed(*(None if t.numel() == 0 else t for t in out))
+        """The ``sense`` given, else :meth:`evaluate`, at x (B, D)."""
+        if self.custom_sense is None:
+            return self.evaluate(x)
+        out = self.custom_sense(x)
+        return out if isinstance(out, Sensed) else Sensed(*(None if t.numel() == 0 else t for t in out))
+
+    def evaluate(self, x: Tensor) -> Sensed:
+        """The model at x (B, D), with the clearances when there are obstacles."""
         if self.scene is not None:
             tip, body, jac_p = self.tip_and_body(x)
             return Sensed(*tip, *clearance_rows(self.scene, body, jac_p))
@@ -260,80 +267,78 @@ class QPController:
 
     # -- the program -------------------------------------------------------------------------------------------
 
-    def extra_rows(self, x: np.ndarray, s: Sensed, b: int) -> tuple[np.ndarray, np.ndarray]:
-        """Further rows G z ≤ h of sample b (none here; the arm adds its port)."""
-        return np.zeros((0, len(x))), np.zeros(0)
+    def extra_rows(self, x: Tensor, s: Sensed) -> tuple[Tensor, Tensor] | None:
+        """Further rows G z ≤ h at x (B, D): (B, r, D), (B, r), or None (none here; the arm adds its port)."""
+        return None
 
-    def joint_rate(self, x: np.ndarray) -> np.ndarray:
-        """∂q/∂x (N, D) of the robot's joints at variables x (D,) (the Clarke decoder's Jacobian)."""
-        if self.rate_matrix is not None:
-            return self.rate_matrix
-        return self.decoder(torch.from_numpy(x)[None])[0].numpy()
+    def joint_rate(self, x: Tensor) -> Tensor:
+        """∂q/∂x (N, D), or (B, N, D) where it varies, of the robot's joints at variables x (B, D)."""
+        return self.rate_matrix if self.rate_matrix is not None else self.decoder(x)
 
-    def speed_rows(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The joint-speed rows ±(∂q/∂x·s) z ≤ joint_step at variables x (D,): (2N, D), (2N,)."""
-        rate = self.joint_rate(x) * self.scale
-        return np.concatenate([rate, -rate]), np.full(2 * len(rate), self.config.joint_step)
-
-    def program(self, x: np.ndarray, jac: np.ndarray, err: np.ndarray, s: Sensed, b: int) -> Program:
-        """The program of one sample: variables x (D,), task rows J (k, D) and e (k,) (module docstring)."""
-        cfg, scale = self.config, self.scale
+    def program_rows(self, x: Tensor, s: Sensed, jac: Tensor, err: Tensor) -> Rows:
+        """The programs of a batch (module docstring): variables x (B, D), the model's evaluation, task rows
+        J (B, k, D) and e (B, k) → :class:`Rows`; rows in the order bend disks, joint speeds, extra, dampers."""
+        cfg, scale, (b, d) = self.config, self.limits.scale, x.shape
         js = jac * scale
-        H = js.T @ js
-        H += self.damping_matrix
-        g = js.T @ err
-        np.negative(g, out=g)
+        H = js.mT @ js + self.damping_matrix
+        g = -(js.mT @ err.unsqueeze(-1)).squeeze(-1)
         xs = x / scale
-        lb, ub = self.lower_scaled - xs, self.upper_scaled - xs
-        np.minimum(np.maximum(lb, -self.step_bound, out=lb), 0.0, out=lb)
-        np.maximum(np.minimum(ub, self.step_bound, out=ub), 0.0, out=ub)
+        lb = torch.clamp(torch.maximum(self.lower_scaled - xs, -self.step_bound), max=0.0)
+        ub = torch.clamp(torch.minimum(self.upper_scaled - xs, self.step_bound), min=0.0)
         rows, room = [], []
         if len(self.disks):
-            nx, ny, free = _disk_normals(x[self.disks], self.radius, cfg.disk_sides)
-            block = self.disk_block
-            row, first, second = self.disk_index
-            block[row, first] = (nx * self.disk_scale[0]).ravel()
-            block[row, second] = (ny * self.disk_scale[1]).ravel()
-            rows.append(block)
-            room.append(free.ravel())
+            normals, free = disk_rows(x[:, self.disks], self.limits.radius, cfg.disk_sides)   # (B, m, K, 2), (B, m, K)
+            place0, place1 = (p.unsqueeze(1) for p in self.disk_place)                       # (m, 1, D)
+            rows.append((normals[..., :1] * place0 + normals[..., 1:] * place1).flatten(1, 2))
+            room.append(free.flatten(1))
         if self.decoder is not None:
-            speed, speed_room = self.speed_rows(x) if self.rate_rows is None else self.rate_rows
-            rows.append(speed)
-            room.append(speed_room)
-        extra_g, extra_h = self.extra_rows(x, s, b)
-        if len(extra_h):
-            rows.append(extra_g)
-            room.append(extra_h)
-        fixed = sum(len(r) for r in room)
+            rate = self.joint_rate(x) * scale
+            rows.append(torch.cat([rate, -rate], dim=-2).expand(b, -1, -1))
+            room.append(x.new_full((b, 2 * rate.shape[-2]), self.config.joint_step))
+        extra = self.extra_rows(x, s)
+        if extra is not None:
+            rows.append(extra[0])
+            room.append(extra[1])
+        kind = [x.new_ones(b, sum(r.shape[1] for r in room))]            # float: an int cat would not compile inline
         if s.distance is not None:
-            d = s.distance[b].numpy()
-            near = np.flatnonzero(d < cfg.influence)
-            if len(near):
-                rows.append(s.distance_jacobian[b].numpy()[near] * -scale)
-                room.append((d[near] - cfg.safety) * (cfg.damper_gain / (cfg.influence - cfg.safety)))
-        G, h = (np.concatenate(rows), np.concatenate(room)) if rows else (np.zeros((0, len(x))), np.zeros(0))
-        damper = np.zeros(len(h), dtype=bool)
-        damper[fixed:] = True
-        return Program(H, g, G, h, lb, ub, damper)
+            rows.append(s.distance_jacobian * -scale)
+            room.append((s.distance - cfg.safety) * (cfg.damper_gain / (cfg.influence - cfg.safety)))
+            kind.append(2.0 * (s.distance < cfg.influence).to(x.dtype))
+        G = torch.cat(rows, dim=1) if rows else x.new_zeros(b, 0, d)
+        h = torch.cat(room, dim=1) if room else x.new_zeros(b, 0)
+        return Rows(H, g, G, h, lb, ub, torch.cat(kind, dim=1))
+
+    def programs(self, rows: Rows) -> list[Program]:
+        """Each sample's :class:`Program` of a batch's rows (the clearances marked 0 left out)."""
+        H, g, G, h, lb, ub, kind = (t.numpy() for t in rows)
+        out = []
+        for b in range(len(g)):
+            keep = np.flatnonzero(kind[b])
+            out.append(Program(H[b], g[b], G[b][keep], h[b][keep], lb[b], ub[b], kind[b][keep] == 2))
+        return out
+
+    def solve_rows(self, x: Tensor, rows: Rows) -> Tensor:
+        """Solve each sample's program: x (B, D) and its :class:`Rows` → x' = x + s·z (B, D), inside the limits."""
+        xs, cfg = x.numpy(), self.config
+        out = np.empty_like(xs)
+        self.status, self.solved = [], []
+        for b, p in enumerate(self.programs(rows)):
+            z, status = solve_program(p, cfg.solver, cfg.direct)
+            self.solved.append((p, z))
+            self.status.append(status)
+            out[b] = xs[b] + self.scale * z
+        outside = self.outside(out)
+        out = torch.from_numpy(out)
+        return self.limits.project(out) if outside else out
 
     def step_variables(self, x: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
-        """One step in variables: x (B, D) → x' (B, D), inside the limits."""
+        """One step in variables, eager: x (B, D) → x' (B, D), inside the limits."""
         x = x.to(F64)
         if x.dim() != 2 or x.shape[1] != self.limits.num_variables:
             raise ValueError(f"x: expected (B, {self.limits.num_variables}) variables, got {tuple(x.shape)}")
         s = self.sense(x)
         jac, err = self.task(s, target, feedforward)
-        xs, jac, err = x.numpy(), jac.numpy(), err.numpy()
-        out = np.empty_like(xs)
-        self.status, self.solved = [], []
-        for b in range(len(xs)):
-            p = self.program(xs[b], jac[b], err[b], s, b)
-            z, status = solve_program(p, self.config.solver, self.config.direct)
-            self.solved.append((p, z))
-            self.status.append(status)
-            out[b] = xs[b] + self.scale * z
-        out = torch.from_numpy(out)
-        return self.limits.project(out) if self.outside(out) else out
+        return self.solve_rows(x, self.program_rows(x, s, jac, err))
 
     @property
     def active(self) -> list[int]:
@@ -341,15 +346,15 @@ class QPController:
         return [int(np.count_nonzero(p.G @ z >= p.h - 1e-9) + np.count_nonzero((z <= p.lb + 1e-9) | (z >= p.ub - 1e-9)))
                 for p, z in self.solved]
 
-    def outside(self, x: Tensor) -> bool:
+    def outside(self, x: Tensor | np.ndarray) -> bool:
         """Whether some variable of x (B, D) lies outside a box or disk by more than 1e-12 of its scale (the
         solver's round-off): then :meth:`Limits.project` removes it."""
-        v = x.numpy()
+        v = x.numpy() if isinstance(x, Tensor) else x
         lower, upper = self.inside_box
         if (v < lower).any() or (v > upper).any():
             return True
-        return bool(len(self.disks)) and bool((np.hypot(v[:, self.disks[:, 0]], v[:, self.disks[:, 1]])
-                                                > self.radius * (1 + 1e-12)).any())
+        first, second, rim = self.disk_columns
+        return len(rim) > 0 and bool((np.hypot(v[:, first], v[:, second]) > rim).any())
 
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None) -> Tensor:
         """One step in joints: q (B, N) → q' (B, N) (module docstring)."""
@@ -359,8 +364,8 @@ class QPController:
 
 class Sensing(nn.Module):
     """A controller's evaluation of its model and clearances as a module, for torch.export / AOTInductor:
-    x (B, D) → the seven fields of :class:`Sensed`, empty (B, 0) tensors for those it does not give. The loaded
-    package is the controller's ``sense`` (the program itself stays in NumPy/qpsolvers)."""
+    x (B, D) → the seven fields of :class:`Sensed`, empty (B, 0) tensors for those it does not give; the loaded
+    package can be a controller's ``sense`` (:class:`~.qp_export.StepProgram` exports the program rows too)."""
 
     def __init__(self, controller: QPController):
         super().__init__()
@@ -368,4 +373,4 @@ class Sensing(nn.Module):
 
     def forward(self, x: Tensor) -> tuple[Tensor, ...]:
         empty = x[:, :0]
-        return tuple(empty if t is None else t for t in self.controller.sense(x))
+        return tuple(empty if t is None else t for t in self.controller.evaluate(x))
