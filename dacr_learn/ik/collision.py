@@ -23,12 +23,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..scene import Scene, capsule_chain, capsule_clearance, chain_clearance, join, swept_body
+from ..scene import Scene, capsule_chain, capsule_pair, chain_clearance, join, swept_body, swept_clearance
 from ..scene.shapes import capsule_distance
 from .adapters import SolverModel
 
 SOLVER_POINTS = 8     # body points per segment inside the refinement
-CHECK_POINTS = 32     # body points per segment of the independent check
+CHECK_POINTS = 16     # body points per segment of the independent check
 PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
 LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
 HINGE_WITHIN = 0.001  # [m] with ``hinge=True``: a converged start short of the clearance by less than this is pushed
@@ -61,32 +61,51 @@ class Avoidance:
         chain = None if links is None else capsule_chain(*links[:3], LINK_SPACING)
         return body, links, chain
 
-    def _evaluate(self, x: Tensor, points_per_segment: int, pairs: bool = True, decide: float | None = None):
-        """(clearance bound (B,), ball distances (B, E) [m], longest body chord (B,)) at variables x (B, D); the
-        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links.
-        Without ``pairs`` only the bound (the others None); ``decide``: as in
-        :func:`~dacr_learn.scene.chain_clearance`."""
+    def _bound(self, x: Tensor, points_per_segment: int, decide: float | None = None) -> Tensor:
+        """Clearance bound (B,) [m] at variables x (B, D): the swept body, and an arm's link chain, to every obstacle,
+        and the body to the links away from the mount, in one :func:`~dacr_learn.scene.swept_clearance`; ``decide``:
+        as there."""
         body, links, chain = self._balls(x, points_per_segment)
         swept = swept_body(body)
-        d_body = self.scene.distances(body.points)[0]                               # (B, P, O)
-        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)] if pairs else []
         if links is None:
-            clear = chain_clearance(self.scene, swept, d_body, decide)
-        else:
+            return chain_clearance(self.scene, swept, None, decide)
+        a, b, radius, near = links
+        a, b, radius = a[:, ~near], b[:, ~near], radius[~near]
+        whole = join(swept, chain[0])
+        d_self = capsule_distance(body.points.unsqueeze(2), a.unsqueeze(1), b.unsqueeze(1), radius, grad=False)[0]
+        d_self = torch.cat([d_self, d_self.new_full((x.shape[0], chain[0].points.shape[1], radius.numel()),
+                                                    float("inf"))], 1)                 # links: not to themselves
+        o, scene, links_pair = self.scene.num_obstacles, self.scene, capsule_pair(a, b, radius)
+
+        def pair(rows: Tensor, points: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
+            d, g = points.new_empty(field.shape), torch.empty_like(points)
+            i, j = (field < o).nonzero().squeeze(-1), (field >= o).nonzero().squeeze(-1)
+            if i.numel():
+                d[i], g[i] = scene.pair_distances(points[i], field[i])
+            if j.numel():
+                d[j], g[j] = links_pair(rows[j], points[j], field[j] - o)
+            return d, g
+
+        convex = torch.cat([self.scene.convex, torch.ones(radius.numel(), dtype=torch.bool)])
+        return swept_clearance(whole, torch.cat([self.scene.distances(whole.points)[0], d_self], -1), pair, convex,
+                               decide)
+
+    def _evaluate(self, x: Tensor, points_per_segment: int):
+        """(clearance bound (B,), ball distances (B, E) [m], longest body chord (B,)) at variables x (B, D); the
+        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links (the
+        hinge residuals' candidates)."""
+        body, links, chain = self._balls(x, points_per_segment)
+        d_body = self.scene.distances(body.points)[0]                               # (B, P, O)
+        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)]
+        if links is not None:
             a, b, radius, near = links
             d_links = self.scene.distances(chain[0].points)[0]
-            clear = torch.minimum(chain_clearance(self.scene, join(swept, chain[0]), torch.cat([d_body, d_links], 1),
-                                                  decide),
-                                  capsule_clearance(swept, a[:, ~near], b[:, ~near], radius[~near]))
-            if pairs:
-                d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1),
-                                          b[:, ~near].unsqueeze(1), radius[~near], grad=False)[0]
-                parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1),
-                          (d_self - body.radius.unsqueeze(-1)).flatten(1)]
-        if not pairs:
-            return clear, None, None
+            d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1),
+                                      b[:, ~near].unsqueeze(1), radius[~near], grad=False)[0]
+            parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1),
+                      (d_self - body.radius.unsqueeze(-1)).flatten(1)]
         longest = torch.linalg.vector_norm(body.points[:, 1:] - body.points[:, :-1], dim=-1).amax(-1)
-        return clear, torch.cat(parts, 1), longest
+        return self._bound(x, points_per_segment), torch.cat(parts, 1), longest
 
     def _pair_distances(self, x: Tensor, pick: Tensor) -> Tensor:
         """The distances (B, k) [m] of the pairs ``pick`` (B, k) (indices into :meth:`_evaluate`'s E) at x (B, D)."""
@@ -118,14 +137,19 @@ class Avoidance:
         :data:`CHUNK` rows. ``decide``: only whether it is ≥ decide matters (a looser bound on the same side,
         :func:`~dacr_learn.scene.chain_clearance`)."""
         if x.shape[0] <= CHUNK:
-            return self._evaluate(x, points_per_segment, False, decide)[0]
-        return torch.cat([self._evaluate(part, points_per_segment, False, decide)[0] for part in x.split(CHUNK)])
+            return self._bound(x, points_per_segment, decide)
+        return torch.cat([self._bound(part, points_per_segment, decide) for part in x.split(CHUNK)])
 
     def triage(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """(B,) bool each: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D; it is below
         but within :data:`HINGE_WITHIN` of D with ``hinge`` (the refinement then pushes the body clear)."""
         bound = self.clearance_of(x, SOLVER_POINTS, None if self.within else self.clearance)
         return bound >= self.clearance, bound >= self.clearance - self.within
+
+    def accept(self, x: Tensor) -> Tensor:
+        """(B,) bool: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D (the decision on a
+        converged start in the working batch of :mod:`.pool`)."""
+        return self.clearance_of(x, SOLVER_POINTS, self.clearance) >= self.clearance
 
     def restarts(self, uniform: Tensor, x: Tensor, solved: Tensor, gen: torch.Generator) -> Tensor:
         """New starts (R, D) of slots whose start stalled: ``uniform`` samples (R, D) of the admissible set, each

@@ -103,6 +103,10 @@ class Scene:
                   (self.box_half.shape[0], lambda p, j: box_distance(
                       p, self.box_center.to(p)[j], self.box_rotation.to(p)[j], self.box_half.to(p)[j]))]
         groups += [(1, lambda p, j, mesh=mesh: mesh_distance(p, mesh)) for mesh in self.meshes]
+        groups = [(count, fn) for count, fn in groups if count]
+        if len(groups) == 1:                                      # one kind of obstacle: no sorting out
+            dd, gg = groups[0][1](flat, idx)
+            return dd.view(index.shape), gg.view(*index.shape, 3)
         for count, fn in groups:
             rows = ((idx >= start) & (idx < start + count)).nonzero().squeeze(-1)
             if rows.numel():
