@@ -28,7 +28,7 @@ from ..scene.shapes import capsule_distance
 from .adapters import SolverModel
 
 SOLVER_POINTS = 8     # body points per segment inside the refinement
-CHECK_POINTS = 16     # body points per segment of the independent check
+CHECK_POINTS = 8      # body points per segment of the independent check
 PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
 LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
 HINGE_WITHIN = 0.001  # [m] with ``hinge=True``: a converged start short of the clearance by less than this is pushed
@@ -51,6 +51,7 @@ class Avoidance:
             raise ValueError(f"clearance: expected a finite distance >= 0 [m], got {clearance}")
         self.model, self.scene, self.clearance = model, scene, float(clearance)
         self.rows, self.within = (PAIRS, HINGE_WITHIN) if hinge else (0, 0.0)
+        self._verdicts: dict[bytes, float] = {}        # variable vector → its independent check (accept, verdict)
         model.body(model.rest.to(torch.float64).unsqueeze(0), SOLVER_POINTS)     # ValueError without a body
 
     def _balls(self, x: Tensor, points_per_segment: int):
@@ -147,9 +148,21 @@ class Avoidance:
         return bound >= self.clearance, bound >= self.clearance - self.within
 
     def accept(self, x: Tensor) -> Tensor:
-        """(B,) bool: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D (the decision on a
-        converged start in the working batch of :mod:`.pool`)."""
-        return self.clearance_of(x, SOLVER_POINTS, self.clearance) >= self.clearance
+        """(B,) bool: the independent check of the joints of variables x (B, D) is ≥ D (the decision on a converged
+        start in the working batch of :mod:`.pool`); each value is kept for :meth:`verdict`."""
+        value = self.clearance_of_joints(self.model.joints(x))
+        self._verdicts.update(zip((row.tobytes() for row in x.contiguous().numpy()), value.tolist(), strict=True))
+        return value >= self.clearance
+
+    def verdict(self, x: Tensor) -> Tensor:
+        """The independent check (:meth:`clearance_of_joints`) of the joints of variables x (B, D) [m]: the value
+        :meth:`accept` computed for the same variable vector, else computed now."""
+        known = [self._verdicts.get(row.tobytes()) for row in x.contiguous().numpy()]
+        out = torch.tensor([float("nan") if v is None else v for v in known], dtype=torch.float64)
+        missing = out.isnan().nonzero().squeeze(-1)
+        if missing.numel():
+            out[missing] = self.clearance_of_joints(self.model.joints(x[missing]))
+        return out
 
     def restarts(self, uniform: Tensor, x: Tensor, solved: Tensor, gen: torch.Generator) -> Tensor:
         """New starts (R, D) of slots whose start stalled: ``uniform`` samples (R, D) of the admissible set, each

@@ -290,7 +290,7 @@ def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Ten
           & constraint_ok)
     clearance = None
     if avoid is not None:
-        clearance = avoid.clearance_of_joints(q.view(b * k, -1)).view(b, k)
+        clearance = avoid.verdict(x.view(-1, d)).view(b, k)            # of q = joints(x)
         ok &= clearance >= avoid.clearance
     order = _order(q, x, ok, pos_err / model.length + rot_err, rest, model.limits.scale, q0)
     distinct = _distinct_mask(q, ok, order, options.distinct)
