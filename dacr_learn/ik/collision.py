@@ -57,8 +57,9 @@ class Avoidance:
     def _balls(self, x: Tensor, points_per_segment: int):
         """The body (:class:`~dacr_learn.body.BodyPoints`), the arm's link capsules or None, and the link capsules'
         chain with its point radii (or None) at variables x (B, D)."""
-        body = self.model.body(x, points_per_segment)
-        links = self.model.links(x)
+        both = getattr(self.model, "body_and_links", None)            # one pass of an arm's kinematics
+        body, links = (both(x, points_per_segment) if both is not None else
+                       (self.model.body(x, points_per_segment), self.model.links(x)))
         chain = None if links is None else capsule_chain(*links[:3], LINK_SPACING)
         return body, links, chain
 
