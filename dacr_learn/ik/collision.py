@@ -6,11 +6,14 @@ Two paths, like the tip's:
   model's body at :data:`CHECK_POINTS` points per segment), the signed clearance of the swept body (robot and arm
   links) to every obstacle, and of the robot's body to the arm's links away from the mount (docs/body.md), as a
   rigorous lower bound (:mod:`dacr_learn.scene.clearance`); a solution succeeds when it is ≥ the clearance D;
-- in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment
-  (:meth:`Avoidance.triage`: only the side of D matters, so the bound's convex refinement is skipped where the
-  Lipschitz bound or the points' own distances already decide). If it clears D it is a solution, else its slot
-  restarts, its new starts mostly near a collision-free solution of the same target (:meth:`Avoidance.restarts`).
-  With ``hinge=True`` a start short by less than :data:`HINGE_WITHIN` is instead pushed clear by hinge residuals
+- in the solver's working batch (:mod:`.pool`, the default): the converged starts are decided together by that same
+  check of their joints (:meth:`Avoidance.accept`), and the value of an accepted start is its slot's verdict
+  (:meth:`Avoidance.verdict`); a rejected start's slot restarts, its new starts mostly near a collision-free
+  solution of the same target (:meth:`Avoidance.restarts`);
+- with grouped restarts (``IKOptions(pool=0)``): a start whose tip has converged is checked at
+  :data:`SOLVER_POINTS` points per segment (:meth:`Avoidance.triage`: only the side of D matters, so the stages
+  that cannot change it are skipped), and restarts the same way; with ``hinge=True`` a start short by less than
+  :data:`HINGE_WITHIN` is instead pushed clear by hinge residuals
   max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle) pairs (:meth:`Avoidance.residual`), d the
   signed distance of a body point's ball, with their Jacobian by forward differences (one batched evaluation of
   the body at the D perturbed variable vectors: any model with a body, meshes included); δ (a tenth of the
