@@ -77,10 +77,21 @@ class Avoidance:
         a, b, radius, near = links
         a, b, radius = a[:, ~near], b[:, ~near], radius[~near]
         whole = join(swept, chain[0])
-        d_self = capsule_distance(body.points.unsqueeze(2), a.unsqueeze(1), b.unsqueeze(1), radius, grad=False)[0]
-        d_self = torch.cat([d_self, d_self.new_full((x.shape[0], chain[0].points.shape[1], radius.numel()),
-                                                    float("inf"))], 1)                 # links: not to themselves
         o, scene, links_pair = self.scene.num_obstacles, self.scene, capsule_pair(a, b, radius)
+        d_scene = self.scene.distances(whole.points)[0]                               # (B, P + Q, O)
+        pts, n = body.points, x.shape[0]
+        # rows whose far links lie beyond the body's reach from its base by more than the clearance some point
+        # already has (an upper bound of the result) skip the body-to-link distances: they cannot hold the minimum
+        upper = ((d_scene.amin(-1) - torch.cat([body.radius, chain[1]])).amin(-1) if o
+                 else pts.new_full((n,), float("inf")))
+        reach = (torch.linalg.vector_norm(pts - pts[:, :1], dim=-1).amax(-1) + swept.sag.amax(-1)
+                 + body.radius.max())
+        d_base = capsule_distance(pts[:, :1], a, b, radius, grad=False)[0]                 # (B, C)
+        rows = ((d_base - reach.unsqueeze(-1)) < upper.unsqueeze(-1)).any(-1).nonzero().squeeze(-1)
+        d_self = pts.new_full((n, whole.points.shape[1], radius.numel()), float("inf"))     # links: not to themselves
+        if rows.numel():
+            d_self[rows, :pts.shape[1]] = capsule_distance(pts[rows].unsqueeze(2), a[rows].unsqueeze(1),
+                                                           b[rows].unsqueeze(1), radius, grad=False)[0]
 
         def pair(rows: Tensor, points: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
             d, g = points.new_empty(field.shape), torch.empty_like(points)
@@ -92,7 +103,7 @@ class Avoidance:
             return d, g
 
         convex = torch.cat([self.scene.convex, torch.ones(radius.numel(), dtype=torch.bool)])
-        return swept_clearance(whole, torch.cat([self.scene.distances(whole.points)[0], d_self], -1), pair, convex,
+        return swept_clearance(whole, torch.cat([d_scene, d_self], -1), pair, convex,
                                decide)
 
     def _evaluate(self, x: Tensor, points_per_segment: int):
