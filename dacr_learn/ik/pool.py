@@ -12,8 +12,8 @@ restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate 
 solution of their target are reopened (twice at most), as in :mod:`.solver`.
 
 With a further condition on a solution (``accept``, e.g. the clearance of a scene, :mod:`.collision`) a row whose
-tip has converged leaves the batch undecided; the rows gathered so far are decided together at the next refill
-(one batched check): an accepted row solves its slot, a rejected one is a candidate like a stalled row, and
+tip has converged leaves the batch undecided; at the next refill the first such row of each slot is checked (one
+batched check, :func:`_decide`): an accepted row solves its slot, a rejected one is a candidate like a stalled row, and
 ``near`` may move the unsolved slots' new starts towards accepted solutions of the same target (not those of slots
 reopened as duplicates: near another solution they would find it again).
 """
