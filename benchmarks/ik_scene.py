@@ -1,6 +1,6 @@
 """Collision-free IK on the shipped scenes, side by side with the plain solver on the same targets.
 
-    python benchmarks/ik_scene.py [--targets 1000] [--solutions 8] [--clearance 0.005] [--threads 2]
+    python benchmarks/ik_scene.py [--targets 1000] [--solutions 8] [--clearance 0.005] [--threads 2] [--shards 2]
 
 Scenes: configs/scenes/spheres_tdcr3.yaml (20 spheres around the 3-segment robot) and
 configs/scenes/port_panda.yaml (a port in a wall and a sphere behind it, the robot on the Panda). Targets: tip
@@ -9,11 +9,14 @@ the arm: its joints within ±0.15 rad of home, so that many reach through the po
 re-checked independently: the joints' features (encoder) → the classic arc formula in NumPy at 400 points per
 segment → NumPy distances to the obstacles by projection, minus the body radius (the arm's link capsules,
 posed by pytorch-kinematics, densely sampled as well). Prints per scene: targets solved, false flags, distinct
-solutions per target, verified solutions/s, and the plain solver's time on the same targets.
+solutions per target, verified solutions/s, and the plain solver's time on the same targets (wall and CPU time of
+the process, and the load average, side by side in one run). ``--shards N``: both solves split their targets into N
+shards on parallel threads (``IKOptions.shards``; with ``--threads`` ≥ N).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -28,7 +31,7 @@ sys.path.insert(0, str(ROOT / "tests"))          # the independent NumPy referen
 from conftest import reference_backbone  # noqa: E402
 
 from dacr_learn.arm import Composite, load_arm  # noqa: E402
-from dacr_learn.ik import ConstantCurvature, solve_ik  # noqa: E402
+from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik  # noqa: E402
 from dacr_learn.ik.collision import Avoidance  # noqa: E402
 from dacr_learn.layers import ClarkeEncoder  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
@@ -139,27 +142,34 @@ def run(name: str, model, spec: RobotSpec, scene_file: Path, args, arm_spread: f
     scene = load_scene(scene_file)
     targets = targets_for(model, scene, args.clearance, args.targets, 0, arm_spread)
     seeds = (lambda t: model.seeds(t, args.solutions)) if hasattr(model, "seeds") else (lambda t: None)
-    started = time.perf_counter()
-    plain = solve_ik(model, targets, args.solutions, seeds=seeds(targets))
-    t_plain = time.perf_counter() - started
-    started = time.perf_counter()
-    res = solve_ik(model, targets, args.solutions, seeds=seeds(targets), scene=scene, clearance=args.clearance)
-    t_scene = time.perf_counter() - started
+    options = IKOptions(shards=args.shards)
+    solve_ik(model, targets[:8], args.solutions, seeds=seeds(targets[:8]), options=options, scene=scene,
+             clearance=args.clearance)                                            # warm-up
+    started, cpu = time.perf_counter(), time.process_time()
+    plain = solve_ik(model, targets, args.solutions, seeds=seeds(targets), options=options)
+    t_plain, c_plain = time.perf_counter() - started, time.process_time() - cpu
+    started, cpu = time.perf_counter(), time.process_time()
+    res = solve_ik(model, targets, args.solutions, seeds=seeds(targets), options=options, scene=scene,
+                   clearance=args.clearance)
+    t_scene, c_scene = time.perf_counter() - started, time.process_time() - cpu
     ok = res.success
     flagged = ok.nonzero().tolist()
     q = res.q[ok].numpy()
     true = numpy_clearance(model, spec, scene, q) if len(q) else np.zeros(0)
     false = int((true < args.clearance).sum())
     b, k = ok.shape
-    print(f"{name}: {b} targets clear by >= {args.clearance * 1e3:.1f} mm, K = {k}")
+    print(f"{name}: {b} targets clear by >= {args.clearance * 1e3:.1f} mm, K = {k}, {args.threads} threads, "
+          f"{args.shards} shards, load average {os.getloadavg()[0]:.1f}")
     print(f"  plain solver: {plain.success.any(1).double().mean() * 100:.1f} % solved, "
-          f"{int(plain.success.sum())} solutions in {t_plain:.1f} s ({plain.success.sum() / t_plain:.0f} /s)")
+          f"{int(plain.success.sum())} solutions in {t_plain:.1f} s ({plain.success.sum() / t_plain:.0f} /s; CPU "
+          f"{c_plain:.1f} s)")
     print(f"  with scene:   {ok.any(1).double().mean() * 100:.1f} % solved, {len(flagged)} solutions, "
           f"{false} false flags (dense NumPy check; smallest true clearance "
           f"{true.min() * 1e3 if len(true) else float('nan'):.3f} mm, reported ≤ true: "
           f"{bool((res.clearance[ok].numpy() <= true + 1e-12).all())}), "
           f"{res.distinct.sum(1).double().mean():.2f} distinct per target, {t_scene:.1f} s "
-          f"({len(flagged) / t_scene:.0f} verified solutions/s; {t_scene / t_plain:.1f}x the plain solver)")
+          f"({len(flagged) / t_scene:.0f} verified solutions/s; {t_scene / t_plain:.2f}x the plain solver; CPU "
+          f"{c_scene:.1f} s, {c_scene / c_plain:.2f}x)")
 
 
 def main() -> None:
@@ -168,6 +178,7 @@ def main() -> None:
     p.add_argument("--solutions", type=int, default=8)
     p.add_argument("--clearance", type=float, default=0.005)
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--shards", type=int, default=1, help="IKOptions.shards of both solves (parallel threads)")
     p.add_argument("--only", choices=["spheres", "port"])
     args = p.parse_args()
     torch.set_num_threads(args.threads)

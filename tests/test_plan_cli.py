@@ -89,7 +89,7 @@ def test_a_scene_adds_the_clearance_of_each_step(tmp_path, capsys):
     assert plan["clearance"].shape == (6,) and plan["clearance"].dtype == np.float64
     assert not bool(plan["success"]) and str(plan["reason"]).startswith("clearance ")
     envelope = RobotSpec.from_yaml(ROBOT).segments[-1].body_radius          # step 0: the tip 0.19 m below the sphere
-    assert abs(plan["clearance"][0] - (0.49 - 0.3 - envelope)) < 1e-9
+    assert abs(plan["clearance"][0] - (0.49 - 0.3 - envelope)) < 1e-8          # the sag of a nearly straight body
     assert "clearance min -0.018 m; FAILED: clearance" in capsys.readouterr().out
 
 

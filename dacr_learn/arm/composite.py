@@ -172,6 +172,16 @@ class Composite(SolverModel):
         a, b = posed_capsules(geometry, self.arm.frames(x[:, :self.num_arm]))
         return a, b, geometry.radius, geometry.near_mount
 
+    def body_and_links(self, x: Tensor, points_per_segment: int = 16):
+        """(:meth:`body`, :meth:`links`) at variables x (B, n + D) from one pass of the arm's forward kinematics."""
+        geometry = self.arm.geometry
+        frames = self.arm.frames(x[:, :self.num_arm])
+        base = frames[:, self.arm.frame_names.index(self.arm.tip)] @ self.mount
+        body = transform_body(self.robot.body(x[:, self.num_arm:], points_per_segment), base)
+        if geometry is None or geometry.radius.numel() == 0:
+            return body, None
+        return body, (*posed_capsules(geometry, frames), geometry.radius, geometry.near_mount)
+
     # -- differentiable forward kinematics ---------------------------------------------------------------------
 
     def base_pose(self, theta: Tensor) -> Tensor:

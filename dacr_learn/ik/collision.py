@@ -6,11 +6,14 @@ Two paths, like the tip's:
   model's body at :data:`CHECK_POINTS` points per segment), the signed clearance of the swept body (robot and arm
   links) to every obstacle, and of the robot's body to the arm's links away from the mount (docs/body.md), as a
   rigorous lower bound (:mod:`dacr_learn.scene.clearance`); a solution succeeds when it is ≥ the clearance D;
-- in the refinement: a start whose tip has converged is checked at :data:`SOLVER_POINTS` points per segment
-  (:meth:`Avoidance.triage`: only the side of D matters, so the bound's convex refinement is skipped where the
-  Lipschitz bound or the points' own distances already decide). If it clears D it is a solution, else its slot
-  restarts, its new starts mostly near a collision-free solution of the same target (:meth:`Avoidance.restarts`).
-  With ``hinge=True`` a start short by less than :data:`HINGE_WITHIN` is instead pushed clear by hinge residuals
+- in the solver's working batch (:mod:`.pool`, the default): the converged starts are decided together by that same
+  check of their joints (:meth:`Avoidance.accept`), and the value of an accepted start is its slot's verdict
+  (:meth:`Avoidance.verdict`); a rejected start's slot restarts, its new starts mostly near a collision-free
+  solution of the same target (:meth:`Avoidance.restarts`);
+- with grouped restarts (``IKOptions(pool=0)``): a start whose tip has converged is checked at
+  :data:`SOLVER_POINTS` points per segment (:meth:`Avoidance.triage`: only the side of D matters, so the stages
+  that cannot change it are skipped), and restarts the same way; with ``hinge=True`` a start short by less than
+  :data:`HINGE_WITHIN` is instead pushed clear by hinge residuals
   max(0, D + δ − d)/L of the :data:`PAIRS` worst (ball, obstacle) pairs (:meth:`Avoidance.residual`), d the
   signed distance of a body point's ball, with their Jacobian by forward differences (one batched evaluation of
   the body at the D perturbed variable vectors: any model with a body, meshes included); δ (a tenth of the
@@ -23,12 +26,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..scene import Scene, capsule_chain, capsule_clearance, chain_clearance, join, swept_body
+from ..scene import Scene, capsule_chain, capsule_pair, chain_clearance, join, swept_body, swept_clearance
 from ..scene.shapes import capsule_distance
 from .adapters import SolverModel
 
 SOLVER_POINTS = 8     # body points per segment inside the refinement
-CHECK_POINTS = 32     # body points per segment of the independent check
+CHECK_POINTS = 8      # body points per segment of the independent check
 PAIRS = 4             # hinge residuals per start: its worst (ball, obstacle) pairs
 LINK_SPACING = 0.05   # [m] longest chord along an arm link's capsule axis
 HINGE_WITHIN = 0.001  # [m] with ``hinge=True``: a converged start short of the clearance by less than this is pushed
@@ -51,42 +54,74 @@ class Avoidance:
             raise ValueError(f"clearance: expected a finite distance >= 0 [m], got {clearance}")
         self.model, self.scene, self.clearance = model, scene, float(clearance)
         self.rows, self.within = (PAIRS, HINGE_WITHIN) if hinge else (0, 0.0)
+        self._verdicts: dict[bytes, float] = {}        # variable vector → its independent check (accept, verdict)
         model.body(model.rest.to(torch.float64).unsqueeze(0), SOLVER_POINTS)     # ValueError without a body
 
     def _balls(self, x: Tensor, points_per_segment: int):
         """The body (:class:`~dacr_learn.body.BodyPoints`), the arm's link capsules or None, and the link capsules'
         chain with its point radii (or None) at variables x (B, D)."""
-        body = self.model.body(x, points_per_segment)
-        links = self.model.links(x)
+        both = getattr(self.model, "body_and_links", None)            # one pass of an arm's kinematics
+        body, links = (both(x, points_per_segment) if both is not None else
+                       (self.model.body(x, points_per_segment), self.model.links(x)))
         chain = None if links is None else capsule_chain(*links[:3], LINK_SPACING)
         return body, links, chain
 
-    def _evaluate(self, x: Tensor, points_per_segment: int, pairs: bool = True, decide: float | None = None):
-        """(clearance bound (B,), ball distances (B, E) [m], longest body chord (B,)) at variables x (B, D); the
-        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links.
-        Without ``pairs`` only the bound (the others None); ``decide``: as in
-        :func:`~dacr_learn.scene.chain_clearance`."""
+    def _bound(self, x: Tensor, points_per_segment: int, decide: float | None = None) -> Tensor:
+        """Clearance bound (B,) [m] at variables x (B, D): the swept body, and an arm's link chain, to every obstacle,
+        and the body to the links away from the mount, in one :func:`~dacr_learn.scene.swept_clearance`; ``decide``:
+        as there."""
         body, links, chain = self._balls(x, points_per_segment)
         swept = swept_body(body)
-        d_body = self.scene.distances(body.points)[0]                               # (B, P, O)
-        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)] if pairs else []
         if links is None:
-            clear = chain_clearance(self.scene, swept, d_body, decide)
-        else:
+            return chain_clearance(self.scene, swept, None, decide)
+        a, b, radius, near = links
+        a, b, radius = a[:, ~near], b[:, ~near], radius[~near]
+        whole = join(swept, chain[0])
+        o, scene, links_pair = self.scene.num_obstacles, self.scene, capsule_pair(a, b, radius)
+        d_scene = self.scene.distances(whole.points)[0]                               # (B, P + Q, O)
+        pts, n = body.points, x.shape[0]
+        # rows whose far links lie beyond the body's reach from its base by more than the clearance some point
+        # already has (an upper bound of the result) skip the body-to-link distances: they cannot hold the minimum
+        upper = ((d_scene.amin(-1) - torch.cat([body.radius, chain[1]])).amin(-1) if o
+                 else pts.new_full((n,), float("inf")))
+        reach = (torch.linalg.vector_norm(pts - pts[:, :1], dim=-1).amax(-1) + swept.sag.amax(-1)
+                 + body.radius.max())
+        d_base = capsule_distance(pts[:, :1], a, b, radius, grad=False)[0]                 # (B, C)
+        rows = ((d_base - reach.unsqueeze(-1)) < upper.unsqueeze(-1)).any(-1).nonzero().squeeze(-1)
+        d_self = pts.new_full((n, whole.points.shape[1], radius.numel()), float("inf"))     # links: not to themselves
+        if rows.numel():
+            d_self[rows, :pts.shape[1]] = capsule_distance(pts[rows].unsqueeze(2), a[rows].unsqueeze(1),
+                                                           b[rows].unsqueeze(1), radius, grad=False)[0]
+
+        def pair(rows: Tensor, points: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
+            d, g = points.new_empty(field.shape), torch.empty_like(points)
+            i, j = (field < o).nonzero().squeeze(-1), (field >= o).nonzero().squeeze(-1)
+            if i.numel():
+                d[i], g[i] = scene.pair_distances(points[i], field[i])
+            if j.numel():
+                d[j], g[j] = links_pair(rows[j], points[j], field[j] - o)
+            return d, g
+
+        convex = torch.cat([self.scene.convex, torch.ones(radius.numel(), dtype=torch.bool)])
+        return swept_clearance(whole, torch.cat([d_scene, d_self], -1), pair, convex,
+                               decide)
+
+    def _evaluate(self, x: Tensor, points_per_segment: int):
+        """(clearance bound (B,), ball distances (B, E) [m], longest body chord (B,)) at variables x (B, D); the
+        E (ball, obstacle) pairs: body points × obstacles, link points × obstacles, body points × far links (the
+        hinge residuals' candidates)."""
+        body, links, chain = self._balls(x, points_per_segment)
+        d_body = self.scene.distances(body.points)[0]                               # (B, P, O)
+        parts = [(d_body - body.radius.unsqueeze(-1)).flatten(1)]
+        if links is not None:
             a, b, radius, near = links
             d_links = self.scene.distances(chain[0].points)[0]
-            clear = torch.minimum(chain_clearance(self.scene, join(swept, chain[0]), torch.cat([d_body, d_links], 1),
-                                                  decide),
-                                  capsule_clearance(swept, a[:, ~near], b[:, ~near], radius[~near]))
-            if pairs:
-                d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1),
-                                          b[:, ~near].unsqueeze(1), radius[~near], grad=False)[0]
-                parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1),
-                          (d_self - body.radius.unsqueeze(-1)).flatten(1)]
-        if not pairs:
-            return clear, None, None
+            d_self = capsule_distance(body.points.unsqueeze(2), a[:, ~near].unsqueeze(1),
+                                      b[:, ~near].unsqueeze(1), radius[~near], grad=False)[0]
+            parts += [(d_links - chain[1].unsqueeze(-1)).flatten(1),
+                      (d_self - body.radius.unsqueeze(-1)).flatten(1)]
         longest = torch.linalg.vector_norm(body.points[:, 1:] - body.points[:, :-1], dim=-1).amax(-1)
-        return clear, torch.cat(parts, 1), longest
+        return self._bound(x, points_per_segment), torch.cat(parts, 1), longest
 
     def _pair_distances(self, x: Tensor, pick: Tensor) -> Tensor:
         """The distances (B, k) [m] of the pairs ``pick`` (B, k) (indices into :meth:`_evaluate`'s E) at x (B, D)."""
@@ -118,14 +153,31 @@ class Avoidance:
         :data:`CHUNK` rows. ``decide``: only whether it is ≥ decide matters (a looser bound on the same side,
         :func:`~dacr_learn.scene.chain_clearance`)."""
         if x.shape[0] <= CHUNK:
-            return self._evaluate(x, points_per_segment, False, decide)[0]
-        return torch.cat([self._evaluate(part, points_per_segment, False, decide)[0] for part in x.split(CHUNK)])
+            return self._bound(x, points_per_segment, decide)
+        return torch.cat([self._bound(part, points_per_segment, decide) for part in x.split(CHUNK)])
 
     def triage(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """(B,) bool each: the clearance bound of variables x (B, D) at :data:`SOLVER_POINTS` is ≥ D; it is below
         but within :data:`HINGE_WITHIN` of D with ``hinge`` (the refinement then pushes the body clear)."""
         bound = self.clearance_of(x, SOLVER_POINTS, None if self.within else self.clearance)
         return bound >= self.clearance, bound >= self.clearance - self.within
+
+    def accept(self, x: Tensor) -> Tensor:
+        """(B,) bool: the independent check of the joints of variables x (B, D) is ≥ D (the decision on a converged
+        start in the working batch of :mod:`.pool`); each value is kept for :meth:`verdict`."""
+        value = self.clearance_of_joints(self.model.joints(x))
+        self._verdicts.update(zip((row.tobytes() for row in x.contiguous().numpy()), value.tolist(), strict=True))
+        return value >= self.clearance
+
+    def verdict(self, x: Tensor) -> Tensor:
+        """The independent check (:meth:`clearance_of_joints`) of the joints of variables x (B, D) [m]: the value
+        :meth:`accept` computed for the same variable vector, else computed now."""
+        known = [self._verdicts.get(row.tobytes()) for row in x.contiguous().numpy()]
+        out = torch.tensor([float("nan") if v is None else v for v in known], dtype=torch.float64)
+        missing = out.isnan().nonzero().squeeze(-1)
+        if missing.numel():
+            out[missing] = self.clearance_of_joints(self.model.joints(x[missing]))
+        return out
 
     def restarts(self, uniform: Tensor, x: Tensor, solved: Tensor, gen: torch.Generator) -> Tensor:
         """New starts (R, D) of slots whose start stalled: ``uniform`` samples (R, D) of the admissible set, each

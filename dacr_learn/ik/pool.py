@@ -10,6 +10,12 @@ starts of the unsolved slots that have no live start — one each, more while th
 :data:`TAIL_ROWS` (at most ``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
 restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
 solution of their target are reopened (twice at most), as in :mod:`.solver`.
+
+With a further condition on a solution (``accept``, e.g. the clearance of a scene, :mod:`.collision`) a row whose
+tip has converged leaves the batch undecided; at the next refill the first such row of each slot is checked (one
+batched check, :func:`_decide`): an accepted row solves its slot, a rejected one is a candidate like a stalled row, and
+``near`` may move the unsolved slots' new starts towards accepted solutions of the same target (not those of slots
+reopened as duplicates: near another solution they would find it again).
 """
 from __future__ import annotations
 
@@ -76,13 +82,17 @@ class _Batch:
 def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotation: Tensor | None,
                      gen: torch.Generator, k: int, tolerance: tuple[float, float], damping: float,
                      max_iterations: int, budget: int, max_fan_out: int, pool: int, redundant: bool,
-                     keep_first: bool, dedupe) -> tuple[Tensor, Tensor]:
+                     keep_first: bool, dedupe, accept: Callable[[Tensor], Tensor] | None = None,
+                     near: Callable[..., Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Refine the first starts (M, D) of the M = B·K slots (targets position (B, 3) [m], rotation (B, 3, 3) or
     None; slot i belongs to target i // K) in a working batch of at most ``pool`` rows (module docstring).
     ``tolerance``: (position [m], rotation [rad]) a start must reach (a decade below the solver's);
     ``budget``: starts per slot (at most ``max_fan_out`` at once); ``dedupe(x (B, K, D), solved (B, K))`` → (B, K)
     bool marks the solved slots to reopen (``redundant``: more variables than residuals, so solutions are not
-    isolated; ``keep_first``: slot 0 of a target, the warm start's, is never reopened).
+    isolated; ``keep_first``: slot 0 of a target, the warm start's, is never reopened). ``accept(x (R, D))`` → (R,)
+    bool: whether a start whose tip converged is a solution (module docstring; None: every one is);
+    ``near(uniform (R, D), x (M, D), solved (R, K), gen)`` → (R, D): new starts of unsolved slots from uniform
+    samples, given the slots' variables x and, per new start, its target's solved slots (−1 where unsolved).
     Returns each slot's variables (M, D) — its converged start, else its start of least residual — and the LM
     iterations spent on the slot (M,)."""
     m, d = starts.shape
@@ -93,10 +103,18 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     batch = _Batch(model, position, rotation, damping, k)
     queued, dedupe_rounds = 0, 0                                   # first starts begun; duplicate checks done
     live = torch.zeros(0, dtype=torch.bool)
+    pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
+    duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
     while True:
         size = live.numel()
         n_live = int(live.sum())
         if size == 0 or size - n_live >= max(1, REFILL * size):
+            while pending:                    # converged rows to decide; all of them once nothing else is left
+                out_cost, pending = _decide(pending, accept, solved, out_x, out_cost)
+                live = live & ~solved[batch.slot]
+                n_live = int(live.sum())
+                if n_live:
+                    break
             if queued == m and dedupe_rounds < 2 and redundant and n_live <= DUPLICATE_CHECK_BELOW * m:
                 dedupe_rounds += 1                    # few rows left: reopen solved slots that duplicate another
                 dup = dedupe(out_x.view(-1, k, d), solved.view(-1, k)).flatten()
@@ -104,6 +122,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                     dup.view(-1, k)[:, 0] = False
                 reopen = dup & (taken < budget)
                 solved &= ~reopen             # the duplicate stays the slot's candidate (its cost is tiny)
+                duplicate |= reopen
             keep = live.nonzero().squeeze(-1)
             free = pool - keep.numel()
             first = torch.arange(queued, min(m, queued + free))
@@ -118,7 +137,11 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                     each = torch.clamp(budget - taken[needy], max=min(max_fan_out, share))
                     more = needy.repeat_interleave(each)[:free]
                     slots.append(more)
-                    x0.append(lim.sample(more.numel(), gen))
+                    fresh = lim.sample(more.numel(), gen)
+                    if near is not None:                # not for duplicates: they would find the same again
+                        solutions = torch.where(solved, torch.arange(m), -1).view(-1, k)[more // k]
+                        fresh = near(fresh, out_x, solutions.masked_fill(duplicate[more].unsqueeze(-1), -1), gen)
+                    x0.append(fresh)
             slots = torch.cat(slots)
             taken.index_add_(0, slots, torch.ones_like(slots))
             if slots.numel() == 0 and keep.numel() == 0:
@@ -129,23 +152,63 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
         iters.index_add_(0, batch.slot, live.long())
         x, _, _, cost, lam, pe, re = batch.state
         conv = live & (pe <= tolerance[0]) & (re <= tolerance[1])
-        if conv.any():                                            # the first converged row of a slot solves it
+        if conv.any():
             rows = conv.nonzero().squeeze(-1)
-            win = torch.full((m,), batch.slot.numel(), dtype=torch.long).scatter_reduce(
-                0, batch.slot[rows], rows, "amin")
-            newly = (win < batch.slot.numel()) & ~solved
-            out_x[newly], out_cost[newly] = x[win[newly]], cost[win[newly]]
-            solved |= newly
+            if accept is None:                                    # the first converged row of a slot solves it
+                _take_solutions(x[rows], cost[rows], batch.slot[rows], solved, out_x, out_cost)
+            else:                                                 # decided at the next refill
+                pending.append((x[rows], cost[rows], batch.slot[rows]))
         stall = live & ~conv & ((batch.since >= max_iterations) | (lam >= STALL_LAMBDA))
         if stall.any():                                           # a stalled row: a candidate of least residual
             rows = stall.nonzero().squeeze(-1)
-            s, c = batch.slot[rows], cost[rows]
-            best = out_cost.scatter_reduce(0, s, c, "amin")
-            better = (c <= best[s]) & (c < out_cost[s]) & ~solved[s]
-            out_x[s[better]] = x[rows[better]]
-            out_cost = torch.where(solved, out_cost, best)
+            out_cost = _take_candidates(x[rows], cost[rows], batch.slot[rows], solved, out_x, out_cost)
         live = live & ~conv & ~stall & ~solved[batch.slot]
     return out_x, iters
+
+
+def _take_solutions(x: Tensor, cost: Tensor, slot: Tensor, solved: Tensor, out_x: Tensor, out_cost: Tensor) -> None:
+    """Rows x (R, D) with cost (R,) of slots (R,) that solve them: the first row of each unsolved slot becomes its
+    solution (``solved``, ``out_x``, ``out_cost`` updated in place)."""
+    m = solved.numel()
+    win = torch.full((m,), slot.numel(), dtype=torch.long).scatter_reduce(
+        0, slot, torch.arange(slot.numel()), "amin")
+    newly = (win < slot.numel()) & ~solved
+    out_x[newly], out_cost[newly] = x[win[newly]], cost[win[newly]]
+    solved |= newly
+
+
+def _decide(pending: list[tuple[Tensor, Tensor, Tensor]], accept: Callable[[Tensor], Tensor], solved: Tensor,
+            out_x: Tensor, out_cost: Tensor) -> tuple[Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
+    """Decide the converged rows ``pending`` [(x (R, D), cost (R,), slot (R,)), …]: the first row of every slot still
+    unsolved is checked (``accept``); an accepted row solves its slot (the slot's other rows are dropped), a
+    rejected one is a candidate (:func:`_take_candidates`). Updates ``solved``, ``out_x`` in place; returns the
+    costs (M,) and the rows left to decide (of slots whose checked row was rejected)."""
+    x, cost, slot = (torch.cat(t) for t in zip(*pending, strict=True))
+    open_ = ~solved[slot]
+    x, cost, slot = x[open_], cost[open_], slot[open_]
+    n = slot.numel()
+    if n == 0:
+        return out_cost, []
+    win = torch.full((solved.numel(),), n, dtype=torch.long).scatter_reduce(0, slot, torch.arange(n), "amin")
+    first = torch.zeros(n, dtype=torch.bool).index_fill_(0, win[win < n], True)
+    xf, cf, sf = x[first], cost[first], slot[first]
+    ok = accept(xf)
+    _take_solutions(xf[ok], cf[ok], sf[ok], solved, out_x, out_cost)
+    out_cost = _take_candidates(xf[~ok], cf[~ok], sf[~ok], solved, out_x, out_cost)
+    rest = ~first & ~solved[slot]
+    return out_cost, [(x[rest], cost[rest], slot[rest])] if bool(rest.any()) else []
+
+
+def _take_candidates(x: Tensor, cost: Tensor, slot: Tensor, solved: Tensor, out_x: Tensor, out_cost: Tensor
+                     ) -> Tensor:
+    """Rows x (R, D) with cost (R,) of slots (R,) that did not solve them: an unsolved slot keeps its row of least
+    cost in ``out_x`` (in place); returns the updated costs (M,)."""
+    if slot.numel() == 0:
+        return out_cost
+    best = out_cost.scatter_reduce(0, slot, cost, "amin")
+    better = (cost <= best[slot]) & (cost < out_cost[slot]) & ~solved[slot]
+    out_x[slot[better]] = x[better]
+    return torch.where(solved, out_cost, best)
 
 
 

@@ -38,9 +38,10 @@ class IKOptions:
     distinct: two solutions of a target are distinct when some joint differs by at least this much
     [joint units: m, rad; mm for a servo model]; damping: initial λ (scaled units); seed: of the random
     starts (reproducible results for the same seed and shards); pool: rows of the working batch that stays full
-    (:mod:`.pool`; without a scene), 0 for grouped restarts of shrinking batches (:func:`_multi_start`, always
-    used with a scene); shards: the pool's targets split into this many parts, run on parallel threads (at most
-    torch's thread count at once; the solutions depend on the shards, not on the threads).
+    (:mod:`.pool`; with a scene, converged starts are checked for clearance in batches there), 0 for grouped
+    restarts of shrinking batches (:func:`_multi_start`); shards: the pool's targets split into this many parts, run
+    on parallel threads (at most torch's thread count at once; the solutions depend on the shards, not on the
+    threads).
     """
 
     pos_tolerance: float = 1e-6
@@ -162,7 +163,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
 
-    if avoid is None and options.pool > 0:
+    if options.pool > 0:
         tol = (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance)    # a decade below, as Refinement
         parts = shards(b, options.shards)
         gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
@@ -174,10 +175,11 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
                 model, starts[t].reshape(-1, d), position[t], None if rotation is None else rotation[t], gens[i], k,
                 tol, options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT),
                 MAX_FAN_OUT, options.pool, d >= (3 if rotation is None else 6), q0 is not None,
-                lambda x, ok: _duplicates(model, x, ok, options.distinct))
+                lambda x, ok: _duplicates(model, x, ok, options.distinct),
+                None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts)
         x, iters = (torch.cat(t) for t in zip(*run_sharded(shard, len(parts)), strict=True))
         return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
-                                lim.project(model.rest.to(F64)), options)
+                                lim.project(model.rest.to(F64)), options, avoid)
     rows = torch.arange(b).repeat_interleave(k)
     state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
                        (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
@@ -288,7 +290,7 @@ def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Ten
           & constraint_ok)
     clearance = None
     if avoid is not None:
-        clearance = avoid.clearance_of_joints(q.view(b * k, -1)).view(b, k)
+        clearance = avoid.verdict(x.view(-1, d)).view(b, k)            # of q = joints(x)
         ok &= clearance >= avoid.clearance
     order = _order(q, x, ok, pos_err / model.length + rot_err, rest, model.limits.scale, q0)
     distinct = _distinct_mask(q, ok, order, options.distinct)

@@ -5,16 +5,19 @@ them, within ``sag`` of it (the backbone's arc, :func:`~dacr_learn.body.chord_sa
 swept by a ball of the chord's ``radius``. Its clearance to an obstacle is bounded below per chord from the
 signed distance f and its gradient at the two ends, f(t) along the chord t ∈ [0, 1]:
 
-- convex obstacles (sphere, capsule, box): f is convex along the chord, so it lies above both tangent lines
-  f_a + s_a·t and f_b + s_b·(t − 1) (s = ∇f·(b − a)); the bound is the minimum of their upper envelope on [0, 1];
+- convex obstacles (sphere, capsule, box): f is convex along the chord, so it lies above its tangent lines, e.g.
+  f_a + s_a·t and f_b + s_b·(t − 1) (s = ∇f·(b − a)); the bound is the minimum of their upper envelope on [0, 1],
+  tightened by tangents where that envelope is lowest (:func:`cut_bound`);
 - meshes: f is 1-Lipschitz: f(t) ≥ (f_a + f_b − c)/2 for a chord of length c;
 
-minus the chord's radius and sag. The bound is exact at the chord's ends and its gap shrinks with the square
-of the chord length for convex obstacles, so a check of denser points is tighter, never looser. Meshes get the
-(looser) Lipschitz bound.
+minus the chord's radius and sag. The bound is exact at the chord's ends; for convex obstacles its gap is the
+sag's (∝ chord², a check of denser points is tighter) plus what the cuts leave (shrinking fast with each cut).
+Meshes get the (looser) Lipschitz bound. Only the chords and obstacles that can hold the minimum are refined
+(:func:`swept_clearance`), so most of the cost is the distances at the points.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -22,6 +25,9 @@ from torch import Tensor
 
 from ..body import BodyPoints, chord_sag
 from .files import Scene
+from .shapes import capsule_distance
+
+PairDistance = Callable[[Tensor, Tensor, Tensor], tuple[Tensor, Tensor]]
 
 
 class Swept(NamedTuple):
@@ -73,60 +79,118 @@ def capsule_chain(a: Tensor, b: Tensor, radius: Tensor, spacing: float) -> tuple
     return join(*chains), torch.cat(point_radius)
 
 
-def convex_bound(fa: Tensor, fb: Tensor, sa: Tensor, sb: Tensor) -> Tensor:
-    """Lower bound of a convex f on a chord t ∈ [0, 1] from its values fa, fb at the ends and its slopes sa, sb
-    (∇f·(b − a)) there: the minimum of the upper envelope of the two tangent lines (module docstring)."""
+CUTS = 2   # tangent cuts per refined (chord, convex obstacle) pair, each at the minimum of the bound so far
+
+
+def _envelope(fa: Tensor, fb: Tensor, sa: Tensor, sb: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`convex_bound` and where on [0, 1] the upper envelope of the two tangent lines is lowest."""
     denom = sa - sb
     t = ((fb - sb - fa) / torch.where(denom < 0, denom, -1.0)).clamp(0.0, 1.0)
     bound = torch.where(sa >= 0, fa, torch.where(sb <= 0, fb, fa + sa * t))
-    return torch.minimum(bound, torch.minimum(fa, fb))
+    return torch.minimum(bound, torch.minimum(fa, fb)), t
+
+
+def convex_bound(fa: Tensor, fb: Tensor, sa: Tensor, sb: Tensor) -> Tensor:
+    """Lower bound of a convex f on a chord t ∈ [0, 1] from its values fa, fb at the ends and its slopes sa, sb
+    (∇f·(b − a)) there: the minimum of the upper envelope of the two tangent lines (module docstring)."""
+    return _envelope(fa, fb, sa, sb)[0]
+
+
+def cut_bound(pair: PairDistance, rows: Tensor, a: Tensor, b: Tensor, field: Tensor, cuts: int = CUTS) -> Tensor:
+    """Lower bound (T,) [m] of convex distance fields along chords a → b (T, 3) of batch rows ``rows`` (T,), field
+    indices ``field`` (T,): :func:`convex_bound` of the ends, then ``cuts`` times the field's tangent where that
+    bound is lowest, t*: the minimum lies on the side of t* where the slope there points down, and the two tangents
+    bounding that side give the next bound (a cutting-plane search; every bound is a lower bound, each tighter)."""
+    ab = b - a
+    fa, ga = pair(rows, a, field)
+    fb, gb = pair(rows, b, field)
+    sa, sb = (ga * ab).sum(-1), (gb * ab).sum(-1)                              # slopes per unit t
+    bound, u = _envelope(fa, fb, sa, sb)
+    lo, hi = torch.zeros_like(fa), torch.ones_like(fa)
+    for _ in range(cuts):                 # where sa ≥ 0 or sb ≤ 0 the bound is an end's value, exact: kept as is
+        t = lo + u * (hi - lo)
+        f, g = pair(rows, a + t.unsqueeze(-1) * ab, field)
+        s = (g * ab).sum(-1)
+        inner = (sa < 0) & (sb > 0)
+        left, right = inner & (s >= 0), inner & (s < 0)                   # the minimum lies in [lo, t*] / [t*, hi]
+        lo, hi = torch.where(right, t, lo), torch.where(left, t, hi)
+        fa, sa = torch.where(right, f, fa), torch.where(right, s, sa)
+        fb, sb = torch.where(left, f, fb), torch.where(left, s, sb)
+        width = hi - lo
+        tighter, u = _envelope(fa, fb, sa * width, sb * width)
+        bound = torch.maximum(bound, tighter)
+    return bound
+
+
+def swept_clearance(swept: Swept, distances: Tensor, pair: PairDistance, convex: Tensor,
+                    decide: float | None = None, cuts: int = CUTS) -> Tensor:
+    """Signed clearance lower bound (B,) [m] of a swept chain to F distance fields (obstacles, or capsules moving
+    with each row), from their values at the chain's points ``distances`` (B, P, F) (+inf where a field does not
+    apply to a point); ``pair(rows (T,), points (T, 3), field (T,))`` → (distance (T,), gradient (T, 3)) of one
+    field each; ``convex`` (F,) bool: the fields that are convex along a line (else 1-Lipschitz only).
+
+    In stages, each skipping what cannot decide the minimum: (1) every chord takes the Lipschitz bound of the
+    nearest field at its two ends, (f_a + f_b − c)/2 − radius − sag with f the smallest distance at each point;
+    (2) the chords whose bound lies below the row's upper bound of the result (the smallest min(f_a, f_b) − radius
+    − sag; no other chord can hold the minimum) take it per field; (3) those (chord, convex field) pairs still below
+    it take :func:`cut_bound` (``cuts`` tangent cuts). ``decide``: only whether the clearance is ≥ decide matters:
+    rows whose stage-1 bound is ≥ decide, or whose upper bound is < decide, stop there (the result is still a lower
+    bound, on the same side of ``decide`` as the full one)."""
+    pts = swept.points
+    b = pts.shape[0]
+    if distances.shape[-1] == 0 or not bool(swept.valid.any()):
+        return pts.new_full((b,), float("inf"))
+    length = torch.linalg.vector_norm(pts[:, 1:] - pts[:, :-1], dim=-1)          # (B, P − 1)
+    shrink = swept.radius + swept.sag
+    near = distances.amin(-1)                                                     # (B, P)
+    bound = (near[:, :-1] + near[:, 1:] - length) / 2 - shrink
+    ends = torch.minimum(near[:, :-1], near[:, 1:]) - shrink
+    if not bool(swept.valid.all()):
+        bound = bound.masked_fill(~swept.valid, float("inf"))
+        ends = ends.masked_fill(~swept.valid, float("inf"))
+    reach = ends.amin(-1)                                                         # (B,) ≥ the result
+    if decide is not None:
+        low = bound.amin(-1)
+        reach = torch.where((low >= decide) | (reach < decide), -float("inf"), reach.clamp_max(decide))
+    rows, chord = (bound < reach.unsqueeze(-1)).nonzero().unbind(-1)
+    if rows.numel() == 0:
+        return bound.amin(-1)
+    cap = shrink[rows, chord].unsqueeze(-1)
+    each = (distances[rows, chord] + distances[rows, chord + 1] - length[rows, chord].unsqueeze(-1)) / 2 - cap
+    sel, field = ((each < reach[rows].unsqueeze(-1)) & convex).nonzero().unbind(-1)
+    if sel.numel():
+        r, c = rows[sel], chord[sel]
+        tight = cut_bound(pair, r, pts[r, c], pts[r, c + 1], field, cuts) - cap[sel, 0]
+        each = each.index_put((sel, field), torch.maximum(each[sel, field], tight))
+    return bound.index_put((rows, chord), each.amin(-1)).amin(-1)
 
 
 def chain_clearance(scene: Scene, swept: Swept, distances: Tensor | None = None,
-                    decide: float | None = None) -> Tensor:
-    """Signed clearance (B,) [m] of a swept chain to a scene: the smallest lower bound over its valid chords and
-    every obstacle (+inf for a scene without obstacles). Every (chord, obstacle) pair takes the Lipschitz bound;
-    those whose Lipschitz bound lies below the smallest min(f_a, f_b) − radius − sag of the row (an upper bound of
-    the result: no other pair can decide the minimum) also the convex one. ``distances``: the scene's distances
-    (B, P, O) of the chain's points, when already computed. ``decide``: only whether the clearance is ≥ decide
-    matters: a row whose Lipschitz bound is ≥ decide, or whose upper bound is < decide, skips the convex bound
-    (the result is still a lower bound, on the same side of ``decide`` as the full one)."""
+                    decide: float | None = None, cuts: int = CUTS) -> Tensor:
+    """Signed clearance (B,) [m] of a swept chain to a scene (+inf for a scene without obstacles): the smallest lower
+    bound over its valid chords and every obstacle (:func:`swept_clearance`: convex obstacles take tangent bounds,
+    meshes the Lipschitz one). ``distances``: the scene's distances (B, P, O) of the chain's points, when already
+    computed; ``decide``, ``cuts``: as in :func:`swept_clearance`."""
     pts = swept.points
-    b = pts.shape[0]
-    if scene.num_obstacles == 0 or not bool(swept.valid.any()):
-        return pts.new_full((b,), float("inf"))
-    d = scene.distances(pts)[0] if distances is None else distances             # (B, P, O)
-    chord = pts[:, 1:] - pts[:, :-1]
-    length = torch.linalg.vector_norm(chord, dim=-1)                            # (B, P − 1)
-    shrink = (swept.radius + swept.sag).unsqueeze(-1)
-    ends = torch.minimum(d[:, :-1], d[:, 1:])
-    bound = (d[:, :-1] + d[:, 1:] - length.unsqueeze(-1)) / 2 - shrink          # Lipschitz, (B, P − 1, O)
-    if not bool(swept.valid.all()):
-        bound = bound.masked_fill(~swept.valid.view(1, -1, 1), float("inf"))
-        ends = ends.masked_fill(~swept.valid.view(1, -1, 1), float("inf"))
-    reach = (ends - shrink).flatten(1).amin(-1)                                 # (B,) ≥ the result
-    if decide is not None:
-        low = bound.flatten(1).amin(-1)
-        reach = torch.where((low >= decide) | (reach < decide), -float("inf"), reach.clamp_max(decide))
-    sel = ((bound < reach.view(-1, 1, 1)) & scene.convex.view(1, 1, -1)).nonzero()
-    if sel.shape[0]:
-        r, c, o = sel.unbind(-1)
-        fa, ga = scene.pair_distances(pts[r, c], o)
-        fb, gb = scene.pair_distances(pts[r, c + 1], o)
-        tight = convex_bound(fa, fb, (ga * chord[r, c]).sum(-1), (gb * chord[r, c]).sum(-1)) - shrink[r, c, 0]
-        bound = bound.index_put((r, c, o), torch.maximum(bound[r, c, o], tight))
-    return bound.flatten(1).amin(-1)
-
-
-def capsule_clearance(swept: Swept, a: Tensor, b: Tensor, radius: Tensor) -> Tensor:
-    """Signed clearance (B,) [m] of a swept chain to capsules moving with it: a, b (B, C, 3), radius (C,) (e.g.
-    an arm's links around the robot it carries); +inf without capsules."""
-    from .shapes import capsule_distance
-    pts = swept.points
-    if a.shape[1] == 0 or not bool(swept.valid.any()):
+    if scene.num_obstacles == 0:
         return pts.new_full((pts.shape[0],), float("inf"))
-    d, g = capsule_distance(pts.unsqueeze(2), a.unsqueeze(1), b.unsqueeze(1), radius)     # (B, P, C), (B, P, C, 3)
-    chord = (pts[:, 1:] - pts[:, :-1]).unsqueeze(-2)
-    bound = convex_bound(d[:, :-1], d[:, 1:], (g[:, :-1] * chord).sum(-1), (g[:, 1:] * chord).sum(-1))
-    bound = bound - (swept.radius + swept.sag).unsqueeze(-1)
-    return bound[:, swept.valid].flatten(1).amin(-1)
+    d = scene.distances(pts)[0] if distances is None else distances
+    return swept_clearance(swept, d, lambda rows, p, o: scene.pair_distances(p, o), scene.convex, decide, cuts)
+
+
+def capsule_pair(a: Tensor, b: Tensor, radius: Tensor) -> PairDistance:
+    """The ``pair`` of :func:`swept_clearance` for capsules moving with the rows: a, b (B, C, 3), radius (C,) [m]."""
+    return lambda rows, p, c: capsule_distance(p, a[rows, c], b[rows, c], radius[c])
+
+
+def capsule_clearance(swept: Swept, a: Tensor, b: Tensor, radius: Tensor, decide: float | None = None,
+                      cuts: int = CUTS) -> Tensor:
+    """Signed clearance (B,) [m] of a swept chain to capsules moving with it: a, b (B, C, 3), radius (C,) (e.g.
+    an arm's links around the robot it carries); +inf without capsules. ``decide``, ``cuts``: as in
+    :func:`swept_clearance`."""
+    pts = swept.points
+    if a.shape[1] == 0:
+        return pts.new_full((pts.shape[0],), float("inf"))
+    d = capsule_distance(pts.unsqueeze(2), a.unsqueeze(1), b.unsqueeze(1), radius, grad=False)[0]   # (B, P, C)
+    return swept_clearance(swept, d, capsule_pair(a, b, radius), torch.ones(a.shape[1], dtype=torch.bool), decide,
+                           cuts)

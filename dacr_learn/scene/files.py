@@ -80,7 +80,14 @@ class Scene:
         if self.capsule_radius.numel():
             parts.append(capsule_distance(p, self.capsule_a.to(p), self.capsule_b.to(p), self.capsule_radius.to(p),
                                           grad))
-        if self.box_half.shape[0]:
+        if self.box_half.shape[0] and not grad and not torch.is_grad_enabled():
+            # the box frames of every point in one product: Rᵀ(p − c) = (pᵀR − cᵀR)ᵀ, no (..., O, 3) differences
+            flat, rot = points.reshape(-1, 3), self.box_rotation.to(points)
+            local = (flat @ rot.permute(1, 0, 2).reshape(3, -1)).view(flat.shape[0], -1, 3)
+            q = (local - (self.box_center.to(points).unsqueeze(1) @ rot).squeeze(1)).abs() - self.box_half.to(points)
+            d = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+            parts.append((d.view(*points.shape[:-1], -1), None))
+        elif self.box_half.shape[0]:
             parts.append(box_distance(p, self.box_center.to(p), self.box_rotation.to(p), self.box_half.to(p), grad))
         for mesh in self.meshes:
             d, g = mesh_distance(points, mesh, grad)
@@ -88,6 +95,8 @@ class Scene:
         if not parts:
             return points.new_zeros(*points.shape[:-1], 0), (points.new_zeros(*points.shape[:-1], 0, 3) if grad
                                                               else None)
+        if len(parts) == 1:
+            return parts[0]
         return torch.cat([d for d, _ in parts], -1), (torch.cat([g for _, g in parts], -2) if grad else None)
 
     def pair_distances(self, points: Tensor, index: Tensor) -> tuple[Tensor, Tensor]:
@@ -103,6 +112,10 @@ class Scene:
                   (self.box_half.shape[0], lambda p, j: box_distance(
                       p, self.box_center.to(p)[j], self.box_rotation.to(p)[j], self.box_half.to(p)[j]))]
         groups += [(1, lambda p, j, mesh=mesh: mesh_distance(p, mesh)) for mesh in self.meshes]
+        groups = [(count, fn) for count, fn in groups if count]
+        if len(groups) == 1:                                      # one kind of obstacle: no sorting out
+            dd, gg = groups[0][1](flat, idx)
+            return dd.view(index.shape), gg.view(*index.shape, 3)
         for count, fn in groups:
             rows = ((idx >= start) & (idx < start + count)).nonzero().squeeze(-1)
             if rows.numel():
