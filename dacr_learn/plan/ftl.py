@@ -184,11 +184,13 @@ class _Planner:
         x, ok = self._best(self._wrapped(cand), 0.0, None, FIRST_ITERATIONS)
         return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
 
-    def _solve(self, prev: Tensor, s: float) -> tuple[Tensor, Tensor]:
-        """The step (1, D) at tip arc length s continued from ``prev`` (1, D): LM pulled weakly towards prev, then
-        the tip polished onto its path point; and its tip error (1,) [m]."""
+    def _solve(self, prev: Tensor, s0: float, s: float) -> tuple[Tensor, Tensor]:
+        """The step (1, D) at tip arc length s continued from ``prev`` (1, D) at s0: LM pulled weakly towards prev
+        (the conditioning term weighted by √(Δs / spacing): its drift per step ∝ Δs), then the tip polished onto
+        its path point; and its tip error (1,) [m]."""
         sv = torch.tensor([s], dtype=F64)
-        x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations)
+        steer = math.sqrt(max(s - s0, 0.0) / (self.opts.spacing * self.length))
+        x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations, steer=steer)
         return self.problem.polish(x, sv, 1e-3 * self.tol)
 
     def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> tuple[Tensor, float]:
@@ -196,7 +198,7 @@ class _Planner:
         the path or changes a variable by more than its bound is taken in two halves (at most
         ``options.substeps`` halvings: the path turns fast there), then recovered from the IK solutions nearest
         ``prev``. Returns it and its tip error [m]."""
-        x, tip = self._solve(prev, s1)
+        x, tip = self._solve(prev, s0, s1)
         missed = float(tip[0]) > self.tol
         jump = float(((x - prev).abs() / self.bounds(s1 - s0)).max())
         if not missed and jump <= 1.0:
