@@ -44,6 +44,7 @@ from .solve import Problem, StepOptions
 BANK_SIZE = 2048   # admissible samples seeding the IK of the first step and of a recovery (dacr_learn.arm.seeds)
 ROLLS = 4          # rolls about the path's entry direction tried for the first step
 FIRST_ITERATIONS = 40   # LM steps of the first step (from IK solutions: the body may start far from the line)
+CLEAR_TRIES = 3    # refinements of a step whose clearance falls below D (hinges lifted and 10× as stiff each)
 TIE = 1e-10         # step costs (units of L²) this close count as equally good for the first step
 
 
@@ -182,6 +183,9 @@ class _Planner:
         if cand.shape[0] == 0:
             return None, f"the tip cannot reach the path's start {self.path.points[0].tolist()} (IK found no solution)"
         x, ok = self._best(self._wrapped(cand), 0.0, None, FIRST_ITERATIONS)
+        sv = torch.zeros(1, dtype=F64)
+        x = self._keep_clear(x[None], self.problem.tip_error(x[None], sv), sv, x[None])[0][0]
+        ok = ok and float(self.problem.tip_error(x[None], sv)[0]) <= self.tol
         return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
 
     def _solve(self, prev: Tensor, s0: float, s: float) -> tuple[Tensor, Tensor]:
@@ -191,7 +195,22 @@ class _Planner:
         sv = torch.tensor([s], dtype=F64)
         steer = math.sqrt(max(s - s0, 0.0) / (self.opts.spacing * self.length))
         x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations, steer=steer)
-        return self.problem.polish(x, sv, 1e-3 * self.tol)
+        x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
+        return self._keep_clear(x, tip, sv, prev, steer)
+
+    def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0):
+        """With a scene: while the step's clearance (the verdict's check) is below D, refined again from x with the
+        hinges' target lifted by twice the shortfall and their weight 10× (at most :data:`CLEAR_TRIES` times): a soft
+        hinge gives way a little, and an obstacle may poke between the hinges' samples."""
+        lift, hinge = 0.0, 1.0
+        for _ in range(CLEAR_TRIES if self.avoid is not None else 0):
+            short = self.avoid.clearance - float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
+            if short <= 0:
+                break
+            lift, hinge = lift + 2 * short, hinge * 10
+            x, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
+            x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
+        return x, tip
 
     def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> tuple[Tensor, float]:
         """The solution (1, D) at s1 continued from ``prev`` (1, D), the solution at s0 < s1. A step that misses

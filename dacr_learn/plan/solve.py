@@ -42,6 +42,7 @@ from .path import Path
 TIP_WEIGHT = 10.0      # the tip's weight relative to one body point (then polished to the tolerance)
 RAMP = 0.25            # length of the weight ramp at the entry point, relative to L
 HINGE_WEIGHT = 10.0    # a clearance hinge's weight relative to one body point's (as the tip's)
+HINGE_SUBDIVISION = 4  # hinge samples per chord between body points (the check's spacing for 8 points per segment)
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,7 @@ class StepOptions:
     points_per_segment: int = 8
     conditioning: float = 5e-6
     hinge_weight: float = HINGE_WEIGHT
-    hinge_margin: float = 0.0
+    hinge_margin: float = 1e-4
 
 
 class Problem:
@@ -82,10 +83,12 @@ class Problem:
             self.radius = model.body(rest, options.points_per_segment).radius.to(F64)
 
     def residual(self, x: Tensor, s: Tensor, ref: Tensor, reg: float | None = None,
-                 cond: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                 cond: tuple[Tensor, Tensor] | None = None, hinge: float = 1.0,
+                 lift: float = 0.0) -> tuple[Tensor, Tensor]:
         """r (B, R) and ∂r/∂x (B, R, D) at variables x (B, D), tip arc lengths s (B,) [m], references ref (B, D);
         ``reg``: the pull towards ref (default ``regularization``); ``cond``: the arm's conditioning residual and
-        its Jacobian at ref ((B, 1), (B, 1, D): :meth:`conditioning`), linearised there (default: evaluated)."""
+        its Jacobian at ref ((B, 1), (B, 1, D): :meth:`conditioning`), linearised there (default: evaluated);
+        ``hinge``: a factor on the hinges' weight; ``lift`` [m]: added to their target."""
         b, d = x.shape
         body, jac, jac_arc = body_and_jacobian(self.model, x, self.opts.points_per_segment)
         p = body.points.shape[1]
@@ -111,7 +114,8 @@ class Problem:
             rows.append(r_cond + (j_cond @ (x - ref).unsqueeze(-1)).squeeze(-1))
             jacs.append(j_cond)
         if self.scene is not None:
-            r_hinge, j_hinge = self._hinges(body.points, jac_points)
+            r_hinge, j_hinge = self._hinges(body.points, jac_points, lift)
+            r_hinge, j_hinge = hinge * r_hinge, hinge * j_hinge
             rows.append(r_hinge)
             jacs.append(j_hinge)
         self.tip_rows = slice(3 * p - 3, 3 * p)
@@ -135,30 +139,44 @@ class Problem:
         j[:, 0, :n] = self.opts.conditioning * (inv[:, 1:1 + n] - inv[:, 1 + n:]) / (2 * h)
         return r, j
 
-    def _hinges(self, points: Tensor, jac: Tensor) -> tuple[Tensor, Tensor]:
-        """The clearance hinges (B, P·O) of body points (B, P, 3) with Jacobian jac (B, P, 3, D), and theirs."""
+    def _hinges(self, points: Tensor, jac: Tensor, lift: float = 0.0) -> tuple[Tensor, Tensor]:
+        """The clearance hinges (B, Q·O) of body points (B, P, 3) with Jacobian jac (B, P, 3, D), and theirs: at
+        the points and :data:`HINGE_SUBDIVISION` − 1 more along each chord between them (Q of them), each with the
+        chord's sag as margin (the backbone lies within it of the chord), so that an obstacle poking between two
+        body points is seen."""
         p = points.shape[1]
         if self.radius.shape[0] != p:
             raise ValueError(f"{type(self.model).__name__}: the body API gives {self.radius.shape[0]} points, the "
                              f"planner's body {p}; expected the same layout")
-        unused = self.radius.new_zeros(p)
-        clear, jd = clearance_rows(self.scene, BodyPoints(points, unused, self.radius), jac)   # (B, P·O), (B, P·O, D)
+        k = HINGE_SUBDIVISION
+        t = torch.arange(k, dtype=F64) / k                                              # (k,)
+        a, b = points[:, :-1, None], points[:, 1:, None]                               # (B, P − 1, 1, 3)
+        sub = torch.cat([(a + t[:, None] * (b - a)).flatten(1, 2), points[:, -1:]], 1)  # (B, Q, 3)
+        ja, jb = jac[:, :-1, None], jac[:, 1:, None]                                   # (B, P − 1, 1, 3, D)
+        jsub = torch.cat([(ja + t[:, None, None] * (jb - ja)).flatten(1, 2), jac[:, -1:]], 1)
+        radius = torch.maximum(self.radius[:-1], self.radius[1:]).repeat_interleave(k)
+        radius = torch.cat([radius, self.radius[-1:]])                                 # (Q,)
+        clear, jd = clearance_rows(self.scene, BodyPoints(sub, radius.new_zeros(radius.shape), radius), jsub)
         sag = chord_sag(points)                                                        # (B, P − 1)
         pad = torch.zeros_like(sag[:, :1])
-        margin = torch.maximum(torch.cat([pad, sag], 1), torch.cat([sag, pad], 1))     # (B, P)
-        short = (self.clearance + self.opts.hinge_margin * self.length + margin).repeat_interleave(
+        ends = torch.maximum(torch.cat([pad, sag], 1), torch.cat([sag, pad], 1))       # (B, P): at the points
+        margin = sag[:, :, None].expand(-1, -1, k).clone()
+        margin[:, :, 0] = ends[:, :-1]
+        margin = torch.cat([margin.flatten(1), ends[:, -1:]], 1)                      # (B, Q)
+        short = (self.clearance + lift + self.opts.hinge_margin * self.length + margin).repeat_interleave(
             self.scene.num_obstacles, 1) - clear
         w = self.opts.hinge_weight / (self.length * p ** 0.5)
         return w * short.clamp_min(0.0), -w * (short > 0).to(F64).unsqueeze(-1) * jd
 
     def refine(self, x: Tensor, s: Tensor, ref: Tensor, iterations: int, tol: float = 1e-10,
-               reg: float | None = None, steer: float = 1.0) -> tuple[Tensor, Tensor, Tensor]:
+               reg: float | None = None, steer: float = 1.0, hinge: float = 1.0,
+               lift: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
         """LM on the step residuals from x (B, D): at most ``iterations`` steps; a row stops when its cost
         falls by less than ``tol`` (relative) or its λ exceeds 1e6; ``reg`` overrides the pull's weight. Returns
         (x, cost (B,), the tip's distance to its path point (B,) [m], from the body's last point)."""
         x = self.lim.project(x.to(F64))
         cond = tuple(steer * c for c in self.conditioning(ref)) if self.conditioned else (x[:, :0], x[:, None, :0])
-        r, jac = self.residual(x, s, ref, reg, cond)
+        r, jac = self.residual(x, s, ref, reg, cond, hinge, lift)
         cost = (r * r).sum(-1)
         lam = torch.full_like(cost, self.opts.damping)
         live = torch.ones_like(cost, dtype=torch.bool)
@@ -167,7 +185,7 @@ class Problem:
             if rows.numel() == 0:
                 break
             xt = self._step(x[rows], r[rows], jac[rows], lam[rows])
-            rt, jt = self.residual(xt, s[rows], ref[rows], reg, (cond[0][rows], cond[1][rows]))
+            rt, jt = self.residual(xt, s[rows], ref[rows], reg, (cond[0][rows], cond[1][rows]), hinge, lift)
             ct = (rt * rt).sum(-1)
             better = ct < cost[rows]
             gain = (cost[rows] - ct) / cost[rows].clamp_min(1e-300)
