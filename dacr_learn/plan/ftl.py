@@ -44,7 +44,7 @@ from .solve import Problem, StepOptions
 BANK_SIZE = 2048   # admissible samples seeding the IK of the first step and of a recovery (dacr_learn.arm.seeds)
 ROLLS = 4          # rolls about the path's entry direction tried for the first step
 FIRST_ITERATIONS = 40   # LM steps of the first step (from IK solutions: the body may start far from the line)
-CLEAR_TRIES = 3    # refinements of a step whose clearance falls below D (hinges lifted and 10× as stiff each)
+CLEAR_TRIES = 5    # refinements of a step whose clearance falls below D (hinges lifted, 3× as stiff each)
 TIE = 1e-10         # step costs (units of L²) this close count as equally good for the first step
 
 
@@ -200,14 +200,14 @@ class _Planner:
 
     def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0):
         """With a scene: while the step's clearance (the verdict's check) is below D, refined again from x with the
-        hinges' target lifted by twice the shortfall and their weight 10× (at most :data:`CLEAR_TRIES` times): a soft
+        hinges' target lifted by twice the shortfall and their weight 3× (at most :data:`CLEAR_TRIES` times): a soft
         hinge gives way a little, and an obstacle may poke between the hinges' samples."""
         lift, hinge = 0.0, 1.0
         for _ in range(CLEAR_TRIES if self.avoid is not None else 0):
             short = self.avoid.clearance - float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
             if short <= 0:
                 break
-            lift, hinge = lift + 2 * short, hinge * 10
+            lift, hinge = lift + 2 * short, hinge * 3
             x, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
             x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
         return x, tip
