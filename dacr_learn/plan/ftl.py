@@ -196,20 +196,28 @@ class _Planner:
         steer = math.sqrt(max(s - s0, 0.0) / (self.opts.spacing * self.length))
         x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations, steer=steer)
         x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
-        return self._keep_clear(x, tip, sv, prev, steer)
+        return self._keep_clear(x, tip, sv, prev, steer, s - s0)
 
-    def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0):
-        """With a scene: while the step's clearance (the verdict's check) is below D, refined again from x with the
-        hinges' target lifted by twice the shortfall and their weight 3× (at most :data:`CLEAR_TRIES` times): a soft
-        hinge gives way a little, and an obstacle may poke between the hinges' samples."""
+    def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0,
+                    ds: float | None = None):
+        """With a scene: while the step's clearance (the verdict's check) is below D, refined again with the
+        hinges' target lifted by twice the shortfall and their weight 3× (at most :data:`CLEAR_TRIES` times): a
+        soft hinge gives way a little, and an obstacle may poke between the hinges' samples. A refinement is kept
+        only if it raises the clearance, keeps the tip and (``ds`` [m] from ``prev``) stays within the bounds."""
+        if self.avoid is None:
+            return x, tip
+        clear = float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
         lift, hinge = 0.0, 1.0
-        for _ in range(CLEAR_TRIES if self.avoid is not None else 0):
-            short = self.avoid.clearance - float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
-            if short <= 0:
+        for _ in range(CLEAR_TRIES):
+            if clear >= self.avoid.clearance:
                 break
-            lift, hinge = lift + 2 * short, hinge * 3
-            x, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
-            x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
+            lift, hinge = lift + 2 * (self.avoid.clearance - clear), hinge * 3
+            y, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
+            y, tip_y = self.problem.polish(y, sv, 1e-3 * self.tol)
+            clear_y = float(self.avoid.clearance_of_joints(self.model.joints(y))[0])
+            steady = ds is None or bool(((y - prev).abs() <= self.bounds(ds)).all())
+            if clear_y > clear and steady and float(tip_y[0]) <= self.tol:
+                x, tip, clear = y, tip_y, clear_y
         return x, tip
 
     def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> tuple[Tensor, float]:
