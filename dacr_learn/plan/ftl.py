@@ -188,7 +188,7 @@ class _Planner:
         ok = ok and float(self.problem.tip_error(x[None], sv)[0]) <= self.tol
         return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
 
-    def _solve(self, prev: Tensor, s0: float, s: float) -> tuple[Tensor, Tensor]:
+    def _solve(self, prev: Tensor, s0: float, s: float, clear: bool = True) -> tuple[Tensor, Tensor]:
         """The step (1, D) at tip arc length s continued from ``prev`` (1, D) at s0: LM pulled weakly towards prev
         (the conditioning term weighted by √(Δs / spacing): its drift per step ∝ Δs), then the tip polished onto
         its path point; and its tip error (1,) [m]."""
@@ -196,14 +196,13 @@ class _Planner:
         steer = math.sqrt(max(s - s0, 0.0) / (self.opts.spacing * self.length))
         x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations, steer=steer)
         x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
-        return self._keep_clear(x, tip, sv, prev, steer, s - s0)
+        return self._keep_clear(x, tip, sv, prev, steer) if clear else (x, tip)
 
-    def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0,
-                    ds: float | None = None):
+    def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0):
         """With a scene: while the step's clearance (the verdict's check) is below D, refined again with the
         hinges' target lifted by twice the shortfall and their weight 3× (at most :data:`CLEAR_TRIES` times): a
         soft hinge gives way a little, and an obstacle may poke between the hinges' samples. A refinement is kept
-        only if it raises the clearance, keeps the tip and (``ds`` [m] from ``prev``) stays within the bounds."""
+        if it keeps the tip (a step it makes jump is halved by :meth:`_advance`, or at last taken without it)."""
         if self.avoid is None:
             return x, tip
         clear = float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
@@ -215,8 +214,7 @@ class _Planner:
             y, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
             y, tip_y = self.problem.polish(y, sv, 1e-3 * self.tol)
             clear_y = float(self.avoid.clearance_of_joints(self.model.joints(y))[0])
-            steady = ds is None or bool(((y - prev).abs() <= self.bounds(ds)).all())
-            if clear_y > clear and steady and float(tip_y[0]) <= self.tol:
+            if float(tip_y[0]) <= self.tol:
                 x, tip, clear = y, tip_y, clear_y
         return x, tip
 
@@ -233,6 +231,10 @@ class _Planner:
         if depth < self.opts.substeps:
             mid = 0.5 * (s0 + s1)
             return self._advance(self._advance(prev, s0, mid, depth + 1)[0], mid, s1, depth + 1)
+        if not missed and self.avoid is not None:        # still a jump: the step without the clearance refinement
+            y, tip_y = self._solve(prev, s0, s1, clear=False)
+            if float(tip_y[0]) <= self.tol and bool(((y - prev).abs() <= self.bounds(s1 - s0)).all()):
+                x, tip = y, tip_y
         if missed:                                                                      # recovery
             cand = self._candidates(self.path.at(torch.tensor([s1], dtype=F64)), True, q0=self.model.joints(prev))
             if cand.shape[0]:
