@@ -202,7 +202,8 @@ class _Planner:
         """With a scene: while the step's clearance (the verdict's check) is below D, refined again with the
         hinges' target lifted by twice the shortfall and their weight 3× (at most :data:`CLEAR_TRIES` times): a
         soft hinge gives way a little, and an obstacle may poke between the hinges' samples. A refinement is kept
-        if it keeps the tip (a step it makes jump is halved by :meth:`_advance`, or at last taken without it)."""
+        if it keeps the tip and raises the clearance (a step it makes jump is halved by :meth:`_advance`, or at
+        last taken without it)."""
         if self.avoid is None:
             return x, tip
         clear = float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
@@ -214,7 +215,7 @@ class _Planner:
             y, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
             y, tip_y = self.problem.polish(y, sv, 1e-3 * self.tol)
             clear_y = float(self.avoid.clearance_of_joints(self.model.joints(y))[0])
-            if float(tip_y[0]) <= self.tol:
+            if float(tip_y[0]) <= self.tol and clear_y > clear:
                 x, tip, clear = y, tip_y, clear_y
         return x, tip
 
@@ -276,26 +277,32 @@ class _Planner:
         tip_err = torch.linalg.vector_norm(check.position - self.path.at(s), dim=-1)
         b = body(self.model, x)
         dev, dev_max = shape_deviation(b.points, b.arc, self.path, s)
-        if not reason and bool((tip_err > self.tol).any()):
+        fails = []                         # (step, reason) of each criterion's first failure; the earliest wins
+        if bool((tip_err > self.tol).any()):
             k = int((tip_err > self.tol).nonzero()[0])
-            reason = (f"tip error {float(tip_err[k]):.3g} m > tolerance {self.tol:.3g} m at step {k} "
-                      f"(s = {float(s[k]):.6g} m)")
-        if not reason and not bool(check.inside.all()):
+            fails.append((k, f"tip error {float(tip_err[k]):.3g} m > tolerance {self.tol:.3g} m at step {k} "
+                             f"(s = {float(s[k]):.6g} m)"))
+        if not bool(check.inside.all()):
             k = int((~check.inside).nonzero()[0])
             viol = self.model.limits.violation(x[k:k + 1])
-            reason = f"outside the limits at step {k} (s = {float(s[k]):.6g} m; worst violation {float(viol[0]):.3g})"
-        if not reason and x.shape[0] > 1:
+            fails.append((k, f"outside the limits at step {k} (s = {float(s[k]):.6g} m; worst violation "
+                             f"{float(viol[0]):.3g})"))
+        if x.shape[0] > 1:
             ds = float((s[1:] - s[:-1]).max())
             jump = (x[1:] - x[:-1]).abs() / self.bounds(ds)
             if bool((jump > 1).any()):
-                k, j = divmod(int(jump.argmax()), x.shape[1])
-                reason = (f"discontinuous between steps {k} and {k + 1}: {self.model.limits.names[j]} changes by "
-                          f"{float((x[k + 1, j] - x[k, j]).abs()):.3g} (bound {float(self.bounds(ds)[j]):.3g})")
+                k = int((jump > 1).any(-1).nonzero()[0])
+                j = int(jump[k].argmax())
+                fails.append((k + 1, f"discontinuous between steps {k} and {k + 1}: {self.model.limits.names[j]} "
+                                     f"changes by {float((x[k + 1, j] - x[k, j]).abs()):.3g} (bound "
+                                     f"{float(self.bounds(ds)[j]):.3g})"))
         clear = None if self.avoid is None else self.avoid.clearance_of_joints(q)
-        if not reason and clear is not None and bool((clear < self.avoid.clearance).any()):
+        if clear is not None and bool((clear < self.avoid.clearance).any()):
             k = int((clear < self.avoid.clearance).nonzero()[0])
-            reason = (f"clearance {float(clear[k]):.3g} m < {self.avoid.clearance:.3g} m to the obstacles at step {k} "
-                      f"(s = {float(s[k]):.6g} m)")
+            fails.append((k, f"clearance {float(clear[k]):.3g} m < {self.avoid.clearance:.3g} m to the obstacles at "
+                             f"step {k} (s = {float(s[k]):.6g} m)"))
+        if not reason and fails:
+            reason = min(fails, key=lambda f: f[0])[1]
         return FTLPlan(q, x, s, tip_err, dev, dev_max, not reason, reason, self.length, clear)
 
 
