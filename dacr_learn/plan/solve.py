@@ -6,9 +6,10 @@ straight entry line behind the path's start (:meth:`~.path.Path.at`), with the l
 ``outside_weight`` (a ramp over :data:`RAMP` of the length). The tip itself weighs :data:`TIP_WEIGHT` times a
 body point, and a small pull ``regularization`` towards reference variables (the previous step) fixes what the
 body leaves free (e.g. the roll of a free base about the robot's axis). With a scene, a **clearance hinge**
-max(0, D + δ − c)/L joins for every (body point, obstacle) pair, weighing :data:`HINGE_WEIGHT` body points: c the
-point's clearance (the scene's signed distance less the body's envelope radius there), δ the larger chord sag
-(:func:`dacr_learn.body.chord_sag`) beside the point, so that the body between the points keeps D too; its
+max(0, D + m·L + δ − c)/L joins for every (sample, obstacle) pair (samples: the body points and
+:data:`HINGE_SUBDIVISION` − 1 more along each chord; m = ``hinge_margin``), weighing :data:`HINGE_WEIGHT`
+body points: c the sample's clearance (the scene's signed distance less the body's envelope radius there),
+δ the chord's sag (:func:`dacr_learn.body.chord_sag`), so that the body between the samples keeps D too; its
 Jacobian from the scene's distance gradients and the body's. On an arm, a **conditioning** residual
 w·(1 − σ_min) (σ_min: the smallest singular value of the arm's tool Jacobian, linear rows per L, prismatic columns
 times L), linearised at the previous step, spends what the body leaves free on staying away from the arm's
