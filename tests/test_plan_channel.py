@@ -72,3 +72,32 @@ def test_a_plan_through_a_channel_keeps_its_clearance_by_a_dense_check():
     assert np.all(dense >= 0.001 - 1e-9), dense                       # the plan keeps D, by the dense check
     assert np.all(plan.clearance.numpy() <= dense + 1e-9)            # the planner's check is a lower bound
     assert float(plan.tip_err.max()) <= 1e-6 * spec.total_length
+
+
+def test_the_clearance_hinges_bend_the_body_around_an_obstacle_beside_the_path():
+    # the insertion stage (z) carries the robot up the z axis from z = 0.3; a sphere beside the entry line (z = 0.2,
+    # as at a port), its surface 0.7 mm from the straight body's envelope: the straight body (the plan without the
+    # scene) keeps only 0.7 mm; with the scene
+    # and D = 1 mm the hinges bend the body away (tip still on the path) and every step keeps D (by hand: the
+    # sphere's distance to the body's points, densely, less both radii)
+    stage = ROOT / "configs" / "arms" / "insertion_stage.urdf"
+    spec = RobotSpec.from_yaml(ROBOT)
+    model = Composite(load_arm(stage, "carriage"), torch.eye(4, dtype=F64), spec)
+    envelope, radius = max(s.body_radius for s in spec.segments), 0.004
+    center = np.array([envelope + 0.0007 + radius, 0.0, 0.2])
+    scene = {"obstacles": [{"type": "sphere", "center": center.tolist(), "radius": radius}]}
+    path = torch.from_numpy(np.stack([np.zeros(21), np.zeros(21), np.linspace(0.3, 0.4, 21)], -1))
+    free = plan_ftl(model, path, steps=5)
+    assert free.success and float(free.shape_dev_max.max()) < 1e-9                  # straight, on the path
+    plan = plan_ftl(model, path, steps=5, scene=scene, clearance=0.001)
+    assert plan.success, plan.reason
+    assert float(plan.tip_err.max()) <= 1e-6 * spec.total_length
+    def gap_of(q):                                 # (T,) [m] by hand from the body API's points, 64 per segment
+        pts = model.body(model.variables(q), 64).points.numpy()
+        return np.linalg.norm(pts - center, axis=-1).min(-1) - radius - envelope
+
+    assert np.all(gap_of(free.q) < 0.00075)                                        # without hinges: ≈ 0.7 mm
+    gap = gap_of(plan.q)
+    assert np.all(gap >= 0.001 - 1e-9), gap
+    assert np.all(plan.clearance.numpy() >= 0.001) and np.all(plan.clearance.numpy() <= gap + 1e-9)
+    assert float(plan.shape_dev_max.max()) > 0.0002                                 # the body left the path

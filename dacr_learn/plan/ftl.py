@@ -44,6 +44,7 @@ from .solve import Problem, StepOptions
 BANK_SIZE = 2048   # admissible samples seeding the IK of the first step and of a recovery (dacr_learn.arm.seeds)
 ROLLS = 4          # rolls about the path's entry direction tried for the first step
 FIRST_ITERATIONS = 40   # LM steps of the first step (from IK solutions: the body may start far from the line)
+CLEAR_TRIES = 5    # refinements of a step whose clearance falls below D (hinges lifted, 3× as stiff each)
 TIE = 1e-10         # step costs (units of L²) this close count as equally good for the first step
 
 
@@ -182,21 +183,48 @@ class _Planner:
         if cand.shape[0] == 0:
             return None, f"the tip cannot reach the path's start {self.path.points[0].tolist()} (IK found no solution)"
         x, ok = self._best(self._wrapped(cand), 0.0, None, FIRST_ITERATIONS)
+        sv = torch.zeros(1, dtype=F64)
+        x = self._keep_clear(x[None], self.problem.tip_error(x[None], sv), sv, x[None])[0][0]
+        ok = ok and float(self.problem.tip_error(x[None], sv)[0]) <= self.tol
         return x, "" if ok else "the tip cannot be put on the path's start inside the limits"
 
-    def _solve(self, prev: Tensor, s: float) -> tuple[Tensor, Tensor]:
-        """The step (1, D) at tip arc length s continued from ``prev`` (1, D): LM pulled weakly towards prev, then
-        the tip polished onto its path point; and its tip error (1,) [m]."""
+    def _solve(self, prev: Tensor, s0: float, s: float, clear: bool = True) -> tuple[Tensor, Tensor]:
+        """The step (1, D) at tip arc length s continued from ``prev`` (1, D) at s0: LM pulled weakly towards prev
+        (the conditioning term weighted by √(Δs / spacing): its drift per step ∝ Δs), then the tip polished onto
+        its path point; and its tip error (1,) [m]."""
         sv = torch.tensor([s], dtype=F64)
-        x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations)
-        return self.problem.polish(x, sv, 1e-3 * self.tol)
+        steer = math.sqrt(max(s - s0, 0.0) / (self.opts.spacing * self.length))
+        x, _, _ = self.problem.refine(prev.clone(), sv, prev, self.opts.iterations, steer=steer)
+        x, tip = self.problem.polish(x, sv, 1e-3 * self.tol)
+        return self._keep_clear(x, tip, sv, prev, steer) if clear else (x, tip)
+
+    def _keep_clear(self, x: Tensor, tip: Tensor, sv: Tensor, prev: Tensor, steer: float = 1.0):
+        """With a scene: while the step's clearance (the verdict's check) is below D, refined again with the
+        hinges' target lifted by twice the shortfall and their weight 3× (at most :data:`CLEAR_TRIES` times): a
+        soft hinge gives way a little, and an obstacle may poke between the hinges' samples. A refinement is kept
+        if it keeps the tip and raises the clearance (a step it makes jump is halved by :meth:`_advance`, or at
+        last taken without it)."""
+        if self.avoid is None:
+            return x, tip
+        clear = float(self.avoid.clearance_of_joints(self.model.joints(x))[0])
+        lift, hinge = 0.0, 1.0
+        for _ in range(CLEAR_TRIES):
+            if clear >= self.avoid.clearance:
+                break
+            lift, hinge = lift + 2 * (self.avoid.clearance - clear), hinge * 3
+            y, _, _ = self.problem.refine(x, sv, prev, self.opts.iterations, steer=steer, hinge=hinge, lift=lift)
+            y, tip_y = self.problem.polish(y, sv, 1e-3 * self.tol)
+            clear_y = float(self.avoid.clearance_of_joints(self.model.joints(y))[0])
+            if float(tip_y[0]) <= self.tol and clear_y > clear:
+                x, tip, clear = y, tip_y, clear_y
+        return x, tip
 
     def _advance(self, prev: Tensor, s0: float, s1: float, depth: int = 0) -> tuple[Tensor, float]:
         """The solution (1, D) at s1 continued from ``prev`` (1, D), the solution at s0 < s1. A step that misses
         the path or changes a variable by more than its bound is taken in two halves (at most
         ``options.substeps`` halvings: the path turns fast there), then recovered from the IK solutions nearest
         ``prev``. Returns it and its tip error [m]."""
-        x, tip = self._solve(prev, s1)
+        x, tip = self._solve(prev, s0, s1)
         missed = float(tip[0]) > self.tol
         jump = float(((x - prev).abs() / self.bounds(s1 - s0)).max())
         if not missed and jump <= 1.0:
@@ -204,6 +232,10 @@ class _Planner:
         if depth < self.opts.substeps:
             mid = 0.5 * (s0 + s1)
             return self._advance(self._advance(prev, s0, mid, depth + 1)[0], mid, s1, depth + 1)
+        if not missed and self.avoid is not None:        # still a jump: the step without the clearance refinement
+            y, tip_y = self._solve(prev, s0, s1, clear=False)
+            if float(tip_y[0]) <= self.tol and bool(((y - prev).abs() <= self.bounds(s1 - s0)).all()):
+                x, tip = y, tip_y
         if missed:                                                                      # recovery
             cand = self._candidates(self.path.at(torch.tensor([s1], dtype=F64)), True, q0=self.model.joints(prev))
             if cand.shape[0]:
@@ -245,26 +277,32 @@ class _Planner:
         tip_err = torch.linalg.vector_norm(check.position - self.path.at(s), dim=-1)
         b = body(self.model, x)
         dev, dev_max = shape_deviation(b.points, b.arc, self.path, s)
-        if not reason and bool((tip_err > self.tol).any()):
+        fails = []                         # (step, reason) of each criterion's first failure; the earliest wins
+        if bool((tip_err > self.tol).any()):
             k = int((tip_err > self.tol).nonzero()[0])
-            reason = (f"tip error {float(tip_err[k]):.3g} m > tolerance {self.tol:.3g} m at step {k} "
-                      f"(s = {float(s[k]):.6g} m)")
-        if not reason and not bool(check.inside.all()):
+            fails.append((k, f"tip error {float(tip_err[k]):.3g} m > tolerance {self.tol:.3g} m at step {k} "
+                             f"(s = {float(s[k]):.6g} m)"))
+        if not bool(check.inside.all()):
             k = int((~check.inside).nonzero()[0])
             viol = self.model.limits.violation(x[k:k + 1])
-            reason = f"outside the limits at step {k} (s = {float(s[k]):.6g} m; worst violation {float(viol[0]):.3g})"
-        if not reason and x.shape[0] > 1:
+            fails.append((k, f"outside the limits at step {k} (s = {float(s[k]):.6g} m; worst violation "
+                             f"{float(viol[0]):.3g})"))
+        if x.shape[0] > 1:
             ds = float((s[1:] - s[:-1]).max())
             jump = (x[1:] - x[:-1]).abs() / self.bounds(ds)
             if bool((jump > 1).any()):
-                k, j = divmod(int(jump.argmax()), x.shape[1])
-                reason = (f"discontinuous between steps {k} and {k + 1}: {self.model.limits.names[j]} changes by "
-                          f"{float((x[k + 1, j] - x[k, j]).abs()):.3g} (bound {float(self.bounds(ds)[j]):.3g})")
+                k = int((jump > 1).any(-1).nonzero()[0])
+                j = int(jump[k].argmax())
+                fails.append((k + 1, f"discontinuous between steps {k} and {k + 1}: {self.model.limits.names[j]} "
+                                     f"changes by {float((x[k + 1, j] - x[k, j]).abs()):.3g} (bound "
+                                     f"{float(self.bounds(ds)[j]):.3g})"))
         clear = None if self.avoid is None else self.avoid.clearance_of_joints(q)
-        if not reason and clear is not None and bool((clear < self.avoid.clearance).any()):
+        if clear is not None and bool((clear < self.avoid.clearance).any()):
             k = int((clear < self.avoid.clearance).nonzero()[0])
-            reason = (f"clearance {float(clear[k]):.3g} m < {self.avoid.clearance:.3g} m to the obstacles at step {k} "
-                      f"(s = {float(s[k]):.6g} m)")
+            fails.append((k, f"clearance {float(clear[k]):.3g} m < {self.avoid.clearance:.3g} m to the obstacles at "
+                             f"step {k} (s = {float(s[k]):.6g} m)"))
+        if not reason and fails:
+            reason = min(fails, key=lambda f: f[0])[1]
         return FTLPlan(q, x, s, tip_err, dev, dev_max, not reason, reason, self.length, clear)
 
 
