@@ -435,24 +435,30 @@ def history_export(tmp_path_factory):
     return load_hardware_model(ckpt), ckpt, root / "export", record["meta"], record["commands"], record["caught"]
 
 
+def save_small_checkpoint(module, path: Path) -> None:
+    """Save ``module`` (a Lightning module of dacr_learn.training, weights as they are) as a checkpoint at ``path``,
+    its normalisation fitted to 2,048 samples of its robot (seed 0): what the exporters load."""
+    import lightning
+
+    from dacr_learn.data import generate
+
+    data = generate(module.spec, 2048, seed=0)
+    module.model.fit_normalization(data["q"], data["pose"])
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
+                "pytorch-lightning_version": lightning.__version__}, path)
+
+
 @pytest.fixture(scope="session")
 def jacobian_aoti_package(tmp_path_factory) -> Path:
     """The export folder (``fk.ckpt`` beside it) of a small FK model of the 3-segment coupled robot (2×16, random
     weights, normalisation fitted to 2 048 samples) with the AOTInductor package of its jacobian (autotune off; its
     fk only as a torch.export program). One AOTInductor build, shared read-only by the C++ tests and the export's."""
-    import lightning
-
     from dacr_learn import export as dexport
-    from dacr_learn.data import generate
     from dacr_learn.training import FKModule
 
     d = tmp_path_factory.mktemp("aoti_package")
     torch.manual_seed(0)
-    fk = FKModule(robot=str(TDCR3_YAML), width=16, depth=2)
-    data = generate(fk.spec, 2048, seed=0)
-    fk.model.fit_normalization(data["q"], data["pose"])
-    torch.save({"state_dict": fk.state_dict(), "hyper_parameters": dict(fk.hparams),
-                "pytorch-lightning_version": lightning.__version__}, d / "fk.ckpt")
+    save_small_checkpoint(FKModule(robot=str(TDCR3_YAML), width=16, depth=2), d / "fk.ckpt")
     dexport.export_checkpoint(d / "fk.ckpt", d / "fk", aoti=("jacobian",))
     return d / "fk"
 

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 import os
 
-import lightning
 import numpy as np
 import pytest
 import test_cpp
 import torch
 from arm_reference import UrdfArm
-from conftest import ROOT
+from conftest import ROOT, save_small_checkpoint
 from test_cpp import _edit_package, _run, needs_cpp
 
 from dacr_learn import export as dexport
@@ -195,11 +194,7 @@ def ik_package(tmp_path_factory):
     """The AOTInductor package of a small IK network of the 3-segment robot (random weights, fitted normalisation)."""
     d = tmp_path_factory.mktemp("cpp_ik")
     torch.manual_seed(0)
-    ik = IKModule(robot=str(ROBOT), width=16, depth=2)
-    data = generate(ik.spec, 2048, seed=0)
-    ik.model.fit_normalization(data["q"], data["pose"])
-    torch.save({"state_dict": ik.state_dict(), "hyper_parameters": dict(ik.hparams),
-                "pytorch-lightning_version": lightning.__version__}, d / "ik.ckpt")
+    save_small_checkpoint(IKModule(robot=str(ROBOT), width=16, depth=2), d / "ik.ckpt")
     dexport.export_checkpoint(d / "ik.ckpt", d / "ik")
     return d / "ik" / "ik.aoti.pt2"
 
