@@ -131,16 +131,10 @@ def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaMod
                           torch.cat([b.residual() for b in blocks]))
 
 
-def sigma_models(setup, name: str, seeds: Sequence[int], terms: Sequence[str] = SIGMA_TERMS,
-                 proxies: Sequence[str] = SIGMA_PROXIES, log=None) -> tuple[SigmaCalibration, SigmaModel]:
-    """(ensemble-only σ calibration — the σ of a model saved without a σ model —, σ model with ``terms``), both fitted
-    on the held-out rows of the ``proxies`` folds of a :class:`~.benchmark.Setup`'s training recording."""
-    return sigma_models_of(held_out_folds(setup, name, seeds, proxies, log), terms)
-
-
 def sigma_models_of(blocks: Sequence[HeldOut],
                     terms: Sequence[str] = SIGMA_TERMS) -> tuple[SigmaCalibration, SigmaModel]:
-    """:func:`sigma_models` from held-out blocks computed already (e.g. by :func:`submit_held_out` in a pool)."""
+    """(ensemble-only σ calibration — the σ of a model saved without a σ model —, σ model with ``terms``), both fitted
+    on the held-out rows of ``blocks`` (:func:`held_out_folds`, or :func:`submit_held_out` in a pool)."""
     residual = torch.cat([b.residual() for b in blocks])
     std = torch.cat([b.features()["ensemble"] for b in blocks])
     return SigmaCalibration.fit(residual, std), fit_sigma_model(blocks, terms)
