@@ -71,6 +71,20 @@ def alpha_inputs(context: str, num_segments: int) -> list[int]:
     return [3, 7] if context == "distal" else [3]
 
 
+def append_context(x: Tensor, context: str, matrix: Tensor) -> Tensor:
+    """Standardised features x (..., m, 4) → network inputs (..., m, C): x with the ``context`` appended, ``matrix``
+    (m, m) its :meth:`SegmentFrontEnd.context_operator` (one-hot rows, or the distal sums)."""
+    if context == "none":
+        return x
+    ctx = matrix.to(x.dtype)
+    if context == "distal":
+        return torch.cat([x, ctx @ x], dim=-1)
+    extra = [ctx.expand(*x.shape[:-2], -1, -1)]
+    if context == "full":
+        extra.append(x.flatten(-2).unsqueeze(-2).expand(*x.shape[:-2], x.shape[-2], -1))
+    return torch.cat([x, *extra], dim=-1)
+
+
 class SegmentFrontEnd(nn.Module):
     """Joint vector (..., N) → per-segment network inputs (..., m, C): standardised x_k (4) and context."""
 
@@ -100,16 +114,8 @@ class SegmentFrontEnd(nn.Module):
         self.norm.fit(self.segment_features(q))
 
     def with_context(self, x: Tensor) -> Tensor:
-        """Standardised features (..., m, 4) → network inputs (..., m, C)."""
-        if self.context == "none":
-            return x
-        ctx = self.context_matrix.to(x.dtype)
-        if self.context == "distal":
-            return torch.cat([x, ctx @ x], dim=-1)
-        extra = [ctx.expand(*x.shape[:-2], -1, -1)]
-        if self.context == "full":
-            extra.append(x.flatten(-2).unsqueeze(-2).expand(*x.shape[:-2], x.shape[-2], -1))
-        return torch.cat([x, *extra], dim=-1)
+        """Standardised features (..., m, 4) → network inputs (..., m, C) (:func:`append_context`)."""
+        return append_context(x, self.context, self.context_matrix)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.with_context(self.norm(self.segment_features(q)))
