@@ -58,11 +58,6 @@ def translation_units(spec: RobotSpec, units: str) -> Tensor:
     return torch.tensor([s.length for s in spec.segments], dtype=torch.float64)
 
 
-def roll_mask(spec: RobotSpec, twist_roll: bool = True) -> Tensor:
-    """(m,) bool: the segments whose transform is rolled by their α first (the twisting ones, if ``twist_roll``)."""
-    return torch.tensor([bool(twist_roll and s.twists) for s in spec.segments])
-
-
 def alpha_inputs(context: str, num_segments: int) -> list[int]:
     """Network input columns that carry a segment's α: its own, the distal sum's with context "distal", every
     segment's with context "full" (after the m one-hot columns)."""
@@ -151,7 +146,8 @@ class CompositionalFK(nn.Module):
         self.net = mlp(dim, HEADS[rotation], width, depth, activation)
         self.skip = nn.Linear(dim, HEADS[rotation], bias=False)              # learned linear part of f_θ
         self.register_buffer("length_scale", translation_units(spec, units))   # (m,) [m], float64
-        self.register_buffer("roll", roll_mask(spec, twist_roll))               # (m,) bool: rolled by α first
+        # (m,) bool: the segments rolled by their α first (the twisting ones, if ``twist_roll``)
+        self.register_buffer("roll", torch.tensor([bool(twist_roll and s.twists) for s in spec.segments]))
         self.rolls = bool(self.roll.any())
         if self.rolls:                    # start the network independent of α: the roll is the head's (see above)
             with torch.no_grad():
