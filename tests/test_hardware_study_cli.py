@@ -196,7 +196,7 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
                                                                             monkeypatch):
     """``--save`` (two worker processes): the saved ensemble is the benchmark's own final-run models, returned
     from the workers, and the σ model's held-out fits run in the workers too — nothing is trained in this
-    process (fit_model / the held-out build_model here raise). A member predicts like the same model trained
+    process (fit_model / the held-out fold_predictions here raise). A member predicts like the same model trained
     here for its seed, the reported train RMSE per seed is the saved member's, and the σ model equals
     sigma_models_of computed here. One proxy seed (the selection needs a proxy, not three seeds of it): unlike
     ``--seeds`` it still leaves the σ model's held-out fits to their own worker tasks."""
@@ -214,7 +214,7 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
 
     with monkeypatch.context() as patch:
         patch.setattr(benchmark, "fit_model", no_fit_here)      # the spawned workers import their own, unpatched
-        patch.setattr(heldout, "build_model", no_fit_here)
+        patch.setattr(heldout, "fold_predictions", no_fit_here)
         report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), "--models",
                        "cc_clarke_residual", "--seeds", "0", "1", "--proxy-seeds", "0", "--jobs", "2",
                        "--save", str(save)])

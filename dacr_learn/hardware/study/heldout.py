@@ -16,8 +16,7 @@ from torch import Tensor
 
 from ..deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 from .pool import TaskPool
-from .registry import build_model
-from .selection import PROXIES, Fold, make_folds, model_seeds, proxy_masks
+from .selection import PROXIES, Fold, fold_predictions, make_folds, model_seeds, proxy_masks
 
 # The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
 # training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,
@@ -52,14 +51,10 @@ class HeldOut:
 
 
 def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[int], fold: str = "") -> HeldOut:
-    """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``."""
-    preds = []
-    for seed in model_seeds(name, seeds):
-        model = build_model(name, ctx, seed)
-        model.fit(ctx.train)
-        with torch.no_grad():
-            preds.append(model.eval()(test))
-    return _block(Fold(fold, ctx, test, train_labels=tuple(train_labels)), torch.stack(preds))
+    """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``
+    (:func:`~.selection.fold_predictions`)."""
+    block = Fold(fold, ctx, test, train_labels=tuple(train_labels))
+    return _block(block, torch.stack([fold_predictions(name, block, seed) for seed in model_seeds(name, seeds)]))
 
 
 def _block(fold: Fold, preds: Tensor, tag: str | None = None) -> HeldOut:
