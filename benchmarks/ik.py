@@ -6,9 +6,9 @@ the independent NumPy check (benchmarks/ik_reference.py: no shared code), target
 wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
 in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
 without a scene; ``pool2``: its targets in 2 shards on parallel threads; ``fused``: the pool with its LM iteration
-compiled, ``IKOptions(fused=True)``, timed after a first small solve that compiles it, whose time is reported as
-``compile_s``). For the 3-segment robot also: the warm-started
-refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
+compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards), timed after a first small solve that compiles it,
+whose time is reported as ``compile_s``). For the 3-segment robot also: the warm-started refinement of one target
+per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
 ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
 chord, ry φ/2, rz −θ — a relaxation: its solutions need not be constant-curvature shapes) on the same targets.
@@ -61,7 +61,7 @@ def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
 
 
 PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2),
-         "fused": IKOptions(fused=True)}
+         "fused": IKOptions(fused=True), "fused2": IKOptions(fused=True, shards=2)}
 
 
 def compile_time(name: str, position_only: bool) -> float:
@@ -213,7 +213,7 @@ def main(argv=None) -> dict:
     for name in args.robots:
         for position_only in (False, True):
             task = "position" if position_only else "pose"
-            if "fused" in args.paths:
+            if {"fused", "fused2"} & set(args.paths):
                 c = extra["compile_s"][f"{name} {task}"] = compile_time(name, position_only)
                 print(f"{name:22s} {task:8s} fused   first solve (compiles), 64 × 8: {c:.1f} s", flush=True)
             for i in range(args.repeat):

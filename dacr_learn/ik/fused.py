@@ -15,6 +15,8 @@ spec and task, kept for the process); other models run the eager iteration.
 """
 from __future__ import annotations
 
+import threading
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -25,6 +27,7 @@ from .refine import fused_matmul, lm_iteration, spd_solve_unrolled
 
 MIN_ROWS = 64   # batches below this take the eager iteration
 _COMPILED: dict[tuple, Callable] = {}
+_FIRST_CALL = threading.Lock()
 
 
 def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor, Tensor | None], tuple]:
@@ -40,11 +43,19 @@ def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor,
         if state[0].shape[0] < MIN_ROWS:
             return lm_iteration(model_, state, position, rotation)
         key = (spec, rotation is None)
+        rot = None if rotation is None else rotation.contiguous()       # fixed strides: no recompilation
+        args = tuple(t.contiguous() for t in state), position.contiguous(), rot
         step = _COMPILED.get(key)
         if step is None:
-            step = _COMPILED[key] = _compile(model_)
-        rot = None if rotation is None else rotation.contiguous()       # fixed strides: no recompilation
-        return step(tuple(t.contiguous() for t in state), position.contiguous(), rot)
+            with _FIRST_CALL, warnings.catch_warnings():     # one compilation when shards call it on parallel threads
+                warnings.filterwarnings("ignore", message=".*lru_cache", category=UserWarning)   # a spec's constants
+                if key not in _COMPILED:
+                    step = _compile(model_)
+                    out = step(*args)                                     # compiles
+                    _COMPILED[key] = step
+                    return out
+            step = _COMPILED[key]
+        return step(*args)
 
     return iteration
 
