@@ -64,14 +64,14 @@ PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(s
          "fused": IKOptions(fused=True), "fused2": IKOptions(fused=True, shards=2)}
 
 
-def compile_time(name: str, position_only: bool) -> float:
-    """Wall time [s] of a first small fused solve (64 × 8): the one-time compilation of the robot's iteration for
-    the task (the later ``fused`` rows of the process reuse it)."""
+def compile_time(name: str, position_only: bool, path: str) -> float:
+    """Wall time [s] of a first small solve (64 × 8) of a fused path: the one-time compilation of the robot's iteration
+    for the task (the later rows of the process reuse it; in shards, on one thread each, torch compiles once more)."""
     spec = RobotSpec.from_yaml(robot_path(name))
     poses = targets(spec, 64, 1)
     t0 = time.perf_counter()
     solve_ik(spec, poses[:, :3, 3] if position_only else poses, n_solutions=8, position_only=position_only,
-             options=PATHS["fused"])
+             options=PATHS[path])
     return time.perf_counter() - t0
 
 
@@ -213,9 +213,9 @@ def main(argv=None) -> dict:
     for name in args.robots:
         for position_only in (False, True):
             task = "position" if position_only else "pose"
-            if {"fused", "fused2"} & set(args.paths):
-                c = extra["compile_s"][f"{name} {task}"] = compile_time(name, position_only)
-                print(f"{name:22s} {task:8s} fused   first solve (compiles), 64 × 8: {c:.1f} s", flush=True)
+            for path in (p for p in args.paths if p.startswith("fused")):
+                c = extra["compile_s"][f"{name} {task} {path}"] = compile_time(name, position_only, path)
+                print(f"{name:22s} {task:8s} {path:7s} first solve (compiles), 64 × 8: {c:.1f} s", flush=True)
             for i in range(args.repeat):
                 for path in (args.paths if i % 2 == 0 else args.paths[::-1]):        # alternate the order
                     rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7, path=path))
