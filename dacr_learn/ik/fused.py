@@ -8,8 +8,9 @@ Inductor fuses instead of calling LAPACK and BLAS), equal to the eager iteration
 dynamic: one compilation serves every batch of :data:`MIN_ROWS` rows or more (smaller batches take the eager
 iteration: torch specialises sizes 0 and 1, and a compiled step gains little there).
 
-Compiling takes minutes once per robot and task (pose, position); torch caches the compiled code on disk (its
-Inductor cache directory), which shortens, not removes, the compilation in a later process. So it is off by default:
+Compiling takes minutes once per robot and task (pose, position) and process, once more for a sharded solve (one
+torch thread per shard); torch caches the compiled code on disk (its Inductor cache directory), which shortens, not
+removes, the compilation in a later process (its tracing stays). So it is off by default:
 ``IKOptions(fused=True)`` turns it on for the analytic constant-curvature model (one compiled iteration per robot
 spec and task, kept for the process); other models run the eager iteration.
 """
