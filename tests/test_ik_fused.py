@@ -1,7 +1,10 @@
 """The compiled LM iteration of the IK working batch (dacr_learn.ik.fused): the unrolled form it compiles equals the
 eager iteration; small batches and other models take the eager iteration unchanged; compiled, the iteration matches
-the eager one and a solve verifies against the independent NumPy check (slow: torch.compile takes minutes)."""
+the eager one and a solve verifies against the independent NumPy check (minutes of torch.compile: only with
+``DACR_TEST_IK_FUSED=1``, as the compiled path is off by default)."""
 from __future__ import annotations
+
+import os
 
 import pytest
 import torch
@@ -56,6 +59,8 @@ def test_small_batches_and_other_models_take_the_eager_iteration():
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("DACR_TEST_IK_FUSED") != "1",
+                    reason="DACR_TEST_IK_FUSED=1 compiles the iteration (minutes)")
 def test_compiled_iteration_matches_and_solves():
     """Compiled (position targets: the smaller graph), the iteration matches the eager one on batches of two sizes
     (dynamic rows: no recompilation) and a fused solve flags only solutions the NumPy check verifies, all of them.
