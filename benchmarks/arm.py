@@ -14,7 +14,7 @@ Panda (configs/arms/panda.urdf, panda_link8, configs/arms/panda_mount.npy) + con
 2. Jacobian: ``--jacobian-samples`` configurations, float64: max |J − jacrev(FK)| and max |J_arm − pytorch-
    kinematics' jacobian at the tip| (targets ≤ 1e-10).
 3. One whole-body control step (pose target, port, all limits), batch 1, one thread: eager p50, and with
-   ``--aoti`` the AOTInductor package of :class:`dacr_learn.arm.control.ControlStep` (a few minutes to build).
+   ``--aoti`` the exported whole-body step (:func:`dacr_learn.arm.exported.export_control_step`, minutes to build).
 4. Tracking (examples/track_port.py's path): whole body vs decoupled, with ``--tracking``.
 
 The machine may be shared: ``uptime`` is printed; compare the side-by-side rows, not absolute numbers.
@@ -39,8 +39,10 @@ sys.path.insert(0, str(ROOT / "tests"))        # the independent NumPy reference
 sys.path.insert(0, str(ROOT / "examples"))
 from arm_reference import UrdfArm, check_solution  # noqa: E402
 
+from dacr_learn import load_exported  # noqa: E402
 from dacr_learn.arm import Composite, load_arm  # noqa: E402
-from dacr_learn.arm.control import ControlStep, Port, WholeBodyConfig, WholeBodyController  # noqa: E402
+from dacr_learn.arm.control import Port, WholeBodyConfig, WholeBodyController  # noqa: E402
+from dacr_learn.arm.exported import export_control_step  # noqa: E402
 from dacr_learn.ik import solve_ik  # noqa: E402
 from dacr_learn.lie import twist_jacobian  # noqa: E402
 from dacr_learn.robot import RobotSpec  # noqa: E402
@@ -99,18 +101,18 @@ def jacobian_errors(model: Composite, n: int) -> dict:
 
 def control_latency(model: Composite, aoti: bool, calls: int) -> dict:
     centre = model.base_pose(model.home[None])[0, :3, 3]
-    step = ControlStep(WholeBodyController(model, WholeBodyConfig(), Port(tuple(centre.tolist()), 0.005)))
+    config, port = WholeBodyConfig(), Port(tuple(centre.tolist()), 0.005)
+    step = WholeBodyController(model, config, port).step
     gen = torch.Generator().manual_seed(3)
     x = model.limits.sample(1, gen)
     target = model.pose_of_variables(model.limits.project(x + 0.05 * model.limits.scale))
-    ff = torch.zeros(1, 6, dtype=F64)
+    x, ff = model.joints(x), torch.zeros(1, 6, dtype=F64)
     runners = {"eager": step}
     out = {}
     if aoti:
         t = time.perf_counter()
-        program = torch.export.export(step, (x, target, ff))
-        path = torch._inductor.aoti_compile_and_package(program, package_path=str(ROOT / "runs" / "arm_step.pt2"))
-        runners["aoti"] = torch._inductor.aoti_load_package(path)
+        export_control_step(model, ROOT / "runs" / "arm_step", config=config, port=port)
+        runners["aoti"] = load_exported(ROOT / "runs" / "arm_step", "step")
         out["aoti_build_s"] = time.perf_counter() - t
         out["aoti_max_deviation"] = float((runners["aoti"](x, target, ff) - step(x, target, ff)).abs().max())
     for name, fn in runners.items():

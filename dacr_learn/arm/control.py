@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from ..checks import F64
 from ..deploy.control import ControllerConfig, scaled_dls_step, tip_task
@@ -139,15 +139,3 @@ class DecoupledController:
         x = self.arm.step_variables(x, target, feedforward, rest=self.straight.expand(x.shape[0], -1))
         x = self.robot.step_variables(x, target, feedforward)
         return self.model.joints(x)
-
-
-class ControlStep(nn.Module):
-    """One step of a controller as a module, for torch.export / AOTInductor (a kHz loop at batch 1):
-    (x (B, n + D), target (B, 4, 4), feedforward (B, 6)) → x' (B, n + D), in the model's variables."""
-
-    def __init__(self, controller: WholeBodyController):
-        super().__init__()
-        self.controller = controller
-
-    def forward(self, x: Tensor, target: Tensor, feedforward: Tensor) -> Tensor:
-        return self.controller.step_variables(x, target, feedforward)
