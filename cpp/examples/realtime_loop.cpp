@@ -63,7 +63,8 @@ std::string json_summary(const char* name, const dacr::LatencySummary& s) {
 }
 
 std::string json_setup(const dacr::RealtimeSetup& r) {
-  return "\"pinning\": \"" + r.pinning + "\", \"scheduler\": \"" + r.scheduler + "\", \"memory\": \"" + r.memory + "\"";
+  return "\"pinning\": \"" + r.pinning + "\", \"scheduler\": \"" + r.scheduler + "\", \"memory\": \"" + r.memory +
+         "\", \"malloc\": \"" + r.malloc + "\"";
 }
 
 std::vector<double> read_doubles(const std::string& path) {
@@ -249,6 +250,7 @@ int run_bench(const Args& a, const dacr::RealtimeSetup& setup) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  dacr::reexec_with_malloc_tunables(argv);  // a controller's environment (docs/cpp.md, "Real-time loop")
   if (argc < 2) {
     std::cerr << "usage: dacr_rt rrc|ik|bench --key value ... (see the top of cpp/examples/realtime_loop.cpp)\n";
     return 2;
