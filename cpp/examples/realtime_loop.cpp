@@ -201,6 +201,7 @@ int run_bench(const Args& a, const dacr::RealtimeSetup& setup) {
     std::string name;
     std::function<void()> fn;
     std::vector<int64_t> ns;
+    long long news = 0;  // operator new during the timed calls
   };
   std::vector<Row> rows;
   std::unique_ptr<dacr::ForwardKinematics> fk;
@@ -235,14 +236,20 @@ int run_bench(const Args& a, const dacr::RealtimeSetup& setup) {
   for (int round = 0; round < rounds; ++round)
     for (size_t i = 0; i < rows.size(); ++i) {
       auto& r = rows[round % 2 ? rows.size() - 1 - i : i];
+      const long long news = g_news.load();
       for (int c = 0; c < calls; ++c) {
         const int64_t t0 = dacr::now_ns();
         r.fn();
         r.ns.push_back(dacr::now_ns() - t0);
       }
+      r.news += g_news.load() - news;
     }
-  std::string out = "{\"mode\": \"bench\", ";
-  for (auto& r : rows) out += json_summary(r.name.c_str(), dacr::summarize(r.ns)) + ", ";
+  std::string out = "{\"mode\": \"bench\", ", news = "\"new_per_call\": {";
+  for (auto& r : rows) {
+    out += json_summary(r.name.c_str(), dacr::summarize(r.ns)) + ", ";
+    news += (news.size() > 17 ? ", \"" : "\"") + r.name + "\": " + std::to_string(r.news / (double(calls) * rounds));
+  }
+  out += news + "}, ";
   std::printf("%s%s}\n", out.c_str(), json_setup(setup).c_str());
   return 0;
 }
