@@ -14,10 +14,10 @@ side (``cpp/build.sh``), then
    back-and-forth between two random configurations, one lap per 2 s; the targets are written here).
 
     .venv/bin/python benchmarks/cpp_latency.py [--rounds 7 --calls 1000 --seconds 10 --cpu 1] [--json]
-        [--compare OTHER_OUT] [--glibc-default]
+        [--compare OTHER_OUT ...] [--glibc-default]
 
-``--compare``: the packages of another ``--out`` folder (e.g. written by an earlier version) measured in the same
-rounds (rows ``*_compare``); ``--glibc-default``: the C++ rounds once more with glibc's default malloc cache (rows
+``--compare``: the packages of other ``--out`` folders (e.g. written by an earlier version) measured in the same
+rounds (rows ``*_<folder name>``); ``--glibc-default``: the C++ rounds once more with glibc's default malloc cache (rows
 ``cpp_*_glibc``; ``dacr_rt`` otherwise runs with ``GLIBC_TUNABLES=glibc.malloc.tcache_count=4096``, docs/cpp.md).
 
 Targets (the issue's): FK + Jacobian (one ``jacobian`` call gives the pose and both Jacobians) p50 ≤ 25 µs,
@@ -98,7 +98,7 @@ def python_round(fns: dict, calls: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def python_rows(out: Path, targets: Path, refine: bool, compare: Path | None) -> dict:
+def python_rows(out: Path, targets: Path, refine: bool, compare: list[Path]) -> dict:
     fk, jac = dexport.load(out / "fk", "fk"), dexport.load(out / "fk", "jacobian")
     q = torch.full((1, fk.inputs[0][1][0]), 0.01)
     rows = {"python_fk": lambda: fk(q), "python_jacobian": lambda: jac(q), "python_fk_runner": lambda: fk.runner([q]),
@@ -110,13 +110,13 @@ def python_rows(out: Path, targets: Path, refine: bool, compare: Path | None) ->
         q0 = torch.from_numpy(data[:n].copy()).unsqueeze(0)
         pose = torch.from_numpy(data[n:n + 16].copy()).reshape(1, 4, 4)
         rows.update(python_refine=lambda: ref(pose, q0), python_refine_runner=lambda: ref.runner([pose, q0]))
-    if compare is not None:                              # the other folder's packages, through their runners
+    for other in compare:                              # the other folders' packages, through their runners
         for name in ("fk", "jacobian"):
-            runner = dexport.load(compare / "fk", name).runner
-            rows[f"python_{name}_runner_compare"] = (lambda r: lambda: r([q]))(runner)
+            runner = dexport.load(other / "fk", name).runner
+            rows[f"python_{name}_runner_{other.name}"] = (lambda r: lambda: r([q]))(runner)
         if refine:
-            old = dexport.load(compare / "refine", "refine")
-            rows["python_refine_runner_compare"] = lambda: old.runner([pose, q0])
+            runner = dexport.load(other / "refine", "refine").runner
+            rows[f"python_refine_runner_{other.name}"] = (lambda r: lambda: r([pose, q0]))(runner)
     with torch.no_grad():
         for fn in rows.values():
             for _ in range(50):
@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seconds", type=float, default=10.0, help="length of each 1 kHz loop")
     p.add_argument("--cpu", type=int, default=1, help="the CPU both sides are pinned to")
     p.add_argument("--no-refine", action="store_true", help="skip the IK refinement (its package builds for minutes)")
-    p.add_argument("--compare", help="another --out folder whose packages are measured in the same rounds")
+    p.add_argument("--compare", nargs="+", default=[], help="other --out folders measured in the same rounds")
     p.add_argument("--glibc-default", action="store_true", help="C++ rounds with glibc's malloc defaults too")
     p.add_argument("--json", action="store_true", help="one JSON line on stdout")
     args = p.parse_args(argv)
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> dict:
     write_targets(targets, int(round(args.seconds * 1000)))
     torch.set_num_threads(1)
     os.sched_setaffinity(0, {args.cpu})
-    compare = Path(args.compare) if args.compare else None
+    compare = [Path(c) for c in args.compare]
     rows = python_rows(out, targets, refine, compare)
     rt = [str(BUILD / "dacr_rt")]
 
@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> dict:
                            if refine else [])
     packages = package_args(out)
     variants = [("", packages, os.environ)]                      # (row suffix, packages, environment)
-    variants += [("_compare", package_args(compare), os.environ)] if compare is not None else []
+    variants += [(f"_{other.name}", package_args(other), os.environ) for other in compare]
     if args.glibc_default:        # glibc's own default tcache_count: dacr_rt sees it set and does not re-execute
         variants.append(("_glibc", packages, {**os.environ, "GLIBC_TUNABLES": "glibc.malloc.tcache_count=7"}))
     load = {"before": os.getloadavg()}
