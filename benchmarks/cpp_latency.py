@@ -173,11 +173,11 @@ def main(argv: list[str] | None = None) -> dict:
     load = {"before": os.getloadavg()}
     rounds: dict[str, list[dict]] = {}
     setup = None
-    for _ in range(args.rounds):
+    for k in range(args.rounds):
         with torch.no_grad():
             for name, r in python_round(rows, args.calls).items():
                 rounds.setdefault(name, []).append(r)
-        for suffix, pkgs, env in variants:
+        for suffix, pkgs, env in variants[k % len(variants):] + variants[:k % len(variants)]:   # each first in turn
             cpp = json.loads(subprocess.run(rt + ["bench", *pkgs, "--calls", str(args.calls), "--rounds", "1",
                                                   "--cpu", str(args.cpu)],
                                             check=True, capture_output=True, text=True, env=env).stdout)
