@@ -18,7 +18,7 @@ side (``cpp/build.sh``), then
 
 ``--compare``: the packages of other ``--out`` folders (e.g. written by an earlier version) measured in the same
 rounds (rows ``*_<folder name>``); ``--glibc-default``: the C++ rounds once more with glibc's default malloc cache (rows
-``cpp_*_glibc``; ``dacr_rt`` otherwise runs with ``GLIBC_TUNABLES=glibc.malloc.tcache_count=4096``, docs/cpp.md).
+``cpp_*_glibc``; ``dacr_rt`` otherwise runs with ``GLIBC_TUNABLES=glibc.malloc.tcache_count=64``, docs/cpp.md).
 
 Targets (the issue's): FK + Jacobian (one ``jacobian`` call gives the pose and both Jacobians) p50 ≤ 25 µs,
 p99 ≤ 60 µs; refinement p50 ≤ 200 µs; each loop ≤ 0.1 % overruns.

@@ -16,10 +16,11 @@ struct RealtimeSetup {
 
 // glibc's malloc keeps at most 7 freed blocks of each size in its per-thread cache (tcache, the fast path); a
 // package call allocates and frees hundreds of tensor handles of the same few sizes, so the rest went through the
-// slower bins (with consolidations) on every call. kMallocTunables raises the cache to 4096 blocks per size. glibc
+// slower bins (with consolidations) on every call. kMallocTunables raises the cache to 64 blocks per size (measured:
+// the Jacobian's p50 −12 %; 512 or 4096 gave the same p50 but twice the p99, docs/history/cpp.md). glibc
 // reads it only from the environment at process start: set GLIBC_TUNABLES in the controller's environment, or call
 // this at the top of main(): it re-executes the program with it added (returns if it is set, or exec failed).
-constexpr const char* kMallocTunables = "glibc.malloc.tcache_count=4096";
+constexpr const char* kMallocTunables = "glibc.malloc.tcache_count=64";
 void reexec_with_malloc_tunables(char** argv);
 // GLIBC_TUNABLES as this process has it, in words ("glibc defaults" when unset).
 std::string malloc_setting();
