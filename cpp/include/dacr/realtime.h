@@ -16,8 +16,9 @@ struct RealtimeSetup {
 
 // glibc's malloc keeps at most 7 freed blocks of each size in its per-thread cache (tcache, the fast path); a
 // package call allocates and frees hundreds of tensor handles of the same few sizes, so the rest went through the
-// slower bins (with consolidations) on every call. kMallocTunables raises the cache to 64 blocks per size (measured:
-// the Jacobian's p50 −12 %; 512 or 4096 gave the same p50 but twice the p99, docs/history/cpp.md). glibc
+// slower bins (with consolidations) on every call. kMallocTunables raises the cache to 64 blocks per size (measured
+// on a loaded 2-core machine: the IK refinement's p50 −10 to −15 %, the Jacobian's within the spread of the machine;
+// 512 or 4096 blocks doubled the Jacobian's p99, docs/history/cpp.md). glibc
 // reads it only from the environment at process start: set GLIBC_TUNABLES in the controller's environment, or call
 // this at the top of main(): it re-executes the program with it added (returns if it is set, or exec failed).
 constexpr const char* kMallocTunables = "glibc.malloc.tcache_count=64";
