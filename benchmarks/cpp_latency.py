@@ -14,6 +14,11 @@ side (``cpp/build.sh``), then
    back-and-forth between two random configurations, one lap per 2 s; the targets are written here).
 
     .venv/bin/python benchmarks/cpp_latency.py [--rounds 7 --calls 1000 --seconds 10 --cpu 1] [--json]
+        [--compare OTHER_OUT ...] [--glibc-default]
+
+``--compare``: the packages of other ``--out`` folders (e.g. written by an earlier version) measured in the same
+rounds (rows ``*_<folder name>``); ``--glibc-default``: the C++ rounds once more with glibc's default malloc cache (rows
+``cpp_*_glibc``; ``dacr_rt`` otherwise runs with ``GLIBC_TUNABLES=glibc.malloc.tcache_count=64``, docs/cpp.md).
 
 Targets (the issue's): FK + Jacobian (one ``jacobian`` call gives the pose and both Jacobians) p50 ≤ 25 µs,
 p99 ≤ 60 µs; refinement p50 ≤ 200 µs; each loop ≤ 0.1 % overruns.
@@ -93,18 +98,25 @@ def python_round(fns: dict, calls: int) -> dict[str, dict[str, float]]:
     return out
 
 
-def python_rows(out: Path, targets: Path, refine: bool) -> dict:
+def python_rows(out: Path, targets: Path, refine: bool, compare: list[Path]) -> dict:
     fk, jac = dexport.load(out / "fk", "fk"), dexport.load(out / "fk", "jacobian")
     q = torch.full((1, fk.inputs[0][1][0]), 0.01)
     rows = {"python_fk": lambda: fk(q), "python_jacobian": lambda: jac(q), "python_fk_runner": lambda: fk.runner([q]),
             "python_jacobian_runner": lambda: jac.runner([q])}
+    data = np.fromfile(targets)
     if refine:
         ref = dexport.load(out / "refine", "refine")
-        data = np.fromfile(targets)
         n = ref.inputs[1][1][0]
         q0 = torch.from_numpy(data[:n].copy()).unsqueeze(0)
         pose = torch.from_numpy(data[n:n + 16].copy()).reshape(1, 4, 4)
         rows.update(python_refine=lambda: ref(pose, q0), python_refine_runner=lambda: ref.runner([pose, q0]))
+    for other in compare:                              # the other folders' packages, through their runners
+        for name in ("fk", "jacobian"):
+            runner = dexport.load(other / "fk", name).runner
+            rows[f"python_{name}_runner_{other.name}"] = (lambda r: lambda: r([q]))(runner)
+        if refine:
+            runner = dexport.load(other / "refine", "refine").runner
+            rows[f"python_refine_runner_{other.name}"] = (lambda r: lambda: r([pose, q0]))(runner)
     with torch.no_grad():
         for fn in rows.values():
             for _ in range(50):
@@ -124,6 +136,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--seconds", type=float, default=10.0, help="length of each 1 kHz loop")
     p.add_argument("--cpu", type=int, default=1, help="the CPU both sides are pinned to")
     p.add_argument("--no-refine", action="store_true", help="skip the IK refinement (its package builds for minutes)")
+    p.add_argument("--compare", nargs="+", default=[], help="other --out folders measured in the same rounds")
+    p.add_argument("--glibc-default", action="store_true", help="C++ rounds with glibc's malloc defaults too")
     p.add_argument("--json", action="store_true", help="one JSON line on stdout")
     args = p.parse_args(argv)
     quiet_third_party_warnings()
@@ -143,23 +157,33 @@ def main(argv: list[str] | None = None) -> dict:
     write_targets(targets, int(round(args.seconds * 1000)))
     torch.set_num_threads(1)
     os.sched_setaffinity(0, {args.cpu})
-    rows = python_rows(out, targets, refine)
+    compare = [Path(c) for c in args.compare]
+    rows = python_rows(out, targets, refine, compare)
     rt = [str(BUILD / "dacr_rt")]
-    packages = ["--fk", str(out / "fk" / "fk.aoti.pt2"), "--jacobian", str(out / "fk" / "jacobian.aoti.pt2")]
-    packages += ["--refine", str(out / "refine" / "refine.aoti.pt2"), "--targets", str(targets)] if refine else []
+
+    def package_args(folder: Path) -> list[str]:
+        packages = ["--fk", str(folder / "fk" / "fk.aoti.pt2"), "--jacobian", str(folder / "fk" / "jacobian.aoti.pt2")]
+        return packages + (["--refine", str(folder / "refine" / "refine.aoti.pt2"), "--targets", str(targets)]
+                           if refine else [])
+    packages = package_args(out)
+    variants = [("", packages, os.environ)]                      # (row suffix, packages, environment)
+    variants += [(f"_{other.name}", package_args(other), os.environ) for other in compare]
+    if args.glibc_default:        # glibc's own default tcache_count: dacr_rt sees it set and does not re-execute
+        variants.append(("_glibc", packages, {**os.environ, "GLIBC_TUNABLES": "glibc.malloc.tcache_count=7"}))
     load = {"before": os.getloadavg()}
     rounds: dict[str, list[dict]] = {}
     setup = None
-    for _ in range(args.rounds):
+    for k in range(args.rounds):
         with torch.no_grad():
             for name, r in python_round(rows, args.calls).items():
                 rounds.setdefault(name, []).append(r)
-        cpp = json.loads(subprocess.run(rt + ["bench", *packages, "--calls", str(args.calls), "--rounds", "1",
-                                              "--cpu", str(args.cpu)],
-                                        check=True, capture_output=True, text=True).stdout)
-        setup = {k: cpp[k] for k in ("pinning", "scheduler", "memory")}
-        for name in ("fk", "jacobian") + (("refine",) if refine else ()):
-            rounds.setdefault(f"cpp_{name}", []).append(cpp[name])
+        for suffix, pkgs, env in variants[k % len(variants):] + variants[:k % len(variants)]:   # each first in turn
+            cpp = json.loads(subprocess.run(rt + ["bench", *pkgs, "--calls", str(args.calls), "--rounds", "1",
+                                                  "--cpu", str(args.cpu)],
+                                            check=True, capture_output=True, text=True, env=env).stdout)
+            setup = setup or {k: cpp[k] for k in ("pinning", "scheduler", "memory", "malloc")}
+            for name in ("fk", "jacobian") + (("refine",) if refine else ()):
+                rounds.setdefault(f"cpp_{name}{suffix}", []).append(cpp[name])
     latency = {name: {k: float(np.median([r[k] for r in rs])) for k in ("p50_us", "p99_us")}
                for name, rs in rounds.items()}
     loops = {}

@@ -349,3 +349,28 @@ def test_export_metadata_that_is_not_json(tmp_path):
         meta.write_text(text)
         with pytest.raises(ValueError, match=names(meta, "expected the metadata.json of an export", found)):
             dexport.read_metadata(tmp_path)
+
+
+def test_inlined_products_leave_no_matrix_product_and_equal_the_program():
+    """inline_products (the option of packages of small products): no mm/bmm/addmm/matmul op left, same outputs
+    (float64, to roundoff) on another batch size than the example's (the batch dim stays dynamic)."""
+    from dacr_learn.deploy.export import export_program, inline_products
+
+    class Products(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.linear = torch.nn.Linear(5, 4).double()
+
+        def forward(self, x, y):
+            return self.linear(x) @ y, torch.bmm(x.unsqueeze(1), x.unsqueeze(-1)).squeeze()
+
+    g = torch.Generator().manual_seed(0)
+    x, y = (torch.randn(3, 5, generator=g, dtype=torch.float64), torch.randn(3, 4, 4, generator=g,
+                                                                             dtype=torch.float64))
+    program = export_program(Products(), (x, y))
+    inlined = inline_products(program)
+    ops = {str(n.target) for n in inlined.graph.nodes if n.op == "call_function"}
+    assert not any(name in op for op in ops for name in ("mm.", "bmm.", "addmm.", "matmul."))
+    x, y = x.repeat(3, 1), y.repeat(3, 1, 1)
+    for want, got in zip(program.module()(x, y), inlined.module()(x, y), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-13)

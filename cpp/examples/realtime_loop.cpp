@@ -63,7 +63,8 @@ std::string json_summary(const char* name, const dacr::LatencySummary& s) {
 }
 
 std::string json_setup(const dacr::RealtimeSetup& r) {
-  return "\"pinning\": \"" + r.pinning + "\", \"scheduler\": \"" + r.scheduler + "\", \"memory\": \"" + r.memory + "\"";
+  return "\"pinning\": \"" + r.pinning + "\", \"scheduler\": \"" + r.scheduler + "\", \"memory\": \"" + r.memory +
+         "\", \"malloc\": \"" + r.malloc + "\"";
 }
 
 std::vector<double> read_doubles(const std::string& path) {
@@ -200,6 +201,7 @@ int run_bench(const Args& a, const dacr::RealtimeSetup& setup) {
     std::string name;
     std::function<void()> fn;
     std::vector<int64_t> ns;
+    long long news = 0;  // operator new during the timed calls
   };
   std::vector<Row> rows;
   std::unique_ptr<dacr::ForwardKinematics> fk;
@@ -234,14 +236,20 @@ int run_bench(const Args& a, const dacr::RealtimeSetup& setup) {
   for (int round = 0; round < rounds; ++round)
     for (size_t i = 0; i < rows.size(); ++i) {
       auto& r = rows[round % 2 ? rows.size() - 1 - i : i];
+      const long long news = g_news.load();
       for (int c = 0; c < calls; ++c) {
         const int64_t t0 = dacr::now_ns();
         r.fn();
         r.ns.push_back(dacr::now_ns() - t0);
       }
+      r.news += g_news.load() - news;
     }
-  std::string out = "{\"mode\": \"bench\", ";
-  for (auto& r : rows) out += json_summary(r.name.c_str(), dacr::summarize(r.ns)) + ", ";
+  std::string out = "{\"mode\": \"bench\", ", news = "\"new_per_call\": {";
+  for (auto& r : rows) {
+    out += json_summary(r.name.c_str(), dacr::summarize(r.ns)) + ", ";
+    news += (news.size() > 17 ? ", \"" : "\"") + r.name + "\": " + std::to_string(r.news / (double(calls) * rounds));
+  }
+  out += news + "}, ";
   std::printf("%s%s}\n", out.c_str(), json_setup(setup).c_str());
   return 0;
 }
@@ -249,6 +257,7 @@ int run_bench(const Args& a, const dacr::RealtimeSetup& setup) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  dacr::reexec_with_malloc_tunables(argv);  // a controller's environment (docs/cpp.md, "Real-time loop")
   if (argc < 2) {
     std::cerr << "usage: dacr_rt rrc|ik|bench --key value ... (see the top of cpp/examples/realtime_loop.cpp)\n";
     return 2;

@@ -4,12 +4,14 @@
 #include <pthread.h>
 #include <sched.h>
 #include <sys/mman.h>
+#include <unistd.h>
 #include <time.h>
 
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 
 #include <c10/core/CPUAllocator.h>
@@ -32,7 +34,23 @@ RealtimeSetup prepare_realtime_thread(int cpu, int priority) {
                            : std::string("SCHED_OTHER (SCHED_FIFO refused: ") + std::strerror(err) + ")";
   out.locked = mlockall(MCL_CURRENT | MCL_FUTURE) == 0;
   out.memory = out.locked ? "mlockall" : std::string("not locked (mlockall: ") + std::strerror(errno) + ")";
+  out.malloc = malloc_setting();
   return out;
+}
+
+void reexec_with_malloc_tunables(char** argv) {
+  const char* now = std::getenv("GLIBC_TUNABLES");
+  const std::string have = now ? now : "";
+  if (have.find("glibc.malloc.tcache_count=") != std::string::npos) return;   // set (by us, or by the caller)
+  const std::string want = have.empty() ? kMallocTunables : have + ":" + kMallocTunables;
+  if (setenv("GLIBC_TUNABLES", want.c_str(), 1) != 0) return;
+  execv("/proc/self/exe", argv);   // returns only on failure: carry on with glibc's defaults
+  if (now) setenv("GLIBC_TUNABLES", now, 1); else unsetenv("GLIBC_TUNABLES");
+}
+
+std::string malloc_setting() {
+  const char* now = std::getenv("GLIBC_TUNABLES");
+  return now && *now ? std::string("GLIBC_TUNABLES=") + now : "glibc defaults";
 }
 
 int64_t now_ns() {

@@ -68,6 +68,35 @@ def export_program(module: nn.Module, example: Tensor | tuple[Tensor, ...]) -> t
         return torch.export.export(module, examples, dynamic_shapes=tuple({0: batch} for _ in examples))
 
 
+def _products(a: Tensor, b: Tensor) -> Tensor:
+    """a @ b as a sum of broadcast products (matmul's broadcasting; 1-D operands too): a loop the compiler writes
+    inline."""
+    if a.dim() == 1:
+        return (a.unsqueeze(-1) * b).sum(-2) if b.dim() > 1 else (a * b).sum(-1)
+    if b.dim() == 1:
+        return (a * b).sum(-1)
+    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
+
+
+def _scaled_sum(c: Tensor, a: Tensor, b: Tensor, beta=1, alpha=1) -> Tensor:
+    return beta * c + alpha * _products(a, b)
+
+
+SMALL_MATMULS = {op: _products for op in (torch.ops.aten.matmul.default, torch.ops.aten.mm.default,
+                                          torch.ops.aten.bmm.default)} | {
+    op: _scaled_sum for op in (torch.ops.aten.addmm.default, torch.ops.aten.baddbmm.default)}
+"""Decompositions of small matrix products: an external BLAS call in a compiled module keeps its temporaries off
+the stack and wraps each operand in a heap-allocated tensor handle (tens of µs per call at batch 1)."""
+
+
+def inline_products(program: torch.export.ExportedProgram) -> torch.export.ExportedProgram:
+    """``program`` with its matrix products written as inline sums (:data:`SMALL_MATMULS`), for AOTInductor
+    packages of small products (a module asks for it with ``inline_products = True``, :func:`write_module`)."""
+    table = torch.export.default_decompositions()
+    table.update(SMALL_MATMULS)
+    return program.run_decompositions(table)
+
+
 # Inductor options of ``autotune=True``: small matrix products as generated C++ GEMM kernels (chosen by
 # timing them at export) instead of BLAS calls. Measured at batch 1, one thread (docs/export.md): AOTI
 # runner of the default synthetic FK 19.0 → 7.7 µs, of FTDCR v4's hardware FK 48 → 27 µs; export slower.
@@ -88,7 +117,8 @@ def write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, .
                  aoti: bool, autotune: bool = False, metadata: dict[str, str] | None = None) -> dict[str, str]:
     """Write ``<name>.pt2`` and, if asked and it builds (C++ compiler), ``<name>.aoti.pt2`` (with
     :data:`PACKAGE_CONFIGS`, :data:`AUTOTUNE_CONFIGS` when ``autotune``, and the module's ``inductor_configs`` if
-    it has them). ``metadata``: strings stored inside the package (:mod:`.package_metadata`, read by C++ loaders)."""
+    it has them; its matrix products inline, :func:`inline_products`, if it has ``inline_products = True``).
+    ``metadata``: strings stored inside the package (:mod:`.package_metadata`, read by C++ loaders)."""
     program = export_program(module, example)
     files = {"export": f"{name}.pt2"}
     torch.export.save(program, out / files["export"])
@@ -96,7 +126,8 @@ def write_module(name: str, module: nn.Module, example: Tensor | tuple[Tensor, .
         configs = {**PACKAGE_CONFIGS, **(AUTOTUNE_CONFIGS if autotune else {}),
                    **getattr(module, "inductor_configs", {}), "aot_inductor.metadata": dict(metadata or {})}
         try:
-            torch._inductor.aoti_compile_and_package(program, package_path=str(out / f"{name}.aoti.pt2"),
+            compiled = inline_products(program) if getattr(module, "inline_products", False) else program
+            torch._inductor.aoti_compile_and_package(compiled, package_path=str(out / f"{name}.aoti.pt2"),
                                                      inductor_configs=configs)
             files["aoti"] = f"{name}.aoti.pt2"
         except Exception as err:  # no compiler, unsupported platform, …: keep the program

@@ -16,7 +16,11 @@ import torch
 from torch import Tensor, nn
 
 from ..checks import F64
+from .export import SMALL_MATMULS, inline_products
 from .qp_control import QPController, Rows
+
+__all__ = ["SHAPES_KEY", "SMALL_MATMULS", "ExportedStep", "StepProgram", "export_step", "shapes_text",
+           "step_feedforward", "step_program"]   # SMALL_MATMULS: from .export, named here too
 
 SHAPES_KEY = "qp_step_shapes"
 
@@ -49,35 +53,10 @@ class StepProgram(nn.Module):
         return (x, *c.program_rows(x, s, jac, err))
 
 
-def _products(a: Tensor, b: Tensor) -> Tensor:
-    """a @ b as a sum of broadcast products (matmul's broadcasting; 1-D operands too): a loop the compiler writes
-    inline."""
-    if a.dim() == 1:
-        return (a.unsqueeze(-1) * b).sum(-2) if b.dim() > 1 else (a * b).sum(-1)
-    if b.dim() == 1:
-        return (a * b).sum(-1)
-    return (a.unsqueeze(-1) * b.unsqueeze(-3)).sum(-2)
-
-
-def _scaled_sum(c: Tensor, a: Tensor, b: Tensor, beta=1, alpha=1) -> Tensor:
-    return beta * c + alpha * _products(a, b)
-
-
-SMALL_MATMULS = {op: _products for op in (torch.ops.aten.matmul.default, torch.ops.aten.mm.default,
-                                          torch.ops.aten.bmm.default)} | {
-    op: _scaled_sum for op in (torch.ops.aten.addmm.default, torch.ops.aten.baddbmm.default)}
-"""Decompositions of the step's (small) matrix products: an external BLAS call in the compiled step would keep its
-temporaries off the stack (AOTInductor allocates every one on the heap then, tens of µs per call)."""
-
-
 def step_program(controller: QPController, q: Tensor, target: Tensor, feedforward: Tensor
                  ) -> torch.export.ExportedProgram:
     """:class:`StepProgram` exported at these shapes, its matrix products decomposed (:data:`SMALL_MATMULS`)."""
-    program = torch.export.export(StepProgram(controller), (q, target, feedforward))
-    table = torch.export.default_decompositions()
-    for op, fn in SMALL_MATMULS.items():
-        table[op] = fn
-    return program.run_decompositions(table)
+    return inline_products(torch.export.export(StepProgram(controller), (q, target, feedforward)))
 
 
 def export_step(controller: QPController, package: str | Path, q: Tensor, target: Tensor,

@@ -11,8 +11,20 @@ namespace dacr {
 // Outcome of preparing the calling thread for real-time work; each field says what happened in words.
 struct RealtimeSetup {
   bool pinned = false, fifo = false, locked = false;
-  std::string pinning, scheduler, memory;
+  std::string pinning, scheduler, memory, malloc;
 };
+
+// glibc's malloc keeps at most 7 freed blocks of each size in its per-thread cache (tcache, the fast path); a
+// package call allocates and frees hundreds of tensor handles of the same few sizes, so the rest went through the
+// slower bins (with consolidations) on every call. kMallocTunables raises the cache to 64 blocks per size (measured
+// on a loaded 2-core machine: the IK refinement's p50 −10 to −15 %, the Jacobian's within the spread of the machine;
+// 512 or 4096 blocks doubled the Jacobian's p99, docs/history/cpp.md). glibc
+// reads it only from the environment at process start: set GLIBC_TUNABLES in the controller's environment, or call
+// this at the top of main(): it re-executes the program with it added (returns if it is set, or exec failed).
+constexpr const char* kMallocTunables = "glibc.malloc.tcache_count=64";
+void reexec_with_malloc_tunables(char** argv);
+// GLIBC_TUNABLES as this process has it, in words ("glibc defaults" when unset).
+std::string malloc_setting();
 
 // Pin the calling thread to `cpu` (pthread affinity), ask for SCHED_FIFO at `priority` (needs CAP_SYS_NICE or an
 // rtprio limit; else it stays SCHED_OTHER and says so) and lock the process memory (mlockall, if permitted).

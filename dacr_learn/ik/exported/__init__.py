@@ -26,7 +26,16 @@ from ..refine import fused_matmul, limited_step, lm_accept, residual, spd_solve_
 
 
 class IKRefinement(nn.Module):
-    """Fixed-iteration IK refinement on the analytic CC model of a robot (module docstring), float64."""
+    """Fixed-iteration IK refinement on the analytic CC model of a robot (module docstring), float64.
+
+    Its AOTInductor package (:func:`~dacr_learn.deploy.export.write_module`) writes the small matrix products inline
+    and every concatenation as a pointwise kernel: no BLAS call and no aliased view of a concatenated buffer, each of
+    which the runtime wraps in a heap-allocated tensor handle per call (C++, 3 iterations: 1,496 → 518
+    ``operator new`` and 122 → 68 µs per call side by side under load; the package builds ~2× longer, its kernels are
+    larger)."""
+
+    inline_products = True
+    inductor_configs = {"force_pointwise_cat": True}
 
     def __init__(self, spec: RobotSpec, iterations: int = 3, position_only: bool = False, damping: float = 1e-6):
         super().__init__()
