@@ -31,6 +31,10 @@ from .refine import STALL_LAMBDA, lm_iteration, residual
 
 REFILL = 1 / 16   # refill once this fraction of the batch has left it (or nothing is left)
 DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live rows than this fraction of slots
+FIRST_WAVE = 2    # with ``near``: slots of a target whose first starts begin at once (module docstring)
+CROWDED = 0.75    # … the others wait while fewer than this fraction of the checked converged starts pass ``accept``
+SAMPLE = 64       # converged starts checked before that fraction decides
+CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
@@ -101,7 +105,16 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     out_x, out_cost = starts.to(F64).clone(), torch.full((m,), float("inf"), dtype=F64)
     taken, iters = torch.zeros(m, dtype=torch.long), torch.zeros(m, dtype=torch.long)
     batch = _Batch(model, position, rotation, damping, k)
-    queued, dedupe_rounds = 0, 0                                   # first starts begun; duplicate checks done
+    dedupe_rounds = 0                                              # duplicate checks done
+    waiting = torch.ones(m, dtype=torch.bool)                      # slots whose first start has not begun
+    later = (torch.arange(m) % k) >= (FIRST_WAVE if near is not None else k)    # may wait for a solution to be near
+    tally = [0, 0]                                                 # converged starts accepted, checked
+    crowded: bool | None = None if near is not None else False     # decided once SAMPLE starts are checked
+
+    def checked(x: Tensor) -> Tensor:
+        ok = accept(x)
+        tally[0], tally[1] = tally[0] + int(ok.sum()), tally[1] + ok.numel()
+        return ok
     live = torch.zeros(0, dtype=torch.bool)
     pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
     duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
@@ -110,12 +123,12 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
         n_live = int(live.sum())
         if size == 0 or size - n_live >= max(1, REFILL * size):
             while pending:                    # converged rows to decide; all of them once nothing else is left
-                out_cost, pending = _decide(pending, accept, solved, out_x, out_cost)
+                out_cost, pending = _decide(pending, checked, solved, out_x, out_cost)
                 live = live & ~solved[batch.slot]
                 n_live = int(live.sum())
                 if n_live:
                     break
-            if queued == m and dedupe_rounds < 2 and redundant and n_live <= DUPLICATE_CHECK_BELOW * m:
+            if not bool(waiting.any()) and dedupe_rounds < 2 and redundant and n_live <= DUPLICATE_CHECK_BELOW * m:
                 dedupe_rounds += 1                    # few rows left: reopen solved slots that duplicate another
                 dup = dedupe(out_x.view(-1, k, d), solved.view(-1, k)).flatten()
                 if keep_first:
@@ -125,22 +138,39 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                 duplicate |= reopen
             keep = live.nonzero().squeeze(-1)
             free = pool - keep.numel()
-            first = torch.arange(queued, min(m, queued + free))
-            queued += first.numel()
-            slots, x0 = [first], [starts[first]]
+            if bool((waiting & later).any()):     # later slots: wait while crowded (module docstring)
+                alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, batch.slot[keep], True)
+                ended = (solved | (taken >= 2) | ((taken >= 1) & ~alive) | later).view(-1, k).all(1)
+                if crowded is None and (tally[1] >= SAMPLE or bool(ended.all())):
+                    crowded = tally[0] < CROWDED * tally[1]
+                go = (solved.view(-1, k).any(1) | ended) if crowded else torch.full_like(ended, crowded is False)
+                if keep.numel() == 0 and not bool((waiting & ~later).any()):    # (a solution to start near, or the
+                    go[:] = True                                                # first wave's starts have ended)
+                ready = waiting & (~later | go.repeat_interleave(k))
+            else:
+                ready = waiting
+            first = ready.nonzero().squeeze(-1)[:max(free, 0)]
+            waiting[first] = False
+            x_first = starts[first]
+            if crowded and bool(later[first].any()):                     # near a solution of the same target
+                solutions = torch.where(solved, torch.arange(m), -1).view(-1, k)[first // k]
+                x_first = torch.where(later[first].unsqueeze(-1), near(x_first, out_x, solutions, gen, 1.0), x_first)
+            slots, x0 = [first], [x_first]
             free -= first.numel()
-            if free > 0 and queued == m:
+            if free > 0 and not bool((ready & waiting).any()):
                 alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
-                needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
+                needy = (~solved & ~alive & ~waiting & (taken < budget)).nonzero().squeeze(-1)
                 if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
-                    share = max(1, -(-(TAIL_ROWS - keep.numel()) // needy.numel()))
+                    share = max(1, -(-((CROWDED_TAIL_ROWS if crowded else TAIL_ROWS) - keep.numel())
+                                       // needy.numel()))
                     each = torch.clamp(budget - taken[needy], max=min(max_fan_out, share))
                     more = needy.repeat_interleave(each)[:free]
                     slots.append(more)
                     fresh = lim.sample(more.numel(), gen)
                     if near is not None:                # not for duplicates: they would find the same again
                         solutions = torch.where(solved, torch.arange(m), -1).view(-1, k)[more // k]
-                        fresh = near(fresh, out_x, solutions.masked_fill(duplicate[more].unsqueeze(-1), -1), gen)
+                        fresh = near(fresh, out_x, solutions.masked_fill(duplicate[more].unsqueeze(-1), -1), gen,
+                                     1.0 if crowded else None)
                     x0.append(fresh)
             slots = torch.cat(slots)
             taken.index_add_(0, slots, torch.ones_like(slots))
