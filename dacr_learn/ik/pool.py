@@ -15,7 +15,11 @@ With a further condition on a solution (``accept``, e.g. the clearance of a scen
 tip has converged leaves the batch undecided; at the next refill the first such row of each slot is checked (one
 batched check, :func:`_decide`): an accepted row solves its slot, a rejected one is a candidate like a stalled row, and
 ``near`` may move the unsolved slots' new starts towards accepted solutions of the same target (not those of slots
-reopened as duplicates: near another solution they would find it again).
+reopened as duplicates: near another solution they would find it again). While the batch is *crowded* (fewer than
+:data:`CROWDED` of the converged starts checked so far pass, once :data:`SAMPLE` are checked; e.g. a robot on an arm
+behind a port, where about 4 in 10 converged seeds fail), every new start of a slot whose target has a solution is
+drawn near one (``near``'s share 1), and restarts fill the batch only up to :data:`CROWDED_TAIL_ROWS`: each of their
+rows also costs a check, and near a solution one start per slot mostly suffices.
 """
 from __future__ import annotations
 
@@ -31,9 +35,8 @@ from .refine import STALL_LAMBDA, lm_iteration, residual
 
 REFILL = 1 / 16   # refill once this fraction of the batch has left it (or nothing is left)
 DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live rows than this fraction of slots
-FIRST_WAVE = 2    # with ``near``: slots of a target whose first starts begin at once (module docstring)
-CROWDED = 0.75    # … the others wait while fewer than this fraction of the checked converged starts pass ``accept``
-SAMPLE = 64       # converged starts checked before that fraction decides
+CROWDED = 0.75    # with ``accept`` and ``near``: crowded while fewer than this fraction of the converged starts pass,
+SAMPLE = 64       # decided once this many are checked (module docstring)
 CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
@@ -105,19 +108,16 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     out_x, out_cost = starts.to(F64).clone(), torch.full((m,), float("inf"), dtype=F64)
     taken, iters = torch.zeros(m, dtype=torch.long), torch.zeros(m, dtype=torch.long)
     batch = _Batch(model, position, rotation, damping, k)
-    dedupe_rounds = 0                                              # duplicate checks done
-    waiting = torch.ones(m, dtype=torch.bool)                      # slots whose first start has not begun
-    later = (torch.arange(m) % k) >= (FIRST_WAVE if near is not None else k)    # may wait for a solution to be near
-    tally = [0, 0]                                                 # converged starts accepted, checked
-    crowded: bool | None = None if near is not None else False     # decided once SAMPLE starts are checked
+    queued, dedupe_rounds = 0, 0                                   # first starts begun; duplicate checks done
+    live = torch.zeros(0, dtype=torch.bool)
+    pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
+    duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
+    tally, crowded = [0, 0], False                                # converged starts accepted, checked
 
     def checked(x: Tensor) -> Tensor:
         ok = accept(x)
         tally[0], tally[1] = tally[0] + int(ok.sum()), tally[1] + ok.numel()
         return ok
-    live = torch.zeros(0, dtype=torch.bool)
-    pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
-    duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
     while True:
         size = live.numel()
         n_live = int(live.sum())
@@ -128,7 +128,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                 n_live = int(live.sum())
                 if n_live:
                     break
-            if not bool(waiting.any()) and dedupe_rounds < 2 and redundant and n_live <= DUPLICATE_CHECK_BELOW * m:
+            if queued == m and dedupe_rounds < 2 and redundant and n_live <= DUPLICATE_CHECK_BELOW * m:
                 dedupe_rounds += 1                    # few rows left: reopen solved slots that duplicate another
                 dup = dedupe(out_x.view(-1, k, d), solved.view(-1, k)).flatten()
                 if keep_first:
@@ -136,30 +136,17 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                 reopen = dup & (taken < budget)
                 solved &= ~reopen             # the duplicate stays the slot's candidate (its cost is tiny)
                 duplicate |= reopen
+            if near is not None and tally[1] >= SAMPLE:
+                crowded = tally[0] < CROWDED * tally[1]
             keep = live.nonzero().squeeze(-1)
             free = pool - keep.numel()
-            if bool((waiting & later).any()):     # later slots: wait while crowded (module docstring)
-                alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, batch.slot[keep], True)
-                ended = (solved | (taken >= 2) | ((taken >= 1) & ~alive) | later).view(-1, k).all(1)
-                if crowded is None and (tally[1] >= SAMPLE or bool(ended.all())):
-                    crowded = tally[0] < CROWDED * tally[1]
-                go = (solved.view(-1, k).any(1) | ended) if crowded else torch.full_like(ended, crowded is False)
-                if keep.numel() == 0 and not bool((waiting & ~later).any()):    # (a solution to start near, or the
-                    go[:] = True                                                # first wave's starts have ended)
-                ready = waiting & (~later | go.repeat_interleave(k))
-            else:
-                ready = waiting
-            first = ready.nonzero().squeeze(-1)[:max(free, 0)]
-            waiting[first] = False
-            x_first = starts[first]
-            if crowded and bool(later[first].any()):                     # near a solution of the same target
-                solutions = torch.where(solved, torch.arange(m), -1).view(-1, k)[first // k]
-                x_first = torch.where(later[first].unsqueeze(-1), near(x_first, out_x, solutions, gen, 1.0), x_first)
-            slots, x0 = [first], [x_first]
+            first = torch.arange(queued, min(m, queued + free))
+            queued += first.numel()
+            slots, x0 = [first], [starts[first]]
             free -= first.numel()
-            if free > 0 and not bool((ready & waiting).any()):
+            if free > 0 and queued == m:
                 alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
-                needy = (~solved & ~alive & ~waiting & (taken < budget)).nonzero().squeeze(-1)
+                needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
                 if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
                     share = max(1, -(-((CROWDED_TAIL_ROWS if crowded else TAIL_ROWS) - keep.numel())
                                        // needy.numel()))
