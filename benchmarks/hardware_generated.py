@@ -2,7 +2,7 @@
 
 For each ``--ckpt`` (python -m dacr_learn.hardware --save): the folded FK of ``dacr_learn.export``
 (:mod:`dacr_learn.hardware.deploy.inference` or :mod:`~dacr_learn.hardware.deploy.compositional_inference`)
-and :class:`~dacr_learn.hardware.deploy.generated.GeneratedHardwareFK` (the eager model's code, traced), both
+and :class:`generated_fk.GeneratedHardwareFK` (the eager model's code, traced), both
 float32, torch.export'ed and compiled with AOTInductor, timed interleaved in this process (one thread unless
 ``--threads``) at each ``--batches`` size on the checkpoint's example commands (and play states of a history
 model); p50 and p95 per call [µs] and their ratio, and the largest |exported − eager| of each package against
@@ -23,13 +23,13 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from generated_fk import GeneratedHardwareFK  # noqa: E402
 from timing import time_interleaved  # noqa: E402
 
 from dacr_learn import export as dexport  # noqa: E402
 from dacr_learn.console import quiet_third_party_warnings, run_cli  # noqa: E402
 from dacr_learn.hardware.deploy.checkpoint import load_hardware_model  # noqa: E402
 from dacr_learn.hardware.deploy.export import modules  # noqa: E402
-from dacr_learn.hardware.deploy.generated import GeneratedHardwareFK  # noqa: E402
 
 
 def inputs(model, fk, batch: int) -> tuple[torch.Tensor, ...]:

@@ -5,8 +5,10 @@ pose and position only: targets solved (at least one flagged solution), slots so
 the independent NumPy check (benchmarks/ik_reference.py: no shared code), targets with ≥ K/2 distinct solutions,
 wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
 in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
-without a scene; ``pool2``: its targets in 2 shards on parallel threads). For the 3-segment robot also: the warm-started
-refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
+without a scene; ``pool2``: its targets in 2 shards on parallel threads; ``fused``: the pool with its LM iteration
+compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards), timed after a first small solve that compiles it,
+whose time is reported as ``compile_s``). For the 3-segment robot also: the warm-started refinement of one target
+per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
 ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
 chord, ry φ/2, rz −θ — a relaxation: its solutions need not be constant-curvature shapes) on the same targets.
@@ -58,7 +60,19 @@ def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
     return forward_kinematics(spec, sample_features(spec, n, torch.Generator().manual_seed(seed), dtype=F64))
 
 
-PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2)}
+PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2),
+         "fused": IKOptions(fused=True), "fused2": IKOptions(fused=True, shards=2)}
+
+
+def compile_time(name: str, position_only: bool, path: str) -> float:
+    """Wall time [s] of a first small solve (64 × 8) of a fused path: the one-time compilation of the robot's iteration
+    for the task (the later rows of the process reuse it; in shards, on one thread each, torch compiles once more)."""
+    spec = RobotSpec.from_yaml(robot_path(name))
+    poses = targets(spec, 64, 1)
+    t0 = time.perf_counter()
+    solve_ik(spec, poses[:, :3, 3] if position_only else poses, n_solutions=8, position_only=position_only,
+             options=PATHS[path])
+    return time.perf_counter() - t0
 
 
 def solve_row(name: str, n: int, k: int, position_only: bool, seed: int, path: str = "pool") -> dict:
@@ -187,6 +201,7 @@ def main(argv=None) -> dict:
     p.add_argument("--json", action="store_true")
     p.add_argument("--against", help="another checkout: its solve rows side by side with this one's (subprocesses)")
     p.add_argument("--rounds", type=int, default=3, help="interleaved rounds with --against")
+    p.add_argument("--repeat", type=int, default=1, help="rounds of the solve rows in this process (paths alternate)")
     args = p.parse_args(argv)
     if args.against:
         report = against(args)
@@ -194,17 +209,26 @@ def main(argv=None) -> dict:
             print(json.dumps(report))
         return report
     torch.set_num_threads(args.threads)
-    rows = []
+    rows, extra = [], {"compile_s": {}}
     for name in args.robots:
         for position_only in (False, True):
-            for path in args.paths:
-                rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7, path=path))
-                r = rows[-1]
-                print(f"{name:22s} {r['task']:8s} {path:7s} solved {r['targets_solved_pct']:6.2f} % targets, "
-                      f"{r['slots_solved_pct']:6.2f} % slots, false flags {r['false_success']}, "
-                      f"≥K/2 distinct {r['distinct_half_pct']:6.2f} %, {r['wall_s']:.2f} s wall "
-                      f"({r['cpu_s']:.2f} s CPU), {r['verified_per_s']:.0f} verified solutions/s", flush=True)
-    extra = {}
+            task = "position" if position_only else "pose"
+            for path in (p for p in args.paths if p.startswith("fused")):
+                c = extra["compile_s"][f"{name} {task} {path}"] = compile_time(name, position_only, path)
+                print(f"{name:22s} {task:8s} {path:7s} first solve (compiles), 64 × 8: {c:.1f} s", flush=True)
+            for i in range(args.repeat):
+                for path in (args.paths if i % 2 == 0 else args.paths[::-1]):        # alternate the order
+                    rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7, path=path))
+                    r = rows[-1]
+                    print(f"{name:22s} {r['task']:8s} {path:7s} solved {r['targets_solved_pct']:6.2f} % targets, "
+                          f"{r['slots_solved_pct']:6.2f} % slots, false flags {r['false_success']}, "
+                          f"≥K/2 distinct {r['distinct_half_pct']:6.2f} %, {r['wall_s']:.2f} s wall "
+                          f"({r['cpu_s']:.2f} s CPU), {r['verified_per_s']:.0f} verified solutions/s", flush=True)
+            if args.repeat > 1:
+                med = {p: statistics.median(r["verified_per_s"] for r in rows if r["robot"] == name
+                                            and r["task"] == task and r["path"] == p) for p in args.paths}
+                print(f"{name:22s} {task:8s} medians of {args.repeat}: " + ", ".join(
+                    f"{p} {v:.0f}/s ({v / med[args.paths[0]]:.2f}×)" for p, v in med.items()), flush=True)
     if "tdcr_3seg_coupled" in args.robots:
         if "latency" not in args.skip:
             extra["warm_start"] = warm_start_latency("tdcr_3seg_coupled", args.export, 200)

@@ -26,7 +26,7 @@ AOTInductor packages) and times, interleaved round by round on one CPU thread:
   and the side-by-side table: each hardware FK row's p50 next to the synthetic FK's row of the same
   kind (eager: ``fk_eager_folded``), measured in the same run, and their ratio (target ≤ 2 for the
   exported rows). ``--no-hardware`` skips these rows. Beside them ``hardware_fk_generated_{export_program,
-  aoti}``: the same model's FK generated from its eager code (dacr_learn.hardware.deploy.generated), the
+  aoti}``: the same model's FK generated from its eager code (benchmarks/generated_fk.py), the
   same inputs (its package called through the C++ runner, like ``hardware_fk_aoti_runner``).
 
 Every call is timed on its own (perf_counter_ns); reported are p50 and p99 over all calls [µs] (``calls`` in the
@@ -194,8 +194,8 @@ def hardware_candidates(ckpt: Path, out: Path, aoti: bool, autotune: bool = Fals
 
 def generated_candidates(model, args: tuple, out: Path, aoti: bool) -> dict:
     """Rows ``hardware_fk_generated_{export_program, aoti}``: GeneratedHardwareFK (the eager model's code
-    traced, dacr_learn.hardware.deploy.generated) exported like the folded FK, the same inputs."""
-    from dacr_learn.hardware.deploy.generated import GeneratedHardwareFK
+    traced, benchmarks/generated_fk.py) exported like the folded FK, the same inputs."""
+    from generated_fk import GeneratedHardwareFK
 
     fk = GeneratedHardwareFK(model).eval()
     servo = model.examples[:2].float() if model.examples is not None else torch.zeros(2, len(model.servo_ids))

@@ -58,17 +58,26 @@ def translation_units(spec: RobotSpec, units: str) -> Tensor:
     return torch.tensor([s.length for s in spec.segments], dtype=torch.float64)
 
 
-def roll_mask(spec: RobotSpec, twist_roll: bool = True) -> Tensor:
-    """(m,) bool: the segments whose transform is rolled by their α first (the twisting ones, if ``twist_roll``)."""
-    return torch.tensor([bool(twist_roll and s.twists) for s in spec.segments])
-
-
 def alpha_inputs(context: str, num_segments: int) -> list[int]:
     """Network input columns that carry a segment's α: its own, the distal sum's with context "distal", every
     segment's with context "full" (after the m one-hot columns)."""
     if context == "full":
         return [3] + [4 + num_segments + 4 * j + 3 for j in range(num_segments)]
     return [3, 7] if context == "distal" else [3]
+
+
+def append_context(x: Tensor, context: str, matrix: Tensor) -> Tensor:
+    """Standardised features x (..., m, 4) → network inputs (..., m, C): x with the ``context`` appended, ``matrix``
+    (m, m) its :meth:`SegmentFrontEnd.context_operator` (one-hot rows, or the distal sums)."""
+    if context == "none":
+        return x
+    ctx = matrix.to(x.dtype)
+    if context == "distal":
+        return torch.cat([x, ctx @ x], dim=-1)
+    extra = [ctx.expand(*x.shape[:-2], -1, -1)]
+    if context == "full":
+        extra.append(x.flatten(-2).unsqueeze(-2).expand(*x.shape[:-2], x.shape[-2], -1))
+    return torch.cat([x, *extra], dim=-1)
 
 
 class SegmentFrontEnd(nn.Module):
@@ -100,16 +109,8 @@ class SegmentFrontEnd(nn.Module):
         self.norm.fit(self.segment_features(q))
 
     def with_context(self, x: Tensor) -> Tensor:
-        """Standardised features (..., m, 4) → network inputs (..., m, C)."""
-        if self.context == "none":
-            return x
-        ctx = self.context_matrix.to(x.dtype)
-        if self.context == "distal":
-            return torch.cat([x, ctx @ x], dim=-1)
-        extra = [ctx.expand(*x.shape[:-2], -1, -1)]
-        if self.context == "full":
-            extra.append(x.flatten(-2).unsqueeze(-2).expand(*x.shape[:-2], x.shape[-2], -1))
-        return torch.cat([x, *extra], dim=-1)
+        """Standardised features (..., m, 4) → network inputs (..., m, C) (:func:`append_context`)."""
+        return append_context(x, self.context, self.context_matrix)
 
     def forward(self, q: Tensor) -> Tensor:
         return self.with_context(self.norm(self.segment_features(q)))
@@ -145,7 +146,8 @@ class CompositionalFK(nn.Module):
         self.net = mlp(dim, HEADS[rotation], width, depth, activation)
         self.skip = nn.Linear(dim, HEADS[rotation], bias=False)              # learned linear part of f_θ
         self.register_buffer("length_scale", translation_units(spec, units))   # (m,) [m], float64
-        self.register_buffer("roll", roll_mask(spec, twist_roll))               # (m,) bool: rolled by α first
+        # (m,) bool: the segments rolled by their α first (the twisting ones, if ``twist_roll``)
+        self.register_buffer("roll", torch.tensor([bool(twist_roll and s.twists) for s in spec.segments]))
         self.rolls = bool(self.roll.any())
         if self.rolls:                    # start the network independent of α: the roll is the head's (see above)
             with torch.no_grad():

@@ -34,24 +34,87 @@ import sys
 from dataclasses import asdict
 from pathlib import Path
 
+import numpy as np
 import torch
+from torch import Tensor
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from dacr_learn.checks import F64  # noqa: E402
 from dacr_learn.console import run_cli  # noqa: E402
+from dacr_learn.deploy import export as dexport  # noqa: E402
+from dacr_learn.hardware.deploy.checkpoint import HardwareModel, load_hardware_model  # noqa: E402
 from dacr_learn.hardware.deploy.control import (  # noqa: E402
     ServoControl,
-    circle,
     initial_command,
     load_hardware_export,
     run_control,
     servo_signs,
-    source_model,
-    static_targets,
-    tracking_errors,
-    training_commands,
 )
+from dacr_learn.hardware.recording import load_recording  # noqa: E402
+
+
+def training_commands(servo_ids: list[str], recording: Path) -> Tensor:
+    """The commands (N, S) [mm] of a recording, columns in the model's ``servo_ids`` order."""
+    rec = load_recording(recording, units="mm")
+    where = {str(i): k for k, i in enumerate(rec.servo_ids)}
+    missing = [i for i in servo_ids if str(i) not in where]
+    if missing:
+        raise ValueError(f"{recording}: lacks the servo columns {missing} of the model (has {list(rec.servo_ids)})")
+    return 1e3 * rec.servo[:, [where[str(i)] for i in servo_ids]]
+
+
+def source_model(export: str | Path, meta: dict, ckpt: str | Path | None = None) -> HardwareModel:
+    """The saved hardware model an export was made from: ``ckpt``, else its metadata's ``source_checkpoint`` (as
+    written, then next to the export), checked against the export's checksum and servo ids (FileNotFoundError,
+    ValueError)."""
+    export = Path(export)
+    if ckpt is None:
+        named = Path(meta["source_checkpoint"]["path"])
+        found = [p for p in (named, export.parent / named.name) if p.is_file()]
+        if not found:
+            raise FileNotFoundError(f"{export}: the checkpoint it was exported from, {named}, is not there; "
+                                    f"pass it (--ckpt model.pt)")
+        ckpt = found[0]
+    ckpt = Path(ckpt)
+    digest = dexport.file_sha256(ckpt)
+    if digest != meta["source_checkpoint"]["sha256"]:
+        raise ValueError(f"{ckpt}: not the checkpoint {export} was exported from (sha256 {digest[:12]}…, the export "
+                         f"names {meta['source_checkpoint']['path']}, {meta['source_checkpoint']['sha256'][:12]}…)")
+    model = load_hardware_model(ckpt)
+    if [str(i) for i in model.servo_ids] != [str(i) for i in meta["servo_ids"]]:
+        raise ValueError(f"{ckpt}: servo ids {list(model.servo_ids)}, the export's are {meta['servo_ids']}")
+    return model
+
+
+def circle(center: Tensor, radius: float, drop: float, steps: int) -> Tensor:
+    """(steps, 3) [m]: a circle of ``radius`` [m] in the xy plane, ``drop`` [m] below ``center``."""
+    t = 2 * torch.pi * torch.arange(steps, dtype=F64) / steps
+    return center.to(F64) + torch.stack([radius * torch.cos(t), radius * torch.sin(t), torch.full_like(t, -drop)], -1)
+
+
+def static_targets(fk, jac, init, commands: Tensor, rest: Tensor, lower: Tensor, upper: Tensor,
+                   config: ServoControl, hold: int, pull_sign: Tensor | None = None, count: int = 4) -> dict[str, dict]:
+    """Reach the model's tips at ``count`` evenly spaced training ``commands`` (N, S) [mm] from the rest
+    command, one by one (each target: the model's tip at that command, play state started there)."""
+    out = {}
+    for n, row in enumerate(torch.linspace(0, len(commands) - 1, count + 2)[1:-1].round().long().tolist()):
+        goal = commands[row]
+        state_goal = None if init is None else init(goal[None])
+        target = fk(goal[None], *(() if init is None else (state_goal,)))[0][0].to(F64)
+        state0 = None if init is None else init(rest[None])
+        res = run_control(fk, jac, target.expand(hold, 3), rest, state0, lower, upper, config, pull_sign=pull_sign)
+        err = np.linalg.norm(res["actual"] - res["desired"], axis=-1)
+        out[f"static_{n}"] = {"train_row": row, "start_error_mm": 1e3 * float(err[0]),
+                              "final_error_mm": 1e3 * float(err[-1]), "step_p50_us": float(np.median(res["step_us"]))}
+    return out
+
+
+def tracking_errors(result: dict[str, np.ndarray]) -> dict[str, float]:
+    err = np.linalg.norm(result["actual"] - result["desired"], axis=-1)
+    return {"rms_mm": 1e3 * float(np.sqrt(np.mean(err**2))), "median_mm": 1e3 * float(np.median(err)),
+            "p95_mm": 1e3 * float(np.percentile(err, 95)), "max_mm": 1e3 * float(err.max()),
+            "step_p50_us": float(np.median(result["step_us"])), "steps": int(err.size)}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -560,9 +560,10 @@ def truncated(path: Path, keep: int) -> Path:
 # --------------------------------------------------------------------------------------------
 
 
-def load_example(name: str):
-    """examples/<name>.py imported as module ``name`` (registered in sys.modules: its dataclasses look it up)."""
-    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+def load_example(name: str, folder: str = "examples"):
+    """<folder>/<name>.py (examples/ or benchmarks/) imported as module ``name`` (registered in sys.modules: its
+    dataclasses look it up)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)

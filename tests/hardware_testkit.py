@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import math
 import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -26,7 +27,7 @@ from conftest import ROOT, roundoff_tol
 from dacr_learn.hardware.ccmodel import CalibratedCC
 from dacr_learn.hardware.compositional_model import CCCompositionalResidual
 from dacr_learn.hardware.deploy.checkpoint import HardwareModel, load_hardware_model, save_hardware_model
-from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, ensemble_predict
+from dacr_learn.hardware.deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel
 from dacr_learn.hardware.learned import CCClarkeResidual, CCClarkeResidualHistory, Split, make_split, synthetic_split
 from dacr_learn.hardware.recording import Recording, load_recording
 from dacr_learn.hardware.servo_map import ServoAssignment, ServoMap
@@ -131,6 +132,17 @@ def sigma_roundoff_tol(model: HardwareModel, dtype: torch.dtype, tip_scale: floa
     per_term = {"ensemble": 2 * tip, "disagreement": 2 * tip, "bend": tip,
                 "support": roundoff_tol(support_dtype, SUPPORT_SCALE, ulps)}
     return sum(c * per_term[t] for c, t in zip(sigma.coefficients.tolist(), sigma.terms, strict=True))
+
+
+def ensemble_predict(members: Sequence[Callable], x) -> tuple[torch.Tensor, torch.Tensor]:
+    """(mean (n, 3), std (n, 3)) over ensemble members ``member(x)`` → (n, 3) [m], in their dtype; std with K − 1
+    (zeros for K = 1)."""
+    if len(members) == 0:
+        raise ValueError("members: expected at least one model, got an empty sequence")
+    with torch.no_grad():
+        preds = torch.stack([m(x) for m in members])
+    std = preds.std(0, correction=1) if len(members) > 1 else torch.zeros_like(preds[0])
+    return preds.mean(0), std
 
 
 def batch_prediction(model: HardwareModel, rec: Recording) -> torch.Tensor:

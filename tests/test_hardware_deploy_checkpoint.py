@@ -82,7 +82,7 @@ def test_format_1_checkpoints_load_with_the_default_options_and_refuse_research_
 def test_bad_checkpoints_are_value_errors(tmp_path):
     text = tmp_path / "notes.pt"
     text.write_text("not a checkpoint")
-    with pytest.raises(ValueError, match="notes.pt: not a weights-only hardware model checkpoint"):
+    with pytest.raises(ValueError, match="notes.pt: expected a weights-only hardware model checkpoint, found"):
         load_hardware_model(text)
     torch.save({"format": "something/2"}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match="expected a hardware model checkpoint of format"):

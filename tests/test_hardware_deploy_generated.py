@@ -1,4 +1,4 @@
-"""The generated FK (dacr_learn.hardware.deploy.generated: the eager model's own code on tensors) against
+"""The generated FK (benchmarks/generated_fk.py: the eager model's own code on tensors) against
 HardwareModel.predict, float64 inputs: the residual family run causally (play state passed on, the history
 model) and the compositional model; σ models with terms the folded modules refuse (disagreement, support);
 its torch.export program; bad inputs.
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import roundoff_tol
+from conftest import load_example, roundoff_tol
 from hardware_testkit import (
     TIP_SCALE,
     V4_TIP_SCALE,
@@ -22,12 +22,12 @@ from hardware_testkit import (
 )
 
 from dacr_learn import export as dexport
-from dacr_learn.hardware.deploy.generated import GeneratedHardwareFK
 from dacr_learn.hardware.deploy.inference import InitialState
 from dacr_learn.hardware.deploy.uncertainty import SigmaModel
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 F64 = torch.float64
+GeneratedHardwareFK = load_example("generated_fk", "benchmarks").GeneratedHardwareFK
 
 
 def _causal(fk: GeneratedHardwareFK, servo_mm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from conftest import roundoff_tol
-from hardware_testkit import command_recording, synthetic_model
+from hardware_testkit import command_recording, ensemble_predict, synthetic_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import spearmanr
@@ -15,7 +15,6 @@ from dacr_learn.hardware.deploy.uncertainty import (
     SigmaCalibration,
     SigmaModel,
     coverage,
-    ensemble_predict,
     sigma_terms,
     spearman,
 )

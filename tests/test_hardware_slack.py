@@ -1,13 +1,14 @@
 """The slack-aware encoder (dacr_learn.hardware.slack): exact for consistent commands, a single pull bends towards its
 tendon, gradients, the force balance (no torsion from straight tendons); the tendon QP by active-set enumeration
-(:func:`solve_tendon_qp_enumerated` below, from the library's parts that HardwareFK uses folded) against the semi-smooth
+(:func:`solve_tendon_qp_enumerated` below: :func:`active_set_gains`, which HardwareFK uses folded, and the enumerated
+solution of benchmarks/generated_fk.py) against the semi-smooth
 Newton iteration :func:`solve_tendon_qp` and the optimality condition of the energy, in float64 and float32.
 """
 from __future__ import annotations
 
 import pytest
 import torch
-from conftest import FAST, ROOT, roundoff_tol
+from conftest import FAST, ROOT, load_example, roundoff_tol
 from hardware_testkit import V4_ROBOT
 from hypothesis import given
 from hypothesis import strategies as st
@@ -15,8 +16,6 @@ from hypothesis import strategies as st
 from dacr_learn.hardware.slack import (
     SlackAwareEncoder,
     active_set_gains,
-    enumerated_solution,
-    residual_maps,
     solve_tendon_qp,
 )
 from dacr_learn.layers import ClarkeDecoder, ClarkeEncoder
@@ -33,8 +32,9 @@ SPECS = {"v4": RobotSpec.from_yaml(ROOT / "configs" / "robots" / "ftdcr_v4_calib
 def solve_tendon_qp_enumerated(x, g, bend_w, tendon_w):
     """:func:`solve_tendon_qp` (energy form, no force map or load) by enumerating the active sets:
     x (B, N) [m] → ρ (B, D). The same minimiser; differentiable in x (not in the weights)."""
+    generated = load_example("generated_fk", "benchmarks")
     sets, gain = active_set_gains(g, bend_w, tendon_w)
-    return enumerated_solution(x, sets, gain, residual_maps(g, gain), tendon_w)
+    return generated.enumerated_solution(x, sets, gain, generated.residual_maps(g, gain), tendon_w)
 
 
 @pytest.mark.parametrize("routing", ["coupled", "independent"])

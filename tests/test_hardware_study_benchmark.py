@@ -10,7 +10,7 @@ from dacr_learn.hardware.compositional_model import CCCompositionalResidual
 from dacr_learn.hardware.deploy.checkpoint import load_hardware_model, save_hardware_model
 from dacr_learn.hardware.study.benchmark import fit_hardware_model
 from dacr_learn.hardware.study.registry import MODELS, REGISTRY, ModelInfo, build_model, model_info
-from dacr_learn.hardware.study.selection import choose_default
+from dacr_learn.hardware.study.selection import default_choice
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -61,7 +61,7 @@ def test_the_default_is_chosen_among_models_that_save_and_the_others_are_reporte
     assert "cc_compositional_residual" in default_candidates(MODELS, deployable_only=False)
     blocked = next(m for m in default_candidates(MODELS, deployable_only=False) if not model_info(m).deployable)
     scores = {m: {"extrap": 1.0 if m == blocked else 2.0 + i} for i, m in enumerate(MODELS)}
-    assert choose_default(scores, default_candidates(list(scores)), "extrap") == "cc"
+    assert default_choice(scores, default_candidates(list(scores)), "extrap")["default"] == "cc"
 
 
 def test_shared_cosserat_pieces_are_submitted_once_calibrations_first(compositional_split, tmp_path):

@@ -196,9 +196,9 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
                                                                             monkeypatch):
     """``--save`` (two worker processes): the saved ensemble is the benchmark's own final-run models, returned
     from the workers, and the σ model's held-out fits run in the workers too — nothing is trained in this
-    process (fit_model / the held-out build_model here raise). A member predicts like the same model trained
+    process (fit_model / the held-out fold_predictions here raise). A member predicts like the same model trained
     here for its seed, the reported train RMSE per seed is the saved member's, and the σ model equals
-    sigma_models computed here. One proxy seed (the selection needs a proxy, not three seeds of it): unlike
+    sigma_models_of computed here. One proxy seed (the selection needs a proxy, not three seeds of it): unlike
     ``--seeds`` it still leaves the σ model's held-out fits to their own worker tasks."""
     from dacr_learn.cli.hardware import main
     from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
@@ -214,7 +214,7 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
 
     with monkeypatch.context() as patch:
         patch.setattr(benchmark, "fit_model", no_fit_here)      # the spawned workers import their own, unpatched
-        patch.setattr(heldout, "build_model", no_fit_here)
+        patch.setattr(heldout, "fold_predictions", no_fit_here)
         report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), "--models",
                        "cc_clarke_residual", "--seeds", "0", "1", "--proxy-seeds", "0", "--jobs", "2",
                        "--save", str(save)])
@@ -231,7 +231,8 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     assert float((got[0] - got[1]).abs().max()) > 1e-6                         # seed 0's member: another fit
     for seed in (0, 1):
         assert tip_metrics(got[seed], setup.train.tip)["rmse_mm"] == pytest.approx(per_seed[seed], abs=1e-3)
-    calibration, sigma_model = heldout.sigma_models(setup, "cc_clarke_residual", [0, 1])
+    calibration, sigma_model = heldout.sigma_models_of(heldout.held_out_folds(setup, "cc_clarke_residual", [0, 1],
+                                                                              heldout.SIGMA_PROXIES))
     assert saved.sigma_model.terms == sigma_model.terms
     assert torch.allclose(saved.sigma_model.coefficients, sigma_model.coefficients, rtol=1e-6, atol=1e-12)
     assert float(saved.sigma_model.floor) == pytest.approx(float(sigma_model.floor), rel=1e-6)

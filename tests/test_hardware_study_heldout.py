@@ -12,7 +12,7 @@ def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(labelled_rob
     """On the synthetic robot whose CC model is the truth (0.1 mm noise per axis), the held-out residuals
     of the CC model are the noise: the fitted σ is ≈ 0.1 mm everywhere and the bend term negligible."""
     from dacr_learn.hardware.study.benchmark import fit_hardware_model, load_setup
-    from dacr_learn.hardware.study.heldout import SIGMA_TERMS, held_out_folds, sigma_models
+    from dacr_learn.hardware.study.heldout import SIGMA_TERMS, held_out_folds, sigma_models_of
 
     data, robot = labelled_robot_dir
     setup = load_setup(robot, data / "train.csv", None, tmp_path)
@@ -20,7 +20,7 @@ def test_sigma_models_fit_on_held_out_folds_of_a_labelled_recording(labelled_rob
     assert [(b.fold, b.preds.shape[0], len(b.tip)) for b in blocks] == [
         ("cv:single", 1, 80), ("cv:pair12", 1, 40), ("extrap:singles_to_pairs", 1, 40)]   # deterministic: one run
     assert all(bool((b.support >= 0).all()) for b in blocks)
-    cal, model = sigma_models(setup, "cc", [0, 1])
+    cal, model = sigma_models_of([b for b in blocks if b.fold.startswith("extrap:")])   # SIGMA_PROXIES
     assert model.terms == SIGMA_TERMS
     assert float(model.floor) == pytest.approx(1e-4, rel=0.35)             # 40 rows × 3 axes of 0.1 mm noise
     assert float(cal.floor) == pytest.approx(float(model.floor), rel=0.35)

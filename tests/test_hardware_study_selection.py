@@ -15,7 +15,7 @@ from conftest import ROOT
 from dacr_learn.hardware.recording import load_recording
 from dacr_learn.hardware.servo_map import ServoMap
 from dacr_learn.hardware.study.selection import (
-    choose_default,
+    default_choice,
     make_folds,
     pattern_family,
     proxy_masks,
@@ -46,12 +46,12 @@ def test_pattern_families_and_proxy_masks():
         proxy_masks(labels, ["loo"])
 
 
-def test_choose_default_takes_the_lowest_proxy():
+def test_default_choice_takes_the_lowest_proxy():
     scores = {"cc": {"extrap": 6.3, "cv": 5.9}, "mlp_clarke": {"extrap": 9.0, "cv": 5.0}, "mlp_raw": {"extrap": 1.0}}
-    assert choose_default(scores, ["cc", "mlp_clarke"]) == "cc"
-    assert choose_default(scores, ["cc", "mlp_clarke"], "cv") == "mlp_clarke"
+    assert default_choice(scores, ["cc", "mlp_clarke"])["default"] == "cc"
+    assert default_choice(scores, ["cc", "mlp_clarke"], "cv")["default"] == "mlp_clarke"
     with pytest.raises(ValueError, match="has a 'extrap' score"):
-        choose_default(scores, ["pretrained_clarke"])
+        default_choice(scores, ["pretrained_clarke"])
 
 
 def test_proxies_score_the_true_model_at_the_noise(labelled_robot_dir):

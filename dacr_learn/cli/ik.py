@@ -16,9 +16,7 @@ robot's), M.npy float64 (4, 4) the tip link → robot base.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -28,7 +26,7 @@ import torch
 from ..checks import F64
 from ..ik import IKOptions, IKResult, as_solver_model, check_targets, solve_ik
 from ..ik.collision import add_scene_arguments, scene_options
-from .loading import composite_from_files, describe, load_array, load_solver_model
+from .loading import composite_from_files, describe, load_array, load_solver_model, save_npz
 
 
 def _out_path(path: str) -> Path:
@@ -38,22 +36,6 @@ def _out_path(path: str) -> Path:
     if out.parent.exists() and not out.parent.is_dir():
         raise ValueError(f"--out {path}: its parent {out.parent} is a file, not a folder")
     return out
-
-
-def _save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write atomically: a temporary file beside ``out``, then renamed (an interrupted run leaves no half file)."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)                 # mkstemp makes it private; a result file is a normal one
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def main(argv: list[str] | None = None) -> IKResult:
@@ -118,7 +100,7 @@ def main(argv: list[str] | None = None) -> IKResult:
         b, k, n = result.q.shape
         _, sigma = solver_model.hardware.predict(result.q.reshape(-1, n), static=True)
         arrays["sigma"] = sigma.reshape(b, k, 3).to(F64).numpy()
-    _save_npz(out, arrays)
+    save_npz(out, arrays)
     if args.rerun:
         _record(Path(args.rerun), solver_model, targets[:args.show], result.q[:args.show], result.success[:args.show],
                 **scene)

@@ -1,11 +1,14 @@
-"""What the command lines read: .npy arrays, a model (--robot / --ckpt, recognised by the file's contents) and the
-files of a whole-body solve (an arm URDF, its tip link and a mount .npy around a continuum model).
+"""What the command lines read and write: .npy arrays, a model (--robot / --ckpt, recognised by the file's contents),
+the files of a whole-body solve (an arm URDF, its tip link and a mount .npy around a continuum model) and the .npz
+results (written atomically).
 
 Every error is a ValueError / FileNotFoundError naming the flag and what was expected. The arm, hardware and
 checkpoint modules are imported where they are needed: ``--robot`` alone starts without them.
 """
 from __future__ import annotations
 
+import os
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -28,6 +31,22 @@ def load_array(path: str | Path, flag: str, expected: str = "a .npy array") -> n
     except (ValueError, OSError) as err:
         raise ValueError(f"{flag} {path}: expected a .npy array (numpy.save), found a file numpy cannot read "
                          f"({err})") from err
+
+
+def save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write atomically: a temporary file beside ``out``, then renamed (an interrupted run leaves no half file)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)                 # mkstemp makes it private; a result file is a normal one
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def load_solver_model(robot: str | None, ckpt: str | None) -> tuple[object, Seeder | None, str]:

@@ -19,8 +19,6 @@ not, '' on success (also printed).
 from __future__ import annotations
 
 import argparse
-import os
-import tempfile
 import time
 from pathlib import Path
 
@@ -31,7 +29,7 @@ from ..checks import F64
 from ..ik.collision import add_scene_arguments, scene_options
 from ..plan import FTLOptions, FTLPlan, plan_ftl
 from ..plan.path import Path as PolylinePath
-from .loading import composite_from_files, describe, load_array, load_solver_model
+from .loading import composite_from_files, describe, load_array, load_solver_model, save_npz
 
 
 def load_path(path: str) -> PolylinePath:
@@ -46,21 +44,10 @@ def load_path(path: str) -> PolylinePath:
 
 
 def write_plan(out: Path, plan: FTLPlan) -> None:
-    """PLAN.npz, atomically (a temporary file beside it, then renamed)."""
+    """PLAN.npz, atomically (:func:`~.loading.save_npz`)."""
     if out.is_dir():
         raise ValueError(f"--out {out}: is a folder; expected the path of the .npz file to write")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **plan.arrays())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    save_npz(out, plan.arrays())
 
 
 def build_model(args: argparse.Namespace):

@@ -24,11 +24,6 @@ class ArcGrid:
     load_arcs: tuple[float, ...]
     steps: int
 
-    def coarsened(self, factor: int, at_least: int = 1) -> ArcGrid:
-        """The grid with ``steps // factor`` steps per segment, but at least ``at_least`` (and at most ``steps``),
-        and the same loads, no stations."""
-        return arc_grid(self.ends, min(self.steps, max(at_least, self.steps // factor)), self.load_arcs)
-
     @property
     def nodes(self) -> Tensor:
         return torch.tensor([0.0] + [b for _, b, _ in self.intervals], dtype=torch.float64)

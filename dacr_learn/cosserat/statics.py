@@ -31,8 +31,8 @@ JACOBIAN_STEPS = 2    # but at least 2 per segment: one RK4 step per segment (th
 
 def jacobian_grid(grid: ArcGrid) -> ArcGrid:
     """The grid Newton's finite-difference Jacobian is taken on: ``grid`` with a quarter of its steps, at least
-    JACOBIAN_STEPS per segment (the fine grid itself below that)."""
-    return grid.coarsened(COARSE_JACOBIAN, JACOBIAN_STEPS)
+    JACOBIAN_STEPS per segment (the fine grid itself below that); the same loads, no stations."""
+    return arc_grid(grid.ends, min(grid.steps, max(JACOBIAN_STEPS, grid.steps // COARSE_JACOBIAN)), grid.load_arcs)
 
 
 class ConvergenceError(RuntimeError):

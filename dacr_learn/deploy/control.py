@@ -57,10 +57,6 @@ class ResolvedRateController:
         self.space = ClarkeSpace(spec)
         self.damping = 0.01 * spec.total_length if config.damping is None else config.damping
 
-    def clarke_step(self, jac_v: Tensor, task_step: Tensor) -> Tensor:
-        """Scaled DLS step: J_v (..., 3, D), Δx (..., 3) [m] → feature step Δf (..., D) [m, rad]."""
-        return scaled_dls_step(jac_v, task_step, self.space.scale, self.damping, self.config.max_step)
-
     def step(self, q: Tensor, target: Tensor, feedforward: Tensor | None = None,
              measured: Tensor | None = None) -> Tensor:
         """One control step: commanded q (..., N), target (..., 3) [m] → next command q' (..., N), float64.
@@ -74,7 +70,8 @@ class ResolvedRateController:
         task = self.config.gain * (to_f64(target) - position)
         if feedforward is not None:
             task = task + to_f64(feedforward)
-        f = self.space.features(q) + self.clarke_step(jac_f[..., :3, :], task)
+        step = scaled_dls_step(jac_f[..., :3, :], task, self.space.scale, self.damping, self.config.max_step)  # Δf
+        f = self.space.features(q) + step
         return self.space.joints(self.space.saturate(f))
 
 

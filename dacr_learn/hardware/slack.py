@@ -93,20 +93,6 @@ def select_active_set(residual: Tensor, sets: Tensor, tendon_w: Tensor) -> Tenso
     return violation.argmin(-1)
 
 
-def residual_maps(g: Tensor, gain: Tensor) -> Tensor:
-    """(2ᴺ, N, N): I − G K_S of every set, the map x ↦ x − Gρ_S (gains K_S (2ᴺ, D, N) of :func:`active_set_gains`)."""
-    return torch.eye(g.shape[0], dtype=gain.dtype, device=gain.device) - g @ gain
-
-
-def enumerated_solution(x: Tensor, sets: Tensor, gain: Tensor, residual_map: Tensor, tendon_w: Tensor) -> Tensor:
-    """ρ (B, D) of x (B, N) [m] from the sets and gains of :func:`active_set_gains` and their
-    :func:`residual_maps` (all computed once for fixed weights): every set's residual x − Gρ_S (B, 2ᴺ, N) in
-    one product, the consistent set (:func:`select_active_set`), its solution ρ_S = K_S x."""
-    residual = torch.einsum("sin,bn->bsi", residual_map.to(x.dtype), x)
-    best = select_active_set(residual, sets, tendon_w)
-    return (gain.to(x.dtype)[best] @ x.unsqueeze(-1)).squeeze(-1)
-
-
 class SlackAwareEncoder(nn.Module):
     """Joint displacements (..., N) [m] → effective Clarke features (..., m, 4), in the convention of docs/design.md §3
     for the *nominal* spec ((ρ_re, ρ_im)·d_nominal/d_effective, β = l, α = 0): ``forward_kinematics(spec, features)``

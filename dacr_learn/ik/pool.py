@@ -50,8 +50,10 @@ def start_budget(restarts: int, fan_out: int, max_fan_out: int) -> int:
 class _Batch:
     """The working batch: per row its slot, target, LM state and iterations since its start."""
 
-    def __init__(self, model: SolverModel, position: Tensor, rotation: Tensor | None, damping: float, k: int):
+    def __init__(self, model: SolverModel, position: Tensor, rotation: Tensor | None, damping: float, k: int,
+                 iteration: Callable = lm_iteration):
         self.model, self.position, self.rotation, self.damping, self.k = model, position, rotation, damping, k
+        self.iteration = iteration
         self.slot = torch.zeros(0, dtype=torch.long)
         self.since = torch.zeros(0, dtype=torch.long)
         self.pos_rows = position.new_zeros(0, 3)
@@ -82,7 +84,7 @@ class _Batch:
         self.state, self.pos_rows, self.rot_rows, self.slot, self.since = new, pos, rot, slots, since
 
     def step(self) -> None:
-        self.state = lm_iteration(self.model, self.state, self.pos_rows, self.rot_rows)
+        self.state = self.iteration(self.model, self.state, self.pos_rows, self.rot_rows)
         self.since += 1
 
 
@@ -90,7 +92,8 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                      gen: torch.Generator, k: int, tolerance: tuple[float, float], damping: float,
                      max_iterations: int, budget: int, max_fan_out: int, pool: int, redundant: bool,
                      keep_first: bool, dedupe, accept: Callable[[Tensor], Tensor] | None = None,
-                     near: Callable[..., Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                     near: Callable[..., Tensor] | None = None, iteration: Callable = lm_iteration
+                     ) -> tuple[Tensor, Tensor]:
     """Refine the first starts (M, D) of the M = B·K slots (targets position (B, 3) [m], rotation (B, 3, 3) or
     None; slot i belongs to target i // K) in a working batch of at most ``pool`` rows (module docstring).
     ``tolerance``: (position [m], rotation [rad]) a start must reach (a decade below the solver's);
@@ -100,6 +103,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     bool: whether a start whose tip converged is a solution (module docstring; None: every one is);
     ``near(uniform (R, D), x (M, D), solved (R, K), gen)`` → (R, D): new starts of unsolved slots from uniform
     samples, given the slots' variables x and, per new start, its target's solved slots (−1 where unsolved).
+    ``iteration``: the LM iteration of the batch (:func:`~.refine.lm_iteration`, or the compiled one of :mod:`.fused`).
     Returns each slot's variables (M, D) — its converged start, else its start of least residual — and the LM
     iterations spent on the slot (M,)."""
     m, d = starts.shape
@@ -107,7 +111,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     solved = torch.zeros(m, dtype=torch.bool)
     out_x, out_cost = starts.to(F64).clone(), torch.full((m,), float("inf"), dtype=F64)
     taken, iters = torch.zeros(m, dtype=torch.long), torch.zeros(m, dtype=torch.long)
-    batch = _Batch(model, position, rotation, damping, k)
+    batch = _Batch(model, position, rotation, damping, k, iteration)
     queued, dedupe_rounds = 0, 0                                   # first starts begun; duplicate checks done
     live = torch.zeros(0, dtype=torch.bool)
     pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide

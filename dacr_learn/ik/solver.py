@@ -23,8 +23,9 @@ from ..metrics import rotation_geodesic
 from ..scene import load_scene
 from .adapters import SolverModel, as_solver_model
 from .collision import Avoidance
+from .fused import fused_iteration
 from .pool import pool_multi_start, run_sharded, shards, start_budget
-from .refine import STALL_LAMBDA, Refinement
+from .refine import STALL_LAMBDA, Refinement, lm_iteration
 from .targets import check_q0, check_targets
 
 
@@ -41,7 +42,8 @@ class IKOptions:
     (:mod:`.pool`; with a scene, converged starts are checked for clearance in batches there), 0 for grouped
     restarts of shrinking batches (:func:`_multi_start`); shards: the pool's targets split into this many parts, run
     on parallel threads (at most torch's thread count at once; the solutions depend on the shards, not on the
-    threads).
+    threads); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only; minutes
+    of compilation once per robot and task in a process, cached on disk by torch).
     """
 
     pos_tolerance: float = 1e-6
@@ -53,6 +55,7 @@ class IKOptions:
     seed: int = 0
     pool: int = 8192
     shards: int = 1
+    fused: bool = False
 
     def __post_init__(self):
         for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
@@ -169,6 +172,8 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
             2 ** 62, (len(parts),), generator=gen)]
 
+        iteration = fused_iteration(model) if options.fused else lm_iteration
+
         def shard(i: int) -> tuple[Tensor, Tensor]:
             t = parts[i]
             return pool_multi_start(
@@ -176,7 +181,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
                 tol, options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT),
                 MAX_FAN_OUT, options.pool, d >= (3 if rotation is None else 6), q0 is not None,
                 lambda x, ok: _duplicates(model, x, ok, options.distinct),
-                None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts)
+                None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
         x, iters = (torch.cat(t) for t in zip(*run_sharded(shard, len(parts)), strict=True))
         return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
                                 lim.project(model.rest.to(F64)), options, avoid)

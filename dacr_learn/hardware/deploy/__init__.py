@@ -1,5 +1,5 @@
-"""Deploying a fitted hardware tip model: save / load it (:mod:`.checkpoint`), its uncertainty, folded and
-generated inference modules, the exporter (``python -m dacr_learn.export --ckpt model.pt``), IK through
+"""Deploying a fitted hardware tip model: save / load it (:mod:`.checkpoint`), its uncertainty, folded
+inference modules, the exporter (``python -m dacr_learn.export --ckpt model.pt``), IK through
 :mod:`dacr_learn.ik` and resolved-rate control. Depends on :mod:`dacr_learn.hardware` and
 :mod:`dacr_learn.deploy`; nothing here imports the study.
 """

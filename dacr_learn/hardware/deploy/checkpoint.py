@@ -187,15 +187,7 @@ def save_hardware_model(model: HardwareModel, path: str | Path) -> Path:
 def load_hardware_model(path: str | Path) -> HardwareModel:
     """Load a checkpoint written by :func:`save_hardware_model` (``weights_only=True``); ValueError naming the file
     for anything else (another file type or format version, missing entries, weights that do not fit the robot)."""
-    path = Path(path)
-    try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-    except FileNotFoundError:
-        raise
-    except Exception as err:
-        raise ValueError(f"{path}: not a weights-only hardware model checkpoint ({type(err).__name__}: "
-                         f"{str(err)[:200]})") from None
-    return hardware_model_from_blob(blob, path)
+    return hardware_model_from_blob(load_torch_file(path, "a weights-only hardware model checkpoint"), path)
 
 
 def is_hardware_blob(blob: Any) -> bool:

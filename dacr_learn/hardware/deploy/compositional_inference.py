@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from ...checks import F64
+from ...compositional import append_context
 from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_twist, effective_features
 from ...lie import twist_chain_jacobian, twist_exp
@@ -111,15 +112,8 @@ class CompositionalHardwareFK(nn.Module):
     def inputs(self, rho: Tensor) -> Tensor:
         """Network inputs (B, K, m, C) of every member: standardised features and context of ρ (B, m, 2)."""
         z_rho = (rho.unsqueeze(1) - self.rho_mean) / self.rho_std                          # (B, K, m, 2)
-        return self.context_of(torch.cat([z_rho, self.z_fixed.expand(rho.shape[0], -1, -1, -1)], -1))
-
-    def context_of(self, z: Tensor) -> Tensor:
-        """Standardised features z (B, K, m, 4) with the context appended (CompositionalFK's ``with_context``)."""
-        if self.context == "none":
-            return z
-        extra = self.context_matrix.expand(*z.shape[:-2], -1, -1) if self.context == "segment" else (
-            self.context_matrix @ z)
-        return torch.cat([z, extra], -1)
+        z = torch.cat([z_rho, self.z_fixed.expand(rho.shape[0], -1, -1, -1)], -1)
+        return append_context(z, self.context, self.context_matrix)
 
     def twists(self, rho: Tensor, tangents: bool = False) -> Tensor:
         """Each member's twist ξ_k (B, K, m, 1, 6) of every segment at ρ (B, m, 2) [m], with its 2m tangents along

@@ -159,17 +159,6 @@ class HardwareFK(nn.Module):
         out = rho.unsqueeze(1) + a[:, :, :, 0]
         return out, None if tangent is None else tangent[0].unsqueeze(1) + a[:, :, :, 1:].transpose(-1, -2)
 
-    def tip(self, rho: Tensor) -> tuple[Tensor, Tensor]:
-        """Tip (..., 3) [m, motion-capture frame] and ∂tip/∂ρ (..., m, 2, 3) from ρ (..., m, 2)
-        (:func:`cc_tip_and_jacobian`)."""
-        return cc_tip_and_jacobian(rho, self.radius, self.length, self.twist_directions, self.base_pose,
-                                   self.tip_marker)
-
-    def tip_only(self, rho: Tensor) -> Tensor:
-        """Tip (..., 3) [m, motion-capture frame] from ρ (..., m, 2): base pose · T₁ ⋯ T_m · (marker, 1)."""
-        poses = cc_segment_poses(rho, self.radius, self.length)
-        return chained_marker_point(self.base_pose, poses, self.tip_marker)
-
     def mean_std(self, tips: Tensor, rho: Tensor) -> tuple[Tensor, Tensor]:
         """Ensemble mean and σ = √(σ₀² + (c_e·spread)² + (c_b·‖ρ‖)²) (:func:`sigma_coefficients`) of tips
         (B, K, 3) [m] at commands of Clarke coordinates ρ (B, m, 2) [m]; one member has no spread."""
@@ -184,8 +173,9 @@ class HardwareFK(nn.Module):
         memory, new_state = None, None
         if self.history:
             memory, new_state, _ = self.play(rho, state, derivative=False)
-        corrected = self.members(rho, memory)[0]
-        tips = self.tip_only(corrected)
+        corrected = self.members(rho, memory)[0]                                        # (B, K, m, 2)
+        tips = chained_marker_point(self.base_pose, cc_segment_poses(corrected, self.radius, self.length),
+                                    self.tip_marker)                                    # (B, K, 3)
         tip, std = self.mean_std(tips, rho)
         return (tip, std, new_state) if self.history else (tip, std)
 
@@ -205,7 +195,8 @@ class HardwareJacobian(nn.Module):
             memory, new_state, dmem = fk.play(rho, state)
             tangent = (drho, dmem @ drho)
         corrected, dcorr = fk.members(rho, memory, tangent)                   # (B, K, m, 2), (B, K, m, 2, S)
-        tips, dtip = fk.tip(corrected)                                        # (B, K, 3), (B, K, m, 2, 3)
+        tips, dtip = cc_tip_and_jacobian(corrected, fk.radius, fk.length, fk.twist_directions, fk.base_pose,
+                                         fk.tip_marker)                      # (B, K, 3), (B, K, m, 2, 3)
         b, k = corrected.shape[:2]                                            # J = mean over members of dtip · dcorr
         jac = dtip.reshape(b, -1, 3).mT @ dcorr.reshape(b, -1, dcorr.shape[-1]) / k
         tip = tips.mean(1)

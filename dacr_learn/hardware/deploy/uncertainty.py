@@ -1,6 +1,5 @@
 """Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores (docs/hardware.md).
 
-- :func:`ensemble_predict`: K members (different seeds) → mean tip and the members' std per axis (n, 3) [m].
 - :class:`SigmaModel`: σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a over the terms of :data:`TERMS`
   (:func:`sigma_terms`: ensemble std, |mean − CC tip|, support distance, total bend ‖ρ‖); c_t and σ₀ fitted
   by Gaussian maximum likelihood to *held-out* residuals of train-only folds (:mod:`.heldout`).
@@ -13,7 +12,7 @@
 """
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -23,17 +22,6 @@ from ...checks import check_tensor
 
 SUPPORT_QUANTILE = 0.99
 _EXACT = "donot_use_mm_for_euclid_dist"  # no cancellation: a training row is at distance 0 from itself
-
-
-def ensemble_predict(members: Sequence[Callable], x) -> tuple[Tensor, Tensor]:
-    """(mean (n, 3), std (n, 3)) over ensemble members ``member(x)`` → (n, 3) [m], in their dtype; std with K − 1
-    (zeros for K = 1)."""
-    if len(members) == 0:
-        raise ValueError("members: expected at least one model, got an empty sequence")
-    with torch.no_grad():
-        preds = torch.stack([m(x) for m in members])
-    std = preds.std(0, correction=1) if len(members) > 1 else torch.zeros_like(preds[0])
-    return preds.mean(0), std
 
 
 TERMS = ("ensemble", "disagreement", "support", "bend")

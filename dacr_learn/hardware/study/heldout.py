@@ -16,8 +16,7 @@ from torch import Tensor
 
 from ..deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, sigma_terms
 from .pool import TaskPool
-from .registry import build_model
-from .selection import PROXIES, Fold, make_folds, model_seeds, proxy_masks
+from .selection import PROXIES, Fold, fold_predictions, make_folds, model_seeds, proxy_masks
 
 # The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
 # training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,
@@ -52,14 +51,10 @@ class HeldOut:
 
 
 def held_out(name: str, ctx, test, train_labels: Sequence[str], seeds: Sequence[int], fold: str = "") -> HeldOut:
-    """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``."""
-    preds = []
-    for seed in model_seeds(name, seeds):
-        model = build_model(name, ctx, seed)
-        model.fit(ctx.train)
-        with torch.no_grad():
-            preds.append(model.eval()(test))
-    return _block(Fold(fold, ctx, test, train_labels=tuple(train_labels)), torch.stack(preds))
+    """Train model ``name`` once per seed on ``ctx.train`` (a :class:`~.registry.FitContext`) and predict ``test``
+    (:func:`~.selection.fold_predictions`)."""
+    block = Fold(fold, ctx, test, train_labels=tuple(train_labels))
+    return _block(block, torch.stack([fold_predictions(name, block, seed) for seed in model_seeds(name, seeds)]))
 
 
 def _block(fold: Fold, preds: Tensor, tag: str | None = None) -> HeldOut:
@@ -131,16 +126,10 @@ def fit_sigma_model(blocks: Sequence[HeldOut], terms: Sequence[str]) -> SigmaMod
                           torch.cat([b.residual() for b in blocks]))
 
 
-def sigma_models(setup, name: str, seeds: Sequence[int], terms: Sequence[str] = SIGMA_TERMS,
-                 proxies: Sequence[str] = SIGMA_PROXIES, log=None) -> tuple[SigmaCalibration, SigmaModel]:
-    """(ensemble-only σ calibration — the σ of a model saved without a σ model —, σ model with ``terms``), both fitted
-    on the held-out rows of the ``proxies`` folds of a :class:`~.benchmark.Setup`'s training recording."""
-    return sigma_models_of(held_out_folds(setup, name, seeds, proxies, log), terms)
-
-
 def sigma_models_of(blocks: Sequence[HeldOut],
                     terms: Sequence[str] = SIGMA_TERMS) -> tuple[SigmaCalibration, SigmaModel]:
-    """:func:`sigma_models` from held-out blocks computed already (e.g. by :func:`submit_held_out` in a pool)."""
+    """(ensemble-only σ calibration — the σ of a model saved without a σ model —, σ model with ``terms``), both fitted
+    on the held-out rows of ``blocks`` (:func:`held_out_folds`, or :func:`submit_held_out` in a pool)."""
     residual = torch.cat([b.residual() for b in blocks])
     std = torch.cat([b.features()["ensemble"] for b in blocks])
     return SigmaCalibration.fit(residual, std), fit_sigma_model(blocks, terms)

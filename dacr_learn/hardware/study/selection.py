@@ -11,7 +11,7 @@ In every fold the calibrated CC model is refitted on the fold's training rows, h
 the whole recording (causal), and each learned model is trained on the training rows only. Labels
 without a family raise. :data:`DEFAULT_PROXIES` is ``extrap`` only (the family CV costs ~4× more).
 :func:`choose_cc_variant` picks the CC variant (:data:`CC_VARIANTS`) by the CC model's own ``extrap``;
-:func:`choose_default` picks the default model.
+:func:`default_choice` picks the default model.
 """
 from __future__ import annotations
 
@@ -219,13 +219,6 @@ def choose_cc_variant(rec: Recording, spec: RobotSpec, smap: ServoMap,
     return min(variants, key=lambda v: scores[v]), scores
 
 
-def choose_default(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
-                   replicates: Mapping[str, Tensor] | None = None) -> str:
-    """The default model of :func:`default_choice` (without ``replicates``: the candidate with the lowest
-    ``proxy`` score, ties to the simpler one)."""
-    return default_choice(scores, candidates, proxy, replicates)["default"]
-
-
 def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: str = SELECTION_PROXY,
                    replicates: Mapping[str, Tensor] | None = None, tie_sigmas: float = TIE_SIGMAS) -> dict:
     """The default model by the one-standard-error rule (docs/hardware.md), and why: ``best`` has the lowest
@@ -237,7 +230,7 @@ def default_choice(scores: dict[str, dict], candidates: Sequence[str], proxy: st
     """
     scored = [c for c in candidates if c in scores and proxy in scores[c]]
     if not scored:
-        raise ValueError(f"choose_default: none of the candidates {list(candidates)} has a {proxy!r} score")
+        raise ValueError(f"candidates: none of {list(candidates)} has a {proxy!r} score")
     if replicates is not None:
         missing = [c for c in scored if c not in replicates]
         if missing:

@@ -1,28 +1,46 @@
-"""Exportable FK of a hardware model generated from the eager model's own code (no folded copy of its maths).
+"""Exportable FK of a hardware model generated from the eager model's own code (no folded copy of its maths): the
+benchmarks' counterpart of the folded :class:`dacr_learn.hardware.deploy.inference.HardwareFK`
+(benchmarks/hardware_generated.py, benchmarks/latency.py).
 
-:class:`GeneratedHardwareFK` runs :meth:`~.checkpoint.HardwareModel.predict` on tensors with the same
-functions: the servo map, the slack-aware encoder's QP by enumeration (:func:`~..slack.enumerated_solution`,
-gains of :meth:`~..slack.SlackAwareEncoder.qp_terms` computed once), :func:`~..learned.play_step` for a
-history model, the members' own ``forward`` on :func:`~..learned.encoded_split`, and
-:func:`~.uncertainty.mean_and_sigma`; torch.export traces it like the modules of :mod:`.inference`:
+:class:`GeneratedHardwareFK` runs :meth:`~dacr_learn.hardware.deploy.checkpoint.HardwareModel.predict` on
+tensors with the same functions: the servo map, the slack-aware encoder's QP by enumeration
+(:func:`enumerated_solution`, gains of :meth:`~dacr_learn.hardware.slack.SlackAwareEncoder.qp_terms` computed once),
+:func:`~dacr_learn.hardware.learned.play_step` for a history model, the members' own ``forward`` on
+:func:`~dacr_learn.hardware.learned.encoded_split`, and :func:`~dacr_learn.hardware.deploy.uncertainty.mean_and_sigma`;
+torch.export traces it like the modules of :mod:`dacr_learn.hardware.deploy.inference`:
 
 - servo (B, S) [mm, checkpoint column order] (+ state (B, m, 2) [m] for a history model) → tip (B, 3) [m,
   motion-capture frame] = the ensemble mean, tip_std (B, 3) [m] = the model's σ (+ the new state).
 - :meth:`GeneratedHardwareFK.initial_state`: servo (B, S) → the play state (B, m, 2) [m] to start a sequence.
 
 Float64 encoder, play and σ, members in their own dtype; ``dtype`` is that of the inputs and outputs (the
-state is rounded to it between calls). The play width is :data:`~..learned.PLAY_WIDTH`.
+state is rounded to it between calls). The play width is :data:`~dacr_learn.hardware.learned.PLAY_WIDTH`.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor, nn
 
-from ...checks import F64, check_tensor
-from ..learned import PLAY_WIDTH, encoded_split, play_step
-from ..slack import active_set_gains, enumerated_solution, residual_maps
-from .checkpoint import HardwareModel
-from .uncertainty import mean_and_sigma
+from dacr_learn.checks import F64, check_tensor
+from dacr_learn.hardware.deploy.checkpoint import HardwareModel
+from dacr_learn.hardware.deploy.uncertainty import mean_and_sigma
+from dacr_learn.hardware.learned import PLAY_WIDTH, encoded_split, play_step
+from dacr_learn.hardware.slack import active_set_gains, select_active_set
+
+
+def residual_maps(g: Tensor, gain: Tensor) -> Tensor:
+    """(2ᴺ, N, N): I − G K_S of every set, the map x ↦ x − Gρ_S (gains K_S (2ᴺ, D, N) of
+    :func:`~dacr_learn.hardware.slack.active_set_gains`)."""
+    return torch.eye(g.shape[0], dtype=gain.dtype, device=gain.device) - g @ gain
+
+
+def enumerated_solution(x: Tensor, sets: Tensor, gain: Tensor, residual_map: Tensor, tendon_w: Tensor) -> Tensor:
+    """ρ (B, D) of x (B, N) [m] from the sets and gains of :func:`~dacr_learn.hardware.slack.active_set_gains` and their
+    :func:`residual_maps` (all computed once for fixed weights): every set's residual x − Gρ_S (B, 2ᴺ, N) in
+    one product, the consistent set (:func:`~dacr_learn.hardware.slack.select_active_set`), its solution ρ_S = K_S x."""
+    residual = torch.einsum("sin,bn->bsi", residual_map.to(x.dtype), x)
+    best = select_active_set(residual, sets, tendon_w)
+    return (gain.to(x.dtype)[best] @ x.unsqueeze(-1)).squeeze(-1)
 
 
 class GeneratedHardwareFK(nn.Module):

@@ -1,0 +1,67 @@
+"""The LM iteration of the working batch (:mod:`.pool`) compiled as one graph by ``torch.compile`` (docs/ik.md).
+
+Eager, one iteration of a pose solve of the 3-segment robot is about 400 tensor operations, each a pass over the
+working batch in memory (float64). Inductor's CPU code generation fuses them into a few dozen loops over the rows in
+two C++ functions: the same maths (:func:`~.refine.lm_iteration` with the SPD solve written out,
+:func:`~.refine.spd_solve_unrolled`, and small products as multiply-sums, :func:`~.refine.fused_matmul`, which
+Inductor fuses instead of calling LAPACK and BLAS), equal to the eager iteration up to rounding. Row counts are
+dynamic: one compilation serves every batch of :data:`MIN_ROWS` rows or more (smaller batches take the eager
+iteration: torch specialises sizes 0 and 1, and a compiled step gains little there).
+
+Compiling takes minutes once per robot and task (pose, position) and process, once more for a sharded solve (one
+torch thread per shard); torch caches the compiled code on disk (its Inductor cache directory), which shortens, not
+removes, the compilation in a later process (its tracing stays). So it is off by default:
+``IKOptions(fused=True)`` turns it on for the analytic constant-curvature model (one compiled iteration per robot
+spec and task, kept for the process); other models run the eager iteration.
+"""
+from __future__ import annotations
+
+import threading
+import warnings
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from .adapters import ConstantCurvature, SolverModel
+from .refine import fused_matmul, lm_iteration, spd_solve_unrolled
+
+MIN_ROWS = 64   # batches below this take the eager iteration
+_COMPILED: dict[tuple, Callable] = {}
+_FIRST_CALL = threading.Lock()
+
+
+def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor, Tensor | None], tuple]:
+    """An iteration with :func:`~.refine.lm_iteration`'s signature and results (state, targets → new state) that runs
+    the compiled graph (module docstring) for batches of at least :data:`MIN_ROWS` rows of the analytic model;
+    :func:`~.refine.lm_iteration` itself for other models. Nothing is compiled before the first call."""
+    if not isinstance(model, ConstantCurvature):
+        return lm_iteration
+    spec = model.spec
+
+    def iteration(model_: SolverModel, state: tuple[Tensor, ...], position: Tensor, rotation: Tensor | None
+                  ) -> tuple[Tensor, ...]:
+        if state[0].shape[0] < MIN_ROWS:
+            return lm_iteration(model_, state, position, rotation)
+        key = (spec, rotation is None)
+        rot = None if rotation is None else rotation.contiguous()       # fixed strides: no recompilation
+        args = tuple(t.contiguous() for t in state), position.contiguous(), rot
+        step = _COMPILED.get(key)
+        if step is None:
+            with _FIRST_CALL, warnings.catch_warnings():     # one compilation when shards call it on parallel threads
+                warnings.filterwarnings("ignore", message=".*lru_cache", category=UserWarning)   # a spec's constants
+                if key not in _COMPILED:
+                    step = _compile(model_)
+                    out = step(*args)                                     # compiles
+                    _COMPILED[key] = step
+                    return out
+            step = _COMPILED[key]
+        return step(*args)
+
+    return iteration
+
+
+def _compile(model: SolverModel) -> Callable:
+    def step(state: tuple[Tensor, ...], position: Tensor, rotation: Tensor | None) -> tuple[Tensor, ...]:
+        return lm_iteration(model, state, position, rotation, solve=spd_solve_unrolled, matmul=fused_matmul)
+    return torch.compile(step, dynamic=True, fullgraph=True)

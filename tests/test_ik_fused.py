@@ -1,0 +1,76 @@
+"""The compiled LM iteration of the IK working batch (dacr_learn.ik.fused): the unrolled form it compiles equals the
+eager iteration; small batches and other models take the eager iteration unchanged; compiled, the iteration matches
+the eager one and a solve verifies against the independent NumPy check (minutes of torch.compile: only with
+``DACR_TEST_IK_FUSED=1``, as the compiled path is off by default)."""
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+from conftest import TDCR3
+from test_ik import assert_flagged_solutions_verify, targets_of
+
+from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
+from dacr_learn.ik.adapters import SolverModel
+from dacr_learn.ik.fused import MIN_ROWS, fused_iteration
+from dacr_learn.ik.refine import fused_matmul, lm_iteration, residual, spd_solve_unrolled
+
+F64 = torch.float64
+
+
+def lm_state(model: ConstantCurvature, n: int, position_only: bool, seed: int):
+    """A working-batch state of n random starts towards n random reachable targets, and the targets."""
+    g = torch.Generator().manual_seed(seed)
+    pos, rot, _ = model.tip_and_jacobian(model.limits.sample(n, g))
+    rot = None if position_only else rot
+    x = model.limits.sample(n, g)
+    r, jac, pe, re = residual(model, x, pos, rot)
+    cost = (r * r).sum(-1)
+    return (x, r, jac, cost, torch.full_like(cost, 1e-3), pe, re), pos, rot
+
+
+def assert_states_close(a, b, rtol: float) -> None:
+    for name, u, v in zip(("x", "r", "J", "cost", "λ", "pos_err", "rot_err"), a, b, strict=True):
+        torch.testing.assert_close(u, v, rtol=rtol, atol=rtol * float(v.abs().max()), msg=name)
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_unrolled_iteration_equals_the_eager_one(position_only):
+    """What the compiled graph traces (the LDLᵀ solve written out, products as multiply-sums) is the eager iteration
+    (LAPACK solve, BLAS products) up to float64 rounding, over three iterations from random starts."""
+    model = ConstantCurvature(TDCR3)
+    state, pos, rot = lm_state(model, 200, position_only, seed=1)
+    a = b = state
+    for _ in range(3):
+        a = lm_iteration(model, a, pos, rot)
+        b = lm_iteration(model, b, pos, rot, solve=spd_solve_unrolled, matmul=fused_matmul)
+    assert_states_close(b, a, rtol=1e-9)
+
+
+def test_small_batches_and_other_models_take_the_eager_iteration():
+    """Below MIN_ROWS rows the fused iteration is the eager one (bit for bit, nothing compiled); a model other than
+    the analytic one gets lm_iteration itself."""
+    model = ConstantCurvature(TDCR3)
+    state, pos, rot = lm_state(model, MIN_ROWS - 1, False, seed=2)
+    for u, v in zip(fused_iteration(model)(model, state, pos, rot), lm_iteration(model, state, pos, rot), strict=True):
+        assert torch.equal(u, v)
+    assert fused_iteration(SolverModel()) is lm_iteration
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("DACR_TEST_IK_FUSED") != "1",
+                    reason="DACR_TEST_IK_FUSED=1 compiles the iteration (minutes)")
+def test_compiled_iteration_matches_and_solves():
+    """Compiled (position targets: the smaller graph), the iteration matches the eager one on batches of two sizes
+    (dynamic rows: no recompilation) and a fused solve flags only solutions the NumPy check verifies, all of them.
+    Takes 1–4 min on a 2-core machine (the compilation; less with torch's on-disk cache warm)."""
+    model = ConstantCurvature(TDCR3)
+    fused = fused_iteration(model)
+    for n in (MIN_ROWS, 3 * MIN_ROWS + 5):
+        state, pos, _ = lm_state(model, n, True, seed=n)
+        assert_states_close(fused(model, state, pos, None), lm_iteration(model, state, pos, None), rtol=1e-9)
+    target = targets_of(TDCR3, 16, seed=6)[:, :3, 3]
+    result = solve_ik(TDCR3, target, n_solutions=4, position_only=True, options=IKOptions(fused=True))
+    assert result.success.all()
+    assert_flagged_solutions_verify(TDCR3, result, target)
