@@ -221,6 +221,9 @@ def test_restarts_lie_near_a_solution_of_the_same_target_inside_the_limits():
     near5 = torch.linalg.vector_norm(out[:200] - x[5], dim=-1) <= reach + 1e-12
     assert (near4[:100] | ~moved[:100]).all()
     assert (near4[100:] | near5[100:] | ~moved[100:]).all() and (near5[100:] & moved[100:]).any()
+    every = Avoidance(model, load_scene(SCENE_FILE), D).restarts(uniform, x, solved, gen, share=1.0)
+    assert torch.equal(every[200:], uniform[200:]) and not (every[:200] == uniform[:200]).all(-1).any()
+    assert (torch.linalg.vector_norm(every[:100] - x[4], dim=-1) <= reach + 1e-12).all()
 
 
 def test_hinge_residuals_and_their_jacobian():

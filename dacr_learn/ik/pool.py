@@ -15,7 +15,11 @@ With a further condition on a solution (``accept``, e.g. the clearance of a scen
 tip has converged leaves the batch undecided; at the next refill the first such row of each slot is checked (one
 batched check, :func:`_decide`): an accepted row solves its slot, a rejected one is a candidate like a stalled row, and
 ``near`` may move the unsolved slots' new starts towards accepted solutions of the same target (not those of slots
-reopened as duplicates: near another solution they would find it again).
+reopened as duplicates: near another solution they would find it again). While the batch is *crowded* (fewer than
+:data:`CROWDED` of the converged starts checked so far pass, once :data:`SAMPLE` are checked; e.g. a robot on an arm
+behind a port, where about 4 in 10 converged seeds fail), every new start of a slot whose target has a solution is
+drawn near one (``near``'s share 1), and restarts fill the batch only up to :data:`CROWDED_TAIL_ROWS`: each of their
+rows also costs a check, and near a solution one start per slot mostly suffices.
 """
 from __future__ import annotations
 
@@ -31,6 +35,9 @@ from .refine import STALL_LAMBDA, lm_iteration, residual
 
 REFILL = 1 / 16   # refill once this fraction of the batch has left it (or nothing is left)
 DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live rows than this fraction of slots
+CROWDED = 0.75    # with ``accept`` and ``near``: crowded while fewer than this fraction of the converged starts pass,
+SAMPLE = 64       # decided once this many are checked (module docstring)
+CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
@@ -109,12 +116,18 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     live = torch.zeros(0, dtype=torch.bool)
     pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
     duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
+    tally, crowded = [0, 0], False                                # converged starts accepted, checked
+
+    def checked(x: Tensor) -> Tensor:
+        ok = accept(x)
+        tally[0], tally[1] = tally[0] + int(ok.sum()), tally[1] + ok.numel()
+        return ok
     while True:
         size = live.numel()
         n_live = int(live.sum())
         if size == 0 or size - n_live >= max(1, REFILL * size):
             while pending:                    # converged rows to decide; all of them once nothing else is left
-                out_cost, pending = _decide(pending, accept, solved, out_x, out_cost)
+                out_cost, pending = _decide(pending, checked, solved, out_x, out_cost)
                 live = live & ~solved[batch.slot]
                 n_live = int(live.sum())
                 if n_live:
@@ -127,6 +140,8 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                 reopen = dup & (taken < budget)
                 solved &= ~reopen             # the duplicate stays the slot's candidate (its cost is tiny)
                 duplicate |= reopen
+            if near is not None and tally[1] >= SAMPLE:
+                crowded = tally[0] < CROWDED * tally[1]
             keep = live.nonzero().squeeze(-1)
             free = pool - keep.numel()
             first = torch.arange(queued, min(m, queued + free))
@@ -137,14 +152,16 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
                 alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
                 needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
                 if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
-                    share = max(1, -(-(TAIL_ROWS - keep.numel()) // needy.numel()))
+                    share = max(1, -(-((CROWDED_TAIL_ROWS if crowded else TAIL_ROWS) - keep.numel())
+                                       // needy.numel()))
                     each = torch.clamp(budget - taken[needy], max=min(max_fan_out, share))
                     more = needy.repeat_interleave(each)[:free]
                     slots.append(more)
                     fresh = lim.sample(more.numel(), gen)
                     if near is not None:                # not for duplicates: they would find the same again
                         solutions = torch.where(solved, torch.arange(m), -1).view(-1, k)[more // k]
-                        fresh = near(fresh, out_x, solutions.masked_fill(duplicate[more].unsqueeze(-1), -1), gen)
+                        fresh = near(fresh, out_x, solutions.masked_fill(duplicate[more].unsqueeze(-1), -1), gen,
+                                     1.0 if crowded else None)
                     x0.append(fresh)
             slots = torch.cat(slots)
             taken.index_add_(0, slots, torch.ones_like(slots))
