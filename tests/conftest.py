@@ -527,6 +527,12 @@ def write_run_config(tmp_path: Path, task: str = "FKModule", robot: str = "confi
     return path
 
 
+def no_ablation_reports(rows, out: Path, robots_order=None, title: str = "") -> dict:
+    """Stands in for dacr_learn.cli.ablation's write_reports (monkeypatched) in tests that check a grid's rows only:
+    the PNGs and the Rerun recording take seconds of CPU per call (test_ablation.py's quick grid test checks them)."""
+    return {"summary": out / "summary.md", "plots": [], "rrd": out / "ablation.rrd"}
+
+
 def readme_sections() -> dict[str, str]:
     """The README's ``## `` sections: heading text → the section's text (heading line included)."""
     sections, name, lines = {}, "", []

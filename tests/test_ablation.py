@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import ROOT
+from conftest import ROOT, no_ablation_reports
 
+import dacr_learn.cli.ablation as ablation_cli
 from dacr_learn.ablation import COLUMNS, load_config, make_jobs, report, runner
 from dacr_learn.cli.ablation import main
 from dacr_learn.data import SamplerOptions, generate
@@ -65,6 +66,7 @@ def test_resume_skips_finished_jobs(quick_run, tmp_path, monkeypatch):
     out, _ = quick_run
     rows = read_csv(out / "results.csv")
     # A second call on a complete directory trains nothing.
+    monkeypatch.setattr(ablation_cli, "write_reports", no_ablation_reports)
     monkeypatch.setattr(runner, "fit", lambda *a, **k: pytest.fail("a finished job was trained again"))
     again = main(["--config", str(CONFIG), "--quick", "--out", str(out), "--no-progress"])
     assert again["ran"] == 0 and again["skipped"] == len(make_jobs(load_config(CONFIG, quick=True)))
@@ -82,6 +84,7 @@ def test_resume_skips_finished_jobs(quick_run, tmp_path, monkeypatch):
         f.write("type0_n4,fk,cla")                          # a truncated line, as after a kill
     trained = []
     real_fit = runner.fit
+    monkeypatch.setattr(ablation_cli, "write_reports", no_ablation_reports)
     monkeypatch.setattr(runner, "fit", lambda cfg, job, spec: trained.append(job) or real_fit(cfg, job, spec))
     resumed = main(["--config", str(CONFIG), "--quick", "--out", str(cut), "--no-progress"])
     assert resumed["ran"] == 1 and [j.key for j in trained] == [last]

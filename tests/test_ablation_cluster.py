@@ -12,12 +12,13 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import ROOT
+from conftest import ROOT, no_ablation_reports
 
 distributed = pytest.importorskip("distributed", reason='Dask distributed not installed: pip install -e ".[cluster]"')
 
 import psutil  # noqa: E402  (a dependency of distributed)
 
+import dacr_learn.cli.ablation as ablation_cli  # noqa: E402
 from dacr_learn.ablation import load_config, make_jobs, runner  # noqa: E402
 from dacr_learn.ablation.cluster import connect, portable_config  # noqa: E402
 from dacr_learn.cli.ablation import main  # noqa: E402
@@ -70,7 +71,8 @@ def live_children() -> set[int]:
 
 
 @pytest.mark.slow
-def test_cluster_run_survives_a_killed_worker(tmp_path):
+def test_cluster_run_survives_a_killed_worker(tmp_path, monkeypatch):
+    monkeypatch.setattr(ablation_cli, "write_reports", no_ablation_reports)      # the rows are checked, not the plots
     config, before = tiny_config(tmp_path), live_children()
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                                   silence_logs=50) as cluster:
