@@ -374,3 +374,22 @@ def test_inlined_products_leave_no_matrix_product_and_equal_the_program():
     x, y = x.repeat(3, 1), y.repeat(3, 1, 1)
     for want, got in zip(program.module()(x, y), inlined.module()(x, y), strict=True):
         torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-13)
+
+
+def test_programs_are_exported_for_contiguous_inputs():
+    """A package assumes its example's strides and its callers (C++, the package's runner) pass contiguous tensors:
+    an example that is a strided view (the batched kinematics' tips are batch-last views) is exported as contiguous,
+    so the position-only IK refinement's package computes what the eager module does (it read its target with the
+    view's strides before: deviations of 0.05–0.3, garbage at other batch sizes)."""
+    from dacr_learn.deploy.export import export_program
+
+    class Shift(torch.nn.Module):
+        def forward(self, target, q):
+            return q[:, :3] + target
+
+    target = torch.randn(3, 4, dtype=torch.float64).t()[:, :3]                     # (4, 3) view, strides (1, 4)
+    assert not target.is_contiguous()
+    program = export_program(Shift(), (target, torch.randn(4, 5, dtype=torch.float64)))
+    inputs = [n.meta["val"] for n in program.graph.nodes if n.op == "placeholder"]
+    assert len(inputs) == 2 and all(t.is_contiguous() for t in inputs)
+    assert torch.equal(program.module()(target, torch.zeros(4, 5, dtype=torch.float64)), target)

@@ -61,9 +61,10 @@ def metadata_digest(meta: dict) -> str:
 
 def export_program(module: nn.Module, example: Tensor | tuple[Tensor, ...]) -> torch.export.ExportedProgram:
     """torch.export a module with one batched input (or a tuple of inputs sharing the batch dim);
-    the batch dim is dynamic (1 … MAX_BATCH)."""
+    the batch dim is dynamic (1 … MAX_BATCH). The examples are made contiguous first: a compiled package assumes
+    its example's strides, and its callers (C++, the package's runner) pass contiguous tensors."""
     batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
-    examples = example if isinstance(example, tuple) else (example,)
+    examples = tuple(x.contiguous() for x in (example if isinstance(example, tuple) else (example,)))
     with torch.no_grad():
         return torch.export.export(module, examples, dynamic_shapes=tuple({0: batch} for _ in examples))
 
