@@ -92,7 +92,7 @@ def test_package_metadata_of_a_hardware_model_names_its_servos():
     assert not any("feature" in k for k in got)
 
 
-def _run(*args, check: bool = True) -> subprocess.CompletedProcess:
+def run_cpp(*args, check: bool = True) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     out = subprocess.run([str(a) for a in args], capture_output=True, text=True, env=env, timeout=600)
     if check and out.returncode != 0:
@@ -151,7 +151,7 @@ def test_cpp_equals_python(cpp_build, request, tmp_path, name):
     for i, x in enumerate(inputs):
         files.append(tmp_path / f"in{i}.bin")
         x.numpy().tofile(files[-1])
-    _run(cpp_build / "dacr_run", "run", folder / f"{name}.aoti.pt2", "--module", name, "--batch", 16,
+    run_cpp(cpp_build / "dacr_run", "run", folder / f"{name}.aoti.pt2", "--module", name, "--batch", 16,
          "--out", tmp_path / "out", *files)
     module = dexport.load(folder, name)
     assert module.kind == "aoti"
@@ -183,7 +183,7 @@ def test_cpp_resolved_rate_equals_python(cpp_build, packages, tmp_path):
     targets = torch.cat([circle, torch.diff(circle, dim=0, append=circle[-1:])], -1)
     q.numpy().tofile(tmp_path / "q0.bin")
     targets.numpy().tofile(tmp_path / "targets.bin")
-    _run(cpp_build / "dacr_run", "rrc", packages["fk"] / "jacobian.aoti.pt2", "--steps", 300, "--out",
+    run_cpp(cpp_build / "dacr_run", "rrc", packages["fk"] / "jacobian.aoti.pt2", "--steps", 300, "--out",
          tmp_path / "q.bin", tmp_path / "q0.bin", tmp_path / "targets.bin")
     got = np.fromfile(tmp_path / "q.bin").reshape(300, -1)
     ref = []
@@ -196,7 +196,7 @@ def test_cpp_resolved_rate_equals_python(cpp_build, packages, tmp_path):
     np.testing.assert_allclose(got, np.stack(ref), rtol=0, atol=1e-9)
 
 
-def _edit_package(src: Path, dst: Path, edit) -> Path:
+def edit_package(src: Path, dst: Path, edit) -> Path:
     """A copy of a package with its metadata map changed by ``edit`` (the metadata JSON files inside the zip)."""
     with zipfile.ZipFile(src) as zin, zipfile.ZipFile(dst, "w") as zout:
         for item in zin.infolist():
@@ -214,22 +214,22 @@ def test_cpp_refuses_mismatches(cpp_build, packages, tmp_path):
     version, a package without dacr_learn metadata, a file that is not a package."""
     run = cpp_build / "dacr_run"
     fk = packages["fk"] / "jacobian.aoti.pt2"
-    names = _run(run, "info", fk).stdout.split("joint_names ")[1].split()[0].split(",")
+    names = run_cpp(run, "info", fk).stdout.split("joint_names ")[1].split()[0].split(",")
     assert names[0] == "s0.q0" and len(names) == 12
     bad = "pose:4x3,J_f:6x9,J_q:6x12"
     cases = [((fk, "--module", "fk"), "module 'jacobian', expected 'fk'"),
              ((fk, "--robot", "other"), "exported for robot 'tdcr-3seg', expected 'other'"),
              ((fk, "--joints", ",".join(names[::-1])), "joint order [s0.q0"),
-             ((_edit_package(fk, tmp_path / "v.pt2", lambda m: {**m, PREFIX + "torch_version": "2.0.0"}),),
+             ((edit_package(fk, tmp_path / "v.pt2", lambda m: {**m, PREFIX + "torch_version": "2.0.0"}),),
               "built with torch 2.0.0"),
-             ((_edit_package(fk, tmp_path / "f.pt2", lambda m: {**m, PREFIX + "format": "x/9"}),), "format 'x/9'"),
-             ((_edit_package(fk, tmp_path / "n.pt2", lambda m: {k: v for k, v in m.items() if PREFIX not in k}),),
+             ((edit_package(fk, tmp_path / "f.pt2", lambda m: {**m, PREFIX + "format": "x/9"}),), "format 'x/9'"),
+             ((edit_package(fk, tmp_path / "n.pt2", lambda m: {k: v for k, v in m.items() if PREFIX not in k}),),
               "no dacr_learn metadata in the package"),
-             ((_edit_package(fk, tmp_path / "s.pt2", lambda m: {**m, PREFIX + "outputs": bad}),),
+             ((edit_package(fk, tmp_path / "s.pt2", lambda m: {**m, PREFIX + "outputs": bad}),),
               "output pose has shape (1, 4, 4), its metadata says (1, 4, 3)"),
              ((packages["fk"] / "metadata.json",), "not an AOTInductor package")]
     for args, message in cases:
-        out = _run(run, "info", *args, check=False)
+        out = run_cpp(run, "info", *args, check=False)
         assert out.returncode == 1 and message in out.stderr and out.stderr.count("\n") == 1, (args, out.stderr)
 
 
@@ -237,7 +237,7 @@ def test_cpp_refuses_mismatches(cpp_build, packages, tmp_path):
 @needs_cpp
 def test_resolved_rate_loop_runs(cpp_build, packages):
     """The example's 1 kHz resolved-rate loop runs for 0.2 s and reports its figures; no timing is asserted."""
-    rrc = json.loads(_run(cpp_build / "dacr_rt", "rrc", "--jacobian", packages["fk"] / "jacobian.aoti.pt2",
+    rrc = json.loads(run_cpp(cpp_build / "dacr_rt", "rrc", "--jacobian", packages["fk"] / "jacobian.aoti.pt2",
                           "--seconds", 0.2, "--cpu", 0).stdout)
     assert rrc["ticks"] == 200 and rrc["failed_ticks"] == 0 and rrc["tick"]["count"] == 200
     assert rrc["tensor_allocations_per_tick"] >= 1         # the runtime's outputs (docs/cpp.md, Limits)
@@ -250,6 +250,6 @@ def test_ik_tracking_loop_runs(cpp_build, refine_package, tmp_path):
     """The example's 1 kHz IK tracking loop runs for 0.2 s on recorded targets; no timing is asserted."""
     position, q0 = _inputs("refine", 50)
     np.concatenate([q0[0].numpy(), position.numpy().reshape(-1)]).tofile(tmp_path / "targets.bin")
-    ik = json.loads(_run(cpp_build / "dacr_rt", "ik", "--refine", refine_package / "refine.aoti.pt2",
+    ik = json.loads(run_cpp(cpp_build / "dacr_rt", "ik", "--refine", refine_package / "refine.aoti.pt2",
                          "--targets", tmp_path / "targets.bin", "--seconds", 0.2, "--cpu", 0).stdout)
     assert ik["ticks"] == 200 and ik["failed_ticks"] == 0 and np.isfinite(ik["pos_err_max_m"])

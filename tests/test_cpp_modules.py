@@ -19,7 +19,7 @@ import test_cpp
 import torch
 from arm_reference import UrdfArm
 from conftest import ROOT, save_small_checkpoint
-from test_cpp import _edit_package, _run, needs_cpp
+from test_cpp import edit_package, needs_cpp, run_cpp
 
 from dacr_learn import export as dexport
 from dacr_learn.arm.control import Port, WholeBodyConfig, WholeBodyController
@@ -116,7 +116,7 @@ def _write(tmp_path, name: str, *arrays: torch.Tensor) -> list:
 def _cpp_run(build, tmp_path, package, module: str, inputs: tuple[torch.Tensor, ...]) -> tuple[list, list]:
     """``dacr_run run``: (batch outputs in the package's dtype, the class's row-by-row outputs in float64)."""
     b = inputs[0].shape[0]
-    _run(build / "dacr_run", "run", package, "--module", module, "--batch", b, "--out", tmp_path / module,
+    run_cpp(build / "dacr_run", "run", package, "--module", module, "--batch", b, "--out", tmp_path / module,
          *_write(tmp_path, module, *inputs))
     loaded = dexport.load(package)
     batch, rows = [], []
@@ -164,7 +164,7 @@ def test_whole_body_step_cpp_equals_python(cpp_build, composite, step_package, t
     moving[:, :3, 3] += 0.01 * torch.cat([torch.sin(2 * torch.pi * t), 1 - torch.cos(2 * torch.pi * t), 0 * t], -1)
     feed = torch.cat([torch.diff(moving[:, :3, 3], dim=0, append=moving[-1:, :3, 3]), torch.zeros(ticks, 3,
                                                                                                   dtype=F64)], -1)
-    _run(cpp_build / "dacr_run", "loop", step_package, "--steps", ticks, "--out", tmp_path / "loop",
+    run_cpp(cpp_build / "dacr_run", "loop", step_package, "--steps", ticks, "--out", tmp_path / "loop",
          *_write(tmp_path, "loop", q[:1], moving, feed))
     got = np.fromfile(tmp_path / "loop.0.bin").reshape(ticks, -1)
     loaded, state, ref, eager = dexport.load(step_package), q[:1], [], q[:1]
@@ -177,15 +177,15 @@ def test_whole_body_step_cpp_equals_python(cpp_build, composite, step_package, t
     np.testing.assert_allclose(got[-1], eager[0].numpy(), rtol=0, atol=1e-9)
     assert np.abs(got[-1] - q[0].numpy()).max() > 1e-3                      # it moved
     run = cpp_build / "dacr_run"
-    names = _run(run, "info", step_package).stdout.split("joint_names ")[1].split()[0].split(",")
+    names = run_cpp(run, "info", step_package).stdout.split("joint_names ")[1].split()[0].split(",")
     swapped = ",".join([names[1], names[0], *names[2:]])
-    arm = _edit_package(step_package, tmp_path / "a.pt2", lambda m: {**m, PREFIX + "arm_joints": "0"})
-    two = _edit_package(step_package, tmp_path / "i.pt2", lambda m: {**m, PREFIX + "inputs": "q:19,target:4x4"})
+    arm = edit_package(step_package, tmp_path / "a.pt2", lambda m: {**m, PREFIX + "arm_joints": "0"})
+    two = edit_package(step_package, tmp_path / "i.pt2", lambda m: {**m, PREFIX + "inputs": "q:19,target:4x4"})
     for args, message in [((step_package, "--joints", swapped), "joint order [panda_joint1,panda_joint2"),
                           ((arm, "--module", "step"), "arm_joints must count 1 … 18 of the joints"),
                           ((two, "--module", "step"), "does not run on inputs of its metadata's shapes")]:
-        out = _run(run, "loop", *args, "--steps", 1, "--out", tmp_path / "x", *_write(tmp_path, "x", q[:1], target[:1],
-                                                                                         ff[:1]), check=False)
+        inputs = _write(tmp_path, "x", q[:1], target[:1], ff[:1])
+        out = run_cpp(run, "loop", *args, "--steps", 1, "--out", tmp_path / "x", *inputs, check=False)
         assert out.returncode == 1 and message in out.stderr, (args, out.stderr)
 
 
@@ -240,7 +240,7 @@ def test_hardware_module_cpp_equals_python(cpp_build, hardware_packages, tmp_pat
     _assert_equal_to_python(cpp_build, tmp_path, out / "jacobian.aoti.pt2", "jacobian",
                             (servo[1:17], torch.cat(states[:16])))
     start = init(servo[:1]).double()
-    _run(cpp_build / "dacr_run", "loop", out / "fk.aoti.pt2", "--steps", 60, "--out", tmp_path / "fk",
+    run_cpp(cpp_build / "dacr_run", "loop", out / "fk.aoti.pt2", "--steps", 60, "--out", tmp_path / "fk",
          *_write(tmp_path, "fk", servo.double(), start))
     got = [np.fromfile(tmp_path / f"fk.{k}.bin").reshape(60, -1) for k in range(3)]
     np.testing.assert_array_equal(np.concatenate(got[:2], -1), torch.cat(tips).double().numpy())
