@@ -23,9 +23,10 @@ from dacr_learn.arm import Composite, load_arm
 from dacr_learn.arm.control import Port, WholeBodyConfig, WholeBodyController
 from dacr_learn.arm.qp_control import WholeBodyQPController
 from dacr_learn.deploy.control import ControllerConfig, ResolvedRateController, analytic_jacobian
+from dacr_learn.deploy.export import SMALL_MATMULS
 from dacr_learn.deploy.qp_clearance import cc_body_and_jacobian
 from dacr_learn.deploy.qp_control import QPConfig, QPController, Sensing, disk_rows, solve_program
-from dacr_learn.deploy.qp_export import SMALL_MATMULS, ExportedStep, step_program
+from dacr_learn.deploy.qp_export import ExportedStep, step_program
 from dacr_learn.ik import ConstantCurvature
 from dacr_learn.ik.adapters import SolverModel
 from dacr_learn.layers import ClarkeEncoder

@@ -16,11 +16,8 @@ import torch
 from torch import Tensor, nn
 
 from ..checks import F64
-from .export import SMALL_MATMULS, inline_products
+from .export import inline_products
 from .qp_control import QPController, Rows
-
-__all__ = ["SHAPES_KEY", "SMALL_MATMULS", "ExportedStep", "StepProgram", "export_step", "shapes_text",
-           "step_feedforward", "step_program"]   # SMALL_MATMULS: from .export, named here too
 
 SHAPES_KEY = "qp_step_shapes"
 
@@ -55,8 +52,10 @@ class StepProgram(nn.Module):
 
 def step_program(controller: QPController, q: Tensor, target: Tensor, feedforward: Tensor
                  ) -> torch.export.ExportedProgram:
-    """:class:`StepProgram` exported at these shapes, its matrix products decomposed (:data:`SMALL_MATMULS`)."""
-    return inline_products(torch.export.export(StepProgram(controller), (q, target, feedforward)))
+    """:class:`StepProgram` exported at these shapes for contiguous inputs (what :class:`ExportedStep` passes; a
+    package assumes its example's strides), its matrix products decomposed (:func:`~.export.inline_products`)."""
+    examples = tuple(t.contiguous() for t in (q, target, feedforward))
+    return inline_products(torch.export.export(StepProgram(controller), examples))
 
 
 def export_step(controller: QPController, package: str | Path, q: Tensor, target: Tensor,
