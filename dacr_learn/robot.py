@@ -58,6 +58,15 @@ def _fail(field: str, value: Any, expected: str) -> None:
     raise ValueError(f"{field}: got {value!r}, expected {expected}")
 
 
+def _check_keys(where: str, d: Any, allowed: set[str]) -> None:
+    """ValueError unless ``d`` is a mapping whose keys are among ``allowed``."""
+    if not isinstance(d, Mapping):
+        _fail(where, d, "a mapping with keys " + ", ".join(sorted(allowed)))
+    unknown = set(d) - allowed
+    if unknown:
+        _fail(where, sorted(unknown), "only keys " + ", ".join(sorted(allowed)))
+
+
 def _positive_float(field: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         _fail(field, value, "a number")
@@ -136,11 +145,7 @@ class SegmentSpec:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], where: str) -> SegmentSpec:
-        if not isinstance(d, Mapping):
-            _fail(where, d, "a mapping with keys " + ", ".join(sorted(_SEGMENT_KEYS)))
-        unknown = set(d) - _SEGMENT_KEYS
-        if unknown:
-            _fail(f"{where}", sorted(unknown), "only keys " + ", ".join(sorted(_SEGMENT_KEYS)))
+        _check_keys(where, d, _SEGMENT_KEYS)
         seg_type = str(d.get("type", ""))
         if seg_type not in SEGMENT_TYPES:
             _fail(f"{where}.type", d.get("type"), 'one of "0", "I", "II", "III"')
@@ -265,11 +270,7 @@ class MechanicsSpec:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], where: str = "mechanics") -> MechanicsSpec:
-        if not isinstance(d, Mapping):
-            _fail(where, d, "a mapping with keys " + ", ".join(sorted(_MECHANICS_KEYS)))
-        unknown = set(d) - _MECHANICS_KEYS
-        if unknown:
-            _fail(where, sorted(unknown), "only keys " + ", ".join(sorted(_MECHANICS_KEYS)))
+        _check_keys(where, d, _MECHANICS_KEYS)
         e = _positive_float(f"{where}.youngs_modulus", d.get("youngs_modulus"))
         if ("shear_modulus" in d) == ("poisson_ratio" in d):
             _fail(where, sorted(set(d) & {"shear_modulus", "poisson_ratio"}),
@@ -309,11 +310,7 @@ class RobotSpec:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> RobotSpec:
-        if not isinstance(d, Mapping):
-            _fail("robot", d, "a mapping with keys name, routing, segments")
-        unknown = set(d) - _ROBOT_KEYS
-        if unknown:
-            _fail("robot", sorted(unknown), "only keys name, routing, segments, mechanics")
+        _check_keys("robot", d, _ROBOT_KEYS)
         name = d.get("name", "robot")
         if not isinstance(name, str) or not name:
             _fail("name", name, "a non-empty string")

@@ -92,8 +92,13 @@ class KinematicsModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         self.run_config = checkpoint.get("dacr_config", self.run_config)
 
+    task = "fk"             # the network of model_from_hparams(task, …): "fk", "ik" or "sampler"
+
     def build_model(self) -> torch.nn.Module:
-        raise NotImplementedError
+        return model_from_hparams(self.task, self.spec, self.hparams)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.model(x)
 
     def setup(self, stage: str) -> None:
         dm = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
@@ -193,12 +198,6 @@ class FKModule(KinematicsModule):
         # save_hyperparameters() in the base class also records the FK-only arguments
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
 
-    def build_model(self) -> torch.nn.Module:
-        return model_from_hparams("fk", self.spec, self.hparams)
-
-    def forward(self, q: Tensor) -> Tensor:
-        return self.model(q)
-
     def pose_loss(self, pred: Tensor, target: Tensor) -> Tensor:
         """Mean of ‖Δp‖²/L² + rot_weight·‖R̂ − R‖²_F over poses (..., 4, 4)."""
         return pose_loss(pred, target, self.spec.total_length, self.hparams.rot_weight)
@@ -290,11 +289,7 @@ class IKModule(KinematicsModule):
         super().__init__(robot, features, width, depth, activation, lr, weight_decay, visual_samples)
         self.n_train: int | None = None            # training set size, known from setup("fit")
 
-    def build_model(self) -> IKModel:
-        return model_from_hparams("ik", self.spec, self.hparams)
-
-    def forward(self, pose: Tensor) -> Tensor:
-        return self.model(pose)
+    task = "ik"
 
     def setup(self, stage: str) -> None:
         super().setup(stage)

@@ -13,11 +13,9 @@ import torch
 from torch import Tensor
 
 from .checks import F64
-from .compositional import model_from_hparams
 from .kinematics import backbone_points, forward_kinematics
 from .metrics import pose_errors
 from .models import actuated_to_features
-from .sampler import ClarkeSampler
 from .training import KinematicsModule
 
 
@@ -45,8 +43,7 @@ class SamplerModule(KinematicsModule):
 
     loss_name = "nll"       # train/nll and val/nll_mean share a plot; a log-likelihood may be of either sign
 
-    def build_model(self) -> ClarkeSampler:
-        return model_from_hparams("sampler", self.spec, self.hparams)
+    task = "sampler"
 
     def loss(self, batch: dict[str, Tensor]) -> Tensor:
         q = batch["q"]

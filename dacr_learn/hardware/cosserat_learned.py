@@ -24,16 +24,7 @@ from torch import Tensor, nn
 
 from .ccmodel import CalibratedCC
 from .cosserat_model import CalibratedCosserat
-from .learned import (
-    FINETUNE_STEPS,
-    LR,
-    PRETRAIN_SAMPLES,
-    REHEARSAL,
-    CCClarkeResidual,
-    Split,
-    synthetic_split,
-    train_full_batch,
-)
+from .learned import PRETRAIN_SAMPLES, CCClarkeResidual, Split, pretrain_and_finetune, synthetic_split
 from .servo_map import ServoMap
 
 _SHARED: dict[str, object] = {}   # per process: the calibrations and synthetic tips computed or read here
@@ -185,10 +176,8 @@ class CCClarkeResidualCosserat(CCClarkeResidual):
         self.cc.requires_grad_(False)
         self.fit_normalization(train)
         synthetic = self.synthetic(train)
-        train_full_batch(self.net.parameters(), lambda: self.objective(synthetic))
-        train_full_batch(self.net.parameters(),
-                         lambda: self.objective(train) + REHEARSAL * self.objective(synthetic),
-                         steps=FINETUNE_STEPS, lr=LR / 3)
+        pretrain_and_finetune(list(self.net.parameters()), lambda: self.objective(synthetic),
+                              lambda: self.objective(train))
 
 
 class CCClarkeResidualHistoryCosserat(CCClarkeResidualCosserat):

@@ -127,6 +127,13 @@ def make_split(rec: Recording, spec: RobotSpec, smap: ServoMap, cc: CalibratedCC
     return command_split(rec.servo, rec.servo_ids, spec, smap, cc, rec.tip)
 
 
+def pretrain_and_finetune(params, synthetic_loss, real_loss) -> None:
+    """Pre-train ``params`` on a synthetic set (``synthetic_loss()``), then fine-tune them on the recording with the
+    synthetic set kept in the loss (rehearsal): ``real_loss() + REHEARSAL·synthetic_loss()``, fewer steps and lr/3."""
+    train_full_batch(params, synthetic_loss)
+    train_full_batch(params, lambda: real_loss() + REHEARSAL * synthetic_loss(), steps=FINETUNE_STEPS, lr=LR / 3)
+
+
 def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> None:
     opt = torch.optim.Adam(params, lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
@@ -302,11 +309,8 @@ class Pretrained(TipMLP):
         synthetic = synthetic_split(cc, smap, servo_ids, samples, seed)
         s_inp, s_tip = self._input(synthetic), synthetic.tip.float()
         r_inp, r_tip = self._input(train), train.tip.float()
-        train_full_batch(self.net.parameters(), lambda: self._loss(self.from_input(s_inp), s_tip))
-        train_full_batch(self.net.parameters(),
-                         lambda: self._loss(self.from_input(r_inp), r_tip)
-                         + REHEARSAL * self._loss(self.from_input(s_inp), s_tip),
-                         steps=FINETUNE_STEPS, lr=LR / 3)
+        pretrain_and_finetune(list(self.net.parameters()), lambda: self._loss(self.from_input(s_inp), s_tip),
+                              lambda: self._loss(self.from_input(r_inp), r_tip))
 
 
 def cc_as_residual(train: Split, cc: CalibratedCC) -> CCClarkeResidual:

@@ -80,10 +80,7 @@ class HardwareModel:
         """The model inputs of commands servo (n, S) [mm, ``servo_ids`` order; time order for a history model]
         (:func:`~.learned.command_split`; no measured tips: the split's tip is NaN). ``static``: every command
         on its own, as the start of a sequence (no motion memory: what a held command gives without history)."""
-        servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
-        if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
-            raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
-        split = command_split(servo, self.servo_ids, self.spec, self.smap, self.cc)
+        split = command_split(self._servo_m(servo_mm), self.servo_ids, self.spec, self.smap, self.cc)
         return dataclasses.replace(split, memory=torch.zeros_like(split.memory)) if static else split
 
     def predict(self, commands: torch.Tensor | Split, static: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
@@ -98,11 +95,16 @@ class HardwareModel:
         """The body of servo commands (n, S) [mm, ``servo_ids`` order]: the calibrated CC model's
         (:meth:`~..ccmodel.CalibratedCC.body`), motion-capture frame, float64; near the tip it can be off the predicted
         tip by the learned residual (which corrects the tip only)."""
+        x = self.smap.command_displacements(self.spec, self.servo_ids, self._servo_m(servo_mm))
+        with torch.no_grad():
+            return self.cc.body(x, points_per_segment)
+
+    def _servo_m(self, servo_mm: torch.Tensor) -> torch.Tensor:
+        """Commands (n, S) [mm, ``servo_ids`` order] in metres, float64; ValueError for another shape."""
         servo = 1e-3 * torch.as_tensor(servo_mm, dtype=torch.float64)
         if servo.dim() != 2 or servo.shape[-1] != len(self.servo_ids):
             raise ValueError(f"servo_mm: expected shape (n, {len(self.servo_ids)}) [mm], got {tuple(servo.shape)}")
-        with torch.no_grad():
-            return self.cc.body(self.smap.command_displacements(self.spec, self.servo_ids, servo), points_per_segment)
+        return servo
 
     def sigma_of(self) -> SigmaModel:
         """The σ this model reports: the stored σ model, else the σ calibration (an ``ensemble``-term σ

@@ -1,15 +1,8 @@
 """Inference modules of a saved compositional hardware model (registry ``cc_compositional_residual``).
 
-The counterparts of :class:`~.inference.HardwareFK` / :class:`~.inference.HardwareJacobian` for an
-ensemble of K :class:`~.compositional_model.CCCompositionalResidual` members; plain nn.Modules with
-every constant in buffers, exportable with torch.export (``python -m dacr_learn.export``):
-
-- :class:`CompositionalHardwareFK`: servo (B, S) [mm, checkpoint column order] → tip (B, 3) [m,
-  motion-capture frame] = the ensemble mean, tip_std (B, 3) [m] = the model's σ
-  (:meth:`~.checkpoint.HardwareModel.sigma_of`, as HardwareFK).
-- :class:`CompositionalHardwareJacobian`: servo (B, S) → tip (B, 3), J = ∂tip/∂servo (B, 3, S) [m/mm]
-  by forward-mode tangents (:func:`~dacr_learn.folding.tangent_rows`,
-  :meth:`CompositionalHardwareFK.tips_and_rho_jacobian`).
+The counterparts of :class:`~.inference.HardwareFK` / :class:`~.inference.HardwareJacobian` (the same inputs,
+outputs and σ) for an ensemble of K :class:`~.compositional_model.CCCompositionalResidual` members; plain
+nn.Modules with every constant in buffers, exportable with torch.export (``python -m dacr_learn.export``).
 
 Pipeline: servo → ρ (HardwareFK's active-set fast path, :func:`~.inference.active_set_maps`) → CC segment
 poses (:func:`~.inference.cc_segment_poses`) → each member's correction exp(ξ_k^) (the K networks batched,

@@ -183,6 +183,11 @@ def summarize_model(name: str, runs: list[tuple[tuple, float]], seeds: list[int]
 progress = partial(print, flush=True)   # a line shows at once even when stdout is a file or pipe (block-buffered)
 
 
+def _elapsed(start: float | None) -> str:
+    """", N s elapsed" since ``start`` (a perf_counter reading) for a progress line; "" without one."""
+    return "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
+
+
 def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Callable = progress,
                       fitted: dict[str, list[nn.Module]] | None = None,
                       start: float | None = None) -> tuple[dict, dict[str, torch.Tensor]]:
@@ -201,9 +206,8 @@ def collect_benchmark(pending: dict[str, list], seeds: Sequence[int], log: Calla
         v = r.get("val")
         shown = (f"val RMSE {v['rmse_mm']['mean']:6.2f} ± {v['rmse_mm']['std']:.2f} mm  "
                  f"mean {v['mean_mm']['mean']:6.2f}  p95 {v['p95_mm']['mean']:6.2f}  " if v else "")
-        elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
         log(f"[final {k + 1}/{len(pending)}] {name:36s} {shown}(train {r['train']['rmse_mm']['mean']:.2f}, "
-            f"{r['seconds_per_run']:.1f} s/run{elapsed})")
+            f"{r['seconds_per_run']:.1f} s/run{_elapsed(start)})")
     return results, preds
 
 
@@ -250,8 +254,7 @@ def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequenc
 
         def report(future: Future, what: str) -> None:
             if future.exception() is None:
-                elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
-                log(f"[shared {next(done)}/{len(futures)}] {what} ready ({future.result()[1]:.0f} s{elapsed})")
+                log(f"[shared {next(done)}/{len(futures)}] {what} ready ({future.result()[1]:.0f} s{_elapsed(start)})")
 
         for key, future in zip(order, futures, strict=True):
             what = "Cosserat synthetic tips" if "synthetic" in key else "Cosserat calibration"
@@ -310,9 +313,8 @@ def collect_selection(pending: PendingSelection, log: Callable = progress,
         seconds = sum(sec for folds in done.values() for runs in folds.values() for _, sec in runs)
         scores[name] = p = summarize_scores(rmse, pending.seeds[name], seconds, replicates[name])
         shown = ", ".join(f"{_PROXY_NAMES[proxy]} {p[proxy]:6.2f} ± {p[proxy + '_std']:.2f} mm" for proxy in per)
-        elapsed = "" if start is None else f", {time.perf_counter() - start:.0f} s elapsed"
         log(f"[proxy {k + 1}/{len(pending.fits)}] {name:36s} {shown} ({len(pending.seeds[name])} seed(s), "
-            f"{p['seconds']:.0f} s of fits{elapsed})")
+            f"{p['seconds']:.0f} s of fits{_elapsed(start)})")
     return SelectionResult(scores, replicates, predictions, pending.folds, pending.seeds)
 
 
