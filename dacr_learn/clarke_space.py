@@ -16,6 +16,7 @@ import torch
 from torch import Tensor, nn
 
 from .checks import F64, to_f64
+from .folding import affine_probe
 from .layers import ClarkeDecoder, ClarkeEncoder
 from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
 from .robot import RobotSpec
@@ -27,7 +28,7 @@ def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Te
     """Affine part of the actuated features, f_lin = E·u + e₀, u = [q − q_ref, g] (float64).
 
     Returns E (D, N + n_g), e₀ (D,), q_ref (N,). For a type-III segment the β column of f_lin
-    holds the helix length h. Found by probing the affine map with unit vectors (exact).
+    holds the helix length h. Found by probing the affine map (:func:`~.folding.affine_probe`, exact).
     """
     enc = enc.to(F64)
     n, nl, m = enc.num_joints, enc.num_lengths, enc.num_segments
@@ -42,10 +43,9 @@ def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Te
         alpha = tw @ enc.select_tw.mT
         return torch.cat([rho, beta.unsqueeze(-1), alpha.unsqueeze(-1)], -1).flatten(-2) @ sel.mT
 
-    width = n + g_select.shape[1]
-    out = f_lin(torch.cat([torch.zeros(1, width, dtype=F64), torch.eye(width, dtype=F64)]))
+    matrix, offset = affine_probe(f_lin, n + g_select.shape[1])
     q_ref = torch.cat([l @ enc.path.mT, torch.zeros(n - nl, dtype=F64)])
-    return (out[1:] - out[0]).mT.contiguous(), out[0].clone(), q_ref
+    return matrix.mT.contiguous(), offset, q_ref
 
 
 def feature_columns(spec: RobotSpec, kind: str, segs: list[int]) -> list[int]:

@@ -1,17 +1,9 @@
 """Folding an MLP for inference: forward-mode tangent rows, affine maps found by probing, stacked ensembles.
 
 The one home of what every folded inference module (:mod:`.deploy.inference`,
-:mod:`.deploy.inference_compositional`, :mod:`.hardware.deploy`) does to a network besides running it:
-
-- :func:`tangent_rows`: forward mode through the hidden and output layers as *stacked rows*: the value and
-  its T tangents are 1 + T rows of one product per layer (the bias on the value row only; after each
-  activation σ the tangent rows are scaled by σ'(value)). Plain weights (in, out), or K ensemble members'
-  weights (K, in, out) as one batched product.
-- :func:`affine_probe`: the matrix and offset of an affine map, from its values at 0 and the unit vectors
-  (exact for an affine map; evaluated in float64 at build time).
-- :func:`stacked_linear`: the i-th linear layer of K members side by side, (K, in, out) and (K, 1, out).
-
-Pure torch; everything here is traced by torch.export like the modules that call it.
+:mod:`.deploy.inference_compositional`, :mod:`.hardware.deploy`) does to a network besides running it
+(:func:`tangent_rows`, :func:`affine_probe`, :func:`stacked_linear`). Pure torch; everything here is traced by
+torch.export like the modules that call it.
 """
 from __future__ import annotations
 

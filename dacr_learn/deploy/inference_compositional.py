@@ -5,10 +5,7 @@ and the products of the segment transforms.
 
 - :class:`InferenceCompositionalFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
 - :class:`InferenceCompositionalJacobian` (twist head): joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D),
-  J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.deploy.inference.InferenceJacobian`: the segment twists and
-  their tangents along the actuated features each segment depends on, in forward mode through the MLP (value
-  and tangent rows stacked, :func:`~dacr_learn.folding.tangent_rows`), then the kernel's exponential with its
-  tangents, roll and chain product rule (:func:`dacr_learn.lie.twist_chain_jacobian`).
+  J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.deploy.inference.InferenceJacobian`.
 
 Both roll a twisting segment by its α first, T_k = Rz(α_k)·head (``CompositionalFK.roll``): α_k is a joint of the
 vector, picked by ``roll_select`` (N, m)."""

@@ -183,12 +183,11 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
                 lambda x, ok: _duplicates(model, x, ok, options.distinct),
                 None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
         x, iters = (torch.cat(t) for t in zip(*run_sharded(shard, len(parts)), strict=True))
-        return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
-                                lim.project(model.rest.to(F64)), options, avoid)
-    rows = torch.arange(b).repeat_interleave(k)
-    state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
-                       (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
-    x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
+    else:
+        rows = torch.arange(b).repeat_interleave(k)
+        state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
+                           (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
+        x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
                             lim.project(model.rest.to(F64)), options, avoid)
 
