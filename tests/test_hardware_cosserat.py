@@ -140,10 +140,10 @@ def test_fit_recovers_the_weight_and_the_tips_of_a_known_robot():
 def test_registry_models_fit_predict_and_the_residual_one_ships_as_a_clarke_residual(compositional_split, monkeypatch):
     """The networks train 30 full-batch steps instead of 1 500 + 500 (that was 70 s of this test): what is checked
     here is the plumbing (calibration cache, synthetic pre-training split, the deployable class, fallbacks)."""
-    import dacr_learn.hardware.cosserat_learned as cosserat_learned
+    import dacr_learn.hardware.learned as learned  # its pretrain_and_finetune trains the residual networks
 
-    brief = cosserat_learned.train_full_batch
-    monkeypatch.setattr(cosserat_learned, "train_full_batch", lambda params, loss, steps=0, lr=cosserat_learned.LR:
+    brief = learned.train_full_batch
+    monkeypatch.setattr(learned, "train_full_batch", lambda params, loss, steps=0, lr=learned.LR:
                         brief(params, loss, steps=30, lr=lr))
     cc, split = compositional_split
     physics = CosseratOnly(cc, QUICK_FIT)
