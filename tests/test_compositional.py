@@ -10,10 +10,9 @@ from __future__ import annotations
 import os
 import shutil
 
-import lightning
 import pytest
 import torch
-from conftest import TDCR3, first_pass_export, roundoff_tol, spec_by_name
+from conftest import TDCR3, first_pass_export, roundoff_tol, save_small_checkpoint, spec_by_name
 
 from dacr_learn import export as dexport
 from dacr_learn.compositional import ROBOT_BUFFERS, CompositionalFK, build_fk_model, transfer
@@ -251,20 +250,15 @@ def test_transfer_refuses_segment_context_and_unknown_geometry():
 # Checkpoint and export
 
 
-def _checkpoint(module: FKModule, path):
-    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(module.hparams),
-                "pytorch-lightning_version": lightning.__version__}, path)
-    return path
-
-
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """A compositional FKModule trained for a few steps, and its checkpoint."""
+    """A compositional FKModule trained for a few steps, and its checkpoint (conftest.save_small_checkpoint, which
+    fits the normalisation to 2,048 samples of seed 0 again: the statistics it was trained with)."""
     torch.manual_seed(0)
     module = FKModule(robot=TDCR3.to_dict(), structure="compositional", context="distal", rotation="twist",
                       width=16, depth=2, rot_weight=0.1)
     data = generate(TDCR3, 512, seed=9)
-    module.model.fit_normalization(data["q"])
+    module.model.fit_normalization(generate(TDCR3, 2048, seed=0)["q"])
     opt = torch.optim.Adam(module.parameters(), lr=3e-3)
     losses = []
     for _ in range(30):
@@ -274,7 +268,9 @@ def trained(tmp_path_factory):
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < 0.5 * losses[0]
-    return module.eval(), _checkpoint(module, tmp_path_factory.mktemp("ckpt") / "comp.ckpt")
+    path = tmp_path_factory.mktemp("ckpt") / "comp.ckpt"
+    save_small_checkpoint(module, path)
+    return module.eval(), path
 
 
 def test_checkpoint_round_trip(trained):

@@ -65,6 +65,7 @@ def test_tracking_recording_has_a_named_full_range_plot_per_trajectory_and_opens
     assert panel["TimePanelBlueprint:timeline"] == ["step"] and panel["TimePanelBlueprint:play_state"] == [FOLLOWING]
 
 
+@pytest.mark.slow            # trains, exports and tracks (~20 s): with the slow tests (make test's balance)
 def test_tracking_example_runs_on_a_compositional_three_segment_model(tmp_path):
     """The example on a compositional FK of the 3-segment coupled robot: its exported ``jacobian`` module
     (InferenceCompositionalJacobian) drives the resolved-rate controller (issue 22, item 3)."""

@@ -199,7 +199,9 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     process (fit_model / the held-out fold_predictions here raise). A member predicts like the same model trained
     here for its seed, the reported train RMSE per seed is the saved member's, and the σ model equals
     sigma_models_of computed here. One proxy seed (the selection needs a proxy, not three seeds of it): unlike
-    ``--seeds`` it still leaves the σ model's held-out fits to their own worker tasks."""
+    ``--seeds`` it still leaves the σ model's held-out fits to their own worker tasks. Every fit, in the workers
+    (which inherit the environment) and here, trains 100 steps (DACR_HARDWARE_STEPS): no check depends on the
+    models' quality."""
     from dacr_learn.cli.hardware import main
     from dacr_learn.hardware.deploy.checkpoint import load_hardware_model
     from dacr_learn.hardware.metrics import tip_metrics
@@ -208,6 +210,7 @@ def test_save_bundles_the_final_runs_models_instead_of_training_them_again(label
     data, robot = labelled_robot_dir
     out, save = tmp_path / "run", tmp_path / "model"
     fit_model = benchmark.fit_model
+    monkeypatch.setenv("DACR_HARDWARE_STEPS", "100")
 
     def no_fit_here(*args):
         raise AssertionError(f"{args[0]} trained in the main process by --save (the default again, or its σ folds)")

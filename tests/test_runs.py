@@ -218,30 +218,64 @@ def _resume_command(stderr: str) -> list[str]:
     return words[2:]
 
 
-@pytest.mark.slow            # subprocess trainings: behaviour, not float order; make test runs them once
-@pytest.mark.parametrize("signal_callback, code", [("SigtermAt", 143), ("InterruptAt", 130)])
-def test_interrupt_mid_epoch_prints_the_resume_command_and_resume_keeps_the_whole_recording(
-        tmp_path, signal_callback, code):
-    stop_at = STEPS_PER_EPOCH + 7                                   # in the middle of the second epoch
-    callback = {"class_path": f"fault_injection.{signal_callback}", "init_args": {"step": stop_at}}
-    config = write_run_config(tmp_path, epochs=3, callbacks=[callback])
-    stopped = run_train(["fit", "--config", str(config)], tmp_path)
-    assert stopped.returncode == code, stopped.stderr[-2000:]
+# The stops of the interrupted run: SIGTERM (a scheduler) in the middle of the second epoch, then Ctrl-C in the middle
+# of the third epoch of the run resumed from it: (callback, global step, exit code).
+STOPS = [("SigtermAt", STEPS_PER_EPOCH + 7, 143), ("InterruptAt", 2 * STEPS_PER_EPOCH + 7, 130)]
+
+
+@pytest.fixture(scope="module")
+def interrupted_run(tmp_path_factory) -> dict:
+    """A 3-epoch train.py fit stopped at each of :data:`STOPS` and resumed with the command it printed, then resumed
+    once more when finished and tested (`test --ckpt_path last`): one train.py process per step (each start-up
+    imports torch and Lightning: seconds), shared by the interruption test and the no-warning test. Returns
+    {"run", "last", "stopped": [(process, global step in last.ckpt, versions) per stop], "resume_args": [the printed
+    resume command's arguments per stop], "resumed", "after": the run as the last resume left it (versions, global
+    step, recording parts, (ids, steps) of the recording, whether metrics.json exists), "finished", "tested"}."""
+    tmp_path = tmp_path_factory.mktemp("interrupted")
+    callbacks = [{"class_path": f"fault_injection.{name}", "init_args": {"step": step}} for name, step, _ in STOPS]
+    config = write_run_config(tmp_path, epochs=3, callbacks=callbacks)
     run = tmp_path / "runs" / "smoke" / "version_0"
     last = run / "checkpoints" / "last.ckpt"
-    assert torch.load(last, weights_only=True)["global_step"] == stop_at
-    args = _resume_command(stopped.stderr)
-    assert args[-2:] == ["--ckpt_path", str(last)] or Path(args[-1]).resolve() == last.resolve()
-    resumed = run_train(args, tmp_path)
+    out = {"run": run, "last": last, "stopped": [], "resume_args": []}
+    args = ["fit", "--config", str(config)]
+    for _ in STOPS:
+        stopped = run_train(args, tmp_path)
+        step = torch.load(last, weights_only=True)["global_step"] if last.is_file() else None
+        out["stopped"].append((stopped, step, runs.versions(tmp_path / "runs" / "smoke")))
+        if stopped.returncode not in (130, 143):
+            return out                                      # the tests name what went wrong
+        args = _resume_command(stopped.stderr)
+        out["resume_args"].append(args)
+    out["resumed"] = run_train(args, tmp_path)
+    out["after"] = {"versions": runs.versions(tmp_path / "runs" / "smoke"), "parts": len(list(run.glob("rerun*.rrd"))),
+                    "step": torch.load(last, weights_only=True)["global_step"] if last.is_file() else None,
+                    "recording": recording(run), "metrics": (run / "metrics.json").is_file()}
+    out["finished"] = run_train(["fit", "--config", str(config), "--ckpt_path", "last"], tmp_path)  # a finished run
+    out["tested"] = run_train(["test", "--config", str(config), "--ckpt_path", "last"], tmp_path)
+    return out
+
+
+@pytest.mark.slow            # subprocess trainings: behaviour, not float order; make test runs them once
+def test_interrupt_mid_epoch_prints_the_resume_command_and_resume_keeps_the_whole_recording(interrupted_run):
+    """SIGTERM, then Ctrl-C in the resumed run: each stop saves last.ckpt at its step and prints the command that
+    resumes the same run; the last resume trains to the end, and the run keeps one whole recording."""
+    run, last = interrupted_run["run"], interrupted_run["last"]
+    for (_, stop_at, code), (stopped, step, versions) in zip(STOPS, interrupted_run["stopped"], strict=True):
+        assert stopped.returncode == code, stopped.stderr[-2000:]
+        assert step == stop_at
+        assert versions == [run]                                    # the same run, not a new one
+    for args in interrupted_run["resume_args"]:
+        assert args[-2:] == ["--ckpt_path", str(last)] or Path(args[-1]).resolve() == last.resolve()
+    resumed, after = interrupted_run["resumed"], interrupted_run["after"]
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    assert runs.versions(tmp_path / "runs" / "smoke") == [run]       # the same run, not a new one
-    assert torch.load(last, weights_only=True)["global_step"] == 3 * STEPS_PER_EPOCH
-    ids, steps = recording(run)
-    assert len(ids) == 1 and len(list(run.glob("rerun*.rrd"))) == 2
+    assert after["versions"] == [run]                                 # the same run, not a new one
+    assert after["step"] == 3 * STEPS_PER_EPOCH
+    ids, steps = after["recording"]
+    assert len(ids) == 1 and after["parts"] == len(STOPS) + 1
     assert steps[0] <= 5 and steps[-1] >= 3 * STEPS_PER_EPOCH - 5
     gaps = [b - a for a, b in zip(steps, steps[1:], strict=False)]
-    assert max(gaps) <= 5 + 5, gaps                                    # no hole around the interruption
-    assert (run / "metrics.json").is_file()
+    assert max(gaps) <= 5 + 5, gaps                                    # no hole around the interruptions
+    assert after["metrics"]
 
 
 # ---- what the terminal shows ----------------------------------------------------------------------------
@@ -261,13 +295,15 @@ def test_a_typo_in_the_robot_file_is_one_line_naming_the_file(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_fit_prints_no_warning_a_user_cannot_act_on(tmp_path):
-    config = write_run_config(tmp_path, epochs=1, n_train=512)
-    fresh = run_train(["fit", "--config", str(config)], tmp_path)
-    resumed = run_train(["fit", "--config", str(config), "--ckpt_path", "last"], tmp_path)   # a finished run
-    tested = run_train(["test", "--config", str(config), "--ckpt_path", "last"], tmp_path)
-    for proc in (fresh, resumed, tested):
+def test_a_fit_prints_no_warning_a_user_cannot_act_on(interrupted_run):
+    """Every train.py process of the interrupted run (a fresh fit and a resumed one, each stopped; the last resume;
+    a finished run resumed; its test): no warning, hint or log line that a user cannot act on."""
+    procs = [stopped for stopped, _, _ in interrupted_run["stopped"]]
+    procs += [interrupted_run[k] for k in ("resumed", "finished", "tested") if k in interrupted_run]
+    assert len(procs) == len(STOPS) + 3, "the interrupted run stopped early: see the interruption test"
+    for proc in procs[len(STOPS):]:
         assert proc.returncode == 0, proc.stderr[-2000:]
+    for proc in procs:
         text = proc.stdout + proc.stderr
         for noise in ("Warning", "deprecated", "💡", "HINT", "no last checkpoint", "DataLoader 0", "Seed set",
                       "GPU available"):

@@ -16,6 +16,7 @@ model built the same way. :func:`command_split` makes the inputs of servo comman
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, fields
 
 import torch
@@ -30,6 +31,7 @@ from .servo_map import ServoMap
 
 HIDDEN, DEPTH, STEPS, LR = 128, 2, 1500, 3e-3
 PRETRAIN_SAMPLES, FINETUNE_STEPS, REHEARSAL = 4000, 500, 0.3
+STEPS_ENV = "DACR_HARDWARE_STEPS"  # where set: the steps of every fit's default STEPS (quick trials, tests)
 RESIDUAL_TIP_SCALE, RESIDUAL_RHO_SCALE = 5e-3, 5e-4  # [m]: output units of the residual networks
 RESIDUAL_HIDDEN = 64  # the per-segment correction network sees m rows per sample
 # [m] width of the Clarke-space play operator (hysteresis memory). Chosen by leave-one-pattern-
@@ -134,7 +136,14 @@ def pretrain_and_finetune(params, synthetic_loss, real_loss) -> None:
     train_full_batch(params, lambda: real_loss() + REHEARSAL * synthetic_loss(), steps=FINETUNE_STEPS, lr=LR / 3)
 
 
-def train_full_batch(params, loss_fn, steps: int = STEPS, lr: float = LR) -> None:
+def train_full_batch(params, loss_fn, steps: int | None = None, lr: float = LR) -> None:
+    """Full-batch Adam on ``loss_fn()`` with a cosine schedule for ``steps`` steps (default :data:`STEPS`, or
+    ``$DACR_HARDWARE_STEPS`` where set: read at each call, so it reaches the benchmark's spawned workers too)."""
+    if steps is None:
+        setting = os.environ.get(STEPS_ENV, "").strip()
+        if setting and not (setting.isdigit() and int(setting) > 0):
+            raise ValueError(f"{STEPS_ENV}={setting!r}: expected a positive whole number of training steps")
+        steps = int(setting) if setting else STEPS
     opt = torch.optim.Adam(params, lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     for _ in range(steps):
