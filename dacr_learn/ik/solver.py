@@ -207,7 +207,7 @@ _BANKS: dict[tuple, PoseBank] = {}
 
 def pose_bank(model: SolverModel, size: int) -> PoseBank:
     """A pose bank of ``size`` samples of ``model`` (``IKOptions.bank``): for the analytic model built once per robot
-    spec and size in a process (about 0.1 s for 8,192 samples of the 3-segment robot), else per call."""
+    spec and size in a process (a fraction of a second for 8,192 samples of the 3-segment robot), else per call."""
     if not isinstance(model, ConstantCurvature):
         return PoseBank(model, size)
     key = (model.spec, size)
