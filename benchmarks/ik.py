@@ -6,10 +6,11 @@ the independent NumPy check (benchmarks/ik_reference.py: no shared code), target
 wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
 in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
 without a scene; ``pool2``: its targets in 2 shards on parallel threads; ``fused``: the pool with its LM iteration
-compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards), timed after a first small solve that compiles it,
-whose time is reported as ``compile_s``). For the 3-segment robot also: the warm-started refinement of one target
-per call (the controller case: eager, and exported if ``--export DIR`` holds ``refine`` from
-``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
+compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards); ``bank``, ``fusedbank``, ``fusedbank2``: the same
+seeded by a pose bank, ``IKOptions(bank=8192)``; these are timed after a first small solve that compiles the
+iteration and builds the bank, whose time is reported as ``compile_s``). For the 3-segment robot also: the
+warm-started refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds
+``refine`` from ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
 chord, ry φ/2, rz −θ — a relaxation: its solutions need not be constant-curvature shapes) on the same targets.
 
@@ -60,13 +61,16 @@ def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
     return forward_kinematics(spec, sample_features(spec, n, torch.Generator().manual_seed(seed), dtype=F64))
 
 
+BANK = 8192   # samples of the pose bank of the *bank paths
 PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2),
-         "fused": IKOptions(fused=True), "fused2": IKOptions(fused=True, shards=2)}
+         "fused": IKOptions(fused=True), "fused2": IKOptions(fused=True, shards=2), "bank": IKOptions(bank=BANK),
+         "fusedbank": IKOptions(fused=True, bank=BANK), "fusedbank2": IKOptions(fused=True, bank=BANK, shards=2)}
 
 
 def compile_time(name: str, position_only: bool, path: str) -> float:
-    """Wall time [s] of a first small solve (64 × 8) of a fused path: the one-time compilation of the robot's iteration
-    for the task (the later rows of the process reuse it; in shards, on one thread each, torch compiles once more)."""
+    """Wall time [s] of a first small solve (64 × 8) of a fused or bank path: the one-time compilation of the robot's
+    iteration for the task (the later rows of the process reuse it; in shards, on one thread each, torch compiles once
+    more) and the build of the pose bank."""
     spec = RobotSpec.from_yaml(robot_path(name))
     poses = targets(spec, 64, 1)
     t0 = time.perf_counter()
@@ -213,9 +217,9 @@ def main(argv=None) -> dict:
     for name in args.robots:
         for position_only in (False, True):
             task = "position" if position_only else "pose"
-            for path in (p for p in args.paths if p.startswith("fused")):
+            for path in (p for p in args.paths if PATHS[p].fused or PATHS[p].bank):
                 c = extra["compile_s"][f"{name} {task} {path}"] = compile_time(name, position_only, path)
-                print(f"{name:22s} {task:8s} {path:7s} first solve (compiles), 64 × 8: {c:.1f} s", flush=True)
+                print(f"{name:22s} {task:8s} {path:7s} first solve (compiles, bank), 64 × 8: {c:.1f} s", flush=True)
             for i in range(args.repeat):
                 for path in (args.paths if i % 2 == 0 else args.paths[::-1]):        # alternate the order
                     rows.append(solve_row(name, args.targets, args.solutions, position_only, seed=7, path=path))

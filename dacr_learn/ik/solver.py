@@ -21,11 +21,12 @@ from torch import Tensor
 from ..checks import F64
 from ..metrics import rotation_geodesic
 from ..scene import load_scene
-from .adapters import SolverModel, as_solver_model
+from .adapters import ConstantCurvature, SolverModel, as_solver_model
 from .collision import Avoidance
 from .fused import fused_iteration
 from .pool import pool_multi_start, run_sharded, shards, start_budget
 from .refine import STALL_LAMBDA, Refinement, lm_iteration
+from .seeds import PoseBank
 from .targets import check_q0, check_targets
 
 
@@ -43,7 +44,9 @@ class IKOptions:
     restarts of shrinking batches (:func:`_multi_start`); shards: the pool's targets split into this many parts, run
     on parallel threads (at most torch's thread count at once; the solutions depend on the shards, not on the
     threads); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only; minutes
-    of compilation once per robot and task in a process, cached on disk by torch).
+    of compilation once per robot and task in a process, cached on disk by torch); bank: samples of a pose bank
+    (:class:`~.seeds.PoseBank`) whose tips nearest each target seed the slots not started by q0 or
+    ``seeds`` (0: uniform starts; built on first use, kept per robot spec and size for the analytic model).
     """
 
     pos_tolerance: float = 1e-6
@@ -56,6 +59,7 @@ class IKOptions:
     pool: int = 8192
     shards: int = 1
     fused: bool = False
+    bank: int = 0
 
     def __post_init__(self):
         for name, t, unit in (("pos_tolerance", self.pos_tolerance, "m"), ("rot_tolerance", self.rot_tolerance, "rad")):
@@ -64,6 +68,8 @@ class IKOptions:
         if self.max_iterations < 1 or self.restarts < 0:
             raise ValueError(f"max_iterations >= 1 and restarts >= 0 expected, got {self.max_iterations}, "
                              f"{self.restarts}")
+        if self.bank < 0:
+            raise ValueError(f"bank: expected >= 0 samples (0: uniform starts), got {self.bank}")
         if self.pool < 0 or self.shards < 1:
             raise ValueError(f"pool >= 0 (0: grouped restarts) and shards >= 1 expected, got {self.pool}, "
                              f"{self.shards}")
@@ -157,11 +163,14 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
     rotation = None if position_only else target[:, :3, :3]
     gen = torch.Generator().manual_seed(options.seed)
     starts = lim.sample(b * k, gen).view(b, k, d)
+    s = 0
     if seeds is not None:
         if seeds.dim() != 3 or seeds.shape[0] != b or seeds.shape[2] != d or not torch.isfinite(seeds).all():
             raise ValueError(f"seeds: expected finite (B={b}, S, D={d}) variables, got {tuple(seeds.shape)}")
         s = min(k, seeds.shape[1])
         starts[:, :s] = seeds[:, :s].to(F64)
+    if options.bank and s < k:
+        starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
     if q0 is not None:
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
@@ -190,6 +199,20 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
                             lim.project(model.rest.to(F64)), options, avoid)
+
+
+_BANKS: dict[tuple, PoseBank] = {}
+
+
+def pose_bank(model: SolverModel, size: int) -> PoseBank:
+    """A pose bank of ``size`` samples of ``model`` (``IKOptions.bank``): for the analytic model built once per robot
+    spec and size in a process (a fraction of a second for 8,192 samples of the 3-segment robot), else per call."""
+    if not isinstance(model, ConstantCurvature):
+        return PoseBank(model, size)
+    key = (model.spec, size)
+    if key not in _BANKS:
+        _BANKS[key] = PoseBank(model, size)
+    return _BANKS[key]
 
 
 FAN_OUT = 4   # new starts a slot takes at once when its starts have stalled, doubled at each further restart
