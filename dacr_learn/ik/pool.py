@@ -21,7 +21,8 @@ behind a port, where about 4 in 10 converged seeds fail), every new start of a s
 drawn near one (``near``'s share 1), and restarts fill the batch only up to :data:`CROWDED_TAIL_ROWS`: each of their
 rows also costs a check, and near a solution one start per slot mostly suffices. A row that has not converged after
 :data:`RETIRE_AFTER` iterations then stops (a candidate, like a stalled row) when its target already has a solution
-(not for slots reopened as duplicates): its slot restarts near that solution, which mostly converges clear within a
+(once per slot, so that slow restarts cannot spend the slot's budget; not for slots reopened as duplicates): its
+slot restarts near that solution, which mostly converges clear within a
 few iterations, where the slow row's pose-bank seed converges in about as many more and collides about half the
 time (the robot on the arm behind the port).
 """
@@ -122,6 +123,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     live = torch.zeros(0, dtype=torch.bool)
     pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
     duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
+    retired = torch.zeros(m, dtype=torch.bool)                    # slots whose slow row stopped (once at most)
     tally, crowded = [0, 0], False                                # converged starts accepted, checked
 
     def checked(x: Tensor) -> Tensor:
@@ -190,11 +192,12 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             rows = stall.nonzero().squeeze(-1)
             out_cost = _take_candidates(x[rows], cost[rows], batch.slot[rows], solved, out_x, out_cost)
         if crowded:                                   # slow rows of targets with a solution: restart near one
-            slow = (live & ~conv & ~stall & (batch.since >= RETIRE_AFTER) & ~duplicate[batch.slot]
-                    & solved.view(-1, k).any(-1)[batch.slot // k])
+            slow = (live & ~conv & ~stall & (batch.since >= RETIRE_AFTER) & ~retired[batch.slot]
+                    & ~duplicate[batch.slot] & solved.view(-1, k).any(-1)[batch.slot // k])
             if slow.any():
                 rows = slow.nonzero().squeeze(-1)
                 out_cost = _take_candidates(x[rows], cost[rows], batch.slot[rows], solved, out_x, out_cost)
+                retired[batch.slot[rows]] = True
                 stall = stall | slow
         live = live & ~conv & ~stall & ~solved[batch.slot]
     return out_x, iters
