@@ -243,3 +243,33 @@ def test_hinge_residuals_and_their_jacobian():
     active = (r > 0).unsqueeze(-1)
     scale = model.limits.scale
     assert ((jac * model.length + auto).abs() * scale <= 1e-5 * active.to(F64) + 1e-12 + ~active * 1e9).all()
+
+
+def test_capsule_chain_samples_each_axis_and_bounds_the_capsules():
+    """capsule_chain: per capsule ceil(length / spacing) chords (from the first row) of equal length along its axis,
+    both ends included (NumPy linspace reference), the chords between capsules invalid; its chain_clearance to a
+    sphere is a lower bound of the capsules' distance to it (closed form: the sphere centre projected on each
+    axis), and within the chord sag (0) plus 1 mm of it."""
+    from dacr_learn.scene import capsule_chain, chain_clearance, scene_from_dict
+    gen = np.random.default_rng(3)
+    b, c, spacing = 5, 4, 0.05
+    a = gen.uniform(-0.2, 0.2, (b, c, 3))
+    axis = gen.normal(size=(c, 3))
+    length = np.array([0.01, 0.07, 0.13, 0.31])
+    tip = a + (axis / np.linalg.norm(axis, axis=-1, keepdims=True) * length[:, None])[None]
+    radius = np.array([0.01, 0.02, 0.03, 0.04])
+    swept, point_radius = capsule_chain(torch.from_numpy(a), torch.from_numpy(tip), torch.from_numpy(radius), spacing)
+    counts = [max(1, int(np.ceil(x / spacing))) for x in length]
+    expected = np.concatenate([a[:, j, None] + np.linspace(0, 1, n + 1)[None, :, None] * (tip - a)[:, j, None]
+                               for j, n in enumerate(counts)], 1)
+    assert np.abs(swept.points.numpy() - expected).max() < 1e-15
+    assert point_radius.tolist() == [r for r, n in zip(radius, counts, strict=True) for _ in range(n + 1)]
+    valid = [v for n in counts for v in [True] * n + [False]][:-1]
+    assert swept.valid.tolist() == valid and (swept.sag == 0).all()
+    assert swept.radius[swept.valid].tolist() == [r for r, n in zip(radius, counts, strict=True) for _ in range(n)]
+    centre = np.array([0.05, -0.02, 0.1])
+    scene = scene_from_dict({"obstacles": [{"type": "sphere", "center": centre.tolist(), "radius": 0.02}]})
+    u = np.clip(np.einsum("bck,ck->bc", centre - a, tip[0] - a[0]) / (length ** 2), 0, 1)
+    exact = (np.linalg.norm(centre - (a + u[..., None] * (tip - a)), axis=-1) - 0.02 - radius).min(-1)
+    bound = chain_clearance(scene, swept).numpy()
+    assert (bound <= exact + 1e-12).all() and (exact - bound).max() < 1e-3

@@ -103,3 +103,27 @@ def test_uncrowded_condition_gives_the_plain_solutions():
     plain, _ = solve(model, starts, pose, k, lambda x: torch.ones(x.shape[0], dtype=torch.bool), None)
     assert converged(model, x, pose, k).all() and checked.all() and 1.0 not in calls
     assert torch.equal(x, plain)
+
+
+def test_crowded_slow_rows_restart_near_a_solution(monkeypatch):
+    """While crowded, a row still unconverged after RETIRE_AFTER iterations of a target that has a solution stops
+    (a candidate of its slot) and its slot restarts near one, once per slot: with RETIRE_AFTER = 2 more rows leave
+    as candidates than when rows never retire, and nearly every returned slot still
+    converged and passes the condition."""
+    model, b, k = ConstantCurvature(SPEC), 24, 6
+    pose, starts = targets_and_starts(model, b, k, seed=2)
+    accept = lambda x: (x[:, BENDS] >= 0).all(-1)                # noqa: E731
+    take = pool_module._take_candidates
+    left = {}
+    for after in (2, 10 ** 9):
+        monkeypatch.setattr(pool_module, "RETIRE_AFTER", after)
+        rows = []
+
+        def spy(x, *rest, rows=rows):
+            rows.append(x.shape[0])
+            return take(x, *rest)
+        monkeypatch.setattr(pool_module, "_take_candidates", spy)
+        x, _ = solve(model, starts, pose, k, accept, near_spy(model, []))
+        assert (converged(model, x, pose, k) & accept(x)).double().mean() >= 0.95
+        left[after] = sum(rows)
+    assert left[10 ** 9] < left[2]

@@ -19,7 +19,12 @@ reopened as duplicates: near another solution they would find it again). While t
 :data:`CROWDED` of the converged starts checked so far pass, once :data:`SAMPLE` are checked; e.g. a robot on an arm
 behind a port, where about 4 in 10 converged seeds fail), every new start of a slot whose target has a solution is
 drawn near one (``near``'s share 1), and restarts fill the batch only up to :data:`CROWDED_TAIL_ROWS`: each of their
-rows also costs a check, and near a solution one start per slot mostly suffices.
+rows also costs a check, and near a solution one start per slot mostly suffices. A row that has not converged after
+:data:`RETIRE_AFTER` iterations then stops (a candidate, like a stalled row) when its target already has a solution
+(once per slot, so that slow restarts cannot spend the slot's budget; not for slots reopened as duplicates): its
+slot restarts near that solution, which mostly converges clear within a
+few iterations, where the slow row's pose-bank seed converges in about as many more and collides about half the
+time (the robot on the arm behind the port).
 """
 from __future__ import annotations
 
@@ -38,6 +43,8 @@ DUPLICATE_CHECK_BELOW = 0.02   # look for duplicate solutions once fewer live ro
 CROWDED = 0.75    # with ``accept`` and ``near``: crowded while fewer than this fraction of the converged starts pass,
 SAMPLE = 64       # decided once this many are checked (module docstring)
 CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
+RETIRE_AFTER = 6  # while crowded: a row still unconverged after this many LM iterations, of a target that has a
+                  # solution, restarts near one (module docstring)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
@@ -116,6 +123,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
     live = torch.zeros(0, dtype=torch.bool)
     pending: list[tuple[Tensor, Tensor, Tensor]] = []             # (x, cost, slot) of converged rows to decide
     duplicate = torch.zeros(m, dtype=torch.bool)                  # slots reopened as duplicates
+    retired = torch.zeros(m, dtype=torch.bool)                    # slots whose slow row stopped (once at most)
     tally, crowded = [0, 0], False                                # converged starts accepted, checked
 
     def checked(x: Tensor) -> Tensor:
@@ -183,6 +191,14 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
         if stall.any():                                           # a stalled row: a candidate of least residual
             rows = stall.nonzero().squeeze(-1)
             out_cost = _take_candidates(x[rows], cost[rows], batch.slot[rows], solved, out_x, out_cost)
+        if crowded:                                   # slow rows of targets with a solution: restart near one
+            slow = (live & ~conv & ~stall & (batch.since >= RETIRE_AFTER) & ~retired[batch.slot]
+                    & ~duplicate[batch.slot] & solved.view(-1, k).any(-1)[batch.slot // k])
+            if slow.any():
+                rows = slow.nonzero().squeeze(-1)
+                out_cost = _take_candidates(x[rows], cost[rows], batch.slot[rows], solved, out_x, out_cost)
+                retired[batch.slot[rows]] = True
+                stall = stall | slow
         live = live & ~conv & ~stall & ~solved[batch.slot]
     return out_x, iters
 

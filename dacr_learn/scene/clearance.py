@@ -17,6 +17,7 @@ Meshes get the (looser) Lipschitz bound. Only the chords and obstacles that can 
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -67,16 +68,25 @@ def join(*chains: Swept) -> Swept:
 
 def capsule_chain(a: Tensor, b: Tensor, radius: Tensor, spacing: float) -> tuple[Swept, Tensor]:
     """Capsules a, b (B, C, 3), radius (C,) [m] as one swept chain, each axis cut into chords of at most ``spacing``
-    [m] (short chords keep the bound tight; sag 0), and the radius (P,) of each of its points."""
-    chains, point_radius = [], []
-    for c in range(a.shape[1]):
-        n = max(1, int(torch.ceil(torch.linalg.vector_norm(a[0, c] - b[0, c]) / spacing)))
-        t = torch.linspace(0, 1, n + 1, dtype=a.dtype, device=a.device).view(1, -1, 1)
-        pts = a[:, c:c + 1] + t * (b[:, c:c + 1] - a[:, c:c + 1])
-        chains.append(Swept(pts, radius[c].expand(n), pts.new_zeros(a.shape[0], n),
-                            torch.ones(n, dtype=torch.bool, device=a.device)))
-        point_radius.append(radius[c].expand(n + 1))
-    return join(*chains), torch.cat(point_radius)
+    [m] (short chords keep the bound tight; sag 0), and the radius (P,) of each of its points. The chords per
+    capsule follow the first row's axis lengths (the same in every row for a rigid link; any count is a valid
+    chain, it only sets how tight the bound is); the chords between two capsules are invalid (as :func:`join`)."""
+    counts = tuple(max(1, int(n)) for n in torch.ceil(torch.linalg.vector_norm(a[0] - b[0], dim=-1) / spacing).tolist())
+    capsule, t, chord_capsule, valid = _chain_layout(counts, a.device)
+    pts = torch.lerp(a[:, capsule], b[:, capsule], t.to(a.dtype).unsqueeze(-1))
+    chord_radius = torch.where(valid, radius[chord_capsule], radius.new_zeros(()))
+    return Swept(pts, chord_radius, pts.new_zeros(a.shape[0], valid.numel()), valid), radius[capsule]
+
+
+@functools.lru_cache(maxsize=64)
+def _chain_layout(counts: tuple[int, ...], device: torch.device) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per point of a capsule chain with ``counts`` chords per capsule: its capsule (P,) and fraction t (P,) along
+    the axis; per chord: its capsule (P − 1,) and whether it is valid (False between two capsules)."""
+    capsule = torch.cat([torch.full((n + 1,), c) for c, n in enumerate(counts)])
+    t = torch.cat([torch.linspace(0, 1, n + 1, dtype=torch.float64) for n in counts])
+    valid = torch.cat([torch.cat([torch.ones(n, dtype=torch.bool), torch.zeros(1, dtype=torch.bool)])
+                       for n in counts])[:-1]
+    return capsule.to(device), t.to(device), capsule[:-1].to(device), valid.to(device)
 
 
 CUTS = 2   # tangent cuts per refined (chord, convex obstacle) pair, each at the minimum of the bound so far
