@@ -5,8 +5,9 @@
   term of type-II segments), the actuated features f (..., D) and ∂f/∂q; type III adds the correction
   β = √(h² − (α d)²). The folded inference modules fold it into their first layer.
 - :class:`DecoderJacobian`: ∂q/∂f of the Clarke decoder.
-- :class:`ClarkeSpace`: f ↔ q (encoder, decoder on the displacement constraint), the joint limits of the robot
-  file (bend disk, length and twist ranges), saturation and an inside-the-limits test.
+- :func:`clarke_limits`: the limits of the robot file on f (bend disk, length and twist ranges) as a
+  :class:`~dacr_learn.limits.Limits` (saturation: ``project``, the inside-the-limits test: ``inside``).
+- :class:`ClarkeSpace`: f ↔ q (encoder, decoder on the displacement constraint) and the limits.
 
 Pure torch (no Lightning, no Rerun); built from a :class:`~dacr_learn.robot.RobotSpec`.
 """
@@ -18,10 +19,11 @@ from torch import Tensor, nn
 from .checks import F64, to_f64
 from .folding import affine_probe
 from .layers import ClarkeDecoder, ClarkeEncoder
+from .limits import Limits
 from .models import actuated_columns, actuated_selection, actuated_to_features, fixed_features
 from .robot import RobotSpec
 
-__all__ = ["ClarkeFold", "ClarkeSpace", "DecoderJacobian", "feature_columns"]
+__all__ = ["ClarkeFold", "ClarkeSpace", "DecoderJacobian", "clarke_limits", "feature_columns"]
 
 
 def _affine_features(enc: ClarkeEncoder, sel: Tensor, has_g: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -150,28 +152,22 @@ class DecoderJacobian(nn.Module):
         return self.const + self.path * coef.unsqueeze(-2)
 
 
-def _column_limits(spec: RobotSpec) -> dict[str, list]:
-    """Actuated feature columns (models.actuated_columns order) with their limits and scales."""
-    cols: dict[str, list] = {"rho": [], "rho_max": [], "beta": [], "beta_range": [], "alpha": [],
-                             "alpha_range": [], "scale": []}
-    for i, (k, name) in enumerate(actuated_columns(spec)):
+def clarke_limits(spec: RobotSpec) -> Limits:
+    """The limits of a robot's actuated features (``models.actuated_columns`` order): per segment a disk
+    ‖(ρ_re, ρ_im)‖ ≤ d·bend, boxes for β (length range) and α (twist range); scales d·bend and the half-ranges."""
+    parts = []
+    for k, name in actuated_columns(spec):
         seg = spec.segments[k]
-        if name.startswith("rho"):
-            rho_max = seg.bend * seg.radius                   # ‖ρ‖ = d·φ ≤ d·bend
-            cols["scale"].append(rho_max)
-            if name == "rho_re":
-                cols["rho"].append([i, i + 1])
-                cols["rho_max"].append(rho_max)
-            continue
-        lim = seg.length_range if name == "beta" else seg.twist_range
-        cols[name].append(i)
-        cols[f"{name}_range"].append(lim)
-        cols["scale"].append((lim[1] - lim[0]) / 2)
-    return cols
+        if name == "rho_re":
+            parts.append(Limits.disk(seg.bend * seg.radius, (f"segments[{k}].rho_re", f"segments[{k}].rho_im")))
+        elif name in ("beta", "alpha"):
+            lo, hi = seg.length_range if name == "beta" else seg.twist_range
+            parts.append(Limits.boxes([lo], [hi], (f"segments[{k}].{name}",)))
+    return Limits.concatenate(*parts)
 
 
 class ClarkeSpace:
-    """Actuated Clarke features f (..., D) ↔ joint vectors q (..., N) of a robot, and saturation (float64)."""
+    """Actuated Clarke features f (..., D) ↔ joint vectors q (..., N) of a robot, and their ``limits`` (float64)."""
 
     def __init__(self, spec: RobotSpec):
         self.spec = spec
@@ -184,13 +180,7 @@ class ClarkeSpace:
             straight = self.fold.e0                               # features of the nominal straight robot
             self.dec_matrix = DecoderJacobian(spec)(straight)
             self.dec_offset = self._decode(straight) - self.dec_matrix @ straight
-        c = _column_limits(spec)
-        self.rho_cols, self.rho_max = torch.tensor(c["rho"]), torch.tensor(c["rho_max"], dtype=F64)
-        self.beta_cols = torch.tensor(c["beta"], dtype=torch.long)
-        self.alpha_cols = torch.tensor(c["alpha"], dtype=torch.long)
-        self.beta_range = torch.tensor(c["beta_range"], dtype=F64).reshape(-1, 2)
-        self.alpha_range = torch.tensor(c["alpha_range"], dtype=F64).reshape(-1, 2)
-        self.scale = torch.tensor(c["scale"], dtype=F64)
+        self.limits = clarke_limits(spec)
 
     def features(self, q: Tensor) -> Tensor:
         """Joint vector (..., N) → actuated features (..., D) (the least-squares projection for noisy q)."""
@@ -204,25 +194,3 @@ class ClarkeSpace:
         f = to_f64(f)
         return torch.addmm(self.dec_offset, f, self.dec_matrix.mT) if self.linear and f.dim() == 2 else (
             self.dec_offset + f @ self.dec_matrix.mT if self.linear else self._decode(f))
-
-    def saturate(self, f: Tensor) -> Tensor:
-        """Clip features to the limits: ‖ρ‖ ≤ d·bend per segment (radially), β and α into their ranges."""
-        f = f.clone()
-        rho = f[..., self.rho_cols]                                          # (..., m, 2)
-        norm = torch.linalg.vector_norm(rho, dim=-1, keepdim=True)
-        factor = torch.clamp(self.rho_max.unsqueeze(-1) / norm.clamp_min(1e-300), max=1.0)
-        f[..., self.rho_cols] = rho * factor
-        if len(self.beta_cols):
-            f[..., self.beta_cols] = torch.clamp(f[..., self.beta_cols], self.beta_range[:, 0], self.beta_range[:, 1])
-        if len(self.alpha_cols):
-            lo, hi = self.alpha_range[:, 0], self.alpha_range[:, 1]
-            f[..., self.alpha_cols] = torch.clamp(f[..., self.alpha_cols], lo, hi)
-        return f
-
-    def within_limits(self, f: Tensor, tol: float = 1e-9) -> Tensor:
-        """(...) bool: features inside the limits up to ``tol`` (relative for ρ, absolute [m, rad] otherwise)."""
-        ok = (torch.linalg.vector_norm(f[..., self.rho_cols], dim=-1) <= self.rho_max * (1 + tol)).all(-1)
-        for cols, rng in ((self.beta_cols, self.beta_range), (self.alpha_cols, self.alpha_range)):
-            if len(cols):
-                ok = ok & ((f[..., cols] >= rng[:, 0] - tol) & (f[..., cols] <= rng[:, 1] + tol)).all(-1)
-        return ok

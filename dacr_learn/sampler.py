@@ -8,7 +8,7 @@ The flow is ``zuko.flows.NSF`` (coupling, ``passes=2``) on standardised variable
   order). The squash maps ℝᴰ onto the robot's limits: a box coordinate (β, α) by mid + half·tanh(v), a bending
   pair v ∈ ℝ² into its disk ‖ρ‖ ≤ d·bend by ρ = d·bend·tanh(‖v‖)·v/‖v‖, so every sample lies inside the limits.
 - ``features="raw"``: y = standardise(q); a sample is encoded to features (least squares onto the displacement
-  constraint) and projected onto the limits (:meth:`ClarkeSpace.saturate`); the training noise
+  constraint) and projected onto the limits (:meth:`~dacr_learn.limits.Limits.project`); the training noise
   (``SamplerModule.noise``) keeps the density on the constraint's subspace finite.
 
 Conditioning c (10,): :func:`~dacr_learn.models.pose_to_vector` of the target (position / L, the first two rows of
@@ -55,10 +55,11 @@ class LimitSquash:
     """
 
     def __init__(self, space: ClarkeSpace):
-        self.rho_cols, self.rho_max = space.rho_cols.reshape(-1, 2).long(), space.rho_max
-        self.box_cols = torch.cat([space.beta_cols, space.alpha_cols]).long()
-        ranges = torch.cat([space.beta_range, space.alpha_range])
-        self.box_mid, self.box_half = ranges.mean(-1), (ranges[:, 1] - ranges[:, 0]) / 2
+        limits = space.limits
+        self.rho_cols, self.rho_max = limits.disks, limits.radius
+        self.box_cols = torch.isfinite(limits.lower).nonzero().squeeze(-1)
+        lower, upper = limits.lower[self.box_cols], limits.upper[self.box_cols]
+        self.box_mid, self.box_half = (lower + upper) / 2, (upper - lower) / 2
 
     def forward(self, v: Tensor) -> Tensor:
         x = v.clone()
@@ -195,7 +196,7 @@ class ClarkeSampler(nn.Module):
         v = self.sample_variables(target, count, temperature)
         if self.features == "clarke":
             return self.squash(v.to(F64))
-        return self.space.saturate(self.space.features(v.to(F64)))
+        return self.space.limits.project(self.space.features(v.to(F64)))
 
     @torch.no_grad()
     def sample(self, target, count: int, temperature: float = 1.0) -> Tensor:

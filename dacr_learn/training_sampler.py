@@ -61,8 +61,8 @@ class SamplerModule(KinematicsModule):
             f = m.squash(v)                    # inside the limits and on the constraint by construction
         else:
             unprojected = space.features(v)
-            f = space.saturate(unprojected)
-            raw = {"out_of_limits": (~space.within_limits(unprojected)).to(F64),
+            f = space.limits.project(unprojected)
+            raw = {"out_of_limits": (~space.limits.inside(unprojected)).to(F64),
                    "constraint_residual": torch.linalg.vector_norm(space.joints(unprojected) - v, dim=-1)}
         tip = forward_kinematics(self.spec, actuated_to_features(f, space.selection, space.base))
         return {**pose_errors(tip, pose.to(F64)), **raw}

@@ -53,7 +53,7 @@ def test_converges_on_static_target_with_analytic_jacobian(robot):
     ctrl = ResolvedRateController(spec, analytic_jacobian(spec))
     q, commands = run_closed_loop(ctrl, straight(space), target, steps=80)
     assert torch.linalg.vector_norm(tip(spec, q) - target).item() <= 1e-9
-    assert all(residual(space, c) <= 1e-9 and bool(space.within_limits(space.features(c))) for c in commands)
+    assert all(residual(space, c) <= 1e-9 and bool(space.limits.inside(space.features(c))) for c in commands)
 
 
 def test_batched_step_matches_single_steps():
@@ -74,7 +74,7 @@ def test_commands_stay_within_limits_and_on_the_constraint(robot):
     spec = spec_by_name(robot)
     space = ClarkeSpace(spec)
     g = torch.Generator().manual_seed(0)
-    d = space.scale.numel()
+    d = space.limits.num_variables
 
     def wrong_jacobian(q):
         pose = forward_kinematics(spec, space.encoder(q))
@@ -87,20 +87,20 @@ def test_commands_stay_within_limits_and_on_the_constraint(robot):
             target = 0.3 * torch.randn(3, generator=g, dtype=F64)       # mostly far outside the workspace
             q = ctrl.step(q, target, feedforward=0.05 * torch.randn(3, generator=g, dtype=F64))
             assert residual(space, q) <= 1e-9
-            assert bool(space.within_limits(space.features(q), tol=1e-9))
+            assert bool(space.limits.inside(space.features(q), tol=1e-9))
 
 
 def test_saturate_clips_bend_length_and_twist():
     spec = spec_by_name("type3")                                            # bend 1.57, β ∈ [0.08, 0.12], α ∈ [-1, 1]
     space = ClarkeSpace(spec)
     f = torch.tensor([[0.03, 0.04, 0.2, -3.0], [0.001, 0.002, 0.1, 0.5]], dtype=F64)
-    out = space.saturate(f)
+    out = space.limits.project(f)
     rho = out[0, :2]
     assert torch.linalg.vector_norm(rho).item() == pytest.approx(1.57 * 0.008, rel=1e-12)
     assert torch.allclose(rho / rho.norm(), torch.tensor([0.6, 0.8], dtype=F64))     # radial clip keeps the plane
     assert out[0, 2].item() == 0.12 and out[0, 3].item() == -1.0
     assert torch.equal(out[1], f[1])                                   # inside the limits: unchanged
-    assert space.within_limits(out).all() and not space.within_limits(f[0])
+    assert space.limits.inside(out).all() and not space.limits.inside(f[0])
 
 
 def test_analytic_jacobian_matches_finite_differences():
@@ -131,7 +131,7 @@ def test_converges_with_learned_jacobian(learned_jacobian):
     ctrl = ResolvedRateController(spec, learned_jacobian)
     q, commands = run_closed_loop(ctrl, straight(space), target, steps=80)       # measured tip: closed loop
     assert torch.linalg.vector_norm(tip(spec, q) - target).item() <= 1e-6
-    assert all(residual(space, c) <= 1e-9 and bool(space.within_limits(space.features(c))) for c in commands)
+    assert all(residual(space, c) <= 1e-9 and bool(space.limits.inside(space.features(c))) for c in commands)
     q, _ = run_closed_loop(ctrl, straight(space), target, steps=80, measured=False)  # the model's own FK
     model_tip = learned_jacobian(q)[0][:3, 3]
     assert torch.linalg.vector_norm(model_tip - target).item() <= 1e-5           # float32 model

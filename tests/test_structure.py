@@ -151,7 +151,7 @@ def test_no_file_in_the_package_is_over_400_lines():
 # a module imports only modules of its own layer or of layers listed before it.
 LAYERS = {
     "core": ["checks", "console", "robot", "clarke", "layers", "component_algebra", "lie", "kinematics", "metrics",
-             "models", "folding", "compositional", "clarke_space", "sampler", "body", "scene"],
+             "models", "folding", "compositional", "limits", "clarke_space", "sampler", "body", "scene"],
     "physics": ["cosserat"],
     "data": ["data"],
     "learning": ["datamodule", "training", "training_sampler", "runs", "ablation", "combination_shift"],

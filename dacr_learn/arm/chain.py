@@ -24,7 +24,7 @@ from pytorch_kinematics.urdf_parser_py.urdf import URDF
 from torch import Tensor
 
 from ..checks import F64
-from ..ik.limits import Limits
+from ..limits import Limits
 from .geometry import LinkCapsules, link_capsules
 
 CONTINUOUS_RANGE = 2 * math.pi   # [rad]: the box of a joint without limits is ±this

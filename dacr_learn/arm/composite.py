@@ -26,9 +26,9 @@ from torch import Tensor
 from ..body import BodyPoints, transform_body
 from ..checks import F64
 from ..ik.adapters import Check, ConstantCurvature, LearnedFK, SolverModel, TipJacobian, as_solver_model
-from ..ik.limits import Limits
 from ..ik.targets import pose_defects
 from ..kinematics import forward_kinematics
+from ..limits import Limits
 from .chain import Arm
 from .geometry import posed_capsules
 from .seeds import PoseBank

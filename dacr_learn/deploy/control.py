@@ -70,9 +70,9 @@ class ResolvedRateController:
         task = self.config.gain * (to_f64(target) - position)
         if feedforward is not None:
             task = task + to_f64(feedforward)
-        step = scaled_dls_step(jac_f[..., :3, :], task, self.space.scale, self.damping, self.config.max_step)  # Δf
-        f = self.space.features(q) + step
-        return self.space.joints(self.space.saturate(f))
+        limits = self.space.limits
+        step = scaled_dls_step(jac_f[..., :3, :], task, limits.scale, self.damping, self.config.max_step)  # Δf
+        return self.space.joints(limits.project(self.space.features(q) + step))
 
 
 def scaled_dls_step(jac: Tensor, task_step: Tensor, scale: Tensor, damping: float, max_step: float,

@@ -61,17 +61,13 @@ def joint_names(spec: RobotSpec) -> tuple[list[str], list[str]]:
 def robot_entries(spec: RobotSpec) -> dict[str, str]:
     """Joint and feature names, feature limits and (where affine) the Clarke maps of a robot (module docstring)."""
     space = ClarkeSpace(spec)
-    d = spec.num_actuated_features
+    limits = space.limits                        # ±inf bounds on the disk coordinates
     names, units = joint_names(spec)
-    lower, upper = torch.full((d,), -torch.inf, dtype=torch.float64), torch.full((d,), torch.inf, dtype=torch.float64)
-    for cols, rng in ((space.beta_cols, space.beta_range), (space.alpha_cols, space.alpha_range)):
-        if len(cols):
-            lower[cols], upper[cols] = rng[:, 0], rng[:, 1]
     out = {"joint_names": ",".join(names), "joint_units": ",".join(units),
            "feature_names": ",".join(f"s{k}.{name}" for k, name in actuated_columns(spec)),
-           "feature_lower": _numbers(lower), "feature_upper": _numbers(upper),
-           "feature_disks": ",".join(f"{i} {j}" for i, j in space.rho_cols.tolist()),
-           "feature_disk_radius": _numbers(space.rho_max), "feature_scale": _numbers(space.scale),
+           "feature_lower": _numbers(limits.lower), "feature_upper": _numbers(limits.upper),
+           "feature_disks": ",".join(f"{i} {j}" for i, j in limits.disks.tolist()),
+           "feature_disk_radius": _numbers(limits.radius), "feature_scale": _numbers(limits.scale),
            "robot_length": repr(float(spec.total_length))}
     if space.linear:
         enc_matrix, enc_offset = affine_probe(space.features, spec.num_joints)     # f = q·M + c

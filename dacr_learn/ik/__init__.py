@@ -9,6 +9,8 @@
 >>> result.q.shape, bool(result.success.all())
 (torch.Size([1, 4, 12]), True)
 """
+from ..clarke_space import clarke_limits
+from ..limits import Limits
 from .adapters import (
     Check,
     ConstantCurvature,
@@ -16,9 +18,7 @@ from .adapters import (
     SolverModel,
     TipJacobian,
     as_solver_model,
-    clarke_limits,
 )
-from .limits import Limits
 from .refine import levenberg_marquardt
 from .solver import IKOptions, IKResult, solve_ik
 from .targets import check_targets

@@ -1,7 +1,7 @@
 """What the IK solver needs of a model: its variables, their limits, the tip and its Jacobian, and a check.
 
-The solver iterates on variables x (B, D) inside :class:`~.limits.Limits` and returns joint vectors. For a
-robot described by a :class:`~dacr_learn.robot.RobotSpec` the variables are the actuated Clarke features
+The solver iterates on variables x (B, D) inside :class:`~dacr_learn.limits.Limits` and returns joint vectors.
+For a robot described by a :class:`~dacr_learn.robot.RobotSpec` the variables are the actuated Clarke features
 f (ρ_re, ρ_im per segment, β and α where actuated; ``models.actuated_columns`` order): the bending limit of a
 segment is then a disk and its length and twist ranges boxes, and every joint vector the decoder returns lies
 on the displacement constraint by construction.
@@ -31,9 +31,9 @@ from ..checks import F64
 from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
 from ..lie import twist_jacobian
+from ..limits import Limits
 from ..models import actuated_columns, actuated_to_features
 from ..robot import RobotSpec
-from .limits import Limits
 
 _COLUMN = {"rho_re": 0, "rho_im": 1, "beta": 2, "alpha": 3}
 
@@ -63,8 +63,8 @@ class TipJacobian(NamedTuple):
 class SolverModel:
     """Interface of a model the IK solver can invert (see the module docstring).
 
-    Attributes: ``limits`` (:class:`~.limits.Limits` on the D variables), ``rest`` (D,) the rest configuration
-    (solutions nearer to it come first), ``length`` (position scale [m]: the
+    Attributes: ``limits`` (:class:`~dacr_learn.limits.Limits` on the D variables), ``rest`` (D,) the rest
+    configuration (solutions nearer to it come first), ``length`` (position scale [m]: the
     solver weighs position errors in units of it against rotation errors in rad), ``has_rotation`` (False for
     tip-position models), ``num_joints`` N, ``spec`` (the RobotSpec, or None).
     """
@@ -113,7 +113,7 @@ class _ClarkeVariables(SolverModel):
     def __init__(self, spec: RobotSpec):
         self.spec, self.num_joints, self.length = spec, spec.num_joints, spec.total_length
         self.space = ClarkeSpace(spec)
-        self.limits = clarke_limits(spec)
+        self.limits = self.space.limits
         self.rest = self.space.fold.e0.to(F64)           # the straight robot at nominal lengths, no twist
 
     def joints(self, x: Tensor) -> Tensor:
@@ -127,20 +127,6 @@ class _ClarkeVariables(SolverModel):
         f = self.space.features(q)
         residual = (self.space.joints(f) - q).abs().amax(-1)
         return f, self.limits.inside(f), residual
-
-
-def clarke_limits(spec: RobotSpec) -> Limits:
-    """The limits of a robot's actuated features (``models.actuated_columns`` order): per segment a disk
-    ‖(ρ_re, ρ_im)‖ ≤ d·bend, boxes for β (length range) and α (twist range); scales d·bend and the half-ranges."""
-    parts = []
-    for k, name in actuated_columns(spec):
-        seg = spec.segments[k]
-        if name == "rho_re":
-            parts.append(Limits.disk(seg.bend * seg.radius, (f"segments[{k}].rho_re", f"segments[{k}].rho_im")))
-        elif name in ("beta", "alpha"):
-            lo, hi = seg.length_range if name == "beta" else seg.twist_range
-            parts.append(Limits.boxes([lo], [hi], (f"segments[{k}].{name}",)))
-    return Limits.concatenate(*parts)
 
 
 class ConstantCurvature(_ClarkeVariables):

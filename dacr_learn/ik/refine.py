@@ -15,8 +15,8 @@ from pytorch_kinematics.transforms import matrix_to_axis_angle
 from torch import Tensor
 
 from ..checks import F64
+from ..limits import Limits
 from .adapters import SolverModel
-from .limits import Limits
 
 
 def fused_matmul(a: Tensor, b: Tensor) -> Tensor:

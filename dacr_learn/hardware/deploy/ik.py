@@ -13,7 +13,7 @@ from torch import Tensor
 from ...body import BodyPoints
 from ...checks import F64
 from ...ik.adapters import Check, SolverModel, TipJacobian, register_solver_model
-from ...ik.limits import Limits
+from ...limits import Limits
 from .checkpoint import HardwareModel
 from .inference import HardwareJacobian
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..checks import F64
+from .checks import F64
 
 
 @dataclass(frozen=True)
