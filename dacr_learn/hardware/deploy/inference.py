@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from ...checks import F64
-from ...folding import activation_name, affine_probe, linear_layers, stacked_linear, tangent_rows
+from ...folding import activation_name, linear_layers, stacked_linear, tangent_rows
 from ...kinematics import cc_transform, cc_twist
 from ...lie import chain_products, components, pose_from_parts, twist_chain_jacobian
 from ..learned import RESIDUAL_RHO_SCALE
@@ -142,14 +142,18 @@ class HardwareFK(nn.Module):
     def members(self, rho: Tensor, memory: Tensor | None, tangent: tuple[Tensor, Tensor | None] | None = None):
         """Corrected ρ' (B, K, m, 2) of every member and, given input tangents (∂ρ (B, m, 2, T), ∂memory or None), its
         tangents (B, K, m, 2, T) (else None): forward mode as stacked rows (:func:`~dacr_learn.folding.tangent_rows`),
-        the first layers as one affine map (tangents: their products with it), the further layers batched (bmm)."""
+        the first layers of all K members in one product, the further layers batched over the members (bmm)."""
         x = rho if memory is None else torch.cat([rho, memory], -1)                        # (B, m, I)
-        rows = torch.addmm(self.first_offset, x.flatten(1), self.first_map).unsqueeze(1)   # (B, 1, m·K·H)
+        rows = x.unsqueeze(2)                                                              # (B, m, 1, I)
         if tangent is not None:
             dx = tangent[0] if memory is None else torch.cat([tangent[0], tangent[1]], -2)  # (B, m, I, T)
-            rows = torch.cat([rows, dx.flatten(1, 2).mT @ self.first_map], 1)              # (B, 1 + T, m·K·H)
-        (b, n, _), (k, h), m = rows.shape, self.w_hidden.shape[:2], self.num_segments
-        a = rows.view(b, n, m, k, h).permute(3, 0, 2, 1, 4).reshape(k, b * m, n, h)
+            rows = torch.cat([rows, dx.transpose(-1, -2)], 2)                              # (B, m, 1 + T, I)
+        (b, m, n, _), (k, h) = rows.shape, self.w_hidden.shape[:2]
+        if n == 1:                                                                         # no tangents: views only
+            a = (x @ self.first_all + self.b_first_all).view(b * m, k, h).transpose(0, 1).unsqueeze(2)
+        else:                                                                              # the bias on the value row
+            bias = self.b_first_all.unsqueeze(1) * (torch.arange(n) == 0).to(rho.dtype).unsqueeze(-1)
+            a = (rows @ self.first_all + bias).view(b, m, n, k, h).permute(3, 0, 1, 2, 4).reshape(k, b * m, n, h)
         a = tangent_rows(a, [(self.w_hidden, self.b_hidden), (self.w_last, self.b_last)], self.activation)
         a = a.view(k, b, m, n, 2).transpose(0, 1)                                         # (B, K, m, 1 + T, 2)
         out = rho.unsqueeze(1) + a[:, :, :, 0]
@@ -230,25 +234,21 @@ def active_set_maps(model: HardwareModel) -> dict[str, Tensor]:
 
 
 def _stacked_members(members) -> dict[str, Tensor]:
-    """Residual networks of the K members stacked (float64): the first layers of all members and segments as one
-    affine map of the inputs x = [ρ [and memory]] (B, m·I) → pre-activations (B, m·K·H), ``first_map`` and
-    ``first_offset`` (input standardisation and one-hot folded in; probed, :func:`~dacr_learn.folding.affine_probe`);
-    hidden and output layers (K, in, out), the output scale folded in."""
+    """Residual networks of the K members stacked (float64), weights (K, in, out): the first layers side by
+    side as one (in, K·H) map of ρ [and memory] (input standardisation folded in) with the one-hot part folded
+    into a per-segment bias (m, K·H); hidden and output layers (K, in, out), the output scale folded in."""
     nets = [linear_layers(m.net) for m in members]
     if any(len(n) != 3 for n in nets):
         raise ValueError(f"members: expected residual networks with 3 linear layers, got {[len(n) for n in nets]}")
-    m, width = members[0].onehot.shape[0], 2 + 2 * members[0].history
-
-    def first_layers(x: Tensor) -> Tensor:
-        """Each member's first-layer pre-activation (P, m, K, H) at inputs x (P, m·I), of [ρ/σ, memory, one-hot]."""
-        x = x.unflatten(-1, (m, width))                                                 # (P, m, I)
-        return torch.stack([torch.cat([x[..., :2] / member.rho_std.to(F64), x[..., 2:],
-                                       member.onehot.to(F64).expand(x.shape[0], -1, -1)], -1)
-                            @ net[0].weight.to(F64).mT + net[0].bias.to(F64)
-                            for member, net in zip(members, nets, strict=True)], -2)
-
-    first_map, first_offset = affine_probe(first_layers, m * width)
+    w1 = torch.stack([n[0].weight for n in nets]).to(F64)                  # (K, H, 2 [+2] + m)
+    std = torch.stack([m.rho_std for m in members]).to(F64).reshape(-1, 1, 1)
+    m = members[0].onehot.shape[0]
+    hist = 2 if members[0].history else 0
+    w_first = torch.cat([(w1[..., :2] / std).mT, w1[..., 2:2 + hist].mT], -2)   # (K, 2 [+2], H): ρ [and memory]
+    b_first = torch.stack([n[0].bias for n in nets]).to(F64).unsqueeze(1) + w1[..., 2 + hist:].mT[:, :m]  # (K, m, H)
     w_hidden, b_hidden = stacked_linear([n[1] for n in nets])
     w_last, b_last = stacked_linear([n[2] for n in nets], RESIDUAL_RHO_SCALE)
-    return {"first_map": first_map, "first_offset": first_offset,
+    # the K first layers as one (the input is shared): hidden units of the members side by side
+    return {"first_all": w_first.permute(1, 0, 2).flatten(1),              # (in, K·H)
+            "b_first_all": b_first.permute(1, 0, 2).flatten(1),            # (m, K·H)
             "w_hidden": w_hidden, "b_hidden": b_hidden, "w_last": w_last, "b_last": b_last}
