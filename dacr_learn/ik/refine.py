@@ -216,7 +216,7 @@ def free_jacobian(lim: Limits, x: Tensor, ja: Tensor, gradient: Tensor, only_hel
                   matmul=torch.matmul) -> tuple[Tensor, Tensor | None]:
     """The limits inside a step, in scaled variables z = x/s: at variables x (M, D), with J̃ (M, R, D) and the
     gradient J̃ᵀr (M, D) of the cost (descent along −J̃ᵀr), the limits that block descent are held
-    (:meth:`~.limits.Limits.blocked`) and their directions removed from J̃ by the projector P
+    (:meth:`~dacr_learn.limits.Limits.blocked`) and their directions removed from J̃ by the projector P
     (:meth:`~.limits.Limits.free_directions`). Returns (J̃P (M, R, D), P (M, D, D)); with ``only_held`` P is not
     formed: J̃P = J̃·diag(free) − Σ (J̃n)nᵀ over the blocked disk normals n, a few whole-tensor operations (J̃
     unchanged where no limit holds), and None is returned for P. ``matmul``: as in :func:`limited_step`."""
