@@ -17,7 +17,8 @@ side (``cpp/build.sh``), then
         [--compare OTHER_OUT ...] [--glibc-default]
 
 ``--compare``: the packages of other ``--out`` folders (e.g. written by an earlier version) measured in the same
-rounds (rows ``*_<folder name>``); ``--glibc-default``: the C++ rounds once more with glibc's default malloc cache (rows
+rounds (rows ``*_<folder name>``, and their ratios to this folder's) and in loops of their own (``rrc_<folder name>``,
+after this folder's); ``--glibc-default``: the C++ rounds once more with glibc's default malloc cache (rows
 ``cpp_*_glibc``; ``dacr_rt`` otherwise runs with ``GLIBC_TUNABLES=glibc.malloc.tcache_count=64``, docs/cpp.md).
 
 Targets (the issue's): FK + Jacobian (one ``jacobian`` call gives the pose and both Jacobians) p50 ≤ 25 µs,
@@ -183,25 +184,37 @@ def main(argv: list[str] | None = None) -> dict:
                                             check=True, capture_output=True, text=True, env=env).stdout)
             setup = setup or {k: cpp[k] for k in ("pinning", "scheduler", "memory", "malloc")}
             for name in ("fk", "jacobian") + (("refine",) if refine else ()):
-                rounds.setdefault(f"cpp_{name}{suffix}", []).append(cpp[name])
+                rounds.setdefault(f"cpp_{name}{suffix}", []).append({**cpp[name], "new": cpp["new_per_call"][name]})
     latency = {name: {k: float(np.median([r[k] for r in rs])) for k in ("p50_us", "p99_us")}
                for name, rs in rounds.items()}
+    for name, rs in rounds.items():
+        if "new" in rs[0]:
+            latency[name]["new_per_call"] = rs[0]["new"]
     loops = {}
-    for mode, extra in (("rrc", packages[2:4]), ("ik", packages[4:8]))[:2 if refine else 1]:
-        command = rt + [mode, *extra, "--seconds", str(args.seconds), "--cpu", str(args.cpu)]
-        loops[mode] = json.loads(subprocess.run(command, check=True, capture_output=True, text=True).stdout)
+    for suffix, pkgs, _ in variants[:1 + len(compare)]:    # the loops of each folder's packages, one after the other
+        for mode, extra in (("rrc", pkgs[2:4]), ("ik", pkgs[4:8]))[:2 if refine else 1]:
+            command = rt + [mode, *extra, "--seconds", str(args.seconds), "--cpu", str(args.cpu)]
+            run = subprocess.run(command, check=True, capture_output=True, text=True)
+            loops[mode + suffix] = json.loads(run.stdout)
     load["after"] = os.getloadavg()
     report = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "loadavg": load, "cpu_count": os.cpu_count(),
               "torch": torch.__version__, "cpp_build_s": build_s, "setup": setup, "latency": latency, "loops": loops,
               "args": vars(args)}
     (out / "cpp_latency.json").write_text(json.dumps(report, indent=2))
-    lines = [f"{'row (batch 1)':<26}{'p50 µs':>10}{'p99 µs':>10}"]
-    lines += [f"{name:<26}{v['p50_us']:>10.1f}{v['p99_us']:>10.1f}" for name, v in sorted(latency.items())]
+    lines = [f"{'row (batch 1)':<34}{'p50 µs':>10}{'p99 µs':>10}{'new/call':>10}"]
+    lines += [f"{name:<34}{v['p50_us']:>10.1f}{v['p99_us']:>10.1f}{v.get('new_per_call', float('nan')):>10.0f}"
+              for name, v in sorted(latency.items())]
+    for other in compare:                  # this folder's packages against each other one's, measured side by side
+        for name in ("fk", "jacobian") + (("refine",) if refine else ()):
+            mine, theirs = latency[f"cpp_{name}"], latency[f"cpp_{name}_{other.name}"]
+            lines.append(f"C++ {name}: {other.name} / this, p50 {theirs['p50_us'] / mine['p50_us']:.2f}×, "
+                         f"p99 {theirs['p99_us'] / mine['p99_us']:.2f}×")
     for mode, r in loops.items():
         lines.append(f"loop {mode}: tick p50 {r['tick']['p50_us']:.1f} / p99 {r['tick']['p99_us']:.1f} / max "
                      f"{r['tick']['max_us']:.1f} µs, overruns {r['overruns']} of {r['ticks']} "
                      f"({100 * r['overrun_fraction']:.3f} %), allocations per tick: {r['new_per_tick']:.0f} new, "
-                     f"{r['tensor_allocations_per_tick']:.0f} tensors")
+                     f"{r['tensor_allocations_per_tick']:.0f} tensors, "
+                     f"wake-up late max {r['wakeup_late']['max_us']:.0f} µs")
     lines.append(f"{setup}; load average {load['before'][0]:.1f} → {load['after'][0]:.1f} on {os.cpu_count()} cores")
     print("\n".join(lines), file=sys.stderr if args.json else sys.stdout)
     if args.json:

@@ -1,9 +1,10 @@
 // Real-time loops on dacr_learn's exported modules (docs/cpp.md):
 //
-//   dacr_rt rrc   --jacobian J.aoti.pt2 [--seconds 10 --rate 1000 --cpu 1 --radius 0.005 --lap 2]
+//   dacr_rt rrc   --jacobian J.aoti.pt2 [--seconds 10 --rate 1000 --cpu 1 --radius 0.005 --lap 2 --spin-us 50
+//                 --warmup 200]
 //       resolved-rate control of the robot (the plant: its commanded joints) along a circle of `radius` [m]
 //       around the start tip, one lap per `lap` seconds
-//   dacr_rt ik    --refine R.aoti.pt2 --targets T.bin [--seconds 10 --rate 1000 --cpu 1]
+//   dacr_rt ik    --refine R.aoti.pt2 --targets T.bin [--seconds 10 --rate 1000 --cpu 1 --spin-us 50 --warmup 200]
 //       warm-started IK refinement tracking a moving target; T.bin: float64, the start joints (N), then poses
 //       (T × 16, row major), one per tick (cycled)
 //   dacr_rt bench [--fk F] [--jacobian J] [--refine R --targets T.bin] [--calls 2000 --rounds 5 --cpu 1]
@@ -77,36 +78,58 @@ std::vector<double> read_doubles(const std::string& path) {
   return out;
 }
 
-// The periodic loop: `tick(k, t)` at `rate` Hz for `seconds`; returns its JSON fields.
+// Loop timing: ticks are released at absolute deadlines (clock_nanosleep, TIMER_ABSTIME), the last `spin_us` before
+// each by spinning on the clock; the first `warmup` ticks run the same way and are not counted (caches, the
+// allocator's free lists and the branch predictors settle).
+struct Timing {
+  double seconds = 10, rate = 1000, spin_us = 50;
+  long warmup = 200;
+};
+
+Timing timing(const Args& a) {
+  return {std::stod(arg(a, "seconds", "10")), std::stod(arg(a, "rate", "1000")), std::stod(arg(a, "spin-us", "50")),
+          std::stol(arg(a, "warmup", "200"))};
+}
+
+// The periodic loop: `tick(k, t, dt)` at `rate` Hz, `warmup` ticks then `seconds` of counted ones; returns its JSON
+// fields.
 template <class Tick>
-std::string periodic(double seconds, double rate, Tick&& tick) {
-  const int64_t period = static_cast<int64_t>(std::llround(1e9 / rate));
-  const long ticks = std::lround(seconds * rate);
+std::string periodic(const Timing& tm, Tick&& tick) {
+  const int64_t period = static_cast<int64_t>(std::llround(1e9 / tm.rate));
+  const int64_t spin = static_cast<int64_t>(std::llround(tm.spin_us * 1e3));
+  const long ticks = std::lround(tm.seconds * tm.rate), warmup = std::max(0L, tm.warmup);
   std::vector<int64_t> busy, late;
   busy.reserve(ticks);
   late.reserve(ticks);
   long overruns = 0, failed = 0;
-  const long long news0 = g_news.load();
-  const int64_t tensors0 = dacr::tensor_allocations();
+  long long news0 = 0;
+  int64_t tensors0 = 0;
   int64_t next = dacr::now_ns() + period;
   const int64_t start = next;
-  for (long k = 0; k < ticks; ++k) {
-    dacr::sleep_until_ns(next);
+  for (long k = 0; k < warmup + ticks; ++k) {
+    if (k == warmup) {
+      news0 = g_news.load();
+      tensors0 = dacr::tensor_allocations();
+    }
+    dacr::sleep_until_ns(next, spin);
     const int64_t t0 = dacr::now_ns();
-    failed += !tick(k, double(next - start) * 1e-9, double(period) * 1e-9);
+    const bool ok = tick(k, double(next - start) * 1e-9, double(period) * 1e-9);
     const int64_t t1 = dacr::now_ns();
-    busy.push_back(t1 - t0);
-    late.push_back(t0 - next);
-    if (t1 > next + period) ++overruns;
+    if (k >= warmup) {
+      failed += !ok;
+      busy.push_back(t1 - t0);
+      late.push_back(t0 - next);
+      if (t1 > next + period) ++overruns;
+    }
     next += period;
     while (next < t1) next += period;  // skip the periods an overrun ate
   }
   const double news = double(g_news.load() - news0) / double(ticks);
   const double tensors = double(dacr::tensor_allocations() - tensors0) / double(ticks);
-  char buf[256];
+  char buf[320];
   std::snprintf(buf, sizeof buf, "\"ticks\": %ld, \"overruns\": %ld, \"overrun_fraction\": %.6f, \"failed_ticks\": %ld, "
-                "\"new_per_tick\": %.2f, \"tensor_allocations_per_tick\": %.2f, ", ticks, overruns,
-                double(overruns) / double(ticks), failed, news, tensors);
+                "\"new_per_tick\": %.2f, \"tensor_allocations_per_tick\": %.2f, \"warmup_ticks\": %ld, \"spin_us\": %.0f, ",
+                ticks, overruns, double(overruns) / double(ticks), failed, news, tensors, warmup, tm.spin_us);
   return std::string(buf) + json_summary("tick", dacr::summarize(busy)) + ", " +
          json_summary("wakeup_late", dacr::summarize(late));
 }
@@ -137,8 +160,8 @@ int run_rrc(const Args& a, const dacr::RealtimeSetup& setup) {
     p[1] = c[1] + radius * s;
     p[2] = c[2];
   };
-  const double seconds = std::stod(arg(a, "seconds", "10")), rate = std::stod(arg(a, "rate", "1000"));
-  std::string loop = periodic(seconds, rate, [&](long, double t, double dt) {
+  const Timing tm = timing(a);
+  std::string loop = periodic(tm, [&](long, double t, double dt) {
     double p[3], pn[3];
     target(t, p);
     target(t + dt, pn);
@@ -152,7 +175,7 @@ int run_rrc(const Args& a, const dacr::RealtimeSetup& setup) {
     return ok;
   });
   double rms = 0, mx = 0;
-  const size_t skip = std::min(err.size(), size_t(rate * 0.5));  // settling: the first 0.5 s
+  const size_t skip = std::min(err.size(), size_t(tm.rate * 0.5));  // settling: the first 0.5 s
   for (size_t i = skip; i < err.size(); ++i) {
     rms += err[i] * err[i];
     mx = std::max(mx, err[i]);
@@ -176,8 +199,7 @@ int run_ik(const Args& a, const dacr::RealtimeSetup& setup) {
   std::vector<double> perr, rerr;
   perr.reserve(100000);
   rerr.reserve(100000);
-  const double seconds = std::stod(arg(a, "seconds", "10")), rate = std::stod(arg(a, "rate", "1000"));
-  std::string loop = periodic(seconds, rate, [&](long k, double t, double dt) {
+  std::string loop = periodic(timing(a), [&](long k, double t, double dt) {
     const double* target = data.data() + n + (size_t(k) % count) * width;
     for (size_t i = 0; i < width; ++i) ctrl.reference[i] = target[i];
     const bool ok = ctrl.update(t, dt) == dacr::ReturnType::OK;

@@ -29,6 +29,12 @@ from ..layers import ClarkeDecoder
 from ..lie import pose_from_parts
 from ..models import FKModel, IKModel, actuated_to_features
 
+# AOTInductor options of the Jacobian's package: matrix products as C++ GEMM kernels generated at export (no BLAS
+# call; "CPP" alone: no timing of alternatives, so the same package on a loaded machine), concatenations pointwise.
+# The last two keep Inductor from writing its table of choices to stderr.
+GEMM_KERNELS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP", "force_pointwise_cat": True,
+                "autotune_num_choices_displayed": 0, "max_autotune_report_choices_stats": False}
+
 
 def _frozen_linear(weight: Tensor, bias: Tensor, dtype: torch.dtype) -> nn.Linear:
     layer = nn.Linear(weight.shape[1], weight.shape[0], dtype=dtype)
@@ -60,10 +66,14 @@ class FoldedMLP(nn.Module):
             a = layer(self.activation(a))
         return self.last(self.activation(a))
 
-    def forward_with_tangents(self, a: Tensor, tangent: Tensor) -> tuple[Tensor, Tensor]:
-        """Forward-mode derivative: pre-activations (B, W) with tangents (B, k, W) → (out, dout (B, k, out))
-        (:func:`~dacr_learn.folding.tangent_rows`)."""
-        rows = tangent_rows(torch.cat([a.unsqueeze(-2), tangent], dim=-2), self.layers(), self.act)
+    def forward_with_tangents(self, a: Tensor, tangent: Tensor, weights: list[Tensor]) -> tuple[Tensor, Tensor]:
+        """Forward-mode derivative: pre-activations (B, W) with tangents (k, W) → (out (B, out), dout (B, k, out))
+        (:func:`~dacr_learn.folding.tangent_rows`: value and tangents stacked, one product per layer). ``weights``:
+        the hidden and output layers' weights as contiguous (in, out) matrices (:class:`InferenceJacobian` keeps
+        them), the form Inductor's generated GEMM kernels take."""
+        rows = torch.cat([a.unsqueeze(-2), tangent.expand(a.shape[0], -1, -1)], dim=-2)
+        layers = [(w, layer.bias) for w, layer in zip(weights, [*self.hidden, self.last], strict=True)]
+        rows = tangent_rows(rows, layers, self.act)
         return rows[..., 0, :], rows[..., 1:, :]
 
     def layers(self) -> list[tuple[Tensor, Tensor]]:
@@ -117,7 +127,14 @@ def _rotation_tangent_quaternion(quat: Tensor, dquat: Tensor) -> tuple[Tensor, T
 
 
 class InferenceFK(nn.Module):
-    """Learned FK with the front-end folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m]."""
+    """Learned FK with the front-end folded in: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
+
+    Its AOTInductor package (:func:`~dacr_learn.deploy.export.write_module`) has the products of its one row per
+    sample written inline and its concatenations pointwise: one generated kernel, no BLAS call (C++, batch 1, side
+    by side: 3.5× faster, 96 → 42 ``operator new`` per call; docs/cpp.md)."""
+
+    inline_products = True
+    inductor_configs = {"force_pointwise_cat": True}
 
     def __init__(self, model: FKModel, dtype: torch.dtype = torch.float32):
         super().__init__()
@@ -165,25 +182,41 @@ class InferenceJacobian(nn.Module):
 
     Rows of J: tip linear velocity [m] and angular velocity [rad] in the base frame, per unit of
     feature or joint (see the module docstring); computed in forward mode through the MLP.
+
+    Its AOTInductor package has its products as C++ GEMM kernels generated at export (Inductor's CPP template,
+    :data:`GEMM_KERNELS`) and its concatenations pointwise: no BLAS call and fewer buffers, each of which the
+    runtime wraps in heap-allocated tensor handles per call (C++, batch 1, side by side: 1.6× faster, 218 → 121
+    ``operator new`` per call; docs/cpp.md).
     """
+
+    inductor_configs = GEMM_KERNELS
 
     def __init__(self, model: FKModel, dtype: torch.dtype = torch.float32):
         super().__init__()
         self.fk = InferenceFK(model, dtype)
         self.fold = self.fk.fold if self.fk.fold is not None else ClarkeFold(model.spec).to(dtype)
         self.decoder_jacobian = DecoderJacobian(model.spec).to(dtype) if self.fk.fold is None else None
+        mlp = self.fk.mlp
+        for i, layer in enumerate([*mlp.hidden, mlp.last]):                # (in, out), contiguous
+            self.register_buffer(f"weight{i}", layer.weight.detach().mT.contiguous())
+        self.layers = len(mlp.hidden) + 1
+        fold = self.fk.fold
+        constant = fold is not None and not fold.has_g and not fold.has_type3
+        self.register_buffer("feature_jacobian", fold.E[:, :fold.num_joints].contiguous() if constant else None)
 
     def forward(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         fk = self.fk
         u = fk.inputs(q)
-        seed = fk.seed.expand(q.shape[0], -1, -1)
-        out, dout = fk.mlp.forward_with_tangents(fk.first_layer(u), seed)
+        weights = [getattr(self, f"weight{i}") for i in range(self.layers)]
+        out, dout = fk.mlp.forward_with_tangents(fk.first_layer(u), fk.seed, weights)
         if fk.rotation == "6d":
             rot, omega = _rotation_tangent_6d(out[:, 3:], dout[..., 3:])
         else:
             rot, omega = _rotation_tangent_quaternion(out[:, 3:], dout[..., 3:])
         jac = torch.cat([dout[..., :3], omega], dim=-1).mT                # (B, 6, k)
         pose = pose_from_parts(rot, out[:, :3], fk.bottom)
+        if self.feature_jacobian is not None:                 # clarke, ∂f/∂q constant: k = D; one 2-D product
+            return pose, jac, (jac.reshape(-1, jac.shape[-1]) @ self.feature_jacobian).view(q.shape[0], 6, -1)
         if self.decoder_jacobian is None:                                 # clarke: k = D
             return pose, jac, jac @ self.fold.jacobian(q, u)
         features = self.fold.features(self.fold.inputs(q))                # raw: k = N

@@ -27,13 +27,16 @@ void reexec_with_malloc_tunables(char** argv);
 std::string malloc_setting();
 
 // Pin the calling thread to `cpu` (pthread affinity), ask for SCHED_FIFO at `priority` (needs CAP_SYS_NICE or an
-// rtprio limit; else it stays SCHED_OTHER and says so) and lock the process memory (mlockall, if permitted).
+// rtprio limit; else it stays SCHED_OTHER and says so), set its timer slack to 1 ns (SCHED_OTHER threads get 50 µs
+// by default) and lock the process memory (mlockall, if permitted).
 RealtimeSetup prepare_realtime_thread(int cpu, int priority);
 
 // Monotonic clock [ns].
 int64_t now_ns();
-// Sleep until the absolute monotonic time `t_ns` (clock_nanosleep, TIMER_ABSTIME).
-void sleep_until_ns(int64_t t_ns);
+// Sleep until the absolute monotonic time `t_ns` (clock_nanosleep, TIMER_ABSTIME); with `spin_ns` > 0, sleep until
+// `spin_ns` before it and spin on the clock for the rest (the wake-up's latency is paid before the deadline, not
+// after it; the thread keeps its CPU for `spin_ns` per tick).
+void sleep_until_ns(int64_t t_ns, int64_t spin_ns = 0);
 
 // p50 / p99 / max / mean of samples [ns], reported in µs.
 struct LatencySummary {
