@@ -94,8 +94,13 @@ class Avoidance:
                                                            b[rows].unsqueeze(1), radius, grad=False)[0]
 
         def pair(rows: Tensor, points: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
+            scene_field = field < o
+            if bool(scene_field.all()):                                  # obstacles only (or links only): no split
+                return scene.pair_distances(points, field)
+            if not bool(scene_field.any()):
+                return links_pair(rows, points, field - o)
             d, g = points.new_empty(field.shape), torch.empty_like(points)
-            i, j = (field < o).nonzero().squeeze(-1), (field >= o).nonzero().squeeze(-1)
+            i, j = scene_field.nonzero().squeeze(-1), (~scene_field).nonzero().squeeze(-1)
             if i.numel():
                 d[i], g[i] = scene.pair_distances(points[i], field[i])
             if j.numel():
