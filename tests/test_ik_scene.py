@@ -273,3 +273,41 @@ def test_capsule_chain_samples_each_axis_and_bounds_the_capsules():
     exact = (np.linalg.norm(centre - (a + u[..., None] * (tip - a)), axis=-1) - 0.02 - radius).min(-1)
     bound = chain_clearance(scene, swept).numpy()
     assert (bound <= exact + 1e-12).all() and (exact - bound).max() < 1e-3
+
+
+def test_skipped_body_to_link_pairs_leave_the_clearance_unchanged():
+    """The robot on the Panda at the port: the independent check skips the body-to-link distances of (row, link)
+    pairs whose link is farther from the body's base than the body's reach plus an upper bound of the result; its
+    value equals the unfiltered one (every body point to every far link, one swept_clearance over obstacles and
+    links) to 1e-12, on configurations near the arm's home and uniform ones, with pairs both kept and skipped."""
+    from dacr_learn.ik.collision import LINK_SPACING
+    from dacr_learn.scene import capsule_chain, join, swept_body, swept_clearance
+    from dacr_learn.scene.shapes import capsule_distance
+    arm = load_arm(ROOT / "configs" / "arms" / "panda.urdf", "panda_link8")
+    whole = Composite(arm, torch.from_numpy(np.load(ROOT / "configs" / "arms" / "panda_mount.npy")), SPEC)
+    scene = load_scene(ROOT / "configs" / "scenes" / "port_panda.yaml")
+    gen = torch.Generator().manual_seed(5)
+    x = whole.limits.sample(300, gen)
+    x[:200, :7] = whole.home + 0.15 * (2 * torch.rand(200, 7, generator=gen, dtype=F64) - 1)
+    got = Avoidance(whole, scene, 0.005).clearance_of(x)
+    body, (a, b, r, near) = whole.body(x, 8), whole.links(x)
+    chain, _ = capsule_chain(a, b, r, LINK_SPACING)
+    a, b, r = a[:, ~near], b[:, ~near], r[~near]
+    swept = join(swept_body(body), chain)
+    o, p = scene.num_obstacles, body.points.shape[1]
+    d_self = torch.full((x.shape[0], swept.points.shape[1], r.numel()), float("inf"), dtype=F64)
+    d_self[:, :p] = capsule_distance(body.points.unsqueeze(2), a.unsqueeze(1), b.unsqueeze(1), r, grad=False)[0]
+
+    def pair(rows, points, field):
+        d0, g0 = scene.pair_distances(points, field.clamp_max(o - 1))
+        link = (field - o).clamp_min(0)
+        d1, g1 = capsule_distance(points, a[rows, link], b[rows, link], r[link])
+        return torch.where(field < o, d0, d1), torch.where((field < o).unsqueeze(-1), g0, g1)
+
+    convex = torch.cat([scene.convex, torch.ones(r.numel(), dtype=torch.bool)])
+    ref = swept_clearance(swept, torch.cat([scene.distances(swept.points)[0], d_self], -1), pair, convex)
+    assert got.shape == ref.shape and (got - ref).abs().max() <= 1e-12
+    to_links = (d_self[:, :p] - body.radius.unsqueeze(-1)).amin(1)                # (B, C) body to each far link
+    to_scene = (scene.distances(body.points)[0] - body.radius.unsqueeze(-1)).amin((1, 2))
+    assert (to_links.amin(-1) < to_scene).sum() >= 10                             # links hold the minimum in rows
+    assert ((to_links - to_scene.unsqueeze(-1)) > 0.3).float().mean() > 0.3       # and many pairs are far apart

@@ -80,22 +80,29 @@ class Avoidance:
         o, scene, links_pair = self.scene.num_obstacles, self.scene, capsule_pair(a, b, radius)
         d_scene = self.scene.distances(whole.points)[0]                               # (B, P + Q, O)
         pts, n = body.points, x.shape[0]
-        # rows whose far links lie beyond the body's reach from its base by more than the clearance some point
-        # already has (an upper bound of the result) skip the body-to-link distances: they cannot hold the minimum
+        # (row, far link) pairs whose link lies beyond the body's reach from its base by more than the clearance some
+        # point already has (an upper bound of the result) skip the body-to-link distances: they cannot hold the
+        # minimum (each such link is ≥ that upper bound from every body point, by the triangle inequality)
         upper = ((d_scene.amin(-1) - torch.cat([body.radius, chain[1]])).amin(-1) if o
                  else pts.new_full((n,), float("inf")))
         reach = (torch.linalg.vector_norm(pts - pts[:, :1], dim=-1).amax(-1) + swept.sag.amax(-1)
                  + body.radius.max())
         d_base = capsule_distance(pts[:, :1], a, b, radius, grad=False)[0]                 # (B, C)
-        rows = ((d_base - reach.unsqueeze(-1)) < upper.unsqueeze(-1)).any(-1).nonzero().squeeze(-1)
+        rows, cap = ((d_base - reach.unsqueeze(-1)) < upper.unsqueeze(-1)).nonzero().unbind(-1)
         d_self = pts.new_full((n, whole.points.shape[1], radius.numel()), float("inf"))     # links: not to themselves
         if rows.numel():
-            d_self[rows, :pts.shape[1]] = capsule_distance(pts[rows].unsqueeze(2), a[rows].unsqueeze(1),
-                                                           b[rows].unsqueeze(1), radius, grad=False)[0]
+            d_self[rows, :pts.shape[1], cap] = capsule_distance(pts[rows], a[rows, cap].unsqueeze(1),
+                                                                b[rows, cap].unsqueeze(1), radius[cap].unsqueeze(1),
+                                                                grad=False)[0]              # (K, P)
 
         def pair(rows: Tensor, points: Tensor, field: Tensor) -> tuple[Tensor, Tensor]:
+            scene_field = field < o
+            if bool(scene_field.all()):                                  # obstacles only (or links only): no split
+                return scene.pair_distances(points, field)
+            if not bool(scene_field.any()):
+                return links_pair(rows, points, field - o)
             d, g = points.new_empty(field.shape), torch.empty_like(points)
-            i, j = (field < o).nonzero().squeeze(-1), (field >= o).nonzero().squeeze(-1)
+            i, j = scene_field.nonzero().squeeze(-1), (~scene_field).nonzero().squeeze(-1)
             if i.numel():
                 d[i], g[i] = scene.pair_distances(points[i], field[i])
             if j.numel():

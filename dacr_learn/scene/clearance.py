@@ -111,9 +111,9 @@ def cut_bound(pair: PairDistance, rows: Tensor, a: Tensor, b: Tensor, field: Ten
     indices ``field`` (T,): :func:`convex_bound` of the ends, then ``cuts`` times the field's tangent where that
     bound is lowest, t*: the minimum lies on the side of t* where the slope there points down, and the two tangents
     bounding that side give the next bound (a cutting-plane search; every bound is a lower bound, each tighter)."""
-    ab = b - a
-    fa, ga = pair(rows, a, field)
-    fb, gb = pair(rows, b, field)
+    ab, n = b - a, rows.shape[0]
+    f2, g2 = pair(torch.cat([rows, rows]), torch.cat([a, b]), torch.cat([field, field]))   # both ends in one call
+    fa, fb, ga, gb = f2[:n], f2[n:], g2[:n], g2[n:]
     sa, sb = (ga * ab).sum(-1), (gb * ab).sum(-1)                              # slopes per unit t
     bound, u = _envelope(fa, fb, sa, sb)
     lo, hi = torch.zeros_like(fa), torch.ones_like(fa)

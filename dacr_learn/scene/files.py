@@ -84,8 +84,9 @@ class Scene:
             # the box frames of every point in one product: Rᵀ(p − c) = (pᵀR − cᵀR)ᵀ, no (..., O, 3) differences
             flat, rot = points.reshape(-1, 3), self.box_rotation.to(points)
             local = (flat @ rot.permute(1, 0, 2).reshape(3, -1)).view(flat.shape[0], -1, 3)
-            q = (local - (self.box_center.to(points).unsqueeze(1) @ rot).squeeze(1)).abs() - self.box_half.to(points)
-            d = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1) + q.amax(-1).clamp_max(0.0)
+            q = local.sub_((self.box_center.to(points).unsqueeze(1) @ rot).squeeze(1)).abs_().sub_(
+                self.box_half.to(points))                                        # in place: no autograd here
+            d = torch.linalg.vector_norm(q.clamp_min(0.0), dim=-1).add_(q.amax(-1).clamp_max_(0.0))
             parts.append((d.view(*points.shape[:-1], -1), None))
         elif self.box_half.shape[0]:
             parts.append(box_distance(p, self.box_center.to(p), self.box_rotation.to(p), self.box_half.to(p), grad))
