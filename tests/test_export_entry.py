@@ -26,7 +26,7 @@ def _run(code: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=300)
 
 
-@pytest.mark.slow            # a fresh interpreter exports two models (~25 s): with the slow tests (make test's balance)
+# a fresh interpreter exports two models (~25 s): in the rest's process, which ends ~45 s before the slow one
 def test_export_and_load_import_no_lightning_and_the_fallback_does(tmp_path):
     """A train.py checkpoint and a hardware model are exported and loaded without importing Lightning; a
     checkpoint whose hyper-parameters lack part of the architecture is read through its LightningModule (the
