@@ -91,7 +91,13 @@ def sigma_coefficients(model: HardwareModel) -> Tensor:
 
 
 class HardwareFK(nn.Module):
-    """Servo commands (B, S) [mm] (+ play state (B, m, 2)) → (tip (B, 3) [m], tip_std (B, 3) [m] (+ state))."""
+    """Servo commands (B, S) [mm] (+ play state (B, m, 2)) → (tip (B, 3) [m], tip_std (B, 3) [m] (+ state)).
+
+    Its AOTInductor package has its products written inline and its concatenations pointwise, as the synthetic
+    FK's (batch 1, 3 members, side by side: p50 79 → 47 µs, outputs within 4e-9 m)."""
+
+    inline_products = True
+    inductor_configs = {"force_pointwise_cat": True}
 
     def __init__(self, model: HardwareModel, dtype: torch.dtype = torch.float32):
         super().__init__()
