@@ -169,6 +169,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
             raise ValueError(f"seeds: expected finite (B={b}, S, D={d}) variables, got {tuple(seeds.shape)}")
         s = min(k, seeds.shape[1])
         starts[:, :s] = seeds[:, :s].to(F64)
+    s = max(s, int(q0 is not None))                              # slot 0 is q0's
     if options.bank and s < k:
         starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
     if q0 is not None:
