@@ -1,10 +1,8 @@
 """Constant-curvature kinematics from Clarke features (docs/design.md §2).
 
-Per segment, with u = (ρ_re, ρ_im)/d, φ² = ‖u‖², s = sin φ/φ, f = (1 − cos φ)/φ²:
-R = I + s·K + f·K² (rotation about (−u_y, u_x, 0) by φ), p = β·(u_x f, u_y f, s),
-and a twisting segment is first rolled by α about its base z axis: T = Rz(α)·T_cc.
-s and f are evaluated as functions of φ² with a Taylor branch near 0 (double-``where``), so
-values and gradients are finite at the straight configuration. No atan2, no division by φ.
+A segment with bending vector u = (ρ_re, ρ_im)/d and length β is exp of the twist :func:`cc_twist` (rotation about
+(−u_y, u_x, 0) by φ = ‖u‖), a twisting segment first rolled by α about its base z axis: T = Rz(α)·T_cc; through
+the closed forms of :mod:`.lie`, finite with finite gradients at the straight configuration (no atan2, no ÷ φ).
 
 Shapes: features (..., m, 4) with columns (ρ_re [m], ρ_im [m], β [m], α [rad]); poses are
 homogeneous (..., 4, 4) [m]. Columns a segment does not actuate are ignored (β = l, α = 0).
@@ -17,13 +15,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_tensor
-from .lie import (
-    TAYLOR_BELOW,
-    chain_products,
-    exp_components,
-    pose_of_components,
-    roll_components,
-)
+from .lie import TAYLOR_BELOW, chain_products, exp_components, pose_of_components, roll_components
 from .robot import RobotSpec
 
 

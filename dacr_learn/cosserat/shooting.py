@@ -20,16 +20,7 @@ import torch
 from torch import Tensor
 
 from .grid import ArcGrid
-from .rod import (
-    STATE,
-    Section,
-    add_body_wrench,
-    derivative,
-    match_total_wrench,
-    rk4,
-    tendon_monomials,
-    total_wrench,
-)
+from .rod import STATE, Section, add_body_wrench, derivative, match_total_wrench, rk4, tendon_monomials, total_wrench
 from .tendon import TendonRouting
 
 FD_FORWARD, FD_CENTRAL = 1e-7, 2e-5   # difference steps of the dimensionless unknowns

@@ -50,14 +50,7 @@ from .layout import (
     series_style,
     summary_markdown,
 )
-from .scene import (
-    DEFAULT_ERROR_RANGE,
-    colour_note,
-    log_frames,
-    log_path,
-    log_scene,
-    log_workspace,
-)
+from .scene import DEFAULT_ERROR_RANGE, colour_note, log_frames, log_path, log_scene, log_workspace
 
 __all__ = [
     "RerunLogger", "default_blueprint",
