@@ -259,10 +259,7 @@ class CalibratedCosserat:
                     poses, warm, r, improved = p1, w1, r1, True
                     lam = max(lam / 3, 1e-6)
                     break
-                self.set_physics(base)
-                with torch.no_grad():
-                    for p, v in zip(frame, frame_before, strict=True):
-                        p.copy_(v)
+                self._apply(names, base, frame_before, frame, torch.zeros_like(step))   # back to the start
                 lam *= 5
             done += 1
             if log is not None:
