@@ -130,9 +130,8 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
     (u_x, u_y, β): angular b = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω), i.e. b_x = (−g·u_x·u_y, 1 − g·u_y², −f·u_y),
     b_y = (g·u_x² − 1, g·u_x·u_y, f·u_x), b_β = 0, and linear dp_x = β·(f + 2f'·u_x², 2f'·u_x·u_y, 2s'·u_x),
     dp_y = β·(2f'·u_x·u_y, f + 2f'·u_y², 2s'·u_y), dp_β = (f·u_x, f·u_y, s); a twisting segment is rolled, Rz(α)·T,
-    its tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule (ω = R_{k−1}·b,
-    v = R_{k−1}·dp + ω × (p_tip − o_k), R_{k−1} the rotation of T_1⋯T_{k−1}, o_k the origin of T_1⋯T_k) transports
-    all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
+    its tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule of
+    :func:`~.lie.chain_components` transports all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
 
     The returned J and pose are views whose batch is innermost in memory (rows-last: ``J.permute(-2, -1, …)`` of a
     contiguous (6, D, M) block); ``.contiguous()`` gives the row-major copy.

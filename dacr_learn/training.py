@@ -253,9 +253,8 @@ class IKModule(KinematicsModule):
 
     ``pose_ramp`` (a fraction of the training steps): the weights move linearly from (1, 0), the pure feature
     term, to (``feature_weight``, ``pose_weight``): the network learns the smooth conditional mean first, then
-    the pose term pulls it onto the nearest solution branch (a pose loss from a random start converges much
-    more slowly and leaves more predictions outside the limits). ``pose_ramp_max_epochs`` caps that phase at so
-    many epochs, so one config serves every data size (docs/ablation.md, "Multi-segment IK with a pose loss").
+    the pose term pulls it onto the nearest solution branch (docs/ablation.md, "Multi-segment IK with a pose
+    loss", says why). ``pose_ramp_max_epochs`` caps that phase at so many epochs, so one config serves every size.
     Validation/test summaries add ``out_of_limits_pct``: the share of predictions with :func:`limit_excess`
     above 1e-6 (about 0.1 % relative overshoot).
     """
