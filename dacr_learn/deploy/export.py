@@ -104,10 +104,8 @@ AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATE
 
 
 # Inductor options of every AOTI package: intermediate buffers carved out of one pool instead of one allocation
-# each per call (the same kernels, bit-identical outputs). At batch 1 the allocations cost more than the
-# arithmetic in the Jacobians, whose component-form kernel (dacr_learn.lie) leaves ~80 intermediates: AOTI
-# compositional Jacobian 53.9 → 39.2 µs, hardware Jacobian 71.5 → 57.3 µs, IK refinement 301 → 274 µs
-# (docs/export.md).
+# each per call (bit-identical outputs; at batch 1 the allocations cost more than the Jacobians' arithmetic: AOTI
+# compositional Jacobian 53.9 → 39.2 µs, docs/history/export.md).
 PACKAGE_CONFIGS = {"memory_planning": True}
 
 
