@@ -11,9 +11,8 @@ The flow is ``zuko.flows.NSF`` (coupling, ``passes=2``) on standardised variable
   constraint) and projected onto the limits (:meth:`~dacr_learn.limits.Limits.project`); the training noise
   (``SamplerModule.noise``) keeps the density on the constraint's subspace finite.
 
-Conditioning c (10,): :func:`~dacr_learn.models.pose_to_vector` of the target (position / L, the first two rows of
-R), standardised, and a flag that is 1 when the rotation is given (a position-only target has its rotation entries
-at 0 and the flag 0). No Lightning here; the training module is :class:`dacr_learn.training_sampler.SamplerModule`.
+Conditioning c (10,): the standardised :func:`~dacr_learn.models.pose_to_vector` of the target and a flag, 1 when
+the rotation is given (else its entries are 0). No Lightning; trained by :class:`~.training_sampler.SamplerModule`.
 """
 from __future__ import annotations
 
