@@ -183,11 +183,10 @@ class FKModule(KinematicsModule):
     "compositional" (one network per segment transform, :mod:`dacr_learn.compositional`; ``rotation`` "twist" |
     "6d", ``context`` "none" | "segment" | "distal" | "full", ``units`` "strain" | "metric"). ``segment_weight``:
     weight of the loss on the end frames of the segments before the tip when batches carry ``segment_frames``
-    (compositional only). The body (:mod:`dacr_learn.body`): ``body_points`` K > 0 gives a monolithic model a shape
-    output (``body_prior`` "none" | "cc": the points, or their offsets from the CC arcs); a compositional model's
-    body is its segment twists followed part of the way ("twist" head). When batches carry the true body
-    ("backbone", the datamodule's ``body_points``), ``body_weight`` × the mean of ‖p̂ − p‖²/L² over its points is
-    added to the loss, and validation/test report ``body_err`` (per sample the largest point error).
+    (compositional only). The body (docs/body.md, "Training the shape output"): ``body_points`` K > 0 and
+    ``body_prior`` give a monolithic model a shape output (:class:`~dacr_learn.models.FKModel`); when batches carry
+    the true body, ``body_weight`` × the mean of ‖p̂ − p‖²/L² over its points is added to the loss, and
+    validation/test report ``body_err`` (per sample the largest point error).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
