@@ -269,15 +269,11 @@ ROBOT_BUFFERS = ("front.encoder.", "front.context_matrix", "front.unit", "length
 
 
 def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
-    """The trained per-segment network of ``model``, unchanged, composed over the segments of ``target``.
-
-    "strain" units: the target's segments may have any type, length, radius and joint layout (the network
-    sees each segment in its own units; its error grows where the target's features leave the training
-    range, e.g. a stretch β/l the source robot never had; a target segment that extends or twists needs a
-    source segment that does, or a ValueError says so). "metric" units: each target segment must have
-    the geometry (type, length, radius, limits) of some source segment. The number of segments and of
-    joints may differ. Contexts "segment" and "full" cannot transfer.
-    """
+    """The trained per-segment network of ``model``, unchanged, composed over the segments of ``target``
+    (docs/compositional.md, "Transfer to other robots"). "strain" units: target segments of any type, length, radius
+    and joint layout (its error grows where their features leave the training range); one that extends or twists
+    needs a source segment that does (ValueError). "metric" units: each target segment must have the geometry (type,
+    length, radius, limits) of some source segment. Contexts "segment" and "full" cannot transfer."""
     if model.front.context in ("segment", "full"):
         raise ValueError(f"transfer: a model with context {model.front.context!r} has inputs per source segment index; "
                          "train with context 'none' or 'distal' to transfer to another number of segments")
