@@ -36,9 +36,8 @@ FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than t
 PHYSICS_SCALES = {"gravity": 0.3, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
                   "pretension": 1e-4, "pretension_strain": 1e-4}
 AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC model, and a compressible rod
-# [N/m] bound of the fitted weight per length ‖g‖: a robot of this size (wire, disks, tendons) weighs well under it;
-# unbounded, the v6 singles fit (gravity then fixed along mocap z) ran to 1.6 N/m upwards and beyond, into ever more
-# nonlinear (and slower) solves
+# [N/m] bound of the fitted weight per length ‖g‖: a robot of this size weighs well under it; unbounded, the v6 fit
+# ran to 1.6 N/m upwards and beyond, into ever more nonlinear (and slower) solves
 WEIGHT_MAX = 0.5
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
 FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale

@@ -31,9 +31,8 @@ PRETRAIN_SAMPLES, FINETUNE_STEPS, REHEARSAL = 4000, 500, 0.3
 STEPS_ENV = "DACR_HARDWARE_STEPS"  # where set: the steps of every fit's default STEPS (quick trials, tests)
 RESIDUAL_TIP_SCALE, RESIDUAL_RHO_SCALE = 5e-3, 5e-4  # [m]: output units of the residual networks
 RESIDUAL_HIDDEN = 64  # the per-segment correction network sees m rows per sample
-# [m] width of the Clarke-space play operator (hysteresis memory). Chosen by leave-one-pattern-
-# family-out cross-validation on the training recording only (research/hardware_cv: CV 4.94 mm at
-# 0.1 mm against 5.11 mm at 0.2 mm, the width an earlier version picked while looking at val).
+# [m] width of the Clarke-space play operator (hysteresis memory), chosen by family cross-validation on the training
+# recording only (research/hardware_cv: CV 4.94 mm at 0.1 mm against 5.11 mm at 0.2 mm).
 PLAY_WIDTH = 1e-4
 # Input statistics of the standardised networks computed in float32, as the benchmark's scores were: in float64
 # (1 ulp apart) the unstable fits move, e.g. cc_tip_residual's seed-0 v4 val RMSE 14.34 → 14.56 mm.
