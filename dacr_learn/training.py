@@ -237,9 +237,8 @@ class IKModule(KinematicsModule):
 
     Loss = ``feature_weight`` × MSE of the standardised network output against the sample's joint-space target
     (actuated Clarke features, or q for "raw") + ``pose_weight`` × :func:`pose_loss` (``rot_weight``) of the
-    analytic CC FK of the predicted joints against the input pose. On a redundant robot (3 segments: 9 features
-    for a 6-DOF pose) the feature term regresses to the conditional mean of the solutions, which is not one; the
-    pose term accepts any. ``output_scale``: the output standardisation (:class:`~dacr_learn.models.IKModel`).
+    analytic CC FK of the predicted joints against the input pose (on a redundant robot the feature term alone
+    learns the mean of the solutions, no solution). ``output_scale``: :class:`~dacr_learn.models.IKModel`.
 
     ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps the predictions at the training
     poses inside the sampled joint limits; ``limit_noise`` > 0 adds that penalty at the training inputs plus
