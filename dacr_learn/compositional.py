@@ -1,23 +1,12 @@
 """Compositional learned FK: one network learns a segment's transform, products compose the robot
-(docs/compositional.md, "Model", says why each choice below was made).
+(docs/compositional.md, "Model", describes each option and says why it was chosen).
 
 A network f_θ, shared by all segments, maps the standardised per-segment Clarke features x_k = (ρ_re, ρ_im, β, α)
-of segment k (non-actuated columns at β = l, α = 0) and a context c_k to the segment's transform T_k ∈ SE(3) (base
-of segment k → its end); the robot is the product T_tip = T_1 · T_2 · … · T_m (end of segment k = T_1 ⋯ T_k,
-lie.chain_products).
-
-- Heads ("rotation"): "twist" — an se(3) twist ξ = (v · L_s, ω) [m, rad], T_k = exp(ξ^) (:func:`twist_exp`; a CC
-  arc is exactly exp of a twist linear in (ρ, β), which the network is not told); "6d" — position (· L_s) and a 6D
-  rotation (models.pose_from_parts, rotation_6d_to_matrix).
-- Roll (types II/III, ``twist_roll``, on by default): T_k = Rz(α_k)·h(f_θ(x_k)), the order of the CC model
-  (kinematics.cc_transform); the weights of the α inputs (first layer and skip) start at zero. Segments that do not
-  twist are not rolled.
-- Units ("units"): "strain" (default) feeds x_k = (ρ_re/d_k, ρ_im/d_k, β/l_k, α) and L_s = l_k, the same map for
-  every segment whatever its geometry, so the network transfers (:func:`transfer`); "metric" feeds metres and
-  L_s = the mean segment length of the training robot (segments of one geometry; the hardware residual models).
-- Context ("context"): "none" (transferable), "segment" (one-hot segment index), "distal" (the sum of the
-  standardised features of the segments beyond k; transferable), "full" (one-hot index and every segment's
-  standardised features; Cosserat data under gravity).
+of segment k (non-actuated columns at β = l, α = 0) and a context c_k to the segment's transform T_k ∈ SE(3); the
+robot is the product T_tip = T_1 · T_2 · … · T_m (lie.chain_products). Options: the head ``rotation`` ("twist":
+T_k = exp(ξ^) of a twist ξ = (v · L_s, ω); "6d"), the roll of twisting segments (``twist_roll``: T_k =
+Rz(α_k)·h(f_θ(x_k)), α weights starting at zero), ``units`` ("strain": x_k in the segment's own units and L_s = l_k,
+so the network transfers, :func:`transfer`; "metric") and ``context`` ("none", "segment", "distal", "full").
 """
 from __future__ import annotations
 
@@ -262,8 +251,7 @@ def model_from_hparams(task: str, spec: RobotSpec, hparams) -> nn.Module:
     if task == "fk":
         return build_fk_model(spec, h.get("structure", "monolithic"), h.get("context", "none"),
                               h.get("units", "strain"), h.get("body_points", 0), h.get("body_prior", "none"),
-                              features=h["features"],
-                              width=h["width"], depth=h["depth"],
+                              features=h["features"], width=h["width"], depth=h["depth"],
                               activation=h["activation"], rotation=h["rotation"])
     if task == "ik":
         return IKModel(spec, h["features"], h["width"], h["depth"], h["activation"], h.get("output_scale", "std"))
@@ -281,15 +269,11 @@ ROBOT_BUFFERS = ("front.encoder.", "front.context_matrix", "front.unit", "length
 
 
 def transfer(model: CompositionalFK, target: RobotSpec) -> CompositionalFK:
-    """The trained per-segment network of ``model``, unchanged, composed over the segments of ``target``.
-
-    "strain" units: the target's segments may have any type, length, radius and joint layout (the network
-    sees each segment in its own units; its error grows where the target's features leave the training
-    range, e.g. a stretch β/l the source robot never had; a target segment that extends or twists needs a
-    source segment that does, or a ValueError says so). "metric" units: each target segment must have
-    the geometry (type, length, radius, limits) of some source segment. The number of segments and of
-    joints may differ. Contexts "segment" and "full" cannot transfer.
-    """
+    """The trained per-segment network of ``model``, unchanged, composed over the segments of ``target``
+    (docs/compositional.md, "Transfer to other robots"). "strain" units: target segments of any type, length, radius
+    and joint layout (its error grows where their features leave the training range); one that extends or twists
+    needs a source segment that does (ValueError). "metric" units: each target segment must have the geometry (type,
+    length, radius, limits) of some source segment. Contexts "segment" and "full" cannot transfer."""
     if model.front.context in ("segment", "full"):
         raise ValueError(f"transfer: a model with context {model.front.context!r} has inputs per source segment index; "
                          "train with context 'none' or 'distal' to transfer to another number of segments")

@@ -71,12 +71,9 @@ _DROP_ADVERTS = _DropAdverts()
 
 
 def quiet_third_party_warnings() -> None:
-    """Hide the known third-party warnings and adverts a user of our CLIs cannot act on (see the
-    comments at :data:`_WARNINGS` and :data:`_LIGHTNING_ADVERTS` for where each arises). Each filter
-    matches one message from one module; our own warnings and every other one still show.
-
-    The warning filters are appended, so ``python -W …`` / ``PYTHONWARNINGS`` (inserted before them
-    at start-up) still decide; calling this again adds nothing."""
+    """Hide the known third-party warnings and adverts a user of our CLIs cannot act on (each filter: one message
+    from one module, :data:`_WARNINGS`, :data:`_LIGHTNING_ADVERTS`). Appended, so ``python -W …`` /
+    ``PYTHONWARNINGS`` still decide; calling this again adds nothing."""
     for message, category, module in _WARNINGS:
         warnings.filterwarnings("ignore", message=message, category=category, module=module, append=True)
     logging.getLogger(_LIGHTNING_LOGGER).addFilter(_DROP_ADVERTS)   # addFilter skips a filter already there
@@ -145,10 +142,8 @@ def debug_enabled() -> bool:
 
 
 def run_cli(main: Callable[[list[str] | None], object], argv: list[str] | None = None) -> int:
-    """Run a CLI's ``main(argv)`` (``argv`` None: ``sys.argv[1:]``) and return its exit status:
-    0; 2 for a user error (:func:`first_user_error`), printed as the one line ``error: <message>``
-    on stderr (after the traceback with ``DACR_DEBUG=1``); 130 for Ctrl-C (one line). Any other
-    exception propagates. Installs :func:`quiet_third_party_warnings` first."""
+    """Run a CLI's ``main(argv)`` (``argv`` None: ``sys.argv[1:]``) and return its exit status (0, 2 for a user
+    error, 130 for Ctrl-C; the module docstring)."""
     quiet_third_party_warnings()
     try:
         main(argv)

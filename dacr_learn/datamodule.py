@@ -100,9 +100,8 @@ class KinematicsDataModule(pl.LightningDataModule):
         source: "cc" (default) or "cosserat" (needs a robot with a ``mechanics:`` block; no noise options).
         cosserat: options of the Cosserat source (:class:`~dacr_learn.data.cosserat.CosseratOptions`:
             tension_max, tendons_pulled, gravity, tip_force_max, steps_per_segment, tol, max_iter).
-        body_points: K > 0 serves the true body in batches ("backbone", (B, 1 + m·K, 3) [m], the layout of
-            :mod:`dacr_learn.body`): the exact CC arcs of the noise-free features ("cc"), or every
-            (steps_per_segment/K)-th node of the Cosserat solution ("cosserat"; K must divide steps_per_segment).
+        body_points: K > 0 serves the true body in batches ("backbone", (B, 1 + m·K, 3) [m]; docs/body.md,
+            "Training the shape output"; with "cosserat", K must divide steps_per_segment).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", n_train: int = 100_000,

@@ -1,10 +1,8 @@
 """Constant-curvature kinematics from Clarke features (docs/design.md §2).
 
-Per segment, with u = (ρ_re, ρ_im)/d, φ² = ‖u‖², s = sin φ/φ, f = (1 − cos φ)/φ²:
-R = I + s·K + f·K² (rotation about (−u_y, u_x, 0) by φ), p = β·(u_x f, u_y f, s),
-and a twisting segment is first rolled by α about its base z axis: T = Rz(α)·T_cc.
-s and f are evaluated as functions of φ² with a Taylor branch near 0 (double-``where``), so
-values and gradients are finite at the straight configuration. No atan2, no division by φ.
+A segment with bending vector u = (ρ_re, ρ_im)/d and length β is exp of the twist :func:`cc_twist` (rotation about
+(−u_y, u_x, 0) by φ = ‖u‖), a twisting segment first rolled by α about its base z axis: T = Rz(α)·T_cc; through
+the closed forms of :mod:`.lie`, finite with finite gradients at the straight configuration (no atan2, no ÷ φ).
 
 Shapes: features (..., m, 4) with columns (ρ_re [m], ρ_im [m], β [m], α [rad]); poses are
 homogeneous (..., 4, 4) [m]. Columns a segment does not actuate are ignored (β = l, α = 0).
@@ -17,13 +15,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_tensor
-from .lie import (
-    TAYLOR_BELOW,
-    chain_products,
-    exp_components,
-    pose_of_components,
-    roll_components,
-)
+from .lie import TAYLOR_BELOW, chain_products, exp_components, pose_of_components, roll_components
 from .robot import RobotSpec
 
 
@@ -138,9 +130,8 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
     (u_x, u_y, β): angular b = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω), i.e. b_x = (−g·u_x·u_y, 1 − g·u_y², −f·u_y),
     b_y = (g·u_x² − 1, g·u_x·u_y, f·u_x), b_β = 0, and linear dp_x = β·(f + 2f'·u_x², 2f'·u_x·u_y, 2s'·u_x),
     dp_y = β·(2f'·u_x·u_y, f + 2f'·u_y², 2s'·u_y), dp_β = (f·u_x, f·u_y, s); a twisting segment is rolled, Rz(α)·T,
-    its tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule (ω = R_{k−1}·b,
-    v = R_{k−1}·dp + ω × (p_tip − o_k), R_{k−1} the rotation of T_1⋯T_{k−1}, o_k the origin of T_1⋯T_k) transports
-    all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
+    its tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule of
+    :func:`~.lie.chain_components` transports all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
 
     The returned J and pose are views whose batch is innermost in memory (rows-last: ``J.permute(-2, -1, …)`` of a
     contiguous (6, D, M) block); ``.contiguous()`` gives the row-major copy.

@@ -18,15 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .component_algebra import Rot3, Vec3, components, dense
-from .component_algebra import add as _sum
-from .component_algebra import cross as _cross
-from .component_algebra import dot as _dot
-from .component_algebra import matmul as _matmul
-from .component_algebra import matvec as _matvec
-from .component_algebra import neg as _neg
-from .component_algebra import prod as _prod
-from .component_algebra import scaled as _scaled
+from .component_algebra import Rot3, Vec3, add, components, cross, dense, dot, matmul, matvec, neg, prod, scaled
 
 __all__ = [
     "TAYLOR_BELOW", "bending_coefficients", "bending_coefficients_and_derivatives", "chain_products", "hat",
@@ -142,18 +134,18 @@ def exp_components(v: Vec3, w: Vec3) -> tuple[Rot3, Vec3]:
 
 
 def _phi_sq(v: Vec3, w: Vec3) -> Tensor:
-    phi_sq = _dot(w, w)
+    phi_sq = dot(w, w)
     return torch.zeros_like(next(c for c in v if c is not None)) if phi_sq is None else phi_sq
 
 
 def _exp_from_coefficients(v: Vec3, w: Vec3, s: Tensor, f: Tensor, g: Tensor) -> tuple[Rot3, Vec3]:
     c = 1 - f * _phi_sq(v, w)
-    fw, sw = _scaled(f, w), _scaled(s, w)
-    rot = (_sum(c, _prod(fw[0], w[0])), _sum(_prod(fw[0], w[1]), _neg(sw[2])), _sum(_prod(fw[0], w[2]), sw[1]),
-           _sum(_prod(fw[1], w[0]), sw[2]), _sum(c, _prod(fw[1], w[1])), _sum(_prod(fw[1], w[2]), _neg(sw[0])),
-           _sum(_prod(fw[2], w[0]), _neg(sw[1])), _sum(_prod(fw[2], w[1]), sw[0]), _sum(c, _prod(fw[2], w[2])))
-    wv, gwv = _cross(w, v), _prod(g, _dot(w, v))
-    return rot, tuple(_sum(_prod(s, v[i]), _prod(f, wv[i]), _prod(gwv, w[i])) for i in range(3))
+    fw, sw = scaled(f, w), scaled(s, w)
+    rot = (add(c, prod(fw[0], w[0])), add(prod(fw[0], w[1]), neg(sw[2])), add(prod(fw[0], w[2]), sw[1]),
+           add(prod(fw[1], w[0]), sw[2]), add(c, prod(fw[1], w[1])), add(prod(fw[1], w[2]), neg(sw[0])),
+           add(prod(fw[2], w[0]), neg(sw[1])), add(prod(fw[2], w[1]), sw[0]), add(c, prod(fw[2], w[2])))
+    wv, gwv = cross(w, v), prod(g, dot(w, v))
+    return rot, tuple(add(prod(s, v[i]), prod(f, wv[i]), prod(gwv, w[i])) for i in range(3))
 
 
 def exp_components_and_tangents(v: Vec3, w: Vec3, directions: list[tuple[Vec3, Vec3]]) -> tuple:
@@ -168,18 +160,18 @@ def exp_components_and_tangents(v: Vec3, w: Vec3, directions: list[tuple[Vec3, V
     """
     s, f, g, ds, df, dg = exp_coefficients_and_derivatives(_phi_sq(v, w))
     rot, pos = _exp_from_coefficients(v, w, s, f, g)
-    wv, w_v = _cross(w, v), _dot(w, v)
-    gw_v = _prod(g, w_v)
+    wv, w_v = cross(w, v), dot(w, v)
+    gw_v = prod(g, w_v)
     tangents = []
     for dv, dw in directions:
-        dphi = _prod(2, _dot(w, dw))
-        wdw = _cross(w, dw)
-        ang = tuple(_sum(dw[i], _prod(f, wdw[i]), _prod(g, c)) for i, c in enumerate(_cross(w, wdw)))
-        dwv = tuple(_sum(a, b) for a, b in zip(_cross(dw, v), _cross(w, dv), strict=True))
-        dsp, dfp = _prod(ds, dphi), _prod(df, dphi)
-        dg_w_v = _sum(_prod(dg, dphi, w_v), _prod(g, _sum(_dot(dw, v), _dot(w, dv))))
-        lin = tuple(_sum(_prod(s, dv[i]), _prod(dsp, v[i]), _prod(f, dwv[i]), _prod(dfp, wv[i]), _prod(dg_w_v, w[i]),
-                         _prod(gw_v, dw[i])) for i in range(3))
+        dphi = prod(2, dot(w, dw))
+        wdw = cross(w, dw)
+        ang = tuple(add(dw[i], prod(f, wdw[i]), prod(g, c)) for i, c in enumerate(cross(w, wdw)))
+        dwv = tuple(add(a, b) for a, b in zip(cross(dw, v), cross(w, dv), strict=True))
+        dsp, dfp = prod(ds, dphi), prod(df, dphi)
+        dg_w_v = add(prod(dg, dphi, w_v), prod(g, add(dot(dw, v), dot(w, dv))))
+        lin = tuple(add(prod(s, dv[i]), prod(dsp, v[i]), prod(f, dwv[i]), prod(dfp, wv[i]), prod(dg_w_v, w[i]),
+                         prod(gw_v, dw[i])) for i in range(3))
         tangents.append((ang, lin))
     return rot, pos, tangents
 
@@ -193,7 +185,7 @@ def roll_components(alpha: Tensor, rot: Rot3, pos: Vec3, tangents: list[tuple[Ve
     c, s = torch.cos(alpha), torch.sin(alpha)
 
     def rz(x: tuple) -> tuple:
-        return (_sum(_prod(c, x[0]), _neg(_prod(s, x[1]))), _sum(_prod(s, x[0]), _prod(c, x[1])), *x[2:])
+        return (add(prod(c, x[0]), neg(prod(s, x[1]))), add(prod(s, x[0]), prod(c, x[1])), *x[2:])
 
     cols = rz(rot[0::3]), rz(rot[1::3]), rz(rot[2::3])
     rot = tuple(cols[j][i] for i in range(3) for j in range(3))                      # back to row-major
@@ -204,8 +196,8 @@ def roll_components(alpha: Tensor, rot: Rot3, pos: Vec3, tangents: list[tuple[Ve
     if roll_direction is not None:
         t, weight = roll_direction
         ang, lin = rolled[t]
-        ang = (ang[0], ang[1], _sum(ang[2], weight))
-        lin = (_sum(lin[0], _neg(_prod(weight, pos[1]))), _sum(lin[1], _prod(weight, pos[0])), lin[2])
+        ang = (ang[0], ang[1], add(ang[2], weight))
+        lin = (add(lin[0], neg(prod(weight, pos[1]))), add(lin[1], prod(weight, pos[0])), lin[2])
         rolled[t] = (ang, lin)
     return rot, pos, rolled
 
@@ -222,16 +214,16 @@ def chain_components(rots: list[Rot3], poss: list[Vec3],
     origins.append(pos)
     for r, p in zip(rots[1:], poss[1:], strict=True):
         bases.append(rot)
-        pos = tuple(_sum(a, b) for a, b in zip(_matvec(rot, p), pos, strict=True))
-        rot = _matmul(rot, r)
+        pos = tuple(add(a, b) for a, b in zip(matvec(rot, p), pos, strict=True))
+        rot = matmul(rot, r)
         origins.append(pos)
     columns = []
     for k, factor in enumerate(tangents or []):
-        arm = tuple(_sum(t, _neg(o)) for t, o in zip(pos, origins[k], strict=True))
+        arm = tuple(add(t, neg(o)) for t, o in zip(pos, origins[k], strict=True))
         cols = []
         for b, dp in factor:
-            omega, vel = (b, dp) if k == 0 else (_matvec(bases[k - 1], b), _matvec(bases[k - 1], dp))
-            cols.append((tuple(_sum(a, c) for a, c in zip(vel, _cross(omega, arm), strict=True)), omega))
+            omega, vel = (b, dp) if k == 0 else (matvec(bases[k - 1], b), matvec(bases[k - 1], dp))
+            cols.append((tuple(add(a, c) for a, c in zip(vel, cross(omega, arm), strict=True)), omega))
         columns.append(cols)
     return rot, pos, columns
 

@@ -133,15 +133,11 @@ def pose_to_vector(pose: Tensor, length: float) -> Tensor:
 class FKModel(nn.Module):
     """Learned forward kinematics: joint vector (..., num_joints) → tip pose (..., 4, 4) [m].
 
-    ``body_points`` K > 0 adds a shape output: a second network of the same shape (``body_net``, on the same
-    input features) predicting the body, 1 + m·K points (..., 1 + m·K, 3) [m] in the base frame at the
-    fractions j/K of every segment (the layout of :mod:`dacr_learn.body`), each divided by the total length;
-    :meth:`body` returns them. It is trained on the data's backbones (``training.FKModule``'s ``body_weight``);
-    the tip network is untouched by it (0: no shape output, the model and its state dict as before).
-    ``body_prior``: "none" (the network gives the points) or "cc" (the network gives their offsets from the CC
-    arcs of the joint vector's Clarke features, :func:`~dacr_learn.kinematics.backbone_points`: what the CC model
-    leaves out, e.g. the sag of a robot under its weight, is learned, the arcs are not). The body's last point is
-    the shape output's own tip, not the tip network's.
+    ``body_points`` K > 0 adds a shape output (docs/body.md): a second network of the same shape (``body_net``, on
+    the same input features) predicting the body's 1 + m·K points (the layout of :mod:`dacr_learn.body`) divided by
+    the total length, ``body_prior`` "none", or "cc": their offsets from the CC arcs of the joint vector's features
+    (:func:`~dacr_learn.kinematics.backbone_points`). :meth:`body` returns them; the tip network is untouched by it
+    (0: no shape output, the model and its state dict as before). The body's last point is the shape output's own tip.
     """
 
     structure = "monolithic"     # one network for the whole robot (vs compositional.CompositionalFK)

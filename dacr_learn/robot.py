@@ -1,26 +1,8 @@
 """Robot description: a frozen, validated :class:`RobotSpec` and its YAML/dict I/O.
 
-Schema (docs/design.md §4)::
-
-    name: tdcr-3seg
-    routing: coupled            # or independent
-    segments:
-      - type: "I"               # "0" | "I" | "II" | "III"
-        length: 0.10            # nominal length l [m]; the fixed length of types 0 and II
-        radius: 0.008           # reference radius d of the Clarke coordinates [m]
-        joints: 4               # n symmetric joints ...
-        offset: 0.0             #   ... starting at this angle [rad]
-        # or: joint_angles: [...] [rad] and optional joint_radii: [...] [m]
-        limits: {bend: 1.57, length: [0.08, 0.12], twist: [-1.0, 1.0]}
-        body_radius: 0.012      # optional envelope radius [m] (spacer disks / sheath) for collision checks;
-                                #   default: the largest joint radius of the segment
-    mechanics: {...}            # optional, for the Cosserat-rod model (its keys: docs/cosserat.md)
-
-Default sampling limits (used when ``limits`` or one of its keys is absent):
-``bend = pi/2`` rad (maximum bending angle), ``length = [0.8 l, 1.2 l]`` m for extending
-types I/III, ``twist = [-pi/2, pi/2]`` rad for twisting types II/III.
-
-This module does not depend on ``torch.nn``; all geometry is kept in plain floats.
+The schema, its defaults and the errors it raises: docs/design.md §4 (``body_radius``, the envelope a wall touches:
+docs/body.md; the optional ``mechanics`` block of the Cosserat-rod model: docs/cosserat.md §1). This module does
+not depend on ``torch.nn``; all geometry is kept in plain floats.
 """
 from __future__ import annotations
 
@@ -45,12 +27,8 @@ _SEGMENT_KEYS = {"type", "length", "radius", "joints", "offset", "joint_angles",
                  "body_radius"}
 _MECHANICS_KEYS = {"youngs_modulus", "shear_modulus", "poisson_ratio", "outer_radius", "inner_radius", "density",
                    "tendon_compliance"}
-# Largest accepted condition number of a segment's joint layout A ([A, 1] when it extends). The Clarke
-# encoder solves q → features by least squares in the training/export dtype float32, whose relative
-# error grows like cond·eps(float32) = cond·1.2e-7; at 1e4 that is ≈ 1e-3 (three significant digits
-# left, ≈ 10 µm on a 10 mm Clarke coordinate), and joint-length noise is amplified as much. Real layouts
-# (joints spread around the backbone) have cond ≈ 1.4–10, and a layout that is singular up to rounding,
-# e.g. joint_angles (0, π, 0) with sin π ≈ 1e-16, has cond ≈ 1e16.
+# Largest accepted condition number of a segment's joint layout A ([A, 1] when it extends): the float32 encoder's
+# relative error grows like cond·eps, 1e-3 at this bound (docs/design.md §1); real layouts have cond ≈ 1.4–10.
 MAX_LAYOUT_CONDITION = 1e4
 
 
@@ -67,29 +45,26 @@ def _check_keys(where: str, d: Any, allowed: set[str]) -> None:
         _fail(where, sorted(unknown), "only keys " + ", ".join(sorted(allowed)))
 
 
-def _positive_float(field: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        _fail(field, value, "a number")
-    if not math.isfinite(value) or value <= 0:
-        _fail(field, value, "a finite number > 0")
+def _number(field: str, value: Any, expected: str, ok=math.isfinite) -> float:
+    """``value`` as a float; ValueError naming ``field`` unless it is a number (not a bool) for which ``ok`` holds."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not ok(value):
+        _fail(field, value, expected)
     return float(value)
+
+
+def _positive_float(field: str, value: Any) -> float:
+    _number(field, value, "a number", ok=lambda v: True)
+    return _number(field, value, "a finite number > 0", ok=lambda v: math.isfinite(v) and v > 0)
 
 
 def _float_list(field: str, value: Any) -> tuple[float, ...]:
     if not isinstance(value, (list, tuple)):
         _fail(field, value, "a list of numbers")
-    out = []
-    for i, v in enumerate(value):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            _fail(f"{field}[{i}]", v, "a finite number")
-        out.append(float(v))
-    return tuple(out)
+    return tuple(_number(f"{field}[{i}]", v, "a finite number") for i, v in enumerate(value))
 
 
 def _nonnegative_float(field: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-        _fail(field, value, "a finite number >= 0")
-    return float(value)
+    return _number(field, value, "a finite number >= 0", ok=lambda v: math.isfinite(v) and v >= 0)
 
 
 def _range(field: str, value: Any, positive: bool) -> tuple[float, float]:
@@ -202,11 +177,9 @@ def _joint_layout(d: Mapping[str, Any], where: str, radius: float):
         _fail(f"{where}.joints", n, "an integer number of joints >= 3 (or joint_angles)")
     if n < 3:
         _fail(f"{where}.joints", n, "at least 3 joints")
-    offset = d.get("offset", 0.0)
-    if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not math.isfinite(offset):
-        _fail(f"{where}.offset", offset, "a finite angle in radians")
-    angles = tuple(float(offset) + 2 * math.pi * i / n for i in range(n))
-    return angles, (radius,) * n, True, float(offset)
+    offset = _number(f"{where}.offset", d.get("offset", 0.0), "a finite angle in radians")
+    angles = tuple(offset + 2 * math.pi * i / n for i in range(n))
+    return angles, (radius,) * n, True, offset
 
 
 def _limits(lim: Any, where: str, seg_type: str, length: float):
@@ -217,16 +190,15 @@ def _limits(lim: Any, where: str, seg_type: str, length: float):
     extra = set(lim) - allowed
     if extra:
         _fail(f"{where}.limits", sorted(extra), f"only keys {sorted(allowed)} for a type-{seg_type} segment")
-    bend = lim.get("bend", DEFAULT_BEND)
-    if isinstance(bend, bool) or not isinstance(bend, (int, float)) or not 0 < bend <= math.pi:
-        _fail(f"{where}.limits.bend", bend, "a bending angle in (0, pi] rad")
+    bend = _number(f"{where}.limits.bend", lim.get("bend", DEFAULT_BEND), "a bending angle in (0, pi] rad",
+                   ok=lambda b: 0 < b <= math.pi)
     length_range = twist_range = None
     if seg_type in EXTENDING_TYPES:
         default = [length * DEFAULT_LENGTH_RATIO[0], length * DEFAULT_LENGTH_RATIO[1]]
         length_range = _range(f"{where}.limits.length", lim.get("length", default), positive=True)
     if seg_type in TWISTING_TYPES:
         twist_range = _range(f"{where}.limits.twist", lim.get("twist", list(DEFAULT_TWIST)), positive=False)
-    return float(bend), length_range, twist_range
+    return bend, length_range, twist_range
 
 
 def layout_condition(seg: SegmentSpec) -> float:
@@ -276,16 +248,15 @@ class MechanicsSpec:
             _fail(where, sorted(set(d) & {"shear_modulus", "poisson_ratio"}),
                   "exactly one of shear_modulus [Pa] and poisson_ratio")
         nu = d.get("poisson_ratio")
-        if "poisson_ratio" in d and (isinstance(nu, bool) or not isinstance(nu, (int, float)) or not -1 < nu <= 0.5):
-            _fail(f"{where}.poisson_ratio", nu, "a number in (-1, 0.5]")
+        if "poisson_ratio" in d:
+            nu = _number(f"{where}.poisson_ratio", nu, "a number in (-1, 0.5]", ok=lambda v: -1 < v <= 0.5)
         g = e / (2 * (1 + nu)) if nu is not None else _positive_float(f"{where}.shear_modulus", d["shear_modulus"])
         outer = _positive_float(f"{where}.outer_radius", d.get("outer_radius"))
         inner = _nonnegative_float(f"{where}.inner_radius", d.get("inner_radius", 0.0))
         if inner >= outer:
             _fail(f"{where}.inner_radius", inner, f"a radius < outer_radius = {outer} m")
         return cls(e, g, outer, inner, _nonnegative_float(f"{where}.density", d.get("density", 0.0)),
-                   _nonnegative_float(f"{where}.tendon_compliance", d.get("tendon_compliance", 0.0)),
-                   None if nu is None else float(nu))
+                   _nonnegative_float(f"{where}.tendon_compliance", d.get("tendon_compliance", 0.0)), nu)
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"youngs_modulus": self.youngs_modulus}

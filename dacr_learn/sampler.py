@@ -7,13 +7,11 @@ The flow is ``zuko.flows.NSF`` (coupling, ``passes=2``) on standardised variable
 - ``features="clarke"``: y = standardise(squash⁻¹(x)), x the actuated Clarke features (``models.actuated_columns``
   order). The squash maps ℝᴰ onto the robot's limits: a box coordinate (β, α) by mid + half·tanh(v), a bending
   pair v ∈ ℝ² into its disk ‖ρ‖ ≤ d·bend by ρ = d·bend·tanh(‖v‖)·v/‖v‖, so every sample lies inside the limits.
-- ``features="raw"``: y = standardise(q); a sample is encoded to features (least squares onto the displacement
-  constraint) and projected onto the limits (:meth:`~dacr_learn.limits.Limits.project`); the training noise
-  (``SamplerModule.noise``) keeps the density on the constraint's subspace finite.
+- ``features="raw"``: y = standardise(q); a sample is encoded to features and projected onto the limits
+  (:meth:`~dacr_learn.limits.Limits.project`); the training noise (``SamplerModule.noise``) keeps the density finite.
 
-Conditioning c (10,): :func:`~dacr_learn.models.pose_to_vector` of the target (position / L, the first two rows of
-R), standardised, and a flag that is 1 when the rotation is given (a position-only target has its rotation entries
-at 0 and the flag 0). No Lightning here; the training module is :class:`dacr_learn.training_sampler.SamplerModule`.
+Conditioning c (10,): the standardised :func:`~dacr_learn.models.pose_to_vector` of the target and a flag, 1 when
+the rotation is given (else its entries are 0). No Lightning; trained by :class:`~.training_sampler.SamplerModule`.
 """
 from __future__ import annotations
 

@@ -183,11 +183,10 @@ class FKModule(KinematicsModule):
     "compositional" (one network per segment transform, :mod:`dacr_learn.compositional`; ``rotation`` "twist" |
     "6d", ``context`` "none" | "segment" | "distal" | "full", ``units`` "strain" | "metric"). ``segment_weight``:
     weight of the loss on the end frames of the segments before the tip when batches carry ``segment_frames``
-    (compositional only). The body (:mod:`dacr_learn.body`): ``body_points`` K > 0 gives a monolithic model a shape
-    output (``body_prior`` "none" | "cc": the points, or their offsets from the CC arcs); a compositional model's
-    body is its segment twists followed part of the way ("twist" head). When batches carry the true body
-    ("backbone", the datamodule's ``body_points``), ``body_weight`` × the mean of ‖p̂ − p‖²/L² over its points is
-    added to the loss, and validation/test report ``body_err`` (per sample the largest point error).
+    (compositional only). The body (docs/body.md, "Training the shape output"): ``body_points`` K > 0 and
+    ``body_prior`` give a monolithic model a shape output (:class:`~dacr_learn.models.FKModel`); when batches carry
+    the true body, ``body_weight`` × the mean of ‖p̂ − p‖²/L² over its points is added to the loss, and
+    validation/test report ``body_err`` (per sample the largest point error).
     """
 
     def __init__(self, robot: str | dict = "configs/robots/default.yaml", features: str = "clarke",
@@ -238,9 +237,8 @@ class IKModule(KinematicsModule):
 
     Loss = ``feature_weight`` × MSE of the standardised network output against the sample's joint-space target
     (actuated Clarke features, or q for "raw") + ``pose_weight`` × :func:`pose_loss` (``rot_weight``) of the
-    analytic CC FK of the predicted joints against the input pose. On a redundant robot (3 segments: 9 features
-    for a 6-DOF pose) the feature term regresses to the conditional mean of the solutions, which is not one; the
-    pose term accepts any. ``output_scale``: the output standardisation (:class:`~dacr_learn.models.IKModel`).
+    analytic CC FK of the predicted joints against the input pose (on a redundant robot the feature term alone
+    learns the mean of the solutions, no solution). ``output_scale``: :class:`~dacr_learn.models.IKModel`.
 
     ``limit_weight`` × the mean :func:`limit_excess` of the decoded features keeps the predictions at the training
     poses inside the sampled joint limits; ``limit_noise`` > 0 adds that penalty at the training inputs plus
@@ -253,9 +251,8 @@ class IKModule(KinematicsModule):
 
     ``pose_ramp`` (a fraction of the training steps): the weights move linearly from (1, 0), the pure feature
     term, to (``feature_weight``, ``pose_weight``): the network learns the smooth conditional mean first, then
-    the pose term pulls it onto the nearest solution branch (a pose loss from a random start converges much
-    more slowly and leaves more predictions outside the limits). ``pose_ramp_max_epochs`` caps that phase at so
-    many epochs, so one config serves every data size (docs/ablation.md, "Multi-segment IK with a pose loss").
+    the pose term pulls it onto the nearest solution branch (docs/ablation.md, "Multi-segment IK with a pose
+    loss", says why). ``pose_ramp_max_epochs`` caps that phase at so many epochs, so one config serves every size.
     Validation/test summaries add ``out_of_limits_pct``: the share of predictions with :func:`limit_excess`
     above 1e-6 (about 0.1 % relative overshoot).
     """

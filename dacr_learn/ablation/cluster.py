@@ -1,9 +1,5 @@
-"""Run the ablation's jobs on a Dask distributed cluster (optional extra ``cluster``).
-
-    pip install -e ".[cluster]"
-    dask scheduler                                  # on one machine: prints tcp://HOST:8786
-    dask worker tcp://HOST:8786 --nthreads 1        # on every machine, as many as wanted
-    python -m dacr_learn.ablation --config ... --out ... --cluster tcp://HOST:8786
+"""Run the ablation's jobs on a Dask distributed cluster (optional extra ``cluster``; how to start the scheduler
+and the workers: docs/ablation.md, "On a cluster").
 
 The workers need the same ``dacr_learn`` installed; robot YAMLs are shipped as spec dicts. Jobs go through
 ``Client.get_executor()`` (a ``concurrent.futures.Executor``, like the local pool). A worker that dies loses

@@ -2,9 +2,7 @@
 
 One *job* = one training (robot, task, features, n_train, seed, structure) through the LightningModules of
 ``train.py`` for a fixed number of steps, evaluated on fixed test sets, one CSV row per test-time *condition*
-(docs/ablation.md, "Protocol"): fk ``clean``, ``joint_noise``, ``offset`` (a common-mode drift); ik ``clean``,
-``pose_noise``; for the robot ``transfer.from`` also ``transfer_n6`` (the network run on the robot
-``transfer.to`` through its Clarke layers; raw models cannot: NaN metrics and a note).
+(:func:`conditions`; what each is: docs/ablation.md, "Protocol").
 
 ``data: {source: cosserat, cosserat: {...}, cache_dir: DIR}`` (optional; default CC samples) trains and tests on
 Cosserat-rod datasets (:mod:`dacr_learn.data.cosserat`), cached under DIR; only ``clean``, and FK rows gain

@@ -1,13 +1,10 @@
 """A rigid arm from a URDF: a float64 pytorch-kinematics serial chain, its joints and their limits.
 
 :func:`load_arm` builds the chain from the URDF's root link (or ``root``) to the ``tip`` link with
-``pytorch_kinematics.build_chain_from_urdf`` / ``SerialChain``. pytorch-kinematics parses the joint origins in
-float32 (about 2e-8 m off on a Panda); here each origin and axis is set again in float64 from the same URDF
-parse, so the chain is the file's geometry to round-off. The arm's joints are the chain's movable joints in
-its order (``chain.get_joint_parameter_names()``): revolute [rad], prismatic [m]; their limits come from the
-file; a joint without an <axis> turns about (1, 0, 0), the URDF default (pytorch-kinematics would take
-(0, 0, 1)). A ``continuous`` joint (no limits) gets the box [−2π, 2π] (the solver needs a bounded box; the angle
-is not wrapped). Mimic joints are not supported (a ValueError names them).
+``pytorch_kinematics.build_chain_from_urdf`` / ``SerialChain``, corrected where pytorch-kinematics departs from the
+file (origins in float64, the default axis (1, 0, 0)): docs/arm.md, "The URDF, exactly". The arm's joints are the
+chain's movable joints in its order (``chain.get_joint_parameter_names()``): revolute [rad], prismatic [m], their
+limits from the file; a ``continuous`` joint gets the box [−2π, 2π]; mimic joints are a ValueError.
 """
 from __future__ import annotations
 

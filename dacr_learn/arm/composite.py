@@ -1,19 +1,13 @@
 """An arm carrying a continuum robot: one batched, differentiable model with a closed-form whole-body Jacobian.
 
-The world frame is the arm's base (its root link). With θ (n,) the arm's joints, T_a(θ) the pose of its tip
-link (pytorch-kinematics), M the fixed mount (tip link → robot base) and T_c(x_c) the continuum robot's tip
-pose in its base frame (any :class:`~dacr_learn.ik.SolverModel`), the whole-body tip pose is
+World frame: the arm's base. With θ (n,) the arm's joints, T_a(θ) its tip link's pose (pytorch-kinematics), M the
+fixed mount (tip link → robot base) and T_c(x_c) the continuum robot's tip pose (any
+:class:`~dacr_learn.ik.SolverModel`), the whole-body tip pose is
 
     T(θ, x_c) = T_a(θ) · M · T_c(x_c),   p = p_b + R_b·p_c,  R = R_b·R_c,  (R_b, p_b) = T_a·M (the robot base).
 
-Whole-body Jacobian (tip-point velocity and angular velocity in the world frame), columns (θ, x_c):
-
-    arm column i:       v_i = J_a,v,i + ω_i × (p − p_a),  ω_i = J_a,ω,i   (pytorch-kinematics' ``jacobian`` at the
-                        tip link, shifted to the continuum tip)
-    continuum column j: v_j = R_b·J_c,v,j,  ω_j = R_b·J_c,ω,j           (the robot's Jacobian, rotated to the world)
-
-The joint vector is (θ in the chain's order [rad, m], then the robot's joints); the IK variables are θ (box
-limits of the URDF) and the robot's own variables (its limits: Clarke disks and boxes). :class:`Composite` is a
+The joint vector, the IK variables and their limits, and the columns of the closed-form Jacobian (arm: shifted to
+the continuum tip; robot: rotated into the world): docs/arm.md, "The model". :class:`Composite` is a
 :class:`~dacr_learn.ik.SolverModel`, so ``solve_ik`` inverts it unchanged. Float64 throughout.
 """
 from __future__ import annotations

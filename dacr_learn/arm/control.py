@@ -1,14 +1,11 @@
 """Whole-body resolved-rate control of an arm carrying a continuum robot, with every limit; and the decoupled
 scheme (the arm first, then the robot) it is compared with (examples/track_port.py).
 
-One whole-body step in the variables x = (θ, x_c) of a :class:`~.composite.Composite` (docs/arm.md, "Whole-body
-resolved-rate control", numbers the five steps): the tip task (J_v, w·J_ω), w [m/rad], and with a :class:`Port`
-rows k·J_b keeping the robot's base at the port centre; limits inside the step as in the IK solver
-(:meth:`~dacr_learn.ik.Limits.free_directions`, and variables a scheme does not move); the damped least-squares
-step (:func:`~dacr_learn.deploy.control.scaled_dls_step`, optional null-space pull to a rest posture), shortened to
-``max_step`` and, with ``dt``, to the URDF velocity limits; then the admissible point nearest x + s·Δz.
-:class:`DecoupledController` runs the same step twice: the arm alone as if the robot were straight at rest, then
-the robot alone. Everything float64; pure torch (no Lightning, no Rerun).
+One whole-body step in the variables x = (θ, x_c) of a :class:`~.composite.Composite`, the five steps of docs/arm.md
+("Whole-body resolved-rate control"): the tip task and, with a :class:`Port`, rows keeping the robot's base at the
+port centre; the limits inside the step as in the IK solver; the damped least-squares step
+(:func:`~dacr_learn.deploy.control.scaled_dls_step`) shortened to ``max_step`` and the URDF velocity limits; then
+the admissible point nearest x + s·Δz. Everything float64; pure torch (no Lightning, no Rerun).
 """
 from __future__ import annotations
 

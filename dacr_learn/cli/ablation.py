@@ -11,17 +11,8 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
+from ..ablation import runner
 from ..ablation.report import write_reports
-from ..ablation.runner import (
-    append_rows,
-    check_frozen,
-    finished_rows,
-    load_config,
-    make_jobs,
-    read_rows,
-    rewrite,
-    run_job,
-)
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -47,7 +38,7 @@ def _run_in_process(cfg, jobs, sink) -> None:
     torch.set_num_threads(1)
     try:
         for job in jobs:
-            sink(run_job(cfg, job))
+            sink(runner.run_job(cfg, job))
     finally:
         torch.set_num_threads(threads)
 
@@ -73,7 +64,7 @@ def _run_in_pool(cfg, jobs, sink, workers: int) -> None:
     """Local worker processes (spawned, one torch thread each)."""
     ctx = mp.get_context("spawn")
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
-        _run_with_executor(pool, run_job, cfg, jobs, sink, workers)
+        _run_with_executor(pool, runner.run_job, cfg, jobs, sink, workers)
 
 
 def _run_on_cluster(cfg, jobs, sink, address: str) -> None:
@@ -92,16 +83,16 @@ def _run_on_cluster(cfg, jobs, sink, address: str) -> None:
 def main(argv=None) -> dict:
     """Run the pending jobs of the grid and write the reports; returns {"ran": n, "skipped": n, "out": path}."""
     args = parse_args(argv)
-    cfg = load_config(args.config, quick=args.quick)
+    cfg = runner.load_config(args.config, quick=args.quick)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = out / "results.csv"
     ran = skipped = 0
     if not args.report_only:
-        check_frozen(cfg, out)
-        keep, done = finished_rows(cfg, csv_path)
-        rewrite(csv_path, keep)                       # drops the rows of a job cut off mid-write
-        jobs = make_jobs(cfg)
+        runner.check_frozen(cfg, out)
+        keep, done = runner.finished_rows(cfg, csv_path)
+        runner.rewrite(csv_path, keep)                       # drops the rows of a job cut off mid-write
+        jobs = runner.make_jobs(cfg)
         pending = [j for j in jobs if j.key not in done]
         skipped = len(jobs) - len(pending)
         bar = tqdm(total=len(jobs), initial=skipped, unit="run", desc="ablation", dynamic_ncols=True,
@@ -109,7 +100,7 @@ def main(argv=None) -> dict:
 
         def sink(rows):
             nonlocal ran
-            append_rows(csv_path, rows)
+            runner.append_rows(csv_path, rows)
             ran += 1
             r = rows[0]
             bar.set_postfix_str(f"{r['robot']} {r['task']} {r['features']} n={r['n_train']} s={r['seed']}")
@@ -125,7 +116,7 @@ def main(argv=None) -> dict:
         finally:
             bar.close()
     title = f"Ablation Clarke vs raw ({'quick' if args.quick else 'full'} grid, {Path(args.config).name})"
-    reports = write_reports(read_rows(csv_path), out, list(cfg["robots"]), title)
+    reports = write_reports(runner.read_rows(csv_path), out, list(cfg["robots"]), title)
     print(f"{ran} runs done, {skipped} already finished; results in {csv_path}, {reports['summary']}, "
           f"{len(reports['plots'])} plots, {reports['rrd']}")
     return {"ran": ran, "skipped": skipped, "out": out, **reports}

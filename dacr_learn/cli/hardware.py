@@ -20,28 +20,8 @@ from pathlib import Path
 
 import torch
 
-from ..hardware.study.benchmark import (
-    SelectionResult,
-    Setup,
-    collect_benchmark,
-    collect_selection,
-    default_candidates,
-    load_setup,
-    progress,
-    proxy_seeds_of,
-    select_default,
-    selection_folds,
-    submit_benchmark,
-    submit_selection,
-    submit_warmups,
-)
-from ..hardware.study.heldout import (
-    SIGMA_PROXIES,
-    collect_held_out,
-    held_out_from_selection,
-    sigma_models_of,
-    submit_held_out,
-)
+from ..hardware.study import benchmark, heldout
+from ..hardware.study.benchmark import SelectionResult, Setup
 from ..hardware.study.pool import TaskPool
 from ..hardware.study.registry import MODELS, model_info
 from ..hardware.study.selection import CC_VARIANTS, DEFAULT_PROXIES, PROXIES, SELECTION_PROXY, default_choice
@@ -119,7 +99,7 @@ def _selection_folds(setup: Setup, args: argparse.Namespace) -> dict:
     if args.no_proxies:
         return {}
     try:
-        return selection_folds(setup, args.proxies)
+        return benchmark.selection_folds(setup, args.proxies)
     except ValueError as err:
         print(f"no selection proxies, so no default model: {err}")
         return {}
@@ -132,32 +112,34 @@ def _fit_all(setup: Setup, args: argparse.Namespace, start: float
     members, and the σ model's held-out rows are the default's proxy fits when its proxy seeds are ``--seeds``:
     {"members": {model: models per seed}, "held_out": [HeldOut]} (empty without ``--save``).
     """
-    keep = default_candidates(list(args.models)) if args.save else ()
+    keep = benchmark.default_candidates(list(args.models)) if args.save else ()
     fitted: dict = {}
     models = tuple(args.models)
     folds = _selection_folds(setup, args)
-    proxy_seeds = proxy_seeds_of(models, args.proxy_seeds, default_candidates(list(models)))
+    proxy_seeds = benchmark.proxy_seeds_of(models, args.proxy_seeds, benchmark.default_candidates(list(models)))
     with TaskPool(args.jobs, args.threads) as pool:
-        warm = submit_warmups(pool, [(f.ctx, m, proxy_seeds[m]) for fs in folds.values() for f in fs for m in models]
-                              + [(setup.context(), m, args.seeds) for m in models], progress, start)
-        pending = (submit_selection(pool, setup, models, args.proxy_seeds, args.proxies,
-                                    default_candidates(list(models)), folds) if folds else None)
-        final = submit_benchmark(pool, setup, models, tuple(args.seeds), keep)
+        fits = [(f.ctx, m, proxy_seeds[m]) for fs in folds.values() for f in fs for m in models]
+        warm = benchmark.submit_warmups(pool, fits + [(setup.context(), m, args.seeds) for m in models],
+                                        benchmark.progress, start)
+        pending = (benchmark.submit_selection(pool, setup, models, args.proxy_seeds, args.proxies,
+                                              benchmark.default_candidates(list(models)), folds) if folds else None)
+        final = benchmark.submit_benchmark(pool, setup, models, tuple(args.seeds), keep)
         proxy_fits = 0 if pending is None else sum(len(fs) for per in pending.fits.values()
                                                    for folds in per.values() for fs in folds.values())
-        progress(f"[start] {len(models)} models on {args.jobs} worker(s): {len(warm)} shared Cosserat piece(s), "
-                 f"{proxy_fits} proxy fits, {sum(len(fs) for fs in final.values())} final runs; a line per model "
-                 f"as its proxies ([proxy k/{len(models)}]) and its final runs ([final k/{len(models)}]) finish")
-        selection = collect_selection(pending, start=start) if pending is not None else None
+        benchmark.progress(f"[start] {len(models)} models on {args.jobs} worker(s): {len(warm)} shared Cosserat "
+                           f"piece(s), {proxy_fits} proxy fits, {sum(len(fs) for fs in final.values())} final runs; a "
+                           f"line per model as its proxies ([proxy k/{len(models)}]) and its final runs ([final "
+                           f"k/{len(models)}]) finish")
+        selection = benchmark.collect_selection(pending, start=start) if pending is not None else None
         choice = None
-        if selection is not None and default_candidates(list(selection.scores)):
-            choice = select_default(selection.scores, selection.replicates)
+        if selection is not None and benchmark.default_candidates(list(selection.scores)):
+            choice = benchmark.select_default(selection.scores, selection.replicates)
         default = choice["default"] if choice else None
-        blocks = held_out_from_selection(selection, default, args.seeds) if keep and default else None
-        sigma = submit_held_out(pool, setup, default, args.seeds, SIGMA_PROXIES) if keep and default and not blocks \
-            else []
-        results, preds = collect_benchmark(final, tuple(args.seeds), fitted=fitted, start=start)
-        saving = {"members": fitted, "held_out": blocks or collect_held_out(sigma)} if keep else {}
+        blocks = heldout.held_out_from_selection(selection, default, args.seeds) if keep and default else None
+        sigma = (heldout.submit_held_out(pool, setup, default, args.seeds, heldout.SIGMA_PROXIES)
+                 if keep and default and not blocks else [])
+        results, preds = benchmark.collect_benchmark(final, tuple(args.seeds), fitted=fitted, start=start)
+        saving = {"members": fitted, "held_out": blocks or heldout.collect_held_out(sigma)} if keep else {}
         for f in warm:                              # surfaces a failed shared piece (its fits computed it again)
             f.result()
     return selection, choice, results, preds, saving
@@ -170,8 +152,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> tuple[dict, 
     torch.set_num_threads(args.threads)
     start = time.perf_counter()
     args.out.mkdir(parents=True, exist_ok=True)
-    setup = load_setup(args.robot, args.data / args.train, _val_path(args), args.out,
-                       args.servo_map, args.data / args.pulls, args.units, args.cc_variant)
+    setup = benchmark.load_setup(args.robot, args.data / args.train, _val_path(args), args.out,
+                                 args.servo_map, args.data / args.pulls, args.units, args.cc_variant)
     with tempfile.TemporaryDirectory(prefix="dacr_hardware_") as cache:
         setup.cache_dir = Path(cache)                # the workers share the Cosserat calibrations here
         try:
@@ -193,7 +175,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None, setup: Setup, start: 
     scores = selection.scores if selection is not None else {}
     chosen = choice or {}
     default = chosen.get("default")
-    everyone = default_candidates(list(scores), deployable_only=False)
+    everyone = benchmark.default_candidates(list(scores), deployable_only=False)
     reps = {m: r[SELECTION_PROXY] for m, r in selection.replicates.items()} if selection is not None else None
     proxy_best = default_choice(scores, everyone, SELECTION_PROXY, reps)["default"] if everyone else None
     if proxy_best is not None and not model_info(proxy_best).deployable:
@@ -206,7 +188,7 @@ def _run(args: argparse.Namespace, argv: list[str] | None, setup: Setup, start: 
               "rows": {"train": len(setup.train_rec), "val": len(setup.val_rec) if setup.val_rec is not None else 0},
               "calibration": setup.calibration, "cc_fit": setup.cc_fit,
               "default_model": default,
-              "selection": {"proxy": SELECTION_PROXY, "candidates": list(default_candidates(list(scores))),
+              "selection": {"proxy": SELECTION_PROXY, "candidates": list(benchmark.default_candidates(list(scores))),
                             "rule": chosen.get("rule"), "reason": chosen.get("reason"),
                             "best_by_proxy": chosen.get("best"), "tied": chosen.get("tied", []),
                             "comparison": chosen.get("candidates", {}),
@@ -243,11 +225,11 @@ def main(argv: list[str] | None = None) -> dict:
     report, setup, saving = run(args, argv)
     if args.save and report["default_model"] is not None:
         from ..hardware.deploy.checkpoint import save_hardware_model, support_warning
-        from ..hardware.study.benchmark import fit_hardware_model
 
-        model = fit_hardware_model(setup, report["default_model"], args.seeds, info={"command": report["command"]},
-                                   members=saving["members"].get(report["default_model"]))
-        model.sigma, model.sigma_model = sigma_models_of(saving["held_out"])
+        model = benchmark.fit_hardware_model(setup, report["default_model"], args.seeds,
+                                             info={"command": report["command"]},
+                                             members=saving["members"].get(report["default_model"]))
+        model.sigma, model.sigma_model = heldout.sigma_models_of(saving["held_out"])
         path = save_hardware_model(model, args.save / "model.pt")
         print(f"saved the default model {report['default_model']} ({len(model.members)} members, σ model "
               f"{model.sigma_model.describe()} fitted on held-out train rows) to {path}")

@@ -5,13 +5,9 @@
     python -m dacr_learn.ik --robot ROBOT.yaml --arm ARM.urdf --arm-tip LINK --mount M.npy --targets T.npy ...
 
 T.npy: float64 (B, 4, 4) tip poses [m] in the robot's base frame, or (B, 3) tip positions with --position-only.
-S.npz: q (B, K, N) float64 joint vectors [m, rad] (servo commands [mm] for a hardware model), success (B, K) bool
-(the solver's verdict from the returned joints alone), pos_err (B, K) [m], rot_err (B, K) [rad], iterations (B, K),
-distinct (B, K); with --scene also clearance (B, K) [m]; for a hardware model also sigma (B, K, 3) [m]. What each
-means, and what --ckpt accepts (recognised by its contents, :func:`dacr_learn.cli.loading.load_solver_model`):
-docs/ik.md, "Interface"; --scene: docs/body.md. --arm: whole-body IK of the arm carrying the robot (docs/arm.md):
-targets in the arm's base frame, q (B, K, n_arm + N) (the arm's joints in the URDF chain's order, then the
-robot's), M.npy float64 (4, 4) the tip link → robot base.
+S.npz: q (B, K, N), success, pos_err, rot_err, iterations, distinct (B, K) (+ clearance with --scene, sigma for a
+hardware model): what each means and what --ckpt accepts, docs/ik.md "Interface"; --scene: docs/body.md; --arm, the
+whole-body IK of the arm carrying the robot (targets in the arm's base frame, q (B, K, n_arm + N)): docs/arm.md.
 """
 from __future__ import annotations
 

@@ -1,16 +1,10 @@
 """Displacement-controlled statics: the shape of a tendon robot whose actuators set tendon lengths.
 
-A displacement actuator fixes each tendon's *unstretched* length ℓ_i, not its tension: tendon i is either
-taut, its path stretched to ℓ_i, or slack with τ_i = 0. With R_i(τ) = ``tendon_rest_lengths`` of
-:func:`~.statics.solve_statics` and F_i(τ) = R_i(τ) − ℓ_i, the tensions solve
-
-    τ ≥ 0,   F(τ) ≤ 0,   τ_i F_i(τ) = 0 for every i.
-
-Method (docs/cosserat.md §10): a chord method with A = −∂R/∂τ (T × T, SPD) taken by central differences
-once (or passed in) and kept; each step solves the linearised complementarity problem exactly
-(:func:`solve_lcp`), then evaluates F by one Cosserat solve; a step that does not reduce the violation
-retakes A and is halved, and a sample whose step falls below 1/64 gives up.
-The solve is gradient-free (no autograd through it); its inputs are data, not parameters.
+A displacement actuator fixes each tendon's *unstretched* length ℓ_i, not its tension: tendon i is either taut, its
+path stretched to ℓ_i, or slack with τ_i = 0. With R_i(τ) = ``tendon_rest_lengths`` of :func:`~.statics.solve_statics`
+and F_i(τ) = R_i(τ) − ℓ_i, the tensions solve τ ≥ 0, F(τ) ≤ 0, τ_i F_i(τ) = 0 for every i, by the chord method of
+docs/cosserat.md §10 (each step the linearised complementarity problem exactly, :func:`solve_lcp`, then one
+Cosserat solve). The solve is gradient-free (no autograd through it); its inputs are data, not parameters.
 """
 from __future__ import annotations
 

@@ -1,20 +1,15 @@
 """Static Cosserat rod with straight tendons: the ODE right-hand side and the RK4 integrator.
 
-After Rucker & Webster (2011), "Statics and dynamics of continuum robots with general tendon routing
-and external loading", IEEE T-RO 27(6), with straight routing (body-frame offsets r_i constant) and
-an initially straight, unstrained rod (v* = e3, u* = 0). With s the reference arc length [m]:
+After Rucker & Webster (2011), "Statics and dynamics of continuum robots with general tendon routing and external
+loading", IEEE T-RO 27(6), with straight routing (body-frame offsets r_i constant) and an initially straight,
+unstrained rod (v* = e3, u* = 0): p' = R v, R' = R û, L_i' = ‖s_i‖ and
 
-    p' = R v,  R' = R û,  (K + Σ_i E_i A_i E_iᵀ) [v'; u'] = [d; c],   L_i' = ‖v + u × r_i‖
+    (K + Σ_i E_i A_i E_iᵀ) [v'; u'] = [d; c],   d = −û K_se (v − e3) − Rᵀ f_e − Σ_i τ_i u × t_i,
+                                                c = −û K_bt u − v̂ K_se (v − e3) − Σ_i τ_i r_i × (u × t_i)
 
-where K = diag(K_se, K_bt), E_i = [I; r̂_i], A_i = (τ_i/‖s_i‖)(I − t_i t_iᵀ), s_i = v + u × r_i,
-t_i = s_i/‖s_i‖ (the tendon's unit tangent in the body frame), and
-
-    d = −û K_se (v − e3) − Rᵀ f_e − Σ_i τ_i u × t_i,
-    c = −û K_bt u − v̂ K_se (v − e3) − Σ_i τ_i r_i × (u × t_i),
-
-f_e = ρA·g [N/m] the weight per length. Internal force n = K_se (v − e3) [N], moment m = K_bt u [N·m].
-The flat state (B, 18 + T) is p (3) [m], R (9, row-major), ε = v − e3 (3) (not v: keeps n = K_se ε
-precise for a stiff EA), u (3) [1/m] and the tendon path lengths L (T) [m].
+(K, E_i, A_i, s_i = v + u × r_i, t_i = s_i/‖s_i‖, f_e and the wrench at disks: docs/cosserat.md §2). Internal force
+n = K_se (v − e3) [N], moment m = K_bt u [N·m]. The flat state (B, 18 + T) is p (3) [m], R (9, row-major),
+ε = v − e3 (3) (not v: keeps n = K_se ε precise for a stiff EA), u (3) [1/m] and the tendon path lengths L (T) [m].
 """
 from __future__ import annotations
 

@@ -1,16 +1,11 @@
 """Shooting for the static Cosserat rod: Newton on the base wrench, implicit gradient (docs/cosserat.md §3).
 
-The unknowns are the rod's internal force n(0) [N] and moment m(0) [N·m] at the base (body frame =
-robot base frame, z along the straight backbone). Integrating ``rod.derivative`` from the base leaves
-the internal wrench beyond the tip, which must vanish; at disks and point loads the total wrench of rod
-and tendons is continuous except for the point load (``rod.match_total_wrench``). Residual and unknowns
-are scaled to dimensionless bending measures, (n·L²/EI, m·L/EI), L the rod length; a sample has
-converged when its largest residual entry is ≤ ``tol``.
-
-Jacobian (6×6 per sample): forward differences on a coarser grid, Broyden updates, differences again
-where progress is slow (``newton``); damped by halving the step until ‖r‖ decreases.
-Gradient: Newton runs without a graph; at z* one more step z = z* − J⁻¹·r(z*, θ) is taken with the graph
-on and J (central differences at z*) held fixed: value z*, derivative −J⁻¹ ∂r/∂θ.
+The unknowns are the rod's internal force n(0) [N] and moment m(0) [N·m] at the base (body frame = robot base
+frame), scaled to the dimensionless (n·L²/EI, m·L/EI), L the rod length; integrating ``rod.derivative`` leaves the
+internal wrench beyond the tip, which must vanish (at disks and point loads the total wrench is continuous except
+for the point load, ``rod.match_total_wrench``); converged where its largest scaled entry is ≤ ``tol``. The
+Jacobian (forward differences on a coarser grid, Broyden updates, step halving: :func:`newton`) and the implicit
+gradient (value z*, derivative −J⁻¹ ∂r/∂θ at z*): docs/cosserat.md §3.
 """
 from __future__ import annotations
 
@@ -20,16 +15,7 @@ import torch
 from torch import Tensor
 
 from .grid import ArcGrid
-from .rod import (
-    STATE,
-    Section,
-    add_body_wrench,
-    derivative,
-    match_total_wrench,
-    rk4,
-    tendon_monomials,
-    total_wrench,
-)
+from .rod import STATE, Section, add_body_wrench, derivative, match_total_wrench, rk4, tendon_monomials, total_wrench
 from .tendon import TendonRouting
 
 FD_FORWARD, FD_CENTRAL = 1e-7, 2e-5   # difference steps of the dimensionless unknowns

@@ -24,9 +24,7 @@ from .tendon import tendon_routing
 
 CHUNK = 2048  # samples solved together: bounds memory; per-sample time was flat from 1024 to 4096 (docs)
 COARSE_JACOBIAN = 4   # Newton's finite-difference Jacobian is taken on a grid with 1/4 of the steps,
-JACOBIAN_STEPS = 2    # but at least 2 per segment: one RK4 step per segment (the hardware models' 4 // 4) left J
-                      # off by up to 1.1 % on loaded samples (2 steps: 0.07 %; tests/test_cosserat_solver.py),
-                      # for 2 % more time per solve (64 samples: 248 → 253 ms)
+JACOBIAN_STEPS = 2    # but at least 2 per segment (one left J off by up to 1.1 %, 2: 0.07 %; docs/cosserat.md §3)
 
 
 def jacobian_grid(grid: ArcGrid) -> ArcGrid:

@@ -4,15 +4,7 @@ Both sources return the same tensors (``q``, ``pose``, ``features``, …), so th
 the names below are those of the CC source and the files.
 """
 from .cc import SamplerOptions, bending_subsets, generate, sample_features, with_segment_frames
-from .store import (
-    META_FILE,
-    TENSOR_FILE,
-    generate_or_load,
-    load_dataset,
-    options_record,
-    save_dataset,
-    tensors_sha256,
-)
+from .store import META_FILE, TENSOR_FILE, generate_or_load, load_dataset, options_record, save_dataset, tensors_sha256
 
 __all__ = ["META_FILE", "TENSOR_FILE", "SamplerOptions", "bending_subsets", "generate", "generate_or_load",
            "load_dataset", "options_record", "sample_features", "save_dataset", "tensors_sha256",

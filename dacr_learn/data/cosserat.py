@@ -1,16 +1,10 @@
-"""Displacement-actuated datasets from the Cosserat-rod model (docs/cosserat.md §6, "Datasets").
+"""Displacement-actuated datasets from the Cosserat-rod model (docs/cosserat.md §6, "Datasets": the sampling and the
+tensors, stored under the names of the CC datasets of :mod:`.cc`, so the datamodule serves both).
 
 Per segment ``tendons_pulled`` neighbouring tendons get tensions uniform in [0, ``tension_max``] N (the others
-slack), optionally a random tip force; :func:`~dacr_learn.cosserat.solve_statics` gives the shape. The joint
-vector is the unstretched tendon lengths (``tendon_rest_lengths``), what a displacement actuator sets.
-Deterministic for a seed (tensions drawn up front by a private generator, then solved in chunks).
-
-Tensors (SI units; names as the CC datasets of :mod:`.cc`, so the datamodule serves both):
-  q, q_clean (N, T) [m] — unstretched tendon lengths (equal: no measurement noise),
-  features (N, m, 4) — the Clarke features of q (what the CC model reads from these lengths),
-  pose, pose_clean (N, 4, 4) — tip pose, segment_frames (N, m, 4, 4) — end frame of every segment,
-  backbone (N, K, 3) [m] — backbone positions at the solver's grid nodes, tension (N, T) [N],
-  tip_force (N, 3) [N] (only with ``tip_force_max`` > 0), residual (N,) — the shooting residual.
+slack), optionally a random tip force; :func:`~dacr_learn.cosserat.solve_statics` gives the shape. The joint vector
+is the unstretched tendon lengths (``tendon_rest_lengths``), what a displacement actuator sets. Deterministic for a
+seed (tensions drawn up front by a private generator, then solved in chunks).
 """
 from __future__ import annotations
 

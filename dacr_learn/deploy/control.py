@@ -1,11 +1,9 @@
 """Resolved-rate (damped least-squares) task-space position control in Clarke space (docs/export.md,
-"Resolved-rate controller").
+"Resolved-rate controller", describes each step).
 
 One step from the commanded joint vector q (..., N) [m, rad] to a tip target p* [m]: (pose, J_f, J_q) =
-jacobian(q) (an exported ``jacobian`` or :func:`analytic_jacobian`); Δx = feedforward + gain·(p* − p), p the
-measured tip when the caller has one, else the learned FK's; Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx in scaled features
-z = f / s (J̃ = J_v·diag(s)), ‖Δz‖ ≤ max_step; f' = sat(f + s·Δz) (bend disk, length and twist ranges); q' = dec(f'),
-so every command satisfies the displacement constraint. Float64; pure torch (no Lightning, no Rerun).
+jacobian(q); Δx = feedforward + gain·(p* − p); Δz = J̃ᵀ(J̃J̃ᵀ + λ²I)⁻¹Δx in scaled features z = f / s, ‖Δz‖ ≤ max_step;
+f' = sat(f + s·Δz); q' = dec(f'), so every command satisfies the displacement constraint. Float64; pure torch.
 """
 from __future__ import annotations
 

@@ -3,12 +3,9 @@ of ``train.py`` checkpoints (FK / IK). The command line and the dispatch on a ch
 :mod:`dacr_learn.export` (``python -m dacr_learn.export``); the exporter of saved hardware models in
 :mod:`dacr_learn.hardware.deploy.export`.
 
-An export is a folder (docs/export.md, "Export") with, per module, ``<name>.pt2`` (a ``torch.export`` program)
-and, unless ``aoti`` is off, ``<name>.aoti.pt2`` (an AOTInductor package: same torch version at load), plus
-``metadata.json``: format, task, robot spec, units, dtype, the sha256 of the source checkpoint and of each file,
-each loaded file's max deviation from its model (measured by :func:`write_export`; above
-:data:`VERIFY_TOLERANCE` the export fails) and a checksum of the metadata itself. :func:`load` refuses files
-whose checksums do not match and, if asked, a different robot, feature mode or source checkpoint (accidents,
+An export is a folder of ``<name>.pt2`` programs, ``<name>.aoti.pt2`` packages and ``metadata.json`` (its
+contents: docs/export.md, "Export"); :func:`write_export` measures each loaded file's deviation from its model (the
+export fails above :data:`VERIFY_TOLERANCE`); :func:`load` refuses files whose checksums do not match (accidents,
 not attacks).
 
 From a ``train.py`` checkpoint (:func:`export_trained`, rebuilt without Lightning by
@@ -107,10 +104,8 @@ AUTOTUNE_CONFIGS = {"max_autotune": True, "max_autotune_gemm_backends": "CPP,ATE
 
 
 # Inductor options of every AOTI package: intermediate buffers carved out of one pool instead of one allocation
-# each per call (the same kernels, bit-identical outputs). At batch 1 the allocations cost more than the
-# arithmetic in the Jacobians, whose component-form kernel (dacr_learn.lie) leaves ~80 intermediates: AOTI
-# compositional Jacobian 53.9 → 39.2 µs, hardware Jacobian 71.5 → 57.3 µs, IK refinement 301 → 274 µs
-# (docs/export.md).
+# each per call (bit-identical outputs; at batch 1 the allocations cost more than the Jacobians' arithmetic: AOTI
+# compositional Jacobian 53.9 → 39.2 µs, docs/history/export.md).
 PACKAGE_CONFIGS = {"memory_planning": True}
 
 

@@ -12,9 +12,7 @@ Built from a trained :class:`~dacr_learn.models.FKModel` / :class:`~dacr_learn.m
 - :class:`InferenceIK`: tip pose (B, 4, 4) → joint vector (B, N); for "clarke" models through the
   Clarke decoder, so every output satisfies the displacement constraint.
 
-Folding (docs/export.md, "What is folded"; in float64): encoder, column selection and input standardisation
-into the first layer, a₁ = K·u + k₀ with u = [q − q_ref, g] (type III: a₁ += K₃·(β − h), the exact
-β = sqrt(h² − (α r)²)); the position scale and the IK output de-standardisation into the last layer.
+What is folded into the first layer a₁ = K·u + k₀ and the last (in float64): docs/export.md, "What is folded".
 """
 from __future__ import annotations
 

@@ -1,11 +1,9 @@
-"""Folded inference modules of the compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`):
-the Clarke front-end, the per-segment standardisation, the context and the first layer folded into one affine
-map (as :mod:`dacr_learn.deploy.inference` does for the monolithic FK), then the shared MLP, the twist (or 6D) head
-and the products of the segment transforms.
-
-- :class:`InferenceCompositionalFK`: joint vector (B, N) [m, rad] → tip pose (B, 4, 4) [m].
-- :class:`InferenceCompositionalJacobian` (twist head): joint vector (B, N) → (pose (B, 4, 4), J_f (B, 6, D),
-  J_q (B, 6, N)), the same outputs as :class:`~dacr_learn.deploy.inference.InferenceJacobian`.
+"""Folded inference modules of the compositional learned FK (:class:`~dacr_learn.compositional.CompositionalFK`;
+docs/compositional.md, "Export"): the Clarke front-end, the per-segment standardisation, the context and the first
+layer folded into one affine map (as :mod:`dacr_learn.deploy.inference` does for the monolithic FK), then the shared
+MLP, the twist (or 6D) head and the products of the segment transforms: :class:`InferenceCompositionalFK` (q (B, N)
+→ tip pose (B, 4, 4) [m]) and, twist head only, :class:`InferenceCompositionalJacobian` (the outputs of
+:class:`~dacr_learn.deploy.inference.InferenceJacobian`).
 
 Both roll a twisting segment by its α first, T_k = Rz(α_k)·head (``CompositionalFK.roll``): α_k is a joint of the
 vector, picked by ``roll_select`` (N, m)."""

@@ -3,14 +3,9 @@
     x (..., N) [m] ──SlackAwareEncoder──▶ features (..., m, 4) ──forward_kinematics──▶ T_tip = (R_tip, p_tip)
     tip = R_base · (p_tip + R_tip · d_marker) + t_base   (motion-capture frame, metres)
 
-Fitted physical parameters (14 for a 3-segment robot, 16 with ``lateral_marker``): per segment the
-effective radius and a rotation of the joint angles, the tendon compliance EI/EA and pretension
-(encoder), the base tilt (2 angles) and translation (3), and the marker offset d_marker in the tip
-frame: the full 3-vector (x, y, t) (``lateral_marker=True``, the default), or d = (0, 0, t).
-With ``pretension_strain=True`` (+1 parameter) tendon i's pretension stretch is p_i = p + s·(L_i/L̄ − 1)
-(:class:`~.slack.SlackAwareEncoder`), a per-robot choice made by :func:`.selection.choose_cc_variant`.
-Segment lengths stay nominal (they trade off against the radii and made the fit degenerate).
-Both variants and their scores: docs/hardware.md.
+The fitted physical parameters, the ``strain`` variant (``pretension_strain=True``) and their scores: docs/hardware.md,
+"The calibrated CC model"; the marker offset d_marker is (x, y, t) in the tip frame (``lateral_marker=True``, the
+default) or (0, 0, t). Segment lengths stay nominal (they trade off against the radii and made the fit degenerate).
 
 The lateral offset is identifiable: the CC tip frame has no twist, so (x, y) acts like a base translation
 on a straight robot and is separated from it by the bends; a common rotation of the joint angles turns

@@ -4,13 +4,9 @@
     tip = R_base · (p_tip + R_tip · d_marker) + t_base             (the CC model's calibration)
 
 T_k^CC: :func:`~dacr_learn.kinematics.segment_poses` of the slack-aware encoder's features x_k; f_θ: the
-per-segment network of :class:`dacr_learn.compositional.CompositionalFK` on the standardised features z_k
-and a context c_k ("none", "segment" one-hot, or "distal": the sum of the features of the segments beyond
-k). s = :data:`TWIST_SCALE` and zero output layers make an untrained model the calibrated CC model.
-``torsion=False`` holds ω_z at 0 (unobservable from single-segment tip positions). Trained with full-batch
-Adam on the mean squared tip error [mm²] + ``weight_decay`` × Σ squared weights, the CC parameters frozen.
-``history=True`` (``cc_compositional_history``) adds segment k's play memory as an input; it is scored but
-cannot be saved. Model and results: docs/compositional.md ("On the real robots").
+per-segment network of :class:`dacr_learn.compositional.CompositionalFK` (context "none", "segment" or
+"distal"); s = :data:`TWIST_SCALE`. Model, training and results: docs/compositional.md ("On the real robots").
+``history=True`` (``cc_compositional_history``) adds segment k's play memory as an input; it cannot be saved.
 """
 from __future__ import annotations
 

@@ -1,10 +1,9 @@
 """Hardware tip models built on the calibrated Cosserat rod (:mod:`.cosserat_model`), for the registry.
 
-``cosserat``: the Cosserat model alone, calibrated on the training rows from the fold's CC fit.
-``cc_clarke_residual_cosserat``: :class:`~.learned.CCClarkeResidual` pre-trained on synthetic all-segment
-commands with tips of that Cosserat model (in the CC model's frame), then fine-tuned with rehearsal like
-``pretrained_clarke``; ``cc_clarke_residual_history_cosserat``: the same with the history input (memory 0 on
-the synthetic commands). Both save and export as their CC Clarke-residual counterparts (docs/hardware.md).
+``cosserat`` (:class:`CosseratOnly`, calibrated on the training rows from the fold's CC fit),
+``cc_clarke_residual_cosserat`` and ``cc_clarke_residual_history_cosserat`` (:class:`CCClarkeResidualCosserat`:
+pre-trained on the Cosserat model's synthetic tips, saved and exported as their CC Clarke-residual counterparts):
+docs/hardware.md, "The models".
 
 The calibration and the synthetic tips are deterministic functions of the training rows, the CC model and the
 options, so they are computed once and shared: within a process and, given a ``cache_dir``

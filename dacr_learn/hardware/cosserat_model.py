@@ -1,21 +1,13 @@
-"""Calibrated Cosserat-rod model of a tendon robot: joint displacements → tip position (docs/hardware.md).
+"""Calibrated Cosserat-rod model of a tendon robot: joint displacements → tip position (docs/hardware.md, "The
+Cosserat-rod model of the robot", describes the model and its fit).
 
     x (n, N) [m] ──rest lengths ℓ = L₀ − x − p──▶ solve_displacements ──▶ tip pose (base frame)
     tip = R_base · (p_tip + R_tip · d_marker) + t_base      (motion-capture frame, metres)
 
-The mechanics are those of :mod:`dacr_learn.cosserat`, driven by displacements
-(:func:`~dacr_learn.cosserat.displacement.solve_displacements`). It starts from the calibrated CC model
-(:class:`~.ccmodel.CalibratedCC`), whose parameters mean the same here (the tendon compliance EI/EA_t sets,
-with the nominal rod's EI, the tendons' 1/(E_t A_t)); tendons pass each segment at its effective radius
-(``passing="segment"``). New: the robot's weight per length g = w·u [N/m] in the motion-capture frame,
-w ∈ [0, :data:`WEIGHT_MAX`] along a free direction u (two angles), and the backbone's axial stiffness EA/EI.
-With w = 0 and an inextensible backbone the model is the CC model, so the fit starts at the CC fit.
-
-:data:`BENDING_STIFFNESS` (a 1 mm NiTi wire's EI) is the scale; the tip depends on the ratios only.
-Fitted by Levenberg–Marquardt on :data:`FIT_ROWS` training rows from each of :data:`AXIAL_STARTS`: the
-mechanical parameters by finite differences of warm-started solves, the frame parameters (tilt, marker)
-at fixed shapes, the base translation in closed form. Gradient-free: scored and used to generate data,
-not exported.
+The mechanics of :mod:`dacr_learn.cosserat`, started from the calibrated CC model (:class:`~.ccmodel.CalibratedCC`,
+whose parameters mean the same here), plus the robot's weight per length g = w·u [N/m] (w ∈ [0, :data:`WEIGHT_MAX`])
+and the backbone's axial stiffness. Fitted by Levenberg–Marquardt (:meth:`CalibratedCosserat.fit`); gradient-free:
+scored and used to generate data, not exported.
 """
 from __future__ import annotations
 
@@ -44,9 +36,8 @@ FIT_STALL = 1e-3          # stop when an iteration lowers the RMS by less than t
 PHYSICS_SCALES = {"gravity": 0.3, "log_radius_scale": 0.05, "log_compliance": 0.5, "log_axial_radius": 0.3,
                   "pretension": 1e-4, "pretension_strain": 1e-4}
 AXIAL_STARTS = (5e-5, 1e-3)   # [m] axial radii the fit starts from: near the CC model, and a compressible rod
-# [N/m] bound of the fitted weight per length ‖g‖: a robot of this size (wire, disks, tendons) weighs well under it;
-# unbounded, the v6 singles fit (gravity then fixed along mocap z) ran to 1.6 N/m upwards and beyond, into ever more
-# nonlinear (and slower) solves
+# [N/m] bound of the fitted weight per length ‖g‖: a robot of this size weighs well under it; unbounded, the v6 fit
+# ran to 1.6 N/m upwards and beyond, into ever more nonlinear (and slower) solves
 WEIGHT_MAX = 0.5
 AXIAL_RADIUS_RANGE = (1e-5, 2e-3)   # [m]: from an inextensible backbone (the CC limit) to a 4 mm wire
 FD_FRACTION = 0.2         # finite-difference step of a physics parameter, in units of its scale
@@ -267,10 +258,7 @@ class CalibratedCosserat:
                     poses, warm, r, improved = p1, w1, r1, True
                     lam = max(lam / 3, 1e-6)
                     break
-                self.set_physics(base)
-                with torch.no_grad():
-                    for p, v in zip(frame, frame_before, strict=True):
-                        p.copy_(v)
+                self._apply(names, base, frame_before, frame, torch.zeros_like(step))   # back to the start
                 lam *= 5
             done += 1
             if log is not None:

@@ -1,17 +1,14 @@
 """Tip models for hardware recordings: baselines, Clarke-feature networks and CC residuals.
 
 Every model maps a :class:`Split` (one recording, with inputs precomputed by the fitted
-:class:`~dacr_learn.hardware.ccmodel.CalibratedCC`) to tip positions (n, 3) [m]. The registry names
-(``linear_raw``, ``mlp_raw``, ``mlp_clarke``, ``cc``, ``cc_tip_residual``, ``cc_clarke_residual``,
-``pretrained_clarke``, ``pretrained_raw``, ``cc_clarke_residual_history``) are described in
-docs/hardware.md ("The models"); history models use the command history (rows in time order) through
-:func:`play_operator`.
+:class:`~dacr_learn.hardware.ccmodel.CalibratedCC`) to tip positions (n, 3) [m]. The registry's models
+(:mod:`.study.registry`) are described in docs/hardware.md ("The models"); history models use the command
+history (rows in time order) through :func:`play_operator`.
 
-Networks are 2×128 SiLU MLPs (2×64 for the per-segment Clarke corrections; :func:`dacr_learn.models.mlp`,
-inputs standardised by :class:`dacr_learn.models.Standardizer`) trained full batch with Adam and a cosine
-schedule (float32). A model is built from shapes and configuration only, then trained with ``fit(train)``,
-whose first step sets its data-dependent statistics (``fit_normalization``); a checkpoint loads into a
-model built the same way. :func:`command_split` makes the inputs of servo commands without a recording.
+A model is built from shapes and configuration only, then trained full batch with ``fit(train)``
+(:func:`train_full_batch`), whose first step sets its data-dependent statistics (``fit_normalization``); a
+checkpoint loads into a model built the same way. :func:`command_split` makes the inputs of servo commands
+without a recording.
 """
 from __future__ import annotations
 
@@ -34,9 +31,8 @@ PRETRAIN_SAMPLES, FINETUNE_STEPS, REHEARSAL = 4000, 500, 0.3
 STEPS_ENV = "DACR_HARDWARE_STEPS"  # where set: the steps of every fit's default STEPS (quick trials, tests)
 RESIDUAL_TIP_SCALE, RESIDUAL_RHO_SCALE = 5e-3, 5e-4  # [m]: output units of the residual networks
 RESIDUAL_HIDDEN = 64  # the per-segment correction network sees m rows per sample
-# [m] width of the Clarke-space play operator (hysteresis memory). Chosen by leave-one-pattern-
-# family-out cross-validation on the training recording only (research/hardware_cv: CV 4.94 mm at
-# 0.1 mm against 5.11 mm at 0.2 mm, the width an earlier version picked while looking at val).
+# [m] width of the Clarke-space play operator (hysteresis memory), chosen by family cross-validation on the training
+# recording only (research/hardware_cv: CV 4.94 mm at 0.1 mm against 5.11 mm at 0.2 mm).
 PLAY_WIDTH = 1e-4
 # Input statistics of the standardised networks computed in float32, as the benchmark's scores were: in float64
 # (1 ulp apart) the unstable fits move, e.g. cc_tip_residual's seed-0 v4 val RMSE 14.34 → 14.56 mm.

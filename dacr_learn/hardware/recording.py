@@ -1,13 +1,8 @@
 """Hardware recordings: CSV files of servo commands and motion-capture tip positions (docs/hardware.md).
 
-File format (one row per sample, time ordered)::
-
-    timestamp,pattern_label,servo_<id>_mm,...,servo_<id>_mm,tip_x,tip_y,tip_z
-
-``timestamp`` [s]; ``pattern_label`` names the motion pattern; one ``servo_<id>_<unit>`` column per actuator in
-hardware order, the commanded tendon displacement (larger = pulled; ``<id>`` without underscores or commas);
-``tip_x, tip_y, tip_z`` the tracked tip in the motion-capture frame. Everything is returned in metres as
-float64 tensors; checks raise ``ValueError`` naming the file and column.
+One row per sample, time ordered: ``timestamp,pattern_label,servo_<id>_mm,...,servo_<id>_mm,tip_x,tip_y,tip_z``
+(what each column holds: docs/hardware.md, "The recordings"; ``<id>`` without underscores or commas). Everything is
+returned in metres as float64 tensors; checks raise ``ValueError`` naming the file and column.
 """
 from __future__ import annotations
 

@@ -1,16 +1,10 @@
 """Servo map: which servo column drives which joint of which segment, with sign and zero.
 
-YAML (SI units, written by :mod:`dacr_learn.hardware.calibration`)::
-
-    robot: ftdcr-v4              # name of the RobotSpec it belongs to
-    slack_level: -0.00999        # [m] command at which idle tendons are parked (slack)
-    servos:                      # one entry per servo column, any order
-      - {servo: "4", segment: 0, joint: 0, sign: 1, zero: -0.0002}
-    calibration: {...}           # optional, informational (fit quality); ignored on load
-
-Joint displacement (the DACR ρ_i of that joint, positive = tendon shortened):
-``x = sign · (servo_value − zero)`` [m]. ``segment`` and ``joint`` index the RobotSpec
-(0-based, joints in the order of the segment's joint angles).
+YAML (SI units, written by :mod:`dacr_learn.hardware.calibration`; its keys: docs/hardware.md, "The recordings",
+*Servo maps*): ``robot``, ``slack_level`` [m], ``servos`` (one ``{servo, segment, joint, sign, zero}`` per servo
+column, any order), an informational ``calibration`` block ignored on load. Joint displacement (the DACR ρ_i of that
+joint, positive = tendon shortened): ``x = sign · (servo_value − zero)`` [m]; ``segment`` and ``joint`` index the
+RobotSpec (0-based, joints in the order of the segment's joint angles).
 """
 from __future__ import annotations
 

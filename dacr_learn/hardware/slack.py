@@ -1,19 +1,13 @@
 """Slack-aware Clarke encoder for tendon robots (type-0 segments; docs/hardware.md, "The calibrated CC model").
 
 The plain :class:`~dacr_learn.layers.ClarkeEncoder` (least squares, w = B⁺(q − q₀)) lets a slack tendon
-pull the estimate. Here tendons are one-sided springs and the backbone an elastic rod: with Clarke
-coordinates ρ (..., 2m) (docs/design.md §1) and G = −B_ρ, the configuration minimises
+pull the estimate. Here tendons are one-sided springs and the backbone an elastic rod: the Clarke coordinates
+ρ (..., 2m) minimise E(ρ) = ½ c Σ_k ‖ρ⁽ᵏ⁾‖²/(l_k d_k²) + ½ Σ_i max(0, x_i + p − (Gρ)_i)²/L_i, G = −B_ρ (each
+term: docs/hardware.md, "The calibrated CC model"; x_i [m] pulled positive). Commands with x = Gρ* and c → 0 give ρ*.
 
-    E(ρ) = ½ c Σ_k ‖ρ⁽ᵏ⁾‖² / (l_k d_k²)  +  ½ Σ_i max(0, x_i + p − (G ρ)_i)² / L_i
-
-x_i [m] the commanded displacement of joint i (positive = pulled), p [m] the pretension stretch,
-c = EI/EA [m²] the compliance, L_i [m] the path length of joint i. Commands with x = Gρ* and c → 0 give ρ*.
-
-E is a convex piecewise quadratic, minimised by a semi-smooth Newton (active-set) iteration; batched, with
-gradients through the final linear solve (so c, p, the radii and the rotations can be fitted). For fixed
-parameters :func:`active_set_gains` solves the linear system of each of the 2ᴺ sets once (ρ_S = K_S x) and
-:func:`select_active_set` picks the set consistent with the command (unique: E is strictly convex; in floating
-point the least sign violation, whose ρ_S is within ‖Gᵀ W v‖/min(bend_w) of the minimiser).
+E is a strictly convex piecewise quadratic: :func:`solve_tendon_qp` minimises it by a semi-smooth Newton
+(active-set) iteration, with gradients through the final linear solve (so c, p, the radii and the rotations can be
+fitted); for fixed parameters :func:`active_set_gains` and :func:`select_active_set` solve it without iterations.
 """
 from __future__ import annotations
 

@@ -11,14 +11,7 @@
 """
 from ..clarke_space import clarke_limits
 from ..limits import Limits
-from .adapters import (
-    Check,
-    ConstantCurvature,
-    LearnedFK,
-    SolverModel,
-    TipJacobian,
-    as_solver_model,
-)
+from .adapters import Check, ConstantCurvature, LearnedFK, SolverModel, TipJacobian, as_solver_model
 from .refine import levenberg_marquardt
 from .solver import IKOptions, IKResult, solve_ik
 from .targets import check_targets

@@ -77,9 +77,7 @@ class SolverModel:
     spec: RobotSpec | None = None
 
     def tip_and_jacobian(self, x: Tensor) -> TipJacobian:
-        """Variables (B, D) → :class:`TipJacobian`: tip position (B, 3) [m], rotation (B, 3, 3) or None,
-        J (B, 6 or 3, D): the tip point's velocity (and angular velocity) in the base frame per unit of each
-        variable."""
+        """Variables (B, D) → :class:`TipJacobian` (tip position, rotation or None, Jacobian)."""
         raise NotImplementedError
 
     def joints(self, x: Tensor) -> Tensor:

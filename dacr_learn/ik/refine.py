@@ -135,14 +135,14 @@ class Refinement:
 
 
 def lm_iteration(model: SolverModel, state: tuple[Tensor, ...], position: Tensor, rotation: Tensor | None,
-                 solve=None, matmul=torch.matmul) -> tuple[Tensor, ...]:
+                 solve=None, matmul=torch.matmul, only_held: bool = True) -> tuple[Tensor, ...]:
     """One LM iteration of every row of ``state`` = (x (M, D), r (M, R), J (M, R, D), cost (M,), λ (M,), pos_err
     (M,) [m], rot_err (M,) [rad]) towards targets position (M, 3) [m] and rotation (M, 3, 3) or None: the step of
     :meth:`Refinement.step` on whole tensors (no row gathers or scatters; no extra condition), returning the new
-    state. The working batch of :mod:`.pool` runs on it; ``solve`` and ``matmul`` as in :func:`limited_step` (the
-    compiled iteration of :mod:`.fused` passes the unrolled forms)."""
+    state. The working batch of :mod:`.pool` and the exported refinement run on it; ``solve``, ``matmul`` and
+    ``only_held`` as in :func:`limited_step` (the compiled iteration of :mod:`.fused` passes the unrolled forms)."""
     x, r, jac, cost, lam, pos_err, rot_err = state
-    xt = limited_step(model.limits, x, r, jac, lam, only_held=True, solve=solve, matmul=matmul)
+    xt = limited_step(model.limits, x, r, jac, lam, only_held=only_held, solve=solve, matmul=matmul)
     rt, jt, pe, re = residual(model, xt, position, rotation, matmul=matmul)
     (x, r, jac, pos_err, rot_err), cost, lam = lm_accept((x, r, jac, pos_err, rot_err), (xt, rt, jt, pe, re), cost,
                                                          (rt * rt).sum(-1), lam)

@@ -1,11 +1,8 @@
 """What a training recording shows: metric naming, plot grouping and the blueprint (no Lightning).
 
-Rerun 0.41 plots have no logarithmic axis, so every plotted metric is logged twice: its value at
-``metrics/<name>`` and ``log10(value)`` at ``metrics_log10/<name>``. The blueprint groups metrics
-into one plot per quantity and unit ("tip position error [mm]": train and val, mean / p95 / max
-together), shows the whole step range (not a window around the cursor), puts test metrics (one
-point each) in a table instead of plots, gives the 3D robot view and the workspace error cloud
-their own views, and opens at the last step.
+Rerun 0.41 plots have no logarithmic axis, so every plotted metric is logged twice: its value at ``metrics/<name>``
+and ``log10(value)`` at ``metrics_log10/<name>``. One plot per quantity and unit (:func:`metric_groups`), test
+metrics in a table; the layout: :func:`default_blueprint` (what it looks like: docs/rerun.md, "Training run").
 """
 from __future__ import annotations
 

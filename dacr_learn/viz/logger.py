@@ -36,28 +36,9 @@ from lightning.fabric.utilities.logger import _convert_params
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.rank_zero import rank_zero_only, rank_zero_warn
 
-from .layout import (
-    CONFIG_ENTITY,
-    HPARAMS_ENTITY,
-    SCENE_ROOT,
-    STEP_TIMELINE,
-    SUMMARY_ENTITY,
-    default_blueprint,
-    is_plotted,
-    log10_entity,
-    metric_entity,
-    metric_groups,
-    series_style,
-    summary_markdown,
-)
-from .scene import (
-    DEFAULT_ERROR_RANGE,
-    colour_note,
-    log_frames,
-    log_path,
-    log_scene,
-    log_workspace,
-)
+from . import layout
+from .layout import default_blueprint, metric_entity
+from .scene import DEFAULT_ERROR_RANGE, colour_note, log_frames, log_path, log_scene, log_workspace
 
 __all__ = [
     "RerunLogger", "default_blueprint",
@@ -191,7 +172,7 @@ class RerunLogger(Logger):
         rec.set_sinks(*self._sinks(rec), default_blueprint=self._blueprint())
         run = self._name if self._version is None else f"{self._name}/{self._version}"
         rec.send_recording_name(self._recording_name or run)
-        rec.log(SCENE_ROOT, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        rec.log(layout.SCENE_ROOT, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         for name in self._metric_names:
             self._log_series_style(rec, name)
         if self._hparams:
@@ -242,30 +223,31 @@ class RerunLogger(Logger):
         rec = self.experiment
         new = set(metrics) - self._metric_names
         if new:  # plots are grouped by quantity: refresh the layout when new names appear
-            groups = metric_groups(self._metric_names)
+            groups = layout.metric_groups(self._metric_names)
             self._metric_names |= new
             for name in new:
                 self._log_series_style(rec, name)
-            if metric_groups(self._metric_names) != groups:
+            if layout.metric_groups(self._metric_names) != groups:
                 rec.send_blueprint(self._blueprint())
         if step is not None:
-            rec.set_time(STEP_TIMELINE, sequence=int(step))
+            rec.set_time(layout.STEP_TIMELINE, sequence=int(step))
         at = int(step) if step is not None else max((s for s, _ in self._latest.values()), default=0)
         for name, value in metrics.items():
             value = float(value.item() if isinstance(value, torch.Tensor) else value)
             rec.log(metric_entity(name), rr.Scalars(value))
-            if is_plotted(name) and value > 0 and math.isfinite(value):
-                rec.log(log10_entity(name), rr.Scalars(math.log10(value)))
+            if layout.is_plotted(name) and value > 0 and math.isfinite(value):
+                rec.log(layout.log10_entity(name), rr.Scalars(math.log10(value)))
             self._latest[name] = (at, value)
         if any(not name.startswith("train") and name != "epoch" for name in metrics):  # eval/test: refresh the table
-            rec.log(SUMMARY_ENTITY, rr.TextDocument(summary_markdown(self._latest), media_type="text/markdown"))
+            summary = rr.TextDocument(layout.summary_markdown(self._latest), media_type="text/markdown")
+            rec.log(layout.SUMMARY_ENTITY, summary)
 
     def _log_series_style(self, rec: rr.RecordingStream, name: str) -> None:
-        label, color = series_style(name)
+        label, color = layout.series_style(name)
         style = rr.SeriesLines(names=[label], colors=[color], widths=[1.5])
         rec.log(metric_entity(name), style, static=True)
-        if is_plotted(name):
-            rec.log(log10_entity(name), rr.SeriesLines(names=[label], colors=[color], widths=[1.5]), static=True)
+        if layout.is_plotted(name):
+            rec.log(layout.log10_entity(name), rr.SeriesLines(names=[label], colors=[color], widths=[1.5]), static=True)
 
     @rank_zero_only
     def log_hyperparams(self, params: dict[str, Any] | Namespace, *args: Any, **kw: Any) -> None:
@@ -281,7 +263,7 @@ class RerunLogger(Logger):
 
     def _log_config(self, rec: rr.RecordingStream) -> None:
         doc = rr.TextDocument(f"```yaml\n{self._config}\n```", media_type="text/markdown")
-        rec.log(CONFIG_ENTITY, doc, static=True)
+        rec.log(layout.CONFIG_ENTITY, doc, static=True)
 
     def _log_hparams(self, rec: rr.RecordingStream) -> None:
         try:
@@ -289,7 +271,7 @@ class RerunLogger(Logger):
         except (TypeError, ValueError):  # e.g. non-string keys
             text = repr(self._hparams)
         doc = rr.TextDocument(f"```json\n{text}\n```", media_type="text/markdown")
-        rec.log(HPARAMS_ENTITY, doc, static=True)
+        rec.log(layout.HPARAMS_ENTITY, doc, static=True)
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()

@@ -1,8 +1,7 @@
 """Inference modules of a saved compositional hardware model (registry ``cc_compositional_residual``).
 
 The counterparts of :class:`~.inference.HardwareFK` / :class:`~.inference.HardwareJacobian` (the same inputs,
-outputs and σ) for an ensemble of K :class:`~.compositional_model.CCCompositionalResidual` members; plain
-nn.Modules with every constant in buffers, exportable with torch.export (``python -m dacr_learn.export``).
+outputs and σ; plain nn.Modules, exported alike) for K :class:`~.compositional_model.CCCompositionalResidual` members.
 
 Pipeline: servo → ρ (HardwareFK's active-set fast path, :func:`~.inference.active_set_maps`) → CC segment
 poses (:func:`~.inference.cc_segment_poses`) → each member's correction exp(ξ_k^) (the K networks batched,

@@ -1,11 +1,9 @@
 """Resolved-rate control of an exported hardware model in servo space: servo commands [mm] → tip, run causally.
 
-The controller linearises the exported ``jacobian`` module (J = ∂tip/∂servo [m/mm]) along the plant's last
-step (from the play state before it: the sliding derivative a continuing motion sees, not the one-sided
-reversal derivative, which made the loop diverge on a strongly history-dependent model) and takes a damped
-least-squares step (:func:`dacr_learn.deploy.control.scaled_dls_step`, servo steps scaled by their half-range),
-clipped to the training recording's box of commands. Opt-in, a null-space task re-tensions slack servos
-(``ServoControl.retension``, :func:`slack_pull`; docs/export.md).
+Each step (docs/export.md, "Driving a controller with it"): the exported ``jacobian`` (J = ∂tip/∂servo [m/mm])
+along the plant's last step (the sliding derivative: the one-sided reversal derivative made the loop diverge on a
+strongly history-dependent model), a damped least-squares step (:func:`dacr_learn.deploy.control.scaled_dls_step`)
+clipped to the training box; opt-in, a null-space task re-tensions slack servos (:func:`slack_pull`).
 
 :func:`initial_command` (the IK solution nearest the current command) and :func:`run_control` (track targets with
 a plant and a Jacobian) are the tasks; examples/control_hardware_model.py runs them on an export.

@@ -1,14 +1,9 @@
 """Export of a saved hardware model (:mod:`.checkpoint`) with ``python -m dacr_learn.export``.
 
 The same kind of files as for the synthetic FK models, written and verified by the same code
-(:mod:`dacr_learn.deploy.export`): per module a
-``torch.export`` program ``<name>.pt2`` (and an AOTInductor package unless ``--no-aoti``) plus
-``metadata.json`` (task ``"hardware_fk"``, robot, servo ids, units, dtype, checksums, the
-measured deviation from the in-memory model). Modules (:mod:`.inference`):
-
-- ``fk``: servo (B, S) [mm] [, state (B, m, 2) [m]] → tip (B, 3) [m], tip_std (B, 3) [m] [, state]
-- ``jacobian``: the same inputs → tip (B, 3), J (B, 3, S) [m/mm] [, state]
-- ``initial_state`` (history models): servo (B, S) → the play state to start a sequence with
+(:mod:`dacr_learn.deploy.export`), ``metadata.json`` with task ``"hardware_fk"``, the servo ids and map.
+Modules (:mod:`.inference`; their inputs and outputs: :func:`signatures`, docs/export.md "Hardware models"):
+``fk``, ``jacobian`` and, for history models, ``initial_state``.
 """
 from __future__ import annotations
 

@@ -1,13 +1,8 @@
 """Inference modules of a fitted hardware model for controllers: servo commands [mm] → tip [m], Jacobian.
 
-Built from a :class:`~.checkpoint.HardwareModel` (the CC Clarke-residual family, an ensemble of
-K members); plain nn.Modules with every constant folded into buffers, exportable with torch.export:
-
-- :class:`HardwareFK`: servo (B, S) [mm, checkpoint column order] (+ state (B, m, 2) [m] for a
-  history model) → tip (B, 3) [m, motion-capture frame] = the ensemble mean, tip_std (B, 3) [m]
-  (+ the new state).
-- :class:`HardwareJacobian`: the same inputs → tip (B, 3), J (B, 3, S) [m/mm] = ∂tip/∂servo
-  (+ the new state); for a history model J holds the state fixed (the effect of the current command).
+Built from a :class:`~.checkpoint.HardwareModel` (the CC Clarke-residual family, an ensemble of K members); plain
+nn.Modules with every constant folded into buffers, exportable with torch.export (inputs and outputs: docs/export.md,
+"Hardware models"). Tip: the ensemble mean, motion-capture frame; for a history model J holds the state fixed.
 
 Pipeline (float32 by default): servo → ρ by the slack-aware encoder's QP solved by active-set enumeration
 with the servo map folded in (:func:`~.slack.active_set_gains`: the same minimiser as

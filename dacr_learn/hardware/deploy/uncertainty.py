@@ -1,14 +1,9 @@
-"""Uncertainty of hardware tip models: σ per prediction, its scores, and out-of-support scores (docs/hardware.md).
-
-- :class:`SigmaModel`: σ_a² = σ₀² + Σ_t (c_t·f_t,a)² per tip axis a over the terms of :data:`TERMS`
-  (:func:`sigma_terms`: ensemble std, |mean − CC tip|, support distance, total bend ‖ρ‖); c_t and σ₀ fitted
-  by Gaussian maximum likelihood to *held-out* residuals of train-only folds (:mod:`.heldout`).
-- :class:`SigmaCalibration`: the ensemble term alone, σ_cal = sqrt((s·σ)² + σ₀²) (:meth:`SigmaCalibration.as_model`).
-- Scores on n rows with offset-removed residuals r = e − ē (e = prediction − measurement): :func:`coverage`,
-  the fraction of the 3n entries with |r_a| ≤ 2σ_a, and :func:`spearman`, the rank correlation of ‖σ‖ and ‖r‖.
-- :class:`SupportModel`: the distance of a command's standardised Clarke coordinates ρ (n, m, 2) [m] to the
-  nearest training row over the 99th percentile of the training rows' distances to the nearest row of
-  another pattern; > 1: the prediction is an extrapolation.
+"""Uncertainty of hardware tip models (docs/hardware.md, "Uncertainty"): the σ of each prediction (:class:`SigmaModel`
+over the terms of :func:`sigma_terms`, fitted to held-out residuals of train-only folds, :mod:`.heldout`; or the
+ensemble term alone, :class:`SigmaCalibration`), its scores on offset-removed residuals (:func:`coverage`,
+:func:`spearman`) and the out-of-support score of a command (:class:`SupportModel`: the distance of its standardised
+Clarke coordinates to the nearest training row over the 99th percentile of the training rows' distances to the
+nearest row of another pattern; > 1: the prediction is an extrapolation).
 """
 from __future__ import annotations
 
@@ -181,7 +176,7 @@ def spearman(a: Tensor, b: Tensor) -> float:
 
 
 class SupportModel(nn.Module):
-    """Out-of-support score of commands from their Clarke coordinates ρ (..., m, 2), m = ``num_segments`` (module
+    """Out-of-support score of commands from their Clarke coordinates ρ (..., m, 2) [m], m = ``num_segments`` (module
     docstring); the threshold is the ``quantile`` of the training rows' cross-pattern distances (:meth:`fit`)."""
 
     def __init__(self, num_segments: int, quantile: float = SUPPORT_QUANTILE):

@@ -35,23 +35,10 @@ from ..learned import Split, cc_as_residual, make_split
 from ..metrics import offset_removed_rmse, tip_metrics
 from ..recording import Recording, load_recording
 from ..servo_map import ServoMap
+from . import selection
 from .pool import TaskPool
 from .registry import FitContext, build_model, model_info
-from .selection import (
-    CC_VARIANTS,
-    DEFAULT_PROXIES,
-    SELECTION_PROXY,
-    Fold,
-    bootstrap_replicates,
-    choose_cc_variant,
-    default_choice,
-    fold_predictions,
-    fold_weights,
-    make_folds,
-    model_seeds,
-    proxy_masks,
-    summarize_scores,
-)
+from .selection import Fold, model_seeds
 
 
 @dataclass
@@ -102,23 +89,23 @@ def load_setup(robot: Path, train: Path, val: Path | None, out: Path, servo_map:
     val_rec = load_recording(val, spec, units) if val is not None else None
     smap.check(spec, train_rec.servo_ids)
     variant = _cc_variant(cc_variant, train_rec, spec, smap)
-    cc = CalibratedCC(spec, **CC_VARIANTS[variant["chosen"]])
+    cc = CalibratedCC(spec, **selection.CC_VARIANTS[variant["chosen"]])
     fit = fit_cc(cc, smap.displacements(spec, train_rec), train_rec.tip)
     fit["parameters"], fit["variant"] = cc.report(), variant
     cc.requires_grad_(False)
     val_split = make_split(val_rec, spec, smap, cc) if val_rec is not None else None
     return Setup(spec, smap, cc, train_rec, val_rec, make_split(train_rec, spec, smap, cc), val_split, cal, fit,
-                 dict(CC_VARIANTS[variant["chosen"]]))
+                 dict(selection.CC_VARIANTS[variant["chosen"]]))
 
 
 def _cc_variant(requested: str, rec: Recording, spec: RobotSpec, smap: ServoMap) -> dict:
     """{"requested", "chosen", "extrap": {variant: CC singles → pairs [mm]} (auto only)}."""
     if requested != "auto":
-        if requested not in CC_VARIANTS:
-            raise ValueError(f"cc_variant: expected 'auto' or one of {tuple(CC_VARIANTS)}, got {requested!r}")
+        if requested not in selection.CC_VARIANTS:
+            raise ValueError(f"cc_variant: expected 'auto' or one of {tuple(selection.CC_VARIANTS)}, got {requested!r}")
         return {"requested": requested, "chosen": requested}
     try:
-        chosen, scores = choose_cc_variant(rec, spec, smap)
+        chosen, scores = selection.choose_cc_variant(rec, spec, smap)
     except ValueError as err:                      # no pattern families: no proxy to choose with
         print(f"cc variant: no singles → pairs proxy ({err}); using 'base'")
         return {"requested": "auto", "chosen": "base"}
@@ -262,11 +249,11 @@ def submit_warmups(pool: TaskPool, fits: Sequence[tuple[FitContext, str, Sequenc
     return futures
 
 
-def selection_folds(s: Setup, proxies: Sequence[str] = DEFAULT_PROXIES) -> dict[str, list[Fold]]:
+def selection_folds(s: Setup, proxies: Sequence[str] = selection.DEFAULT_PROXIES) -> dict[str, list[Fold]]:
     """{proxy: folds} of the training recording (CC refitted per fold). Raises ValueError when the labels name
     no pattern families (:func:`.selection.proxy_masks`)."""
-    return {proxy: make_folds(s.train_rec, s.spec, s.smap, m, s.cc_options, s.cache_dir)
-            for proxy, m in proxy_masks(s.train_rec.labels, proxies).items()}
+    return {proxy: selection.make_folds(s.train_rec, s.spec, s.smap, m, s.cc_options, s.cache_dir)
+            for proxy, m in selection.proxy_masks(s.train_rec.labels, proxies).items()}
 
 
 def proxy_seeds_of(models: Sequence[str], seeds: Sequence[int], all_seeds: Sequence[str] | None = None
@@ -278,14 +265,15 @@ def proxy_seeds_of(models: Sequence[str], seeds: Sequence[int], all_seeds: Seque
 
 
 def submit_selection(pool: TaskPool, s: Setup, models: Sequence[str], seeds: Sequence[int],
-                     proxies: Sequence[str] = DEFAULT_PROXIES, all_seeds: Sequence[str] | None = None,
+                     proxies: Sequence[str] = selection.DEFAULT_PROXIES, all_seeds: Sequence[str] | None = None,
                      folds: dict[str, list[Fold]] | None = None) -> PendingSelection:
     """Every model's proxy fits handed to ``pool`` on ``folds`` (default: :func:`selection_folds`). The models in
     ``all_seeds`` (default: every model) are fitted with every seed, the others (scored for comparison) with
     the first (:func:`proxy_seeds_of`). Raises ValueError when the labels name no pattern families."""
     folds = selection_folds(s, proxies) if folds is None else folds
     per_model = proxy_seeds_of(models, seeds, all_seeds)
-    fits = {name: {proxy: {f.name: [_submit(pool, name, fold_predictions, f, seed) for seed in per_model[name]]
+    predict = selection.fold_predictions
+    fits = {name: {proxy: {f.name: [_submit(pool, name, predict, f, seed) for seed in per_model[name]]
                            for f in fs} for proxy, fs in folds.items()} for name in models}
     return PendingSelection(fits, folds, per_model)
 
@@ -298,7 +286,7 @@ def collect_selection(pending: PendingSelection, log: Callable = progress,
     """Every model's train-only proxy scores with their uncertainty (:func:`.selection.summarize_scores`,
     bootstrap over the held-out pattern groups and the seeds, :func:`.selection.bootstrap_replicates`; seconds:
     the model's fits), logged per model as its fits finish (with the time since ``start``)."""
-    weights = {proxy: fold_weights({f.name: f.groups for f in fs}) for proxy, fs in pending.folds.items()}
+    weights = {proxy: selection.fold_weights({f.name: f.groups for f in fs}) for proxy, fs in pending.folds.items()}
     tips = {proxy: {f.name: f.test.tip for f in fs} for proxy, fs in pending.folds.items()}
     scores, replicates, predictions = {}, {}, {}
     for k, (name, per) in enumerate(pending.fits.items()):
@@ -309,9 +297,10 @@ def collect_selection(pending: PendingSelection, log: Callable = progress,
                   for proxy, folds in predictions[name].items()}
         rmse = {proxy: {fold: [float(offset_removed_rmse(e, torch.zeros_like(e))) for e in errs]
                         for fold, errs in folds.items()} for proxy, folds in errors.items()}
-        replicates[name] = {proxy: bootstrap_replicates(errors[proxy], weights[proxy], name) for proxy in errors}
+        replicates[name] = {proxy: selection.bootstrap_replicates(errors[proxy], weights[proxy], name)
+                            for proxy in errors}
         seconds = sum(sec for folds in done.values() for runs in folds.values() for _, sec in runs)
-        scores[name] = p = summarize_scores(rmse, pending.seeds[name], seconds, replicates[name])
+        scores[name] = p = selection.summarize_scores(rmse, pending.seeds[name], seconds, replicates[name])
         shown = ", ".join(f"{_PROXY_NAMES[proxy]} {p[proxy]:6.2f} ± {p[proxy + '_std']:.2f} mm" for proxy in per)
         log(f"[proxy {k + 1}/{len(pending.fits)}] {name:36s} {shown} ({len(pending.seeds[name])} seed(s), "
             f"{p['seconds']:.0f} s of fits{_elapsed(start)})")
@@ -327,8 +316,8 @@ def default_candidates(models: Sequence[str], deployable_only: bool = True) -> t
 def select_default(scores: dict, replicates: dict | None = None) -> dict:
     """The default model among :func:`default_candidates` and why (:func:`.selection.default_choice`, on the
     selection proxy's bootstrap ``replicates`` {model: {proxy: (B,)}} when given)."""
-    reps = None if replicates is None else {m: r[SELECTION_PROXY] for m, r in replicates.items()}
-    return default_choice(scores, default_candidates(list(scores)), SELECTION_PROXY, reps)
+    reps = None if replicates is None else {m: r[selection.SELECTION_PROXY] for m, r in replicates.items()}
+    return selection.default_choice(scores, default_candidates(list(scores)), selection.SELECTION_PROXY, reps)
 
 
 def fit_hardware_model(setup, name: str, seeds: list[int], sigma: SigmaCalibration | None = None,

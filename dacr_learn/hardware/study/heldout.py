@@ -18,10 +18,8 @@ from ..deploy.uncertainty import SigmaCalibration, SigmaModel, SupportModel, sig
 from .pool import TaskPool
 from .selection import PROXIES, Fold, fold_predictions, make_folds, model_seeds, proxy_masks
 
-# The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)², chosen among 13 term sets on FTDCR v4's
-# training folds (highest Spearman on singles → pairs with its ±2σ coverage in 85–99 %: docs/hardware.md,
-# research/hardware_cv/ensemble_uncertainty.py), fitted on the singles → pairs fold (the cheapest:
-# one fold, trained on the single-segment rows).
+# The σ model saved with a hardware model: σ² = σ₀² + (c·‖ρ‖)² (chosen on train only: docs/hardware.md,
+# "Uncertainty"), fitted on the singles → pairs fold (the cheapest: one fold, trained on the single-segment rows).
 SIGMA_TERMS = ("bend",)
 SIGMA_PROXIES = ("extrap",)
 

@@ -15,21 +15,11 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from .. import learned
 from ..ccmodel import CalibratedCC
 from ..compositional_model import CCCompositionalResidual
 from ..cosserat_learned import CCClarkeResidualCosserat, CCClarkeResidualHistoryCosserat, CosseratOnly
-from ..learned import (
-    PRETRAIN_SAMPLES,
-    CCClarkeResidual,
-    CCClarkeResidualHistory,
-    CCOnly,
-    CCTipResidual,
-    LinearRaw,
-    Pretrained,
-    Split,
-    TipMLP,
-    synthetic_split,
-)
+from ..learned import Split
 from ..servo_map import ServoMap
 
 SYNTHETIC_SEED = 1000   # the pre-trained models' synthetic data of seed s is drawn with seed SYNTHETIC_SEED + s
@@ -51,14 +41,14 @@ class FitContext:
         """Width of a network input: the number of servos ("raw") or 2m Clarke coordinates ("clarke")."""
         return len(self.servo_ids) if inputs == "raw" else 2 * self.cc.spec.num_segments
 
-    def synthetic(self, seed: int, n: int = PRETRAIN_SAMPLES) -> Split:
+    def synthetic(self, seed: int, n: int = learned.PRETRAIN_SAMPLES) -> Split:
         """Synthetic all-segment data of the calibrated CC robot (:func:`~.learned.synthetic_split`), as the
         pre-trained models of seed ``seed`` draw it."""
-        return synthetic_split(self.cc, self.smap, self.servo_ids, n, seed=SYNTHETIC_SEED + seed)
+        return learned.synthetic_split(self.cc, self.smap, self.servo_ids, n, seed=SYNTHETIC_SEED + seed)
 
 
 def _pretrained(inputs: str) -> Callable[[FitContext, int], nn.Module]:
-    return lambda c, s: Pretrained(inputs, c.n_inputs(inputs), c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s)
+    return lambda c, s: learned.Pretrained(inputs, c.n_inputs(inputs), c.cc, c.smap, c.servo_ids, SYNTHETIC_SEED + s)
 
 
 @dataclass(frozen=True)
@@ -85,15 +75,16 @@ class ModelInfo:
 
 
 _MODELS = (
-    ModelInfo("linear_raw", lambda c, s: LinearRaw(len(c.servo_ids)), "raw", deterministic=True, instant=True),
-    ModelInfo("mlp_raw", lambda c, s: TipMLP("raw", c.n_inputs("raw")), "raw"),
-    ModelInfo("mlp_clarke", lambda c, s: TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
-    ModelInfo("cc", lambda c, s: CCOnly(), "clarke", deterministic=True, deployable=True, outputs=0, instant=True),
-    ModelInfo("cc_clarke_residual", lambda c, s: CCClarkeResidual(c.cc), "clarke", deployable=True, outputs=2),
+    ModelInfo("linear_raw", lambda c, s: learned.LinearRaw(len(c.servo_ids)), "raw", deterministic=True, instant=True),
+    ModelInfo("mlp_raw", lambda c, s: learned.TipMLP("raw", c.n_inputs("raw")), "raw"),
+    ModelInfo("mlp_clarke", lambda c, s: learned.TipMLP("clarke", c.n_inputs("clarke")), "clarke"),
+    ModelInfo("cc", lambda c, s: learned.CCOnly(), "clarke", deterministic=True, deployable=True, outputs=0,
+              instant=True),
+    ModelInfo("cc_clarke_residual", lambda c, s: learned.CCClarkeResidual(c.cc), "clarke", deployable=True, outputs=2),
     ModelInfo("pretrained_clarke", _pretrained("clarke"), "clarke", pretrained=True),
-    ModelInfo("cc_clarke_residual_history", lambda c, s: CCClarkeResidualHistory(c.cc), "clarke",
+    ModelInfo("cc_clarke_residual_history", lambda c, s: learned.CCClarkeResidualHistory(c.cc), "clarke",
               static=False, deployable=True, outputs=2),
-    ModelInfo("cc_tip_residual", lambda c, s: CCTipResidual(c.n_inputs("clarke")), "clarke"),
+    ModelInfo("cc_tip_residual", lambda c, s: learned.CCTipResidual(c.n_inputs("clarke")), "clarke"),
     ModelInfo("pretrained_raw", _pretrained("raw"), "raw"),
     ModelInfo("cc_compositional_residual", lambda c, s: CCCompositionalResidual(c.cc), "clarke",
               deployable=True, outputs=5),

@@ -1,17 +1,11 @@
 """Choosing a model on the training recording alone: two selection proxies and the default model.
 
-Both proxies are the offset-removed tip RMSE [mm] on held-out rows of the training recording
-(docs/hardware.md, "Choosing the default model on training data alone"):
-
-- ``cv``: leave-one-pattern-family-out cross-validation; families from the labels: ``single``
-  (``seg<k>…``, ``tendon<k>…``) and one per pair of segments (``pair<jk>…``). Mean over folds.
-- ``extrap``: singles → pairs, fit on the single family and test on every pair family.
-
-In every fold the calibrated CC model is refitted on the fold's training rows, history inputs run along
-the whole recording (causal), and each learned model is trained on the training rows only. Labels
+Both proxies are the offset-removed tip RMSE [mm] on held-out rows of the training recording, the CC model refitted
+in every fold (docs/hardware.md, "Choosing the default model on training data alone"): ``cv``, leave-one-pattern-
+family-out cross-validation over the families of :func:`pattern_family`; ``extrap``, singles → pairs. Labels
 without a family raise. :data:`DEFAULT_PROXIES` is ``extrap`` only (the family CV costs ~4× more).
 :func:`choose_cc_variant` picks the CC variant (:data:`CC_VARIANTS`) by the CC model's own ``extrap``;
-:func:`default_choice` picks the default model.
+:func:`default_choice` picks the default model (the one-standard-error rule).
 """
 from __future__ import annotations
 

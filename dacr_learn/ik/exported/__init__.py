@@ -20,9 +20,10 @@ from torch import Tensor, nn
 
 from ...checks import F64
 from ...deploy.export import FORMAT, MAX_BATCH, file_sha256, output_folder, write_export
+from ...lie import pose_from_parts
 from ...robot import RobotSpec
 from ..adapters import ConstantCurvature
-from ..refine import fused_matmul, limited_step, lm_accept, residual, spd_solve_unrolled
+from ..refine import fused_matmul, lm_iteration, residual, spd_solve_unrolled
 
 
 class IKRefinement(nn.Module):
@@ -51,16 +52,13 @@ class IKRefinement(nn.Module):
     def forward(self, target: Tensor, q0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         position = target if self.position_only else target[:, :3, 3]
         rotation = None if self.position_only else target[:, :3, :3]
-        lim = self.model.limits
-        x = lim.project(self.model.variables(q0))
+        x = self.model.limits.project(self.model.variables(q0))
         r, jac, pos_err, rot_err = residual(self.model, x, position, rotation, fused_matmul)
         cost = (r * r).sum(-1)
-        lam = torch.full_like(cost, self.damping)
-        for _ in range(self.iterations):
-            xt = limited_step(lim, x, r, jac, lam, solve=spd_solve_unrolled, matmul=fused_matmul)
-            rt, jt, pe, re = residual(self.model, xt, position, rotation, fused_matmul)
-            (x, r, jac, pos_err, rot_err), cost, lam = lm_accept((x, r, jac, pos_err, rot_err), (xt, rt, jt, pe, re),
-                                                                 cost, (rt * rt).sum(-1), lam)
+        state = x, r, jac, cost, torch.full_like(cost, self.damping), pos_err, rot_err
+        for _ in range(self.iterations):                  # every row takes the projector: no data-dependent step
+            state = lm_iteration(self.model, state, position, rotation, spd_solve_unrolled, fused_matmul, False)
+        x, _, _, _, _, pos_err, rot_err = state
         return self.model.joints(x), pos_err, rot_err
 
 
@@ -77,9 +75,7 @@ def export_refinement(robot: str | Path | RobotSpec, out: str | Path, *, iterati
     pos, rot, _ = module.model.tip_and_jacobian(x)
     q0 = module.model.joints(module.model.limits.project(x + 0.02 * module.model.limits.scale * torch.randn(
         x.shape, generator=g, dtype=F64)))
-    target = pos if position_only else torch.cat([torch.cat([rot, pos.unsqueeze(-1)], -1),
-                                                  torch.tensor([[[0.0, 0.0, 0.0, 1.0]]], dtype=F64).expand(64, 1, 4)],
-                                                 -2)
+    target = pos if position_only else pose_from_parts(rot, pos)
     target_shape = [3] if position_only else [4, 4]
     source = {"path": str(robot), "sha256": file_sha256(robot)} if isinstance(robot, (str, Path)) else None
     meta = {"format": FORMAT, "task": "ik_refinement", "dtype": "float64", "torch_version": torch.__version__,
