@@ -141,16 +141,26 @@ class _Flushes(io.StringIO):
         super().flush()
 
 
-def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path, monkeypatch):
+LABELLED_ARGS = ("--models", "linear_raw", "cc", "--seeds", "0")
+
+
+@pytest.fixture(scope="module")
+def default_run(labelled_robot_dir, tmp_path_factory):
+    """The command with its default proxies on the labelled robot: (report, out folder, its stdout as a _Flushes),
+    shared read-only by the two tests below (one run of the benchmark: seconds)."""
     from dacr_learn.cli.hardware import main
 
     data, robot = labelled_robot_dir
-    out = tmp_path / "run"
+    out = tmp_path_factory.mktemp("default_run") / "run"
     stdout = _Flushes()
-    monkeypatch.setattr(sys, "stdout", stdout)
-    report = main(["--data", str(data), "--robot", str(robot), "--out", str(out),
-                   "--models", "linear_raw", "cc", "--seeds", "0"])
-    monkeypatch.undo()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys, "stdout", stdout)
+        report = main(["--data", str(data), "--robot", str(robot), "--out", str(out), *LABELLED_ARGS])
+    return report, out, stdout
+
+
+def test_cli_without_val_records_the_default_model(default_run):
+    report, out, stdout = default_run
     # progress: a start line, then a line per model as its proxies and as its final runs finish, each flushed as
     # it is printed (stdout redirected to a log file is block-buffered: unflushed, they would show at the end)
     lines = [line for line in stdout.getvalue().splitlines() if line.startswith("[")]
@@ -176,13 +186,13 @@ def test_cli_without_val_records_the_default_model(labelled_robot_dir, tmp_path,
     assert f"{selection['scores']['cc']['extrap']:.2f} ± " in (out / "results.md").read_text()
 
 
-def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, tmp_path):
+def test_cli_computes_the_family_cv_on_request_and_keeps_the_default(labelled_robot_dir, default_run, tmp_path):
     from dacr_learn.cli.hardware import main, parse_args
 
     data, robot = labelled_robot_dir
-    args = ["--data", str(data), "--robot", str(robot), "--models", "linear_raw", "cc", "--seeds", "0"]
+    args = ["--data", str(data), "--robot", str(robot), *LABELLED_ARGS]
     full = main(args + ["--out", str(tmp_path / "full"), "--proxies", "cv", "extrap"])
-    short = main(args + ["--out", str(tmp_path / "short")])
+    short = default_run[0]                                   # the same command without --proxies
     assert full["default_model"] == short["default_model"] == "cc" and full["selection"]["proxies"] == ["cv", "extrap"]
     for name in ("linear_raw", "cc"):
         f, s = full["selection"]["scores"][name], short["selection"]["scores"][name]

@@ -74,6 +74,7 @@ def test_working_batch_and_grouped_restarts_keep_the_same_contract():
     targets = clear_targets(model, scene, 4, seed=8)
     avoid = Avoidance(model, scene, D)
     centers, radii = scene.sphere_center.numpy(), scene.sphere_radius.numpy()
+    checked = {}                                    # joints → dense check: a solution found again is checked once
     for options in (IKOptions(), IKOptions(pool=0), IKOptions(shards=2)):
         res = solve_ik(model, targets, 3, scene=scene, clearance=D, options=options)
         assert res.success.any(1).all() and res.clearance.shape == (4, 3)
@@ -81,7 +82,10 @@ def test_working_batch_and_grouped_restarts_keep_the_same_contract():
         assert torch.allclose(again, res.clearance, rtol=0, atol=1e-15)
         assert torch.equal(res.success, res.success & (res.clearance >= D))
         for b, k in res.success.nonzero().tolist():
-            true = numpy_clearance(SPEC, res.q[b, k].numpy(), centers, radii)
+            q = res.q[b, k].numpy()
+            if q.tobytes() not in checked:
+                checked[q.tobytes()] = numpy_clearance(SPEC, q, centers, radii)
+            true = checked[q.tobytes()]
             assert true >= D and true - 5e-4 <= res.clearance[b, k].item() <= true + 1e-12
 
 
