@@ -28,6 +28,7 @@ from .pool import pool_multi_start, run_sharded, shards, start_budget
 from .refine import STALL_LAMBDA, Refinement, lm_iteration
 from .seeds import PoseBank
 from .targets import check_q0, check_targets
+from .workers import run_in_processes
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,11 @@ class IKOptions:
     (:mod:`.pool`; with a scene, converged starts are checked for clearance in batches there), 0 for grouped
     restarts of shrinking batches (:func:`_multi_start`); shards: the pool's targets split into this many parts, run
     on parallel threads (at most torch's thread count at once; the solutions depend on the shards, not on the
-    threads); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only; minutes
-    of compilation once per robot and task in a process, cached on disk by torch); bank: samples of a pose bank
+    threads); processes: the shards run in worker processes instead of threads (which the GIL keeps to about one
+    core; :mod:`.workers`: one per shard, one torch thread each, started on first use and kept, each compiling the
+    fused iteration once; the same solutions as on threads; the analytic model without a scene only, else
+    ValueError); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only;
+    minutes of compilation once per robot and task in a process, cached on disk by torch); bank: samples of a pose bank
     (:class:`~.seeds.PoseBank`) whose tips nearest each target seed the slots not started by q0 or
     ``seeds`` (0: uniform starts; built on first use, kept per robot spec and size for the analytic model).
     """
@@ -58,6 +62,7 @@ class IKOptions:
     seed: int = 0
     pool: int = 8192
     shards: int = 1
+    processes: bool = False
     fused: bool = False
     bank: int = 0
 
@@ -73,6 +78,8 @@ class IKOptions:
         if self.pool < 0 or self.shards < 1:
             raise ValueError(f"pool >= 0 (0: grouped restarts) and shards >= 1 expected, got {self.pool}, "
                              f"{self.shards}")
+        if self.processes and self.pool == 0:
+            raise ValueError("processes: worker processes run the working batch's shards; expected pool > 0, got 0")
         if not self.distinct >= 0 or not self.damping > 0:
             raise ValueError(f"distinct >= 0 and damping > 0 expected, got {self.distinct}, {self.damping}")
 
@@ -177,22 +184,24 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         starts[:, 0] = model.variables(q0)
 
     if options.pool > 0:
-        tol = (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance)    # a decade below, as Refinement
         parts = shards(b, options.shards)
         gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
             2 ** 62, (len(parts),), generator=gen)]
-
-        iteration = fused_iteration(model) if options.fused else lm_iteration
-
-        def shard(i: int) -> tuple[Tensor, Tensor]:
-            t = parts[i]
-            return pool_multi_start(
-                model, starts[t].reshape(-1, d), position[t], None if rotation is None else rotation[t], gens[i], k,
-                tol, options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT),
-                MAX_FAN_OUT, options.pool, d >= (3 if rotation is None else 6), q0 is not None,
-                lambda x, ok: _duplicates(model, x, ok, options.distinct),
-                None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
-        x, iters = (torch.cat(t) for t in zip(*run_sharded(shard, len(parts)), strict=True))
+        rot = [None if rotation is None else rotation[t] for t in parts]
+        if options.processes:
+            if type(model) is not ConstantCurvature or avoid is not None:
+                raise ValueError(f"processes: worker processes solve for the analytic constant-curvature model "
+                                 f"without a scene; got {type(model).__name__}"
+                                 f"{'' if avoid is None else ' with a scene'} (use processes=False)")
+            out = run_in_processes(_process_shard, [
+                (model.spec, starts[t].reshape(-1, d), position[t], rot[i], gens[i].get_state(), k, options,
+                 q0 is not None) for i, t in enumerate(parts)], len(parts))
+        else:
+            iteration = fused_iteration(model) if options.fused else lm_iteration
+            out = run_sharded(lambda i: _solve_shard(
+                model, starts[parts[i]].reshape(-1, d), position[parts[i]], rot[i], gens[i], k, options, q0 is not None,
+                avoid, iteration), len(parts))
+        x, iters = (torch.cat(t) for t in zip(*out, strict=True))
     else:
         rows = torch.arange(b).repeat_interleave(k)
         state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
@@ -200,6 +209,35 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
     return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
                             lim.project(model.rest.to(F64)), options, avoid)
+
+
+def _solve_shard(model: SolverModel, starts: Tensor, position: Tensor, rotation: Tensor | None, gen: torch.Generator,
+                 k: int, options: IKOptions, keep_first: bool, avoid: Avoidance | None, iteration
+                 ) -> tuple[Tensor, Tensor]:
+    """:func:`~.pool.pool_multi_start` of one shard: starts (M, D) of its M = B·K slots, targets (B, 3), (B, 3, 3)."""
+    d = starts.shape[1]
+    return pool_multi_start(
+        model, starts, position, rotation, gen, k, (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance),
+        options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT), MAX_FAN_OUT,
+        options.pool, d >= (3 if rotation is None else 6), keep_first,   # tolerance a decade below, as Refinement
+        lambda x, ok: _duplicates(model, x, ok, options.distinct),
+        None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
+
+
+_MODELS: dict = {}
+
+
+def _process_shard(item: tuple) -> tuple[Tensor, Tensor]:
+    """:func:`_solve_shard` in a worker process (:mod:`.workers`): the analytic model of the spec (kept per spec, with
+    its compiled iteration), the shard's generator from its state."""
+    spec, starts, position, rotation, state, k, options, keep_first = item
+    if spec not in _MODELS:
+        _MODELS[spec] = ConstantCurvature(spec)
+    model = _MODELS[spec]
+    gen = torch.Generator()
+    gen.set_state(state)
+    return _solve_shard(model, starts, position, rotation, gen, k, options, keep_first, None,
+                        fused_iteration(model) if options.fused else lm_iteration)
 
 
 _BANKS: dict[tuple, PoseBank] = {}
