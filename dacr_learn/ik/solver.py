@@ -177,67 +177,68 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         s = min(k, seeds.shape[1])
         starts[:, :s] = seeds[:, :s].to(F64)
     s = max(s, int(q0 is not None))                              # slot 0 is q0's
-    if options.bank and s < k:
-        starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
     if q0 is not None:
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
-
-    if options.pool > 0:
-        parts = shards(b, options.shards)
-        gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
-            2 ** 62, (len(parts),), generator=gen)]
-        rot = [None if rotation is None else rotation[t] for t in parts]
-        if options.processes:
-            if type(model) is not ConstantCurvature or avoid is not None:
-                raise ValueError(f"processes: worker processes solve for the analytic constant-curvature model "
-                                 f"without a scene; got {type(model).__name__}"
-                                 f"{'' if avoid is None else ' with a scene'} (use processes=False)")
-            out = run_in_processes(_process_shard, [
-                (model.spec, starts[t].reshape(-1, d), position[t], rot[i], gens[i].get_state(), k, options,
-                 q0 is not None) for i, t in enumerate(parts)], len(parts))
-        else:
-            iteration = fused_iteration(model) if options.fused else lm_iteration
-            out = run_sharded(lambda i: _solve_shard(
-                model, starts[parts[i]].reshape(-1, d), position[parts[i]], rot[i], gens[i], k, options, q0 is not None,
-                avoid, iteration), len(parts))
-        x, iters = (torch.cat(t) for t in zip(*out, strict=True))
-    else:
+    rest = lim.project(model.rest.to(F64))
+    if options.pool == 0:
+        if options.bank and s < k:
+            starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
         rows = torch.arange(b).repeat_interleave(k)
         state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
                            (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
         x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
-    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
-                            lim.project(model.rest.to(F64)), options, avoid)
+        return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
+    parts = shards(b, options.shards)
+    gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
+        2 ** 62, (len(parts),), generator=gen)]
+    items = [(starts[t], target[t], None if q0 is None else q0[t], s, gens[i].get_state(), options, position_only)
+             for i, t in enumerate(parts)]
+    if options.processes:
+        if type(model) is not ConstantCurvature or avoid is not None:
+            raise ValueError(f"processes: worker processes solve for the analytic constant-curvature model without a "
+                             f"scene; got {type(model).__name__}{'' if avoid is None else ' with a scene'} "
+                             f"(use processes=False)")
+        return IKResult.concat(run_in_processes(_process_shard, [(model.spec, *item) for item in items], len(parts)))
+    iteration = fused_iteration(model) if options.fused else lm_iteration
+    return IKResult.concat(run_sharded(lambda i: _solve_shard(model, *items[i], rest, avoid, iteration), len(parts)))
 
 
-def _solve_shard(model: SolverModel, starts: Tensor, position: Tensor, rotation: Tensor | None, gen: torch.Generator,
-                 k: int, options: IKOptions, keep_first: bool, avoid: Avoidance | None, iteration
-                 ) -> tuple[Tensor, Tensor]:
-    """:func:`~.pool.pool_multi_start` of one shard: starts (M, D) of its M = B·K slots, targets (B, 3), (B, 3, 3)."""
-    d = starts.shape[1]
-    return pool_multi_start(
-        model, starts, position, rotation, gen, k, (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance),
-        options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT), MAX_FAN_OUT,
-        options.pool, d >= (3 if rotation is None else 6), keep_first,   # tolerance a decade below, as Refinement
-        lambda x, ok: _duplicates(model, x, ok, options.distinct),
+def _solve_shard(model: SolverModel, starts: Tensor, target: Tensor, q0: Tensor | None, s: int, gen_state: Tensor,
+                 options: IKOptions, position_only: bool, rest: Tensor, avoid: Avoidance | None, iteration
+                 ) -> IKResult:
+    """The verified result of one shard of targets (B, 4, 4) or (B, 3) by :func:`~.pool.pool_multi_start` from starts
+    (B, K, D), slots s… seeded by the pose bank (``options.bank``), the random starts from a generator of state
+    ``gen_state`` (so that threads and worker processes draw the same)."""
+    b, k, d = starts.shape
+    if options.bank and s < k:
+        starts = starts.clone()
+        starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
+    position = target[:, :3, 3] if target.dim() == 3 else target
+    rotation = None if position_only else target[:, :3, :3]
+    gen = torch.Generator()
+    gen.set_state(gen_state)
+    x, iters = pool_multi_start(
+        model, starts.reshape(-1, d), position, rotation, gen, k,
+        (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance), options.damping,   # a decade below, as Refinement
+        options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT), MAX_FAN_OUT, options.pool,
+        d >= (3 if rotation is None else 6), q0 is not None, lambda x, ok: _duplicates(model, x, ok, options.distinct),
         None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
+    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
 
 
 _MODELS: dict = {}
 
 
-def _process_shard(item: tuple) -> tuple[Tensor, Tensor]:
-    """:func:`_solve_shard` in a worker process (:mod:`.workers`): the analytic model of the spec (kept per spec, with
-    its compiled iteration), the shard's generator from its state."""
-    spec, starts, position, rotation, state, k, options, keep_first = item
+def _process_shard(item: tuple) -> IKResult:
+    """:func:`_solve_shard` in a worker process (:mod:`.workers`) for the analytic model of a spec (kept per spec, with
+    its compiled iteration and pose bank)."""
+    spec, *shard = item
     if spec not in _MODELS:
         _MODELS[spec] = ConstantCurvature(spec)
     model = _MODELS[spec]
-    gen = torch.Generator()
-    gen.set_state(state)
-    return _solve_shard(model, starts, position, rotation, gen, k, options, keep_first, None,
-                        fused_iteration(model) if options.fused else lm_iteration)
+    return _solve_shard(model, *shard, model.limits.project(model.rest.to(F64)), None,
+                        fused_iteration(model) if shard[-2].fused else lm_iteration)
 
 
 _BANKS: dict[tuple, PoseBank] = {}
