@@ -3,14 +3,14 @@
 For each robot, 1,000 reachable targets (the FK of features uniform inside the limits), K = 8 solutions each,
 pose and position only: targets solved (at least one flagged solution), slots solved, flagged solutions that fail
 the independent NumPy check (benchmarks/ik_reference.py: no shared code), targets with ≥ K/2 distinct solutions,
-wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
-in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
-without a scene; ``pool2``: its targets in 2 shards on parallel threads; ``fused``: the pool with its LM iteration
-compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards); ``bank``, ``fusedbank``, ``fusedbank2``: the same
-seeded by a pose bank, ``IKOptions(bank=8192)``; ``pool2p``, ``fused2p``, ``bank2p``, ``fusedbank2p``: 2 shards in
-worker processes, ``IKOptions(shards=2, processes=True)``; these are timed after a first small solve that compiles the
-iteration (in each worker process) and builds the bank, whose time is reported as ``compile_s``, after the start of
-the worker processes, ``pool_start_s``). For the 3-segment robot also: the
+wall and CPU time (a process path's: of this process and its workers), verified solutions per second — for the paths
+of the solver side by side (``grouped``: restarts in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``:
+the working batch that stays full, the default without a scene; ``pool2``: its targets in 2 shards on parallel
+threads; ``fused``: the pool with its LM iteration compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards);
+``bank``, ``fusedbank``, ``fusedbank2``: the same seeded by a pose bank, ``IKOptions(bank=8192)``; ``pool2p``,
+``fused2p``, ``bank2p``, ``fusedbank2p``: 2 shards in worker processes, ``IKOptions(shards=2, processes=True)``; these
+are timed after the start of the worker processes, ``pool_start_s``, and a first small solve that compiles the
+iteration (in each worker process) and builds the bank, ``compile_s``). For the 3-segment robot also: the
 warm-started refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds
 ``refine`` from ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
@@ -86,6 +86,14 @@ def pool_start_time(path: str) -> float:
     return time.perf_counter() - t0
 
 
+def workers_cpu(path: str) -> float:
+    """CPU time [s] of a process path's worker processes so far (0 for the others)."""
+    if not PATHS[path].processes:
+        return 0.0
+    from dacr_learn.ik.workers import process_cpu, run_in_processes
+    return sum(run_in_processes(process_cpu, [None] * PATHS[path].shards, PATHS[path].shards))
+
+
 def compile_time(name: str, position_only: bool, path: str) -> float:
     """Wall time [s] of a first small solve (64 × 8) of a fused or bank path: the one-time compilation of the robot's
     iteration for the task (the later rows of the process reuse it; in shards, on one thread each, torch compiles once
@@ -102,9 +110,9 @@ def solve_row(name: str, n: int, k: int, position_only: bool, seed: int, path: s
     spec = RobotSpec.from_yaml(robot_path(name))
     poses = targets(spec, n, seed)
     goal = poses[:, :3, 3] if position_only else poses
-    wall, cpu = time.perf_counter(), time.process_time()
+    wall, cpu = time.perf_counter(), time.process_time() + workers_cpu(path)
     result = solve_ik(spec, goal, n_solutions=k, position_only=position_only, options=PATHS[path])
-    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    wall, cpu = time.perf_counter() - wall, time.process_time() + workers_cpu(path) - cpu
     flagged = result.success.numpy()
     rows = np.nonzero(flagged)
     ref = ik_reference.check(robot_path(name), result.q.numpy()[rows], goal.numpy()[rows[0]])

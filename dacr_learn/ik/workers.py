@@ -24,6 +24,7 @@ import pickle
 import signal
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
 from multiprocessing.connection import Connection
@@ -151,6 +152,11 @@ def run_in_processes(fn: Callable, items: list, count: int) -> list:
             pool.stop()
             _POOL = None
             raise
+
+
+def process_cpu(_: object = None) -> float:
+    """CPU time [s] of the calling process (of each worker, through ``run_in_processes(process_cpu, ...)``)."""
+    return time.process_time()
 
 
 @atexit.register
