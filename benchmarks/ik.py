@@ -110,7 +110,8 @@ def solve_row(name: str, n: int, k: int, position_only: bool, seed: int, path: s
     spec = RobotSpec.from_yaml(robot_path(name))
     poses = targets(spec, n, seed)
     goal = poses[:, :3, 3] if position_only else poses
-    wall, cpu = time.perf_counter(), time.process_time() + workers_cpu(path)
+    cpu = time.process_time() + workers_cpu(path)
+    wall = time.perf_counter()
     result = solve_ik(spec, goal, n_solutions=k, position_only=position_only, options=PATHS[path])
     wall, cpu = time.perf_counter() - wall, time.process_time() + workers_cpu(path) - cpu
     flagged = result.success.numpy()
