@@ -5,6 +5,7 @@ their work, and they stop at exit. The workers run the eager iteration here (the
 from __future__ import annotations
 
 import math
+import os
 import signal
 import threading
 import time
@@ -63,3 +64,25 @@ def test_an_interrupt_stops_the_workers_and_a_failure_raises():
     with pytest.raises(RuntimeError, match="math domain error"):
         workers.run_in_processes(math.sqrt, [4.0, -1.0], 2)
     assert [p.exitcode for p, _ in idle] == [0, 0]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(os.environ.get("DACR_TEST_IK_FUSED") != "1",
+                    reason="DACR_TEST_IK_FUSED=1 compiles the iteration (minutes, in each worker process)")
+def test_fused_processes_give_the_threads_solutions():
+    """With the compiled iteration (position targets: the smaller graph), 2 shards in worker processes give the
+    solutions of 2 shards on threads (each thread on one torch thread, as each worker), all verified. Takes 3–8 min on
+    a 2-core machine (the compilation, in this process and in each worker)."""
+    target = targets_of(TDCR3, 32, seed=9)[:, :3, 3]          # 64 rows per shard: compiled (>= MIN_ROWS)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)                                 # the threaded shards run on one torch thread each
+    try:
+        runs = [solve_ik(TDCR3, target, n_solutions=4, position_only=True,
+                         options=IKOptions(seed=2, shards=2, fused=True, processes=processes))
+                for processes in (False, True)]
+    finally:
+        torch.set_num_threads(before)
+    for name in ("q", "success", "iterations"):
+        assert torch.equal(getattr(runs[0], name), getattr(runs[1], name)), name
+    assert runs[1].success.all()
+    assert_flagged_solutions_verify(TDCR3, runs[1], target)
