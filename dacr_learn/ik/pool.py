@@ -45,6 +45,8 @@ SAMPLE = 64       # decided once this many are checked (module docstring)
 CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
 RETIRE_AFTER = 6  # while crowded: a row still unconverged after this many LM iterations, of a target that has a
                   # solution, restarts near one (module docstring)
+RACE_AFTER = 8    # without ``accept``, in a short batch: a slot whose live starts all have run this many iterations
+                  # takes new starts beside them (the first to converge solves it)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
@@ -158,6 +160,10 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             free -= first.numel()
             if free > 0 and queued == m:
                 alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
+                if accept is None and keep.numel() < TAIL_ROWS:   # a short batch: race slow starts with new ones
+                    young = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat(
+                        [batch.slot[keep][batch.since[keep] < RACE_AFTER], first]), True)
+                    alive &= young
                 needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
                 if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
                     share = max(1, -(-((CROWDED_TAIL_ROWS if crowded else TAIL_ROWS) - keep.numel())
