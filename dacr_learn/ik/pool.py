@@ -6,8 +6,10 @@ threads (:func:`run_sharded`).
 gathers or scatters per iteration). A row leaves the batch when it converges (its slot is solved; the slot's other
 starts leave too) or stalls (``max_iterations``, or λ past :data:`~.refine.STALL_LAMBDA`). Once :data:`REFILL` of
 the batch has left, it drops those rows and takes new ones: the slots' first starts not yet begun, then new uniform
-starts of the unsolved slots that have no live start — one each, more while they fill the batch up to
-:data:`TAIL_ROWS` (at most ``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
+starts of the unsolved slots that have no live start (without ``accept``, while the batch is shorter than
+:data:`TAIL_ROWS`, also of those whose live starts have all run :data:`RACE_AFTER` iterations: new starts race the slow
+ones instead of waiting for them to stall) — one each, more while they fill the batch up to :data:`TAIL_ROWS` (at most
+``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
 restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
 solution of their target are reopened (twice at most), as in :mod:`.solver`.
 
