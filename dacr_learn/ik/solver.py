@@ -190,7 +190,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
         return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
     parts = shards(b, options.shards)
-    gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
+    gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(g)) for g in torch.randint(
         2 ** 62, (len(parts),), generator=gen)]
     items = [(starts[t], target[t], None if q0 is None else q0[t], s, gens[i].get_state(), options, position_only)
              for i, t in enumerate(parts)]
@@ -233,12 +233,13 @@ _MODELS: dict = {}
 def _process_shard(item: tuple) -> IKResult:
     """:func:`_solve_shard` in a worker process (:mod:`.workers`) for the analytic model of a spec (kept per spec, with
     its compiled iteration and pose bank)."""
-    spec, *shard = item
+    spec, starts, target, q0, s, gen_state, options, position_only = item
     if spec not in _MODELS:
         _MODELS[spec] = ConstantCurvature(spec)
     model = _MODELS[spec]
-    return _solve_shard(model, *shard, model.limits.project(model.rest.to(F64)), None,
-                        fused_iteration(model) if shard[-2].fused else lm_iteration)
+    return _solve_shard(model, starts, target, q0, s, gen_state, options, position_only,
+                        model.limits.project(model.rest.to(F64)), None,
+                        fused_iteration(model) if options.fused else lm_iteration)
 
 
 _BANKS: dict[tuple, PoseBank] = {}
