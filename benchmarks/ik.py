@@ -3,12 +3,14 @@
 For each robot, 1,000 reachable targets (the FK of features uniform inside the limits), K = 8 solutions each,
 pose and position only: targets solved (at least one flagged solution), slots solved, flagged solutions that fail
 the independent NumPy check (benchmarks/ik_reference.py: no shared code), targets with ≥ K/2 distinct solutions,
-wall and CPU time, verified solutions per second — for both paths of the solver side by side (``grouped``: restarts
-in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``: the working batch that stays full, the default
-without a scene; ``pool2``: its targets in 2 shards on parallel threads; ``fused``: the pool with its LM iteration
-compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards); ``bank``, ``fusedbank``, ``fusedbank2``: the same
-seeded by a pose bank, ``IKOptions(bank=8192)``; these are timed after a first small solve that compiles the
-iteration and builds the bank, whose time is reported as ``compile_s``). For the 3-segment robot also: the
+wall and CPU time (a process path's: of this process and its workers), verified solutions per second — for the paths
+of the solver side by side (``grouped``: restarts in groups on shrinking batches, ``IKOptions(pool=0)``; ``pool``:
+the working batch that stays full, the default without a scene; ``pool2``: its targets in 2 shards on parallel
+threads; ``fused``: the pool with its LM iteration compiled, ``IKOptions(fused=True)`` (``fused2``: in 2 shards);
+``bank``, ``fusedbank``, ``fusedbank2``: the same seeded by a pose bank, ``IKOptions(bank=8192)``; ``pool2p``,
+``fused2p``, ``bank2p``, ``fusedbank2p``: 2 shards in worker processes, ``IKOptions(shards=2, processes=True)``; these
+are timed after the start of the worker processes, ``pool_start_s``, and a first small solve that compiles the
+iteration (in each worker process) and builds the bank, ``compile_s``). For the 3-segment robot also: the
 warm-started refinement of one target per call (the controller case: eager, and exported if ``--export DIR`` holds
 ``refine`` from ``python -m dacr_learn.ik.exported``), the CLI end to end (a subprocess, start-up included) and
 pytorch-kinematics' PseudoInverseIK on the equivalent rigid chain (5 joints per segment: rz θ, ry φ/2, prismatic
@@ -64,7 +66,32 @@ def targets(spec: RobotSpec, n: int, seed: int) -> torch.Tensor:
 BANK = 8192   # samples of the pose bank of the *bank paths
 PATHS = {"grouped": IKOptions(pool=0), "pool": IKOptions(), "pool2": IKOptions(shards=2),
          "fused": IKOptions(fused=True), "fused2": IKOptions(fused=True, shards=2), "bank": IKOptions(bank=BANK),
-         "fusedbank": IKOptions(fused=True, bank=BANK), "fusedbank2": IKOptions(fused=True, bank=BANK, shards=2)}
+         "fusedbank": IKOptions(fused=True, bank=BANK), "fusedbank2": IKOptions(fused=True, bank=BANK, shards=2),
+         "pool2p": IKOptions(shards=2, processes=True), "fused2p": IKOptions(fused=True, shards=2, processes=True),
+         "bank2p": IKOptions(bank=BANK, shards=2, processes=True),
+         "fusedbank2p": IKOptions(fused=True, bank=BANK, shards=2, processes=True)}
+
+
+def first_use(path: str) -> bool:
+    """Whether a path has one-time costs to pay before its timed rows (compilation, bank, worker processes)."""
+    return PATHS[path].fused or PATHS[path].bank > 0 or PATHS[path].processes
+
+
+def pool_start_time(path: str) -> float:
+    """Wall time [s] of starting a process path's worker processes (0 once they run): spawned interpreters that
+    import torch."""
+    from dacr_learn.ik.workers import worker_pool
+    t0 = time.perf_counter()
+    worker_pool(PATHS[path].shards)
+    return time.perf_counter() - t0
+
+
+def workers_cpu(path: str) -> float:
+    """CPU time [s] of a process path's worker processes so far (0 for the others)."""
+    if not PATHS[path].processes:
+        return 0.0
+    from dacr_learn.ik.workers import process_cpu, run_in_processes
+    return sum(run_in_processes(process_cpu, [None] * PATHS[path].shards, PATHS[path].shards))
 
 
 def compile_time(name: str, position_only: bool, path: str) -> float:
@@ -83,9 +110,10 @@ def solve_row(name: str, n: int, k: int, position_only: bool, seed: int, path: s
     spec = RobotSpec.from_yaml(robot_path(name))
     poses = targets(spec, n, seed)
     goal = poses[:, :3, 3] if position_only else poses
-    wall, cpu = time.perf_counter(), time.process_time()
+    cpu = time.process_time() + workers_cpu(path)
+    wall = time.perf_counter()
     result = solve_ik(spec, goal, n_solutions=k, position_only=position_only, options=PATHS[path])
-    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    wall, cpu = time.perf_counter() - wall, time.process_time() + workers_cpu(path) - cpu
     flagged = result.success.numpy()
     rows = np.nonzero(flagged)
     ref = ik_reference.check(robot_path(name), result.q.numpy()[rows], goal.numpy()[rows[0]])
@@ -213,11 +241,14 @@ def main(argv=None) -> dict:
             print(json.dumps(report))
         return report
     torch.set_num_threads(args.threads)
-    rows, extra = [], {"compile_s": {}}
+    rows, extra = [], {"compile_s": {}, "pool_start_s": {}}
     for name in args.robots:
         for position_only in (False, True):
             task = "position" if position_only else "pose"
-            for path in (p for p in args.paths if PATHS[p].fused or PATHS[p].bank):
+            for path in (p for p in args.paths if first_use(p)):
+                if PATHS[path].processes:
+                    c = extra["pool_start_s"][f"{name} {task} {path}"] = pool_start_time(path)
+                    print(f"{name:22s} {task:8s} {path:7s} worker processes start: {c:.1f} s", flush=True)
                 c = extra["compile_s"][f"{name} {task} {path}"] = compile_time(name, position_only, path)
                 print(f"{name:22s} {task:8s} {path:7s} first solve (compiles, bank), 64 × 8: {c:.1f} s", flush=True)
             for i in range(args.repeat):

@@ -6,8 +6,10 @@ threads (:func:`run_sharded`).
 gathers or scatters per iteration). A row leaves the batch when it converges (its slot is solved; the slot's other
 starts leave too) or stalls (``max_iterations``, or λ past :data:`~.refine.STALL_LAMBDA`). Once :data:`REFILL` of
 the batch has left, it drops those rows and takes new ones: the slots' first starts not yet begun, then new uniform
-starts of the unsolved slots that have no live start — one each, more while they fill the batch up to
-:data:`TAIL_ROWS` (at most ``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
+starts of the unsolved slots that have no live start (without ``accept``, while the batch is shorter than
+:data:`TAIL_ROWS`, also of those whose live starts have all run :data:`RACE_AFTER` iterations: new starts race the slow
+ones instead of waiting for them to stall) — one each, more while they fill the batch up to :data:`TAIL_ROWS` (at most
+``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
 restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
 solution of their target are reopened (twice at most), as in :mod:`.solver`.
 
@@ -45,6 +47,8 @@ SAMPLE = 64       # decided once this many are checked (module docstring)
 CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
 RETIRE_AFTER = 6  # while crowded: a row still unconverged after this many LM iterations, of a target that has a
                   # solution, restarts near one (module docstring)
+RACE_AFTER = 8    # without ``accept``, in a short batch: a slot whose live starts all have run this many iterations
+                  # takes new starts beside them (the first to converge solves it)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
@@ -158,6 +162,10 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             free -= first.numel()
             if free > 0 and queued == m:
                 alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
+                if accept is None and keep.numel() < TAIL_ROWS:   # a short batch: race slow starts with new ones
+                    young = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat(
+                        [batch.slot[keep][batch.since[keep] < RACE_AFTER], first]), True)
+                    alive &= young
                 needy = (~solved & ~alive & (taken < budget)).nonzero().squeeze(-1)
                 if needy.numel():                 # fill up to TAIL_ROWS: a step of fewer rows costs about as much
                     share = max(1, -(-((CROWDED_TAIL_ROWS if crowded else TAIL_ROWS) - keep.numel())

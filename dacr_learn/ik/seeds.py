@@ -38,6 +38,7 @@ class PoseBank:
         self.position = torch.cat([p for p, _ in parts]).to(F64)
         self.rotation = None if parts[0][1] is None else torch.cat([r for _, r in parts]).to(F64)
         self._weight = POSITION_WEIGHT / model.length
+        self._bank: dict[bool, Tensor] = {}       # the samples' features, float32, with and without the rotation
 
     def _features(self, position: Tensor, rotation: Tensor | None) -> Tensor:
         scaled = position * self._weight
@@ -51,10 +52,12 @@ class PoseBank:
         pose = target.dim() == 3
         position = target[:, :3, 3] if pose else target
         use_rotation = pose and self.rotation is not None
-        bank = self._features(self.position, self.rotation if use_rotation else None)
+        if use_rotation not in self._bank:
+            self._bank[use_rotation] = self._features(self.position, self.rotation if use_rotation else None).float()
+        bank = self._bank[use_rotation]
         out = []
-        for rows in range(0, target.shape[0], CHUNK):
+        for rows in range(0, target.shape[0], CHUNK):      # float32 distances: ranks as float64's, at half the cost
             feat = self._features(position[rows:rows + CHUNK],
                                   target[rows:rows + CHUNK, :3, :3] if use_rotation else None)
-            out.append(torch.cdist(feat, bank).topk(count, dim=1, largest=False).indices)
+            out.append(torch.cdist(feat.float(), bank).topk(count, dim=1, largest=False).indices)
         return self.x[torch.cat(out)]

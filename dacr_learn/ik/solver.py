@@ -28,6 +28,7 @@ from .pool import pool_multi_start, run_sharded, shards, start_budget
 from .refine import STALL_LAMBDA, Refinement, lm_iteration
 from .seeds import PoseBank
 from .targets import check_q0, check_targets
+from .workers import run_in_processes
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,11 @@ class IKOptions:
     (:mod:`.pool`; with a scene, converged starts are checked for clearance in batches there), 0 for grouped
     restarts of shrinking batches (:func:`_multi_start`); shards: the pool's targets split into this many parts, run
     on parallel threads (at most torch's thread count at once; the solutions depend on the shards, not on the
-    threads); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only; minutes
-    of compilation once per robot and task in a process, cached on disk by torch); bank: samples of a pose bank
+    threads); processes: the shards run in worker processes instead of threads (which the GIL keeps to about one
+    core; :mod:`.workers`: one per shard, one torch thread each, started on first use and kept, each compiling the
+    fused iteration once; the same solutions as on threads; the analytic model without a scene only, else
+    ValueError); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only;
+    minutes of compilation once per robot and task in a process, cached on disk by torch); bank: samples of a pose bank
     (:class:`~.seeds.PoseBank`) whose tips nearest each target seed the slots not started by q0 or
     ``seeds`` (0: uniform starts; built on first use, kept per robot spec and size for the analytic model).
     """
@@ -58,6 +62,7 @@ class IKOptions:
     seed: int = 0
     pool: int = 8192
     shards: int = 1
+    processes: bool = False
     fused: bool = False
     bank: int = 0
 
@@ -73,6 +78,8 @@ class IKOptions:
         if self.pool < 0 or self.shards < 1:
             raise ValueError(f"pool >= 0 (0: grouped restarts) and shards >= 1 expected, got {self.pool}, "
                              f"{self.shards}")
+        if self.processes and self.pool == 0:
+            raise ValueError("processes: worker processes run the working batch's shards; expected pool > 0, got 0")
         if not self.distinct >= 0 or not self.damping > 0:
             raise ValueError(f"distinct >= 0 and damping > 0 expected, got {self.distinct}, {self.damping}")
 
@@ -170,36 +177,69 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         s = min(k, seeds.shape[1])
         starts[:, :s] = seeds[:, :s].to(F64)
     s = max(s, int(q0 is not None))                              # slot 0 is q0's
-    if options.bank and s < k:
-        starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
     if q0 is not None:
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
-
-    if options.pool > 0:
-        tol = (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance)    # a decade below, as Refinement
-        parts = shards(b, options.shards)
-        gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(s)) for s in torch.randint(
-            2 ** 62, (len(parts),), generator=gen)]
-
-        iteration = fused_iteration(model) if options.fused else lm_iteration
-
-        def shard(i: int) -> tuple[Tensor, Tensor]:
-            t = parts[i]
-            return pool_multi_start(
-                model, starts[t].reshape(-1, d), position[t], None if rotation is None else rotation[t], gens[i], k,
-                tol, options.damping, options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT),
-                MAX_FAN_OUT, options.pool, d >= (3 if rotation is None else 6), q0 is not None,
-                lambda x, ok: _duplicates(model, x, ok, options.distinct),
-                None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
-        x, iters = (torch.cat(t) for t in zip(*run_sharded(shard, len(parts)), strict=True))
-    else:
+    rest = lim.project(model.rest.to(F64))
+    if options.pool == 0:
+        if options.bank and s < k:
+            starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
         rows = torch.arange(b).repeat_interleave(k)
         state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
                            (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
         x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
-    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0,
-                            lim.project(model.rest.to(F64)), options, avoid)
+        return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
+    parts = shards(b, options.shards)
+    gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(g)) for g in torch.randint(
+        2 ** 62, (len(parts),), generator=gen)]
+    items = [(starts[t], target[t], None if q0 is None else q0[t], s, gens[i].get_state(), options, position_only)
+             for i, t in enumerate(parts)]
+    if options.processes:
+        if type(model) is not ConstantCurvature or avoid is not None:
+            raise ValueError(f"processes: worker processes solve for the analytic constant-curvature model without a "
+                             f"scene; got {type(model).__name__}{'' if avoid is None else ' with a scene'} "
+                             f"(use processes=False)")
+        return IKResult.concat(run_in_processes(_process_shard, [(model.spec, *item) for item in items], len(parts)))
+    iteration = fused_iteration(model) if options.fused else lm_iteration
+    return IKResult.concat(run_sharded(lambda i: _solve_shard(model, *items[i], rest, avoid, iteration), len(parts)))
+
+
+def _solve_shard(model: SolverModel, starts: Tensor, target: Tensor, q0: Tensor | None, s: int, gen_state: Tensor,
+                 options: IKOptions, position_only: bool, rest: Tensor, avoid: Avoidance | None, iteration
+                 ) -> IKResult:
+    """The verified result of one shard of targets (B, 4, 4) or (B, 3) by :func:`~.pool.pool_multi_start` from starts
+    (B, K, D), slots s… seeded by the pose bank (``options.bank``), the random starts from a generator of state
+    ``gen_state`` (so that threads and worker processes draw the same)."""
+    b, k, d = starts.shape
+    if options.bank and s < k:
+        starts = starts.clone()
+        starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
+    position = target[:, :3, 3] if target.dim() == 3 else target
+    rotation = None if position_only else target[:, :3, :3]
+    gen = torch.Generator()
+    gen.set_state(gen_state)
+    x, iters = pool_multi_start(
+        model, starts.reshape(-1, d), position, rotation, gen, k,
+        (0.1 * options.pos_tolerance, 0.1 * options.rot_tolerance), options.damping,   # a decade below, as Refinement
+        options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT), MAX_FAN_OUT, options.pool,
+        d >= (3 if rotation is None else 6), q0 is not None, lambda x, ok: _duplicates(model, x, ok, options.distinct),
+        None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
+    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
+
+
+_MODELS: dict = {}
+
+
+def _process_shard(item: tuple) -> IKResult:
+    """:func:`_solve_shard` in a worker process (:mod:`.workers`) for the analytic model of a spec (kept per spec, with
+    its compiled iteration and pose bank)."""
+    spec, starts, target, q0, s, gen_state, options, position_only = item
+    if spec not in _MODELS:
+        _MODELS[spec] = ConstantCurvature(spec)
+    model = _MODELS[spec]
+    return _solve_shard(model, starts, target, q0, s, gen_state, options, position_only,
+                        model.limits.project(model.rest.to(F64)), None,
+                        fused_iteration(model) if options.fused else lm_iteration)
 
 
 _BANKS: dict[tuple, PoseBank] = {}
