@@ -7,6 +7,8 @@ from __future__ import annotations
 import math
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -86,3 +88,12 @@ def test_fused_processes_give_the_threads_solutions():
         assert torch.equal(getattr(runs[0], name), getattr(runs[1], name)), name
     assert runs[1].success.all()
     assert_flagged_solutions_verify(TDCR3, runs[1], target)
+
+
+def test_a_workers_progress_bar_leaves_no_semaphore_at_exit():
+    """torch's compiler opens tqdm progress bars in the workers; their lock is a thread lock there, so a worker's fast
+    exit leaks no semaphore (else the resource tracker warns at the caller's exit)."""
+    code = ("from dacr_learn.ik import workers\n"
+            "workers.run_in_processes(exec, ['from tqdm import tqdm; list(tqdm(range(2), disable=True))'], 1)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0 and "leaked semaphore" not in out.stderr, out.stderr

@@ -67,6 +67,11 @@ def _serve(conn: Connection) -> None:
         inductor_config.compile_threads = 1          # compile in the worker itself: no pool of compiler processes
     except ImportError:                              # pragma: no cover - torch without Inductor
         pass
+    try:           # torch's progress bars (tqdm) lock with a thread lock: a multiprocessing one would outlive os._exit
+        from tqdm import tqdm
+        tqdm.set_lock(threading.RLock())
+    except ImportError:                              # pragma: no cover - tqdm not installed
+        pass
     conn.send_bytes(pickle.dumps(_READY))
     while True:
         try:
