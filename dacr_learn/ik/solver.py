@@ -44,13 +44,12 @@ class IKOptions:
     (:mod:`.pool`; with a scene, converged starts are checked for clearance in batches there), 0 for grouped
     restarts of shrinking batches (:func:`_multi_start`); shards: the pool's targets split into this many parts, run
     on parallel threads (at most torch's thread count at once; the solutions depend on the shards, not on the
-    threads); processes: the shards run in worker processes instead of threads (which the GIL keeps to about one
-    core; :mod:`.workers`: one per shard, one torch thread each, started on first use and kept, each compiling the
-    fused iteration once; the same solutions as on threads; the analytic model without a scene only, else
-    ValueError); fused: the pool's LM iteration compiled by torch.compile (:mod:`.fused`; the analytic model only;
-    minutes of compilation once per robot and task in a process, cached on disk by torch); bank: samples of a pose bank
-    (:class:`~.seeds.PoseBank`) whose tips nearest each target seed the slots not started by q0 or
-    ``seeds`` (0: uniform starts; built on first use, kept per robot spec and size for the analytic model).
+    threads); processes: the shards in worker processes instead (:mod:`.workers`; the same solutions; the analytic
+    model without a scene only, else ValueError); fused: the pool's LM iteration compiled by torch.compile
+    (:mod:`.fused`; the analytic model only; minutes of compilation once per robot and task in a process, cached on
+    disk by torch); bank: samples of a pose bank (:class:`~.seeds.PoseBank`) whose tips nearest each target seed the
+    slots not started by q0 or ``seeds`` (0: uniform starts; built on first use, kept per robot spec and size for the
+    analytic model).
     """
 
     pos_tolerance: float = 1e-6
