@@ -5,7 +5,6 @@ unchanged; compiled, the iteration matches the eager one and a solve verifies ag
 seeds (``IKOptions(bank=N)``): verified solutions in fewer iterations, the bank built once per robot and size."""
 from __future__ import annotations
 
-import contextlib
 import os
 
 import pytest
@@ -72,12 +71,10 @@ def test_compiled_iteration_matches_and_solves(monkeypatch):
     Takes 1–4 min on a 2-core machine (the compilation; less with torch's on-disk cache warm)."""
     model = ConstantCurvature(TDCR3)
     fused = fused_iteration(model)
-    for n, skip in ((MIN_ROWS, False), (3 * MIN_ROWS + 5, False), (700, True)):
+    for n, stance in ((MIN_ROWS, "default"), (3 * MIN_ROWS + 5, "fail_on_recompile"), (700, "default")):
         state, pos, _ = lm_state(model, n, True, seed=n)
-        monkeypatch.setattr(fused_module, "SKIP_GUARDS", skip)
-        with torch.compiler.set_stance("fail_on_recompile") if n > MIN_ROWS else contextlib.nullcontext():
-            out = fused(model, state, pos, None)
-        assert_states_close(out, lm_iteration(model, state, pos, None), rtol=1e-9)
+        monkeypatch.setattr(fused_module, "STANCE", stance)
+        assert_states_close(fused(model, state, pos, None), lm_iteration(model, state, pos, None), rtol=1e-9)
     target = targets_of(TDCR3, 16, seed=6)[:, :3, 3]
     result = solve_ik(TDCR3, target, n_solutions=4, position_only=True, options=IKOptions(fused=True))
     assert result.success.all()
