@@ -29,6 +29,7 @@ from .refine import fused_matmul, lm_iteration, spd_solve_unrolled
 MIN_ROWS = 64   # batches below this take the eager iteration
 _COMPILED: dict[tuple, Callable] = {}
 _FIRST_CALL = threading.Lock()
+STANCE = "default"   # torch.compiler's stance of the compiled calls; "default": guards skipped (fused_iteration)
 
 
 def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor, Tensor | None], tuple]:
@@ -56,7 +57,13 @@ def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor,
                     _COMPILED[key] = step
                     return out
             step = _COMPILED[key]
-        return step(*args)
+        # Dynamo's guards are skipped (skip_guard_eval_unsafe: its one compiled graph runs unchecked): every call of a
+        # key's step has the answers of its first — the same count of contiguous float64 tensors (the LM state), sizes
+        # but the rows fixed by the spec and task, rows ≥ MIN_ROWS (dynamic: torch only specialises 0 and 1), rotation
+        # None or not per key, the spec's constants closed over per key; test_ik_fused checks, guards evaluated in
+        # STANCE "fail_on_recompile", that calls of other row counts do not recompile.
+        with torch.compiler.set_stance(STANCE, skip_guard_eval_unsafe=STANCE == "default"):
+            return step(*args)
 
     return iteration
 

@@ -6,12 +6,12 @@ threads (:func:`run_sharded`).
 gathers or scatters per iteration). A row leaves the batch when it converges (its slot is solved; the slot's other
 starts leave too) or stalls (``max_iterations``, or λ past :data:`~.refine.STALL_LAMBDA`). Once :data:`REFILL` of
 the batch has left, it drops those rows and takes new ones: the slots' first starts not yet begun, then new uniform
-starts of the unsolved slots that have no live start (without ``accept``, while the batch is shorter than
-:data:`TAIL_ROWS`, also of those whose live starts have all run :data:`RACE_AFTER` iterations: new starts race the slow
-ones instead of waiting for them to stall) — one each, more while they fill the batch up to :data:`TAIL_ROWS` (at most
-``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
-restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another
-solution of their target are reopened (twice at most), as in :mod:`.solver`.
+starts of the unsolved slots that have no live start (without ``accept``, of position targets, while the batch is
+shorter than :data:`TAIL_ROWS`, also of those whose live starts have all run :data:`RACE_AFTER` iterations: new
+starts race the slow ones instead of waiting for them to stall) — one each, more while they fill the batch up to
+:data:`TAIL_ROWS` (at most ``max_fan_out`` at once) —, within the same budget of starts per slot as the grouped
+restarts of :mod:`.solver`. When few rows are left, solved slots that duplicate another solution of their target are
+reopened (twice at most), as in :mod:`.solver`.
 
 With a further condition on a solution (``accept``, e.g. the clearance of a scene, :mod:`.collision`) a row whose
 tip has converged leaves the batch undecided; at the next refill the first such row of each slot is checked (one
@@ -47,8 +47,8 @@ SAMPLE = 64       # decided once this many are checked (module docstring)
 CROWDED_TAIL_ROWS = 512   # restarts fill the batch up to this many rows while crowded (their rows are checked too)
 RETIRE_AFTER = 6  # while crowded: a row still unconverged after this many LM iterations, of a target that has a
                   # solution, restarts near one (module docstring)
-RACE_AFTER = 8    # without ``accept``, in a short batch: a slot whose live starts all have run this many iterations
-                  # takes new starts beside them (the first to converge solves it)
+RACE_AFTER = 8    # position targets without ``accept``, in a short batch: a slot whose live starts all have run this
+                  # many iterations takes new starts beside them (the first to converge solves it; pose: no gain)
 TAIL_ROWS = 1024  # restarts fill the batch up to this many rows: below it a step costs about the same whatever its rows
 
 
@@ -73,26 +73,20 @@ class _Batch:
 
     def keep_and_add(self, keep: Tensor, slots: Tensor, x0: Tensor) -> None:
         """Keep the rows ``keep`` (indices), add starts x0 (R, D) of ``slots`` (R,)."""
-        if slots.numel() == 0:
-            self.state = tuple(t[keep] for t in self.state)
-            self.pos_rows, self.slot, self.since = self.pos_rows[keep], self.slot[keep], self.since[keep]
-            self.rot_rows = None if self.rot_rows is None else self.rot_rows[keep]
-            return
-        target = slots // self.k
-        pos, rot = self.position[target], None if self.rotation is None else self.rotation[target]
-        x = self.model.limits.project(x0.to(F64))
-        r, jac, pe, re = residual(self.model, x, pos, rot)
-        cost = (r * r).sum(-1)
-        new = (x, r, jac, cost, torch.full_like(cost, self.damping), pe, re)
-        if self.state is not None and keep.numel():
-            new = tuple(torch.cat([old[keep], n]) for old, n in zip(self.state, new, strict=True))
-            pos = torch.cat([self.pos_rows[keep], pos])
-            rot = None if rot is None else torch.cat([self.rot_rows[keep], rot])
-            slots = torch.cat([self.slot[keep], slots])
-            since = torch.cat([self.since[keep], torch.zeros(target.shape[0], dtype=torch.long)])
-        else:
-            since = torch.zeros(target.shape[0], dtype=torch.long)
-        self.state, self.pos_rows, self.rot_rows, self.slot, self.since = new, pos, rot, slots, since
+        rows = [None if t is None else t.index_select(0, keep)          # on CPU about 3× faster than t[keep]
+                for t in (*(self.state or ()), self.pos_rows, self.rot_rows, self.slot, self.since)]
+        if slots.numel():
+            target = slots // self.k
+            pos = self.position.index_select(0, target)
+            rot = None if self.rotation is None else self.rotation.index_select(0, target)
+            x = self.model.limits.project(x0.to(F64))
+            r, jac, pe, re = residual(self.model, x, pos, rot)
+            cost = (r * r).sum(-1)
+            new = [x, r, jac, cost, torch.full_like(cost, self.damping), pe, re,      # the LM state, then per row:
+                   pos, rot, slots, torch.zeros_like(slots)]                            # target, slot, iterations
+            rows = new if self.state is None else [
+                None if old is None else torch.cat([old, n]) for old, n in zip(rows, new, strict=True)]
+        self.state, (self.pos_rows, self.rot_rows, self.slot, self.since) = tuple(rows[:7]), rows[7:]
 
     def step(self) -> None:
         self.state = self.iteration(self.model, self.state, self.pos_rows, self.rot_rows)
@@ -162,7 +156,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             free -= first.numel()
             if free > 0 and queued == m:
                 alive = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat([batch.slot[keep], first]), True)
-                if accept is None and keep.numel() < TAIL_ROWS:   # a short batch: race slow starts with new ones
+                if accept is None and rotation is None and keep.numel() < TAIL_ROWS:   # race slow starts
                     young = torch.zeros(m, dtype=torch.bool).index_fill_(0, torch.cat(
                         [batch.slot[keep][batch.since[keep] < RACE_AFTER], first]), True)
                     alive &= young
