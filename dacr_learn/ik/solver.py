@@ -179,7 +179,6 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
     if q0 is not None:
         q0 = check_q0(q0, b, model.num_joints)
         starts[:, 0] = model.variables(q0)
-    rest = lim.project(model.rest.to(F64))
     if options.pool == 0:
         if options.bank and s < k:
             starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
@@ -187,7 +186,7 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
         state = Refinement(model, starts.view(-1, d), position[rows], None if rotation is None else rotation[rows],
                            (options.pos_tolerance, options.rot_tolerance), options.damping, avoid)
         x, iters = _multi_start(state, gen, b, k, options, keep_first=q0 is not None)
-        return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
+        return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, options, avoid)
     parts = shards(b, options.shards)
     gens = [gen] if len(parts) == 1 else [torch.Generator().manual_seed(int(g)) for g in torch.randint(
         2 ** 62, (len(parts),), generator=gen)]
@@ -199,17 +198,16 @@ def solve_ik(model_or_spec, target: Tensor, n_solutions: int = 8, q0: Tensor | N
                              f"scene; got {type(model).__name__}{'' if avoid is None else ' with a scene'} "
                              f"(use processes=False)")
         return IKResult.concat(run_in_processes(_process_shard, [(model.spec, *item) for item in items], len(parts)))
-    iteration = fused_iteration(model) if options.fused else lm_iteration
-    return IKResult.concat(run_sharded(lambda i: _solve_shard(model, *items[i], rest, avoid, iteration), len(parts)))
+    return IKResult.concat(run_sharded(lambda i: _solve_shard(model, *items[i], avoid), len(parts)))
 
 
 def _solve_shard(model: SolverModel, starts: Tensor, target: Tensor, q0: Tensor | None, s: int, gen_state: Tensor,
-                 options: IKOptions, position_only: bool, rest: Tensor, avoid: Avoidance | None, iteration
-                 ) -> IKResult:
+                 options: IKOptions, position_only: bool, avoid: Avoidance | None) -> IKResult:
     """The verified result of one shard of targets (B, 4, 4) or (B, 3) by :func:`~.pool.pool_multi_start` from starts
     (B, K, D), slots s… seeded by the pose bank (``options.bank``), the random starts from a generator of state
     ``gen_state`` (so that threads and worker processes draw the same)."""
     b, k, d = starts.shape
+    iteration = fused_iteration(model) if options.fused else lm_iteration
     if options.bank and s < k:
         starts = starts.clone()
         starts[:, s:] = pose_bank(model, options.bank).seeds(target, k - s)
@@ -223,7 +221,7 @@ def _solve_shard(model: SolverModel, starts: Tensor, target: Tensor, q0: Tensor 
         options.max_iterations, start_budget(options.restarts, FAN_OUT, MAX_FAN_OUT), MAX_FAN_OUT, options.pool,
         d >= (3 if rotation is None else 6), q0 is not None, lambda x, ok: _duplicates(model, x, ok, options.distinct),
         None if avoid is None else avoid.accept, None if avoid is None else avoid.restarts, iteration)
-    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, rest, options, avoid)
+    return _verified_result(model, x.view(b, k, d), iters.view(b, k), position, rotation, q0, options, avoid)
 
 
 _MODELS: dict = {}
@@ -236,9 +234,7 @@ def _process_shard(item: tuple) -> IKResult:
     if spec not in _MODELS:
         _MODELS[spec] = ConstantCurvature(spec)
     model = _MODELS[spec]
-    return _solve_shard(model, starts, target, q0, s, gen_state, options, position_only,
-                        model.limits.project(model.rest.to(F64)), None,
-                        fused_iteration(model) if options.fused else lm_iteration)
+    return _solve_shard(model, starts, target, q0, s, gen_state, options, position_only, None)
 
 
 _BANKS: dict[tuple, PoseBank] = {}
@@ -341,7 +337,7 @@ def _slot_results(state: Refinement, slot: Tensor, solution: Tensor, since: Tens
 
 
 def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Tensor, rotation: Tensor | None,
-                     q0: Tensor | None, rest: Tensor, options: IKOptions, avoid: Avoidance | None = None) -> IKResult:
+                     q0: Tensor | None, options: IKOptions, avoid: Avoidance | None = None) -> IKResult:
     """The result of variables x (B, K, D): joints, the model's independent check (and the clearance check of
     ``avoid``), order and distinct flags."""
     b, k, d = x.shape
@@ -359,6 +355,7 @@ def _verified_result(model: SolverModel, x: Tensor, iters: Tensor, position: Ten
     if avoid is not None:
         clearance = avoid.verdict(x.view(-1, d)).view(b, k)            # of q = joints(x)
         ok &= clearance >= avoid.clearance
+    rest = model.limits.project(model.rest.to(F64))
     order = _order(q, x, ok, pos_err / model.length + rot_err, rest, model.limits.scale, q0)
     distinct = _distinct_mask(q, ok, order, options.distinct)
     pick = lambda t: torch.gather(t, 1, order.view(b, k, *([1] * (t.dim() - 2))).expand_as(t))  # noqa: E731
