@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from .checks import check_tensor
-from .lie import TAYLOR_BELOW, chain_products, exp_components, pose_of_components, roll_components
+from .lie import chain_products, exp_coefficients_and_derivatives, exp_components, pose_of_components, roll_components
 from .robot import RobotSpec
 
 
@@ -75,34 +75,6 @@ def cc_transform(u: Tensor, beta: Tensor, alpha: Tensor | None = None) -> Tensor
     return pose_of_components(*(rot, pos) if alpha is None else roll_components(alpha, rot, pos))
 
 
-# Taylor coefficients in y = φ² (degree 0 … 4) of s = sin φ/φ, f = (1 − cos φ)/φ², their y-derivatives s', f' and
-# g = (1 − s)/φ² = (φ − sin φ)/φ³: the series of :mod:`~.lie` (exact to ~1e-16 below TAYLOR_BELOW), one per row.
-_SERIES = ((1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),
-           (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),
-           (-1 / 6, 2 / 120, -3 / 5040, 4 / 362880, -5 / 39916800),
-           (-1 / 24, 2 / 720, -3 / 40320, 4 / 3628800, -5 / 479001600),
-           (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800))
-
-
-def _cc_coefficients(y: Tensor) -> Tensor:
-    """(s, f, s', f', g) stacked, (5, ...), of y = φ² (...): all five Taylor polynomials in one Horner pass below
-    :data:`~.lie.TAYLOR_BELOW`, the closed forms (f = 2·(sin(φ/2)/φ)², no cancellation) above it."""
-    small = y < TAYLOR_BELOW
-    series = torch.tensor(_SERIES, dtype=y.dtype, device=y.device).T.reshape(5, 5, *([1] * y.dim()))
-    taylor = torch.addcmul(series[3], series[4], y)
-    for j in (2, 1, 0):
-        taylor = torch.addcmul(series[j], taylor, y)
-    y_big = torch.where(small, 1.0, y)
-    phi = y_big.sqrt()
-    inv_phi = phi.reciprocal()
-    s = phi.sin() * inv_phi
-    half = (0.5 * phi).sin() * inv_phi
-    f = 2 * half * half
-    half_inv_y = 0.5 / y_big
-    big = torch.stack([s, f, (phi.cos() - s) * half_inv_y, (s - 2 * f) * half_inv_y, (1 - s) / y_big])
-    return torch.where(small, taylor, big)
-
-
 def _rz(ca: Tensor, sa: Tensor, v: Tensor) -> Tensor:
     """Rz(α)·v for stacked vectors v (3, ..., m, M) and cos α, sin α (m, M)."""
     return torch.stack([ca * v[0] - sa * v[1], sa * v[0] + ca * v[1], v[2]])
@@ -123,15 +95,15 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
     actuate zero; or a list of (segment, column index 0–3) pairs, J (..., 6, len(columns)) (e.g. the actuated
     features).
 
-    One batched evaluation for all segments of all samples (the op count does not grow with the batch and hardly
-    with m), in a batch-last layout: every quantity is a stack of contiguous (m, M) blocks, M the flattened batch.
-    Per segment, u = ρ/d, φ² = ‖u‖², s, f, s', f', g (:func:`_cc_coefficients`): the pose R = cos φ·I + s·ω^ + f·ωωᵀ,
-    p = β·(f·u_x, f·u_y, s) of the twist ξ = (0, 0, β; ω = (−u_y, u_x, 0)), and its spatial tangents along
-    (u_x, u_y, β): angular b = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω), i.e. b_x = (−g·u_x·u_y, 1 − g·u_y², −f·u_y),
-    b_y = (g·u_x² − 1, g·u_x·u_y, f·u_x), b_β = 0, and linear dp_x = β·(f + 2f'·u_x², 2f'·u_x·u_y, 2s'·u_x),
-    dp_y = β·(2f'·u_x·u_y, f + 2f'·u_y², 2s'·u_y), dp_β = (f·u_x, f·u_y, s); a twisting segment is rolled, Rz(α)·T,
-    its tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule of
-    :func:`~.lie.chain_components` transports all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
+    One batched evaluation for all segments of all samples (the op count does not grow with the batch and hardly with
+    m), in a batch-last layout: every quantity is a stack of contiguous (m, M) blocks, M the flattened batch. Per
+    segment, u = ρ/d, φ² = ‖u‖², s, f, g, s', f' (:func:`~.lie.exp_coefficients_and_derivatives`): the pose
+    R = cos φ·I + s·ω^ + f·ωωᵀ, p = β·(f·u_x, f·u_y, s) of the twist ξ = (0, 0, β; ω = (−u_y, u_x, 0)), and its spatial
+    tangents along (u_x, u_y, β): angular b = J_l(ω)·dω = dω + f·ω×dω + g·ω×(ω×dω), i.e. b_x = (−g·u_x·u_y, 1 − g·u_y²,
+    −f·u_y), b_y = (g·u_x² − 1, g·u_x·u_y, f·u_x), b_β = 0, and linear dp_x = β·(f + 2f'·u_x², 2f'·u_x·u_y, 2s'·u_x),
+    dp_y = β·(2f'·u_x·u_y, f + 2f'·u_y², 2s'·u_y), dp_β = (f·u_x, f·u_y, s); a twisting segment is rolled, Rz(α)·T, its
+    tangents rotated and the roll's own (b, dp) = (e_z, e_z × p) added. The chain rule of :func:`~.lie.chain_components`
+    transports all directions of all segments at once. ∂/∂ρ = ∂/∂u / d.
 
     The returned J and pose are views whose batch is innermost in memory (rows-last: ``J.permute(-2, -1, …)`` of a
     contiguous (6, D, M) block); ``.contiguous()`` gives the row-major copy.
@@ -145,7 +117,7 @@ def cc_pose_and_jacobian(spec: RobotSpec, features: Tensor,
     ux, uy = u[0], u[1]
     beta = f[2] if all(s.extends for s in segs) else torch.where(extends.unsqueeze(-1), f[2], length.unsqueeze(-1))
     y = torch.addcmul(ux * ux, uy, uy)
-    s, fc, ds, df, g = _cc_coefficients(y)
+    s, fc, g, ds, df = exp_coefficients_and_derivatives(y, 5)
     fu, su, gu = fc * u, s * u, g * u
     c = 1 - fc * y
     fxy, gxy = fu[0] * uy, gu[0] * uy

@@ -27,57 +27,62 @@ __all__ = [
 
 TAYLOR_BELOW = 1e-2   # φ² below which s, f, g and their derivatives are Taylor polynomials (exact to ~1e-14)
 
+# Taylor coefficients in y = φ² (degree 0 … 4) of s = sin φ/φ, f = (1 − cos φ)/φ², g = (1 − s)/φ² = (φ − sin φ)/φ³
+# and their y-derivatives s', f', g', one per row (:func:`exp_coefficients_and_derivatives`).
+_SERIES = ((1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880),
+           (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800),
+           (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800),
+           (-1 / 6, 2 / 120, -3 / 5040, 4 / 362880, -5 / 39916800),
+           (-1 / 24, 2 / 720, -3 / 40320, 4 / 3628800, -5 / 479001600),
+           (-1 / 120, 2 / 5040, -3 / 362880, 4 / 39916800, -5 / 6227020800))
+
+
+def exp_coefficients_and_derivatives(phi_sq: Tensor, count: int = 6) -> Tensor:
+    """The first ``count`` of (s, f, g, ds, df, dg) of φ² (...), stacked (count, ...): the coefficients of exp of a
+    twist (:func:`twist_exp`) and their φ²-derivatives, finite with finite derivatives at 0. Below
+    :data:`TAYLOR_BELOW` the Taylor polynomials (:data:`_SERIES`) in one Horner pass; above it the closed forms,
+    f as 2·(sin(φ/2)/φ)² (no cancellation, accurate in float32 too), ds = (cos φ − s)/(2φ²), df = (s − 2f)/(2φ²),
+    g = (1 − s)/φ², dg = −(ds + g)/φ²."""
+    small = phi_sq < TAYLOR_BELOW
+    y = phi_sq.clamp(max=TAYLOR_BELOW)                     # no large powers where the closed forms are taken
+    series = torch.tensor(_SERIES[:count], dtype=y.dtype, device=y.device).T.reshape(5, count, *[1] * y.dim())
+    taylor = torch.addcmul(series[3], series[4], y)
+    for j in (2, 1, 0):
+        taylor = torch.addcmul(series[j], taylor, y)
+    y_big = torch.where(small, 1.0, phi_sq)
+    phi = y_big.sqrt()
+    inv_phi = phi.reciprocal()
+    s = phi.sin() * inv_phi
+    half = (0.5 * phi).sin() * inv_phi
+    big = [s, 2 * half * half, (1 - s) / y_big]
+    if count > 3:
+        half_inv_y = 0.5 / y_big
+        big += [(phi.cos() - s) * half_inv_y, (s - 2 * big[1]) * half_inv_y]
+    if count > 5:
+        big.append(-(big[3] + big[2]) / y_big)
+    return torch.where(small, taylor, torch.stack(big[:count]))
+
 
 def bending_coefficients(phi_sq: Tensor) -> tuple[Tensor, Tensor]:
     """s = sin φ/φ and f = (1 − cos φ)/φ² as functions of φ² (..., ), finite with finite gradients at 0.
 
     f is evaluated as 2·(sin(φ/2)/φ)², which has no cancellation (accurate in float32 too).
     """
-    small = phi_sq < TAYLOR_BELOW
-    phi = torch.sqrt(torch.where(small, 1.0, phi_sq))
-    inv_phi = 1 / phi
-    half = torch.sin(0.5 * phi) * inv_phi
-    s_big, f_big = torch.sin(phi) * inv_phi, 2 * half * half
-    y = torch.where(small, phi_sq, 0.0)
-    # Horner forms of s = 1 − y/6 + y²/120 − y³/5040 + y⁴/362880, f = 1/2 − y/24 + y²/720 − y³/40320 + y⁴/3628800
-    s_small = (((y / 362880 - 1 / 5040) * y + 1 / 120) * y - 1 / 6) * y + 1
-    f_small = (((y / 3628800 - 1 / 40320) * y + 1 / 720) * y - 1 / 24) * y + 0.5
-    return torch.where(small, s_small, s_big), torch.where(small, f_small, f_big)
+    s, f = exp_coefficients_and_derivatives(phi_sq, 2)
+    return s, f
 
 
 def bending_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """s, f (:func:`bending_coefficients`) and their derivatives ds/dφ², df/dφ² (..., ) (Taylor branch
     near 0, below the same threshold)."""
-    s, f = bending_coefficients(phi_sq)
-    small = phi_sq < TAYLOR_BELOW
-    phi_sq_big = torch.where(small, 1.0, phi_sq)
-    y = torch.where(small, phi_sq, 0.0)
-    ds_small = ((4 * y / 362880 - 3 / 5040) * y + 2 / 120) * y - 1 / 6
-    df_small = ((4 * y / 3628800 - 3 / 40320) * y + 2 / 720) * y - 1 / 24
-    ds_big = (torch.cos(torch.sqrt(phi_sq_big)) - s) / (2 * phi_sq_big)   # s, f of the big branch where used
-    df_big = (s - 2 * f) / (2 * phi_sq_big)
-    return s, f, torch.where(small, ds_small, ds_big), torch.where(small, df_small, df_big)
+    s, f, _, ds, df = exp_coefficients_and_derivatives(phi_sq, 5)
+    return s, f, ds, df
 
 
 def third_coefficient(phi_sq: Tensor, s: Tensor) -> Tensor:
-    """g = (φ − sin φ)/φ³ = (1 − s)/φ² as a function of φ² (..., ) and s = sin φ/φ, finite with finite
-    gradients at 0."""
-    small = phi_sq < TAYLOR_BELOW
-    y = torch.where(small, phi_sq, 0.0)
-    g_small = (((-y / 39916800 + 1 / 362880) * y - 1 / 5040) * y + 1 / 120) * -y + 1 / 6
-    return torch.where(small, g_small, (1 - s) / torch.where(small, 1.0, phi_sq))
-
-
-def exp_coefficients_and_derivatives(phi_sq: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """(s, f, g, ds, df, dg) of φ² (...): the coefficients of exp of a twist (:func:`twist_exp`) and their
-    φ²-derivatives (Taylor polynomials below ``TAYLOR_BELOW``)."""
-    s, f, ds, df = bending_coefficients_and_derivatives(phi_sq)
-    g = third_coefficient(phi_sq, s)
-    small = phi_sq < TAYLOR_BELOW
-    y = torch.where(small, phi_sq, 0.0)
-    dg_small = ((4 * y / 39916800 - 3 / 362880) * y + 2 / 5040) * y - 1 / 120
-    dg = torch.where(small, dg_small, (-ds - g) / torch.where(small, 1.0, phi_sq))
-    return s, f, g, ds, df, dg
+    """g = (φ − sin φ)/φ³ = (1 − s)/φ² as a function of φ² (..., ), finite with finite gradients at 0; ``s`` =
+    sin φ/φ of the same φ² (:func:`bending_coefficients`) is not needed, g comes from φ² alone."""
+    return exp_coefficients_and_derivatives(phi_sq, 3)[2]
 
 
 def hat(w: Tensor) -> Tensor:
@@ -124,12 +129,9 @@ def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = 
 def exp_components(v: Vec3, w: Vec3) -> tuple[Rot3, Vec3]:
     """exp(ξ^) of ξ = (v, ω) in component form (rotation R as 9 entries, position p as 3):
     R = cos φ·I + s·ω^ + f·ωωᵀ (ω^² = ωωᵀ − φ²I, cos φ = 1 − f·φ²), p = s·v + f·ω×v + g·(ω·v)·ω
-    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s). g is not evaluated where ω·v is an exact zero (None
+    (ω×(ω×v) = (ω·v)ω − φ²v and 1 − g·φ² = s). The g term costs nothing where ω·v is an exact zero (None
     components, e.g. a CC twist's)."""
-    phi_sq = _phi_sq(v, w)
-    s, f = bending_coefficients(phi_sq)
-    g = third_coefficient(phi_sq, s) if any(a is not None and b is not None for a, b in zip(w, v, strict=True)) \
-        else None
+    s, f, g = exp_coefficients_and_derivatives(_phi_sq(v, w), 3)
     return _exp_from_coefficients(v, w, s, f, g)
 
 
