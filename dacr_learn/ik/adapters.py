@@ -32,10 +32,8 @@ from ..clarke_space import ClarkeSpace
 from ..kinematics import cc_pose_and_jacobian, forward_kinematics
 from ..lie import twist_jacobian
 from ..limits import Limits
-from ..models import actuated_columns, actuated_to_features
+from ..models import FEATURE_COLUMNS, actuated_columns, actuated_to_features
 from ..robot import RobotSpec
-
-_COLUMN = {"rho_re": 0, "rho_im": 1, "beta": 2, "alpha": 3}
 
 
 @dataclass
@@ -132,7 +130,7 @@ class ConstantCurvature(_ClarkeVariables):
 
     def __init__(self, spec: RobotSpec):
         super().__init__(spec)
-        self._columns = [(k, _COLUMN[name]) for k, name in actuated_columns(spec)]
+        self._columns = [(k, FEATURE_COLUMNS.index(name)) for k, name in actuated_columns(spec)]
 
     def features(self, x: Tensor) -> Tensor:
         return actuated_to_features(x, self.space.selection, self.space.base)
