@@ -16,8 +16,7 @@ from torch import Tensor
 
 from ..checks import F64, to_f64
 from ..clarke_space import ClarkeSpace
-from ..kinematics import forward_kinematics
-from ..lie import twist_jacobian
+from ..kinematics import cc_pose_and_jacobian
 from ..models import actuated_to_features
 from ..robot import RobotSpec
 
@@ -127,26 +126,20 @@ def tip_task(jacobian: Tensor, position: Tensor, rotation: Tensor | None, target
     return rows, task
 
 
-def _jacobian_rows(fn: Callable[[Tensor], Tensor], x: Tensor) -> Tensor:
-    """Jacobian of a batched, per-sample map by reverse mode, one output entry at a time: x (B, k) → (B, *out, k)."""
-    return torch.autograd.functional.jacobian(lambda v: fn(v).sum(0), x.detach()).movedim(-2, 0)
-
-
 def analytic_jacobian(spec: RobotSpec) -> JacobianFn:
     """Model-based reference for the controller: q (..., N) → (pose, J_f, J_q) of the analytic
-    constant-curvature FK (float64, reverse-mode autograd; for comparisons and tests, not for kHz loops)."""
+    constant-curvature FK (float64; J_f in closed form, :func:`~dacr_learn.kinematics.cc_pose_and_jacobian`, and
+    J_q = J_f·∂f/∂q of the encoder; for comparisons and tests, not for kHz loops)."""
     space = ClarkeSpace(spec)
-
-    def pose_of(f: Tensor) -> Tensor:
-        return forward_kinematics(spec, actuated_to_features(f, space.selection, space.base))
 
     def jacobian(q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         lead = q.shape[:-1]
         q2 = q.to(F64).reshape(-1, spec.num_joints)
-        f = space.features(q2)
-        pose = pose_of(f)
-        jac_f = twist_jacobian(pose, _jacobian_rows(pose_of, f))
-        jac_q = jac_f @ _jacobian_rows(space.features, q2)
+        u = space.fold.inputs(q2)
+        features = actuated_to_features(space.fold.features(u), space.selection, space.base)
+        pose, jac = cc_pose_and_jacobian(spec, features)                         # J (B, 6, m, 4)
+        jac_f = jac.flatten(-2) @ space.selection.mT                             # the actuated columns (B, 6, D)
+        jac_q = jac_f @ space.fold.jacobian(q2, u)
         return (pose.reshape(*lead, 4, 4), jac_f.reshape(*lead, *jac_f.shape[-2:]),
                 jac_q.reshape(*lead, *jac_q.shape[-2:]))
     return jacobian
