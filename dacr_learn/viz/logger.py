@@ -36,6 +36,7 @@ from lightning.fabric.utilities.logger import _convert_params
 from lightning.pytorch.loggers import Logger
 from lightning.pytorch.utilities.rank_zero import rank_zero_only, rank_zero_warn
 
+from ..runs import free_path
 from . import layout
 from .layout import default_blueprint, metric_entity
 from .scene import DEFAULT_ERROR_RANGE, colour_note, log_frames, log_path, log_scene, log_workspace
@@ -89,7 +90,7 @@ class RerunLogger(Logger):
         self._recording_id = recording_id or str(uuid.uuid4())
         self._recording_name = recording_name
         self._rec: rr.RecordingStream | None = None
-        self._part = -1  # index of the .rrd part being (or last) written
+        self._path: str | None = None  # the .rrd file being (or last) written
         self._live_flush = timedelta(seconds=live_flush_s)
         self._metric_names: set[str] = set()
         self._latest: dict[str, tuple[int, float]] = {}  # metric -> (step, value), for the summary table
@@ -122,10 +123,11 @@ class RerunLogger(Logger):
 
     @property
     def rrd_path(self) -> str | None:
-        """The ``.rrd`` file being (or last) written, or ``None`` without ``save_dir``."""
+        """The ``.rrd`` file being (or last) written (before the first, the one it will write: the first free of
+        ``rerun.rrd``, ``rerun_1.rrd``, …, :func:`~dacr_learn.runs.free_path`), or ``None`` without ``save_dir``."""
         if self.log_dir is None:
             return None
-        return self._part_path(self._part if self._part >= 0 else self._next_part())
+        return self._path or str(free_path(self.log_dir, "rerun.rrd"))
 
     @property
     @rank_zero_experiment
@@ -139,16 +141,6 @@ class RerunLogger(Logger):
     def recording(self) -> rr.RecordingStream:
         """Alias of :attr:`experiment`."""
         return self.experiment
-
-    def _next_part(self) -> int:
-        """The first part index after the current one whose file does not exist yet."""
-        part = self._part + 1
-        while self.log_dir is not None and os.path.exists(self._part_path(part)):
-            part += 1
-        return part
-
-    def _part_path(self, part: int) -> str:
-        return os.path.join(self.log_dir, "rerun.rrd" if part == 0 else f"rerun_{part}.rrd")
 
     def _sinks(self, rec: rr.RecordingStream) -> list[Any]:
         sinks: list[Any] = []
@@ -164,7 +156,8 @@ class RerunLogger(Logger):
         return sinks + [rr.GrpcSink(url) for url in urls]
 
     def _open(self) -> rr.RecordingStream:
-        self._part = self._next_part()
+        self._path = None
+        self._path = self.rrd_path                                   # a new part, next to the one written before
         live = self._spawn or bool(self._connect)
         batching = rr.ChunkBatcherConfig(flush_tick=self._live_flush if live else FILE_ONLY_FLUSH,
                                          flush_num_bytes=8 << 20, flush_num_rows=1 << 20)
