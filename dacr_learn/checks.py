@@ -9,6 +9,7 @@ import itertools
 import json
 import math
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -102,6 +103,15 @@ def short_error(err: BaseException) -> str:
     """One line of an exception: its type and the first 160 characters of its message."""
     text = " ".join(str(err).split())
     return f"{type(err).__name__}: {text[:160]}{'…' if len(text) > 160 else ''}" if text else type(err).__name__
+
+
+def prefix_errors(where: Any, fn: Callable[..., Any], *args: Any) -> Any:
+    """``fn(*args)``; a ValueError it raises is raised again as ``"<where>: <message>"`` (chained), so that the
+    message of a check names the file or the flag the checked value came from."""
+    try:
+        return fn(*args)
+    except ValueError as err:
+        raise ValueError(f"{where}: {err}") from err
 
 
 def existing(path: str | Path, expected: str) -> Path:

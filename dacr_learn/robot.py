@@ -303,16 +303,13 @@ class RobotSpec:
     @classmethod
     def from_yaml(cls, path: str | Path) -> RobotSpec:
         """Read a robot YAML file; every ValueError names the file (and the field, see :meth:`from_dict`)."""
-        from .checks import read_yaml  # imports torch, which the rest of this module does not need
+        from .checks import prefix_errors, read_yaml  # imports torch, which the rest of this module does not need
 
         d = read_yaml(path, "a robot description in YAML (see configs/robots/)")
         if d is None:
             raise ValueError(f"{path}: expected a robot description in YAML (see configs/robots/), "
                              "found an empty file (no YAML content)")
-        try:
-            return cls.from_dict(d)
-        except ValueError as err:
-            raise ValueError(f"{path}: {err}") from err
+        return prefix_errors(path, cls.from_dict, d)
 
     @classmethod
     def coerce(cls, robot: str | Path | Mapping[str, Any] | RobotSpec) -> RobotSpec:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..checks import F64
+from ..checks import F64, prefix_errors
 from ..ik import IKOptions, IKResult, as_solver_model, check_targets, solve_ik
 from ..ik.collision import add_scene_arguments, scene_options
 from .loading import composite_from_files, describe, load_array, load_solver_model, save_npz
@@ -65,10 +65,8 @@ def main(argv: list[str] | None = None) -> IKResult:
         raise ValueError("--arm-tip and --mount go with --arm ARM.urdf (whole-body IK); --arm is missing")
     out = _out_path(args.out)
     started = time.perf_counter()
-    try:
-        targets = check_targets(torch.from_numpy(load_array(args.targets, "--targets")), args.position_only)
-    except ValueError as err:
-        raise ValueError(f"--targets {args.targets}: {err}") from err
+    targets = prefix_errors(f"--targets {args.targets}", check_targets,
+                            torch.from_numpy(load_array(args.targets, "--targets")), args.position_only)
     q0 = None if args.q0 is None else torch.from_numpy(load_array(args.q0, "--q0"))
     model, seeder, description = load_solver_model(args.robot, args.ckpt)
     options = IKOptions(pos_tolerance=args.tolerance[0], rot_tolerance=args.tolerance[1], seed=args.seed)

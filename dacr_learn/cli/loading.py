@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..checks import F64
+from ..checks import F64, prefix_errors
 from ..robot import RobotSpec
 
 Seeder = Callable[[torch.Tensor, int], "torch.Tensor | None"]
@@ -93,10 +93,7 @@ def load_mount(path: str | Path) -> torch.Tensor:
     if array.dtype != np.float64:
         raise ValueError(f"--mount {path}: expected float64, got {array.dtype}")
     from ..arm import check_mount
-    try:
-        return check_mount(torch.from_numpy(array))
-    except ValueError as err:
-        raise ValueError(f"--mount {path}: {err}") from err
+    return prefix_errors(f"--mount {path}", check_mount, torch.from_numpy(array))
 
 
 def composite_from_files(arm: str | Path, tip: str | None, mount: str | Path | None, robot):

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..checks import load_torch_file, read_json_object
+from ..checks import load_torch_file, prefix_errors, read_json_object
 from ..robot import RobotSpec
 from .cc import SamplerOptions, generate
 
@@ -82,17 +82,10 @@ def load_dataset(directory: str | Path, spec: RobotSpec | None = None) -> tuple[
     if digest != meta.get("sha256"):
         raise ValueError(f"dataset {directory}: checksum mismatch (meta.json says {meta.get('sha256')}, "
                          f"the tensors hash to {digest}); the file was modified or truncated")
-    if spec is not None and _saved_spec(directory, meta) != spec:
+    if spec is not None and prefix_errors(directory / META_FILE, RobotSpec.from_dict, meta.get("robot")) != spec:
         raise ValueError(f"dataset {directory}: robot spec mismatch: the dataset was generated for "
                          f"{meta['robot']['name']!r} ({meta['robot']}), expected {spec.to_dict()}")
     return tensors, meta
-
-
-def _saved_spec(directory: Path, meta: dict) -> RobotSpec:
-    try:
-        return RobotSpec.from_dict(meta.get("robot"))
-    except ValueError as err:
-        raise ValueError(f"{directory / META_FILE}: {err}") from err
 
 
 def generate_or_load(directory: str | Path, spec: RobotSpec, n: int, seed: int,

@@ -16,7 +16,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..checks import read_yaml
+from ..checks import prefix_errors, read_yaml
 from ..robot import RobotSpec
 from .recording import Recording
 
@@ -80,11 +80,7 @@ class ServoMap:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> ServoMap:
-        d = read_yaml(path, "a servo map YAML (robot, slack_level, servos)")
-        try:
-            return cls.from_dict(d)
-        except ValueError as err:
-            raise ValueError(f"{path}: {err}") from err
+        return prefix_errors(path, cls.from_dict, read_yaml(path, "a servo map YAML (robot, slack_level, servos)"))
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"robot": self.robot, "slack_level": self.slack_level,
