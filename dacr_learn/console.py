@@ -19,7 +19,6 @@ import sys
 import traceback
 import warnings
 from collections.abc import Callable, Iterator
-from types import TracebackType
 
 USER_ERRORS: tuple[type[Exception], ...] = (ValueError, FileNotFoundError)
 """The exception types that are a user's mistake (checks.py: a bad file or argument is a ValueError
@@ -81,12 +80,7 @@ def quiet_third_party_warnings() -> None:
 
 def _raising_frame(err: BaseException):
     """The frame that raised ``err`` (the last of its traceback), or None."""
-    tb: TracebackType | None = err.__traceback__
-    if tb is None:
-        return None
-    while tb.tb_next is not None:
-        tb = tb.tb_next
-    return tb.tb_frame
+    return next(reversed([frame for frame, _ in traceback.walk_tb(err.__traceback__)]), None)
 
 
 def _raised_by_us(err: BaseException) -> bool:
