@@ -12,6 +12,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..ablation import runner
+from ..ablation.cluster import run_job_one_thread
 from ..ablation.report import write_reports
 
 
@@ -27,10 +28,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--report-only", action="store_true", help="only rebuild the reports from results.csv")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return p.parse_args(argv)
-
-
-def _init_worker() -> None:
-    torch.set_num_threads(1)
 
 
 def _run_in_process(cfg, jobs, sink) -> None:
@@ -63,14 +60,14 @@ def _run_with_executor(executor: Executor, fn, cfg, jobs, sink, in_flight: int) 
 def _run_in_pool(cfg, jobs, sink, workers: int) -> None:
     """Local worker processes (spawned, one torch thread each)."""
     ctx = mp.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker) as pool:
-        _run_with_executor(pool, runner.run_job, cfg, jobs, sink, workers)
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        _run_with_executor(pool, run_job_one_thread, cfg, jobs, sink, workers)
 
 
 def _run_on_cluster(cfg, jobs, sink, address: str) -> None:
     """Every pending job submitted at once to the Dask scheduler at ``address`` (it queues them, and
     workers that join later take their share)."""
-    from ..ablation.cluster import connect, portable_config, run_job_one_thread
+    from ..ablation.cluster import connect, portable_config
 
     client = connect(address)
     try:
