@@ -1,6 +1,7 @@
 """Figures and Rerun recordings of predicted vs measured tip paths on a validation recording."""
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -27,13 +28,9 @@ def _color(name: str, k: int) -> tuple[int, int, int]:
 
 def label_runs(labels: tuple[str, ...]) -> list[slice]:
     """Consecutive rows with the same label (ignoring a trailing '_hold'), as slices."""
-    base = [lab.removesuffix("_hold") for lab in labels]
-    runs, start = [], 0
-    for i in range(1, len(base) + 1):
-        if i == len(base) or base[i] != base[start]:
-            runs.append(slice(start, i))
-            start = i
-    return runs
+    groups = itertools.groupby(lab.removesuffix("_hold") for lab in labels)
+    ends = list(itertools.accumulate(sum(1 for _ in rows) for _, rows in groups))
+    return [slice(start, end) for start, end in zip([0, *ends], ends, strict=False)]
 
 
 def centered_errors_mm(pred: torch.Tensor, meas: torch.Tensor) -> np.ndarray:
