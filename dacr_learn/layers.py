@@ -18,13 +18,6 @@ from .clarke import joint_space_maps
 from .robot import RobotSpec
 
 
-def _selection(indices: list[int], m: int) -> Tensor:
-    """(m, len(indices)) 0/1 matrix that scatters a per-subset vector into per-segment slots."""
-    s = torch.zeros(m, len(indices), dtype=torch.float64)
-    s[indices, torch.arange(len(indices))] = 1.0
-    return s
-
-
 class _ClarkeBase(nn.Module):
     def __init__(self, spec: RobotSpec):
         super().__init__()
@@ -47,8 +40,8 @@ class _ClarkeBase(nn.Module):
         self.register_buffer("helix_radius", torch.tensor([s.joint_radii[0] for s in segs], **f64))
         self.register_buffer("extends", torch.tensor([s.extends for s in segs]))
         self.register_buffer("twists_ext", torch.tensor([segs[k].twists for k in ext], dtype=torch.bool))
-        self.register_buffer("select_ext", _selection(ext, m))
-        self.register_buffer("select_tw", _selection(tw, m))
+        self.register_buffer("select_ext", torch.eye(m, **f64)[:, ext])   # (m, e): per-subset → per-segment slots
+        self.register_buffer("select_tw", torch.eye(m, **f64)[:, tw])
 
     def _c(self, name: str, like: Tensor) -> Tensor:
         """Buffer ``name`` in ``like``'s dtype and device, cast once and cached (not while tracing)."""

@@ -80,9 +80,7 @@ def actuated_columns(spec: RobotSpec) -> list[tuple[int, str]]:
 def actuated_selection(spec: RobotSpec) -> Tensor:
     """(D, 4m) 0/1 matrix picking the actuated columns out of a flattened feature tensor."""
     flat = [4 * k + FEATURE_COLUMNS.index(name) for k, name in actuated_columns(spec)]
-    sel = torch.zeros(len(flat), 4 * spec.num_segments)
-    sel[torch.arange(len(flat)), flat] = 1.0
-    return sel
+    return torch.eye(4 * spec.num_segments)[flat]
 
 
 def fixed_features(spec: RobotSpec, dtype: torch.dtype = torch.float32) -> Tensor:
