@@ -139,13 +139,9 @@ class InferenceCompositionalJacobian(nn.Module):
 def roll_selection(model) -> Tensor:
     """(N, m) float64 picking each rolled segment's α (a twist joint) out of the joint vector; zero columns for
     the segments that are not rolled."""
-    spec = model.spec
-    twist_joint = {k: spec.num_length_joints + i for i, k in enumerate(k for k, s in enumerate(spec.segments)
-                                                                       if s.twists)}
-    sel = torch.zeros(spec.num_joints, spec.num_segments, dtype=F64)
-    for k in torch.nonzero(model.roll).flatten().tolist():
-        sel[twist_joint[k], k] = 1.0
-    return sel
+    spec = model.spec                     # the twist joints, in segment order, are the joint vector's last entries
+    twist = torch.eye(spec.num_segments, dtype=F64)[[k for k, s in enumerate(spec.segments) if s.twists]] * model.roll
+    return torch.cat([torch.zeros(spec.num_length_joints, spec.num_segments, dtype=F64), twist])
 
 
 def output_scale(model) -> Tensor:
