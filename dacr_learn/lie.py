@@ -112,9 +112,7 @@ def pose_from_parts(rotation: Tensor, position: Tensor, bottom: Tensor | None = 
     keeps one (the exported inference modules hold it as a buffer); built here otherwise.
     """
     top = torch.cat([rotation, position.unsqueeze(-1)], dim=-1)
-    if bottom is None:
-        bottom = torch.zeros_like(top[..., :1, :])
-        bottom[..., 0, 3] = 1.0
+    bottom = top.new_tensor([0.0, 0.0, 0.0, 1.0]) if bottom is None else bottom     # as pose_of_components'
     return torch.cat([top, bottom.expand(*top.shape[:-2], 1, 4)], dim=-2)
 
 
