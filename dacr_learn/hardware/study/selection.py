@@ -153,8 +153,7 @@ def group_weights(groups: Sequence[str], replicates: int = BOOTSTRAP_REPLICATES,
         raise ValueError("groups: expected the pattern group of at least one row, got none")
     index = torch.tensor([names.index(g) for g in groups])
     draw = torch.randint(len(names), (replicates, len(names)), generator=generator)
-    counts = torch.zeros(replicates, len(names), dtype=torch.float64).scatter_add_(
-        1, draw, torch.ones(replicates, len(names), dtype=torch.float64))
+    counts = torch.nn.functional.one_hot(draw, len(names)).sum(1).to(torch.float64)     # (B, groups): times drawn
     return counts[:, index]
 
 
