@@ -128,11 +128,9 @@ def find_checkpoint(path: str | Path) -> Path:
     if not path.is_dir():
         raise FileNotFoundError(f"{path}: no such file or folder; expected a .ckpt file, a run folder "
                                 "(runs/<run_name>) or a version folder (runs/<run_name>/version_<n>)")
-    if (path / "checkpoints" / LAST).is_file():
-        return path / "checkpoints" / LAST
-    for version in reversed(versions(path)):
-        if (version / "checkpoints" / LAST).is_file():
-            return version / "checkpoints" / LAST
+    for folder in (path, *reversed(versions(path))):               # a version folder, else the newest version
+        if (folder / "checkpoints" / LAST).is_file():
+            return folder / "checkpoints" / LAST
     raise FileNotFoundError(f"{path}: no checkpoints/{LAST} in it or in any version_<n> folder below it; "
                             "train a model first (train.py fit --config …)")
 
