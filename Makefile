@@ -11,13 +11,16 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet --no-compile -c constraints.txt torch==2.13.0
-	@# setuptools warns on every editable install that same-named folders may shadow the package: nothing to act on
+	@# Byte-compiled on all cores (pip compiles on one core only): what is installed so far (torch and its dependencies:
+	@# most of the compiling) in the background while pip installs the rest (on one core), then what pip added. A file
+	@# written for a newer Python (torch's testing/_internal/py312_intrinsics.py) does not compile, as under pip, and is
+	@# never imported. setuptools warns on every editable install that same-named folders may shadow the package:
+	@# nothing to act on.
+	@purelib="$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"; \
+	$(PY) -m compileall -q -j 0 "$$purelib"/* > /dev/null 2>&1 & compiling=$$!; \
 	PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install --quiet --no-compile -c constraints.txt \
-		-e ".[dev,cluster]"
-	@# byte-compiled on all cores (pip compiles on one core only); a file written for a newer Python (torch's
-	@# testing/_internal/py312_intrinsics.py) does not compile, as under pip, and is never imported
-	@$(PY) -m compileall -q -j 0 "$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')" \
-		> /dev/null 2>&1 || true
+		-e ".[dev,cluster]"; installed=$$?; wait $$compiling; test $$installed -eq 0 && \
+	{ $(PY) -m compileall -q -j 0 "$$purelib" > /dev/null 2>&1 || true; }
 	@if $(PY) -m pip list 2>/dev/null | grep -qi nvidia; then echo "error: CUDA packages were installed" >&2; exit 1; fi
 	touch $(STAMP)
 

@@ -34,6 +34,47 @@ ROOT = Path(__file__).resolve().parents[1]
 TEST_THREADS = int(os.environ.get("DACR_TEST_THREADS", "1"))
 torch.set_num_threads(TEST_THREADS)
 
+
+def _cache_export_schema_hints() -> None:
+    """torch.export.load (every exported program the tests load back: 0.1–1 s each) rebuilds the program's schema
+    dataclasses from JSON and asks ``typing.get_type_hints`` for the same few schema classes tens of thousands of
+    times per file: a third of the load. In the test processes those answers are cached from the first load on
+    (they depend on the class only, the schema module being fixed); the loaded programs are the same. Nothing is
+    changed if torch's deserializer is not as expected."""
+    import functools
+    import types
+    import typing
+
+    load = torch.export.load
+
+    @functools.wraps(load)
+    def first_load(*args, **kwargs):
+        torch.export.load = load                          # from now on torch's own, with the cache below
+        try:
+            from torch._export.serde import serialize
+            schema = vars(serialize.schema)
+        except (ImportError, AttributeError):
+            return load(*args, **kwargs)
+        if getattr(serialize, "typing", None) is typing:
+            hints = functools.lru_cache(maxsize=None)(lambda cls: typing.get_type_hints(cls, globalns=schema))
+
+            def get_type_hints(obj, globalns=None, localns=None, include_extras=False):
+                if globalns is schema and localns is None and not include_extras:
+                    return hints(obj)
+                return typing.get_type_hints(obj, globalns, localns, include_extras)
+
+            proxy = types.ModuleType("typing")
+            proxy.__dict__.update(vars(typing))
+            proxy.get_type_hints = get_type_hints
+            serialize.typing = proxy
+        return load(*args, **kwargs)
+
+    torch.export.load = first_load
+
+
+_cache_export_schema_hints()
+
+
 # Hypothesis: derandomised under CI (CI=true) or DACR_HYPOTHESIS_PROFILE=ci, so a CI run is
 # reproducible; the default profile draws new examples each run and prints a failure's blob.
 settings.register_profile("ci", derandomize=True, print_blob=True)
