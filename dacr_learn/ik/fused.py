@@ -29,6 +29,8 @@ from .refine import fused_matmul, lm_iteration, spd_solve_unrolled
 MIN_ROWS = 64   # batches below this take the eager iteration
 _COMPILED: dict[tuple, Callable] = {}
 _FIRST_CALL = threading.Lock()
+INDUCTOR_OPTIONS = {"cpp.simdlen": 1}   # scalar C++ loops: the rows' small inner dimensions (3, 6, 9) fill 4-lane
+                                        # vectors badly; scalar code runs the step ~2× faster (docs/ik.md)
 STANCE = "default"   # torch.compiler's stance of the compiled calls; "default": guards skipped (fused_iteration)
 
 
@@ -71,4 +73,4 @@ def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor,
 def _compile(model: SolverModel) -> Callable:
     def step(state: tuple[Tensor, ...], position: Tensor, rotation: Tensor | None) -> tuple[Tensor, ...]:
         return lm_iteration(model, state, position, rotation, solve=spd_solve_unrolled, matmul=fused_matmul)
-    return torch.compile(step, dynamic=True, fullgraph=True)
+    return torch.compile(step, dynamic=True, fullgraph=True, options=INDUCTOR_OPTIONS)
