@@ -16,6 +16,7 @@ from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
 from dacr_learn.ik import fused as fused_module
 from dacr_learn.ik.adapters import SolverModel
 from dacr_learn.ik.fused import MIN_ROWS, fused_iteration
+from dacr_learn.ik.pool import pool_multi_start
 from dacr_learn.ik.refine import fused_matmul, lm_iteration, residual, spd_solve_unrolled
 from dacr_learn.ik.solver import pose_bank
 
@@ -59,6 +60,27 @@ def test_small_batches_and_other_models_take_the_eager_iteration():
     for u, v in zip(fused_iteration(model)(model, state, pos, rot), lm_iteration(model, state, pos, rot), strict=True):
         assert torch.equal(u, v)
     assert fused_iteration(SolverModel()) is lm_iteration
+
+
+@pytest.mark.parametrize("position_only", [False, True])
+def test_new_rows_evaluated_by_the_step_follow_the_same_path(position_only):
+    """With an iteration other than the eager lm_iteration (the compiled one), the working batch's new rows enter
+    unevaluated (r = 0, J = 0, cost ∞) and the next step evaluates them: each start then takes the same LM path as
+    when evaluated on entry. One start per slot, no restarts: every slot's variables agree to rounding, its
+    iterations exactly (the evaluation is not counted), and the converged ones solve the target."""
+    model = ConstantCurvature(TDCR3)
+    target = targets_of(TDCR3, 40, seed=9)
+    position, rotation = target[:, :3, 3], None if position_only else target[:, :3, :3]
+    starts = model.limits.sample(80, torch.Generator().manual_seed(3))
+    runs = [pool_multi_start(model, starts, position, rotation, torch.Generator().manual_seed(0), 2, (1e-7, 1e-6),
+                             1e-3, 25, 1, 64, 8192, False, False, None, iteration=iteration)
+            for iteration in (lm_iteration, lambda *args: lm_iteration(*args))]
+    (x, iters), (x_step, iters_step) = runs
+    assert torch.equal(iters, iters_step) and iters.min() >= 1
+    torch.testing.assert_close(x_step, x, rtol=0, atol=1e-9)
+    pos, rot, _ = model.tip_and_jacobian(x_step)
+    err = torch.linalg.vector_norm(pos - position.repeat_interleave(2, 0), dim=-1)
+    assert (err < 1e-6).float().mean() > 0.5
 
 
 @pytest.mark.slow

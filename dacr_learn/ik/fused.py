@@ -60,7 +60,7 @@ def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor,
                     return out
             step = _COMPILED[key]
         # Dynamo's guards are skipped (skip_guard_eval_unsafe: its one compiled graph runs unchecked): every call of a
-        # key's step has the answers of its first — the same count of contiguous float64 tensors (the LM state), sizes
+        # key's step has the answers of its first — the same count of distinct contiguous float64 tensors (the LM state), sizes
         # but the rows fixed by the spec and task, rows ≥ MIN_ROWS (dynamic: torch only specialises 0 and 1), rotation
         # None or not per key, the spec's constants closed over per key; test_ik_fused checks, guards evaluated in
         # STANCE "fail_on_recompile", that calls of other row counts do not recompile.

@@ -84,7 +84,7 @@ class _Batch:
             if self.evaluate_in_step:   # the next (compiled) step evaluates them, not ~250 eager operations here:
                 n, res = x.shape[0], 3 if rot is None else 6      # r = 0 and J = 0 make x its own trial, kept at
                 cost = x.new_full((n,), float("inf"))             # cost ∞ with λ/3 = damping (not an iteration)
-                r, jac, pe, re = x.new_zeros(n, res), x.new_zeros(n, res, x.shape[1]), cost, cost
+                r, jac, pe, re = x.new_zeros(n, res), x.new_zeros(n, res, x.shape[1]), cost.clone(), cost.clone()
                 lam, since = torch.full_like(cost, 3 * self.damping), torch.full_like(slots, -1)
             else:
                 r, jac, pe, re = residual(self.model, x, pos, rot)
