@@ -87,13 +87,15 @@ def test_new_rows_evaluated_by_the_step_follow_the_same_path(position_only):
 @pytest.mark.skipif(os.environ.get("DACR_TEST_IK_FUSED") != "1",
                     reason="DACR_TEST_IK_FUSED=1 compiles the iteration (minutes)")
 def test_compiled_iteration_matches_and_solves(monkeypatch):
-    """Compiled (position targets: the smaller graph), the iteration matches the eager one on batches of three sizes
+    """Compiled (position targets: the smaller graph), the iteration matches the eager one on batches of four sizes
     and a fused solve flags only solutions the NumPy check verifies, all of them. Dynamic rows: with dynamo's guards
-    evaluated, other row counts do not recompile (what makes skipping the guards safe), skipped they match too.
+    evaluated, other row counts (also a batch run in chunks) do not recompile (what makes skipping the guards safe),
+    skipped they match too.
     Takes 1–4 min on a 2-core machine (the compilation; less with torch's on-disk cache warm)."""
     model = ConstantCurvature(TDCR3)
     fused = fused_iteration(model)
-    for n, stance in ((MIN_ROWS, "default"), (3 * MIN_ROWS + 5, "fail_on_recompile"), (700, "default")):
+    for n, stance in ((MIN_ROWS, "default"), (3 * MIN_ROWS + 5, "fail_on_recompile"), (700, "default"),
+                      (2 * fused_module.CHUNK_ROWS + 5, "fail_on_recompile")):             # in 3 chunks
         state, pos, _ = lm_state(model, n, True, seed=n)
         monkeypatch.setattr(fused_module, "STANCE", stance)
         assert_states_close(fused(model, state, pos, None), lm_iteration(model, state, pos, None), rtol=1e-9)
