@@ -16,6 +16,7 @@ from dacr_learn.ik import ConstantCurvature, IKOptions, solve_ik
 from dacr_learn.ik import fused as fused_module
 from dacr_learn.ik.adapters import SolverModel
 from dacr_learn.ik.fused import MIN_ROWS, fused_iteration
+from dacr_learn.ik.pool import pool_multi_start
 from dacr_learn.ik.refine import fused_matmul, lm_iteration, residual, spd_solve_unrolled
 from dacr_learn.ik.solver import pose_bank
 
@@ -61,17 +62,40 @@ def test_small_batches_and_other_models_take_the_eager_iteration():
     assert fused_iteration(SolverModel()) is lm_iteration
 
 
+@pytest.mark.parametrize("position_only", [False, True])
+def test_new_rows_evaluated_by_the_step_follow_the_same_path(position_only):
+    """With an iteration other than the eager lm_iteration (the compiled one), the working batch's new rows enter
+    unevaluated (r = 0, J = 0, cost ∞) and the next step evaluates them: each start then takes the same LM path as
+    when evaluated on entry. One start per slot, no restarts: every slot's variables agree to rounding, its
+    iterations exactly (the evaluation is not counted), and the converged ones solve the target."""
+    model = ConstantCurvature(TDCR3)
+    target = targets_of(TDCR3, 40, seed=9)
+    position, rotation = target[:, :3, 3], None if position_only else target[:, :3, :3]
+    starts = model.limits.sample(80, torch.Generator().manual_seed(3))
+    runs = [pool_multi_start(model, starts, position, rotation, torch.Generator().manual_seed(0), 2, (1e-7, 1e-6),
+                             1e-3, 25, 1, 64, 8192, False, False, None, iteration=iteration)
+            for iteration in (lm_iteration, lambda *args: lm_iteration(*args))]
+    (x, iters), (x_step, iters_step) = runs
+    assert torch.equal(iters, iters_step) and iters.min() >= 1
+    torch.testing.assert_close(x_step, x, rtol=0, atol=1e-9)
+    pos, rot, _ = model.tip_and_jacobian(x_step)
+    err = torch.linalg.vector_norm(pos - position.repeat_interleave(2, 0), dim=-1)
+    assert (err < 1e-6).float().mean() > 0.5
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(os.environ.get("DACR_TEST_IK_FUSED") != "1",
                     reason="DACR_TEST_IK_FUSED=1 compiles the iteration (minutes)")
 def test_compiled_iteration_matches_and_solves(monkeypatch):
-    """Compiled (position targets: the smaller graph), the iteration matches the eager one on batches of three sizes
+    """Compiled (position targets: the smaller graph), the iteration matches the eager one on batches of four sizes
     and a fused solve flags only solutions the NumPy check verifies, all of them. Dynamic rows: with dynamo's guards
-    evaluated, other row counts do not recompile (what makes skipping the guards safe), skipped they match too.
+    evaluated, other row counts (also a batch run in chunks) do not recompile (what makes skipping the guards safe),
+    skipped they match too.
     Takes 1–4 min on a 2-core machine (the compilation; less with torch's on-disk cache warm)."""
     model = ConstantCurvature(TDCR3)
     fused = fused_iteration(model)
-    for n, stance in ((MIN_ROWS, "default"), (3 * MIN_ROWS + 5, "fail_on_recompile"), (700, "default")):
+    for n, stance in ((MIN_ROWS, "default"), (3 * MIN_ROWS + 5, "fail_on_recompile"), (700, "default"),
+                      (2 * fused_module.CHUNK_ROWS + 5, "fail_on_recompile")):             # in 3 chunks
         state, pos, _ = lm_state(model, n, True, seed=n)
         monkeypatch.setattr(fused_module, "STANCE", stance)
         assert_states_close(fused(model, state, pos, None), lm_iteration(model, state, pos, None), rtol=1e-9)

@@ -6,7 +6,9 @@ two C++ functions: the same maths (:func:`~.refine.lm_iteration` with the SPD so
 :func:`~.refine.spd_solve_unrolled`, and small products as multiply-sums, :func:`~.refine.fused_matmul`, which
 Inductor fuses instead of calling LAPACK and BLAS), equal to the eager iteration up to rounding. Row counts are
 dynamic: one compilation serves every batch of :data:`MIN_ROWS` rows or more (smaller batches take the eager
-iteration: torch specialises sizes 0 and 1, and a compiled step gains little there).
+iteration: torch specialises sizes 0 and 1, and a compiled step gains little there). The loops are scalar
+(:data:`INDUCTOR_OPTIONS`) and a large batch runs in chunks (:data:`CHUNK_ROWS`): each about halves the time per row
+of a large batch. The working batch's new rows enter it unevaluated and the step evaluates them (:mod:`.pool`).
 
 Compiling takes minutes once per robot and task (pose, position) and process, once more for a sharded solve (one
 torch thread per shard); torch caches the compiled code on disk (its Inductor cache directory), which shortens, not
@@ -27,8 +29,12 @@ from .adapters import ConstantCurvature, SolverModel
 from .refine import fused_matmul, lm_iteration, spd_solve_unrolled
 
 MIN_ROWS = 64   # batches below this take the eager iteration
+CHUNK_ROWS = 2048   # larger batches run in equal chunks of at most this many rows: their intermediates stay in cache
+                    # (4,000 rows of a pose solve: ~1.5× the time per row of 2,000, whole)
 _COMPILED: dict[tuple, Callable] = {}
 _FIRST_CALL = threading.Lock()
+INDUCTOR_OPTIONS = {"cpp.simdlen": 1}   # scalar C++ loops: the rows' small inner dimensions (3, 6, 9) fill 4-lane
+                                        # AVX2 vectors badly; the scalar step takes half the time at 4,000 rows
 STANCE = "default"   # torch.compiler's stance of the compiled calls; "default": guards skipped (fused_iteration)
 
 
@@ -58,12 +64,18 @@ def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor,
                     return out
             step = _COMPILED[key]
         # Dynamo's guards are skipped (skip_guard_eval_unsafe: its one compiled graph runs unchecked): every call of a
-        # key's step has the answers of its first — the same count of contiguous float64 tensors (the LM state), sizes
-        # but the rows fixed by the spec and task, rows ≥ MIN_ROWS (dynamic: torch only specialises 0 and 1), rotation
-        # None or not per key, the spec's constants closed over per key; test_ik_fused checks, guards evaluated in
-        # STANCE "fail_on_recompile", that calls of other row counts do not recompile.
+        # key's step has the answers of its first — the same count of distinct contiguous float64 tensors (the LM
+        # state), sizes but the rows fixed by the spec and task, rows ≥ MIN_ROWS (dynamic: torch only specialises 0
+        # and 1), rotation None or not per key, the spec's constants closed over per key; test_ik_fused checks, guards
+        # evaluated in STANCE "fail_on_recompile", that calls of other row counts (and chunks) do not recompile.
+        n = state[0].shape[0]
         with torch.compiler.set_stance(STANCE, skip_guard_eval_unsafe=STANCE == "default"):
-            return step(*args)
+            if n <= CHUNK_ROWS:
+                return step(*args)
+            size = -(-n // -(-n // CHUNK_ROWS))                             # equal chunks, ≥ CHUNK_ROWS / 2 rows
+            parts = [step(tuple(t[i:i + size] for t in args[0]), args[1][i:i + size],
+                          None if rot is None else rot[i:i + size]) for i in range(0, n, size)]
+        return tuple(torch.cat(p) for p in zip(*parts, strict=True))
 
     return iteration
 
@@ -71,4 +83,4 @@ def fused_iteration(model: SolverModel) -> Callable[[SolverModel, tuple, Tensor,
 def _compile(model: SolverModel) -> Callable:
     def step(state: tuple[Tensor, ...], position: Tensor, rotation: Tensor | None) -> tuple[Tensor, ...]:
         return lm_iteration(model, state, position, rotation, solve=spd_solve_unrolled, matmul=fused_matmul)
-    return torch.compile(step, dynamic=True, fullgraph=True)
+    return torch.compile(step, dynamic=True, fullgraph=True, options=INDUCTOR_OPTIONS)

@@ -65,6 +65,7 @@ class _Batch:
                  iteration: Callable = lm_iteration):
         self.model, self.position, self.rotation, self.damping, self.k = model, position, rotation, damping, k
         self.iteration = iteration
+        self.evaluate_in_step = iteration is not lm_iteration     # the compiled iteration: see keep_and_add
         self.slot = torch.zeros(0, dtype=torch.long)
         self.since = torch.zeros(0, dtype=torch.long)
         self.pos_rows = position.new_zeros(0, 3)
@@ -80,10 +81,17 @@ class _Batch:
             pos = self.position.index_select(0, target)
             rot = None if self.rotation is None else self.rotation.index_select(0, target)
             x = self.model.limits.project(x0.to(F64))
-            r, jac, pe, re = residual(self.model, x, pos, rot)
-            cost = (r * r).sum(-1)
-            new = [x, r, jac, cost, torch.full_like(cost, self.damping), pe, re,      # the LM state, then per row:
-                   pos, rot, slots, torch.zeros_like(slots)]                            # target, slot, iterations
+            if self.evaluate_in_step:   # the next (compiled) step evaluates them, not ~250 eager operations here:
+                n, res = x.shape[0], 3 if rot is None else 6      # r = 0 and J = 0 make x its own trial, kept at
+                cost = x.new_full((n,), float("inf"))             # cost ∞ with λ/3 = damping (not an iteration)
+                r, jac, pe, re = x.new_zeros(n, res), x.new_zeros(n, res, x.shape[1]), cost.clone(), cost.clone()
+                lam, since = torch.full_like(cost, 3 * self.damping), torch.full_like(slots, -1)
+            else:
+                r, jac, pe, re = residual(self.model, x, pos, rot)
+                cost = (r * r).sum(-1)
+                lam, since = torch.full_like(cost, self.damping), torch.zeros_like(slots)
+            new = [x, r, jac, cost, lam, pe, re, pos, rot, slots, since]   # the LM state, then per row: target,
+                                                                             # slot, iterations
             rows = new if self.state is None else [
                 None if old is None else torch.cat([old, n]) for old, n in zip(rows, new, strict=True)]
         self.state, (self.pos_rows, self.rot_rows, self.slot, self.since) = tuple(rows[:7]), rows[7:]
@@ -180,7 +188,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             batch.keep_and_add(keep, slots, torch.cat(x0))
             live = torch.ones(batch.slot.numel(), dtype=torch.bool)
         batch.step()
-        iters.index_add_(0, batch.slot, live.long())
+        iters.index_add_(0, batch.slot, (live & (batch.since > 0) if batch.evaluate_in_step else live).long())
         x, _, _, cost, lam, pe, re = batch.state
         conv = live & (pe <= tolerance[0]) & (re <= tolerance[1])
         if conv.any():

@@ -19,7 +19,7 @@ from ..checks import F64
 from .adapters import SolverModel
 
 POSITION_WEIGHT = 10.0   # a position difference of L/10 weighs like a rotation of about 40°
-CHUNK = 1024             # targets per distance block (memory: CHUNK × size doubles)
+CHUNK = 64               # targets per distance block: its CHUNK × size floats stay in cache for the top-k
 
 
 class PoseBank:
@@ -38,7 +38,8 @@ class PoseBank:
         self.position = torch.cat([p for p, _ in parts]).to(F64)
         self.rotation = None if parts[0][1] is None else torch.cat([r for _, r in parts]).to(F64)
         self._weight = POSITION_WEIGHT / model.length
-        self._bank: dict[bool, Tensor] = {}       # the samples' features, float32, with and without the rotation
+        self._bank: dict[bool, tuple[Tensor, Tensor]] = {}   # the samples' features (F, size) float32 and their
+                                                              # squared norms, with and without the rotation
 
     def _features(self, position: Tensor, rotation: Tensor | None) -> Tensor:
         scaled = position * self._weight
@@ -53,11 +54,12 @@ class PoseBank:
         position = target[:, :3, 3] if pose else target
         use_rotation = pose and self.rotation is not None
         if use_rotation not in self._bank:
-            self._bank[use_rotation] = self._features(self.position, self.rotation if use_rotation else None).float()
-        bank = self._bank[use_rotation]
+            bank = self._features(self.position, self.rotation if use_rotation else None).float()
+            self._bank[use_rotation] = bank.T.contiguous(), (bank * bank).sum(-1)
+        bank, norm2 = self._bank[use_rotation]
+        feat = self._features(position, target[:, :3, :3] if use_rotation else None).float()
         out = []
-        for rows in range(0, target.shape[0], CHUNK):      # float32 distances: ranks as float64's, at half the cost
-            feat = self._features(position[rows:rows + CHUNK],
-                                  target[rows:rows + CHUNK, :3, :3] if use_rotation else None)
-            out.append(torch.cdist(feat.float(), bank).topk(count, dim=1, largest=False).indices)
+        for rows in range(0, target.shape[0], CHUNK):      # float32 ‖b‖² − 2a·b: ranks as the distances, float64's
+            block = torch.addmm(norm2, feat[rows:rows + CHUNK], bank, alpha=-2)
+            out.append(block.topk(count, dim=1, largest=False).indices)
         return self.x[torch.cat(out)]
