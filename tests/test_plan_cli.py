@@ -101,3 +101,12 @@ def test_bad_path_files_are_named(tmp_path, capsys):
     (tmp_path / "P.npy").unlink()
     assert run_cli(main, args(tmp_path)) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_an_out_path_that_cannot_be_written_is_a_one_line_error_before_any_work(tmp_path, capsys):
+    arc_path(tmp_path)
+    (tmp_path / "file").write_text("")
+    for out, message in ((tmp_path, "is a folder"), (tmp_path / "file" / "PLAN.npz", "is a file, not a folder")):
+        assert run_cli(main, args(tmp_path, "--out", str(out))) == 2
+        err = capsys.readouterr().err
+        assert f"--out {out}: " in err and message in err

@@ -22,16 +22,7 @@ import torch
 from ..checks import F64, prefix_errors
 from ..ik import IKOptions, IKResult, as_solver_model, check_targets, solve_ik
 from ..ik.collision import add_scene_arguments, scene_options
-from .loading import composite_from_files, describe, load_array, load_solver_model, save_npz
-
-
-def _out_path(path: str) -> Path:
-    out = Path(path)
-    if out.is_dir():
-        raise ValueError(f"--out {path}: is a folder; expected the path of the .npz file to write")
-    if out.parent.exists() and not out.parent.is_dir():
-        raise ValueError(f"--out {path}: its parent {out.parent} is a file, not a folder")
-    return out
+from .loading import composite_from_files, describe, load_array, load_solver_model, out_path, save_npz
 
 
 def main(argv: list[str] | None = None) -> IKResult:
@@ -63,7 +54,7 @@ def main(argv: list[str] | None = None) -> IKResult:
         raise ValueError(f"--batch: expected >= 1, got {args.batch}")
     if args.arm is None and (args.arm_tip is not None or args.mount is not None):
         raise ValueError("--arm-tip and --mount go with --arm ARM.urdf (whole-body IK); --arm is missing")
-    out = _out_path(args.out)
+    out = out_path(args.out)
     started = time.perf_counter()
     targets = prefix_errors(f"--targets {args.targets}", check_targets,
                             torch.from_numpy(load_array(args.targets, "--targets")), args.position_only)

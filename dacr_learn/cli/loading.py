@@ -33,6 +33,16 @@ def load_array(path: str | Path, flag: str, expected: str = "a .npy array") -> n
                          f"({err})") from err
 
 
+def out_path(path: str) -> Path:
+    """``--out PATH`` as a Path, checked before any work is done: ValueError if it is a folder or its parent a file."""
+    out = Path(path)
+    if out.is_dir():
+        raise ValueError(f"--out {path}: is a folder; expected the path of the .npz file to write")
+    if out.parent.exists() and not out.parent.is_dir():
+        raise ValueError(f"--out {path}: its parent {out.parent} is a file, not a folder")
+    return out
+
+
 def save_npz(out: Path, arrays: dict[str, np.ndarray]) -> None:
     """Write atomically: a temporary file beside ``out``, then renamed (an interrupted run leaves no half file)."""
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -29,7 +29,7 @@ from ..checks import F64
 from ..ik.collision import add_scene_arguments, scene_options
 from ..plan import FTLOptions, FTLPlan, plan_ftl
 from ..plan.path import Path as PolylinePath
-from .loading import composite_from_files, describe, load_array, load_solver_model, save_npz
+from .loading import composite_from_files, describe, load_array, load_solver_model, out_path, save_npz
 
 
 def load_path(path: str) -> PolylinePath:
@@ -45,8 +45,6 @@ def load_path(path: str) -> PolylinePath:
 
 def write_plan(out: Path, plan: FTLPlan) -> None:
     """PLAN.npz, atomically (:func:`~.loading.save_npz`)."""
-    if out.is_dir():
-        raise ValueError(f"--out {out}: is a folder; expected the path of the .npz file to write")
     save_npz(out, plan.arrays())
 
 
@@ -93,9 +91,7 @@ def main(argv: list[str] | None = None) -> FTLPlan:
         raise ValueError(f"--steps: expected >= 2, got {args.steps}")
     if not (np.isfinite(args.tolerance) and args.tolerance > 0):
         raise ValueError(f"--tolerance: expected a relative tolerance > 0, got {args.tolerance}")
-    out = Path(args.out)
-    if out.is_dir():
-        raise ValueError(f"--out {args.out}: is a folder; expected the path of the .npz file to write")
+    out = out_path(args.out)
     started = time.perf_counter()
     path = load_path(args.path)
     model, description = build_model(args)
