@@ -188,7 +188,7 @@ def pool_multi_start(model: SolverModel, starts: Tensor, position: Tensor, rotat
             batch.keep_and_add(keep, slots, torch.cat(x0))
             live = torch.ones(batch.slot.numel(), dtype=torch.bool)
         batch.step()
-        iters.index_add_(0, batch.slot, (live & (batch.since > 0) if batch.evaluate_in_step else live).long())
+        iters.index_add_(0, batch.slot, (live & (batch.since > 0)).long())   # not the step that evaluated new rows
         x, _, _, cost, lam, pe, re = batch.state
         conv = live & (pe <= tolerance[0]) & (re <= tolerance[1])
         if conv.any():
